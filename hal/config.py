@@ -1,0 +1,434 @@
+"""Rig configuration: one TOML format for robot, camera, gains, scenario, rates and transports.
+
+Every section is a frozen dataclass whose defaults are the numbers of DESIGN.md (Pelican arm, the
+paper's gains of eq. 34, the "paper" scenario). :func:`load_config` validates a file once at
+start-up and raises :class:`~hal.errors.HalConfigError` naming the offending key. The config lives
+in :mod:`hal` because both sides of the rig (controller and emulator) read the same file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hal.errors import HalConfigError
+
+Vec2 = tuple[float, float]
+Mat2 = tuple[tuple[float, float], tuple[float, float]]
+
+
+def _diag(a: float, b: float) -> Mat2:
+    return ((a, 0.0), (0.0, b))
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Two-link planar arm (eq. 1-5). Lengths in m, masses in kg, inertias in kg·m²."""
+
+    l1: float = 0.26
+    l2: float = 0.26
+    lc1: float = 0.0983
+    lc2: float = 0.0229
+    m1: float = 6.5225
+    m2: float = 2.0458
+    I1: float = 0.1213
+    I2: float = 0.0116
+    gravity: float = 0.0
+    """Gravity along -Y_w in m/s²; 0 for the horizontal plane of the paper's rig."""
+    tau_max: Vec2 = (150.0, 15.0)
+    """Amplifier torque limits per joint, N·m."""
+    viscous: Vec2 = (0.0, 0.0)
+    """Viscous joint friction, N·m·s/rad (emulator only)."""
+    coulomb: Vec2 = (0.0, 0.0)
+    """Coulomb joint friction, N·m (emulator only)."""
+
+    @property
+    def theta(self) -> tuple[float, float, float]:
+        """Base parameters theta1..theta3 of eq. (4)-(5)."""
+        t1 = self.m1 * self.lc1**2 + self.m2 * self.l1**2 + self.I1
+        t2 = self.m2 * self.lc2**2 + self.I2
+        t3 = self.m2 * self.l1 * self.lc2
+        return (t1, t2, t3)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Ideal pinhole camera on the hand (eq. 6): f = (s·lambda / z_wo) R_wc^T (p_wo - p_wc)."""
+
+    s_lambda: float = 1230.0
+    """Scale factor times focal length, px."""
+    z_wo: float = 0.9
+    """Depth of the target plane, m."""
+    noise_px: float = 0.0
+    """Standard deviation of Gaussian pixel noise on each feature; 0 = off."""
+    frame_rate_hz: float = 0.0
+    """Camera frame rate; 0 = a fresh image whenever the controller asks (off)."""
+    latency_s: float = 0.0
+    """Delay between capture and delivery of a feature vector; 0 = off."""
+    seed: int = 0
+    """Seed of the pixel-noise generator (repetitions of an experiment differ by it)."""
+
+    @property
+    def gain(self) -> float:
+        """s·lambda / z_wo in px/m (1367 for the paper's camera)."""
+        return self.s_lambda / self.z_wo
+
+
+@dataclass(frozen=True)
+class GainsConfig:
+    """Controller gains of eq. (11), (13), (15), (18) and (34)."""
+
+    kp: float = 0.13
+    alpha: Mat2 = ((0.05, 0.0), (0.0, 0.15))
+    K: Mat2 = ((0.01, 0.0), (0.0, 0.01))
+
+    @property
+    def R(self) -> np.ndarray:
+        """R = kp/4 alpha^-1 + K (eq. 18)."""
+        return self.kp / 4.0 * np.linalg.inv(np.array(self.alpha)) + np.array(self.K)
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """Initial pose, target placement and the target jump (DESIGN.md scenario "paper")."""
+
+    name: str = "paper"
+    q0: Vec2 = (math.pi / 6, -math.pi / 6)
+    dq0: Vec2 = (0.0, 0.0)
+    f0: Vec2 = (-120.0, -160.0)
+    """Features at t = 0 (px); the target is placed so that the camera sees this."""
+    disturbance: bool = True
+    """Whether the target jumps at ``jump_time``."""
+    jump_time: float = 3.0
+    f_jump: Vec2 = (-50.0, -64.0)
+    """Features the jumped target would have, seen from the camera's initial pose (px)."""
+
+
+@dataclass(frozen=True)
+class RatesConfig:
+    """Loop rates in Hz."""
+
+    control_hz: float = 50.0
+    physics_hz: float = 1000.0
+    state_hz: float = 1000.0
+    """Rate of the DSP's joint-state frames."""
+    status_hz: float = 10.0
+    """Rate of the DSP's status frames."""
+
+    @property
+    def control_period_ns(self) -> int:
+        return round(1e9 / self.control_hz)
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control period."""
+        return round(self.physics_hz / self.control_hz)
+
+
+@dataclass(frozen=True)
+class RhcConfig:
+    """Receding-horizon control (eq. 30) solved by C/GMRES."""
+
+    horizon: float = 0.1
+    """Final horizon length T_f, s."""
+    steps: int = 10
+    """Number of discretisation steps N of the horizon."""
+    kmax: int = 5
+    """GMRES iterations per update."""
+    zeta: float = 50.0
+    """Continuation stabilisation gain, 1/s (dF/dt = -zeta F)."""
+    horizon_growth: float = 0.0
+    """a in T(t) = T_f (1 - exp(-a t)); 0 keeps T = T_f from the start."""
+    u_max: Vec2 = (150.0, 15.0)
+    """Bounds |u_i| <= u_max,i enforced with dummy inputs, N·m."""
+    dummy_weight: float = 0.01
+    """Weight of the dummy inputs in the cost (keeps the bound multipliers finite)."""
+    fd_step: float = 1e-8
+    """Forward-difference step of the GMRES matrix-free products."""
+    residual_bound: float = 1e3
+    """Above this optimality residual the solution is rejected and the tick falls back."""
+    init_tol: float = 1e-8
+    """Residual target of the initial Newton-GMRES solve."""
+    init_iterations: int = 50
+    """Iteration limit of the initial Newton-GMRES solve."""
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Controller daemon settings."""
+
+    law: str = "ioc"
+    """pbc | ioc | rhc."""
+    clock: str = "realtime"
+    """realtime | lockstep."""
+    feature_timeout_s: float = 0.1
+    """Features older than this are stale."""
+    state_timeout_s: float = 0.05
+    """Joint states older than this mean the DSP went silent."""
+    spin_us: float = 300.0
+    """Busy-wait for the last microseconds before a deadline."""
+    rt_priority: int = 80
+    """SCHED_FIFO priority (best effort)."""
+    cpu: int = -1
+    """CPU to pin the loop to; -1 = leave affinity alone."""
+    log_dir: str = "logs"
+
+
+@dataclass(frozen=True)
+class DspConfig:
+    """Emulated DSP node."""
+
+    watchdog_periods: float = 3.0
+    """Torque is removed after this many control periods without a valid command."""
+    encoder_counts: int = 1_048_576
+    """Encoder counts per revolution (20-bit absolute encoder)."""
+    velocity_filter_hz: float = 200.0
+    """Cut-off of the first-order velocity estimate filter; 0 = raw finite difference."""
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    """Where the processes talk."""
+
+    can: str = "auto"
+    """python-can ``INTERFACE[:CHANNEL]``; auto = socketcan:vcan0 if present else udp_multicast."""
+    zenoh_endpoint: str = "tcp/127.0.0.1:7447"
+    """Loopback endpoint the processes meet on."""
+    zenoh_config: str = ""
+    """Path of a zenoh json5 config replacing the loopback defaults (multi-host setups)."""
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """The whole rig: every section of the TOML file."""
+
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    gains: GainsConfig = field(default_factory=GainsConfig)
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    rates: RatesConfig = field(default_factory=RatesConfig)
+    rhc: RhcConfig = field(default_factory=RhcConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    dsp: DspConfig = field(default_factory=DspConfig)
+    transport: TransportConfig = field(default_factory=TransportConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain nested dict (lists for tuples), the inverse of :func:`config_from_dict`."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    def with_overrides(self, overrides: dict[str, Any]) -> RigConfig:
+        """A validated copy with ``{"section.key": value}`` overrides applied."""
+        data = self.to_dict()
+        for dotted, value in overrides.items():
+            section, _, key = dotted.partition(".")
+            if section not in data or not key:
+                raise HalConfigError(f"unknown config key {dotted!r}")
+            data[section][key] = list(value) if isinstance(value, tuple) else value
+        return config_from_dict(data)
+
+
+_SECTIONS: dict[str, type] = {f.name: f.type for f in dataclasses.fields(RigConfig)}
+_SECTION_TYPES: dict[str, type] = {
+    name: cls
+    for name, cls in typing.get_type_hints(RigConfig).items()
+    if dataclasses.is_dataclass(cls)
+}
+
+
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise HalConfigError(f"{key}: expected a number, got {value!r}")
+    if not math.isfinite(value):
+        raise HalConfigError(f"{key}: must be finite, got {value!r}")
+    return float(value)
+
+
+def _coerce(value: Any, hint: Any, key: str) -> Any:
+    if hint is float:
+        return _number(value, key)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise HalConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise HalConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise HalConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    if hint == Vec2:
+        if not isinstance(value, list | tuple) or len(value) != 2:
+            raise HalConfigError(f"{key}: expected a list of 2 numbers, got {value!r}")
+        return tuple(_number(v, f"{key}[{i}]") for i, v in enumerate(value))
+    if hint == Mat2:
+        if isinstance(value, list | tuple) and len(value) == 2:
+            if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+                return _diag(_number(value[0], f"{key}[0]"), _number(value[1], f"{key}[1]"))
+            if all(isinstance(r, list | tuple) and len(r) == 2 for r in value):
+                return tuple(
+                    tuple(_number(v, f"{key}[{i}][{j}]") for j, v in enumerate(row))
+                    for i, row in enumerate(value)
+                )
+        raise HalConfigError(
+            f"{key}: expected a 2x2 matrix [[a, b], [c, d]] or its diagonal [a, d], got {value!r}"
+        )
+    raise HalConfigError(f"{key}: unsupported type {hint!r}")  # pragma: no cover
+
+
+def _build_section(name: str, data: Any) -> Any:
+    cls = _SECTION_TYPES[name]
+    if not isinstance(data, dict):
+        raise HalConfigError(f"[{name}]: expected a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    known = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in data.items():
+        if key not in hints:
+            raise HalConfigError(f"unknown key {name}.{key} (known keys: {', '.join(known)})")
+        kwargs[key] = _coerce(value, hints[key], f"{name}.{key}")
+    return cls(**kwargs)
+
+
+def _require(cond: bool, key: str, message: str) -> None:
+    if not cond:
+        raise HalConfigError(f"{key}: {message}")
+
+
+def _check_spd(matrix: Mat2, key: str) -> None:
+    m = np.array(matrix)
+    _require(np.allclose(m, m.T), key, f"must be symmetric, got {matrix}")
+    _require(
+        bool(np.all(np.linalg.eigvalsh(m) > 0.0)), key, f"must be positive definite, got {matrix}"
+    )
+
+
+def validate(cfg: RigConfig) -> RigConfig:
+    """Check cross-field constraints; returns ``cfg`` or raises :class:`HalConfigError`."""
+    r = cfg.robot
+    for key in ("l1", "l2", "m1", "m2", "I1", "I2"):
+        _require(getattr(r, key) > 0, f"robot.{key}", "must be positive")
+    for key in ("lc1", "lc2", "gravity"):
+        _require(getattr(r, key) >= 0, f"robot.{key}", "must be non-negative")
+    for key in ("tau_max",):
+        _require(all(v > 0 for v in getattr(r, key)), f"robot.{key}", "must be positive")
+    for key in ("viscous", "coulomb"):
+        _require(all(v >= 0 for v in getattr(r, key)), f"robot.{key}", "must be non-negative")
+    c = cfg.camera
+    _require(c.s_lambda > 0, "camera.s_lambda", "must be positive")
+    _require(c.z_wo > 0, "camera.z_wo", "must be positive")
+    _require(c.noise_px >= 0, "camera.noise_px", "must be non-negative")
+    _require(c.frame_rate_hz >= 0, "camera.frame_rate_hz", "must be non-negative (0 = off)")
+    _require(c.latency_s >= 0, "camera.latency_s", "must be non-negative")
+    g = cfg.gains
+    _require(g.kp > 0, "gains.kp", "must be positive")
+    _check_spd(g.alpha, "gains.alpha")
+    _check_spd(g.K, "gains.K")
+    s = cfg.scenario
+    _require(s.name == "paper", "scenario.name", f"unknown scenario {s.name!r} (known: paper)")
+    _require(s.jump_time >= 0, "scenario.jump_time", "must be non-negative")
+    rt = cfg.rates
+    for key in ("control_hz", "physics_hz", "state_hz", "status_hz"):
+        _require(getattr(rt, key) > 0, f"rates.{key}", "must be positive")
+    _require(
+        rt.physics_hz >= rt.control_hz,
+        "rates.physics_hz",
+        f"must be at least rates.control_hz ({rt.control_hz} Hz)",
+    )
+    ratio = rt.physics_hz / rt.control_hz
+    _require(
+        abs(ratio - round(ratio)) < 1e-9,
+        "rates.physics_hz",
+        f"must be an integer multiple of rates.control_hz (got ratio {ratio:g})",
+    )
+    _require(
+        rt.state_hz <= rt.physics_hz,
+        "rates.state_hz",
+        f"cannot exceed rates.physics_hz ({rt.physics_hz} Hz)",
+    )
+    h = cfg.rhc
+    _require(h.horizon > 0, "rhc.horizon", "must be positive")
+    _require(h.steps >= 1, "rhc.steps", "must be at least 1")
+    _require(h.kmax >= 1, "rhc.kmax", "must be at least 1")
+    _require(h.zeta > 0, "rhc.zeta", "must be positive")
+    _require(h.horizon_growth >= 0, "rhc.horizon_growth", "must be non-negative (0 = off)")
+    _require(all(v > 0 for v in h.u_max), "rhc.u_max", "must be positive")
+    _require(h.dummy_weight > 0, "rhc.dummy_weight", "must be positive")
+    _require(0 < h.fd_step < 1e-2, "rhc.fd_step", "must be in (0, 0.01)")
+    _require(h.residual_bound > 0, "rhc.residual_bound", "must be positive")
+    _require(h.init_tol > 0, "rhc.init_tol", "must be positive")
+    _require(h.init_iterations >= 1, "rhc.init_iterations", "must be at least 1")
+    ct = cfg.controller
+    _require(
+        ct.law in ("pbc", "ioc", "rhc"),
+        "controller.law",
+        f"must be pbc, ioc or rhc, not {ct.law!r}",
+    )
+    _require(
+        ct.clock in ("realtime", "lockstep"),
+        "controller.clock",
+        f"must be realtime or lockstep, not {ct.clock!r}",
+    )
+    _require(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
+    _require(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")
+    _require(ct.spin_us >= 0, "controller.spin_us", "must be non-negative")
+    _require(1 <= ct.rt_priority <= 99, "controller.rt_priority", "must be in 1..99")
+    d = cfg.dsp
+    _require(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")
+    _require(d.encoder_counts >= 2, "dsp.encoder_counts", "must be at least 2")
+    _require(d.velocity_filter_hz >= 0, "dsp.velocity_filter_hz", "must be non-negative")
+    return cfg
+
+
+def config_from_dict(data: dict[str, Any]) -> RigConfig:
+    """Build and validate a :class:`RigConfig` from a nested dict (parsed TOML or JSON)."""
+    if not isinstance(data, dict):
+        raise HalConfigError(f"config: expected a table of sections, got {type(data).__name__}")
+    sections = {}
+    for name, body in data.items():
+        if name not in _SECTIONS:
+            raise HalConfigError(
+                f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
+            )
+        sections[name] = _build_section(name, body)
+    return validate(RigConfig(**sections))
+
+
+def load_config(path: str | Path | None = None) -> RigConfig:
+    """Load and validate a TOML rig config; ``None`` gives the embedded defaults."""
+    if path is None:
+        return validate(RigConfig())
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise HalConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise HalConfigError(f"{p}: not valid TOML: {exc}") from exc
+    try:
+        return config_from_dict(data)
+    except HalConfigError as exc:
+        raise HalConfigError(f"{p}: {exc}") from exc
+
+
+def config_from_json(text: str) -> RigConfig:
+    """Inverse of :meth:`RigConfig.to_json` (used to replay a log's embedded configuration)."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise HalConfigError(f"embedded config is not valid JSON: {exc}") from exc
+    return config_from_dict(data)

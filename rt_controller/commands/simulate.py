@@ -1,0 +1,42 @@
+"""``hil simulate``: the in-process closed loop (emulator physics + controller, no transports)."""
+
+from __future__ import annotations
+
+import argparse
+
+from rt_controller.commands.common import (
+    add_config_option,
+    add_law_options,
+    add_scenario_options,
+    config_from_args,
+)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="run the closed loop in-process, faster than real time",
+        description="Closed loop of the emulator's arm physics and the controller's law, "
+        "without transports. Torque is held between ticks; J = sum of l(x_k, u_k) / rate.",
+    )
+    add_law_options(p)
+    add_scenario_options(p)
+    add_config_option(p)
+    p.add_argument("--duration", type=float, default=6.0, metavar="S", help="seconds (default 6)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from plant_emulator.world import World
+    from rt_controller.cli import print_summary
+    from rt_controller.controller import Controller
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.simulate import run_closed_loop
+
+    if args.duration <= 0:
+        raise ControllerConfigError(f"--duration must be positive, got {args.duration}")
+    cfg = config_from_args(args)
+    result = run_closed_loop(World(cfg), Controller(cfg), cfg, args.duration)
+    print_summary(result.summary(), args.json, f"hil simulate --law {result.law}")
+    return 0

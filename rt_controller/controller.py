@@ -1,0 +1,55 @@
+"""One control step: measurement -> law -> torque (eq. 11), independent of any I/O."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hal.config import RigConfig
+from rt_controller.laws import ControlLaw, LawOutput, Measurement, make_law
+from rt_controller.model import NominalModel
+
+
+@dataclass(frozen=True)
+class Command:
+    """What one tick decided: the law's output, the torque of eq. (11) and its saturated value."""
+
+    measurement: Measurement
+    law: LawOutput
+    tau_raw: np.ndarray
+    tau: np.ndarray
+    saturated: bool
+
+
+class Controller:
+    """Pure step function around a control law; the caller owns clocks and transports."""
+
+    def __init__(self, cfg: RigConfig, law: str | ControlLaw | None = None) -> None:
+        self.cfg = cfg
+        self.model = NominalModel.from_config(cfg)
+        name = cfg.controller.law if law is None else law
+        self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
+        self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
+
+    def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
+        q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
+        return Measurement(t=t, q=q, dq=dq, f=f, xi=self.model.xi(q, dq, f))
+
+    def step(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Command:
+        """u from the law, tau by eq. (11), clipped to the amplifier limits."""
+        m = self.measurement(t, q, dq, f)
+        out = self.law(m)
+        tau_raw = self.model.torque(m.q, m.dq, m.f, out.u)
+        tau = np.clip(tau_raw, -self.tau_max, self.tau_max)
+        return Command(m, out, tau_raw, tau, bool(np.any(tau != tau_raw)))
+
+    def stage_cost(self, cmd: Command) -> float:
+        """l(x_k, u_k) of eq. (25) for this tick."""
+        m = cmd.measurement
+        return self.model.stage_cost(m.q, m.xi, m.f, cmd.law.u)
+
+    def energy(self, cmd: Command) -> float:
+        """V(x_k) of eq. (13) for this tick."""
+        m = cmd.measurement
+        return self.model.V(m.q, m.xi, m.f)

@@ -1,0 +1,85 @@
+"""Shared fixtures. The autouse ``no_leaks`` fixture fails any test that leaves a CAN bus, a
+zenoh session, a thread or a child process behind."""
+
+from __future__ import annotations
+
+import gc
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from hal.config import RigConfig, load_config
+
+LEAK_GRACE_S = 3.0
+
+
+def _child_pids() -> set[int]:
+    pids: set[int] = set()
+    for task in Path(f"/proc/{os.getpid()}/task").glob("*/children"):
+        try:
+            pids.update(int(p) for p in task.read_text().split())
+        except OSError:
+            continue
+    return {p for p in pids if _alive(p)}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+def _open_buses() -> list[str]:
+    can = sys.modules.get("can")
+    if can is None:
+        return []
+    gc.collect()
+    found = []
+    for obj in gc.get_objects():
+        try:
+            if isinstance(obj, can.BusABC) and not getattr(obj, "_is_shutdown", True):
+                found.append(f"{type(obj).__name__}({getattr(obj, 'channel_info', '?')})")
+        except ReferenceError:
+            continue
+    return found
+
+
+def _leaks(threads_before: set[threading.Thread], children_before: set[int]) -> list[str]:
+    from hal.resources import open_resources
+
+    out = [f"open resource: {label}" for label in open_resources()]
+    out += [f"open python-can bus: {b}" for b in _open_buses()]
+    out += [
+        f"thread still running: {t.name}"
+        for t in threading.enumerate()
+        if t not in threads_before and t.is_alive()
+    ]
+    out += [f"child process still running: pid {p}" for p in _child_pids() - children_before]
+    return out
+
+
+@pytest.fixture(autouse=True)
+def no_leaks():
+    """Fail the test if it leaked a bus, session, thread or process (after a short grace)."""
+    threads_before = set(threading.enumerate())
+    children_before = _child_pids()
+    yield
+    deadline = time.monotonic() + LEAK_GRACE_S
+    leaks = _leaks(threads_before, children_before)
+    while leaks and time.monotonic() < deadline:
+        time.sleep(0.05)
+        leaks = _leaks(threads_before, children_before)
+    if leaks:
+        pytest.fail("test leaked: " + "; ".join(leaks), pytrace=False)
+
+
+@pytest.fixture
+def cfg() -> RigConfig:
+    """The embedded default configuration (DESIGN.md numbers)."""
+    return load_config()
