@@ -55,7 +55,8 @@ def unproject(camera: CameraConfig, pose: CameraPose, f: np.ndarray) -> np.ndarr
 class CameraModel:
     """Captures frames on its own clock and delivers them after the configured latency.
 
-    ``frame_rate_hz == 0`` captures on every call of :meth:`capture` (i.e. every physics step).
+    ``frame_rate_hz == 0`` captures on every call of :meth:`capture`: on demand when there is no
+    latency, else at every physics step.
     """
 
     def __init__(self, camera: CameraConfig, seed: int | None = None) -> None:
@@ -63,6 +64,8 @@ class CameraModel:
         self.period = 1.0 / camera.frame_rate_hz if camera.frame_rate_hz > 0 else 0.0
         self.rng = np.random.default_rng(camera.seed if seed is None else seed)
         self.frame = 0
+        self.frame_time = -math.inf
+        """Capture time of the newest frame taken."""
         self._next_capture = 0.0
         self._pending: deque[FeatureFrame] = deque()
         self._delivered: FeatureFrame | None = None
@@ -75,12 +78,22 @@ class CameraModel:
         if self.cfg.noise_px > 0:
             f = f + self.rng.normal(0.0, self.cfg.noise_px, size=2)
         self._pending.append(FeatureFrame(t, self.frame, f))
+        self.frame_time = t
         self.frame += 1
         if self.period > 0:
             self._next_capture += self.period * max(
                 1, math.floor((t - self._next_capture) / self.period) + 1
             )
         self._deliver(t)
+
+    @property
+    def on_demand(self) -> bool:
+        """True when frames are taken only when asked for (no frame clock, no latency)."""
+        return self.period == 0.0 and self.cfg.latency_s == 0.0
+
+    def next_capture_time(self) -> float:
+        """Time of the next frame on the camera's own clock (0 period: every offer)."""
+        return self._next_capture
 
     def _deliver(self, t: float) -> None:
         while self._pending and self._pending[0].t_capture + self.cfg.latency_s <= t + 1e-12:

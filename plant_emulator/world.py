@@ -6,6 +6,8 @@ the integer physics step; time is ``step / physics_hz`` seconds.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hal.config import RigConfig
@@ -47,18 +49,26 @@ class World:
 
     def step(self, tau: np.ndarray) -> None:
         """Advance one physics step with ``tau`` held (saturated by the amplifier)."""
-        self.tau_applied = self.arm.saturate(np.asarray(tau, dtype=float))
-        self.q, self.dq = self.arm.rk4_step(self.q, self.dq, self.tau_applied, self.dt)
-        self.step_index += 1
-        self.camera.capture(self.t, self.true_features())
+        self.hold(tau, 1)
 
     def hold(self, tau: np.ndarray, steps: int) -> None:
-        """Advance ``steps`` physics steps with ``tau`` held."""
-        for _ in range(steps):
-            self.step(tau)
+        """Advance ``steps`` physics steps with ``tau`` held, stopping at camera frame times."""
+        self.tau_applied = self.arm.saturate(np.asarray(tau, dtype=float))
+        end = self.step_index + steps
+        while self.step_index < end:
+            n = end - self.step_index
+            if not self.camera.on_demand:
+                due = math.ceil(self.camera.next_capture_time() / self.dt - 1e-9)
+                n = min(n, max(1, due - self.step_index))
+            self.q, self.dq = self.arm.integrate(self.q, self.dq, self.tau_applied, self.dt, n)
+            self.step_index += n
+            if not self.camera.on_demand:
+                self.camera.capture(self.t, self.true_features())
 
     def features(self) -> FeatureFrame | None:
-        """Newest camera frame delivered by now."""
+        """Newest camera frame delivered by now (taken now when the camera is on demand)."""
+        if self.camera.on_demand and self.camera.frame_time != self.t:
+            self.camera.capture(self.t, self.true_features())
         return self.camera.latest(self.t)
 
     def measure(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

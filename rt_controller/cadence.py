@@ -1,0 +1,105 @@
+"""Hard-cadence timing: absolute monotonic deadlines, sleep then spin, missed periods skipped.
+
+Tick k is released at ``start + k * period``. A tick that cannot start within its own period is
+skipped (counted in ``missed``), never run in a burst. The clock is a parameter so tests drive the
+cadence with a fake clock and never sleep.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+
+class Clock(Protocol):
+    """Integer nanoseconds and a way to wait for an absolute time."""
+
+    def now_ns(self) -> int: ...
+
+    def sleep_until(self, deadline_ns: int) -> None: ...
+
+
+class MonotonicClock:
+    """``time.monotonic_ns`` with ``clock_nanosleep``-style waiting: sleep, then spin the rest."""
+
+    def __init__(self, spin_ns: int = 300_000) -> None:
+        self.spin_ns = spin_ns
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns()
+
+    def sleep_until(self, deadline_ns: int) -> None:
+        remaining = deadline_ns - time.monotonic_ns() - self.spin_ns
+        if remaining > 0:
+            time.sleep(remaining / 1e9)
+        while time.monotonic_ns() < deadline_ns:
+            pass
+
+
+class FakeClock:
+    """A clock that jumps to each deadline instantly; ``advance`` simulates work."""
+
+    def __init__(self, start_ns: int = 0, wake_latency_ns: int = 0) -> None:
+        self.t = start_ns
+        self.wake_latency_ns = wake_latency_ns
+
+    def now_ns(self) -> int:
+        return self.t
+
+    def sleep_until(self, deadline_ns: int) -> None:
+        if deadline_ns > self.t:
+            self.t = deadline_ns + self.wake_latency_ns
+
+    def advance(self, ns: int) -> None:
+        self.t += ns
+
+
+@dataclass(frozen=True)
+class Tick:
+    """One release of the loop."""
+
+    index: int
+    """Tick number k (counts skipped periods too: k = periods since start)."""
+    release_ns: int
+    """Scheduled start: start + k * period."""
+    wake_ns: int
+    """When the loop actually woke."""
+    missed: int
+    """Periods skipped just before this tick because the previous one overran."""
+
+    @property
+    def lateness_ns(self) -> int:
+        return self.wake_ns - self.release_ns
+
+
+class Cadence:
+    """Absolute-deadline periodic releases on a :class:`Clock`."""
+
+    def __init__(self, period_ns: int, clock: Clock, start_ns: int | None = None) -> None:
+        if period_ns <= 0:
+            raise ValueError(f"period must be positive, got {period_ns} ns")
+        self.period_ns = period_ns
+        self.clock = clock
+        self.start_ns = clock.now_ns() + period_ns if start_ns is None else start_ns
+        self._next = 0
+        self.missed_total = 0
+
+    def wait(self) -> Tick:
+        """Sleep until the next release; skip releases that already lie a period in the past."""
+        k = self._next
+        release = self.start_ns + k * self.period_ns
+        now = self.clock.now_ns()
+        missed = 0
+        if now >= release + self.period_ns:
+            missed = (now - release) // self.period_ns
+            k += missed
+            release += missed * self.period_ns
+            self.missed_total += missed
+        self.clock.sleep_until(release)
+        self._next = k + 1
+        return Tick(k, release, self.clock.now_ns(), missed)
+
+    def deadline_of(self, tick: Tick) -> int:
+        """A tick's work must finish before the next release."""
+        return tick.release_ns + self.period_ns
