@@ -1,0 +1,218 @@
+"""Bus factory: ``INTERFACE[:CHANNEL]`` specs, python-can configuration, the embedded default.
+
+Spec forms (the ``--can`` option and ``transport.can`` of the rig config):
+
+* ``socketcan:vcan0`` (``socketcan`` alone means ``vcan0``), ``socketcan:can0``;
+* ``udp_multicast`` = ``udp_multicast:239.74.163.2:43113``; ``udp_multicast:GROUP[:PORT]``,
+  ``udp_multicast:[ff15::1]:PORT`` for IPv6. Always host-local (:mod:`hal.udp_loopback`):
+  pinned to ``lo`` with ``hop_limit=0`` unless ``hop_limit`` is passed explicitly;
+* ``virtual`` (channel ``hil``) or ``virtual:NAME``: python-can's in-process bus;
+* any other python-can interface name, passed to :class:`can.Bus` as is;
+* ``auto`` or ``None``: python-can's own configuration when it names an interface
+  (``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``/``CAN_CONFIG`` or a ``can.conf`` file,
+  read with :func:`can.util.load_config`); otherwise ``socketcan:vcan0`` when
+  ``/sys/class/net/vcan0`` exists, else ``udp_multicast``.
+
+Every failure to open raises :class:`~hal.errors.HalTransportError` with one line saying what to
+do. The returned bus is a context manager and its ``shutdown()`` is safe to call twice.
+"""
+
+from __future__ import annotations
+
+import configparser
+import errno
+import ipaddress
+import os
+import socket
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import can.util
+
+from hal.errors import HalConfigError, HalTransportError
+from hal.udp_loopback import DEFAULT_GROUP, DEFAULT_PORT, LoopbackMulticastBus
+
+AUTO = "auto"
+DEFAULT_VCAN = "vcan0"
+DEFAULT_VIRTUAL_CHANNEL = "hil"
+SYS_CLASS_NET = Path("/sys/class/net")
+
+
+def vcan_hint(channel: str = DEFAULT_VCAN) -> str:
+    """The shell line that creates and raises a vcan interface."""
+    return (
+        f"sudo modprobe vcan && sudo ip link add dev {channel} type vcan "
+        f"&& sudo ip link set up {channel}"
+    )
+
+
+@dataclass(frozen=True)
+class BusSpec:
+    """A resolved bus: python-can interface name, channel and extra keyword arguments."""
+
+    interface: str
+    channel: str | None
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    source: str = "spec"
+    """Where it came from: ``spec``, ``python-can config`` or ``auto``."""
+
+    def __str__(self) -> str:
+        if self.interface == "udp_multicast":
+            group = self.channel or DEFAULT_GROUP
+            group = f"[{group}]" if ":" in group else group
+            return f"udp_multicast:{group}:{self.kwargs.get('port', DEFAULT_PORT)}"
+        return self.interface if self.channel is None else f"{self.interface}:{self.channel}"
+
+
+def _parse_udp_channel(rest: str) -> tuple[str, dict[str, Any]]:
+    if rest.startswith("["):
+        group, _, tail = rest[1:].partition("]")
+        port = tail[1:] if tail.startswith(":") else ""
+        if tail and not port:
+            raise HalConfigError(f"bad udp_multicast channel {rest!r} (use [GROUP]:PORT)")
+    elif rest.count(":") == 1:
+        group, port = rest.split(":")
+    else:
+        group, port = rest, ""
+    group = group or DEFAULT_GROUP
+    try:
+        multicast = ipaddress.ip_address(group).is_multicast
+    except ValueError:
+        multicast = False
+    if not multicast:
+        raise HalConfigError(f"udp_multicast channel {group!r} is not a multicast IP address")
+    kwargs: dict[str, Any] = {}
+    if port:
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise HalConfigError(f"bad udp_multicast port {port!r} in {rest!r}")
+        kwargs["port"] = int(port)
+    return group, kwargs
+
+
+def parse_spec(spec: str) -> BusSpec:
+    """Parse an explicit ``INTERFACE[:CHANNEL]`` spec (not ``auto``)."""
+    text = spec.strip()
+    interface, _, rest = text.partition(":")
+    interface = interface.strip().lower()
+    if not interface or interface == AUTO:
+        raise HalConfigError(f"bad CAN spec {spec!r}: expected INTERFACE[:CHANNEL]")
+    if interface == "udp_multicast":
+        group, kwargs = _parse_udp_channel(rest) if rest else (DEFAULT_GROUP, {})
+        return BusSpec(interface, group, kwargs)
+    if interface not in can.VALID_INTERFACES:
+        known = ", ".join(sorted(can.VALID_INTERFACES))
+        raise HalConfigError(f"unknown CAN interface {interface!r} in {spec!r} (known: {known})")
+    if not rest:
+        rest = {"socketcan": DEFAULT_VCAN, "virtual": DEFAULT_VIRTUAL_CHANNEL}.get(interface, "")
+    return BusSpec(interface, rest or None)
+
+
+def _python_can_config() -> dict[str, Any] | None:
+    """python-can's configuration when one of its sources names an interface, else ``None``."""
+    try:
+        sources = [can.rc, can.util.load_environment_config(), can.util.load_file_config()]
+        if not any(src.get("interface") or src.get("bustype") for src in sources):
+            return None
+        return dict(can.util.load_config())
+    except (can.CanInterfaceNotImplementedError, ValueError, TypeError, configparser.Error) as exc:
+        raise HalConfigError(
+            f"python-can configuration (CAN_INTERFACE/CAN_CONFIG or can.conf) is invalid: {exc}"
+        ) from exc
+
+
+def resolve_spec(spec: str | None = None) -> BusSpec:
+    """Turn a spec, ``auto`` or ``None`` into a :class:`BusSpec` (no bus is opened)."""
+    if spec is not None and spec.strip().lower() != AUTO:
+        return parse_spec(spec)
+    config = _python_can_config()
+    if config is not None:
+        interface = str(config.pop("interface"))
+        channel = config.pop("channel", None)
+        if interface == "udp_multicast" and isinstance(channel, str) and channel:
+            group, kwargs = _parse_udp_channel(channel)
+            config = {**kwargs, **config}
+            channel = group
+        elif channel is None:
+            channel = parse_spec(interface).channel
+        extra = {k: v for k, v in config.items() if v is not None}
+        channel = None if channel is None else str(channel)
+        return BusSpec(interface, channel, extra, "python-can config")
+    if (SYS_CLASS_NET / DEFAULT_VCAN).exists():
+        return BusSpec("socketcan", DEFAULT_VCAN, {}, AUTO)
+    return BusSpec("udp_multicast", DEFAULT_GROUP, {}, AUTO)
+
+
+def _transport_error(spec: BusSpec, exc: BaseException) -> HalTransportError:
+    """One line saying what failed and what to do about it."""
+    err = exc if isinstance(exc, OSError) else exc.__cause__ or exc.__context__
+    code = getattr(err, "errno", None)
+    name = spec.channel or ""
+    if spec.interface == "socketcan":
+        if code == errno.EAFNOSUPPORT:
+            hint = "this kernel has no SocketCAN (AF_CAN); use --can udp_multicast instead"
+        elif code == errno.ENODEV or not (SYS_CLASS_NET / name).exists():
+            hint = (
+                f"create it with: {vcan_hint(name)} (or use --can udp_multicast)"
+                if name.startswith("vcan")
+                else f"check the adapter, then: sudo ip link set {name} up type can bitrate 1000000"
+            )
+        elif code == errno.ENETDOWN:
+            hint = f"bring it up with: sudo ip link set up {name}"
+        else:
+            hint = "check the interface with `ip -details link show`, or use --can udp_multicast"
+        return HalTransportError(f"cannot open CAN interface socketcan:{name}: {exc}; {hint}")
+    if spec.interface == "udp_multicast":
+        if isinstance(exc, can.CanInterfaceNotImplementedError):
+            hint = "install msgpack: pip install 'python-can[multicast]'"
+        else:
+            hint = "check that loopback is up (sudo ip link set lo up), or use --can virtual"
+        return HalTransportError(f"cannot open CAN bus {spec}: {exc}; {hint}")
+    return HalTransportError(
+        f"cannot open CAN bus {spec}: {exc}; check the adapter, its driver and python-can's "
+        "interface options"
+    )
+
+
+def open_bus(
+    spec: str | None = None, *, receive_own_messages: bool = False, **kwargs: Any
+) -> can.BusABC:
+    """Open the bus named by ``spec`` (see the module docstring); extra ``kwargs`` go to it.
+
+    Raises :class:`~hal.errors.HalConfigError` for a malformed spec and
+    :class:`~hal.errors.HalTransportError` when the transport is unavailable.
+    """
+    resolved = resolve_spec(spec)
+    options = {**resolved.kwargs, **kwargs, "receive_own_messages": receive_own_messages}
+    try:
+        if resolved.interface == "udp_multicast":
+            options.setdefault("hop_limit", 0)
+            return LoopbackMulticastBus(channel=resolved.channel or DEFAULT_GROUP, **options)
+        return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
+    except (can.CanError, OSError, ValueError, ImportError) as exc:
+        raise _transport_error(resolved, exc) from exc
+
+
+def isolated_spec(interface: str) -> str:
+    """A spec on ``interface`` that no other test or process uses (for parallel test runs).
+
+    ``virtual`` gets a unique channel name, ``udp_multicast`` a free UDP port; ``socketcan``
+    cannot be isolated and returns ``socketcan:vcan0``.
+    """
+    if interface == "virtual":
+        return f"virtual:hal-test-{uuid.uuid4().hex[:12]}"
+    if interface == "udp_multicast":
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        return f"udp_multicast:{DEFAULT_GROUP}:{port}"
+    if interface == "socketcan":
+        return f"socketcan:{DEFAULT_VCAN}"
+    raise HalConfigError(f"no isolated spec for interface {interface!r}")
+
+
+def vcan_available(channel: str = DEFAULT_VCAN) -> bool:
+    """Whether a SocketCAN interface named ``channel`` exists on this host."""
+    return os.path.exists(SYS_CLASS_NET / channel)

@@ -1,0 +1,401 @@
+"""Controller-side joint I/O client: the rt_controller's only door to the DSP.
+
+A background thread receives every frame, runs it through :class:`~hal.can_codec.ControllerCodec`
+(E2E check + DBC decode) and keeps the latest joint state (a JointPosition/JointVelocity pair of
+one DSP sample, stamped with ``time.monotonic_ns()`` on arrival), the latest :class:`DspStatus`
+and the latest :class:`Sync` tick. The control loop reads them without blocking
+(:meth:`JointClient.latest_state`) or waits for the lockstep clock (:meth:`JointClient.wait_sync`).
+
+Typical use::
+
+    with JointClient.open("auto", cfg) as dsp:
+        dsp.enable()
+        tick = dsp.wait_sync(timeout=1.0)          # lockstep mode only
+        state = dsp.latest_state()                 # HalTimeoutError when the DSP went silent
+        dsp.send_torque(tau[0], tau[1], tick=tick)
+
+``close()`` (idempotent) disarms the DSP if this client armed it, stops the thread and, for a
+client made by :meth:`JointClient.open`, shuts the bus down.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from hal.can_codec import (
+    ControllerCodec,
+    DspCommand,
+    DspStatus,
+    JointPosition,
+    JointState,
+    JointVelocity,
+    Sync,
+)
+from hal.config import RigConfig
+from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS, E2EStats
+from hal.errors import HalError, HalTimeoutError, HalTransportError
+from hal.resources import release, track
+
+log = logging.getLogger(__name__)
+
+FrameHook = Callable[[can.Message], None]
+
+
+@dataclass(frozen=True)
+class ClientStats:
+    """Receive-side counters of a :class:`JointClient`."""
+
+    e2e: E2EStats
+    """Verdict of every frame received (accepted, ignored and each kind of rejection)."""
+    frames: int
+    """Frames taken off the bus."""
+    states: int
+    """Complete joint states assembled (JointPosition + JointVelocity of one sample)."""
+    syncs: int
+    statuses: int
+    transport_errors: int
+    """Receive calls that raised (a driver error); the thread keeps going."""
+    hook_errors: int
+    """Exceptions raised by ``frame_hook`` (logged once, swallowed)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "e2e": self.e2e.as_dict(),
+            "frames": self.frames,
+            "states": self.states,
+            "syncs": self.syncs,
+            "statuses": self.statuses,
+            "transport_errors": self.transport_errors,
+            "hook_errors": self.hook_errors,
+        }
+
+
+class JointClient:
+    """Latest joint state, DSP status and Sync tick; torque and enable/disable commands.
+
+    :param bus: an open python-can bus (see :func:`hal.bus.open_bus`).
+    :param cfg: rig configuration (``controller.state_timeout_s`` is the default staleness limit).
+    :param frame_hook: called with every raw frame as received, in the receive thread, before
+        validation (e.g. to log it to MCAP); it must be quick; its exceptions are swallowed.
+    :param owns_bus: shut ``bus`` down on :meth:`close`.
+    :param start: start the receive thread now (tests may feed :meth:`process_frame` instead).
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        cfg: RigConfig | None = None,
+        *,
+        frame_hook: FrameHook | None = None,
+        owns_bus: bool = False,
+        max_delta: int = DEFAULT_MAX_DELTA,
+        reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
+        poll_s: float = 0.05,
+        start: bool = True,
+    ) -> None:
+        self.cfg = cfg if cfg is not None else RigConfig()
+        self.bus = bus
+        self.frame_hook = frame_hook
+        self._owns_bus = owns_bus
+        self._poll_s = poll_s
+        self._codec = ControllerCodec(max_delta=max_delta, reinit_after_s=reinit_after_s)
+        self._cond = threading.Condition()
+        self._tx_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._closed = False
+        self._thread: threading.Thread | None = None
+        self._armed = False
+        # receive-side state, guarded by _cond
+        self._pos: JointPosition | None = None
+        self._vel: JointVelocity | None = None
+        self._state: JointState | None = None
+        self._status: DspStatus | None = None
+        self._status_t_ns = 0
+        self._sync_tick: int | None = None
+        self._sync_t_ns = 0
+        self._sync_seq = 0
+        self._sync_seen = 0
+        self._frames = self._states = self._syncs = self._statuses = 0
+        self._transport_errors = self._hook_errors = 0
+        track(self, f"JointClient({bus.channel_info})")
+        if start:
+            self.start()
+
+    @classmethod
+    def open(
+        cls, spec: str | None = None, cfg: RigConfig | None = None, **kwargs: Any
+    ) -> JointClient:
+        """Open the bus of ``spec`` (default: ``cfg.transport.can``) and own it."""
+        from hal.bus import open_bus  # local: keeps the client importable without transports
+
+        rig = cfg if cfg is not None else RigConfig()
+        bus = open_bus(spec if spec is not None else rig.transport.can)
+        try:
+            return cls(bus, rig, owns_bus=True, **kwargs)
+        except BaseException:
+            bus.shutdown()
+            raise
+
+    # ------------------------------------------------------------------------- lifecycle
+
+    def start(self) -> None:
+        """Start the receive thread (done by the constructor unless ``start=False``)."""
+        if self._closed:
+            raise HalError("JointClient is closed")
+        if self._thread is None:
+            self._thread = threading.Thread(
+                target=self._run, name=f"hal-joint-rx[{self.bus.channel_info}]", daemon=True
+            )
+            self._thread.start()
+
+    def close(self) -> None:
+        """Disarm the DSP if this client armed it, stop receiving, release an owned bus."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._armed:
+            try:
+                self._send_disable(closing=True)
+            except HalError as exc:
+                log.warning("could not disarm the DSP on close: %s", exc)
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=max(2.0, 4 * self._poll_s))
+            if self._thread.is_alive():  # pragma: no cover - a driver stuck in recv()
+                log.warning("JointClient receive thread did not stop")
+        with self._cond:
+            self._cond.notify_all()
+        if self._owns_bus:
+            self.bus.shutdown()
+        release(self)
+
+    def __enter__(self) -> JointClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # ------------------------------------------------------------------------------ send
+
+    def _send(
+        self, make: Callable[[ControllerCodec], can.Message], *, closing: bool = False
+    ) -> None:
+        if self._closed and not closing:
+            raise HalError("JointClient is closed")
+        with self._tx_lock:
+            msg = make(self._codec)
+            try:
+                self.bus.send(msg, timeout=0.05)
+            except (can.CanError, OSError) as exc:
+                where = self.bus.channel_info
+                raise HalTransportError(f"CAN send on {where} failed: {exc}") from exc
+
+    def send_torque(self, tau1: float, tau2: float, *, tick: int | None = None) -> None:
+        """Send a TorqueCommand (counter + CRC); ``tick`` defaults to the latest Sync tick.
+
+        The Enable bit follows :meth:`enable`/:meth:`disable`. Raises
+        :class:`~hal.errors.HalCodecError` for NaN/inf and :class:`HalTransportError` when the
+        bus refuses the frame.
+        """
+        if tick is None:
+            tick = self._sync_tick or 0
+        enable = self._armed
+        self._send(lambda c: c.encode_torque(tau1, tau2, enable=enable, tick=tick))
+
+    def enable(self) -> None:
+        """Arm the DSP's amplifiers and clear a watchdog trip (DspControl ENABLE).
+
+        Sent twice with consecutive counters so that a receiver that has to resynchronise on
+        the first one (e.g. after a controller restart) still accepts the second.
+        """
+        self._armed = True
+        for _ in range(2):
+            self._send(lambda c: c.encode_control(DspCommand.ENABLE))
+
+    def disable(self) -> None:
+        """Remove torque: DspControl DISABLE (twice) and a zero TorqueCommand with Enable=0."""
+        self._armed = False
+        self._send_disable()
+
+    def _send_disable(self, *, closing: bool = False) -> None:
+        self._armed = False
+        for _ in range(2):
+            self._send(lambda c: c.encode_control(DspCommand.DISABLE), closing=closing)
+        tick = self._sync_tick or 0
+        self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick), closing=closing)
+
+    @property
+    def armed(self) -> bool:
+        """Whether :meth:`enable` was called (and not :meth:`disable` since)."""
+        return self._armed
+
+    # --------------------------------------------------------------------------- receive
+
+    def _run(self) -> None:
+        bus, stop, poll = self.bus, self._stop, self._poll_s
+        while not stop.is_set():
+            try:
+                msg = bus.recv(timeout=poll)
+            except Exception as exc:  # driver errors must not kill the receiver
+                if stop.is_set():
+                    break
+                self._transport_errors += 1
+                if self._transport_errors == 1 or self._transport_errors % 1000 == 0:
+                    log.warning("CAN receive error on %s: %s", bus.channel_info, exc)
+                stop.wait(poll)
+                continue
+            if msg is not None:
+                self.process_frame(msg)
+
+    def process_frame(self, msg: can.Message, t_ns: int | None = None) -> None:
+        """The receive path for one frame: hook, E2E check, decode, update. Never raises."""
+        now = time.monotonic_ns() if t_ns is None else t_ns
+        self._frames += 1
+        hook = self.frame_hook
+        if hook is not None:
+            try:
+                hook(msg)
+            except Exception as exc:
+                self._hook_errors += 1
+                if self._hook_errors == 1:
+                    log.warning("frame_hook raised (further errors are only counted): %r", exc)
+        frame = self._codec.decode(msg, now)
+        if frame is None:
+            return
+        with self._cond:
+            if isinstance(frame, JointPosition):
+                self._pos = frame
+                self._pair(now)
+            elif isinstance(frame, JointVelocity):
+                self._vel = frame
+                self._pair(now)
+            elif isinstance(frame, DspStatus):
+                self._status, self._status_t_ns = frame, now
+                self._statuses += 1
+            elif isinstance(frame, Sync):
+                self._sync_tick, self._sync_t_ns = frame.tick, now
+                self._sync_seq += 1
+                self._syncs += 1
+            self._cond.notify_all()
+
+    def _pair(self, now: int) -> None:
+        pos, vel = self._pos, self._vel
+        if pos is None or vel is None or pos.sample != vel.sample:
+            return
+        self._state = JointState((pos.q1, pos.q2), (vel.dq1, vel.dq2), pos.sample, now)
+        self._pos = self._vel = None
+        self._states += 1
+
+    # ----------------------------------------------------------------------------- read
+
+    def _limit_s(self, max_age_s: float | None) -> float:
+        return self.cfg.controller.state_timeout_s if max_age_s is None else max_age_s
+
+    def latest_state(self, max_age_s: float | None = None) -> JointState:
+        """The newest joint state; :class:`HalTimeoutError` when none is newer than the limit.
+
+        ``max_age_s`` defaults to ``cfg.controller.state_timeout_s``.
+        """
+        limit = self._limit_s(max_age_s)
+        state = self._state
+        now = time.monotonic_ns()
+        if state is None:
+            raise HalTimeoutError(
+                f"no joint state received from the DSP on {self.bus.channel_info} yet "
+                "(is the emulator running on this bus?)"
+            )
+        age = (now - state.t_ns) * 1e-9
+        if age > limit:
+            raise HalTimeoutError(
+                f"DSP silent: last joint state is {age * 1e3:.1f} ms old "
+                f"(limit {limit * 1e3:.1f} ms) on {self.bus.channel_info}"
+            )
+        return state
+
+    def state_age_s(self) -> float | None:
+        """Seconds since the latest joint state arrived; ``None`` before the first one."""
+        state = self._state
+        return None if state is None else state.age_s()
+
+    def wait_state_after(self, t_ns: int, timeout: float) -> JointState:
+        """Block until a joint state received after ``t_ns`` exists; return it."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._state is None or self._state.t_ns <= t_ns:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closed:
+                    raise HalTimeoutError(
+                        f"no joint state from the DSP within {timeout * 1e3:.1f} ms "
+                        f"on {self.bus.channel_info}"
+                    )
+                self._cond.wait(remaining)
+            return self._state
+
+    @property
+    def status(self) -> DspStatus | None:
+        """The latest DspStatus (``None`` before the first one); never raises."""
+        return self._status
+
+    def latest_status(self, max_age_s: float | None = None) -> DspStatus:
+        """The newest DspStatus; :class:`HalTimeoutError` when none or older than ``max_age_s``.
+
+        ``max_age_s`` defaults to three status periods (``3 / cfg.rates.status_hz``).
+        """
+        limit = 3.0 / self.cfg.rates.status_hz if max_age_s is None else max_age_s
+        status, t_ns = self._status, self._status_t_ns
+        if status is None:
+            raise HalTimeoutError(f"no DspStatus received on {self.bus.channel_info} yet")
+        age = (time.monotonic_ns() - t_ns) * 1e-9
+        if age > limit:
+            raise HalTimeoutError(
+                f"DSP silent: last DspStatus is {age * 1e3:.1f} ms old (limit {limit * 1e3:.1f} ms)"
+            )
+        return status
+
+    @property
+    def sync_tick(self) -> int | None:
+        """The latest Sync tick (``None`` before the first one)."""
+        return self._sync_tick
+
+    def wait_sync(self, timeout: float) -> int:
+        """Block until a Sync arrives that no earlier call returned; its tick.
+
+        If several arrived since the previous call, the latest wins. Raises
+        :class:`HalTimeoutError` after ``timeout`` seconds.
+        """
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._sync_seq == self._sync_seen:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closed:
+                    raise HalTimeoutError(
+                        f"no Sync from the DSP within {timeout * 1e3:.1f} ms on "
+                        f"{self.bus.channel_info} (is the emulator in lockstep mode?)"
+                    )
+                self._cond.wait(remaining)
+            self._sync_seen = self._sync_seq
+            return int(self._sync_tick or 0)
+
+    @property
+    def stats(self) -> ClientStats:
+        """A snapshot of the receive counters."""
+        return ClientStats(
+            e2e=self._codec.stats,
+            frames=self._frames,
+            states=self._states,
+            syncs=self._syncs,
+            statuses=self._statuses,
+            transport_errors=self._transport_errors,
+            hook_errors=self._hook_errors,
+        )

@@ -1,0 +1,424 @@
+"""Versioned wire format of the vision link: features (vision -> controller) and camera poses
+(emulator -> vision), plus receivers that reject and count bad messages.
+
+Why a fixed little-endian struct and not JSON: a message is 56 bytes, packs/unpacks in about a
+microsecond with one precompiled :class:`struct.Struct` (JSON costs 5-10x more and its size
+varies), floats travel bit-exact (lockstep runs stay deterministic), and a fixed size per version
+makes malformed input trivial to spot. JSON stays where people read it (the MCAP log).
+
+Features v1 — key ``hil/vision/features``, 56 bytes, little-endian (``<2sBBIQqqQdd``)::
+
+    off size type  field
+      0    2 bytes magic        b"HF"
+      2    1 u8    version      1
+      3    1 u8    flags        bit0 valid (f holds a measurement), bit1 lockstep; others 0
+      4    4 u32   source       random id of the publishing vision process (restart detection)
+      8    8 u64   frame        frame counter of the image (0, 1, ...)
+     16    8 i64   stamp_ns     CLOCK_MONOTONIC at capture on the vision host (on one host this
+                                is the emulator's clock too)
+     24    8 i64   sim_time_ns  emulator physics time of the camera pose the image was taken at
+     32    8 u64   pose_seq     seq of the newest camera pose seen when published; in lockstep,
+                                the pose this message answers
+     40    8 f64   fx           feature x, px
+     48    8 f64   fy           feature y, px (f must be finite; (0, 0) when not valid)
+
+Camera pose v1 — key ``hil/emulator/camera_pose``, 56 bytes (``<2sBBIQqqddd``)::
+
+      0    2 bytes magic        b"HP"
+      2    1 u8    version      1
+      3    1 u8    flags        bit0 lockstep (one pose per control period, answer each); others 0
+      4    4 u32   source       random id of the publishing emulator (restart detection)
+      8    8 u64   seq          pose sequence number (the control tick in lockstep)
+     16    8 i64   sim_time_ns  emulator physics time of the pose
+     24    8 i64   stamp_ns     CLOCK_MONOTONIC of the emulator when the pose was sampled
+     32    8 f64   x            camera position, m
+     40    8 f64   y            camera position, m
+     48    8 f64   phi          camera heading q1 + q2, rad
+
+Compatibility: a receiver accepts exactly the versions it knows; any change of layout or meaning
+bumps the version byte. Reserved flag bits must be zero.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import NamedTuple
+
+from hal.errors import HalCodecError
+
+FEATURES_MAGIC = b"HF"
+POSE_MAGIC = b"HP"
+VERSION = 1
+FLAG_VALID = 0x01
+FLAG_LOCKSTEP = 0x02
+POSE_FLAG_LOCKSTEP = 0x01
+_FEATURE_FLAGS = FLAG_VALID | FLAG_LOCKSTEP
+_POSE_FLAGS = POSE_FLAG_LOCKSTEP
+_FEAT = struct.Struct("<2sBBIQqqQdd")
+_POSE = struct.Struct("<2sBBIQqqddd")
+FEATURES_SIZE = _FEAT.size
+POSE_SIZE = _POSE.size
+
+_isfinite = math.isfinite
+
+
+class FeatureMsg(NamedTuple):
+    """One features message (see the module docstring for the meaning of each field)."""
+
+    frame: int
+    stamp_ns: int
+    sim_time_ns: int
+    pose_seq: int
+    f: tuple[float, float]
+    valid: bool = True
+    lockstep: bool = False
+    source: int = 0
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain dict for JSON logs (``f`` as a list)."""
+        d: dict[str, object] = self._asdict()
+        d["f"] = list(self.f)
+        return d
+
+
+class PoseMsg(NamedTuple):
+    """One camera-pose message (see the module docstring)."""
+
+    seq: int
+    sim_time_ns: int
+    stamp_ns: int
+    x: float
+    y: float
+    phi: float
+    lockstep: bool = False
+    source: int = 0
+
+
+def encode_features(msg: FeatureMsg) -> bytes:
+    """Pack ``msg`` as features v1; :class:`HalCodecError` for values the receiver would reject."""
+    fx, fy = msg.f
+    if not (_isfinite(fx) and _isfinite(fy)):
+        raise HalCodecError(f"features: f must be finite, got {msg.f}")
+    flags = (FLAG_VALID if msg.valid else 0) | (FLAG_LOCKSTEP if msg.lockstep else 0)
+    try:
+        return _FEAT.pack(
+            FEATURES_MAGIC,
+            VERSION,
+            flags,
+            msg.source,
+            msg.frame,
+            msg.stamp_ns,
+            msg.sim_time_ns,
+            msg.pose_seq,
+            fx,
+            fy,
+        )
+    except struct.error as exc:
+        raise HalCodecError(f"features: field out of range: {exc}") from exc
+
+
+def encode_pose(msg: PoseMsg) -> bytes:
+    """Pack ``msg`` as camera pose v1."""
+    if not (_isfinite(msg.x) and _isfinite(msg.y) and _isfinite(msg.phi)):
+        raise HalCodecError(f"camera pose: x, y, phi must be finite, got {msg}")
+    try:
+        return _POSE.pack(
+            POSE_MAGIC,
+            VERSION,
+            POSE_FLAG_LOCKSTEP if msg.lockstep else 0,
+            msg.source,
+            msg.seq,
+            msg.sim_time_ns,
+            msg.stamp_ns,
+            msg.x,
+            msg.y,
+            msg.phi,
+        )
+    except struct.error as exc:
+        raise HalCodecError(f"camera pose: field out of range: {exc}") from exc
+
+
+def _parse_features(buf: bytes) -> FeatureMsg | str:
+    """The message, or the name of the malformation counter."""
+    if len(buf) != FEATURES_SIZE:
+        return "bad_size"
+    magic, version, flags, source, frame, stamp, sim, seq, fx, fy = _FEAT.unpack(buf)
+    if magic != FEATURES_MAGIC:
+        return "bad_magic"
+    if version != VERSION:
+        return "bad_version"
+    if flags & ~_FEATURE_FLAGS:
+        return "bad_flags"
+    if not (_isfinite(fx) and _isfinite(fy)):
+        return "bad_value"
+    return FeatureMsg(
+        frame,
+        stamp,
+        sim,
+        seq,
+        (fx, fy),
+        bool(flags & FLAG_VALID),
+        bool(flags & FLAG_LOCKSTEP),
+        source,
+    )
+
+
+def _parse_pose(buf: bytes) -> PoseMsg | str:
+    if len(buf) != POSE_SIZE:
+        return "bad_size"
+    magic, version, flags, source, seq, sim, stamp, x, y, phi = _POSE.unpack(buf)
+    if magic != POSE_MAGIC:
+        return "bad_magic"
+    if version != VERSION:
+        return "bad_version"
+    if flags & ~_POSE_FLAGS:
+        return "bad_flags"
+    if not (_isfinite(x) and _isfinite(y) and _isfinite(phi)):
+        return "bad_value"
+    return PoseMsg(seq, sim, stamp, x, y, phi, bool(flags & POSE_FLAG_LOCKSTEP), source)
+
+
+def decode_features(buf: bytes) -> FeatureMsg:
+    """Unpack features v1 or raise :class:`HalCodecError` naming the problem."""
+    out = _parse_features(bytes(buf))
+    if isinstance(out, str):
+        raise HalCodecError(f"features: malformed message ({out}, {len(buf)} bytes)")
+    return out
+
+
+def decode_pose(buf: bytes) -> PoseMsg:
+    """Unpack camera pose v1 or raise :class:`HalCodecError` naming the problem."""
+    out = _parse_pose(bytes(buf))
+    if isinstance(out, str):
+        raise HalCodecError(f"camera pose: malformed message ({out}, {len(buf)} bytes)")
+    return out
+
+
+@dataclass
+class RxCounts:
+    """What a receiver did with each message it was fed (every message lands in one bucket
+    besides ``received``: accepted, a ``bad_*`` malformation, or a ``stale_*`` rejection)."""
+
+    received: int = 0
+    accepted: int = 0
+    bad_size: int = 0
+    bad_magic: int = 0
+    bad_version: int = 0
+    bad_flags: int = 0
+    bad_value: int = 0
+    bad_type: int = 0
+    """Not bytes-like at all (a bug on the caller's side, still never raised)."""
+    stale_age: int = 0
+    """Older than the age limit when received."""
+    stale_order: int = 0
+    """Not newer than the last accepted message (replayed, repeated or going backwards)."""
+    invalid: int = 0
+    """Accepted messages flagged not valid (no measurement yet); subset of ``accepted``."""
+    repeats: int = 0
+    """Accepted re-sends of the same frame answering a newer pose; subset of ``accepted``."""
+    source_changes: int = 0
+    """The publisher restarted (new source id); ordering restarts."""
+    resyncs: int = 0
+    """Ordering restarted after too many consecutive ``stale_order`` rejections."""
+
+    @property
+    def malformed(self) -> int:
+        return (
+            self.bad_size
+            + self.bad_magic
+            + self.bad_version
+            + self.bad_flags
+            + self.bad_value
+            + self.bad_type
+        )
+
+    @property
+    def stale(self) -> int:
+        return self.stale_age + self.stale_order
+
+    @property
+    def rejected(self) -> int:
+        return self.malformed + self.stale
+
+    def to_dict(self) -> dict[str, int]:
+        d = asdict(self)
+        d.update(malformed=self.malformed, stale=self.stale, rejected=self.rejected)
+        return d
+
+
+class _Receiver:
+    """Shared ordering/locking of the two receivers."""
+
+    def __init__(self, resync_after: int, clock: Callable[[], int]) -> None:
+        if resync_after < 1:
+            raise ValueError("resync_after must be at least 1")
+        self.counts = RxCounts()
+        self.resync_after = resync_after
+        self._clock = clock
+        self._cond = threading.Condition(threading.Lock())
+        self._source: int | None = None
+        self._key: tuple[int, int] | None = None
+        self._order_rejects = 0
+
+    def _order(self, source: int, key: tuple[int, int]) -> int:
+        """With the lock held: 0 = reject (counted), 1 = newer, 2 = accepted as a restart
+        (new source or resync). Updates the ordering state unless rejected."""
+        c = self.counts
+        verdict = 1
+        if self._source is not None and source != self._source:
+            c.source_changes += 1
+            self._key = None
+            verdict = 2
+        if self._key is not None and key <= self._key:
+            self._order_rejects += 1
+            if self._order_rejects < self.resync_after:
+                c.stale_order += 1
+                return 0
+            c.resyncs += 1
+            verdict = 2
+        self._order_rejects = 0
+        self._source = source
+        self._key = key
+        return verdict
+
+    def reset(self) -> None:
+        """Forget ordering and latest message (counters stay)."""
+        with self._cond:
+            self._source = None
+            self._key = None
+            self._order_rejects = 0
+
+
+class FeatureDecoder(_Receiver):
+    """Receiver side of ``hil/vision/features``: :meth:`feed` never raises.
+
+    A message is accepted when well formed, not older than ``max_age_ns`` at reception (realtime
+    messages only; lockstep messages are judged in simulation time by the controller, see
+    :meth:`sim_age_ns`), and newer than the last accepted one by ``(frame, pose_seq)`` — a lockstep
+    re-send of the same frame answering a newer pose is newer; a replay is not. A publisher
+    restart (new source id) restarts the ordering, and so do ``resync_after`` consecutive
+    ordering rejections (a corrupted huge counter cannot lock the receiver out forever).
+
+    Thread-safe: zenoh's callback thread feeds, the control loop reads :attr:`latest` or waits
+    with :meth:`wait_pose_seq`.
+    """
+
+    def __init__(
+        self,
+        *,
+        max_age_ns: int | None = 100_000_000,
+        resync_after: int = 10,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        super().__init__(resync_after, clock)
+        self.max_age_ns = max_age_ns
+        self.latest: FeatureMsg | None = None
+        """Newest accepted *valid* message."""
+        self.latest_recv_ns: int | None = None
+        """Receive time (``clock``) of :attr:`latest`."""
+        self.last: FeatureMsg | None = None
+        """Newest accepted message, valid or not."""
+        self.pose_seq = -1
+        """Highest ``pose_seq`` of an accepted message (-1 before the first)."""
+
+    def feed(self, payload: bytes, recv_ns: int | None = None) -> FeatureMsg | None:
+        """Decode one payload; the accepted message, or None when it was rejected (counted)."""
+        now = self._clock() if recv_ns is None else recv_ns
+        try:
+            out = _parse_features(payload)
+        except TypeError:
+            out = "bad_type"
+        with self._cond:
+            c = self.counts
+            c.received += 1
+            if isinstance(out, str):
+                setattr(c, out, getattr(c, out) + 1)
+                return None
+            msg = out
+            if (
+                self.max_age_ns is not None
+                and not msg.lockstep
+                and now - msg.stamp_ns > self.max_age_ns
+            ):
+                c.stale_age += 1
+                return None
+            last = self.last
+            verdict = self._order(msg.source, (msg.frame, msg.pose_seq))
+            if not verdict:
+                return None
+            c.accepted += 1
+            if last is not None and msg.frame == last.frame and msg.source == last.source:
+                c.repeats += 1
+            self.last = msg
+            if msg.valid:
+                self.latest = msg
+                self.latest_recv_ns = now
+            else:
+                c.invalid += 1
+            if verdict == 2 or msg.pose_seq > self.pose_seq:
+                self.pose_seq = msg.pose_seq
+            self._cond.notify_all()
+            return msg
+
+    def age_ns(self, now_ns: int | None = None) -> int | None:
+        """Age of :attr:`latest` by its capture stamp (None before the first valid message)."""
+        latest = self.latest
+        if latest is None:
+            return None
+        return (self._clock() if now_ns is None else now_ns) - latest.stamp_ns
+
+    def sim_age_ns(self, sim_now_ns: int) -> int | None:
+        """Age of :attr:`latest` in emulator time (lockstep): ``sim_now_ns - sim_time_ns``."""
+        latest = self.latest
+        return None if latest is None else sim_now_ns - latest.sim_time_ns
+
+    def wait_pose_seq(self, seq: int, timeout_s: float) -> FeatureMsg | None:
+        """Block until a message answering pose ``seq`` or newer arrived (lockstep); returns
+        :attr:`last`, or None on timeout."""
+        with self._cond:
+            ok = self._cond.wait_for(lambda: self.pose_seq >= seq, timeout_s)
+            return self.last if ok else None
+
+    def reset(self) -> None:
+        super().reset()
+        with self._cond:
+            self.latest = self.last = None
+            self.latest_recv_ns = None
+            self.pose_seq = -1
+
+
+class PoseDecoder(_Receiver):
+    """Receiver side of ``hil/emulator/camera_pose`` (the vision process): :meth:`feed` never
+    raises; rejects malformed poses and poses not newer (by ``seq``) than the last one."""
+
+    def __init__(
+        self, *, resync_after: int = 10, clock: Callable[[], int] = time.monotonic_ns
+    ) -> None:
+        super().__init__(resync_after, clock)
+        self.latest: PoseMsg | None = None
+        self.latest_recv_ns: int | None = None
+
+    def feed(self, payload: bytes, recv_ns: int | None = None) -> PoseMsg | None:
+        """Decode one payload; the accepted pose, or None when it was rejected (counted)."""
+        now = self._clock() if recv_ns is None else recv_ns
+        try:
+            out = _parse_pose(payload)
+        except TypeError:
+            out = "bad_type"
+        with self._cond:
+            c = self.counts
+            c.received += 1
+            if isinstance(out, str):
+                setattr(c, out, getattr(c, out) + 1)
+                return None
+            if not self._order(out.source, (out.seq, 0)):
+                return None
+            c.accepted += 1
+            self.latest = out
+            self.latest_recv_ns = now
+            return out

@@ -1,0 +1,318 @@
+"""Zenoh session factory with loopback-only defaults (the vision link of the rig).
+
+Topology: a star on one loopback endpoint (``transport.zenoh_endpoint``, tcp/127.0.0.1:7447).
+
+* Exactly one process is the **hub**: it opens its session in ``router`` mode and listens on the
+  endpoint. The plant emulator is the hub (``hil up`` starts it first and stops it last).
+* Every other process (vision, controller, tools) opens a **client** session that connects to the
+  endpoint and never listens. The hub forwards between its clients, so vision -> controller costs
+  one extra loopback hop through the hub.
+* A client started before its hub keeps retrying for ``wait_s`` (interruptibly, see
+  ``stop_event``); once connected, zenoh reconnects it on its own if the hub restarts.
+
+Why not peers: with multicast *and* gossip scouting off (the rule: nothing leaves the host, nothing
+is discovered), zenoh 1.x peers only talk to the nodes they are explicitly connected to. Two peers
+that both connect to a hub never see each other's publications (measured with zenoh 1.10, both
+with a peer and with a router hub), whereas clients are routed by their hub.
+
+Defaults are loopback-only: multicast and gossip scouting disabled, IPv4 ``tcp/127.x.x.x:PORT``
+endpoints only (user-mode Linux test machines have no IPv6, and zenoh's own peer default listens
+on ``tcp/[::]:0``). A ``config_file`` (zenoh's own json5 format, ``--zenoh-config``) replaces these
+defaults verbatim; it is the only way to spread the processes over several hosts.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from hal.config import RigConfig
+from hal.errors import HalConfigError, HalTransportError
+from hal.resources import release, track
+
+KEY_FEATURES = "hil/vision/features"
+"""Image features, vision -> controller (payload: :mod:`hal.vision_codec` features v1)."""
+KEY_CAMERA_POSE = "hil/emulator/camera_pose"
+"""Camera pose, emulator -> vision (payload: :mod:`hal.vision_codec` pose v1)."""
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_WAIT_S = 10.0
+"""How long a client waits for its hub by default."""
+MODES = ("router", "peer", "client")
+
+_ATTEMPT_S = 0.5
+_LOOPBACK_RE = re.compile(r"^tcp/(127\.\d{1,3}\.\d{1,3}\.\d{1,3}):(\d{1,5})$")
+
+
+def parse_loopback_endpoint(endpoint: str) -> tuple[str, int]:
+    """``(host, port)`` of a ``tcp/127.x.x.x:PORT`` endpoint, else :class:`HalConfigError`."""
+    m = _LOOPBACK_RE.match(endpoint.strip())
+    if m is None or not 0 < int(m.group(2)) < 65536:
+        raise HalConfigError(
+            f"transport.zenoh_endpoint: {endpoint!r} is not an IPv4 loopback endpoint "
+            "tcp/127.0.0.1:PORT; use --zenoh-config FILE for multi-host setups"
+        )
+    return m.group(1), int(m.group(2))
+
+
+def free_loopback_port() -> int:
+    """A TCP port that is free on 127.0.0.1 right now (for tests; racy by nature)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def loopback_config_dict(
+    endpoint: str, *, listen: bool, mode: str | None = None, wait_s: float = DEFAULT_WAIT_S
+) -> dict[str, Any]:
+    """The loopback-only zenoh configuration document of a hub (``listen``) or a client.
+
+    ``mode`` defaults to ``router`` for a hub and ``client`` otherwise.
+    """
+    parse_loopback_endpoint(endpoint)
+    mode = mode or ("router" if listen else "client")
+    if mode not in MODES:
+        raise HalConfigError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
+    retry = {"period_init_ms": 50, "period_max_ms": 500, "period_increase_factor": 2}
+    doc: dict[str, Any] = {
+        "mode": mode,
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "listen": {"endpoints": [endpoint] if listen else []},
+        "connect": {"endpoints": [] if listen else [endpoint]},
+    }
+    if not listen:
+        if mode == "client":
+            ms = max(1, round(min(wait_s, _ATTEMPT_S) * 1000))
+            doc["connect"].update(timeout_ms=ms, exit_on_failure=True, retry=retry)
+        else:  # a peer connects in the background and keeps retrying
+            doc["connect"].update(timeout_ms=-1, exit_on_failure=False, retry=retry)
+    return doc
+
+
+def _zenoh_config(doc: dict[str, Any]) -> zenoh.Config:
+    try:
+        return zenoh.Config.from_json5(json.dumps(doc))
+    except zenoh.ZError as exc:  # pragma: no cover - our own document
+        raise HalConfigError(f"internal zenoh config rejected: {exc}") from exc
+
+
+def _load_config_file(path: str) -> zenoh.Config:
+    if not Path(path).is_file():
+        raise HalConfigError(f"transport.zenoh_config: no such file {path!r}")
+    try:
+        return zenoh.Config.from_file(path)
+    except zenoh.ZError as exc:
+        raise HalConfigError(f"transport.zenoh_config: {path}: {exc}") from exc
+
+
+def _short(exc: BaseException) -> str:
+    """A zenoh error without its Rust source locations."""
+    return re.sub(r"\s*at /\S+?:\d+\.?", "", str(exc)).strip()
+
+
+class ZenohSession:
+    """An open zenoh session; a context manager whose :meth:`close` is safe to call twice.
+
+    Use :meth:`publisher` and :meth:`subscribe` rather than the raw :attr:`session`, so callbacks
+    never raise into zenoh and the session is tracked by :mod:`hal.resources`.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        *,
+        endpoint: str,
+        listening: bool,
+        mode: str,
+        source: str,
+        config: dict[str, Any] | None = None,
+    ) -> None:
+        self.session = session
+        self.endpoint = endpoint
+        self.listening = listening
+        self.mode = mode
+        self.source = source
+        """``"loopback"`` or the path of the user's zenoh config file."""
+        self.config = config
+        """The loopback configuration document the session was opened with (None for a file)."""
+        self.callback_errors = 0
+        """Exceptions swallowed in subscriber callbacks (a bug if not zero)."""
+        self._closed = False
+        self._lock = threading.Lock()
+        track(self, f"zenoh session {mode} {'listen' if listening else 'connect'} {endpoint}")
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def zid(self) -> str:
+        return str(self.session.zid())
+
+    def publisher(self, key: str, *, block: bool = False) -> zenoh.Publisher:
+        """Declare an express, real-time-priority publisher.
+
+        ``block=True`` makes ``put`` wait for queue space instead of dropping (lockstep traffic:
+        a lost message would stall the run); the default drops, newest data wins (realtime).
+        """
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        try:
+            return self.session.declare_publisher(
+                key, express=True, priority=zenoh.Priority.REAL_TIME, congestion_control=cc
+            )
+        except zenoh.ZError as exc:
+            raise HalTransportError(
+                f"zenoh: cannot declare publisher {key}: {_short(exc)}"
+            ) from exc
+
+    def subscribe(self, key: str, on_payload: Callable[[bytes], Any]) -> zenoh.Subscriber:
+        """Call ``on_payload(bytes)`` for each sample on ``key`` (on zenoh's callback thread).
+
+        Exceptions of the callback are counted in :attr:`callback_errors`, never propagated.
+        """
+
+        def _callback(sample: zenoh.Sample) -> None:
+            try:
+                on_payload(sample.payload.to_bytes())
+            except Exception:
+                with self._lock:
+                    self.callback_errors += 1
+
+        try:
+            return self.session.declare_subscriber(key, _callback)
+        except zenoh.ZError as exc:
+            raise HalTransportError(
+                f"zenoh: cannot declare subscriber {key}: {_short(exc)}"
+            ) from exc
+
+    def close(self) -> None:
+        """Close the session (undeclares its publishers and subscribers). Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        try:
+            self.session.close()
+        except zenoh.ZError:  # already closed by zenoh itself
+            pass
+        finally:
+            release(self)
+
+    def __enter__(self) -> ZenohSession:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        role = "listen" if self.listening else "connect"
+        return f"ZenohSession({self.mode}, {role} {self.endpoint}, {state})"
+
+
+def _open_hub(endpoint: str, mode: str | None) -> tuple[zenoh.Session, dict[str, Any]]:
+    doc = loopback_config_dict(endpoint, listen=True, mode=mode)
+    try:
+        return zenoh.open(_zenoh_config(doc)), doc
+    except zenoh.ZError as exc:
+        text = _short(exc)
+        if "in use" in text:
+            raise _PortInUse(
+                f"zenoh: cannot listen on {endpoint}: port in use (is another emulator or zenoh "
+                "router running? choose another port with --zenoh-endpoint)"
+            ) from exc
+        raise HalTransportError(f"zenoh: cannot listen on {endpoint}: {text}") from exc
+
+
+class _PortInUse(HalTransportError):
+    pass
+
+
+def _open_client(
+    endpoint: str, mode: str | None, wait_s: float, stop_event: threading.Event | None
+) -> tuple[zenoh.Session, dict[str, Any]]:
+    deadline = time.monotonic() + wait_s
+    while True:
+        remaining = max(0.0, deadline - time.monotonic())
+        doc = loopback_config_dict(endpoint, listen=False, mode=mode, wait_s=remaining)
+        try:
+            return zenoh.open(_zenoh_config(doc)), doc
+        except zenoh.ZError as exc:
+            last = _short(exc)
+            if "Timeout" not in last and "Unable to connect" not in last:
+                raise HalTransportError(f"zenoh: cannot connect to {endpoint}: {last}") from exc
+            if (stop_event is not None and stop_event.is_set()) or time.monotonic() >= deadline:
+                raise HalTransportError(
+                    f"zenoh: no hub at {endpoint} after {wait_s:g} s (start the emulator, "
+                    "`hil emulator`, or check --zenoh-endpoint)"
+                ) from exc
+            time.sleep(0.05)
+
+
+def open_session(
+    cfg: RigConfig | None = None,
+    *,
+    mode: str | None = None,
+    listen: bool | None = None,
+    endpoint: str | None = None,
+    config_file: str | None = None,
+    wait_s: float = DEFAULT_WAIT_S,
+    stop_event: threading.Event | None = None,
+) -> ZenohSession:
+    """Open a zenoh session on the rig's loopback endpoint (see the module docstring).
+
+    ``listen=True`` makes this process the hub (router listening on ``endpoint``), ``False`` a
+    client connecting to it (waiting up to ``wait_s`` for the hub, giving up early when
+    ``stop_event`` is set), ``None`` the hub if the port is free and a client otherwise.
+    ``mode`` overrides the zenoh mode (``router``/``peer``/``client``); note that two peers that
+    only connect to a hub cannot reach each other with gossip off. ``endpoint`` and
+    ``config_file`` default to ``cfg.transport``; a config file is used verbatim (mode, listen
+    and endpoint arguments are then ignored). Raises :class:`HalConfigError` for a bad endpoint
+    or config file and :class:`HalTransportError` when zenoh cannot open the session.
+    """
+    transport = (cfg or RigConfig()).transport
+    config_file = config_file if config_file is not None else transport.zenoh_config
+    endpoint = endpoint or transport.zenoh_endpoint or DEFAULT_ENDPOINT
+    if config_file:
+        zcfg = _load_config_file(config_file)
+        try:
+            session = zenoh.open(zcfg)
+        except zenoh.ZError as exc:
+            raise HalTransportError(
+                f"zenoh: cannot open a session with {config_file}: {_short(exc)}"
+            ) from exc
+        file_mode = json.loads(zcfg.get_json("mode") or "null") or "peer"
+        return ZenohSession(
+            session,
+            endpoint=config_file,
+            listening=bool(json.loads(zcfg.get_json("listen/endpoints") or "[]")),
+            mode=str(file_mode),
+            source=config_file,
+        )
+    parse_loopback_endpoint(endpoint)
+    if wait_s < 0:
+        raise HalConfigError(f"zenoh wait must be non-negative, got {wait_s}")
+    if listen is None:
+        try:
+            session, doc = _open_hub(endpoint, mode)
+        except _PortInUse:
+            session, doc = _open_client(endpoint, mode, wait_s, stop_event)
+    elif listen:
+        session, doc = _open_hub(endpoint, mode)
+    else:
+        session, doc = _open_client(endpoint, mode, wait_s, stop_event)
+    return ZenohSession(
+        session,
+        endpoint=endpoint,
+        listening=bool(doc["listen"]["endpoints"]),
+        mode=doc["mode"],
+        source="loopback",
+        config=doc,
+    )
