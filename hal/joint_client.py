@@ -84,6 +84,7 @@ class JointClient:
     :param cfg: rig configuration (``controller.state_timeout_s`` is the default staleness limit).
     :param frame_hook: called with every raw frame as received, in the receive thread, before
         validation (e.g. to log it to MCAP); it must be quick; its exceptions are swallowed.
+    :param tx_hook: called with every frame after it was sent, in the sender's thread (quick).
     :param owns_bus: shut ``bus`` down on :meth:`close`.
     :param start: start the receive thread now (tests may feed :meth:`process_frame` instead).
     """
@@ -94,6 +95,7 @@ class JointClient:
         cfg: RigConfig | None = None,
         *,
         frame_hook: FrameHook | None = None,
+        tx_hook: FrameHook | None = None,
         owns_bus: bool = False,
         max_delta: int = DEFAULT_MAX_DELTA,
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
@@ -103,6 +105,7 @@ class JointClient:
         self.cfg = cfg if cfg is not None else RigConfig()
         self.bus = bus
         self.frame_hook = frame_hook
+        self.tx_hook = tx_hook
         self._owns_bus = owns_bus
         self._poll_s = poll_s
         self._codec = ControllerCodec(max_delta=max_delta, reinit_after_s=reinit_after_s)
@@ -200,6 +203,8 @@ class JointClient:
             except (can.CanError, OSError) as exc:
                 where = self.bus.channel_info
                 raise HalTransportError(f"CAN send on {where} failed: {exc}") from exc
+        if self.tx_hook is not None:
+            self.tx_hook(msg)
 
     def send_torque(self, tau1: float, tau2: float, *, tick: int | None = None) -> None:
         """Send a TorqueCommand (counter + CRC); ``tick`` defaults to the latest Sync tick.

@@ -40,6 +40,8 @@ DEFAULT_GROUP = "239.74.163.2"
 DEFAULT_PORT = 43113
 _IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)  # Linux value; absent in Python
 _MAX_DATAGRAM = 4096
+RCVBUF_BYTES = 4 * 1024 * 1024
+"""Receive buffer asked for (the kernel caps it at net.core.rmem_max)."""
 
 
 class LoopbackMulticastBus(can.BusABC):
@@ -99,6 +101,8 @@ class LoopbackMulticastBus(can.BusABC):
         rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         if hasattr(socket, "SO_REUSEPORT"):
             rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        with contextlib.suppress(OSError):  # room for bursts of 1 kHz state frames
+            rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
         rx.bind((self._group, self._port))
         lo = socket.inet_aton("127.0.0.1")
         rx.setsockopt(
@@ -118,6 +122,8 @@ class LoopbackMulticastBus(can.BusABC):
         rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         if hasattr(socket, "SO_REUSEPORT"):
             rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        with contextlib.suppress(OSError):
+            rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
         rx.bind((self._group, self._port, 0, lo_index))
         mreq = socket.inet_pton(socket.AF_INET6, self._group) + lo_index.to_bytes(4, "little")
         rx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, mreq)
@@ -141,15 +147,19 @@ class LoopbackMulticastBus(can.BusABC):
         rx = self._rx
         if rx is None or self._is_shutdown:
             raise can.CanOperationError("the bus is shut down")
-        try:
-            ready, _, _ = select.select([rx], [], [], timeout)
-            if not ready:
-                return None, False
-            data, sender = rx.recvfrom(_MAX_DATAGRAM)
-        except (OSError, ValueError) as exc:
-            raise can.CanOperationError(f"UDP multicast receive failed: {exc}") from exc
-        if not self._receive_own and sender[:2] == self._own:
-            return None, False  # BusABC.recv waits on for the rest of the timeout
+        while True:
+            try:
+                ready, _, _ = select.select([rx], [], [], timeout)
+                if not ready:
+                    return None, False
+                data, sender = rx.recvfrom(_MAX_DATAGRAM)
+            except (OSError, ValueError) as exc:
+                raise can.CanOperationError(f"UDP multicast receive failed: {exc}") from exc
+            if self._receive_own or sender[:2] != self._own:
+                break
+            # Our own frame: skip it and look at what else is already queued, so that a
+            # non-blocking drain (timeout=0) is not stopped by our own traffic.
+            timeout = 0.0
         try:
             msg = unpack_message(data, replace={"timestamp": time.time()}, check=True)
         except Exception as exc:  # garbage on the group must not break the reader

@@ -18,7 +18,7 @@ from rt_controller.errors import ControllerError
 
 Handler = Callable[[argparse.Namespace], int]
 
-COMMAND_MODULES = ("simulate", "bench")
+COMMAND_MODULES = ("up", "emulator", "vision", "controller", "simulate", "report", "bench")
 """Modules of :mod:`rt_controller.commands`, each with ``register(subparsers)``."""
 
 

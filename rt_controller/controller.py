@@ -36,8 +36,26 @@ class Controller:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
         return Measurement(t=t, q=q, dq=dq, f=f, xi=self.model.xi(q, dq, f))
 
+    def hold_torque(self, dq: np.ndarray) -> np.ndarray:
+        """Safe torque without image features: tau = -2 R dq (a joint damper, eq. 27 with
+        eta = 0 and no feedforward), clipped to the amplifier limits."""
+        return np.clip(-2.0 * self.model.R @ dq, -self.tau_max, self.tau_max)
+
     def step(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Command:
-        """u from the law, tau by eq. (11), clipped to the amplifier limits."""
+        """u from the law, tau by eq. (11), clipped to the amplifier limits.
+
+        Without valid features (``f`` not finite) the tick holds: u = 0, tau = :meth:`hold_torque`.
+        """
+        if not np.all(np.isfinite(f)):
+            m = Measurement(
+                t=t,
+                q=np.asarray(q, float),
+                dq=np.asarray(dq, float),
+                f=np.asarray(f, float),
+                xi=np.full(2, np.nan),
+            )
+            tau = self.hold_torque(m.dq)
+            return Command(m, LawOutput(u=np.zeros(2)), tau, tau, False)
         m = self.measurement(t, q, dq, f)
         out = self.law(m)
         tau_raw = self.model.torque(m.q, m.dq, m.f, out.u)

@@ -1,0 +1,94 @@
+"""``hil report``: the deadline-miss report of one or more controller logs (MCAP)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+DESCRIPTION = """\
+Deadline-miss report of controller logs, cyclictest-style: ticks, deadline misses (count,
+percentage, tick and time of each), wake-up lateness and cycle time min/median/p99/max (µs), a
+log-scale lateness histogram, solve time and solver residuals, fallbacks, stale inputs, torque
+saturation, final |f| and J (sum of the stage cost / rate). A log whose writer was killed is
+reported as far as it goes, with a note.
+
+--json prints one JSON object for one log, and a JSON list of such objects (in argument order,
+each with its "log" path) for several logs. Keys include: log, truncated, notes, law, clock,
+rate_hz, period_us, ticks, duration_s, deadline_misses, miss_pct, missed_periods, misses (list of
+{tick, t_s, lateness_us, cycle_us, missed_periods}, capped by --max-list), lateness_us / cycle_us /
+read_us / solve_us / write_us ({min, median, p99, max, mean}), lateness_histogram (list of
+{lo_us, hi_us, count}), residual, iterations, fallbacks, stale_features, invalid_features,
+stale_state, tau_saturated, f_final, f_final_norm, J, messages, recorder_dropped. Values that
+were not recorded are null.
+
+--plot DIR writes PNGs named LOGSTEM_{lateness_hist,cycle_time,solve_time,f,xi,u,tau}.png.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="deadline-miss report of controller logs (text, --json, --plot)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("logs", nargs="+", metavar="LOG.mcap", help="controller log(s)")
+    p.add_argument(
+        "--json", action="store_true", help="print JSON (an object, or a list for several logs)"
+    )
+    p.add_argument("--plot", metavar="DIR", help="write PNG figures into DIR")
+    p.add_argument(
+        "--max-list",
+        type=int,
+        default=50,
+        metavar="N",
+        help="list at most N deadline misses per log (default 50)",
+    )
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.logread import read_log
+    from rt_controller.report import render_text, summarize, write_plots
+
+    if args.max_list < 0:
+        raise ControllerConfigError(f"--max-list must be non-negative, got {args.max_list}")
+    logs = [read_log(path, raw=False) for path in args.logs]
+    reports = [summarize(log, max_list=args.max_list) for log in logs]
+    if args.plot:
+        stems: dict[str, int] = {}
+        for log, rep in zip(logs, reports, strict=True):
+            stem = log.path.stem
+            stems[stem] = stems.get(stem, 0) + 1
+            prefix = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
+            rep["plots"] = [str(p) for p in write_plots(log, args.plot, prefix)]
+    if args.json:
+        payload = reports[0] if len(reports) == 1 else reports
+        print(json.dumps(_json_safe(payload)))
+        return 0
+    from rich.console import Console
+
+    console = Console()
+    for i, rep in enumerate(reports):
+        if i:
+            console.rule()
+        render_text(rep, console)
+        if rep.get("plots"):
+            console.print(f"plots: {', '.join(rep['plots'])}")
+    return 0
+
+
+def _json_safe(obj: Any) -> Any:
+    """Replace non-finite floats by null (strict JSON)."""
+    import math
+
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json_safe(v) for v in obj]
+    return obj

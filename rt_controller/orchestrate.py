@@ -1,0 +1,179 @@
+"""Start the rig's processes (emulator, vision, controller), wait, stop them cleanly.
+
+Used by ``hil up`` and ``hil experiment``. Every child runs ``python -m rt_controller.cli``; a
+child that dies is reported with its exit status and the tail of its stderr, and nothing is
+left running on any exit path.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from hal.zenoh_session import free_loopback_port
+from rt_controller.errors import ControllerError
+
+STOP_TIMEOUT_S = 10.0
+STARTUP_MARGIN_S = 60.0
+
+
+class RigProcessError(ControllerError, RuntimeError):
+    """A rig process failed; the message carries its exit status and stderr tail."""
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen
+    stderr: IO[bytes]
+    stdout: IO[bytes]
+
+    def tail(self, lines: int = 15) -> str:
+        self.stderr.flush()
+        self.stderr.seek(0)
+        text = self.stderr.read().decode(errors="replace").strip().splitlines()
+        return "\n".join(text[-lines:])
+
+    def output(self) -> str:
+        self.stdout.flush()
+        self.stdout.seek(0)
+        return self.stdout.read().decode(errors="replace")
+
+
+@dataclass
+class RigOptions:
+    """What to start."""
+
+    config: str | None = None
+    law: str | None = None
+    duration_s: float = 10.0
+    lockstep: bool = False
+    can: str | None = None
+    zenoh_endpoint: str | None = None
+    log: Path | None = None
+    extra_controller: list[str] = field(default_factory=list)
+    extra_vision: list[str] = field(default_factory=list)
+    extra_emulator: list[str] = field(default_factory=list)
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "rt_controller.cli", *args]
+
+
+class Rig:
+    """The three processes of one run; a context manager that always stops them."""
+
+    def __init__(self, opts: RigOptions) -> None:
+        self.opts = opts
+        self.children: list[Child] = []
+        self.endpoint = opts.zenoh_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+
+    def _common(self) -> list[str]:
+        out = ["--zenoh-endpoint", self.endpoint]
+        if self.opts.config:
+            out += ["--config", self.opts.config]
+        return out
+
+    def _start(self, name: str, args: list[str]) -> Child:
+        err = tempfile.TemporaryFile()
+        out = tempfile.TemporaryFile()
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        proc = subprocess.Popen(args, stdout=out, stderr=err, stdin=subprocess.DEVNULL, env=env)
+        child = Child(name, proc, err, out)
+        self.children.append(child)
+        return child
+
+    def start(self) -> None:
+        o = self.opts
+        can = ["--can", o.can] if o.can else []
+        emu = _cli("emulator", *can, *self._common(), *o.extra_emulator)
+        if o.lockstep:
+            emu.append("--lockstep")
+        self._start("emulator", emu)
+        self._start("vision", _cli("vision", *self._common(), *o.extra_vision))
+        ctl = _cli("controller", *can, *self._common(), "--json", "--duration", f"{o.duration_s:g}")
+        ctl += ["--clock", "lockstep" if o.lockstep else "realtime"]
+        if o.law:
+            ctl += ["--law", o.law]
+        if o.log:
+            ctl += ["--log", str(o.log)]
+        self._start("controller", ctl + o.extra_controller)
+
+    def _check_alive(self, but: str) -> None:
+        for c in self.children:
+            if c.name != but and c.proc.poll() is not None:
+                raise RigProcessError(
+                    f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}"
+                )
+
+    def wait_controller(self) -> dict[str, Any]:
+        """Wait for the controller's run to end; its JSON summary."""
+        ctl = next(c for c in self.children if c.name == "controller")
+        deadline = time.monotonic() + self.opts.duration_s + STARTUP_MARGIN_S
+        while ctl.proc.poll() is None:
+            self._check_alive(but="controller")
+            if time.monotonic() > deadline:
+                raise RigProcessError(f"controller still running after its duration:\n{ctl.tail()}")
+            time.sleep(0.05)
+        if ctl.proc.returncode != 0:
+            raise RigProcessError(
+                f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
+            )
+        lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
+        if not lines:
+            raise RigProcessError(f"controller printed no summary:\n{ctl.tail()}")
+        return json.loads(lines[-1])
+
+    def stop(self) -> dict[str, int | None]:
+        """SIGTERM every child still running (controller first), SIGKILL after a timeout."""
+        order = {"controller": 0, "vision": 1, "emulator": 2}
+        codes: dict[str, int | None] = {}
+        for c in sorted(self.children, key=lambda c: order.get(c.name, 9)):
+            if c.proc.poll() is None:
+                c.proc.send_signal(signal.SIGTERM)
+                try:
+                    c.proc.wait(STOP_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    c.proc.kill()
+                    c.proc.wait()
+            codes[c.name] = c.proc.returncode
+        return codes
+
+    def close(self) -> None:
+        self.stop()
+        for c in self.children:
+            c.stderr.close()
+            c.stdout.close()
+        self.children.clear()
+
+    def __enter__(self) -> Rig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def run_rig(opts: RigOptions) -> dict[str, Any]:
+    """Start, wait for the controller's duration, stop; the controller's summary plus exits."""
+    with Rig(opts) as rig:
+        rig.start()
+        summary = rig.wait_controller()
+        codes = rig.stop()
+        bad = {n: c for n, c in codes.items() if n != "controller" and c not in (0, None)}
+        if bad:
+            tails = "\n".join(
+                f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}"
+                for c in rig.children
+                if c.name in bad
+            )
+            raise RigProcessError(tails)
+        summary["exit_codes"] = codes
+        return summary
