@@ -1,0 +1,92 @@
+"""Emulator side of the vision link: publishes the camera pose on ``hil/emulator/camera_pose``.
+
+Protocol (see :mod:`plant_emulator.vision_node`):
+
+* **lockstep** — publish exactly one pose per control period, ``seq`` = the control tick k, just
+  *before* the CAN ``Sync`` frame of tick k. The vision process answers every such pose with one
+  features message carrying ``pose_seq = k``; the controller waits for it before computing tick k.
+  Call :meth:`PosePublisher.wait_for_subscribers` before the first lockstep pose.
+* **realtime** — publish poses at the physics or joint-state rate (at least the camera frame rate);
+  the vision process samples the newest one on its own frame clock.
+
+The publisher blocks rather than drops when the link is congested (see
+:meth:`hal.zenoh_session.ZenohSession.publisher`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import secrets
+import threading
+import time
+
+import zenoh
+
+from hal.errors import HalTransportError
+from hal.vision_codec import PoseMsg, encode_pose
+from hal.zenoh_session import KEY_CAMERA_POSE, ZenohSession
+from plant_emulator.camera import CameraPose
+
+
+class PosePublisher:
+    """Publishes camera poses; one per emulator run (its random ``source`` id marks the run)."""
+
+    def __init__(self, session: ZenohSession, *, source: int | None = None) -> None:
+        self.session = session
+        self.source = secrets.randbits(32) if source is None else source
+        self.published = 0
+        self.errors = 0
+        self._pub = session.publisher(KEY_CAMERA_POSE)
+
+    def publish(
+        self,
+        seq: int,
+        sim_time_ns: int,
+        pose: CameraPose,
+        lockstep: bool,
+        stamp_ns: int | None = None,
+    ) -> None:
+        """Send one pose (``stamp_ns`` defaults to ``time.monotonic_ns()`` now).
+
+        Raises :class:`HalTransportError` if the session is closed or broken.
+        """
+        msg = PoseMsg(
+            seq,
+            sim_time_ns,
+            time.monotonic_ns() if stamp_ns is None else stamp_ns,
+            float(pose.x),
+            float(pose.y),
+            float(pose.phi),
+            lockstep,
+            self.source,
+        )
+        payload = encode_pose(msg)
+        try:
+            self._pub.put(payload)
+        except zenoh.ZError as exc:
+            self.errors += 1
+            raise HalTransportError(f"zenoh: cannot publish camera pose: {exc}") from exc
+        self.published += 1
+
+    def has_subscribers(self) -> bool:
+        """Whether a vision process currently listens for poses."""
+        try:
+            return bool(self._pub.matching_status.matching)
+        except zenoh.ZError:
+            return False
+
+    def wait_for_subscribers(
+        self, timeout_s: float, stop_event: threading.Event | None = None
+    ) -> bool:
+        """Wait until a vision process subscribes (call before the first lockstep pose)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.has_subscribers():
+            if time.monotonic() >= deadline or (stop_event is not None and stop_event.is_set()):
+                return False
+            time.sleep(0.005)
+        return True
+
+    def close(self) -> None:
+        """Undeclare the publisher (the session stays open). Idempotent."""
+        with contextlib.suppress(zenoh.ZError):
+            self._pub.undeclare()

@@ -1,0 +1,515 @@
+"""The vision process (``hil vision``): camera poses in, image features out, over zenoh.
+
+It subscribes to ``hil/emulator/camera_pose``, computes f = project(camera, pose, target(t)) with
+the scenario's target motion at the pose's simulation time (the t = 3 s jump included), adds the
+configured Gaussian pixel noise (seeded), runs a frame clock and a latency delay line, and
+publishes ``hil/vision/features`` (schema: :mod:`hal.vision_codec`).
+
+Two modes, chosen per pose by its lockstep flag (or forced with ``lockstep=True/False``):
+
+* **lockstep** — every pose is answered by exactly one features message with ``pose_seq`` = the
+  pose's ``seq``, right away. The frame clock and the latency run in *simulation* time: a frame
+  is captured at a pose whose sim time reached the next frame slot (slots at k / fps from sim time
+  0; ``fps = 0`` captures at every pose) and becomes deliverable ``latency_s`` of sim time later.
+  The answer carries the newest deliverable frame — a frame not yet due re-sends the previous one
+  with its old frame counter and capture times — or ``valid = 0`` before the first delivery. The
+  controller waits for ``pose_seq >= k``, so a lockstep run is deterministic.
+* **realtime** — frames are captured on a monotonic-clock frame clock from the newest pose (none
+  while the newest pose is older than ``pose_timeout_s``: the emulator went silent) and published
+  ``latency_s`` of real time later; ``fps = 0`` captures at every pose.
+
+A new emulator run (new pose source id, or lockstep sim time going backwards) restarts the frame
+counter, clocks and noise generator, so repeated runs against one vision process are identical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import secrets
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from hal.config import RigConfig, load_config
+from hal.errors import HalConfigError, HalError
+from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features
+from hal.zenoh_session import (
+    DEFAULT_WAIT_S,
+    KEY_CAMERA_POSE,
+    KEY_FEATURES,
+    ZenohSession,
+    open_session,
+)
+from plant_emulator.camera import CameraPose, project
+from plant_emulator.scenario import paper_target
+
+DEFAULT_FPS = 60.0
+"""Frame rate of the vision process when neither ``--fps`` nor ``camera.frame_rate_hz`` set one."""
+POSE_TIMEOUT_S = 0.5
+"""Realtime: no frames are captured from a pose older than this."""
+
+
+def resolve_fps(cfg: RigConfig, fps: float | None) -> float:
+    """``fps`` if given (0 = every pose), else ``camera.frame_rate_hz`` if set, else 60 Hz."""
+    if fps is None:
+        return cfg.camera.frame_rate_hz if cfg.camera.frame_rate_hz > 0 else DEFAULT_FPS
+    if not math.isfinite(fps) or fps < 0:
+        raise HalConfigError(f"--fps must be a non-negative number (0 = every pose), got {fps}")
+    return float(fps)
+
+
+class FrameClock:
+    """Frame slots at ``origin + round(k * 1e9 / fps)`` ns; missed slots are skipped, never burst.
+
+    ``origin_ns=None`` starts the clock at the first :meth:`due` call; ``fps == 0`` makes every
+    call a frame.
+    """
+
+    def __init__(self, fps: float, origin_ns: int | None = None) -> None:
+        self.fps = fps
+        self._origin0 = origin_ns
+        self.reset()
+
+    def reset(self) -> None:
+        self.origin_ns = self._origin0
+        self.k = 0
+
+    def _slot(self, k: int) -> int:
+        return (self.origin_ns or 0) + round(k * 1e9 / self.fps)
+
+    @property
+    def next_ns(self) -> int | None:
+        """Time of the next frame slot (None when not started or ``fps == 0``)."""
+        if self.fps <= 0 or self.origin_ns is None:
+            return None
+        return self._slot(self.k)
+
+    def due(self, t_ns: int) -> bool:
+        """Whether a frame is taken at ``t_ns``; if so the clock moves past ``t_ns``."""
+        if self.fps <= 0:
+            return True
+        if self.origin_ns is None:
+            self.origin_ns = t_ns
+        if t_ns < self._slot(self.k):
+            return False
+        k = max(self.k, int((t_ns - self.origin_ns) * self.fps // 1e9))
+        while self._slot(k) <= t_ns:
+            k += 1
+        self.k = k
+        return True
+
+
+@dataclass
+class VisionStats:
+    """What the vision process did (printed by ``hil vision --json``)."""
+
+    mode: str = "auto"
+    fps: float = DEFAULT_FPS
+    poses: int = 0
+    """Poses accepted by the pose decoder."""
+    frames: int = 0
+    """Images captured."""
+    published: int = 0
+    """Features messages published."""
+    answers: int = 0
+    """Lockstep answers (one per accepted lockstep pose)."""
+    resends: int = 0
+    """Lockstep answers re-sending an older frame (the next one was not due yet)."""
+    invalid: int = 0
+    """Messages published with valid = 0 (no frame delivered yet)."""
+    skipped_no_pose: int = 0
+    """Realtime frame slots skipped because the newest pose was too old."""
+    runs: int = 0
+    """Emulator runs seen (a new source id or sim time going backwards starts one)."""
+    publish_errors: int = 0
+    pose_rx: dict[str, int] = field(default_factory=dict)
+    """The pose decoder's counters (malformed/stale poses)."""
+    callback_errors: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class VisionCore:
+    """The vision process's logic without I/O: feed poses and clock ticks, get messages."""
+
+    def __init__(
+        self,
+        cfg: RigConfig,
+        *,
+        fps: float,
+        lockstep: bool | None = None,
+        source: int = 0,
+        pose_timeout_s: float = POSE_TIMEOUT_S,
+    ) -> None:
+        self.camera = cfg.camera
+        self.target = paper_target(cfg)
+        self.fps = fps
+        self.lockstep = lockstep
+        self.source = source
+        self.latency_ns = round(cfg.camera.latency_s * 1e9)
+        self.pose_timeout_ns = round(pose_timeout_s * 1e9)
+        self.stats = VisionStats(
+            mode="auto" if lockstep is None else ("lockstep" if lockstep else "realtime"), fps=fps
+        )
+        self._run_key: tuple[int, bool] | None = None
+        self._new_run()
+
+    def _new_run(self) -> None:
+        self.frame = 0
+        self.rng = np.random.default_rng(self.camera.seed)
+        self.sim_clock = FrameClock(self.fps, origin_ns=0)
+        self.rt_clock = FrameClock(self.fps)
+        self.pending: deque[tuple[int, FeatureMsg]] = deque()
+        self.delivered: FeatureMsg | None = None
+        self.pose: PoseMsg | None = None
+        self.pose_recv_ns = 0
+        self.last_sim_ns: int | None = None
+
+    def is_lockstep(self, pose: PoseMsg) -> bool:
+        return pose.lockstep if self.lockstep is None else self.lockstep
+
+    def measure(self, pose: PoseMsg) -> tuple[float, float]:
+        """Features of the target at the pose's sim time, seen from the pose, plus noise."""
+        target = self.target.position(pose.sim_time_ns * 1e-9)
+        f = project(self.camera, CameraPose(pose.x, pose.y, pose.phi), target)
+        if self.camera.noise_px > 0:
+            f = f + self.rng.normal(0.0, self.camera.noise_px, size=2)
+        return (float(f[0]), float(f[1]))
+
+    def _capture(self, pose: PoseMsg, now_ns: int, t_ns: int, lockstep: bool) -> None:
+        msg = FeatureMsg(
+            self.frame,
+            now_ns,
+            pose.sim_time_ns,
+            pose.seq,
+            self.measure(pose),
+            True,
+            lockstep,
+            self.source,
+        )
+        self.frame += 1
+        self.stats.frames += 1
+        self.pending.append((t_ns + self.latency_ns, msg))
+
+    def _deliver(self, t_ns: int) -> list[FeatureMsg]:
+        out = []
+        while self.pending and self.pending[0][0] <= t_ns:
+            out.append(self.pending.popleft()[1])
+        if out:
+            self.delivered = out[-1]
+        return out
+
+    def on_pose(self, pose: PoseMsg, now_ns: int) -> list[FeatureMsg]:
+        """Take an accepted pose; the messages to publish now (lockstep: exactly one)."""
+        lockstep = self.is_lockstep(pose)
+        restart = self._run_key != (pose.source, lockstep) or (
+            lockstep and self.last_sim_ns is not None and pose.sim_time_ns < self.last_sim_ns
+        )
+        if restart:
+            self._new_run()
+            self._run_key = (pose.source, lockstep)
+            self.stats.runs += 1
+        self.stats.poses += 1
+        self.pose, self.pose_recv_ns, self.last_sim_ns = pose, now_ns, pose.sim_time_ns
+        if not lockstep:
+            if self.fps > 0:
+                return []
+            self._capture(pose, now_ns, now_ns, False)
+            return self._deliver(now_ns)
+        t = pose.sim_time_ns
+        if self.sim_clock.due(t):
+            self._capture(pose, now_ns, t, True)
+        self._deliver(t)
+        self.stats.answers += 1
+        d = self.delivered
+        if d is None:
+            self.stats.invalid += 1
+            return [FeatureMsg(0, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)]
+        if d.pose_seq != pose.seq:
+            self.stats.resends += 1
+        return [d._replace(pose_seq=pose.seq)]
+
+    def poll(self, now_ns: int) -> list[FeatureMsg]:
+        """Realtime frame clock and delay line at monotonic time ``now_ns``."""
+        pose = self.pose
+        if pose is None or self.is_lockstep(pose):
+            return []
+        if self.fps > 0 and self.rt_clock.due(now_ns):
+            if now_ns - self.pose_recv_ns > self.pose_timeout_ns:
+                self.stats.skipped_no_pose += 1
+            else:
+                self._capture(pose, now_ns, now_ns, False)
+        return self._deliver(now_ns)
+
+    def next_wakeup_ns(self) -> int | None:
+        """When :meth:`poll` has work next (realtime), or None."""
+        pose = self.pose
+        if pose is None or self.is_lockstep(pose):
+            return None
+        times = [self.pending[0][0]] if self.pending else []
+        nxt = self.rt_clock.next_ns
+        if nxt is not None:
+            times.append(nxt)
+        return min(times) if times else None
+
+
+class VisionNode:
+    """:class:`VisionCore` on a zenoh session: poses arrive on zenoh's callback thread (lockstep
+    answers are published from there), realtime frames from :meth:`run`'s thread."""
+
+    def __init__(
+        self,
+        cfg: RigConfig,
+        session: ZenohSession,
+        *,
+        fps: float,
+        lockstep: bool | None = None,
+        source: int | None = None,
+    ) -> None:
+        self.session = session
+        self.core = VisionCore(
+            cfg,
+            fps=fps,
+            lockstep=lockstep,
+            source=secrets.randbits(32) if source is None else source,
+        )
+        self.decoder = PoseDecoder()
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._pub = session.publisher(KEY_FEATURES)
+        self._sub = session.subscribe(KEY_CAMERA_POSE, self._on_pose)
+
+    @property
+    def stats(self) -> VisionStats:
+        with self._lock:
+            s = self.core.stats
+            s.pose_rx = self.decoder.counts.to_dict()
+            s.callback_errors = self.session.callback_errors
+            return VisionStats(**asdict(s))
+
+    def _publish(self, msgs: list[FeatureMsg]) -> None:
+        for msg in msgs:
+            try:
+                self._pub.put(encode_features(msg))
+                self.core.stats.published += 1
+            except (zenoh.ZError, HalError):
+                self.core.stats.publish_errors += 1
+
+    def _on_pose(self, payload: bytes) -> None:
+        now = time.monotonic_ns()
+        pose = self.decoder.feed(payload, now)
+        if pose is None:
+            return
+        with self._lock:
+            self._publish(self.core.on_pose(pose, now))
+            idle = self.core.next_wakeup_ns() is None
+        if idle and not self.core.is_lockstep(pose):
+            self._wake.set()  # start the realtime frame clock now, not at the next idle tick
+
+    def step(self, now_ns: int | None = None) -> int | None:
+        """Run the realtime clock once; returns the next wake-up time (monotonic ns) or None."""
+        with self._lock:
+            self._publish(self.core.poll(time.monotonic_ns() if now_ns is None else now_ns))
+            return self.core.next_wakeup_ns()
+
+    def run(self, stop_event: threading.Event, duration_s: float = 0.0) -> VisionStats:
+        """Serve until ``stop_event`` is set or ``duration_s`` (0 = forever) elapsed."""
+        end = time.monotonic_ns() + round(duration_s * 1e9) if duration_s > 0 else None
+        while not stop_event.is_set():
+            nxt = self.step()
+            now = time.monotonic_ns()
+            if end is not None and now >= end:
+                break
+            wait_ns = 50_000_000 if nxt is None else max(0, nxt - now)
+            if end is not None:
+                wait_ns = min(wait_ns, end - now)
+            self._wake.wait(min(wait_ns, 50_000_000) / 1e9)
+            self._wake.clear()
+        return self.stats
+
+    def close(self) -> None:
+        """Undeclare the subscriber and publishers (the session stays open). Idempotent."""
+        for entity in (self._sub, self._pub):
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+
+
+def run_vision(
+    cfg: RigConfig,
+    *,
+    fps: float | None = None,
+    lockstep: bool | None = None,
+    stop_event: threading.Event | None = None,
+    duration_s: float = 0.0,
+    endpoint: str | None = None,
+    config_file: str | None = None,
+    listen: bool | None = None,
+    wait_s: float = DEFAULT_WAIT_S,
+    session: ZenohSession | None = None,
+    ready: threading.Event | None = None,
+) -> VisionStats:
+    """Run the vision process until ``stop_event`` or ``duration_s`` (0 = forever).
+
+    ``fps`` as :func:`resolve_fps`; ``lockstep=None`` follows each pose's flag. The zenoh options
+    go to :func:`hal.zenoh_session.open_session` (by default the hub if the endpoint's port is
+    free, else a client of the process that holds it); a given ``session`` is used as is and
+    left open. ``ready`` is set once poses are subscribed.
+    """
+    stop_event = stop_event or threading.Event()
+    fps = resolve_fps(cfg, fps)
+    own = session is None
+    if session is None:
+        session = open_session(
+            cfg,
+            listen=listen,
+            endpoint=endpoint,
+            config_file=config_file,
+            wait_s=wait_s,
+            stop_event=stop_event,
+        )
+    try:
+        node = VisionNode(cfg, session, fps=fps, lockstep=lockstep)
+        try:
+            if ready is not None:
+                ready.set()
+            return node.run(stop_event, duration_s)
+        finally:
+            node.close()
+    finally:
+        if own:
+            session.close()
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``hil vision`` (for the lead's subcommand wiring)."""
+    p.add_argument("--config", metavar="FILE", help="rig config TOML (default: embedded)")
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="frame rate; 0 = one frame per pose (default: camera.frame_rate_hz, else 60)",
+    )
+    p.add_argument("--noise", type=float, metavar="PX", help="pixel noise std (camera.noise_px)")
+    p.add_argument("--latency", type=float, metavar="S", help="delivery delay (camera.latency_s)")
+    p.add_argument("--seed", type=int, help="noise seed (camera.seed)")
+    p.add_argument(
+        "--clock",
+        choices=("auto", "lockstep", "realtime"),
+        default="auto",
+        help="auto follows each pose's lockstep flag (default)",
+    )
+    p.add_argument(
+        "--zenoh-endpoint",
+        metavar="EP",
+        help="loopback endpoint tcp/127.0.0.1:PORT (default: transport.zenoh_endpoint)",
+    )
+    p.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="zenoh json5 config replacing the loopback defaults (multi-host setups)",
+    )
+    p.add_argument(
+        "--zenoh-role",
+        choices=("auto", "hub", "client"),
+        default="auto",
+        help="hub = listen on the endpoint, client = connect to it, auto = hub if the port is "
+        "free (default)",
+    )
+    p.add_argument(
+        "--wait", type=float, default=DEFAULT_WAIT_S, metavar="S", help="wait for the hub (10 s)"
+    )
+    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="0 = until SIGTERM")
+    p.add_argument("--json", action="store_true", help="print the final counters as one JSON line")
+
+
+def _config(args: argparse.Namespace) -> RigConfig:
+    cfg = load_config(args.config)
+    overrides: dict[str, Any] = {}
+    for opt, key in (("noise", "noise_px"), ("latency", "latency_s"), ("seed", "seed")):
+        value = getattr(args, opt)
+        if value is not None:
+            overrides[f"camera.{key}"] = value
+    return cfg.with_overrides(overrides) if overrides else cfg
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Body of ``hil vision``: SIGTERM/SIGINT end it cleanly with status 0."""
+    if args.duration < 0:
+        raise HalConfigError(f"--duration must be non-negative (0 = forever), got {args.duration}")
+    cfg = _config(args)
+    fps = resolve_fps(cfg, args.fps)
+    lockstep = {"auto": None, "lockstep": True, "realtime": False}[args.clock]
+    stop = threading.Event()
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        print(
+            f"hil vision: {fps:g} fps, clock {args.clock}, "
+            f"zenoh {args.zenoh_config or args.zenoh_endpoint or cfg.transport.zenoh_endpoint}",
+            file=sys.stderr,
+            flush=True,
+        )
+        try:
+            stats = run_vision(
+                cfg,
+                fps=fps,
+                lockstep=lockstep,
+                stop_event=stop,
+                duration_s=args.duration,
+                endpoint=args.zenoh_endpoint,
+                config_file=args.zenoh_config,
+                listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
+                wait_s=args.wait,
+            )
+        except HalError:
+            if stop.is_set():  # told to stop while waiting for the hub
+                return 0
+            raise
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if args.json:
+        print(json.dumps(stats.to_dict()), flush=True)
+    else:
+        print(
+            f"hil vision: {stats.poses} poses, {stats.frames} frames, "
+            f"{stats.published} messages published, {stats.pose_rx.get('rejected', 0)} poses "
+            "rejected",
+            flush=True,
+        )
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``hil vision``."""
+    parser = argparse.ArgumentParser(
+        prog="hil vision",
+        description="Vision process: camera poses from the emulator in, image features out "
+        "(zenoh key hil/vision/features).",
+    )
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_from_args(args)
+    except HalError as exc:
+        print(f"hil vision: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
