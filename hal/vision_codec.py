@@ -305,7 +305,7 @@ class FeatureDecoder(_Receiver):
     ordering rejections (a corrupted huge counter cannot lock the receiver out forever).
 
     Thread-safe: zenoh's callback thread feeds, the control loop reads :attr:`latest` or waits
-    with :meth:`wait_pose_seq`.
+    with :meth:`wait_pose_seq`. Wiring: ``session.subscribe(KEY_FEATURES, decoder.feed)``.
     """
 
     def __init__(

@@ -3,14 +3,16 @@
 Topology: a star on one loopback endpoint (``transport.zenoh_endpoint``, tcp/127.0.0.1:7447).
 
 * Exactly one process is the **hub**: its session is in ``router`` mode and listens on the
-  endpoint. The hub is the vision process (``hil vision`` with its default ``--zenoh-role auto``
-  takes the hub if the port is free): every zenoh message of the rig starts or ends there
-  (poses in, features out), so both directions are a single loopback hop.
-* Every other process (emulator, controller, tools) opens a **client** session
-  (``listen=False``) that connects to the endpoint and never listens. The hub also forwards
-  between its clients, so any other process can be the hub at the price of one extra hop
-  (lockstep pose -> features round trip measured on a 2-core test machine: ~250 µs median
-  with the vision hub, ~400 µs with the emulator as hub).
+  endpoint. Recommended: the plant emulator (``listen=True``) — ``hil up`` starts it first, it
+  lives as long as the rig, and it never waits for anyone.
+* Every other process (vision, controller, tools) opens a **client** session (``listen=False``)
+  that connects to the endpoint and never listens. The hub forwards between its clients, so
+  features go vision -> hub -> controller, one extra loopback hop. Any single hub works
+  (``hil vision --zenoh-role hub`` runs without an emulator); measured on a busy 2-core test
+  machine the lockstep pose -> features round trip was 150-320 µs median with either the
+  emulator or the vision process as hub. ``listen=None`` ("auto": the hub if the port is free,
+  else a client) is for ad-hoc use only: with fixed roles no start order can make two
+  processes fight over the port.
 * A client started before its hub keeps retrying for ``wait_s`` (interruptibly, see
   ``stop_event``); once connected, zenoh reconnects it on its own if the hub restarts.
 
@@ -27,6 +29,7 @@ defaults verbatim; it is the only way to spread the processes over several hosts
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import re
 import socket
@@ -56,10 +59,17 @@ _ATTEMPT_S = 0.5
 _LOOPBACK_RE = re.compile(r"^tcp/(127\.\d{1,3}\.\d{1,3}\.\d{1,3}):(\d{1,5})$")
 
 
+def _is_ipv4(host: str) -> bool:
+    try:
+        return ipaddress.IPv4Address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def parse_loopback_endpoint(endpoint: str) -> tuple[str, int]:
     """``(host, port)`` of a ``tcp/127.x.x.x:PORT`` endpoint, else :class:`HalConfigError`."""
-    m = _LOOPBACK_RE.match(endpoint.strip())
-    if m is None or not 0 < int(m.group(2)) < 65536:
+    m = _LOOPBACK_RE.match(endpoint)
+    if m is None or not 0 < int(m.group(2)) < 65536 or not _is_ipv4(m.group(1)):
         raise HalConfigError(
             f"transport.zenoh_endpoint: {endpoint!r} is not an IPv4 loopback endpoint "
             "tcp/127.0.0.1:PORT; use --zenoh-config FILE for multi-host setups"
@@ -266,7 +276,7 @@ def open_session(
     cfg: RigConfig | None = None,
     *,
     mode: str | None = None,
-    listen: bool | None = None,
+    listen: bool | None = False,
     endpoint: str | None = None,
     config_file: str | None = None,
     wait_s: float = DEFAULT_WAIT_S,
@@ -274,9 +284,10 @@ def open_session(
 ) -> ZenohSession:
     """Open a zenoh session on the rig's loopback endpoint (see the module docstring).
 
-    ``listen=True`` makes this process the hub (router listening on ``endpoint``), ``False`` a
-    client connecting to it (waiting up to ``wait_s`` for the hub, giving up early when
-    ``stop_event`` is set), ``None`` the hub if the port is free and a client otherwise.
+    ``listen=True`` makes this process the hub (router listening on ``endpoint``); the default
+    ``False`` a client connecting to it (waiting up to ``wait_s`` for the hub, giving up early
+    when ``stop_event`` is set); ``None`` the hub if the port is free and a client otherwise
+    (ad-hoc use only: two processes started together could both want the hub).
     ``mode`` overrides the zenoh mode (``router``/``peer``/``client``); note that two peers that
     only connect to a hub cannot reach each other with gossip off. ``endpoint`` and
     ``config_file`` default to ``cfg.transport``; a config file is used verbatim (mode, listen

@@ -328,6 +328,7 @@ class VisionNode:
         """Serve until ``stop_event`` is set or ``duration_s`` (0 = forever) elapsed."""
         end = time.monotonic_ns() + round(duration_s * 1e9) if duration_s > 0 else None
         while not stop_event.is_set():
+            self._wake.clear()  # before step(): a pose arriving from here on wakes the wait
             nxt = self.step()
             now = time.monotonic_ns()
             if end is not None and now >= end:
@@ -336,7 +337,6 @@ class VisionNode:
             if end is not None:
                 wait_ns = min(wait_ns, end - now)
             self._wake.wait(min(wait_ns, 50_000_000) / 1e9)
-            self._wake.clear()
         return self.stats
 
     def close(self) -> None:
@@ -355,7 +355,7 @@ def run_vision(
     duration_s: float = 0.0,
     endpoint: str | None = None,
     config_file: str | None = None,
-    listen: bool | None = None,
+    listen: bool | None = False,
     wait_s: float = DEFAULT_WAIT_S,
     session: ZenohSession | None = None,
     ready: threading.Event | None = None,
@@ -363,9 +363,9 @@ def run_vision(
     """Run the vision process until ``stop_event`` or ``duration_s`` (0 = forever).
 
     ``fps`` as :func:`resolve_fps`; ``lockstep=None`` follows each pose's flag. The zenoh options
-    go to :func:`hal.zenoh_session.open_session` (by default the hub if the endpoint's port is
-    free, else a client of the process that holds it); a given ``session`` is used as is and
-    left open. ``ready`` is set once poses are subscribed.
+    go to :func:`hal.zenoh_session.open_session` (by default a client of the emulator's hub,
+    ``listen=True`` to be the hub); a given ``session`` is used as is and left open. ``ready``
+    is set once poses are subscribed.
     """
     stop_event = stop_event or threading.Event()
     fps = resolve_fps(cfg, fps)
@@ -424,9 +424,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--zenoh-role",
         choices=("auto", "hub", "client"),
-        default="auto",
-        help="hub = listen on the endpoint, client = connect to it, auto = hub if the port is "
-        "free (default)",
+        default="client",
+        help="client = connect to the emulator's hub (default), hub = listen on the endpoint "
+        "(run without an emulator), auto = hub if the port is free",
     )
     p.add_argument(
         "--wait", type=float, default=DEFAULT_WAIT_S, metavar="S", help="wait for the hub (10 s)"

@@ -130,6 +130,7 @@ class ControllerDaemon:
         try:
             session = open_session(
                 cfg,
+                listen=False,
                 endpoint=opts.zenoh_endpoint,
                 config_file=opts.zenoh_config,
                 stop_event=self.stop,
