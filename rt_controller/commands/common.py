@@ -10,6 +10,10 @@ from hal.config import RigConfig, load_config
 from rt_controller.errors import ControllerConfigError
 
 
+MAX_PREDICTION_STEP_S = 0.05
+"""Largest T/N chosen automatically when only --horizon is given."""
+
+
 def add_config_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
 
@@ -53,6 +57,10 @@ def config_from_args(args: argparse.Namespace) -> RigConfig:
         value = getattr(args, attr, None)
         if value is not None:
             overrides[key] = value
+    horizon = overrides.get("rhc.horizon")
+    if horizon is not None and "rhc.steps" not in overrides:
+        # Keep the prediction step T/N small enough for the arm's fast modes (Euler stability).
+        overrides["rhc.steps"] = max(cfg.rhc.steps, math.ceil(horizon / MAX_PREDICTION_STEP_S))
     if getattr(args, "no_disturbance", False):
         overrides["scenario.disturbance"] = False
     rate = overrides.get("rates.control_hz")
