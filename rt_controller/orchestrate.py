@@ -83,8 +83,8 @@ class Rig:
         return out
 
     def _start(self, name: str, args: list[str]) -> Child:
-        err = tempfile.TemporaryFile()
-        out = tempfile.TemporaryFile()
+        err = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
+        out = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         proc = subprocess.Popen(args, stdout=out, stderr=err, stdin=subprocess.DEVNULL, env=env)
         child = Child(name, proc, err, out)

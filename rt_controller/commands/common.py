@@ -9,7 +9,6 @@ from typing import Any
 from hal.config import RigConfig, load_config
 from rt_controller.errors import ControllerConfigError
 
-
 MAX_PREDICTION_STEP_S = 0.05
 """Largest T/N chosen automatically when only --horizon is given."""
 
