@@ -22,6 +22,17 @@ class Command:
     saturated: bool
 
 
+@dataclass(frozen=True)
+class Decision:
+    """One tick of the daemon: the torque to send and how it was obtained."""
+
+    tau: np.ndarray
+    mode: str
+    """``control`` (the law ran), ``hold`` (stale features: joint damper) or ``no_state``."""
+    command: Command | None
+    """The law's step when ``mode == "control"``."""
+
+
 class Controller:
     """Pure step function around a control law; the caller owns clocks and transports."""
 
@@ -31,6 +42,7 @@ class Controller:
         name = cfg.controller.law if law is None else law
         self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
+        self._holding = False
 
     def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
@@ -71,3 +83,30 @@ class Controller:
         """V(x_k) of eq. (13) for this tick."""
         m = cmd.measurement
         return self.model.V(m.q, m.xi, m.f)
+
+    def decide(
+        self,
+        t: float,
+        q: np.ndarray,
+        dq: np.ndarray,
+        f: np.ndarray,
+        *,
+        f_stale: bool,
+        state_stale: bool,
+    ) -> Decision:
+        """The daemon's per-tick rule, shared with ``hil replay`` so a log replays exactly.
+
+        No joint state: zero torque. Stale features: hold (:meth:`hold_torque`) and re-initialise
+        the law when features return. Otherwise the law and eq. (11). Never returns NaN torque.
+        """
+        if state_stale:
+            return Decision(np.zeros(2), "no_state", None)
+        if f_stale or not np.all(np.isfinite(f)):
+            self._holding = True
+            return Decision(self.hold_torque(np.asarray(dq, dtype=float)), "hold", None)
+        if self._holding:
+            self.law.reset()
+            self._holding = False
+        cmd = self.step(t, q, dq, f)
+        tau = cmd.tau if np.all(np.isfinite(cmd.tau)) else np.zeros(2)
+        return Decision(tau, "control", cmd)

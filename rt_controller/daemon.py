@@ -115,8 +115,6 @@ class ControllerDaemon:
         self.stats = RunStats()
         self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
         self.features = FeatureDecoder(max_age_ns=round(cfg.controller.feature_timeout_s * 1e9))
-        self._hold_gain = 2.0 * self.model.R
-        self._was_stale = False
 
     # --- wiring -----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -272,21 +270,17 @@ class ControllerDaemon:
         f_stale = not (f_age_ms <= cfg.controller.feature_timeout_s * 1e3)
         t_read = time.monotonic_ns()
         # --- decide
-        u = tau = xi = np.zeros(2)
+        d = self.controller.decide(t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale)
+        u = xi = np.zeros(2)
         residual, iterations, fallback, saturated = 0.0, 0, False, False
         cost = V = math.nan
-        if state_stale:
+        if d.mode == "no_state":
             st.stale_states += 1
-        elif f_stale:
+        elif d.mode == "hold":
             st.stale_features += 1
-            tau = np.clip(-self._hold_gain @ dq, -self.controller.tau_max, self.controller.tau_max)
-            self._was_stale = True
         else:
-            if self._was_stale:
-                self.controller.law.reset()
-                self._was_stale = False
-            cmd = self.controller.step(t_s, q, dq, f)
-            u, tau, xi = cmd.law.u, cmd.tau, cmd.measurement.xi
+            cmd = d.command
+            u, xi = cmd.law.u, cmd.measurement.xi
             residual, iterations, fallback = cmd.law.residual, cmd.law.iterations, cmd.law.fallback
             saturated = cmd.saturated
             cost, V = self.controller.stage_cost(cmd), self.controller.energy(cmd)
@@ -295,8 +289,7 @@ class ControllerDaemon:
             st.f_final = _vec(f)
         t_solve = time.monotonic_ns()
         # --- write
-        if state_stale or not np.all(np.isfinite(tau)):
-            tau = np.zeros(2)
+        tau = d.tau
         dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
         t_write = time.monotonic_ns()
         st.ticks += 1
@@ -309,7 +302,7 @@ class ControllerDaemon:
         self._last_record = {
             "tick": index,
             "t_ns": wake_ns,
-            "sim_time_s": t_s if self.opts.lockstep else None,
+            "sim_time_s": t_s,
             "lateness_us": lateness_ns / 1e3,
             "read_us": (t_read - wake_ns) / 1e3,
             "solve_us": solve_us,
@@ -329,7 +322,7 @@ class ControllerDaemon:
             "u": _vec(u),
             "tau": _vec(tau),
             "tau_saturated": saturated,
-            "law": self.controller.law.name if not (f_stale or state_stale) else "hold",
+            "law": self.controller.law.name if d.mode == "control" else d.mode,
             "residual": residual,
             "iterations": iterations,
             "fallback": fallback,
