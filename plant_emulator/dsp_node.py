@@ -8,15 +8,33 @@ and runs a watchdog that removes torque when commands stop. Two clock modes:
 * **lockstep**: once per control period the DSP sends ``Sync(k)`` and advances the physics by
   one period only after the controller's command for period ``k`` arrived, so a run is
   deterministic and as fast as the processes allow.
+
+Watchdog: a trip happens when ``dsp.watchdog_periods`` control periods passed since the last valid
+command (TorqueCommand or DspControl ENABLE), on the DSP's own clock: in realtime it is evaluated
+at the scheduled time of every physics step (so a descheduled emulator process still removes the
+torque at the right physics step), in lockstep on the simulation clock at the start of each
+period. Every change of TorqueEnabled, WatchdogTripped or TorqueSaturated sends a DspStatus at
+once (besides the periodic ones), and :attr:`DspStats.last_trip_latency_ns` records how long
+after its last command the DSP tripped.
+
+Lockstep details: if the command of period ``k`` does not come within ``sync_resend_s`` of real
+time, the DSP re-sends the state and ``Sync(k)`` (the command may have been rejected, e.g. on an
+E2E counter resync after a controller restart) and keeps doing so until ``reply_timeout_s``,
+after which the period counts as missing and the physics advances with the held torque (so the
+watchdog can trip in simulation time). Until the first command of a run arrives, the DSP waits
+for the controller indefinitely (re-announcing period 0), so the start-up order of the processes
+cannot change a lockstep run. Re-sends never change the physics: a run stays deterministic.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import can
 import numpy as np
@@ -31,6 +49,8 @@ PoseSink = Callable[[int, int, CameraPose, bool], None]
 
 LOCKSTEP_REPLY_TIMEOUT_S = 0.5
 """Real time the lockstep DSP waits for the command of one period before counting it missing."""
+SYNC_RESEND_S = 0.04
+"""Lockstep: real time without the period's command after which state and Sync(k) are re-sent."""
 
 
 @dataclass
@@ -43,12 +63,31 @@ class DspStats:
     status_frames: int = 0
     syncs: int = 0
     watchdog_trips: int = 0
+    sync_resends: int = 0
+    """Lockstep: Sync frames sent again because the period's command had not arrived."""
     late_commands: int = 0
-    """Lockstep: commands answering an older Sync (ignored)."""
+    """Lockstep: commands answering another Sync than the current one (ignored)."""
     missing_periods: int = 0
     """Lockstep: periods with no command before the reply timeout."""
     send_errors: int = 0
+    last_command_ns: int | None = None
+    """DSP clock (monotonic ns in realtime, simulation ns in lockstep) of the last valid command."""
+    last_trip_ns: int | None = None
+    """DSP clock of the last watchdog trip."""
+    last_trip_latency_ns: int | None = None
+    """Time from the last valid command to the watchdog trip that followed it (DSP clock)."""
+    max_lateness_ns: int = 0
+    """Realtime: the most a physics step ran after its scheduled time (host scheduling)."""
     rejected: dict[str, int] = field(default_factory=dict)
+    """Receive verdicts of the DSP's codec (filled in when the run ends)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain counters for ``--json`` (latencies also in ms)."""
+        out = dataclasses.asdict(self)
+        lat = self.last_trip_latency_ns
+        out["last_trip_latency_ms"] = None if lat is None else lat * 1e-6
+        out["max_lateness_ms"] = self.max_lateness_ns * 1e-6
+        return out
 
 
 class DspNode:
@@ -62,7 +101,13 @@ class DspNode:
         lockstep: bool = False,
         pose_sink: PoseSink | None = None,
         world: World | None = None,
+        reply_timeout_s: float = LOCKSTEP_REPLY_TIMEOUT_S,
+        sync_resend_s: float = SYNC_RESEND_S,
+        wait_for_controller: bool = True,
     ) -> None:
+        """``reply_timeout_s``, ``sync_resend_s``: lockstep waits (real time, see the module
+        docstring); ``wait_for_controller``: in lockstep, hold period 0 until the first command
+        arrives (``False`` counts it missing after ``reply_timeout_s`` like any other)."""
         self.cfg = cfg
         self.bus = bus
         self.lockstep = lockstep
@@ -86,10 +131,15 @@ class DspNode:
         self.armed = False
         self.tripped = False
         self.tau_cmd = np.zeros(2)
+        self._tau_max = np.array(cfg.robot.tau_max, dtype=float)
         self.last_cmd_ns: int | None = None
         self.last_cmd_tick = -1
         self.sync_tick = 0
         self.pose_seq = 0
+        self.reply_timeout_s = reply_timeout_s
+        self.sync_resend_s = sync_resend_s
+        self._awaiting_controller = lockstep and wait_for_controller
+        self._t0_ns = 0
         self._q_enc = self._encode_angles(self.world.q)
         self._dq_est = np.array(self.world.dq, dtype=float)
 
@@ -108,7 +158,7 @@ class DspNode:
     def _send(self, msg: can.Message) -> None:
         try:
             self.bus.send(msg)
-        except can.CanError:
+        except (can.CanError, OSError):  # a full queue or a vanished peer must not stop the DSP
             self.stats.send_errors += 1
 
     def send_state(self) -> None:
@@ -124,14 +174,18 @@ class DspNode:
         status = DspStatus(
             torque_enabled=self.torque_enabled,
             watchdog_tripped=self.tripped,
-            torque_saturated=bool(np.any(np.abs(self.tau_cmd) > np.array(self.cfg.robot.tau_max))),
+            torque_saturated=self.torque_saturated,
             lockstep=self.lockstep,
             rejected_frames=min(st.rejected, 255),
             watchdog_trips=min(self.stats.watchdog_trips, 255),
-            tick=self.sync_tick,
+            tick=self.world.step_index,
         )
         self._send(self.codec.encode_status(status))
         self.stats.status_frames += 1
+
+    def send_sync(self) -> None:
+        self._send(self.codec.encode_sync(self.sync_tick))
+        self.stats.syncs += 1
 
     def publish_pose(self) -> None:
         if self.pose_sink is not None:
@@ -143,27 +197,49 @@ class DspNode:
     def torque_enabled(self) -> bool:
         return self.armed and not self.tripped
 
+    @property
+    def torque_saturated(self) -> bool:
+        """Whether the held command exceeds ``robot.tau_max`` on a joint (the amplifier clips)."""
+        return bool(np.any(np.abs(self.tau_cmd) > self._tau_max))
+
+    def _flags(self) -> tuple[bool, bool, bool]:
+        return (self.torque_enabled, self.tripped, self.torque_saturated)
+
     def handle(self, msg: can.Message, now_ns: int) -> TorqueCommand | None:
-        """Apply one received frame; returns the torque command it carried (if valid)."""
+        """Apply one received frame; returns the torque command it carried (if valid).
+
+        ``now_ns`` is the DSP clock (monotonic ns in realtime, simulation ns in lockstep). A
+        change of a status flag (TorqueEnabled, WatchdogTripped, TorqueSaturated) sends a
+        DspStatus right away. Never raises for a bad frame (the codec counts it).
+        """
         frame = self.codec.decode_command(msg, now_ns)
+        if frame is None:
+            return None
+        before = self._flags()
+        accepted: TorqueCommand | None = None
         if isinstance(frame, DspControl):
             if frame.command is DspCommand.ENABLE:
                 self.armed, self.tripped = True, False
-                self.last_cmd_ns = now_ns
+                self._command_seen(now_ns)
             else:
                 self.armed = False
                 self.tau_cmd = np.zeros(2)
-            return None
-        if isinstance(frame, TorqueCommand):
+        else:
             self.stats.commands += 1
             if self.lockstep and frame.tick != self.sync_tick % 65536:
                 self.stats.late_commands += 1
-                return None
-            self.last_cmd_ns = now_ns
-            self.last_cmd_tick = frame.tick
-            self.tau_cmd = np.array([frame.tau1, frame.tau2]) if frame.enable else np.zeros(2)
-            return frame
-        return None
+            else:
+                self._command_seen(now_ns)
+                self.last_cmd_tick = frame.tick
+                self.tau_cmd = np.array([frame.tau1, frame.tau2]) if frame.enable else np.zeros(2)
+                accepted = frame
+        if self._flags() != before:
+            self.send_status()
+        return accepted
+
+    def _command_seen(self, now_ns: int) -> None:
+        self.last_cmd_ns = now_ns
+        self.stats.last_command_ns = now_ns
 
     def drain(self, now_ns: int) -> None:
         """Handle every frame already waiting on the bus."""
@@ -173,14 +249,22 @@ class DspNode:
                 return
             self.handle(msg, now_ns)
 
-    def check_watchdog(self, now_ns: int) -> None:
-        """Trip when no valid command arrived for ``dsp.watchdog_periods`` control periods."""
+    def check_watchdog(self, now_ns: int) -> bool:
+        """Trip when ``dsp.watchdog_periods`` control periods passed without a valid command.
+
+        ``now_ns`` is the DSP clock. Returns whether it tripped now (a DspStatus went out).
+        """
         if not self.torque_enabled or self.last_cmd_ns is None:
-            return
-        if now_ns - self.last_cmd_ns > self.watchdog_ns:
-            self.tripped = True
-            self.tau_cmd = np.zeros(2)
-            self.stats.watchdog_trips += 1
+            return False
+        if now_ns - self.last_cmd_ns < self.watchdog_ns:
+            return False
+        self.tripped = True
+        self.tau_cmd = np.zeros(2)
+        self.stats.watchdog_trips += 1
+        self.stats.last_trip_ns = now_ns
+        self.stats.last_trip_latency_ns = now_ns - self.last_cmd_ns
+        self.send_status()
+        return True
 
     def applied_torque(self) -> np.ndarray:
         return self.tau_cmd if self.torque_enabled else np.zeros(2)
@@ -201,58 +285,128 @@ class DspNode:
             self.send_status()
 
     # --- clock modes ------------------------------------------------------------------------
+    def start_realtime(self, now_ns: int) -> None:
+        """Realtime: physics step 0 begins at ``now_ns``; sends the initial state and status."""
+        self._t0_ns = now_ns
+        self.send_state()
+        self.send_status()
+        self.publish_pose()
+
+    def service(self, now_ns: int) -> int:
+        """Realtime: handle the waiting frames, then run every physics step due by ``now_ns``.
+
+        The watchdog is evaluated at each step's scheduled time, so torque goes off at the
+        right physics step even when the process was late. Returns when the next step is due.
+        The clock is a parameter: tests drive this with a fake clock.
+        """
+        self.drain(now_ns)
+        period = self.physics_period_ns
+        due = (now_ns - self._t0_ns) // period
+        if self.world.step_index < due:
+            late = now_ns - (self._t0_ns + (self.world.step_index + 1) * period)
+            self.stats.max_lateness_ns = max(self.stats.max_lateness_ns, late)
+        while self.world.step_index < due:
+            self.check_watchdog(self._t0_ns + self.world.step_index * period)
+            self.physics_step()
+        return self._t0_ns + (self.world.step_index + 1) * period
+
+    def warm_up(self) -> None:
+        """Compile/load the physics kernels on a throw-away world, so the clock's first step is
+        not late by the JIT time (seconds under user-mode Linux)."""
+        World(self.cfg).step(np.zeros(2))
+
     def run_realtime(self, stop: threading.Event, duration_s: float = 0.0) -> DspStats:
         """Physics on the monotonic clock; behind schedule it catches up, never drifts."""
+        self.warm_up()
         start = time.monotonic_ns()
-        self.send_state()
-        self.publish_pose()
+        self.start_realtime(start)
         end = start + round(duration_s * 1e9) if duration_s > 0 else None
         while not stop.is_set():
             now = time.monotonic_ns()
             if end is not None and now >= end:
                 break
-            self.drain(now)
-            self.check_watchdog(now)
-            due = (now - start) // self.physics_period_ns
-            while self.world.step_index < due:
-                self.physics_step()
-            next_ns = start + (self.world.step_index + 1) * self.physics_period_ns
+            next_ns = self.service(now)
             delay = (next_ns - time.monotonic_ns()) / 1e9
             if delay > 0:
                 time.sleep(delay)
         self._finish()
         return self.stats
 
-    def lockstep_period(self, stop: threading.Event) -> None:
-        """Publish pose, state and Sync(k); wait for the answer; advance one control period."""
-        self.publish_pose()
+    def _announce(self) -> None:
+        """Lockstep: the state of the current period, then Sync(k)."""
         self.send_state()
-        self._send(self.codec.encode_sync(self.sync_tick))
-        self.stats.syncs += 1
-        deadline = time.monotonic() + LOCKSTEP_REPLY_TIMEOUT_S
-        answered = False
-        while not answered and not stop.is_set():
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            msg = self.bus.recv(timeout=min(remaining, 0.05))
+        self.send_sync()
+
+    def _await_command(self, stop: threading.Event) -> bool:
+        """Lockstep: wait for the command of the current period; re-send Sync while waiting."""
+        start = time.monotonic()
+        resend_at = start + self.sync_resend_s
+        deadline = None if self._awaiting_controller else start + self.reply_timeout_s
+        while not stop.is_set():
+            now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                return False
+            if now >= resend_at:
+                self._announce()
+                self.stats.sync_resends += 1
+                if self._awaiting_controller:
+                    self.send_status()
+                resend_at = now + self.sync_resend_s
+            wait = resend_at - now if deadline is None else min(resend_at, deadline) - now
+            msg = self.bus.recv(timeout=min(max(wait, 0.0), 0.05))
+            if msg is not None and self.handle(msg, self._sim_ns()) is not None:
+                self._awaiting_controller = False
+                return True
+        return False
+
+    def _await_enable(self, stop: threading.Event) -> bool:
+        """Lockstep, before period 0: publish the joint state (no pose, no Sync) until the
+        controller arms the DSP, so every subscriber is in place when period 0 starts."""
+        resend_at = 0.0
+        while not stop.is_set() and not self.armed:
+            now = time.monotonic()
+            if now >= resend_at:
+                self.send_state()
+                self.send_status()
+                resend_at = now + self.sync_resend_s
+            msg = self.bus.recv(timeout=min(max(resend_at - now, 0.0), 0.05))
             if msg is not None:
-                answered = self.handle(msg, self._sim_ns()) is not None
+                self.handle(msg, self._sim_ns())
+        return self.armed
+
+    def lockstep_period(self, stop: threading.Event) -> bool:
+        """Publish pose, state and Sync(k); wait for the answer; advance one control period.
+
+        Returns ``False`` (without advancing) when ``stop`` was set before the period's command
+        arrived.
+        """
+        if self._awaiting_controller and not self._await_enable(stop):
+            return False
+        self.publish_pose()
+        self._announce()
+        answered = self._await_command(stop)
         if not answered:
+            if stop.is_set():
+                return False
             self.stats.missing_periods += 1
         self.check_watchdog(self._sim_ns())
         for _ in range(self.substeps):
             self.physics_step()
         self.sync_tick += 1
+        return True
 
     def _sim_ns(self) -> int:
         return round(self.world.t * 1e9)
 
     def run_lockstep(self, stop: threading.Event, duration_s: float = 0.0) -> DspStats:
-        """Control periods back to back on the simulation clock (the watchdog counts periods)."""
+        """Control periods back to back on the simulation clock (the watchdog counts periods).
+
+        ``duration_s`` is simulated time (0 = until ``stop``).
+        """
         periods = math.floor(duration_s * self.cfg.rates.control_hz + 1e-9) if duration_s else None
         while not stop.is_set() and (periods is None or self.sync_tick < periods):
-            self.lockstep_period(stop)
+            if not self.lockstep_period(stop):
+                break
         self._finish()
         return self.stats
 
@@ -268,4 +422,4 @@ class DspNode:
         self.stats.rejected = self.codec.stats.as_dict()
 
 
-__all__ = ["RAD_PER_COUNT", "DspNode", "DspStats"]
+__all__ = ["LOCKSTEP_REPLY_TIMEOUT_S", "RAD_PER_COUNT", "SYNC_RESEND_S", "DspNode", "DspStats"]

@@ -18,7 +18,16 @@ from rt_controller.errors import ControllerError
 
 Handler = Callable[[argparse.Namespace], int]
 
-COMMAND_MODULES = ("up", "emulator", "vision", "controller", "simulate", "report", "bench")
+COMMAND_MODULES = (
+    "up",
+    "emulator",
+    "vision",
+    "controller",
+    "simulate",
+    "replay",
+    "report",
+    "bench",
+)
 """Modules of :mod:`rt_controller.commands`, each with ``register(subparsers)``."""
 
 

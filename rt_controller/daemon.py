@@ -232,6 +232,9 @@ class ControllerDaemon:
             except HalTimeoutError:
                 return  # the emulator finished its run
             if last is not None and k <= last:
+                if k == last:  # a re-sent Sync: our command was lost, send it again
+                    tau = self._last_record["tau"]
+                    dsp.send_torque(tau[0], tau[1], tick=k)
                 continue
             missed = 0 if last is None else k - last - 1
             last = k

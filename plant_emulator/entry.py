@@ -1,0 +1,245 @@
+"""``hil emulator``: the emulated DSP of the arm on a CAN bus, camera poses on zenoh.
+
+The ``hil`` CLI (:mod:`rt_controller.commands.emulator`) only registers the options with
+:func:`add_emulator_arguments` and dispatches to :func:`run_emulator`; everything else lives here.
+
+Behaviour:
+
+* opens the bus with :func:`hal.bus.open_bus` (``--can``, default ``transport.can`` of the config:
+  ``auto`` = python-can's configuration, else ``socketcan:vcan0`` if it exists, else host-local
+  ``udp_multicast``) and runs :class:`~plant_emulator.dsp_node.DspNode` in realtime or lockstep;
+* unless ``--no-vision-link``, it is the zenoh hub of the rig (router listening on
+  ``--zenoh-endpoint``, or a ``--zenoh-config`` file) and publishes the camera pose on
+  ``hil/emulator/camera_pose`` for the vision process (:mod:`plant_emulator.pose_link`);
+* prints one line on stderr saying where it serves, e.g.
+  ``hil emulator: serving the arm on socketcan:vcan0 (realtime)``;
+* SIGTERM / SIGINT (or ``--duration``): torque off, a final DspStatus, bus and session closed,
+  exit status 0; ``--json`` prints the final counters as one JSON object on stdout.
+
+An unavailable transport raises :class:`~hal.errors.HalTransportError` (one line saying what to
+do), which the ``hil`` CLI turns into exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
+    from plant_emulator.camera import CameraPose
+    from plant_emulator.pose_link import PosePublisher
+
+DEFAULT_VISION_WAIT_S = 10.0
+"""Lockstep: how long to wait for the vision process to subscribe before period 0."""
+
+
+def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``hil emulator``."""
+    p.add_argument(
+        "--can",
+        metavar="INTERFACE[:CHANNEL]",
+        help="CAN bus, e.g. socketcan:vcan0, udp_multicast, virtual (default: transport.can of "
+        "the config, 'auto' = python-can config, else socketcan:vcan0 if present, else "
+        "host-local udp_multicast)",
+    )
+    p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="lockstep clock: send Sync once per control period and advance the physics only "
+        "after the controller's command for it (default: controller.clock of the config)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stop after S seconds (simulated seconds in lockstep); 0 = until SIGTERM/SIGINT",
+    )
+    p.add_argument(
+        "--state-rate",
+        type=float,
+        metavar="HZ",
+        help="joint-state frame rate (rates.state_hz, default 1000; at most rates.physics_hz)",
+    )
+    p.add_argument("--json", action="store_true", help="print the final counters as one JSON line")
+    p.add_argument(
+        "--zenoh-endpoint",
+        metavar="tcp/127.0.0.1:PORT",
+        help="loopback endpoint the emulator listens on as the rig's zenoh hub "
+        "(default: transport.zenoh_endpoint, tcp/127.0.0.1:7447)",
+    )
+    p.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="zenoh json5 config replacing the loopback defaults (multi-host setups)",
+    )
+    p.add_argument(
+        "--no-vision-link",
+        dest="vision_link",
+        action="store_false",
+        help="do not open zenoh / publish camera poses (CAN only)",
+    )
+    p.add_argument(
+        "--vision-wait",
+        type=float,
+        default=DEFAULT_VISION_WAIT_S,
+        metavar="S",
+        help="lockstep: wait up to S seconds for the vision process before period 0 (default 10)",
+    )
+
+
+class _PoseLink:
+    """The DSP's pose sink: publishes on zenoh; a broken session is counted, never fatal."""
+
+    def __init__(self, publisher: PosePublisher) -> None:
+        self.publisher = publisher
+        self.errors = 0
+
+    def __call__(self, seq: int, sim_time_ns: int, pose: CameraPose, lockstep: bool) -> None:
+        from hal.errors import HalTransportError
+
+        try:
+            self.publisher.publish(seq, sim_time_ns, pose, lockstep)
+        except HalTransportError as exc:
+            self.errors += 1
+            if self.errors == 1:
+                print(
+                    f"hil emulator: warning: {exc} (further errors only counted)", file=sys.stderr
+                )
+
+
+def _config(args: argparse.Namespace) -> Any:
+    from hal.config import load_config
+    from hal.errors import HalConfigError
+
+    if args.duration < 0:
+        raise HalConfigError(f"--duration must be non-negative (0 = forever), got {args.duration}")
+    if args.vision_wait < 0:
+        raise HalConfigError(f"--vision-wait must be non-negative, got {args.vision_wait}")
+    cfg = load_config(args.config)
+    if args.state_rate is not None:
+        try:
+            cfg = cfg.with_overrides({"rates.state_hz": args.state_rate})
+        except HalConfigError as exc:
+            raise HalConfigError(f"--state-rate: {exc}") from exc
+    return cfg
+
+
+def run_emulator(args: argparse.Namespace) -> int:
+    """Body of ``hil emulator``; returns the exit status (HalError propagates to the CLI)."""
+    stop = threading.Event()
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():  # before the slow imports
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        return _serve(args, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
+    import contextlib
+
+    from hal.bus import open_bus, resolve_spec
+    from plant_emulator.dsp_node import DspNode
+
+    cfg = _config(args)
+    lockstep = bool(args.lockstep) or cfg.controller.clock == "lockstep"
+    spec = args.can or cfg.transport.can
+    where = str(resolve_spec(spec))  # HalConfigError for a malformed spec
+    mode = "lockstep" if lockstep else "realtime"
+    with contextlib.ExitStack() as stack:
+        bus = stack.enter_context(open_bus(spec))
+        link: _PoseLink | None = None
+        zenoh_where = ""
+        if args.vision_link:
+            from hal.zenoh_session import open_session
+            from plant_emulator.pose_link import PosePublisher
+
+            session = stack.enter_context(
+                open_session(
+                    cfg,
+                    listen=True,
+                    endpoint=args.zenoh_endpoint,
+                    config_file=args.zenoh_config,
+                )
+            )
+            publisher = PosePublisher(session)
+            stack.callback(publisher.close)
+            link = _PoseLink(publisher)
+            zenoh_where = f", camera poses on zenoh {session.endpoint}"
+        node = DspNode(cfg, bus, lockstep=lockstep, pose_sink=link)
+        node.warm_up()
+        print(
+            f"hil emulator: serving the arm on {where} ({mode}){zenoh_where}",
+            file=sys.stderr,
+            flush=True,
+        )
+        if (
+            lockstep
+            and link is not None
+            and args.vision_wait > 0
+            and not link.publisher.wait_for_subscribers(args.vision_wait, stop)
+            and not stop.is_set()
+        ):
+            print(
+                f"hil emulator: no vision process subscribed within {args.vision_wait:g} s; "
+                "starting without it",
+                file=sys.stderr,
+                flush=True,
+            )
+        t0 = time.monotonic()
+        stats = node.run(stop, args.duration)
+        wall_s = time.monotonic() - t0
+        summary: dict[str, Any] = {
+            "transport": where,
+            "mode": mode,
+            "sim_time_s": node.world.t,
+            "wall_time_s": wall_s,
+            "q": [float(v) for v in node.world.q],
+            "dq": [float(v) for v in node.world.dq],
+            "watchdog_period_ms": node.watchdog_ns * 1e-6,
+            "poses_published": 0 if link is None else link.publisher.published,
+            "pose_errors": 0 if link is None else link.errors,
+            **stats.as_dict(),
+        }
+    if args.json:
+        print(json.dumps(summary), flush=True)
+    else:
+        print(
+            f"hil emulator: {summary['sim_time_s']:.3f} s simulated in {wall_s:.3f} s, "
+            f"{stats.commands} commands, {stats.state_frames} states, "
+            f"{stats.watchdog_trips} watchdog trips, "
+            f"{stats.rejected.get('rejected', 0)} frames rejected",
+            flush=True,
+        )
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Stand-alone entry point (``python -m plant_emulator.entry``), same as ``hil emulator``."""
+    from hal.errors import HalError
+
+    parser = argparse.ArgumentParser(
+        prog="hil emulator", description="Emulated DSP of the two-link arm on CAN."
+    )
+    add_emulator_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_emulator(args)
+    except HalError as exc:
+        print(f"hil emulator: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
