@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hal.config import RigConfig
+from rt_controller import fastmodel
 from rt_controller.laws import ControlLaw, LawOutput, Measurement, make_law
 from rt_controller.model import NominalModel
 
@@ -39,6 +40,7 @@ class Controller:
     def __init__(self, cfg: RigConfig, law: str | ControlLaw | None = None) -> None:
         self.cfg = cfg
         self.model = NominalModel.from_config(cfg)
+        self._p = fastmodel.pack(self.model)
         name = cfg.controller.law if law is None else law
         self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
@@ -46,7 +48,7 @@ class Controller:
 
     def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
-        return Measurement(t=t, q=q, dq=dq, f=f, xi=self.model.xi(q, dq, f))
+        return Measurement(t=t, q=q, dq=dq, f=f, xi=fastmodel.prepare(self._p, q, dq, f)[0])
 
     def hold_torque(self, dq: np.ndarray) -> np.ndarray:
         """Safe torque without image features: tau = -2 R dq (a joint damper, eq. 27 with
@@ -68,21 +70,27 @@ class Controller:
             )
             tau = self.hold_torque(m.dq)
             return Command(m, LawOutput(u=np.zeros(2)), tau, tau, False)
-        m = self.measurement(t, q, dq, f)
+        q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
+        xi, tau_ff = fastmodel.prepare(self._p, q, dq, f)
+        m = Measurement(t=t, q=q, dq=dq, f=f, xi=xi)
         out = self.law(m)
-        tau_raw = self.model.torque(m.q, m.dq, m.f, out.u)
+        tau_raw = tau_ff + out.u  # eq. (11)
         tau = np.clip(tau_raw, -self.tau_max, self.tau_max)
         return Command(m, out, tau_raw, tau, bool(np.any(tau != tau_raw)))
 
+    def costs(self, cmd: Command) -> tuple[float, float]:
+        """(l(x_k, u_k) of eq. 25, V(x_k) of eq. 13) for this tick."""
+        m = cmd.measurement
+        u = np.asarray(cmd.law.u, dtype=float)
+        return fastmodel.costs(self._p, m.q, m.xi, m.f, u)
+
     def stage_cost(self, cmd: Command) -> float:
         """l(x_k, u_k) of eq. (25) for this tick."""
-        m = cmd.measurement
-        return self.model.stage_cost(m.q, m.xi, m.f, cmd.law.u)
+        return self.costs(cmd)[0]
 
     def energy(self, cmd: Command) -> float:
         """V(x_k) of eq. (13) for this tick."""
-        m = cmd.measurement
-        return self.model.V(m.q, m.xi, m.f)
+        return self.costs(cmd)[1]
 
     def decide(
         self,

@@ -286,7 +286,7 @@ class ControllerDaemon:
             u, xi = cmd.law.u, cmd.measurement.xi
             residual, iterations, fallback = cmd.law.residual, cmd.law.iterations, cmd.law.fallback
             saturated = cmd.saturated
-            cost, V = self.controller.stage_cost(cmd), self.controller.energy(cmd)
+            cost, V = self.controller.costs(cmd)
             st.J += cost / cfg.rates.control_hz
             st.fallbacks += int(fallback)
             st.f_final = _vec(f)

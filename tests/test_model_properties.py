@@ -139,3 +139,21 @@ def test_eq22_holds_for_any_input(model):
         lhs = 4 * model.V_dot(q, xi, f, u) + model.stage_cost(q, xi, f, u)
         e = u + 2 * model.R @ xi
         assert lhs == pytest.approx(e @ model.R_inv @ e, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("gravity", [0.0, 9.81])
+def test_compiled_tick_terms_equal_the_numpy_model(cfg: RigConfig, gravity: float):
+    from rt_controller import fastmodel
+
+    cfg = cfg.with_overrides(
+        {"robot.gravity": gravity, "gains.alpha": [[0.05, 0.01], [0.01, 0.15]]}
+    )
+    model = NominalModel.from_config(cfg)
+    p = fastmodel.pack(model)
+    for q, dq, f, u in random_states(100):
+        xi, tau_ff = fastmodel.prepare(p, q, dq, f)
+        np.testing.assert_allclose(xi, model.xi(q, dq, f), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(tau_ff + u, model.torque(q, dq, f, u), rtol=1e-10, atol=1e-10)
+        cost, V = fastmodel.costs(p, q, xi, f, u)
+        assert cost == pytest.approx(model.stage_cost(q, xi, f, u), rel=1e-10)
+        assert V == pytest.approx(model.V(q, xi, f), rel=1e-12)
