@@ -180,6 +180,9 @@ class ControllerConfig:
     cpu: int = -1
     """CPU to pin the loop to; -1 = leave affinity alone."""
     log_dir: str = "logs"
+    rearm_after_trip: bool = True
+    """Re-enable the DSP once after each watchdog trip it reports (the trip means this loop
+    was late); false leaves the amplifiers off until restarted."""
 
 
 @dataclass(frozen=True)

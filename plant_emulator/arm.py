@@ -126,6 +126,44 @@ def integrate_kernel(
     return q, dq
 
 
+@njit(cache=True)
+def integrate_encoded_kernel(
+    p: np.ndarray,
+    q: np.ndarray,
+    dq: np.ndarray,
+    tau: np.ndarray,
+    dt: float,
+    steps: int,
+    lsb: float,
+    gain: float,
+    q_enc: np.ndarray,
+    dq_est: np.ndarray,
+):
+    """:func:`integrate_kernel` with the DSP's sensors sampled after every step: encoder
+    quantisation (``lsb`` rad) and a first-order filtered difference velocity estimate."""
+    q_enc = q_enc.copy()
+    dq_est = dq_est.copy()
+    for _ in range(steps):
+        q, dq = integrate_kernel(p, q, dq, tau, dt, 1)
+        for i in range(2):
+            enc = np.round(q[i] / lsb) * lsb
+            dq_est[i] += gain * ((enc - q_enc[i]) / dt - dq_est[i])
+            q_enc[i] = enc
+    return q, dq, q_enc, dq_est
+
+
+class Encoder:
+    """The DSP's joint sensors: quantised angles and a filtered difference velocity."""
+
+    def __init__(self, q: np.ndarray, dq: np.ndarray, lsb: float, gain: float) -> None:
+        self.lsb = lsb
+        """Angle resolution, rad per count."""
+        self.gain = gain
+        """Per-step gain of the first-order velocity filter (1 = raw difference)."""
+        self.q = np.round(np.asarray(q, dtype=float) / lsb) * lsb
+        self.dq = np.array(dq, dtype=float)
+
+
 class ArmPhysics:
     """Equations of motion M(q) qdd + h(q, qd) + G(q) + friction(qd) = sat(tau)."""
 
@@ -166,6 +204,32 @@ class ArmPhysics:
             np.asarray(tau, dtype=float),
             dt,
             steps,
+        )
+        if not (np.all(np.isfinite(q_next)) and np.all(np.isfinite(dq_next))):
+            raise PhysicsError(f"arm state diverged (q={q_next}, dq={dq_next}, tau={tau})")
+        return q_next, dq_next
+
+    def integrate_encoded(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray,
+        tau: np.ndarray,
+        dt: float,
+        steps: int,
+        encoder: Encoder,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`integrate` that also updates ``encoder`` after every step."""
+        q_next, dq_next, encoder.q, encoder.dq = integrate_encoded_kernel(
+            self.params,
+            np.asarray(q, dtype=float),
+            np.asarray(dq, dtype=float),
+            np.asarray(tau, dtype=float),
+            dt,
+            steps,
+            encoder.lsb,
+            encoder.gain,
+            encoder.q,
+            encoder.dq,
         )
         if not (np.all(np.isfinite(q_next)) and np.all(np.isfinite(dq_next))):
             raise PhysicsError(f"arm state diverged (q={q_next}, dq={dq_next}, tau={tau})")

@@ -41,6 +41,7 @@ import numpy as np
 
 from hal.can_codec import RAD_PER_COUNT, DspCodec, DspCommand, DspControl, DspStatus, TorqueCommand
 from hal.config import RigConfig
+from plant_emulator.arm import Encoder
 from plant_emulator.camera import CameraPose
 from plant_emulator.world import World
 
@@ -140,20 +141,9 @@ class DspNode:
         self.sync_resend_s = sync_resend_s
         self._awaiting_controller = lockstep and wait_for_controller
         self._t0_ns = 0
-        self._q_enc = self._encode_angles(self.world.q)
-        self._dq_est = np.array(self.world.dq, dtype=float)
+        self.encoder = Encoder(self.world.q, self.world.dq, self.encoder_lsb, self.filter_gain)
 
     # --- sensors ----------------------------------------------------------------------------
-    def _encode_angles(self, q: np.ndarray) -> np.ndarray:
-        return np.round(q / self.encoder_lsb) * self.encoder_lsb
-
-    def _sample_sensors(self) -> None:
-        """Encoder quantisation and the first-order filtered difference velocity estimate."""
-        q_enc = self._encode_angles(self.world.q)
-        raw = (q_enc - self._q_enc) / self.world.dt
-        self._dq_est += self.filter_gain * (raw - self._dq_est)
-        self._q_enc = q_enc
-
     # --- CAN --------------------------------------------------------------------------------
     def _send(self, msg: can.Message) -> None:
         try:
@@ -163,8 +153,8 @@ class DspNode:
 
     def send_state(self) -> None:
         sample = self.world.step_index % 16
-        q = (float(self._q_enc[0]), float(self._q_enc[1]))
-        dq = (float(self._dq_est[0]), float(self._dq_est[1]))
+        q = (float(self.encoder.q[0]), float(self.encoder.q[1]))
+        dq = (float(self.encoder.dq[0]), float(self.encoder.dq[1]))
         for msg in self.codec.encode_state(q, dq, sample):
             self._send(msg)
         self.stats.state_frames += 1
@@ -272,8 +262,7 @@ class DspNode:
     # --- physics ----------------------------------------------------------------------------
     def physics_step(self) -> None:
         """One physics step with the held torque, then sensors and periodic frames."""
-        self.world.step(self.applied_torque())
-        self._sample_sensors()
+        self.world.hold(self.applied_torque(), 1, self.encoder)
         self.stats.physics_steps += 1
         k = self.world.step_index
         if not self.lockstep:
@@ -313,7 +302,8 @@ class DspNode:
     def warm_up(self) -> None:
         """Compile/load the physics kernels on a throw-away world, so the clock's first step is
         not late by the JIT time (seconds under user-mode Linux)."""
-        World(self.cfg).step(np.zeros(2))
+        world = World(self.cfg)
+        world.hold(np.zeros(2), 1, Encoder(world.q, world.dq, self.encoder_lsb, self.filter_gain))
 
     def run_realtime(self, stop: threading.Event, duration_s: float = 0.0) -> DspStats:
         """Physics on the monotonic clock; behind schedule it catches up, never drifts."""
@@ -390,10 +380,17 @@ class DspNode:
                 return False
             self.stats.missing_periods += 1
         self.check_watchdog(self._sim_ns())
-        for _ in range(self.substeps):
-            self.physics_step()
+        self.advance_period()
         self.sync_tick += 1
         return True
+
+    def advance_period(self) -> None:
+        """Lockstep: one control period of physics and sensors in one compiled call."""
+        k0 = self.world.step_index
+        self.world.hold(self.applied_torque(), self.substeps, self.encoder)
+        self.stats.physics_steps += self.substeps
+        if self.world.step_index // self.status_every != k0 // self.status_every:
+            self.send_status()
 
     def _sim_ns(self) -> int:
         return round(self.world.t * 1e9)

@@ -20,6 +20,14 @@ Two modes, chosen per pose by its lockstep flag (or forced with ``lockstep=True/
 
 A new emulator run (new pose source id, or lockstep sim time going backwards) restarts the frame
 counter, clocks and noise generator, so repeated runs against one vision process are identical.
+
+Fault injection: ``--dropout START:DURATION`` (repeatable; :class:`Dropout`) pauses the publisher
+for ``[START, START + DURATION)`` seconds of the run's *simulation* time (the pose's sim time; in
+realtime the newest pose's sim time advanced by the real time since it arrived). During a dropout
+no image is captured and frames whose delivery falls into it are discarded. In realtime nothing is
+published; in lockstep every pose is still answered (the protocol needs one answer per period),
+with ``valid = 0`` and ``f = (0, 0)``, so the controller's newest valid message ages in sim time
+and goes stale exactly as it would on a silent camera.
 """
 
 from __future__ import annotations
@@ -58,6 +66,54 @@ DEFAULT_FPS = 60.0
 """Frame rate of the vision process when neither ``--fps`` nor ``camera.frame_rate_hz`` set one."""
 POSE_TIMEOUT_S = 0.5
 """Realtime: no frames are captured from a pose older than this."""
+
+
+@dataclass(frozen=True)
+class Dropout:
+    """A window ``[start_s, start_s + duration_s)`` of simulation time with the publisher paused."""
+
+    start_s: float
+    duration_s: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.start_s) and self.start_s >= 0):
+            raise HalConfigError(f"--dropout start must be a non-negative time, got {self.start_s}")
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise HalConfigError(
+                f"--dropout duration must be a positive time, got {self.duration_s}"
+            )
+
+    @property
+    def start_ns(self) -> int:
+        return round(self.start_s * 1e9)
+
+    @property
+    def end_ns(self) -> int:
+        return round((self.start_s + self.duration_s) * 1e9)
+
+    def contains(self, sim_ns: int) -> bool:
+        return self.start_ns <= sim_ns < self.end_ns
+
+    @classmethod
+    def parse(cls, text: str) -> Dropout:
+        """``"START:DURATION"`` in seconds of simulation time, e.g. ``"1.0:0.5"``."""
+        start, sep, duration = text.strip().partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            return cls(float(start), float(duration))
+        except ValueError:
+            raise HalConfigError(
+                f"--dropout must be START:DURATION in seconds (e.g. 1.0:0.5), got {text!r}"
+            ) from None
+
+    def __str__(self) -> str:
+        return f"{self.start_s:g}:{self.duration_s:g}"
+
+
+def in_dropout(dropouts: Sequence[Dropout], sim_ns: int) -> bool:
+    """Whether simulation time ``sim_ns`` falls into one of the ``dropouts``."""
+    return any(d.contains(sim_ns) for d in dropouts)
 
 
 def resolve_fps(cfg: RigConfig, fps: float | None) -> float:
@@ -136,6 +192,14 @@ class VisionStats:
     pose_rx: dict[str, int] = field(default_factory=dict)
     """The pose decoder's counters (malformed/stale poses)."""
     callback_errors: int = 0
+    dropouts: list[str] = field(default_factory=list)
+    """The configured dropout windows, ``START:DURATION`` (s of simulation time)."""
+    dropout_frames: int = 0
+    """Frame slots not captured because they fell into a dropout."""
+    dropout_discarded: int = 0
+    """Captured frames discarded because their delivery fell into a dropout."""
+    dropout_answers: int = 0
+    """Lockstep answers sent with valid = 0 during a dropout (also counted in ``invalid``)."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -152,8 +216,10 @@ class VisionCore:
         lockstep: bool | None = None,
         source: int = 0,
         pose_timeout_s: float = POSE_TIMEOUT_S,
+        dropouts: Sequence[Dropout] = (),
     ) -> None:
         self.camera = cfg.camera
+        self.dropouts = tuple(dropouts)
         self.target = paper_target(cfg)
         self.fps = fps
         self.lockstep = lockstep
@@ -161,7 +227,9 @@ class VisionCore:
         self.latency_ns = round(cfg.camera.latency_s * 1e9)
         self.pose_timeout_ns = round(pose_timeout_s * 1e9)
         self.stats = VisionStats(
-            mode="auto" if lockstep is None else ("lockstep" if lockstep else "realtime"), fps=fps
+            mode="auto" if lockstep is None else ("lockstep" if lockstep else "realtime"),
+            fps=fps,
+            dropouts=[str(d) for d in self.dropouts],
         )
         self._run_key: tuple[int, bool] | None = None
         self._new_run()
@@ -203,10 +271,23 @@ class VisionCore:
         self.stats.frames += 1
         self.pending.append((t_ns + self.latency_ns, msg))
 
-    def _deliver(self, t_ns: int) -> list[FeatureMsg]:
+    def _paused(self, sim_ns: int) -> bool:
+        return bool(self.dropouts) and in_dropout(self.dropouts, sim_ns)
+
+    def _rt_sim_ns(self, now_ns: int) -> int:
+        """Realtime: the emulator's sim time now, from the newest pose and its age."""
+        pose = self.pose
+        return 0 if pose is None else pose.sim_time_ns + max(0, now_ns - self.pose_recv_ns)
+
+    def _deliver(self, t_ns: int, sim_ns: int) -> list[FeatureMsg]:
+        """Frames due by ``t_ns`` (the delay line's clock); all discarded when the publisher is
+        paused at simulation time ``sim_ns``."""
         out = []
         while self.pending and self.pending[0][0] <= t_ns:
             out.append(self.pending.popleft()[1])
+        if out and self._paused(sim_ns):
+            self.stats.dropout_discarded += len(out)
+            return []
         if out:
             self.delivered = out[-1]
         return out
@@ -223,17 +304,31 @@ class VisionCore:
             self.stats.runs += 1
         self.stats.poses += 1
         self.pose, self.pose_recv_ns, self.last_sim_ns = pose, now_ns, pose.sim_time_ns
+        paused = self._paused(pose.sim_time_ns)
         if not lockstep:
             if self.fps > 0:
                 return []
-            self._capture(pose, now_ns, now_ns, False)
-            return self._deliver(now_ns)
+            if paused:
+                self.stats.dropout_frames += 1
+            else:
+                self._capture(pose, now_ns, now_ns, False)
+            return self._deliver(now_ns, pose.sim_time_ns)
         t = pose.sim_time_ns
         if self.sim_clock.due(t):
-            self._capture(pose, now_ns, t, True)
-        self._deliver(t)
+            if paused:
+                self.stats.dropout_frames += 1
+            else:
+                self._capture(pose, now_ns, t, True)
+        self._deliver(t, t)
         self.stats.answers += 1
         d = self.delivered
+        if paused:
+            # One answer per pose even now: not valid, and ordered after the last one sent
+            # (same frame counter, newer pose_seq), so the receiver accepts it.
+            self.stats.invalid += 1
+            self.stats.dropout_answers += 1
+            frame = 0 if d is None else d.frame
+            return [FeatureMsg(frame, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)]
         if d is None:
             self.stats.invalid += 1
             return [FeatureMsg(0, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)]
@@ -246,12 +341,15 @@ class VisionCore:
         pose = self.pose
         if pose is None or self.is_lockstep(pose):
             return []
+        sim_ns = self._rt_sim_ns(now_ns)
         if self.fps > 0 and self.rt_clock.due(now_ns):
             if now_ns - self.pose_recv_ns > self.pose_timeout_ns:
                 self.stats.skipped_no_pose += 1
+            elif self._paused(sim_ns):
+                self.stats.dropout_frames += 1
             else:
                 self._capture(pose, now_ns, now_ns, False)
-        return self._deliver(now_ns)
+        return self._deliver(now_ns, sim_ns)
 
     def next_wakeup_ns(self) -> int | None:
         """When :meth:`poll` has work next (realtime), or None."""
@@ -277,6 +375,7 @@ class VisionNode:
         fps: float,
         lockstep: bool | None = None,
         source: int | None = None,
+        dropouts: Sequence[Dropout] = (),
     ) -> None:
         self.session = session
         self.core = VisionCore(
@@ -284,6 +383,7 @@ class VisionNode:
             fps=fps,
             lockstep=lockstep,
             source=secrets.randbits(32) if source is None else source,
+            dropouts=dropouts,
         )
         self.decoder = PoseDecoder()
         self._lock = threading.Lock()
@@ -359,13 +459,14 @@ def run_vision(
     wait_s: float = DEFAULT_WAIT_S,
     session: ZenohSession | None = None,
     ready: threading.Event | None = None,
+    dropouts: Sequence[Dropout] = (),
 ) -> VisionStats:
     """Run the vision process until ``stop_event`` or ``duration_s`` (0 = forever).
 
     ``fps`` as :func:`resolve_fps`; ``lockstep=None`` follows each pose's flag. The zenoh options
     go to :func:`hal.zenoh_session.open_session` (by default a client of the emulator's hub,
     ``listen=True`` to be the hub); a given ``session`` is used as is and left open. ``ready``
-    is set once poses are subscribed.
+    is set once poses are subscribed. ``dropouts``: publisher pauses (fault injection).
     """
     stop_event = stop_event or threading.Event()
     fps = resolve_fps(cfg, fps)
@@ -380,7 +481,7 @@ def run_vision(
             stop_event=stop_event,
         )
     try:
-        node = VisionNode(cfg, session, fps=fps, lockstep=lockstep)
+        node = VisionNode(cfg, session, fps=fps, lockstep=lockstep, dropouts=dropouts)
         try:
             if ready is not None:
                 ready.set()
@@ -432,6 +533,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--wait", type=float, default=DEFAULT_WAIT_S, metavar="S", help="wait for the hub (10 s)"
     )
     p.add_argument("--duration", type=float, default=0.0, metavar="S", help="0 = until SIGTERM")
+    p.add_argument(
+        "--dropout",
+        action="append",
+        default=[],
+        metavar="START:DURATION",
+        help="fault injection: pause publishing for DURATION s from START s of simulation time "
+        "(lockstep answers each pose with valid=0 meanwhile); repeatable",
+    )
     p.add_argument("--json", action="store_true", help="print the final counters as one JSON line")
 
 
@@ -451,6 +560,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         raise HalConfigError(f"--duration must be non-negative (0 = forever), got {args.duration}")
     cfg = _config(args)
     fps = resolve_fps(cfg, args.fps)
+    dropouts = [Dropout.parse(text) for text in getattr(args, "dropout", None) or []]
     lockstep = {"auto": None, "lockstep": True, "realtime": False}[args.clock]
     stop = threading.Event()
     previous: dict[int, Any] = {}
@@ -460,7 +570,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     try:
         print(
             f"hil vision: {fps:g} fps, clock {args.clock}, "
-            f"zenoh {args.zenoh_config or args.zenoh_endpoint or cfg.transport.zenoh_endpoint}",
+            f"zenoh {args.zenoh_config or args.zenoh_endpoint or cfg.transport.zenoh_endpoint}"
+            + "".join(f", dropout {d}" for d in dropouts),
             file=sys.stderr,
             flush=True,
         )
@@ -475,6 +586,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                 config_file=args.zenoh_config,
                 listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
                 wait_s=args.wait,
+                dropouts=dropouts,
             )
         except HalError:
             if stop.is_set():  # told to stop while waiting for the hub

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from hal.config import RigConfig
-from plant_emulator.arm import ArmPhysics
+from plant_emulator.arm import ArmPhysics, Encoder
 from plant_emulator.camera import CameraModel, CameraPose, FeatureFrame, camera_pose, project
 from plant_emulator.scenario import TargetMotion, paper_target
 
@@ -51,8 +51,9 @@ class World:
         """Advance one physics step with ``tau`` held (saturated by the amplifier)."""
         self.hold(tau, 1)
 
-    def hold(self, tau: np.ndarray, steps: int) -> None:
-        """Advance ``steps`` physics steps with ``tau`` held, stopping at camera frame times."""
+    def hold(self, tau: np.ndarray, steps: int, encoder: Encoder | None = None) -> None:
+        """Advance ``steps`` physics steps with ``tau`` held, stopping at camera frame times;
+        ``encoder`` (the DSP's sensors) is sampled after every step."""
         self.tau_applied = self.arm.saturate(np.asarray(tau, dtype=float))
         end = self.step_index + steps
         while self.step_index < end:
@@ -60,7 +61,12 @@ class World:
             if not self.camera.on_demand:
                 due = math.ceil(self.camera.next_capture_time() / self.dt - 1e-9)
                 n = min(n, max(1, due - self.step_index))
-            self.q, self.dq = self.arm.integrate(self.q, self.dq, self.tau_applied, self.dt, n)
+            if encoder is None:
+                self.q, self.dq = self.arm.integrate(self.q, self.dq, self.tau_applied, self.dt, n)
+            else:
+                self.q, self.dq = self.arm.integrate_encoded(
+                    self.q, self.dq, self.tau_applied, self.dt, n, encoder
+                )
             self.step_index += n
             if not self.camera.on_demand:
                 self.camera.capture(self.t, self.true_features())

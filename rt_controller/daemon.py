@@ -67,6 +67,7 @@ class RunStats:
     stale_features: int = 0
     stale_states: int = 0
     fallbacks: int = 0
+    watchdog_trips: int = 0
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
@@ -86,6 +87,7 @@ class RunStats:
             "stale_features": self.stale_features,
             "stale_states": self.stale_states,
             "fallbacks": self.fallbacks,
+            "watchdog_trips": self.watchdog_trips,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
             "lateness_us_p99": pct(self.lateness_us, 99),
@@ -114,6 +116,7 @@ class ControllerDaemon:
         self.period_ns = cfg.rates.control_period_ns
         self.stats = RunStats()
         self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
+        self._trip_seen = -1
         self.features = FeatureDecoder(max_age_ns=round(cfg.controller.feature_timeout_s * 1e9))
 
     # --- wiring -----------------------------------------------------------------------------
@@ -243,6 +246,18 @@ class ControllerDaemon:
             self._tick(dsp, rec, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
             rec.record_cycle(self._last_record)
 
+    def _check_watchdog(self, dsp: JointClient) -> None:
+        """Count each watchdog trip the DSP reports and re-arm once per trip (if configured)."""
+        status = dsp.status
+        if status is None or not status.watchdog_tripped:
+            return
+        if status.watchdog_trips == self._trip_seen:
+            return
+        self._trip_seen = status.watchdog_trips
+        self.stats.watchdog_trips += 1
+        if self.cfg.controller.rearm_after_trip:
+            dsp.enable()
+
     def _tick(
         self,
         dsp: JointClient,
@@ -257,9 +272,10 @@ class ControllerDaemon:
         cfg, st = self.cfg, self.stats
         # --- read
         state_stale = False
+        state_ns = None
         try:
             state = dsp.latest_state(max_age_s=cfg.controller.state_timeout_s)
-            q, dq = np.array(state.q), np.array(state.dq)
+            q, dq, state_ns = np.array(state.q), np.array(state.dq), state.t_ns
             state_age_ms = (wake_ns - state.t_ns) / 1e6
         except HalTimeoutError:
             state_stale, q, dq, state_age_ms = True, np.full(2, math.nan), np.zeros(2), math.nan
@@ -295,6 +311,7 @@ class ControllerDaemon:
         tau = d.tau
         dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
         t_write = time.monotonic_ns()
+        self._check_watchdog(dsp)
         st.ticks += 1
         st.missed_periods += missed
         solve_us = (t_solve - t_read) / 1e3
@@ -311,6 +328,7 @@ class ControllerDaemon:
             "solve_us": solve_us,
             "write_us": (t_write - t_solve) / 1e3,
             "cycle_us": cycle_us,
+            "e2e_us": math.nan if state_ns is None else (t_write - state_ns) / 1e3,
             "deadline_miss": False,
             "missed_periods": missed,
             "q": _vec(q),

@@ -23,7 +23,8 @@ drops) are noted, since a law with memory (RHC) may diverge after them.
 ``law``, ``residual``, ``iterations``, ``fallback``, ``tau_saturated``, ``cost`` and ``V``;
 ``tick``, ``t_ns``, ``sim_time_s``, the inputs, their ages and ``missed_periods`` are kept as
 recorded, and the loop-timing fields (``lateness_us``, ``read_us``, ``solve_us``, ``write_us``,
-``cycle_us``) are zero with ``deadline_miss`` false — an offline replay has no loop timing.
+``cycle_us``, ``e2e_us``; those the source has) are zero with ``deadline_miss`` false — an
+offline replay has no loop timing.
 The recorded raw inputs (``/hal/can/rx``, ``/vision/features``) are copied when the log was read
 with them, so the new log can itself be replayed or republished.
 """
@@ -44,8 +45,8 @@ from rt_controller.errors import LogError
 from rt_controller.logread import LoadedLog, read_log
 from rt_controller.recorder import CycleRecorder
 
-TIMING_FIELDS = ("lateness_us", "read_us", "solve_us", "write_us", "cycle_us")
-"""Loop-timing fields of a cycle record; zero in a replayed log."""
+TIMING_FIELDS = ("lateness_us", "read_us", "solve_us", "write_us", "cycle_us", "e2e_us")
+"""Loop-timing fields of a cycle record; zero in a replayed log (when the source had them)."""
 
 
 @dataclass
@@ -311,6 +312,8 @@ def replay_loaded(
     n = log.n_cycles
     if n == 0:
         raise LogError(f"{log.path}: no /controller/cycle messages, nothing to replay")
+    if out is not None and Path(out).resolve() == Path(log.path).resolve():
+        raise LogError(f"--out {out} would overwrite the log being replayed")
     notes = list(log.notes)
     if log.truncated:
         notes.append(f"truncated log: replayed the {n} ticks it holds")
@@ -342,7 +345,8 @@ def replay_loaded(
             if writer is not None:
                 record = _cycle_record(log, i)
                 record.update(fields)
-                record.update(dict.fromkeys(TIMING_FIELDS, 0.0), deadline_miss=False)
+                record.update({k: 0.0 for k in TIMING_FIELDS if k in record})
+                record["deadline_miss"] = False
                 writer.cycle(record)
         if writer is not None:
             writer.raw_inputs(log)
@@ -350,7 +354,7 @@ def replay_loaded(
         if writer is not None:
             writer.close()
     result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
-    if recorded_law is not None:
+    if recorded_law is not None and recorded_law.dtype == object:
         result.law_mismatches = sum(
             str(a) != b for a, b in zip(recorded_law, laws, strict=True) if a is not None
         )

@@ -661,7 +661,7 @@ def test_fuzz_into_the_dsp_receive_path(cfg: RigConfig, seed: int) -> None:
         assert oracle.tally[kind] > 0, f"the fuzz never produced {kind}"
     assert node.stats.commands == oracle.torques > 1000
     assert node.stats.physics_steps == N_FRAMES // 10
-    assert np.all(np.isfinite(node.world.q)) and np.all(np.isfinite(node._dq_est))
+    assert np.all(np.isfinite(node.world.q)) and np.all(np.isfinite(node.encoder.dq))
     assert np.all(np.abs(node.world.tau_applied) <= np.array(cfg.robot.tau_max))
 
 

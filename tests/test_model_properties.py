@@ -154,6 +154,6 @@ def test_compiled_tick_terms_equal_the_numpy_model(cfg: RigConfig, gravity: floa
         xi, tau_ff = fastmodel.prepare(p, q, dq, f)
         np.testing.assert_allclose(xi, model.xi(q, dq, f), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(tau_ff + u, model.torque(q, dq, f, u), rtol=1e-10, atol=1e-10)
-        cost, V = fastmodel.costs(p, q, xi, f, u)
+        cost, energy = fastmodel.costs(p, q, xi, f, u)
         assert cost == pytest.approx(model.stage_cost(q, xi, f, u), rel=1e-10)
-        assert V == pytest.approx(model.V(q, xi, f), rel=1e-12)
+        assert energy == pytest.approx(model.V(q, xi, f), rel=1e-12)

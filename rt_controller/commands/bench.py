@@ -16,6 +16,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--updates", type=int, default=2000, help="updates per configuration")
     s.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
     s.set_defaults(handler=run_solver)
+    lp = bench.add_parser(
+        "loop",
+        help="the whole rig in real time at several control rates (lateness, misses, latency)",
+    )
+    add_config_option(lp)
+    lp.add_argument(
+        "--rates", default="50,200,500,1000", help="comma-separated control rates in Hz"
+    )
+    lp.add_argument("--duration", type=float, default=10.0, help="seconds per rate (default 10)")
+    lp.add_argument("--law", choices=("pbc", "ioc", "rhc"), default="rhc", help="default rhc")
+    lp.add_argument(
+        "--lockstep-duration",
+        type=float,
+        default=10.0,
+        help="simulated seconds of the lockstep speed run (0 = skip)",
+    )
+    lp.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
+    lp.set_defaults(handler=run_loop)
 
 
 def run_solver(args: argparse.Namespace) -> int:
@@ -23,4 +41,28 @@ def run_solver(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     print(json.dumps(bench_solver(cfg, updates=args.updates)))
+    return 0
+
+
+def run_loop(args: argparse.Namespace) -> int:
+    from rt_controller.bench_loop import bench_loop
+    from rt_controller.errors import ControllerConfigError
+
+    try:
+        rates = tuple(float(r) for r in args.rates.split(",") if r.strip())
+    except ValueError as exc:
+        raise ControllerConfigError(
+            f"--rates: expected numbers like 50,200, got {args.rates!r}"
+        ) from exc
+    if not rates or min(rates) <= 0:
+        raise ControllerConfigError(f"--rates must be positive, got {args.rates!r}")
+    cfg = config_from_args(args)
+    result = bench_loop(
+        cfg,
+        rates=rates,
+        duration=args.duration,
+        law=args.law,
+        lockstep_duration=args.lockstep_duration,
+    )
+    print(json.dumps(result))
     return 0
