@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "simulate",
     "replay",
     "report",
+    "experiment",
     "bench",
 )
 """Modules of :mod:`rt_controller.commands`, each with ``register(subparsers)``."""

@@ -188,6 +188,7 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
             # McapError (EndOfFile...), struct.error, CRC and zstd errors, garbage lengths:
             # whatever a damaged tail raises, keep what was read and say where it stopped.
             out.notes.append(_damage_note(exc, counts[CYCLE_TOPIC]))
+            out.truncated = True
     if not footer:
         out.truncated = True
         if not out.notes:

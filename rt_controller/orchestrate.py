@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from hal.bus import isolated_spec, resolve_spec
+from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.errors import ControllerError
 
@@ -64,6 +66,18 @@ class RigOptions:
     extra_emulator: list[str] = field(default_factory=list)
 
 
+def private_default_bus(config: str | None) -> str | None:
+    """The bus a rig uses when none is named: the configured/auto bus, except that the shared
+    default ``udp_multicast`` group becomes a free port of its own, so that rigs started at the
+    same time on one host (tests, experiments) never hear each other. A SocketCAN interface is a
+    real shared bus and is kept as it is."""
+    cfg = load_config(config)
+    spec = resolve_spec(None if cfg.transport.can == "auto" else cfg.transport.can)
+    if spec.interface == "udp_multicast" and spec.source == "auto":
+        return isolated_spec("udp_multicast")
+    return None
+
+
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "rt_controller.cli", *args]
 
@@ -75,6 +89,7 @@ class Rig:
         self.opts = opts
         self.children: list[Child] = []
         self.endpoint = opts.zenoh_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.can = opts.can or private_default_bus(opts.config)
 
     def _common(self) -> list[str]:
         out = ["--zenoh-endpoint", self.endpoint]
@@ -93,7 +108,7 @@ class Rig:
 
     def start(self) -> None:
         o = self.opts
-        can = ["--can", o.can] if o.can else []
+        can = ["--can", self.can] if self.can else []
         emu = _cli("emulator", *can, *self._common(), *o.extra_emulator)
         if o.lockstep:
             emu.append("--lockstep")

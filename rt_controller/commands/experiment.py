@@ -1,0 +1,206 @@
+"""``hil experiment``: the paper's Fig. 3, Fig. 4 and Table I, run through the real daemons."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from rt_controller.experiment import RunResult, Settings
+
+DESCRIPTION = """\
+Reproduces the paper's experiments (Section V) on the emulated rig. Every run starts
+`hil emulator`, `hil vision` and `hil controller` as separate processes (lockstep by default,
+--realtime for real-time runs) and logs to MCAP.
+
+  fig3    RHC (T = 0.02 s) vs inverse-optimal vs passivity-based control: f, xi, u over time
+          (solid RHC, dashed IOC, dash-dot PBC) and J of each law
+  fig4    RHC with T = 0.02, 0.1, 1.0 s: f, xi, u over time and J of each horizon
+  table1  J of each horizon, --reps runs each, per-run values (sorted ascending per row, like
+          the paper's Table I) and the average
+  all     the three (a run shared by fig3 and fig4 runs once)
+
+When only the horizon T is set, N = max(rhc.steps, ceil(T / 0.05 s)) steps (T = 1.0 s -> 20),
+as with `hil controller --horizon T`. Repetitions of table1 differ by the vision noise seed
+(repetition i uses seed i). The embedded config has no camera noise, which would make every
+lockstep repetition identical, so table1 uses --noise, else camera.noise_px of the config, else
+0.5 px. fig3 and fig4 use --noise, else the config's camera noise (0 by default) and seed.
+
+The output folder (default experiments/<timestamp>/) gets logs/*.mcap, configs/*.toml (each
+run's full configuration: `hil up --config ...` repeats it), PNG figures, report.md (what was run,
+J tables, figures, the paper's Table I for comparison) and results.json (also printed by --json).
+A failed run is reported with the error of its process; the experiment then exits with status 1
+after the remaining runs (it gives up after three failures in a row).
+"""
+
+MAX_CONSECUTIVE_FAILURES = 3
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "experiment",
+        help="reproduce the paper's Fig. 3, Fig. 4 and Table I on the rig (report.md, PNGs)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("which", choices=("fig3", "fig4", "table1", "all"), help="what to run")
+    p.add_argument("--out", metavar="DIR", help="output folder (default experiments/<timestamp>)")
+    p.add_argument("--reps", type=int, default=5, metavar="N", help="table1 runs per horizon (5)")
+    p.add_argument(
+        "--duration", type=float, default=10.0, metavar="S", help="plant time per run (10)"
+    )
+    p.add_argument(
+        "--noise",
+        type=float,
+        metavar="PX",
+        help="camera pixel noise std for every run (default: the config's; table1: 0.5 px if "
+        "the config's is 0)",
+    )
+    p.add_argument("--realtime", action="store_true", help="real-time runs instead of lockstep")
+    p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
+    p.add_argument(
+        "--can",
+        metavar="INTERFACE[:CHANNEL]",
+        help="CAN bus (default: the config's; the automatic host-local udp_multicast bus gets a "
+        "private port per run so other rigs on the host cannot interfere)",
+    )
+    p.add_argument("--json", action="store_true", help="print results.json on stdout")
+    p.set_defaults(handler=run)
+
+
+def default_out(root: Path = Path("experiments")) -> Path:
+    """``experiments/<YYYYmmdd-HHMMSS>``, with a suffix if that exists already."""
+    base = root / time.strftime("%Y%m%d-%H%M%S")
+    out, i = base, 1
+    while out.exists():
+        i += 1
+        out = base.with_name(f"{base.name}-{i}")
+    return out
+
+
+def command_line(args: argparse.Namespace, out: Path) -> str:
+    """The canonical command line of this experiment (for report.md)."""
+    parts = ["hil", "experiment", args.which, "--out", str(out)]
+    if args.which in ("table1", "all"):
+        parts += ["--reps", str(args.reps)]
+    parts += ["--duration", f"{args.duration:g}"]
+    if args.noise is not None:
+        parts += ["--noise", f"{args.noise:g}"]
+    if args.realtime:
+        parts.append("--realtime")
+    if args.config:
+        parts += ["--config", args.config]
+    if args.can:
+        parts += ["--can", args.can]
+    return shlex.join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from rt_controller.experiment import EXPERIMENTS, Settings, prepare, write_outputs
+
+    out = Path(args.out) if args.out else default_out()
+    settings = Settings(
+        experiments=EXPERIMENTS if args.which == "all" else (args.which,),
+        out=out,
+        reps=args.reps,
+        duration_s=args.duration,
+        noise_px=args.noise,
+        realtime=args.realtime,
+        config=args.config,
+        can=args.can,
+    )
+    settings.validate()
+    runs_by_exp, runs = prepare(settings)
+    err = Console(stderr=True)
+    err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}) -> {out}")
+    try:
+        sweep(runs, settings, err)
+    finally:  # a partial sweep (failure, Ctrl-C) is written up as far as it went
+        res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
+    for f in res["failures"]:
+        print(
+            f"hil experiment: run {f['run']} ({f['label']}) failed: {f['error']}", file=sys.stderr
+        )
+    not_run = [r.spec.name for r in runs.values() if r.status == "pending"]
+    if not_run:
+        print(f"hil experiment: not run: {', '.join(not_run)}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print_tables(res)
+    return 1 if res["failures"] or any(r.status != "ok" for r in runs.values()) else 0
+
+
+def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> None:
+    """Run every pending run in order with a progress bar on stderr."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from rt_controller.experiment import execute
+
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    failed_in_a_row = 0
+    with Progress(*columns, console=console, transient=False) as progress:
+        task = progress.add_task("runs", total=len(runs))
+        for run in runs.values():
+            progress.update(task, description=run.spec.label)
+            execute(run, settings)
+            progress.advance(task)
+            if run.status == "ok":
+                failed_in_a_row = 0
+                progress.console.print(
+                    f"{run.spec.label}: J = {run.J:.4f}, |f_final| = "
+                    f"{run.summary.get('f_final_norm', float('nan')):.3g} px "
+                    f"({run.wall_s:.1f} s)"
+                )
+                continue
+            failed_in_a_row += 1
+            progress.console.print(f"[red]{run.spec.label}: FAILED[/] ({run.wall_s:.1f} s)")
+            if failed_in_a_row >= MAX_CONSECUTIVE_FAILURES:
+                progress.console.print(
+                    f"[red]{failed_in_a_row} failures in a row: giving up on the sweep[/]"
+                )
+                break
+
+
+def print_tables(res: dict[str, Any]) -> None:
+    """The J tables for people, on stdout."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    for exp, key_title in (("fig3", "law"), ("fig4", "T (s)")):
+        if exp in res:
+            table = Table(title=f"{exp}: J")
+            table.add_column(key_title)
+            table.add_column("J", justify="right")
+            for k, v in res[exp]["J"].items():
+                table.add_row(k, "failed" if v is None else f"{v:.4f}")
+            console.print(table)
+    if "table1" in res:
+        t1 = res["table1"]
+        console.print(f"Table I (J, {t1['noise_px']:g} px noise, seeds {t1['seeds']}):")
+        console.print(t1["markdown"], markup=False, highlight=False)
+    console.print(f"report: {res['report']}", markup=False, highlight=False)
+    sys.stdout.flush()
