@@ -117,6 +117,13 @@ class ControllerDaemon:
         self.stats = RunStats()
         self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
         self._trip_seen = -1
+        # Lockstep: the DSP announces the state with every Sync, so its wall-clock age only
+        # reflects how long this tick waited (for features); a silent DSP ends the run instead.
+        self._state_limit_s = (
+            LOCKSTEP_SYNC_TIMEOUT_S + LOCKSTEP_FEATURE_TIMEOUT_S
+            if options.lockstep
+            else cfg.controller.state_timeout_s
+        )
         self.features = FeatureDecoder(max_age_ns=round(cfg.controller.feature_timeout_s * 1e9))
 
     # --- wiring -----------------------------------------------------------------------------
@@ -126,7 +133,11 @@ class ControllerDaemon:
         rec = CycleRecorder(
             self.log_path,
             cfg,
-            run_info={"clock": "lockstep" if opts.lockstep else "realtime", "can": opts.can or ""},
+            run_info={
+                "clock": "lockstep" if opts.lockstep else "realtime",
+                "can": opts.can or cfg.transport.can,
+                "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
+            },
         )
         try:
             session = open_session(
@@ -274,7 +285,7 @@ class ControllerDaemon:
         state_stale = False
         state_ns = None
         try:
-            state = dsp.latest_state(max_age_s=cfg.controller.state_timeout_s)
+            state = dsp.latest_state(max_age_s=self._state_limit_s)
             q, dq, state_ns = np.array(state.q), np.array(state.dq), state.t_ns
             state_age_ms = (wake_ns - state.t_ns) / 1e6
         except HalTimeoutError:
