@@ -12,6 +12,7 @@ import pytest
 
 from hal.config import load_config
 from rt_controller import experiment as ex
+from rt_controller import experiment_report as exr
 from rt_controller.cli import main
 from rt_controller.logread import read_log
 from rt_controller.orchestrate import RigProcessError
@@ -79,7 +80,7 @@ def test_run_config_uses_the_cli_step_rule_and_reads_back(tmp_path):
 
 
 def test_ordinals():
-    assert [ex.ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 101)] == [
+    assert [exr.ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 101)] == [
         "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "101st"
     ]  # fmt: skip
 
@@ -89,13 +90,13 @@ def test_table1_markdown_is_sorted_per_row_like_the_paper():
         {"horizon_s": 0.02, "J_sorted": [1.5, 2.25], "J": [2.25, 1.5], "average": 1.875},
         {"horizon_s": 1.0, "J_sorted": [3.0], "J": [3.0, None], "average": None},
     ]
-    assert ex.table1_markdown(rows).splitlines() == [
+    assert exr.table1_markdown(rows).splitlines() == [
         "| Horizon length | 1st | 2nd | average |",
         "|---|---:|---:|---:|",
         "| T = 0.02 s | 1.500 | 2.250 | 1.875 |",
         "| T = 1.0 s | 3.000 | — | — |",
     ]
-    paper = ex.paper_table1_markdown().splitlines()
+    paper = exr.paper_table1_markdown().splitlines()
     assert paper[2] == "| T = 0.02 s | 3352 | 3357 | 3367 | 3477 | 3486 | 3408 |"
     assert paper[4] == "| T = 1.0 s | 4097 | 4158 | 4204 | 4211 | 4252 | 4184 |"
 

@@ -105,7 +105,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from rt_controller.experiment import EXPERIMENTS, Settings, prepare, write_outputs
+    from rt_controller.experiment import EXPERIMENTS, Settings, prepare
+    from rt_controller.experiment_report import write_outputs
 
     out = Path(args.out) if args.out else default_out()
     settings = Settings(
