@@ -199,6 +199,14 @@ def decode_pose(buf: bytes) -> PoseMsg:
     return out
 
 
+def _parse_guarded(parse: Callable[[bytes], object], payload: bytes) -> object:
+    """``parse(payload)``, or the rejection kind ``"bad_type"`` for a payload that is not bytes."""
+    try:
+        return parse(payload)
+    except TypeError:
+        return "bad_type"
+
+
 @dataclass
 class RxCounts:
     """What a receiver did with each message it was fed (every message lands in one bucket
@@ -265,6 +273,16 @@ class _Receiver:
         self._key: tuple[int, int] | None = None
         self._order_rejects = 0
 
+    def _count(self, parsed: object) -> bool:
+        """Count one received payload (caller holds the lock); False for a malformed one,
+        whose kind (the string the parser returned) is counted too."""
+        c = self.counts
+        c.received += 1
+        if isinstance(parsed, str):
+            setattr(c, parsed, getattr(c, parsed) + 1)
+            return False
+        return True
+
     def _order(self, source: int, key: tuple[int, int]) -> int:
         """With the lock held: 0 = reject (counted), 1 = newer, 2 = accepted as a restart
         (new source or resync). Updates the ordering state unless rejected."""
@@ -329,15 +347,10 @@ class FeatureDecoder(_Receiver):
     def feed(self, payload: bytes, recv_ns: int | None = None) -> FeatureMsg | None:
         """Decode one payload; the accepted message, or None when it was rejected (counted)."""
         now = self._clock() if recv_ns is None else recv_ns
-        try:
-            out = _parse_features(payload)
-        except TypeError:
-            out = "bad_type"
+        out = _parse_guarded(_parse_features, payload)
         with self._cond:
             c = self.counts
-            c.received += 1
-            if isinstance(out, str):
-                setattr(c, out, getattr(c, out) + 1)
+            if not self._count(out):
                 return None
             msg = out
             if (
@@ -406,15 +419,10 @@ class PoseDecoder(_Receiver):
     def feed(self, payload: bytes, recv_ns: int | None = None) -> PoseMsg | None:
         """Decode one payload; the accepted pose, or None when it was rejected (counted)."""
         now = self._clock() if recv_ns is None else recv_ns
-        try:
-            out = _parse_pose(payload)
-        except TypeError:
-            out = "bad_type"
+        out = _parse_guarded(_parse_pose, payload)
         with self._cond:
             c = self.counts
-            c.received += 1
-            if isinstance(out, str):
-                setattr(c, out, getattr(c, out) + 1)
+            if not self._count(out):
                 return None
             if not self._order(out.source, (out.seq, 0)):
                 return None

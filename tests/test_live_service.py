@@ -68,6 +68,11 @@ from rt_controller.recorder import (
     cycle_schema,
 )
 
+try:
+    from tests.proc_support import processes_mentioning
+except ImportError:  # tests/ not importable as a package: pytest put tests/ itself on sys.path
+    from proc_support import processes_mentioning
+
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
 REPO = Path(__file__).resolve().parent.parent
@@ -116,22 +121,6 @@ def pre_jump(cycles: dict[str, np.ndarray]) -> np.ndarray:
     sel = (t >= JUMP_S - 0.1 - 1e-9) & (t < JUMP_S - 1e-9)
     assert sel.sum() == 5, t
     return norm(cycles["f"][sel])
-
-
-def processes_mentioning(token: str) -> list[str]:
-    """Live processes (not zombies) whose command line contains ``token``."""
-    found = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit() or int(proc.name) == os.getpid():
-            continue
-        try:
-            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (OSError, IndexError):
-            continue
-        if token in cmdline and state != "Z":
-            found.append(f"{proc.name}: {cmdline.strip()}")
-    return found
 
 
 def assert_nothing_left(token: str, timeout_s: float = 10.0) -> None:

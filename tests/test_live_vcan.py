@@ -29,8 +29,10 @@ from hal.zenoh_session import free_loopback_port
 from rt_controller.logread import read_log
 
 try:
+    from tests.proc_support import processes_mentioning
     from tests.vcan_support import VCAN_CHANNEL, requires_vcan
 except ImportError:  # tests/ not importable as a package: pytest put tests/ itself on sys.path
+    from proc_support import processes_mentioning
     from vcan_support import VCAN_CHANNEL, requires_vcan
 
 IN_UML = os.environ.get("HIL_IN_UML", "") == "1"
@@ -50,21 +52,6 @@ SIM_TRACKING_PX = 2.0
 def hil_command() -> list[str]:
     script = Path(sys.executable).with_name("hil")
     return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
-
-
-def processes_mentioning(token: str) -> list[str]:
-    found = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit() or int(proc.name) == os.getpid():
-            continue
-        try:
-            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (OSError, IndexError):
-            continue
-        if token in cmdline and state != "Z":
-            found.append(f"{proc.name}: {cmdline.strip()}")
-    return found
 
 
 def simulate_f(law: str, duration_s: float) -> np.ndarray:
