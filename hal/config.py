@@ -15,11 +15,12 @@ import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from hal.errors import HalConfigError
+
+if TYPE_CHECKING:  # numpy is imported where used: `hil --help` does not need it
+    import numpy as np
 
 Vec2 = tuple[float, float]
 Mat2 = tuple[tuple[float, float], tuple[float, float]]
@@ -93,6 +94,8 @@ class GainsConfig:
     @property
     def R(self) -> np.ndarray:
         """R = kp/4 alpha^-1 + K (eq. 18)."""
+        import numpy as np
+
         return self.kp / 4.0 * np.linalg.inv(np.array(self.alpha)) + np.array(self.K)
 
 
@@ -311,6 +314,8 @@ def _require(cond: bool, key: str, message: str) -> None:
 
 
 def _check_spd(matrix: Mat2, key: str) -> None:
+    import numpy as np
+
     m = np.array(matrix)
     _require(np.allclose(m, m.T), key, f"must be symmetric, got {matrix}")
     _require(

@@ -32,13 +32,9 @@ and goes stale exactly as it would on a silent camera.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import json
 import math
 import secrets
-import signal
-import sys
 import threading
 import time
 from collections import deque
@@ -49,7 +45,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hal.config import RigConfig, load_config
+from hal.config import RigConfig
 from hal.errors import HalConfigError, HalError
 from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features
 from hal.zenoh_session import (
@@ -491,137 +487,3 @@ def run_vision(
     finally:
         if own:
             session.close()
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``hil vision`` (for the lead's subcommand wiring)."""
-    p.add_argument("--config", metavar="FILE", help="rig config TOML (default: embedded)")
-    p.add_argument(
-        "--fps",
-        type=float,
-        default=None,
-        metavar="HZ",
-        help="frame rate; 0 = one frame per pose (default: camera.frame_rate_hz, else 60)",
-    )
-    p.add_argument("--noise", type=float, metavar="PX", help="pixel noise std (camera.noise_px)")
-    p.add_argument("--latency", type=float, metavar="S", help="delivery delay (camera.latency_s)")
-    p.add_argument("--seed", type=int, help="noise seed (camera.seed)")
-    p.add_argument(
-        "--clock",
-        choices=("auto", "lockstep", "realtime"),
-        default="auto",
-        help="auto follows each pose's lockstep flag (default)",
-    )
-    p.add_argument(
-        "--zenoh-endpoint",
-        metavar="EP",
-        help="loopback endpoint tcp/127.0.0.1:PORT (default: transport.zenoh_endpoint)",
-    )
-    p.add_argument(
-        "--zenoh-config",
-        metavar="FILE",
-        help="zenoh json5 config replacing the loopback defaults (multi-host setups)",
-    )
-    p.add_argument(
-        "--zenoh-role",
-        choices=("auto", "hub", "client"),
-        default="client",
-        help="client = connect to the emulator's hub (default), hub = listen on the endpoint "
-        "(run without an emulator), auto = hub if the port is free",
-    )
-    p.add_argument(
-        "--wait", type=float, default=DEFAULT_WAIT_S, metavar="S", help="wait for the hub (10 s)"
-    )
-    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="0 = until SIGTERM")
-    p.add_argument(
-        "--dropout",
-        action="append",
-        default=[],
-        metavar="START:DURATION",
-        help="fault injection: pause publishing for DURATION s from START s of simulation time "
-        "(lockstep answers each pose with valid=0 meanwhile); repeatable",
-    )
-    p.add_argument("--json", action="store_true", help="print the final counters as one JSON line")
-
-
-def _config(args: argparse.Namespace) -> RigConfig:
-    cfg = load_config(args.config)
-    overrides: dict[str, Any] = {}
-    for opt, key in (("noise", "noise_px"), ("latency", "latency_s"), ("seed", "seed")):
-        value = getattr(args, opt)
-        if value is not None:
-            overrides[f"camera.{key}"] = value
-    return cfg.with_overrides(overrides) if overrides else cfg
-
-
-def run_from_args(args: argparse.Namespace) -> int:
-    """Body of ``hil vision``: SIGTERM/SIGINT end it cleanly with status 0."""
-    if args.duration < 0:
-        raise HalConfigError(f"--duration must be non-negative (0 = forever), got {args.duration}")
-    cfg = _config(args)
-    fps = resolve_fps(cfg, args.fps)
-    dropouts = [Dropout.parse(text) for text in getattr(args, "dropout", None) or []]
-    lockstep = {"auto": None, "lockstep": True, "realtime": False}[args.clock]
-    stop = threading.Event()
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    try:
-        print(
-            f"hil vision: {fps:g} fps, clock {args.clock}, "
-            f"zenoh {args.zenoh_config or args.zenoh_endpoint or cfg.transport.zenoh_endpoint}"
-            + "".join(f", dropout {d}" for d in dropouts),
-            file=sys.stderr,
-            flush=True,
-        )
-        try:
-            stats = run_vision(
-                cfg,
-                fps=fps,
-                lockstep=lockstep,
-                stop_event=stop,
-                duration_s=args.duration,
-                endpoint=args.zenoh_endpoint,
-                config_file=args.zenoh_config,
-                listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
-                wait_s=args.wait,
-                dropouts=dropouts,
-            )
-        except HalError:
-            if stop.is_set():  # told to stop while waiting for the hub
-                return 0
-            raise
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    if args.json:
-        print(json.dumps(stats.to_dict()), flush=True)
-    else:
-        print(
-            f"hil vision: {stats.poses} poses, {stats.frames} frames, "
-            f"{stats.published} messages published, {stats.pose_rx.get('rejected', 0)} poses "
-            "rejected",
-            flush=True,
-        )
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``hil vision``."""
-    parser = argparse.ArgumentParser(
-        prog="hil vision",
-        description="Vision process: camera poses from the emulator in, image features out "
-        "(zenoh key hil/vision/features).",
-    )
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return run_from_args(args)
-    except HalError as exc:
-        print(f"hil vision: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

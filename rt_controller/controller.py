@@ -118,3 +118,21 @@ class Controller:
         cmd = self.step(t, q, dq, f)
         tau = cmd.tau if np.all(np.isfinite(cmd.tau)) else np.zeros(2)
         return Decision(tau, "control", cmd)
+
+
+def warm_up(ctl: Controller, cfg: RigConfig) -> None:
+    """Run every branch of the per-tick rule once (law, eq. 11, costs, hold, no state) so that
+    nothing is compiled or imported on first use inside a real-time loop, then forget it all.
+
+    The law is exercised at the scenario's initial state; the controller is left as new (law
+    re-initialised, not holding).
+    """
+    sc = cfg.scenario
+    q, dq, f = np.array(sc.q0, float), np.array(sc.dq0, float), np.array(sc.f0, float)
+    for f_stale, state_stale in ((False, False), (True, False), (False, True), (False, False)):
+        d = ctl.decide(0.0, q, dq, f, f_stale=f_stale, state_stale=state_stale)
+        if d.command is not None:
+            ctl.costs(d.command)
+    ctl.step(0.0, q, dq, np.full(2, np.nan))  # the no-features branch of step
+    ctl.law.reset()
+    ctl._holding = False

@@ -28,7 +28,7 @@ from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.cadence import Cadence, MonotonicClock
-from rt_controller.controller import Controller
+from rt_controller.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
 from rt_controller.recorder import CycleRecorder
 from rt_controller.rtsetup import GcPaused, apply_realtime
@@ -216,10 +216,9 @@ class ControllerDaemon:
             dsp.disable()
 
     def _warm_up(self) -> None:
-        """Compile and exercise the law before the first tick (never inside the loop)."""
-        sc = self.cfg.scenario
-        self.controller.step(0.0, np.array(sc.q0), np.array(sc.dq0), np.array(sc.f0))
-        self.controller.law.reset()
+        """Compile and exercise every branch of the tick before the DSP is armed (never inside
+        the loop): see :func:`rt_controller.controller.warm_up`."""
+        warm_up(self.controller, self.cfg)
 
     def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         clock = MonotonicClock(spin_ns=round(self.cfg.controller.spin_us * 1e3))

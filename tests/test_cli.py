@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from rt_controller.cli import main
+from rt_controller.cli import COMMAND_MODULES, main
 
 HIL = [sys.executable, "-m", "rt_controller.cli"]
 
@@ -57,3 +57,33 @@ def test_help_for_every_subcommand():
         h = run(name, "--help")
         assert h.returncode == 0, (name, h.stderr)
         assert "usage: hil" in h.stdout
+
+
+HEAVY = ("numpy", "zenoh", "numba", "matplotlib", "can", "cantools", "mcap")
+
+HELP_PROBE = """
+import contextlib, io, json, sys
+from rt_controller.cli import COMMAND_MODULES, main
+out = io.StringIO()
+with contextlib.redirect_stdout(out):
+    try:
+        main(sys.argv[1:])
+    except SystemExit as exc:
+        code = exc.code
+heavy = [m for m in {heavy!r} if m in sys.modules]
+print(json.dumps({{"code": code, "heavy": heavy, "chars": len(out.getvalue())}}))
+"""
+
+
+@pytest.mark.parametrize("argv", [("--help",)] + [(c, "--help") for c in COMMAND_MODULES])
+def test_help_imports_no_heavy_library(argv):
+    """``hil --help`` and ``hil COMMAND --help`` build their parsers without numpy, zenoh,
+    numba, matplotlib, python-can, cantools or mcap (a fresh interpreter per case)."""
+    probe = HELP_PROBE.format(heavy=HEAVY)
+    p = subprocess.run(
+        [sys.executable, "-c", probe, *argv], capture_output=True, text=True, timeout=120
+    )
+    assert p.returncode == 0, p.stderr
+    got = json.loads(p.stdout.strip().splitlines()[-1])
+    assert got["code"] == 0 and got["chars"] > 100
+    assert got["heavy"] == []

@@ -41,7 +41,11 @@ STALE = range(40, 52)
 NO_STATE = (70,)
 """Ticks without joint state: q is NaN, zero torque."""
 T0_NS = 1_000_000_000_000
+"""Monotonic time of tick 0 in the synthetic log: deliberately unrelated to this machine's clock
+(a fresh machine's ``CLOCK_MONOTONIC`` may read less, a long-running one more)."""
 STAMP_AGE_NS = 4_000_000
+VISION_RX_LEAD_NS = 10_000
+"""The synthetic vision message is received this long before the tick's wake-up."""
 
 
 def _vec(a) -> list[float]:
@@ -116,7 +120,7 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
                     rec.record_can(msg, wake - 20_000, "rx")
             if not f_stale:
                 feat = FeatureMsg(k, wake - STAMP_AGE_NS, k * period, k, _vec(f), True, lockstep)
-                rec.record_vision(encode_features(feat), wake - 10_000)
+                rec.record_vision(encode_features(feat), wake - VISION_RX_LEAD_NS)
                 last_f = f
             if state_stale:
                 q, dq = np.full(2, np.nan), np.zeros(2)
@@ -321,7 +325,9 @@ def test_republish_sends_the_recorded_inputs(tmp_path, cfg, interface, lockstep)
     got: list[bytes] = []
     with open_bus(spec) as rx, open_session(cfg, listen=True, endpoint=endpoint) as hub:
         hub.subscribe(KEY_FEATURES, got.append)
+        before_ns = time.monotonic_ns()
         result = republish_log(path, speed=0, can_spec=spec, zenoh_endpoint=endpoint, lead_in_s=0)
+        after_ns = time.monotonic_ns()
         received = drain(rx, len(frames))
         assert wait_until(lambda: len(got) == len(payloads))
     assert result.can_frames == len(frames) and result.skipped == 1
@@ -333,10 +339,13 @@ def test_republish_sends_the_recorded_inputs(tmp_path, cfg, interface, lockstep)
         assert got == payloads and result.restamped == 0
     else:
         assert result.restamped == len(payloads)
+        # The recorded age at receipt (stamp to receive time) is kept and moved to the replay's
+        # clock: each stamp lands inside the republish call, whatever the two clocks read.
+        age_ns = STAMP_AGE_NS - VISION_RX_LEAD_NS
         for sent, orig in zip(got, payloads, strict=True):
             new, old = decode_features(sent), decode_features(orig)
             assert new._replace(stamp_ns=old.stamp_ns) == old
-            assert new.stamp_ns > old.stamp_ns  # shifted to the replay's clock
+            assert before_ns <= new.stamp_ns + age_ns <= after_ns
 
 
 def test_republish_cli_at_recorded_timing(tmp_path, cfg, capsys):

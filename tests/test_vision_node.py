@@ -23,6 +23,7 @@ from hal.zenoh_session import KEY_FEATURES, ZenohSession, free_loopback_port, op
 from plant_emulator.camera import CameraPose, camera_pose, project
 from plant_emulator.pose_link import PosePublisher
 from plant_emulator.scenario import paper_target
+from plant_emulator.vision_cli import main
 from plant_emulator.vision_node import (
     DEFAULT_FPS,
     Dropout,
@@ -30,7 +31,6 @@ from plant_emulator.vision_node import (
     VisionCore,
     VisionStats,
     in_dropout,
-    main,
     resolve_fps,
     run_vision,
 )
@@ -331,7 +331,7 @@ def test_main_without_hub_says_what_to_start(endpoint, capsys):
 @pytest.mark.parametrize("role", ["hub", "client"])
 def test_sigterm_exits_cleanly(endpoint, role):
     """As a hub (serving) and as a client still waiting for its hub: SIGTERM -> exit 0."""
-    cmd = [sys.executable, "-m", "plant_emulator.vision_node", "--zenoh-endpoint", endpoint]
+    cmd = [sys.executable, "-m", "plant_emulator.vision_cli", "--zenoh-endpoint", endpoint]
     cmd += ["--zenoh-role", role, "--wait", "60"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -1,4 +1,4 @@
-"""``hil vision``: dispatches to the emulator's vision process (plant_emulator.vision_node)."""
+"""``hil vision``: dispatches to the emulator's vision process (plant_emulator.vision_cli)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from plant_emulator import vision_node
+    from plant_emulator import vision_cli
 
     p = sub.add_parser(
         "vision",
@@ -14,5 +14,5 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Computes the image features f of the scenario's target from the camera "
         "pose the emulator publishes, adds noise/frame rate/latency, publishes on zenoh.",
     )
-    vision_node.add_arguments(p)
-    p.set_defaults(handler=vision_node.run_from_args)
+    vision_cli.add_arguments(p)
+    p.set_defaults(handler=vision_cli.run_from_args)
