@@ -36,7 +36,7 @@ Where the command runs, first match wins:
 In pytest mode, exit status 5 (no tests collected) is an error under ``CI=true`` (the vcan tests
 must run); locally it is reported as a warning and the script exits 0.
 
-Inside the command's environment ``HIL_VCAN_REQUIRED=1`` is set (``tests/vcan_support.py`` then
+Inside the command's environment ``HIL_VCAN_REQUIRED=1`` is set (``tests/support/vcan.py`` then
 turns a missing ``vcan0`` into a failure instead of a skip) and, under UML, ``HIL_IN_UML=1``.
 Under UML the command gets no standard input, the guest has no IPv6 and runs roughly 10x slower
 than the host; network traffic stays inside the guest (only ``lo`` and ``vcan0`` exist there).

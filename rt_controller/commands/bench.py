@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_solver(args: argparse.Namespace) -> int:
-    from rt_controller.bench_solver import bench_solver
+    from rt_controller.rig.bench_solver import bench_solver
 
     cfg = config_from_args(args)
     print(json.dumps(bench_solver(cfg, updates=args.updates)))
@@ -45,8 +45,8 @@ def run_solver(args: argparse.Namespace) -> int:
 
 
 def run_loop(args: argparse.Namespace) -> int:
-    from rt_controller.bench_loop import bench_loop
     from rt_controller.errors import ControllerConfigError
+    from rt_controller.rig.bench_loop import bench_loop
 
     try:
         rates = tuple(float(r) for r in args.rates.split(",") if r.strip())

@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rt_controller.cli import print_summary
-    from rt_controller.daemon import ControllerDaemon, DaemonOptions
+    from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
 
     cfg = config_from_args(args)
     if args.clock:

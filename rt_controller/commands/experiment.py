@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from rt_controller.experiment import RunResult, Settings
+    from rt_controller.rig.experiment import RunResult, Settings
 
 DESCRIPTION = """\
 Reproduces the paper's experiments (Section V) on the emulated rig. Every run starts
@@ -105,8 +105,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from rt_controller.experiment import EXPERIMENTS, Settings, prepare
-    from rt_controller.experiment_report import write_outputs
+    from rt_controller.rig.experiment import EXPERIMENTS, Settings, prepare
+    from rt_controller.rig.experiment_report import write_outputs
 
     out = Path(args.out) if args.out else default_out()
     settings = Settings(
@@ -152,7 +152,7 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeRemainingColumn,
     )
 
-    from rt_controller.experiment import execute
+    from rt_controller.rig.experiment import execute
 
     columns = (
         TextColumn("{task.description}"),

@@ -116,8 +116,8 @@ def run(args: argparse.Namespace) -> int:
         return _republish(args)
     from pathlib import Path
 
-    from rt_controller.logread import read_log
-    from rt_controller.replay import replay_loaded
+    from rt_controller.logtools.reader import read_log
+    from rt_controller.logtools.replay import replay_loaded
 
     log = read_log(args.log, raw=args.out is not None)
     cfg = _config(args, log.config)
@@ -143,8 +143,8 @@ def _republish(args: argparse.Namespace) -> int:
     import threading
 
     from rt_controller.cli import print_summary
-    from rt_controller.logread import read_log
-    from rt_controller.republish import republish_log
+    from rt_controller.logtools.reader import read_log
+    from rt_controller.logtools.republish import republish_log
 
     cfg = None
     if args.config or args.sets:

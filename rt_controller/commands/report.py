@@ -51,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from rt_controller.errors import ControllerConfigError
-    from rt_controller.logread import read_log
-    from rt_controller.report import render_text, summarize, write_plots
+    from rt_controller.logtools.deadline_report import render_text, summarize, write_plots
+    from rt_controller.logtools.reader import read_log
 
     if args.max_list < 0:
         raise ControllerConfigError(f"--max-list must be non-negative, got {args.max_list}")

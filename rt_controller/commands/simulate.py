@@ -30,9 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from plant_emulator.world import World
     from rt_controller.cli import print_summary
-    from rt_controller.controller import Controller
+    from rt_controller.control.controller import Controller
+    from rt_controller.control.simulate import run_closed_loop
     from rt_controller.errors import ControllerConfigError
-    from rt_controller.simulate import run_closed_loop
 
     if args.duration <= 0:
         raise ControllerConfigError(f"--duration must be positive, got {args.duration}")

@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from rt_controller.cli import print_summary
     from rt_controller.errors import ControllerConfigError
-    from rt_controller.orchestrate import RigOptions, run_rig
+    from rt_controller.rig.processes import RigOptions, run_rig
 
     if args.duration <= 0:
         raise ControllerConfigError(f"--duration must be positive, got {args.duration}")

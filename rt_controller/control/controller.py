@@ -1,0 +1,138 @@
+"""One control step: measurement -> law -> torque (eq. 11), independent of any I/O."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hal.config import RigConfig
+from rt_controller.control import model_kernels
+from rt_controller.control.laws import ControlLaw, LawOutput, Measurement, make_law
+from rt_controller.control.model import NominalModel
+
+
+@dataclass(frozen=True)
+class Command:
+    """What one tick decided: the law's output, the torque of eq. (11) and its saturated value."""
+
+    measurement: Measurement
+    law: LawOutput
+    tau_raw: np.ndarray
+    tau: np.ndarray
+    saturated: bool
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One tick of the daemon: the torque to send and how it was obtained."""
+
+    tau: np.ndarray
+    mode: str
+    """``control`` (the law ran), ``hold`` (stale features: joint damper) or ``no_state``."""
+    command: Command | None
+    """The law's step when ``mode == "control"``."""
+
+
+class Controller:
+    """Pure step function around a control law; the caller owns clocks and transports."""
+
+    def __init__(self, cfg: RigConfig, law: str | ControlLaw | None = None) -> None:
+        self.cfg = cfg
+        self.model = NominalModel.from_config(cfg)
+        self._p = model_kernels.pack(self.model)
+        name = cfg.controller.law if law is None else law
+        self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
+        self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
+        self._holding = False
+
+    def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
+        q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
+        return Measurement(t=t, q=q, dq=dq, f=f, xi=model_kernels.prepare(self._p, q, dq, f)[0])
+
+    def hold_torque(self, dq: np.ndarray) -> np.ndarray:
+        """Safe torque without image features: tau = -2 R dq (a joint damper, eq. 27 with
+        eta = 0 and no feedforward), clipped to the amplifier limits."""
+        return np.clip(-2.0 * self.model.R @ dq, -self.tau_max, self.tau_max)
+
+    def step(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Command:
+        """u from the law, tau by eq. (11), clipped to the amplifier limits.
+
+        Without valid features (``f`` not finite) the tick holds: u = 0, tau = :meth:`hold_torque`.
+        """
+        if not np.all(np.isfinite(f)):
+            m = Measurement(
+                t=t,
+                q=np.asarray(q, float),
+                dq=np.asarray(dq, float),
+                f=np.asarray(f, float),
+                xi=np.full(2, np.nan),
+            )
+            tau = self.hold_torque(m.dq)
+            return Command(m, LawOutput(u=np.zeros(2)), tau, tau, False)
+        q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
+        xi, tau_ff = model_kernels.prepare(self._p, q, dq, f)
+        m = Measurement(t=t, q=q, dq=dq, f=f, xi=xi)
+        out = self.law(m)
+        tau_raw = tau_ff + out.u  # eq. (11)
+        tau = np.clip(tau_raw, -self.tau_max, self.tau_max)
+        return Command(m, out, tau_raw, tau, bool(np.any(tau != tau_raw)))
+
+    def costs(self, cmd: Command) -> tuple[float, float]:
+        """(l(x_k, u_k) of eq. 25, V(x_k) of eq. 13) for this tick."""
+        m = cmd.measurement
+        u = np.asarray(cmd.law.u, dtype=float)
+        return model_kernels.costs(self._p, m.q, m.xi, m.f, u)
+
+    def stage_cost(self, cmd: Command) -> float:
+        """l(x_k, u_k) of eq. (25) for this tick."""
+        return self.costs(cmd)[0]
+
+    def energy(self, cmd: Command) -> float:
+        """V(x_k) of eq. (13) for this tick."""
+        return self.costs(cmd)[1]
+
+    def decide(
+        self,
+        t: float,
+        q: np.ndarray,
+        dq: np.ndarray,
+        f: np.ndarray,
+        *,
+        f_stale: bool,
+        state_stale: bool,
+    ) -> Decision:
+        """The daemon's per-tick rule, shared with ``hil replay`` so a log replays exactly.
+
+        No joint state: zero torque. Stale features: hold (:meth:`hold_torque`) and re-initialise
+        the law when features return. Otherwise the law and eq. (11). Never returns NaN torque.
+        """
+        if state_stale:
+            return Decision(np.zeros(2), "no_state", None)
+        if f_stale or not np.all(np.isfinite(f)):
+            self._holding = True
+            return Decision(self.hold_torque(np.asarray(dq, dtype=float)), "hold", None)
+        if self._holding:
+            self.law.reset()
+            self._holding = False
+        cmd = self.step(t, q, dq, f)
+        tau = cmd.tau if np.all(np.isfinite(cmd.tau)) else np.zeros(2)
+        return Decision(tau, "control", cmd)
+
+
+def warm_up(ctl: Controller, cfg: RigConfig) -> None:
+    """Run every branch of the per-tick rule once (law, eq. 11, costs, hold, no state) so that
+    nothing is compiled or imported on first use inside a real-time loop, then forget it all.
+
+    The law is exercised at the scenario's initial state; the controller is left as new (law
+    re-initialised, not holding).
+    """
+    sc = cfg.scenario
+    q, dq, f = np.array(sc.q0, float), np.array(sc.dq0, float), np.array(sc.f0, float)
+    for f_stale, state_stale in ((False, False), (True, False), (False, True), (False, False)):
+        d = ctl.decide(0.0, q, dq, f, f_stale=f_stale, state_stale=state_stale)
+        if d.command is not None:
+            ctl.costs(d.command)
+    ctl.step(0.0, q, dq, np.full(2, np.nan))  # the no-features branch of step
+    ctl.law.reset()
+    ctl._holding = False

@@ -1,0 +1,110 @@
+"""Compiled per-tick terms of the nominal model: xi, the feedforward of eq. (11), l and V.
+
+The loop calls these once per tick instead of a few dozen small NumPy operations. They compute
+exactly what :class:`~rt_controller.control.model.NominalModel` computes (the tests compare the
+two); the NumPy model stays the readable reference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from rt_controller.control.model import NominalModel
+
+# Parameter vector layout.
+TH1, TH2, TH3, L1, L2, GAIN, KP, G1, G2 = range(9)
+ALPHA, RMAT, RINV = 9, 13, 17  # 2x2 blocks, row-major
+N_PARAMS = 21
+
+
+def pack(model: NominalModel) -> np.ndarray:
+    """The model's numbers in the kernels' parameter vector."""
+    p = np.empty(N_PARAMS)
+    p[:9] = (
+        model.theta1,
+        model.theta2,
+        model.theta3,
+        model.l1,
+        model.l2,
+        model.gain,
+        model.kp,
+        model.gravity1,
+        model.gravity2,
+    )
+    p[ALPHA : ALPHA + 4] = model.alpha.ravel()
+    p[RMAT : RMAT + 4] = model.R.ravel()
+    p[RINV : RINV + 4] = model.R_inv.ravel()
+    return p
+
+
+@njit(cache=True, fastmath=False)
+def prepare(p, q, dq, f):
+    """(xi, tau_ff): xi = dq - alpha eta and tau_ff = M alpha eta_dot + C alpha eta + g."""
+    s1, c1 = np.sin(q[0]), np.cos(q[0])
+    s12, c12 = np.sin(q[0] + q[1]), np.cos(q[0] + q[1])
+    l1, l2, g = p[L1], p[L2], p[GAIN]
+    w = dq[0] + dq[1]
+    # J_b, R_wc and their derivatives.
+    j00, j01 = -l1 * s1 - l2 * s12, -l2 * s12
+    j10, j11 = l1 * c1 + l2 * c12, l2 * c12
+    jd00 = -l1 * c1 * dq[0] - l2 * c12 * w
+    jd01 = -l2 * c12 * w
+    jd10 = -l1 * s1 * dq[0] - l2 * s12 * w
+    jd11 = -l2 * s12 * w
+    # Rf = R_wc f, Rdf = R_wc_dot f.
+    rf0, rf1 = c12 * f[0] - s12 * f[1], s12 * f[0] + c12 * f[1]
+    rdf0, rdf1 = w * (-s12 * f[0] - c12 * f[1]), w * (c12 * f[0] - s12 * f[1])
+    # f_dot = -g R^T J_b dq - w S f, S = [[0, -1], [1, 0]].
+    v0 = j00 * dq[0] + j01 * dq[1]
+    v1 = j10 * dq[0] + j11 * dq[1]
+    fd0 = -g * (c12 * v0 + s12 * v1) + w * f[1]
+    fd1 = -g * (-s12 * v0 + c12 * v1) - w * f[0]
+    rfd0, rfd1 = c12 * fd0 - s12 * fd1, s12 * fd0 + c12 * fd1
+    eta0 = j00 * rf0 + j10 * rf1
+    eta1 = j01 * rf0 + j11 * rf1
+    ed0 = jd00 * rf0 + jd10 * rf1 + j00 * rdf0 + j10 * rdf1 + j00 * rfd0 + j10 * rfd1
+    ed1 = jd01 * rf0 + jd11 * rf1 + j01 * rdf0 + j11 * rdf1 + j01 * rfd0 + j11 * rfd1
+    a = p[ALPHA : ALPHA + 4]
+    ae0, ae1 = a[0] * eta0 + a[1] * eta1, a[2] * eta0 + a[3] * eta1
+    aed0, aed1 = a[0] * ed0 + a[1] * ed1, a[2] * ed0 + a[3] * ed1
+    c2, s2 = np.cos(q[1]), np.sin(q[1])
+    m00 = p[TH1] + p[TH2] + 2 * p[TH3] * c2
+    m01 = p[TH2] + p[TH3] * c2
+    m11 = p[TH2]
+    h = p[TH3] * s2
+    c00, c01, c10 = -h * dq[1], -h * w, h * dq[0]
+    xi = np.empty(2)
+    xi[0], xi[1] = dq[0] - ae0, dq[1] - ae1
+    tau = np.empty(2)
+    tau[0] = m00 * aed0 + m01 * aed1 + c00 * ae0 + c01 * ae1 + p[G1] * c1 + p[G2] * c12
+    tau[1] = m01 * aed0 + m11 * aed1 + c10 * ae0 + p[G2] * c12
+    return xi, tau
+
+
+@njit(cache=True, fastmath=False)
+def costs(p, q, xi, f, u):
+    """(l, V): the stage cost of eq. (25) and the energy of eq. (13)."""
+    l1, l2, kp, g = p[L1], p[L2], p[KP], p[GAIN]
+    s2, c2 = np.sin(q[1]), np.cos(q[1])
+    # A = R_wc^T J_b depends on q2 only.
+    a00, a01, a10, a11 = l1 * s2, 0.0, l1 * c2 + l2, l2
+    af0 = a00 * xi[0] + a01 * xi[1]
+    af1 = a10 * xi[0] + a11 * xi[1]
+    eta0, eta1 = a00 * f[0] + a10 * f[1], a01 * f[0] + a11 * f[1]  # A^T f
+    al = p[ALPHA : ALPHA + 4]
+    r = p[RMAT : RMAT + 4]
+    ri = p[RINV : RINV + 4]
+    xrx = xi[0] * (r[0] * xi[0] + r[1] * xi[1]) + xi[1] * (r[2] * xi[0] + r[3] * xi[1])
+    cross = f[0] * af0 + f[1] * af1
+    aeta0, aeta1 = al[0] * eta0 + al[1] * eta1, al[2] * eta0 + al[3] * eta1
+    ff = eta0 * aeta0 + eta1 * aeta1
+    uru = u[0] * (ri[0] * u[0] + ri[1] * u[1]) + u[1] * (ri[2] * u[0] + ri[3] * u[1])
+    cost = 4.0 * (xrx + kp * cross + kp * ff) + uru
+    c = np.cos(q[1])
+    m00 = p[TH1] + p[TH2] + 2 * p[TH3] * c
+    m01 = p[TH2] + p[TH3] * c
+    m11 = p[TH2]
+    V = 0.5 * (m00 * xi[0] ** 2 + 2 * m01 * xi[0] * xi[1] + m11 * xi[1] ** 2)
+    V += kp / (2.0 * g) * (f[0] ** 2 + f[1] ** 2)
+    return cost, V

@@ -1,0 +1,703 @@
+"""Compiled C/GMRES kernels (Ohtsuka 2004): sweeps, F(U, x, t), forward-difference GMRES, a tick.
+
+Everything a tick needs runs inside the single call :func:`rhc_tick` on preallocated arrays:
+
+* ``F(U, x, T)``: Euler forward sweep ``x_{k+1} = x_k + dtau f(x_k, u_k)``, backward sweep
+  ``lam_N = phi_x(x_N)``, ``lam_k = lam_{k+1} + dtau H_x(x_k, u_k, lam_{k+1})``, and per stage
+  ``(H_u + 2 mu u, -r_v + 2 mu v, u^2 + v^2 - umax^2)``. ``F = 0`` are the KKT conditions of the
+  discretised problem (``dtau H_u`` is its exact gradient in ``u_k``).
+* Corrector: ``F_U dU = -c F(U, x(t), T(t))`` with ``c = min(zeta dt, 1)``; the input applied at
+  this tick is the first one of ``U + dU``, the solution continued to the *measured* state.
+* Predictor: ``F_U Udot = -(F(U, x + h xdot, T(t + h)) - F(U, x, T(t))) / h`` (state motion and
+  horizon growth; GMRES warm-started from the previous ``Udot``), then ``U(t+dt) = U + dt Udot``.
+
+Together the two steps are Ohtsuka's continuation ``dF/dt = -zeta F`` with
+``U(t+dt) = U(t) + dt Udot`` where ``Udot = dU / dt + Udot_pred``. Splitting them lets a loop
+sampled at 50 Hz apply the input that is optimal for the state it just measured instead of one
+predicted a period earlier (the plant's fast modes are ~40 /s, comparable to 1 / period).
+
+Each GMRES solve runs exactly ``kmax`` iterations with forward-difference products
+``(F(U + h v) - F(U)) / h`` and Givens rotations, right-preconditioned by a per-stage block
+inverse (:func:`precond_setup`): the dummy/multiplier rows are eliminated exactly, the input block
+uses ``2 R^-1 + 4 dtau M^-1`` (the Hessian of the cost-to-go 4V). After every update the dummy
+inputs are put back on their circles with ``v >= vmin`` (:func:`clip_dummies`) and bounds whose
+multiplier turned negative are restarted inside the box (:func:`release_bounds`). The initial
+solution (first tick, and after a fallback) is found by Newton-GMRES with backtracking.
+
+All compiled code lives in this one module on purpose: numba's cache is keyed on the source file
+of each function, so a compiled function calling into another module would keep stale machine
+code when only that other module changed. The OCP itself is documented in
+:mod:`rt_controller.control.rhc.problem`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# ============================================================================================
+# Parameter layout and the optimal control problem (see rt_controller.control.rhc.problem)
+# ============================================================================================
+
+NX = 6
+"""Prediction state dimension (q, xi, f)."""
+NU = 2
+"""Input dimension."""
+NS = 6
+"""Unknowns per horizon stage: u (2), dummy v (2), multiplier mu (2)."""
+
+# --- layout of the float parameter vector P ----------------------------------------------------
+T1, T2, T3, L1, L2, GAIN, KP = 0, 1, 2, 3, 4, 5, 6
+ALPHA = 7  # 4 entries, row-major
+RW = 11  # R, 4 entries
+RINV = 15  # R^-1, 4 entries
+UMAX = 19  # 2 entries
+RV = 21  # dummy weight
+VMIN = 22  # 2 entries: floor of the dummy inputs
+HFD = 24  # forward-difference step
+ZETA = 25  # continuation gain, 1/s
+DT = 26  # control period, s
+TF = 27  # final horizon, s
+GROWTH = 28  # a of T(t) = Tf (1 - exp(-a t))
+INIT_TOL = 29  # residual target of the initial Newton solve
+NP = 30
+
+# --- layout of the integer parameter vector iP -------------------------------------------------
+I_N, I_KMAX, I_INIT_ITERS, I_INIT_KRYLOV = 0, 1, 2, 3
+NIP = 4
+
+JIT = {"cache": True, "error_model": "numpy", "fastmath": {"nsz", "arcp", "contract", "reassoc"}}
+"""numba options: cached, IEEE NaN/inf semantics kept (the fallback relies on them)."""
+
+
+@njit(**JIT)
+def horizon_at(P, t):
+    """T(t) = Tf (1 - exp(-a t)), or Tf when a = 0."""
+    a = P[GROWTH]
+    if a <= 0.0:
+        return P[TF]
+    return P[TF] * (1.0 - math.exp(-a * max(t, 0.0)))
+
+
+NAUX = 13
+"""Intermediates of one stage kept from the forward sweep for the backward sweep."""
+
+
+@njit(**JIT)
+def stage_forward(P, x, u, aux, out):
+    """Right-hand side of eq. (12) in (q, xi, f) coordinates into ``out`` (6).
+
+    ``aux`` (NAUX) receives s2, c2, eta, dq, xi', M11, M12, 1/det M and C(q, dq) xi / (t3 s2).
+    """
+    t1, t2, t3, l1, l2, g = P[T1], P[T2], P[T3], P[L1], P[L2], P[GAIN]
+    s2, c2 = math.sin(x[1]), math.cos(x[1])
+    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    a11, a21, a22 = l1 * s2, l1 * c2 + l2, l2
+    e1 = a11 * f1 + a21 * f2
+    e2 = a22 * f2
+    dq1 = xi1 + P[ALPHA] * e1 + P[ALPHA + 1] * e2
+    dq2 = xi2 + P[ALPHA + 2] * e1 + P[ALPHA + 3] * e2
+    w = dq1 + dq2
+    hh = t3 * s2
+    k1 = -dq2 * xi1 - w * xi2
+    k2 = dq1 * xi1
+    r1 = u[0] - hh * k1
+    r2 = u[1] - hh * k2
+    m11 = t1 + t2 + 2.0 * t3 * c2
+    m12 = t2 + t3 * c2
+    idet = 1.0 / (m11 * t2 - m12 * m12)
+    y1 = (t2 * r1 - m12 * r2) * idet
+    y2 = (-m12 * r1 + m11 * r2) * idet
+    out[0] = dq1
+    out[1] = dq2
+    out[2] = y1
+    out[3] = y2
+    out[4] = -g * a11 * dq1 + w * f2
+    out[5] = -g * (a21 * dq1 + a22 * dq2) - w * f1
+    aux[0], aux[1], aux[2], aux[3], aux[4], aux[5] = s2, c2, e1, e2, dq1, dq2
+    aux[6], aux[7], aux[8], aux[9], aux[10], aux[11], aux[12] = y1, y2, m11, m12, idet, k1, k2
+
+
+@njit(**JIT)
+def rhs(P, x, u, out):
+    """Right-hand side of eq. (12) in (q, xi, f) coordinates into ``out`` (6)."""
+    aux = np.empty(NAUX)
+    stage_forward(P, x, u, aux, out)
+
+
+@njit(**JIT)
+def stage_cost(P, x, u):
+    """l(x, u) of eq. (25) (without the dummy term)."""
+    l1, l2, kp = P[L1], P[L2], P[KP]
+    s2, c2 = math.sin(x[1]), math.cos(x[1])
+    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    e1 = l1 * s2 * f1 + (l1 * c2 + l2) * f2
+    e2 = l2 * f2
+    dq1 = xi1 + P[ALPHA] * e1 + P[ALPHA + 1] * e2
+    dq2 = xi2 + P[ALPHA + 2] * e1 + P[ALPHA + 3] * e2
+    xrx = xi1 * (P[RW] * xi1 + P[RW + 1] * xi2) + xi2 * (P[RW + 2] * xi1 + P[RW + 3] * xi2)
+    uru = u[0] * (P[RINV] * u[0] + P[RINV + 1] * u[1]) + u[1] * (
+        P[RINV + 2] * u[0] + P[RINV + 3] * u[1]
+    )
+    return 4.0 * xrx + 4.0 * kp * (e1 * dq1 + e2 * dq2) + uru
+
+
+@njit(**JIT)
+def terminal_cost(P, x):
+    """phi = 4 V(x) of eq. (13)."""
+    t1, t2, t3 = P[T1], P[T2], P[T3]
+    c2 = math.cos(x[1])
+    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    m11 = t1 + t2 + 2.0 * t3 * c2
+    m12 = t2 + t3 * c2
+    xmx = m11 * xi1 * xi1 + 2.0 * m12 * xi1 * xi2 + t2 * xi2 * xi2
+    return 2.0 * xmx + 2.0 * P[KP] / P[GAIN] * (f1 * f1 + f2 * f2)
+
+
+@njit(**JIT)
+def terminal_grad(P, x, out):
+    """Gradient of phi = 4 V(x) with respect to x into ``out`` (6)."""
+    t1, t2, t3 = P[T1], P[T2], P[T3]
+    s2, c2 = math.sin(x[1]), math.cos(x[1])
+    xi1, xi2 = x[2], x[3]
+    m11 = t1 + t2 + 2.0 * t3 * c2
+    m12 = t2 + t3 * c2
+    out[0] = 0.0
+    out[1] = -4.0 * t3 * s2 * xi1 * (xi1 + xi2)
+    out[2] = 4.0 * (m11 * xi1 + m12 * xi2)
+    out[3] = 4.0 * (m12 * xi1 + t2 * xi2)
+    c = 4.0 * P[KP] / P[GAIN]
+    out[4] = c * x[4]
+    out[5] = c * x[5]
+
+
+@njit(**JIT)
+def hamiltonian_grad(P, x, u, lam, hx, hu):
+    """H_x (6) into ``hx`` and the cost-plus-dynamics part of H_u (2) into ``hu``.
+
+    With z = M^-1 lam_xi, y = xi', sigma = lam_f1 f2 - lam_f2 f1 and dq, eta as intermediates:
+    G = dH/ddq = 4 kp eta + lam_q - g A^T lam_f + sigma (1, 1) - d(z^T C(dq) xi)/ddq,
+    E = dH/deta (total) = 4 kp dq + alpha^T G; then
+    H_xi = 4 (R + R^T) xi - C^T z + G,  H_f = w (-lam_f2, lam_f1) + A E,
+    H_q2 = -z^T M' y - z^T C' xi - g lam_f^T A' dq + f^T A' E,  H_q1 = 0,
+    H_u = (R^-1 + R^-T) u + z   (the bound term 2 mu u is added by the caller).
+    """
+    aux = np.empty(NAUX)
+    xd = np.empty(NX)
+    stage_forward(P, x, u, aux, xd)
+    stage_adjoint(P, x, u, lam, aux, hx, hu)
+
+
+@njit(**JIT)
+def stage_adjoint(P, x, u, lam, aux, hx, hu):
+    """:func:`hamiltonian_grad` from the intermediates ``aux`` of :func:`stage_forward`."""
+    t3, l1, l2, g, kp = P[T3], P[L1], P[L2], P[GAIN], P[KP]
+    s2, c2, e1, e2, dq1, dq2 = aux[0], aux[1], aux[2], aux[3], aux[4], aux[5]
+    y1, y2, m11, m12, idet, k1, k2 = aux[6], aux[7], aux[8], aux[9], aux[10], aux[11], aux[12]
+    m22 = P[T2]
+    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    lq1, lq2, lx1, lx2, lf1, lf2 = lam[0], lam[1], lam[2], lam[3], lam[4], lam[5]
+    al11, al12, al21, al22 = P[ALPHA], P[ALPHA + 1], P[ALPHA + 2], P[ALPHA + 3]
+    a11, a21, a22 = l1 * s2, l1 * c2 + l2, l2
+    w = dq1 + dq2
+    hh = t3 * s2
+    z1 = (m22 * lx1 - m12 * lx2) * idet
+    z2 = (-m12 * lx1 + m11 * lx2) * idet
+    sigma = lf1 * f2 - lf2 * f1
+    # G = dH/d(dq) with eta, xi, f, q held.
+    g1 = 4.0 * kp * e1 + lq1 - g * (a11 * lf1 + a21 * lf2) + sigma - hh * (-z1 * xi2 + z2 * xi1)
+    g2 = 4.0 * kp * e2 + lq2 - g * (a22 * lf2) + sigma - hh * (-z1 * (xi1 + xi2))
+    # E = total dH/d(eta) = 4 kp dq + alpha^T G.
+    E1 = 4.0 * kp * dq1 + al11 * g1 + al21 * g2
+    E2 = 4.0 * kp * dq2 + al12 * g1 + al22 * g2
+    # H_q2: M' = -t3 s2 [[2, 1], [1, 0]], C' = t3 c2 K(dq), A' = [[l1 c2, 0], [-l1 s2, 0]].
+    zMy = -t3 * s2 * (2.0 * z1 * y1 + z1 * y2 + z2 * y1)
+    zCxi = t3 * c2 * (z1 * k1 + z2 * k2)
+    lAdq = dq1 * l1 * (c2 * lf1 - s2 * lf2)
+    fAE = E1 * l1 * (c2 * f1 - s2 * f2)
+    hx[0] = 0.0
+    hx[1] = -zMy - zCxi - g * lAdq + fAE
+    # H_xi = 4 (R + R^T) xi - C^T z + G, C^T z = hh * (-dq2 z1 + dq1 z2, -w z1).
+    hx[2] = (
+        4.0 * ((P[RW] + P[RW]) * xi1 + (P[RW + 1] + P[RW + 2]) * xi2)
+        - hh * (-dq2 * z1 + dq1 * z2)
+        + g1
+    )
+    hx[3] = 4.0 * ((P[RW + 2] + P[RW + 1]) * xi1 + (P[RW + 3] + P[RW + 3]) * xi2) + hh * w * z1 + g2
+    # H_f = w (-lam_f2, lam_f1) + A E.
+    hx[4] = -w * lf2 + a11 * E1
+    hx[5] = w * lf1 + a21 * E1 + a22 * E2
+    hu[0] = (P[RINV] + P[RINV]) * u[0] + (P[RINV + 1] + P[RINV + 2]) * u[1] + z1
+    hu[1] = (P[RINV + 2] + P[RINV + 1]) * u[0] + (P[RINV + 3] + P[RINV + 3]) * u[1] + z2
+
+
+# ============================================================================================
+# C/GMRES: sweeps, preconditioner, forward-difference GMRES, Newton, one tick
+# ============================================================================================
+
+# Result codes of rhc_tick.
+OK = 0
+NOT_FINITE = 1
+
+
+def workspace_size(n_steps: int, kmax: int, init_krylov: int) -> int:
+    """Length of the float64 work array :func:`rhc_tick` needs."""
+    n = NS * n_steps
+    m = max(kmax, init_krylov)
+    return (
+        2 * (n_steps + 1) * NX
+        + (m + 1) * n
+        + (m + 1) * m
+        + 4 * (m + 1)
+        + 9 * n
+        + NPRE * n_steps
+        + 3 * NX
+        + NAUX * n_steps
+    )
+
+
+@njit(**JIT)
+def eval_F(P, N, U, x0, T, sw, F):
+    """F(U, x0, T) into ``F`` (6N); ``sw = (X, Lam, Aux, hx, hu)`` receives the predicted states
+    X (N+1, 6), costates Lam (N+1, 6) and the stage intermediates Aux (N, NAUX)."""
+    X, Lam, Aux, hx, hu = sw
+    dtau = T / N
+    for i in range(NX):
+        X[0, i] = x0[i]
+    for k in range(N):
+        stage_forward(P, X[k], U[NS * k : NS * k + 2], Aux[k], hx)
+        for i in range(NX):
+            X[k + 1, i] = X[k, i] + dtau * hx[i]
+    terminal_grad(P, X[N], Lam[N])
+    rv = P[RV]
+    for k in range(N - 1, -1, -1):
+        j = NS * k
+        stage_adjoint(P, X[k], U[j : j + 2], Lam[k + 1], Aux[k], hx, hu)
+        for i in range(2):
+            ui, vi, mi = U[j + i], U[j + 2 + i], U[j + 4 + i]
+            F[j + i] = hu[i] + 2.0 * mi * ui
+            F[j + 2 + i] = -rv + 2.0 * mi * vi
+            F[j + 4 + i] = ui * ui + vi * vi - P[UMAX + i] * P[UMAX + i]
+        if k > 0:
+            for i in range(NX):
+                Lam[k, i] = Lam[k + 1, i] + dtau * hx[i]
+
+
+@njit(**JIT)
+def clip_dummies(P, N, U):
+    """Put every (u_i, v_i) back on its circle ``u_i^2 + v_i^2 = umax_i^2``, with ``v_i >= vmin_i``.
+
+    The projection is radial (well conditioned at the bound, where v is tiny, and in the middle);
+    the floor on v selects the minimising branch (v > 0) and keeps ``mu_i = r_v / (2 v_i)``
+    finite. At a solution the constraint holds, so this changes nothing there; after a
+    linearised step it removes the second-order drift off the circle.
+    """
+    for k in range(N):
+        for i in range(2):
+            j = NS * k + i
+            um = P[UMAX + i]
+            vmin = P[VMIN + i]
+            u, v = U[j], U[j + 2]
+            if v < vmin:
+                v = vmin
+            r = math.sqrt(u * u + v * v)
+            if r > 0.0 and math.isfinite(r):
+                u *= um / r
+                v *= um / r
+            if v < vmin:
+                v = vmin
+                u = math.copysign(math.sqrt(um * um - vmin * vmin), u)
+            U[j] = u
+            U[j + 2] = v
+
+
+@njit(**JIT)
+def norm(a):
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * a[i]
+    return math.sqrt(s)
+
+
+NPRE = 10
+"""Floats per stage of the block preconditioner."""
+
+
+@njit(**JIT)
+def precond_setup(P, N, U, X, T, pre):
+    """Per-stage block-Jacobi preconditioner of F_U around U (X: the states of U's forward sweep).
+
+    The diagonal block of stage k is approximated by ``H_uu = 2 R^-1 + 4 dtau M(q_k)^-1`` (the
+    Hessian of the cost-to-go 4V, exact for the continuous problem, eq. 31) with the exact bound
+    rows; the (v, mu) unknowns are eliminated analytically, leaving a 2x2 system in du.
+    """
+    dtau = T / N
+    t1, t2, t3 = P[T1], P[T2], P[T3]
+    for k in range(N):
+        j = NS * k
+        c2 = math.cos(X[k, 1])
+        m11 = t1 + t2 + 2.0 * t3 * c2
+        m12 = t2 + t3 * c2
+        det = m11 * t2 - m12 * m12
+        c = 4.0 * dtau / det
+        s11 = P[RINV] + P[RINV] + c * t2
+        s12 = P[RINV + 1] + P[RINV + 2] - c * m12
+        s22 = P[RINV + 3] + P[RINV + 3] + c * m11
+        o = NPRE * k
+        for i in range(2):
+            ui, vi, mi = U[j + i], U[j + 2 + i], U[j + 4 + i]
+            iv = 1.0 / vi
+            pre[o + 4 + i] = ui * iv  # u / v
+            pre[o + 6 + i] = mi * iv  # mu / v
+            pre[o + 8 + i] = iv
+            dgl = 2.0 * mi + 2.0 * ui * ui * mi * iv * iv
+            if i == 0:
+                s11 += dgl
+            else:
+                s22 += dgl
+        sdet = s11 * s22 - s12 * s12
+        pre[o + 0] = s22 / sdet
+        pre[o + 1] = -s12 / sdet
+        pre[o + 2] = -s12 / sdet
+        pre[o + 3] = s11 / sdet
+
+
+@njit(**JIT)
+def precond_apply(N, pre, r, d):
+    """d = P^-1 r with the factors of :func:`precond_setup`."""
+    for k in range(N):
+        j = NS * k
+        o = NPRE * k
+        # Reduced right-hand side of the du system.
+        q0 = r[j] - pre[o + 4] * r[j + 2] + pre[o + 4] * pre[o + 6] * r[j + 4]
+        q1 = r[j + 1] - pre[o + 5] * r[j + 3] + pre[o + 5] * pre[o + 7] * r[j + 5]
+        du0 = pre[o] * q0 + pre[o + 1] * q1
+        du1 = pre[o + 2] * q0 + pre[o + 3] * q1
+        for i in range(2):
+            dui = du0 if i == 0 else du1
+            uv, mv, iv = pre[o + 4 + i], pre[o + 6 + i], pre[o + 8 + i]
+            dvi = 0.5 * iv * r[j + 4 + i] - uv * dui
+            d[j + i] = dui
+            d[j + 2 + i] = dvi
+            d[j + 4 + i] = 0.5 * iv * r[j + 2 + i] - mv * dvi
+
+
+@njit(**JIT)
+def _jvp(P, N, U, x0, T, F0, v, scale, out, Ut, sw):
+    """out = (F(U + h v, x0, T) - F0) / h, a forward-difference Jacobian-vector product."""
+    h = P[HFD] * scale
+    n = U.shape[0]
+    for i in range(n):
+        Ut[i] = U[i] + h * v[i]
+    eval_F(P, N, Ut, x0, T, sw, out)
+    for i in range(n):
+        out[i] = (out[i] - F0[i]) / h
+
+
+@njit(**JIT)
+def fd_gmres(P, N, U, x0, T, F0, b, sol, use_guess, m, tol, pre, ws, sw):
+    """Solve F_U(U, x0, T) sol = b by right-preconditioned GMRES(m), forward-difference products.
+
+    ``sol`` is the initial guess when ``use_guess`` (else it starts at 0) and receives the
+    solution. Stops after ``m`` iterations, at breakdown, or when the residual falls to
+    ``tol * ||b - F_U sol0||`` (``tol = 0``: always ``m`` iterations). ``pre`` holds the factors of
+    :func:`precond_setup`; ``ws`` is a :class:`GmresWork` tuple. Returns the iteration count.
+    """
+    Vb, Hs, cs, sn, g, y, Ut, z, zz = ws
+    n = U.shape[0]
+    r = Vb[0]
+    if use_guess:
+        sn2 = norm(sol)
+        if sn2 > 0.0:
+            _jvp(P, N, U, x0, T, F0, sol, 1.0 / sn2, r, Ut, sw)
+            for i in range(n):
+                r[i] = b[i] - r[i]
+        else:
+            for i in range(n):
+                r[i] = b[i]
+    else:
+        for i in range(n):
+            sol[i] = 0.0
+            r[i] = b[i]
+    beta = norm(r)
+    if not (beta > 0.0) or not math.isfinite(beta):
+        return 0
+    for i in range(n):
+        r[i] /= beta
+    for i in range(m + 1):
+        g[i] = 0.0
+    g[0] = beta
+    k = 0
+    for j in range(m):
+        w = Vb[j + 1]
+        precond_apply(N, pre, Vb[j], z)
+        zn = norm(z)
+        if not (zn > 0.0) or not math.isfinite(zn):
+            break
+        _jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
+        for i in range(j + 1):
+            vi = Vb[i]
+            s = 0.0
+            for p in range(n):
+                s += w[p] * vi[p]
+            Hs[i, j] = s
+            for p in range(n):
+                w[p] -= s * vi[p]
+        hnext = norm(w)
+        Hs[j + 1, j] = hnext
+        for i in range(j):
+            a = cs[i] * Hs[i, j] + sn[i] * Hs[i + 1, j]
+            Hs[i + 1, j] = -sn[i] * Hs[i, j] + cs[i] * Hs[i + 1, j]
+            Hs[i, j] = a
+        d = math.sqrt(Hs[j, j] * Hs[j, j] + hnext * hnext)
+        if not (d > 0.0):
+            break
+        cs[j] = Hs[j, j] / d
+        sn[j] = hnext / d
+        Hs[j, j] = d
+        Hs[j + 1, j] = 0.0
+        g[j + 1] = -sn[j] * g[j]
+        g[j] = cs[j] * g[j]
+        k = j + 1
+        if not (hnext > 1e-300) or abs(g[j + 1]) <= tol * beta:
+            break
+        for p in range(n):
+            w[p] /= hnext
+    # Back substitution of the k x k triangular system, then sol += P^-1 V_k y.
+    for i in range(k - 1, -1, -1):
+        s = g[i]
+        for p in range(i + 1, k):
+            s -= Hs[i, p] * y[p]
+        y[i] = s / Hs[i, i]
+    for p in range(n):
+        z[p] = 0.0
+    for i in range(k):
+        vi = Vb[i]
+        for p in range(n):
+            z[p] += y[i] * vi[p]
+    precond_apply(N, pre, z, zz)
+    for p in range(n):
+        sol[p] += zz[p]
+    return k
+
+
+@njit(**JIT)
+def initial_guess(P, N, U, x0, T, X, xd):
+    """U from a rollout of the inverse-optimal law u = -2 R xi (clipped inside the bounds).
+
+    When the Euler step cannot follow that feedback (``dtau tr(2 M^-1 R) > 1``, a horizon too
+    coarse for the plant's fast modes) the gain is scaled down by that factor so that the rollout
+    does not explode.
+    """
+    dtau = T / N
+    for i in range(NX):
+        X[0, i] = x0[i]
+    rw0, rw1, rw2, rw3 = P[RW], P[RW + 1], P[RW + 2], P[RW + 3]
+    t1, t2, t3 = P[T1], P[T2], P[T3]
+    c2 = math.cos(x0[1])
+    m11 = t1 + t2 + 2.0 * t3 * c2
+    m12 = t2 + t3 * c2
+    det = m11 * t2 - m12 * m12
+    trace = 2.0 * (t2 * rw0 - m12 * rw2 - m12 * rw1 + m11 * rw3) / det
+    gain = 2.0 / max(1.0, dtau * trace)
+    for k in range(N):
+        xk = X[k]
+        j = NS * k
+        ua = -gain * (rw0 * xk[2] + rw1 * xk[3])
+        ub = -gain * (rw2 * xk[2] + rw3 * xk[3])
+        for i in range(2):
+            lim = 0.9 * P[UMAX + i]
+            ui = ua if i == 0 else ub
+            if not math.isfinite(ui):
+                ui = 0.0
+            ui = min(max(ui, -lim), lim)
+            vi = math.sqrt(P[UMAX + i] * P[UMAX + i] - ui * ui)
+            U[j + i] = ui
+            U[j + 2 + i] = vi
+            U[j + 4 + i] = P[RV] / (2.0 * vi)
+        rhs(P, xk, U[j : j + 2], xd)
+        for i in range(NX):
+            X[k + 1, i] = xk[i] + dtau * xd[i]
+
+
+@njit(**JIT)
+def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
+    """Newton-GMRES on F(U, x0, T) = 0 with backtracking; returns (||F||, GMRES iterations)."""
+    N = iP[I_N]
+    n = U.shape[0]
+    m = iP[I_INIT_KRYLOV]
+    iters = 0
+    eval_F(P, N, U, x0, T, sw, F)
+    fn = norm(F)
+    for _ in range(iP[I_INIT_ITERS]):
+        if not math.isfinite(fn) or fn <= P[INIT_TOL]:
+            break
+        precond_setup(P, N, U, sw[0], T, pre)
+        for i in range(n):
+            Ftry[i] = -F[i]
+        iters += fd_gmres(P, N, U, x0, T, F, Ftry, dU, False, m, 1e-6, pre, ws, sw)
+        step = 1.0
+        accepted = False
+        for _ls in range(30):
+            for i in range(n):
+                Utry[i] = U[i] + step * dU[i]
+            clip_dummies(P, N, Utry)
+            eval_F(P, N, Utry, x0, T, sw, Ftry)
+            ftry = norm(Ftry)
+            if ftry < (1.0 - 1e-4 * step) * fn:
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted:
+            break
+        for i in range(n):
+            U[i] = Utry[i]
+            F[i] = Ftry[i]
+        fn = ftry
+        if release_bounds(P, N, U, F) > 0:
+            eval_F(P, N, U, x0, T, sw, F)
+            fn = norm(F)
+    return fn, iters
+
+
+@njit(**JIT)
+def release_bounds(P, N, U, F):
+    """Restart the bounds whose multiplier turned negative; returns how many.
+
+    The dummy-input equations have spurious roots: u_i at its bound with mu_i < 0 and v_i -> 0-
+    (a maximum along the circle u^2 + v^2 = umax^2). When the optimum leaves a bound faster than
+    the continuation follows, the Newton step at v ~ 0 lands next to such a root (the circle's
+    tangent is vertical there, so u barely moves). Such a bound is restarted inside the box at a
+    Newton step of the stage cost, ``u_i - g_i / (2 R^-1_ii)`` with ``g = H_u - 2 mu u`` (clipped to
+    90 % of the bound), with ``v_i, mu_i`` on the central path.
+    """
+    count = 0
+    for k in range(N):
+        j = NS * k
+        for i in range(2):
+            mu = U[j + 4 + i]
+            if mu >= 0.0:
+                continue
+            ui = U[j + i]
+            g = F[j + i] - 2.0 * mu * ui
+            un = ui - g / (2.0 * P[RINV + 3 * i])
+            lim = 0.9 * P[UMAX + i]
+            if not math.isfinite(un):
+                un = 0.0
+            un = min(max(un, -lim), lim)
+            vn = math.sqrt(P[UMAX + i] * P[UMAX + i] - un * un)
+            U[j + i] = un
+            U[j + 2 + i] = vn
+            U[j + 4 + i] = P[RV] / (2.0 * vn)
+            count += 1
+    return count
+
+
+@njit(**JIT)
+def _correct(P, N, kmax, c, U, x0, T, F, b, dU, pre, ws, sw):
+    """One corrector pass ``F_U dU = -c F`` from U; F holds F(U) on entry and on exit."""
+    precond_setup(P, N, U, sw[0], T, pre)
+    n = U.shape[0]
+    for i in range(n):
+        b[i] = -c * F[i]
+    k = fd_gmres(P, N, U, x0, T, F, b, dU, False, kmax, 0.0, pre, ws, sw)
+    for i in range(n):
+        U[i] += dU[i]
+    clip_dummies(P, N, U)
+    eval_F(P, N, U, x0, T, sw, F)
+    return k
+
+
+@njit(**JIT)
+def rhc_tick(P, iP, U, Udot, x0, xdot, t, init, model_xdot, u_out, work):
+    """One C/GMRES tick at the measured state ``x0`` and solver time ``t`` (s).
+
+    ``U`` (6N) is the warm start on entry and the warm start of the next tick on exit; ``Udot``
+    (6N) is the predictor's rate, reused as its GMRES initial guess. ``init``: solve from scratch
+    by Newton-GMRES first. ``model_xdot``: predict the state motion with eq. (12) under the applied
+    input (else the given ``xdot`` is used; zeros freeze the state). ``u_out`` receives the input
+    to apply, clipped to the bounds. Returns (||F|| at the applied solution, GMRES iterations,
+    status OK | NOT_FINITE).
+    """
+    N = iP[I_N]
+    kmax = iP[I_KMAX]
+    n = NS * N
+    m = max(kmax, iP[I_INIT_KRYLOV])
+    off = 0
+    X = work[off : off + (N + 1) * NX].reshape((N + 1, NX))
+    off += (N + 1) * NX
+    Lam = work[off : off + (N + 1) * NX].reshape((N + 1, NX))
+    off += (N + 1) * NX
+    Vb = work[off : off + (m + 1) * n].reshape((m + 1, n))
+    off += (m + 1) * n
+    Hs = work[off : off + (m + 1) * m].reshape((m + 1, m))
+    off += (m + 1) * m
+    small = work[off : off + 4 * (m + 1)].reshape((4, m + 1))
+    off += 4 * (m + 1)
+    vecs = work[off : off + 9 * n].reshape((9, n))
+    off += 9 * n
+    pre = work[off : off + NPRE * N]
+    off += NPRE * N
+    xs = work[off : off + NX]
+    off += NX
+    hx = work[off : off + NX]
+    off += NX
+    hu = work[off : off + NX]
+    off += NX
+    Aux = work[off : off + N * NAUX].reshape((N, NAUX))
+    sw = (X, Lam, Aux, hx, hu)
+    F, Fs, b, dU, Utry, Ftry = vecs[0], vecs[1], vecs[2], vecs[3], vecs[4], vecs[5]
+    ws = (Vb, Hs, small[0], small[1], small[2], small[3], vecs[6], vecs[7], vecs[8])
+
+    T = horizon_at(P, t)
+    iters = 0
+    if init:
+        initial_guess(P, N, U, x0, T, X, hx)
+        for i in range(n):
+            Udot[i] = 0.0
+        fn, iters = newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw)
+        eval_F(P, N, U, x0, T, sw, F)
+        fn = norm(F)
+    else:
+        # Corrector: continue the solution to the measured state.
+        eval_F(P, N, U, x0, T, sw, F)
+        c = min(P[ZETA] * P[DT], 1.0)
+        iters += _correct(P, N, kmax, c, U, x0, T, F, b, dU, pre, ws, sw)
+        if release_bounds(P, N, U, F) > 0:
+            eval_F(P, N, U, x0, T, sw, F)
+            iters += _correct(P, N, kmax, 1.0, U, x0, T, F, b, dU, pre, ws, sw)
+        fn = norm(F)
+
+    ok = math.isfinite(fn)
+    for i in range(2):
+        ui = U[i]
+        lim = P[UMAX + i]
+        u_out[i] = min(max(ui, -lim), lim)
+        ok = ok and math.isfinite(ui)
+    if not ok:
+        return fn, iters, NOT_FINITE
+
+    # Predictor: follow the state motion and the horizon growth to the next tick.
+    precond_setup(P, N, U, X, T, pre)
+    h = P[HFD]
+    if model_xdot:
+        rhs(P, x0, u_out, xdot)
+    for i in range(NX):
+        xs[i] = x0[i] + h * xdot[i]
+    Th = horizon_at(P, t + h)
+    eval_F(P, N, U, xs, Th, sw, Fs)
+    for i in range(n):
+        b[i] = -(Fs[i] - F[i]) / h
+    iters += fd_gmres(P, N, U, x0, T, F, b, Udot, True, kmax, 0.0, pre, ws, sw)
+    dt = P[DT]
+    for i in range(n):
+        U[i] += dt * Udot[i]
+    clip_dummies(P, N, U)
+    return fn, iters, OK
+
+
+def new_workspace(n_steps: int, kmax: int, init_krylov: int) -> np.ndarray:
+    """A zeroed work array for :func:`rhc_tick`."""
+    return np.zeros(workspace_size(n_steps, kmax, init_krylov))

@@ -1,0 +1,228 @@
+"""Read a controller MCAP log robustly, including one whose writer was killed.
+
+:func:`read_log` walks the file with mcap's sequential :class:`~mcap.stream_reader.StreamReader`
+(it never needs the summary section), keeps every record of every complete chunk, and stops
+quietly at the first record it cannot read: a file without footer is reported as ``truncated``
+with a note, never as a crash. Cycle records come back as numpy columns.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.exceptions import EndOfFile
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from hal.config import RigConfig, config_from_json
+from hal.errors import HalConfigError
+from rt_controller.errors import LogError
+from rt_controller.runtime.recorder import (
+    CAN_RX_TOPIC,
+    CAN_TX_TOPIC,
+    CONFIG_METADATA,
+    CYCLE_TOPIC,
+    RECORDER_METADATA,
+    RUN_METADATA,
+    VISION_TOPIC,
+)
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+@dataclass
+class LoadedLog:
+    """Everything :func:`read_log` found in one MCAP file."""
+
+    path: Path
+    config: RigConfig | None = None
+    """The run's configuration (``hil.config`` metadata), None if absent or invalid."""
+    config_json: str | None = None
+    run_info: dict[str, str] = field(default_factory=dict)
+    """``hil.run`` metadata: law, rate_hz, clock, start time, host, versions, ..."""
+    recorder_info: dict[str, str] = field(default_factory=dict)
+    """``hil.recorder`` metadata written at a clean close (written/dropped counters)."""
+    cycles: dict[str, np.ndarray] = field(default_factory=dict)
+    """One column per cycle field: bools, int64, float64 (null -> NaN), (n, k) for vectors."""
+    can_rx: list[dict[str, Any]] = field(default_factory=list)
+    can_tx: list[dict[str, Any]] = field(default_factory=list)
+    vision: list[dict[str, Any]] = field(default_factory=list)
+    topic_counts: dict[str, int] = field(default_factory=dict)
+    """Messages read per topic (also for raw topics that were not kept)."""
+    schemas: dict[str, str] = field(default_factory=dict)
+    """Schema name per topic."""
+    truncated: bool = False
+    """The file has no footer: the writer did not finish it (killed, crashed, cut)."""
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def n_cycles(self) -> int:
+        col = self.cycles.get("tick")
+        return 0 if col is None else len(col)
+
+    def column(self, name: str) -> np.ndarray | None:
+        """A cycle field as an array, or None if no record had it."""
+        return self.cycles.get(name)
+
+    @property
+    def rate_hz(self) -> float | None:
+        """Control rate: from the config, else from ``hil.run``, else None."""
+        if self.config is not None:
+            return self.config.rates.control_hz
+        try:
+            return float(self.run_info["rate_hz"])
+        except (KeyError, ValueError):
+            return None
+
+
+def _is_vector(v: Any) -> bool:
+    return isinstance(v, list)
+
+
+def _column(values: list[Any]) -> np.ndarray:
+    """Best numpy representation of one field over all records (None = missing)."""
+    present = [v for v in values if v is not None]
+    if not present:
+        return np.full(len(values), np.nan)
+    if all(isinstance(v, bool) for v in present):
+        if len(present) == len(values):
+            return np.array(values, dtype=bool)
+        return np.array([np.nan if v is None else float(v) for v in values])
+    if all(isinstance(v, int) and not isinstance(v, bool) for v in present):
+        if len(present) == len(values):
+            return np.array(values, dtype=np.int64)
+        return np.array([np.nan if v is None else v for v in values], dtype=float)
+    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in present):
+        return np.array([np.nan if v is None else v for v in values], dtype=float)
+    if all(_is_vector(v) for v in present):
+        width = max(len(v) for v in present)
+        out = np.full((len(values), width), np.nan)
+        for i, v in enumerate(values):
+            if v is not None:
+                out[i, : len(v)] = [np.nan if x is None else x for x in v]
+        return out
+    return np.array(values, dtype=object)
+
+
+def columns(records: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """Turn a list of cycle dicts into numpy columns (keys in first-seen order)."""
+    keys: dict[str, None] = {}
+    for r in records:
+        keys.update(dict.fromkeys(r))
+    out = {}
+    for k in keys:
+        try:
+            out[k] = _column([r.get(k) for r in records])
+        except (TypeError, ValueError):
+            out[k] = np.array([r.get(k) for r in records], dtype=object)
+    return out
+
+
+def _check_file(path: Path) -> None:
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(len(MAGIC))
+    except FileNotFoundError:
+        raise LogError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise LogError(f"{path}: is a directory, not an MCAP file") from None
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    if head != MAGIC:
+        raise LogError(f"{path}: not an MCAP file (bad magic)")
+
+
+def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
+    """Read ``path``; ``raw=False`` counts the CAN/vision messages without keeping them.
+
+    Raises :class:`LogError` (one clear line) for a missing file or a non-MCAP file; any damage
+    after the magic (truncation, a half-written chunk) ends the read with ``truncated`` set.
+    """
+    path = Path(path)
+    _check_file(path)
+    out = LoadedLog(path=path)
+    channels: dict[int, str] = {}
+    schema_names: dict[int, str] = {}
+    cycle_records: list[dict[str, Any]] = []
+    raw_lists = {CAN_RX_TOPIC: out.can_rx, CAN_TX_TOPIC: out.can_tx, VISION_TOPIC: out.vision}
+    counts: Counter[str] = Counter()
+    bad: Counter[str] = Counter()
+    footer = False
+    with path.open("rb") as fh:
+        size_limit = max(path.stat().st_size, 1)  # a garbage length never allocates more
+        reader = StreamReader(fh, validate_crcs=True, record_size_limit=size_limit)
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Message):
+                    topic = channels.get(rec.channel_id, f"#{rec.channel_id}")
+                    counts[topic] += 1
+                    if topic != CYCLE_TOPIC and not (raw and topic in raw_lists):
+                        continue
+                    try:
+                        obj = json.loads(rec.data)
+                    except (ValueError, UnicodeDecodeError):
+                        bad[topic] += 1
+                        continue
+                    if not isinstance(obj, dict):
+                        bad[topic] += 1
+                    elif topic == CYCLE_TOPIC:
+                        cycle_records.append(obj)
+                    else:
+                        raw_lists[topic].append(obj)
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec.topic
+                    if rec.schema_id in schema_names:
+                        out.schemas[rec.topic] = schema_names[rec.schema_id]
+                elif isinstance(rec, Schema):
+                    schema_names[rec.id] = rec.name
+                elif isinstance(rec, Metadata):
+                    _take_metadata(out, rec)
+                elif isinstance(rec, Footer):
+                    footer = True
+        except Exception as exc:
+            # McapError (EndOfFile...), struct.error, CRC and zstd errors, garbage lengths:
+            # whatever a damaged tail raises, keep what was read and say where it stopped.
+            out.notes.append(_damage_note(exc, counts[CYCLE_TOPIC]))
+            out.truncated = True
+    if not footer:
+        out.truncated = True
+        if not out.notes:
+            out.notes.append(_damage_note(None, counts[CYCLE_TOPIC]))
+    for topic, n in bad.items():
+        out.notes.append(f"{n} {topic} message(s) were not valid JSON objects and were skipped")
+    if out.truncated and not out.recorder_info:
+        out.notes.append("the recorder did not close the file (process killed or crashed?)")
+    out.cycles = columns(cycle_records)
+    out.topic_counts = dict(counts)
+    if out.config is None and out.config_json is None:
+        out.notes.append("no hil.config metadata: the run configuration is unknown")
+    return out
+
+
+def _damage_note(exc: BaseException | None, n_cycles: int) -> str:
+    if exc is None or isinstance(exc, EndOfFile):
+        what = "ends without a footer (the writer did not finish it)"
+    else:
+        what = f"is damaged near its end ({type(exc).__name__}: {exc})"
+    return f"log {what}: read as far as it goes, {n_cycles} cycle messages in complete chunks"
+
+
+def _take_metadata(out: LoadedLog, rec: Metadata) -> None:
+    if rec.name == CONFIG_METADATA:
+        out.config_json = rec.metadata.get("json")
+        if out.config_json is None:
+            out.notes.append("hil.config metadata has no 'json' key")
+            return
+        try:
+            out.config = config_from_json(out.config_json)
+        except HalConfigError as exc:
+            out.notes.append(f"hil.config metadata is not a valid configuration: {exc}")
+    elif rec.name == RUN_METADATA:
+        out.run_info = dict(rec.metadata)
+    elif rec.name == RECORDER_METADATA:
+        out.recorder_info = dict(rec.metadata)

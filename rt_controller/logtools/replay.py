@@ -1,0 +1,415 @@
+"""Offline replay of a controller log: re-run the law on the recorded inputs, compare the outputs.
+
+This is the regression tool behind ``hil replay``: a fresh
+:class:`~rt_controller.control.controller.Controller` built from the log's ``hil.config``
+metadata (or an override, e.g. a changed gain or solver setting) is fed, tick by tick, exactly
+what the daemon fed its own controller — ``sim_time_s`` (the t the law was called with),
+``q``, ``dq``, ``f``, ``f_stale`` and ``state_stale`` as received — through the same per-tick rule,
+:meth:`Controller.decide`, after the daemon's warm-up. Its ``u`` and ``tau`` are compared with
+the recorded ones: JSON floats round-trip float64 exactly, so an unchanged controller reproduces
+a log bit for bit and any difference is a change in the code or the settings.
+
+Comparison rules: a value recorded as ``null`` reads back as NaN; NaN against NaN is equal, NaN
+against a number is an infinite difference. A ``no_state`` tick (zero torque) compares as
+equal when the replay also has no state. Missing optional fields are derived: ``f_stale`` from
+a non-finite ``f``, ``state_stale`` from ``law == "no_state"`` or a non-finite ``q``,
+``sim_time_s`` from ``tick / rate`` (each noted). A truncated log replays as far as its
+complete chunks go, with a note; cycle records missing from the middle of a log (recorder
+drops) are noted, since a law with memory (RHC) may diverge after them.
+
+``out=`` writes the replayed run as a new MCAP log (:class:`CycleRecorder`, same configuration,
+``hil.run`` noting the source log under ``replay_of`` and the source's run info under
+``source.*``). Each cycle record is the recorded one with the replay's ``u``, ``tau``, ``xi``,
+``law``, ``residual``, ``iterations``, ``fallback``, ``tau_saturated``, ``cost`` and ``V``;
+``tick``, ``t_ns``, ``sim_time_s``, the inputs, their ages and ``missed_periods`` are kept as
+recorded, and the loop-timing fields (``lateness_us``, ``read_us``, ``solve_us``, ``write_us``,
+``cycle_us``, ``e2e_us``; those the source has) are zero with ``deadline_miss`` false — an
+offline replay has no loop timing.
+The recorded raw inputs (``/hal/can/rx``, ``/vision/features``) are copied when the log was read
+with them, so the new log can itself be replayed or republished.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hal.config import RigConfig
+from rt_controller.control.controller import Controller, Decision
+from rt_controller.errors import LogError
+from rt_controller.logtools.reader import LoadedLog, read_log
+from rt_controller.runtime.recorder import CycleRecorder
+
+TIMING_FIELDS = ("lateness_us", "read_us", "solve_us", "write_us", "cycle_us", "e2e_us")
+"""Loop-timing fields of a cycle record; zero in a replayed log (when the source had them)."""
+
+
+@dataclass
+class ReplayResult:
+    """Outcome of :func:`replay_log`: how far the replay's outputs are from the recorded ones."""
+
+    path: Path
+    law: str
+    ticks: int
+    tol: float
+    max_abs_du: float = 0.0
+    max_abs_dtau: float = 0.0
+    worst_tick: int | None = None
+    """Tick with the largest difference of u or tau (None when every tick matches exactly)."""
+    worst_tick_du: int | None = None
+    worst_tick_dtau: int | None = None
+    ticks_over_tol: int = 0
+    law_mismatches: int = 0
+    """Ticks whose mode/law name (``ioc``, ``hold``, ``no_state``...) differs from the log's."""
+    truncated: bool = False
+    notes: list[str] = field(default_factory=list)
+    out: Path | None = None
+    u: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    """Replayed u, one row per tick."""
+    tau: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    """Replayed tau, one row per tick."""
+
+    @property
+    def ok(self) -> bool:
+        """Every tick within ``tol`` for both u and tau."""
+        return self.ticks_over_tol == 0
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON object of ``hil replay --json`` (non-finite values as None)."""
+
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        out: dict[str, Any] = {
+            "log": str(self.path),
+            "law": self.law,
+            "ticks": self.ticks,
+            "max_abs_du": num(self.max_abs_du),
+            "max_abs_dtau": num(self.max_abs_dtau),
+            "worst_tick": self.worst_tick,
+            "worst_tick_du": self.worst_tick_du,
+            "worst_tick_dtau": self.worst_tick_dtau,
+            "ticks_over_tol": self.ticks_over_tol,
+            "law_mismatches": self.law_mismatches,
+            "tol": self.tol,
+            "ok": self.ok,
+            "truncated": self.truncated,
+            "notes": list(self.notes),
+        }
+        if self.out is not None:
+            out["out"] = str(self.out)
+        return out
+
+    def failure_line(self) -> str:
+        """One line saying how the replay differs (for a non-zero exit)."""
+        return (
+            f"replay differs from the log: max |dtau| = {self.max_abs_dtau:.6g} at tick "
+            f"{self.worst_tick_dtau} (tol {self.tol:g}); max |du| = {self.max_abs_du:.6g} at "
+            f"tick {self.worst_tick_du}; {self.ticks_over_tol} of {self.ticks} ticks over tol"
+        )
+
+
+def abs_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Element-wise |a - b| where NaN equals NaN and NaN against a number is +inf."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    na, nb = np.isnan(a), np.isnan(b)
+    with np.errstate(invalid="ignore"):
+        d = np.abs(a - b)
+    d[na & nb] = 0.0
+    d[na ^ nb] = np.inf
+    d[np.isnan(d)] = np.inf  # inf - inf of the same sign
+    return d
+
+
+def _bool_column(log: LoadedLog, name: str, default: np.ndarray) -> tuple[np.ndarray, bool]:
+    """A bool column with ``default`` where it was not recorded; also whether any was missing."""
+    col = log.column(name)
+    if col is None:
+        return default, True
+    if col.dtype == bool:
+        return col, False
+    values = np.asarray(col, dtype=float)
+    missing = np.isnan(values)
+    return np.where(missing, default, values != 0.0), bool(missing.any())
+
+
+def _vec(log: LoadedLog, name: str) -> np.ndarray:
+    """A recorded 2-vector field as an (n, 2) float array; LogError when it is not one."""
+    col = log.column(name)
+    if col is None or col.ndim != 2 or col.shape[1] < 2:
+        raise LogError(f"{log.path}: cycle field {name!r} is missing or not a 2-vector")
+    return np.asarray(col[:, :2], dtype=float)
+
+
+def _inputs(log: LoadedLog, cfg: RigConfig, notes: list[str]) -> dict[str, np.ndarray]:
+    """Per-tick inputs of :meth:`Controller.decide`; derived optional fields go to ``notes``."""
+    n = log.n_cycles
+    q, dq, f = _vec(log, "q"), _vec(log, "dq"), _vec(log, "f")
+    ticks = np.asarray(log.cycles["tick"], dtype=float)
+    law = log.column("law")
+    laws = np.array(["" if v is None else str(v) for v in law]) if law is not None else None
+    no_state = (laws == "no_state") if laws is not None else np.zeros(n, dtype=bool)
+    f_stale, miss_f = _bool_column(log, "f_stale", ~np.all(np.isfinite(f), axis=1))
+    state_stale, miss_s = _bool_column(
+        log, "state_stale", no_state | ~np.all(np.isfinite(q), axis=1)
+    )
+    t = log.column("sim_time_s")
+    t = np.full(n, np.nan) if t is None else np.asarray(t, dtype=float)
+    guess_t = ~np.isfinite(t)
+    t = np.where(guess_t, ticks * cfg.rates.control_period_ns / 1e9, t)
+    for missing, what in (
+        (miss_f, "f_stale (taken as: f not finite)"),
+        (miss_s, "state_stale (taken as: law no_state or q not finite)"),
+        (bool(guess_t.any()), "sim_time_s (taken as: tick / rate)"),
+    ):
+        if missing:
+            notes.append(f"some cycle records lack {what}")
+    return {"t": t, "q": q, "dq": dq, "f": f, "f_stale": f_stale, "state_stale": state_stale}
+
+
+def _gap_note(log: LoadedLog) -> str | None:
+    """A note when cycle records are missing between ticks (not explained by missed periods)."""
+    ticks = np.asarray(log.cycles["tick"], dtype=float)
+    if len(ticks) < 2:
+        return None
+    missed = log.column("missed_periods")
+    missed = np.zeros(len(ticks)) if missed is None else np.nan_to_num(missed.astype(float))
+    lost = np.diff(ticks) - 1 - missed[1:]
+    n = int(np.sum(lost[lost > 0]))
+    dropped = log.recorder_info.get("dropped", "0")
+    if n == 0 and dropped in ("", "0"):
+        return None
+    return (
+        f"{n} cycle record(s) missing between ticks (recorder dropped {dropped or '?'}): "
+        "a law with memory (rhc) may differ after them"
+    )
+
+
+def _warm_up(controller: Controller, cfg: RigConfig) -> None:
+    """What the daemon does before its first tick (``ControllerDaemon._warm_up``)."""
+    sc = cfg.scenario
+    controller.step(0.0, np.array(sc.q0), np.array(sc.dq0), np.array(sc.f0))
+    controller.law.reset()
+
+
+def _cycle_record(log: LoadedLog, i: int) -> dict[str, Any]:
+    """Tick ``i`` of the log as a cycle dict (NaN stays NaN; the recorder writes null)."""
+    rec: dict[str, Any] = {}
+    for key, col in log.cycles.items():
+        v = col[i]
+        if col.ndim == 2:
+            rec[key] = [float(x) for x in v]
+        elif col.dtype == bool:
+            rec[key] = bool(v)
+        elif col.dtype.kind == "i":
+            rec[key] = int(v)
+        elif col.dtype.kind == "f":
+            rec[key] = float(v)
+        else:
+            rec[key] = v
+    return rec
+
+
+def _replayed_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
+    """The output fields of one replayed tick, shaped as the daemon records them."""
+    out: dict[str, Any] = {
+        "u": [0.0, 0.0],
+        "xi": [0.0, 0.0],
+        "tau": [float(d.tau[0]), float(d.tau[1])],
+        "law": d.mode if d.command is None else ctl.law.name,
+        "residual": 0.0,
+        "iterations": 0,
+        "fallback": False,
+        "tau_saturated": False,
+        "cost": math.nan,
+        "V": math.nan,
+    }
+    cmd = d.command
+    if cmd is not None:
+        out.update(
+            u=[float(x) for x in cmd.law.u],
+            xi=[float(x) for x in cmd.measurement.xi],
+            residual=float(cmd.law.residual),
+            iterations=int(cmd.law.iterations),
+            fallback=bool(cmd.law.fallback),
+            tau_saturated=bool(cmd.saturated),
+            cost=ctl.stage_cost(cmd),
+            V=ctl.energy(cmd),
+        )
+    return out
+
+
+class _OutLog:
+    """The ``--out`` writer: replayed cycles plus the recorded raw inputs, with back-pressure."""
+
+    def __init__(self, path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> None:
+        info: dict[str, Any] = {f"source.{k}": v for k, v in log.run_info.items()}
+        info.update(
+            replay_of=str(log.path),
+            replay_tol=repr(tol),
+            replay_timing="zero (offline replay); tick, t_ns, sim_time_s and inputs as recorded",
+            clock=log.run_info.get("clock", cfg.controller.clock),
+            law=cfg.controller.law,
+        )
+        self.rec = CycleRecorder(path, cfg, run_info=info)
+
+    def _room(self) -> None:
+        rec = self.rec
+        while rec.pending >= rec.queue_size - 1:
+            if rec.error is not None:
+                raise LogError(f"cannot write {rec.path}: {rec.error}") from rec.error
+            time.sleep(0.001)
+
+    def cycle(self, record: dict[str, Any]) -> None:
+        self._room()
+        self.rec.record_cycle(record)
+
+    def raw_inputs(self, log: LoadedLog) -> None:
+        import base64
+
+        import can
+
+        for r in log.can_rx:
+            msg = can.Message(
+                arbitration_id=int(r["arbitration_id"]),
+                is_extended_id=bool(r.get("is_extended_id", False)),
+                data=bytes.fromhex(r.get("data", "")),
+                is_fd=bool(r.get("is_fd", False)),
+                timestamp=float(r.get("timestamp", 0.0) or 0.0),
+                check=False,
+            )
+            self._room()
+            self.rec.record_can(msg, int(r["t_ns"]), "rx")
+        for r in log.vision:
+            self._room()
+            self.rec.record_vision(base64.b64decode(r.get("data", "")), int(r["t_ns"]))
+
+    def close(self) -> None:
+        self.rec.close()
+        if self.rec.error is not None:
+            raise LogError(f"cannot write {self.rec.path}: {self.rec.error}") from self.rec.error
+
+
+def replay_loaded(
+    log: LoadedLog,
+    *,
+    cfg_override: RigConfig | None = None,
+    tol: float = 1e-9,
+    out: Path | None = None,
+) -> ReplayResult:
+    """:func:`replay_log` on a log already read with
+    :func:`~rt_controller.logtools.reader.read_log`."""
+    if not tol >= 0:
+        raise LogError(f"tolerance must be non-negative, got {tol}")
+    cfg = cfg_override or log.config
+    if cfg is None:
+        why = "; ".join(log.notes) or "no hil.config metadata"
+        raise LogError(f"{log.path}: the run configuration is unknown ({why}); pass --config")
+    n = log.n_cycles
+    if n == 0:
+        raise LogError(f"{log.path}: no /controller/cycle messages, nothing to replay")
+    if out is not None and Path(out).resolve() == Path(log.path).resolve():
+        raise LogError(f"--out {out} would overwrite the log being replayed")
+    notes = list(log.notes)
+    if log.truncated:
+        notes.append(f"truncated log: replayed the {n} ticks it holds")
+    inputs = _inputs(log, cfg, notes)
+    recorded_u, recorded_tau = _vec(log, "u"), _vec(log, "tau")
+    gap = _gap_note(log)
+    if gap:
+        notes.append(gap)
+    ctl = Controller(cfg)
+    _warm_up(ctl, cfg)
+    recorded_law = log.column("law")
+    u = np.zeros((n, 2))
+    tau = np.zeros((n, 2))
+    laws: list[str] = []
+    writer = _OutLog(Path(out), cfg, log, tol) if out is not None else None
+    try:
+        for i in range(n):
+            d = ctl.decide(
+                float(inputs["t"][i]),
+                inputs["q"][i],
+                inputs["dq"][i],
+                inputs["f"][i],
+                f_stale=bool(inputs["f_stale"][i]),
+                state_stale=bool(inputs["state_stale"][i]),
+            )
+            fields = _replayed_fields(ctl, d)
+            u[i], tau[i] = fields["u"], fields["tau"]
+            laws.append(fields["law"])
+            if writer is not None:
+                record = _cycle_record(log, i)
+                record.update(fields)
+                record.update({k: 0.0 for k in TIMING_FIELDS if k in record})
+                record["deadline_miss"] = False
+                writer.cycle(record)
+        if writer is not None:
+            writer.raw_inputs(log)
+    finally:
+        if writer is not None:
+            writer.close()
+    result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
+    if recorded_law is not None and recorded_law.dtype == object:
+        result.law_mismatches = sum(
+            str(a) != b for a, b in zip(recorded_law, laws, strict=True) if a is not None
+        )
+    result.notes = notes
+    result.out = None if out is None else Path(out)
+    return result
+
+
+def _compare(
+    log: LoadedLog,
+    cfg: RigConfig,
+    u: np.ndarray,
+    tau: np.ndarray,
+    recorded_u: np.ndarray,
+    recorded_tau: np.ndarray,
+    tol: float,
+) -> ReplayResult:
+    du = abs_diff(u, recorded_u).max(axis=1)
+    dtau = abs_diff(tau, recorded_tau).max(axis=1)
+    worst = np.maximum(du, dtau)
+    ticks = np.asarray(log.cycles["tick"])
+    res = ReplayResult(
+        path=log.path,
+        law=cfg.controller.law,
+        ticks=len(ticks),
+        tol=tol,
+        truncated=log.truncated,
+        u=u,
+        tau=tau,
+    )
+    res.max_abs_du, res.max_abs_dtau = float(du.max()), float(dtau.max())
+
+    def where(d: np.ndarray) -> int | None:
+        return int(ticks[int(np.argmax(d))]) if d.max() > 0 else None
+
+    res.worst_tick_du, res.worst_tick_dtau, res.worst_tick = where(du), where(dtau), where(worst)
+    res.ticks_over_tol = int(np.sum(worst > tol))
+    return res
+
+
+def replay_log(
+    path: str | Path,
+    *,
+    cfg_override: RigConfig | None = None,
+    tol: float = 1e-9,
+    out: Path | None = None,
+) -> ReplayResult:
+    """Re-run a fresh controller on the inputs recorded in ``path`` and compare u and tau.
+
+    ``cfg_override`` replaces the log's configuration (e.g. a changed gain); ``tol`` is the
+    largest absolute difference of any component of u or tau that still counts as equal;
+    ``out`` writes the replayed run as a new MCAP log (see the module docstring). Raises
+    :class:`~rt_controller.errors.LogError` for a missing/non-MCAP file, a log without
+    configuration (and no override) or without cycles.
+    """
+    log = read_log(path, raw=out is not None)
+    return replay_loaded(log, cfg_override=cfg_override, tol=tol, out=out)

@@ -1,0 +1,150 @@
+"""``hil bench loop``: the whole rig in real time at several control rates, plus lockstep speed.
+
+For each rate the three processes run for ``duration`` seconds; the numbers come from the
+controller's MCAP log: wake-up lateness, cycle time (read + solve + write), deadline misses and
+the end-to-end latency from a joint-state frame's arrival to the torque frame it caused.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hal.config import RigConfig, load_config
+from rt_controller.logtools.reader import read_log
+from rt_controller.rig.processes import RigOptions, run_rig
+
+DEFAULT_RATES = (50.0, 200.0, 500.0, 1000.0)
+
+
+def _stats(values: np.ndarray) -> dict[str, float]:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return {"median": math.nan, "p99": math.nan, "max": math.nan}
+    return {
+        "median": float(np.median(v)),
+        "p99": float(np.percentile(v, 99)),
+        "max": float(np.max(v)),
+    }
+
+
+def _rate_config(cfg: RigConfig, rate: float) -> RigConfig:
+    physics = max(cfg.rates.physics_hz, rate)
+    physics = rate * math.ceil(physics / rate)
+    return cfg.with_overrides(
+        {
+            "rates.control_hz": rate,
+            "rates.physics_hz": physics,
+            "rates.state_hz": min(cfg.rates.state_hz, physics),
+        }
+    )
+
+
+def _write_toml(cfg: RigConfig, path: Path) -> None:
+    lines = []
+    for section, values in cfg.to_dict().items():
+        lines.append(f"[{section}]")
+        for key, value in values.items():
+            lines.append(f"{key} = {_toml_value(value)}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def bench_rate(cfg: RigConfig, rate: float, duration: float, law: str, workdir: Path) -> dict:
+    """One real-time run at ``rate``; statistics from its log."""
+    rcfg = _rate_config(cfg, rate)
+    conf = workdir / f"rig-{rate:g}.toml"
+    _write_toml(rcfg, conf)
+    log = workdir / f"loop-{rate:g}.mcap"
+    summary = run_rig(
+        RigOptions(config=str(conf), law=law, duration_s=duration, lockstep=False, log=log)
+    )
+    c = read_log(log).cycles
+    ticks = int(c["tick"].size)
+    misses = int(np.sum(c["deadline_miss"]))
+    missed_periods = int(np.sum(c["missed_periods"]))
+    return {
+        "rate_hz": rate,
+        "law": law,
+        "ticks": ticks,
+        "deadline_misses": misses,
+        "miss_percent": 100.0 * misses / max(1, ticks + missed_periods),
+        "missed_periods": missed_periods,
+        "lateness_us": _stats(c["lateness_us"]),
+        "cycle_us": _stats(c["cycle_us"]),
+        "solve_us": _stats(c["solve_us"]),
+        "e2e_us": _stats(c["e2e_us"]) if "e2e_us" in c else None,
+        "f_final_norm": summary.get("f_final_norm"),
+        "fallbacks": summary.get("fallbacks"),
+    }
+
+
+def bench_lockstep(cfg: RigConfig, duration: float, law: str, workdir: Path) -> dict:
+    """Wall time of a lockstep run of ``duration`` simulated seconds (all processes)."""
+    conf = workdir / "rig-lockstep.toml"
+    _write_toml(cfg, conf)
+    t0 = time.perf_counter()
+    summary = run_rig(
+        RigOptions(
+            config=str(conf),
+            law=law,
+            duration_s=duration,
+            lockstep=True,
+            log=workdir / "lockstep.mcap",
+        )
+    )
+    wall = time.perf_counter() - t0
+    c = read_log(workdir / "lockstep.mcap").cycles
+    t = c["t_ns"]
+    loop_wall = (t[-1] - t[0]) / 1e9 if t.size > 1 else math.nan
+    sim = duration
+    return {
+        "law": law,
+        "sim_s": sim,
+        "ticks": summary.get("ticks"),
+        "wall_s_total": wall,
+        "wall_s_loop": loop_wall,
+        "speedup_total": sim / wall,
+        "speedup_loop": sim / loop_wall if loop_wall > 0 else math.nan,
+        "J": summary.get("J"),
+    }
+
+
+def bench_loop(
+    cfg: RigConfig | None = None,
+    *,
+    rates: tuple[float, ...] = DEFAULT_RATES,
+    duration: float = 10.0,
+    law: str = "rhc",
+    lockstep_duration: float = 10.0,
+) -> dict[str, Any]:
+    """The JSON object ``hil bench loop`` prints."""
+    cfg = cfg or load_config()
+    with tempfile.TemporaryDirectory(prefix="hil-bench-") as tmp:
+        work = Path(tmp)
+        runs = [bench_rate(cfg, r, duration, law, work) for r in rates]
+        lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
+    return {
+        "duration_s": duration,
+        "rates": runs,
+        "lockstep": lock,
+        "machine": {
+            "cpus": os.cpu_count(),
+            "load": dict(zip(("1min", "5min", "15min"), os.getloadavg(), strict=True)),
+        },
+    }

@@ -1,0 +1,187 @@
+"""Benchmark of the C/GMRES update on the paper scenario closed loop (``hil bench solver``).
+
+The solver runs in closed loop with a plant: by default the nominal model's eq. (12) integrated
+by RK4 at ``rates.physics_hz`` with u held over each control period (the target jump is
+ignored); the scenario restarts every :data:`EPISODE_S` seconds with a cold solver, so the
+updates cover the transient and not only the rest state. Each update is timed with
+``time.perf_counter_ns`` around :meth:`CGMRESSolver.update` (what the law reports as
+``solve_ns``); the first tick of an episode is the Newton-GMRES initial solve and is reported
+apart (``init_us``). The plain-NumPy reference runs the same loop for fewer updates.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import platform
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numba
+import numpy as np
+
+from hal.config import RigConfig
+from rt_controller.control.model import NominalModel
+from rt_controller.control.rhc.reference import ReferenceSolver
+from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
+
+PlantStep = Callable[
+    [np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]
+]
+"""(q, dq, f, u) -> (q, dq, f) one control period later, the input u of eq. (11) held."""
+
+EPISODE_S = 6.0
+"""Length of one run of the paper scenario before it restarts."""
+SWEEP_STEPS = (5, 20, 50)
+
+
+def nominal_plant_step(model: NominalModel, cfg: RigConfig) -> PlantStep:
+    """Eq. (12) of the nominal model by RK4 at ``rates.physics_hz``, u held over the period."""
+    h = 1.0 / cfg.rates.physics_hz
+    substeps = cfg.rates.substeps
+
+    def rhs(s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        dq, xid, fd = model.closed_loop_rhs(s[0:2], s[2:4], s[4:6], u)
+        return np.concatenate([dq, xid, fd])
+
+    def step(q: np.ndarray, dq: np.ndarray, f: np.ndarray, u: np.ndarray):
+        s = pack_state(q, model.xi(q, dq, f), f)
+        for _ in range(substeps):
+            k1 = rhs(s, u)
+            k2 = rhs(s + 0.5 * h * k1, u)
+            k3 = rhs(s + 0.5 * h * k2, u)
+            k4 = rhs(s + h * k3, u)
+            s = s + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        q, xi, f = s[0:2], s[2:4], s[4:6]
+        return q, xi + model.alpha @ model.eta(q, f), f
+
+    return step
+
+
+def _stats(us: np.ndarray) -> dict[str, float]:
+    if us.size == 0:
+        return {"median": float("nan"), "p99": float("nan"), "max": float("nan")}
+    return {
+        "median": float(np.median(us)),
+        "p99": float(np.percentile(us, 99)),
+        "max": float(np.max(us)),
+    }
+
+
+def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, np.ndarray]:
+    """Closed loop of ``updates`` ticks; per-tick time (ns), residual, iterations, flags."""
+    s = cfg.scenario
+    period = 1.0 / cfg.rates.control_hz
+    episode = max(1, round(EPISODE_S * cfg.rates.control_hz))
+    ns = np.zeros(updates, dtype=np.int64)
+    res = np.zeros(updates)
+    its = np.zeros(updates, dtype=np.int64)
+    init = np.zeros(updates, dtype=bool)
+    bad = np.zeros(updates, dtype=bool)
+    umax = np.asarray(cfg.rhc.u_max, dtype=float)
+    x = np.zeros(6)
+    q = dq = f = np.zeros(2)
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for k in range(updates):
+            if k % episode == 0:
+                q = np.array(s.q0, dtype=float)
+                dq = np.array(s.dq0, dtype=float)
+                f = np.array(s.f0, dtype=float)
+                solver.reset()
+            xi = model.xi(q, dq, f)
+            pack_state(q, xi, f, x)
+            start = time.perf_counter_ns()
+            rep = solver.update(x, (k % episode) * period)
+            ns[k] = time.perf_counter_ns() - start
+            res[k], its[k], init[k], bad[k] = (
+                rep.residual,
+                rep.iterations,
+                rep.initialised,
+                not rep.ok,
+            )
+            u = rep.u if rep.ok else np.clip(-2.0 * model.R @ xi, -umax, umax)
+            q, dq, f = plant_step(q, dq, f, u)
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    return {"ns": ns, "residual": res, "iterations": its, "init": init, "fallback": bad}
+
+
+def _summary(cfg: RigConfig, run: dict[str, np.ndarray]) -> dict[str, Any]:
+    cont = ~run["init"]
+    us = run["ns"] / 1e3
+    return {
+        "N": cfg.rhc.steps,
+        "kmax": cfg.rhc.kmax,
+        "horizon": cfg.rhc.horizon,
+        "updates": int(us.size),
+        "solve_us": _stats(us[cont]),
+        "init_us": {**_stats(us[~cont]), "count": int(np.sum(~cont))},
+        "residual_median": float(np.median(run["residual"])),
+        "residual_max": float(np.max(run["residual"])),
+        "iterations_median": float(np.median(run["iterations"][cont])) if cont.any() else 0.0,
+        "fallbacks": int(np.sum(run["fallback"])),
+    }
+
+
+def bench_one(
+    cfg: RigConfig,
+    updates: int = 2000,
+    *,
+    plant_step: PlantStep | None = None,
+    reference_updates: int = 100,
+) -> dict[str, Any]:
+    """Compiled solver and NumPy reference for the configuration as given."""
+    model = NominalModel.from_config(cfg)
+    step = plant_step if plant_step is not None else nominal_plant_step(model, cfg)
+    solver = CGMRESSolver(model, cfg)
+    solver.warm_up()
+    out = _summary(cfg, _run(solver, model, cfg, step, updates))
+    if reference_updates > 0:
+        ref = _summary(cfg, _run(ReferenceSolver(model, cfg), model, cfg, step, reference_updates))
+        median = ref["solve_us"]["median"]
+        out["numpy_reference"] = {
+            "updates": ref["updates"],
+            "solve_us": {"median": median, "p99": ref["solve_us"]["p99"]},
+            "ratio": median / out["solve_us"]["median"],
+        }
+    return out
+
+
+def bench_solver(
+    cfg: RigConfig,
+    updates: int = 2000,
+    *,
+    plant_step: PlantStep | None = None,
+    reference_updates: int = 100,
+    sweep: tuple[int, ...] = SWEEP_STEPS,
+) -> dict[str, Any]:
+    """JSON-ready benchmark: the configured N and kmax, then a sweep over N (same kmax, T).
+
+    ``plant_step`` replaces the default nominal-model plant (e.g. with the emulator);
+    ``reference_updates`` is how many updates the (slow) NumPy reference runs per N (0: skip).
+    """
+    out = bench_one(cfg, updates, plant_step=plant_step, reference_updates=reference_updates)
+    out["sweep"] = [
+        bench_one(
+            cfg.with_overrides({"rhc.steps": n}),
+            updates,
+            plant_step=plant_step,
+            reference_updates=reference_updates,
+        )
+        for n in sweep
+    ]
+    load1, load5, load15 = os.getloadavg()
+    out["plant"] = "custom" if plant_step is not None else "nominal-rk4"
+    out["machine"] = {
+        "load": {"1min": load1, "5min": load5, "15min": load15},
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "numba": numba.__version__,
+        "platform": platform.platform(),
+    }
+    return out

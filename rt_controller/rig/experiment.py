@@ -1,0 +1,269 @@
+"""The paper's experiments (Section V) on the rig: Fig. 3, Fig. 4 and Table I.
+
+Each experiment is a list of :class:`RunSpec` (law, horizon, camera noise, noise seed). A run is
+one :func:`rt_controller.rig.processes.run_rig` call — emulator, vision and controller as separate
+processes, lockstep unless asked for real time — with its own configuration file written next to
+its MCAP log, so ``hil up --config ... --law ...`` repeats it exactly. This module plans and
+runs them; :mod:`rt_controller.rig.experiment_report` turns the results into one JSON-ready dict,
+PNG figures and a ``report.md`` (:func:`rt_controller.rig.experiment_report.write_outputs`).
+
+Identical specs are run once (``all`` shares the RHC T = 0.02 s run between Fig. 3 and Fig. 4).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hal.config import RigConfig, load_config
+from hal.errors import HalError
+from rt_controller.errors import ControllerError
+from rt_controller.rig.processes import RigOptions, private_default_bus, run_rig
+
+EXPERIMENTS = ("fig3", "fig4", "table1")
+FIG3_LAWS = ("rhc", "ioc", "pbc")
+FIG3_HORIZON_S = 0.02
+HORIZONS_S = (0.02, 0.1, 1.0)
+TABLE1_DEFAULT_NOISE_PX = 0.5
+"""``table1`` camera noise when neither ``--noise`` nor the config sets one (reps must differ)."""
+STEADY_FROM_S = 4.0
+"""The paper compares the steady state "after t = 4 s"; J over [4 s, end) is reported too."""
+
+Runner = Callable[[RigOptions], dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One rig run: the law, the RHC horizon (None for PBC/IOC), camera noise and its seed."""
+
+    law: str
+    horizon_s: float | None
+    noise_px: float
+    seed: int
+    rep: int | None = None
+    """Repetition index for ``table1`` runs (their name always carries noise and seed)."""
+
+    @property
+    def name(self) -> str:
+        """File-name-safe identity, e.g. ``rhc-T0.02`` or ``rhc-T0.1-noise0.5-seed3``."""
+        out = self.law if self.horizon_s is None else f"{self.law}-T{fmt_t(self.horizon_s)}"
+        if self.noise_px > 0 or self.rep is not None:
+            out += f"-noise{self.noise_px:g}-seed{self.seed}"
+        return out
+
+    @property
+    def label(self) -> str:
+        """Human label: ``RHC T = 0.1 s, noise 0.5 px, seed 3``."""
+        out = self.law.upper() + (
+            "" if self.horizon_s is None else f" T = {fmt_t(self.horizon_s)} s"
+        )
+        if self.noise_px > 0 or self.rep is not None:
+            out += f", noise {self.noise_px:g} px, seed {self.seed}"
+        return out
+
+
+@dataclass
+class Settings:
+    """What ``hil experiment`` was asked to do."""
+
+    experiments: tuple[str, ...]
+    out: Path
+    reps: int = 5
+    duration_s: float = 10.0
+    noise_px: float | None = None
+    """``--noise``: overrides camera.noise_px for every experiment when set."""
+    realtime: bool = False
+    config: str | None = None
+    can: str | None = None
+
+    def validate(self) -> None:
+        """Raise :class:`ControllerConfigError` naming the bad option."""
+        from rt_controller.errors import ControllerConfigError
+
+        bad = [e for e in self.experiments if e not in EXPERIMENTS]
+        if bad or not self.experiments:
+            raise ControllerConfigError(f"unknown experiment(s) {bad}; known: {EXPERIMENTS}")
+        if self.reps < 1:
+            raise ControllerConfigError(f"--reps must be at least 1, got {self.reps}")
+        if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
+            raise ControllerConfigError(f"--duration must be positive, got {self.duration_s}")
+        if self.noise_px is not None and not (self.noise_px >= 0 and math.isfinite(self.noise_px)):
+            raise ControllerConfigError(f"--noise must be non-negative, got {self.noise_px}")
+
+    @property
+    def clock(self) -> str:
+        return "realtime" if self.realtime else "lockstep"
+
+
+@dataclass
+class RunResult:
+    """A planned run and, once run, its outcome."""
+
+    spec: RunSpec
+    config: RigConfig
+    config_file: Path
+    log: Path
+    status: str = "pending"
+    """pending | ok | failed"""
+    can: str | None = None
+    """The CAN bus spec the run used (see :func:`bus_for_run`)."""
+    summary: dict[str, Any] = field(default_factory=dict)
+    error: str | None = None
+    wall_s: float | None = None
+    J_steady: float | None = None
+    """J over t >= STEADY_FROM_S (from the log), None if the run is shorter."""
+
+    @property
+    def J(self) -> float | None:
+        j = self.summary.get("J")
+        return float(j) if isinstance(j, int | float) and math.isfinite(j) else None
+
+
+def fmt_t(horizon_s: float) -> str:
+    """A horizon as the paper writes it: 0.02, 0.1, 1.0."""
+    text = f"{horizon_s:g}"
+    return text if "." in text or "e" in text else f"{text}.0"
+
+
+# ------------------------------------------------------------------------------------- plan
+def table1_noise(settings: Settings, base: RigConfig) -> float:
+    """``--noise``, else the config's camera noise, else 0.5 px when that is 0."""
+    if settings.noise_px is not None:
+        return settings.noise_px
+    return base.camera.noise_px if base.camera.noise_px > 0 else TABLE1_DEFAULT_NOISE_PX
+
+
+def plan(settings: Settings, base: RigConfig) -> dict[str, list[RunSpec]]:
+    """The runs of each requested experiment, in order."""
+    fig_noise = base.camera.noise_px if settings.noise_px is None else settings.noise_px
+    seed = base.camera.seed
+    out: dict[str, list[RunSpec]] = {}
+    for exp in EXPERIMENTS:
+        if exp not in settings.experiments:
+            continue
+        if exp == "fig3":
+            out[exp] = [
+                RunSpec(law, FIG3_HORIZON_S if law == "rhc" else None, fig_noise, seed)
+                for law in FIG3_LAWS
+            ]
+        elif exp == "fig4":
+            out[exp] = [RunSpec("rhc", h, fig_noise, seed) for h in HORIZONS_S]
+        else:
+            noise = table1_noise(settings, base)
+            out[exp] = [
+                RunSpec("rhc", h, noise, rep, rep=rep)
+                for h in HORIZONS_S
+                for rep in range(settings.reps)
+            ]
+    return out
+
+
+def run_config(settings: Settings, spec: RunSpec) -> RigConfig:
+    """The run's configuration, built by the same rules as ``hil controller --horizon T``.
+
+    When only the horizon is given, N = max(rhc.steps, ceil(T / 0.05)) (T = 1.0 s -> N = 20).
+    """
+    from rt_controller.commands.common import config_from_args
+
+    ns = argparse.Namespace(config=settings.config, law=spec.law, horizon=spec.horizon_s)
+    cfg = config_from_args(ns)
+    return cfg.with_overrides(
+        {
+            "camera.noise_px": spec.noise_px,
+            "camera.seed": spec.seed,
+            "controller.clock": settings.clock,
+        }
+    )
+
+
+def config_toml(cfg: RigConfig) -> str:
+    """The configuration as TOML that :func:`hal.config.load_config` reads back unchanged."""
+    lines = ["# written by hil experiment"]
+    for section, body in cfg.to_dict().items():
+        lines.append(f"\n[{section}]")
+        lines += [f"{key} = {json.dumps(value)}" for key, value in body.items()]
+    return "\n".join(lines) + "\n"
+
+
+def prepare(settings: Settings) -> tuple[dict[str, list[RunSpec]], dict[str, RunResult]]:
+    """Plan the runs, write each run's config file; (plan, unique runs by name in run order)."""
+    base = load_config(settings.config)
+    runs_by_exp = plan(settings, base)
+    (settings.out / "configs").mkdir(parents=True, exist_ok=True)
+    (settings.out / "logs").mkdir(parents=True, exist_ok=True)
+    runs: dict[str, RunResult] = {}
+    for specs in runs_by_exp.values():
+        for spec in specs:
+            if spec.name in runs:
+                continue
+            cfg = run_config(settings, spec)
+            cfg_file = settings.out / "configs" / f"{spec.name}.toml"
+            cfg_file.write_text(config_toml(cfg), encoding="utf-8")
+            if load_config(cfg_file) != cfg:  # pragma: no cover - guards config_toml
+                raise ControllerError(f"{cfg_file}: the written config does not read back")
+            log = settings.out / "logs" / f"{spec.name}.mcap"
+            runs[spec.name] = RunResult(spec, cfg, cfg_file, log)
+    return runs_by_exp, runs
+
+
+# -------------------------------------------------------------------------------------- run
+def execute(run: RunResult, settings: Settings, runner: Runner | None = None) -> RunResult:
+    """Run one spec through the rig (``runner``, default :func:`run_rig`).
+
+    A failure is recorded on the result (status ``failed`` and the error), not raised.
+    """
+    t0 = time.monotonic()
+    try:
+        run.can = bus_for_run(settings, run)
+        opts = RigOptions(
+            config=str(run.config_file),
+            law=run.spec.law,
+            duration_s=settings.duration_s,
+            lockstep=not settings.realtime,
+            can=run.can,
+            log=run.log,
+        )
+        run.summary = (runner or run_rig)(opts)
+        run.status = "ok"
+        run.J_steady = steady_cost(run.log)
+    except (ControllerError, HalError, OSError) as exc:
+        run.status, run.error = "failed", f"{type(exc).__name__}: {exc}"
+    finally:
+        run.wall_s = time.monotonic() - t0
+    return run
+
+
+def bus_for_run(settings: Settings, run: RunResult) -> str:
+    """The bus the run will use, named so that results.json and the rerun commands record it.
+
+    ``--can``, else :func:`~rt_controller.rig.processes.private_default_bus` (the automatic
+    host-local ``udp_multicast`` bus becomes a private port, as every rig gets), else the
+    config's bus as resolved (SocketCAN cannot be isolated and is used as it is). It is passed
+    to the rig explicitly, so the recorded private port is the one the processes use.
+    """
+    from hal.bus import resolve_spec
+
+    if settings.can:
+        return settings.can
+    private = private_default_bus(str(run.config_file))
+    return private or str(resolve_spec(run.config.transport.can))
+
+
+def steady_cost(log: Path, from_s: float = STEADY_FROM_S) -> float | None:
+    """Sum of the stage cost over t >= from_s, divided by the rate; None if the run is shorter."""
+    from rt_controller.logtools.reader import read_log
+
+    data = read_log(log, raw=False)
+    t, cost, rate = data.column("sim_time_s"), data.column("cost"), data.rate_hz
+    if t is None or cost is None or not rate or t.size == 0 or float(np.nanmax(t)) < from_s:
+        return None
+    mask = np.asarray(t, dtype=float) >= from_s - 1e-9
+    return float(np.nansum(np.asarray(cost, dtype=float)[mask]) / rate)

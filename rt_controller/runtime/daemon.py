@@ -1,0 +1,362 @@
+"""The controller daemon: a hard-cadence loop around the control law, with the rig's I/O.
+
+Each tick: read the latest joint state (CAN) and image features (zenoh) with their ages, run the
+law, compute tau by eq. (11), send it, and queue the cycle for the MCAP recorder. Two clock modes:
+``realtime`` (absolute monotonic deadlines) and ``lockstep`` (one tick per DSP ``Sync`` frame,
+waiting for the features that answer the same period).
+
+Safety: stale features put the loop in *hold* (tau = -2 R dq, a pure joint damper; no image term,
+so nothing stale or NaN reaches the amplifiers) and the law is re-initialised when they return;
+a silent DSP sends zero torque and counts the tick as ``state_stale``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hal.config import RigConfig
+from hal.errors import HalTimeoutError
+from hal.joint_client import JointClient
+from hal.vision_codec import FeatureDecoder
+from hal.zenoh_session import KEY_FEATURES, open_session
+from rt_controller.control.controller import Controller, warm_up
+from rt_controller.errors import ControllerError
+from rt_controller.runtime.cadence import Cadence, MonotonicClock
+from rt_controller.runtime.realtime import GcPaused, apply_realtime
+from rt_controller.runtime.recorder import CycleRecorder
+
+STARTUP_TIMEOUT_S = 20.0
+"""How long the daemon waits for the first joint state and features before giving up."""
+LOCKSTEP_SYNC_TIMEOUT_S = 2.0
+"""Lockstep: without a Sync for this long the emulator is taken to have finished."""
+LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
+
+
+@dataclass
+class DaemonOptions:
+    """How one daemon run is wired."""
+
+    can: str | None = None
+    lockstep: bool = False
+    duration_s: float = 0.0
+    """0 = until stopped (realtime) or until the Sync frames stop (lockstep)."""
+    log_path: Path | None = None
+    zenoh_endpoint: str | None = None
+    zenoh_config: str | None = None
+    realtime_settings: bool = True
+    record_raw: bool = True
+    """Also record every CAN frame and vision payload as received."""
+
+
+@dataclass
+class RunStats:
+    """Running totals of a daemon run (the summary ``hil up`` prints)."""
+
+    ticks: int = 0
+    J: float = 0.0
+    deadline_misses: int = 0
+    missed_periods: int = 0
+    stale_features: int = 0
+    stale_states: int = 0
+    fallbacks: int = 0
+    watchdog_trips: int = 0
+    f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
+    solve_us: list[float] = field(default_factory=list)
+    lateness_us: list[float] = field(default_factory=list)
+    cycle_us: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        def pct(values: list[float], q: float) -> float:
+            return float(np.percentile(values, q)) if values else math.nan
+
+        return {
+            "ticks": self.ticks,
+            "J": self.J,
+            "f_final": self.f_final,
+            "f_final_norm": float(np.hypot(*self.f_final)),
+            "deadline_misses": self.deadline_misses,
+            "missed_periods": self.missed_periods,
+            "stale_features": self.stale_features,
+            "stale_states": self.stale_states,
+            "fallbacks": self.fallbacks,
+            "watchdog_trips": self.watchdog_trips,
+            "solve_us_median": pct(self.solve_us, 50),
+            "solve_us_p99": pct(self.solve_us, 99),
+            "lateness_us_p99": pct(self.lateness_us, 99),
+            "cycle_us_p99": pct(self.cycle_us, 99),
+        }
+
+
+def default_log_path(cfg: RigConfig, law: str) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
+
+
+def _vec(a: Any) -> list[float]:
+    return [float(a[0]), float(a[1])]
+
+
+class ControllerDaemon:
+    """Owns the law, the DSP client, the feature subscriber and the recorder for one run."""
+
+    def __init__(self, cfg: RigConfig, options: DaemonOptions, stop: threading.Event) -> None:
+        self.cfg = cfg
+        self.opts = options
+        self.stop = stop
+        self.controller = Controller(cfg)
+        self.model = self.controller.model
+        self.period_ns = cfg.rates.control_period_ns
+        self.stats = RunStats()
+        self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
+        self._trip_seen = -1
+        # Lockstep: the DSP announces the state with every Sync, so its wall-clock age only
+        # reflects how long this tick waited (for features); a silent DSP ends the run instead.
+        self._state_limit_s = (
+            LOCKSTEP_SYNC_TIMEOUT_S + LOCKSTEP_FEATURE_TIMEOUT_S
+            if options.lockstep
+            else cfg.controller.state_timeout_s
+        )
+        self.features = FeatureDecoder(max_age_ns=round(cfg.controller.feature_timeout_s * 1e9))
+
+    # --- wiring -----------------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        """Run until stopped; returns the summary. The recorder is finished on every exit."""
+        cfg, opts = self.cfg, self.opts
+        rec = CycleRecorder(
+            self.log_path,
+            cfg,
+            run_info={
+                "clock": "lockstep" if opts.lockstep else "realtime",
+                "can": opts.can or cfg.transport.can,
+                "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
+            },
+        )
+        try:
+            session = open_session(
+                cfg,
+                listen=False,
+                endpoint=opts.zenoh_endpoint,
+                config_file=opts.zenoh_config,
+                stop_event=self.stop,
+            )
+            try:
+                session.subscribe(KEY_FEATURES, self._on_features(rec))
+                hooks: dict[str, Any] = {}
+                if opts.record_raw:
+                    hooks = {
+                        "frame_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "rx"),
+                        "tx_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "tx"),
+                    }
+                with JointClient.open(opts.can, cfg, **hooks) as dsp:
+                    self._loop(dsp, rec)
+            finally:
+                session.close()
+        finally:
+            rec.close()
+        out = self.stats.summary()
+        out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.stats())
+        return out
+
+    def _on_features(self, rec: CycleRecorder):
+        feed, record, raw = self.features.feed, rec.record_vision, self.opts.record_raw
+
+        def on_payload(payload: bytes) -> None:
+            now = time.monotonic_ns()
+            feed(payload, now)
+            if raw:
+                record(payload, now)
+
+        return on_payload
+
+    def _wait_ready(self, dsp: JointClient) -> None:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not self.stop.is_set():
+            have_state = dsp.state_age_s() is not None
+            if have_state and (self.opts.lockstep or self.features.latest is not None):
+                return
+            if time.monotonic() > deadline:
+                missing = "joint state (CAN)" if not have_state else "image features (zenoh)"
+                raise ControllerError(
+                    f"no {missing} within {STARTUP_TIMEOUT_S:.0f} s: is `hil emulator` "
+                    f"(and `hil vision`) running on the same transports?"
+                )
+            time.sleep(0.01)
+
+    # --- the loop ---------------------------------------------------------------------------
+    def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
+        cfg = self.cfg
+        self._warm_up()
+        if self.opts.realtime_settings:
+            rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
+            for w in rt.warnings:
+                print(f"hil controller: warning: {w}", file=sys.stderr)
+        self._wait_ready(dsp)
+        dsp.enable()
+        max_ticks = (
+            math.floor(self.opts.duration_s * cfg.rates.control_hz + 1e-9)
+            if self.opts.duration_s > 0
+            else None
+        )
+        try:
+            with GcPaused():
+                if self.opts.lockstep:
+                    self._run_lockstep(dsp, rec, max_ticks)
+                else:
+                    self._run_realtime(dsp, rec, max_ticks)
+        finally:
+            dsp.send_torque(0.0, 0.0)
+            dsp.disable()
+
+    def _warm_up(self) -> None:
+        """Compile and exercise every branch of the tick before the DSP is armed (never inside
+        the loop): see :func:`rt_controller.control.controller.warm_up`."""
+        warm_up(self.controller, self.cfg)
+
+    def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
+        clock = MonotonicClock(spin_ns=round(self.cfg.controller.spin_us * 1e3))
+        cadence = Cadence(self.period_ns, clock)
+        first = None
+        while not self.stop.is_set():
+            tick = cadence.wait()
+            first = tick.index if first is None else first
+            if max_ticks is not None and tick.index - first >= max_ticks:
+                return
+            t_s = (tick.release_ns - cadence.start_ns) / 1e9
+            self._tick(dsp, rec, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
+            end = time.monotonic_ns()
+            if end > cadence.deadline_of(tick):
+                self.stats.deadline_misses += 1
+                self._last_record["deadline_miss"] = True
+            rec.record_cycle(self._last_record)
+
+    def _run_lockstep(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
+        last = None
+        while not self.stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
+            try:
+                k = dsp.wait_sync(LOCKSTEP_SYNC_TIMEOUT_S)
+            except HalTimeoutError:
+                return  # the emulator finished its run
+            if last is not None and k <= last:
+                if k == last:  # a re-sent Sync: our command was lost, send it again
+                    tau = self._last_record["tau"]
+                    dsp.send_torque(tau[0], tau[1], tick=k)
+                continue
+            missed = 0 if last is None else k - last - 1
+            last = k
+            wake = time.monotonic_ns()
+            self.features.wait_pose_seq(k, LOCKSTEP_FEATURE_TIMEOUT_S)
+            self._tick(dsp, rec, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
+            rec.record_cycle(self._last_record)
+
+    def _check_watchdog(self, dsp: JointClient) -> None:
+        """Count each watchdog trip the DSP reports and re-arm once per trip (if configured)."""
+        status = dsp.status
+        if status is None or not status.watchdog_tripped:
+            return
+        if status.watchdog_trips == self._trip_seen:
+            return
+        self._trip_seen = status.watchdog_trips
+        self.stats.watchdog_trips += 1
+        if self.cfg.controller.rearm_after_trip:
+            dsp.enable()
+
+    def _tick(
+        self,
+        dsp: JointClient,
+        rec: CycleRecorder,
+        index: int,
+        wake_ns: int,
+        lateness_ns: int,
+        missed: int,
+        t_s: float,
+        sync: int | None = None,
+    ) -> None:
+        cfg, st = self.cfg, self.stats
+        # --- read
+        state_stale = False
+        state_ns = None
+        try:
+            state = dsp.latest_state(max_age_s=self._state_limit_s)
+            q, dq, state_ns = np.array(state.q), np.array(state.dq), state.t_ns
+            state_age_ms = (wake_ns - state.t_ns) / 1e6
+        except HalTimeoutError:
+            state_stale, q, dq, state_age_ms = True, np.full(2, math.nan), np.zeros(2), math.nan
+        feat = self.features.latest
+        if feat is None:
+            f, f_age_ms = np.full(2, math.nan), math.nan
+        elif self.opts.lockstep:
+            f, f_age_ms = np.array(feat.f), (t_s * 1e9 - feat.sim_time_ns) / 1e6
+        else:
+            f, f_age_ms = np.array(feat.f), (wake_ns - feat.stamp_ns) / 1e6
+        f_stale = not (f_age_ms <= cfg.controller.feature_timeout_s * 1e3)
+        t_read = time.monotonic_ns()
+        # --- decide
+        d = self.controller.decide(t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale)
+        u = xi = np.zeros(2)
+        residual, iterations, fallback, saturated = 0.0, 0, False, False
+        cost = V = math.nan
+        if d.mode == "no_state":
+            st.stale_states += 1
+        elif d.mode == "hold":
+            st.stale_features += 1
+        else:
+            cmd = d.command
+            u, xi = cmd.law.u, cmd.measurement.xi
+            residual, iterations, fallback = cmd.law.residual, cmd.law.iterations, cmd.law.fallback
+            saturated = cmd.saturated
+            cost, V = self.controller.costs(cmd)
+            st.J += cost / cfg.rates.control_hz
+            st.fallbacks += int(fallback)
+            st.f_final = _vec(f)
+        t_solve = time.monotonic_ns()
+        # --- write
+        tau = d.tau
+        dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
+        t_write = time.monotonic_ns()
+        self._check_watchdog(dsp)
+        st.ticks += 1
+        st.missed_periods += missed
+        solve_us = (t_solve - t_read) / 1e3
+        st.solve_us.append(solve_us)
+        st.lateness_us.append(lateness_ns / 1e3)
+        cycle_us = (t_write - wake_ns) / 1e3
+        st.cycle_us.append(cycle_us)
+        self._last_record = {
+            "tick": index,
+            "t_ns": wake_ns,
+            "sim_time_s": t_s,
+            "lateness_us": lateness_ns / 1e3,
+            "read_us": (t_read - wake_ns) / 1e3,
+            "solve_us": solve_us,
+            "write_us": (t_write - t_solve) / 1e3,
+            "cycle_us": cycle_us,
+            "e2e_us": math.nan if state_ns is None else (t_write - state_ns) / 1e3,
+            "deadline_miss": False,
+            "missed_periods": missed,
+            "q": _vec(q),
+            "dq": _vec(dq),
+            "f": _vec(f),
+            "f_age_ms": f_age_ms,
+            "state_age_ms": state_age_ms,
+            "f_valid": feat is not None and feat.valid,
+            "f_stale": f_stale,
+            "state_stale": state_stale,
+            "xi": _vec(xi),
+            "u": _vec(u),
+            "tau": _vec(tau),
+            "tau_saturated": saturated,
+            "law": self.controller.law.name if d.mode == "control" else d.mode,
+            "residual": residual,
+            "iterations": iterations,
+            "fallback": fallback,
+            "cost": cost,
+            "V": V,
+        }

@@ -1,0 +1,215 @@
+"""``hil experiment``: planning rules, the Table I format, failures, and real daemon sweeps."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from pathlib import Path
+
+import pytest
+
+from hal.config import load_config
+from rt_controller.cli import main
+from rt_controller.logtools.reader import read_log
+from rt_controller.rig import experiment as ex
+from rt_controller.rig import experiment_report as exr
+from rt_controller.rig.processes import RigProcessError
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def settings(tmp_path: Path, which: tuple[str, ...] = ex.EXPERIMENTS, **kw) -> ex.Settings:
+    return ex.Settings(experiments=which, out=tmp_path, **kw)
+
+
+def live_children() -> set[int]:
+    """Child processes of this test process that are still running (not zombies)."""
+    pids: set[int] = set()
+    for task in Path(f"/proc/{os.getpid()}/task").glob("*/children"):
+        pids.update(int(p) for p in task.read_text().split())
+    alive = set()
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if state != "Z":
+            alive.add(pid)
+    return alive
+
+
+# ------------------------------------------------------------------------- planning (fast)
+def test_plan_runs_each_experiment_with_the_papers_laws_and_horizons(tmp_path):
+    plan = ex.plan(settings(tmp_path, reps=2), load_config())
+    assert [(s.law, s.horizon_s) for s in plan["fig3"]] == [
+        ("rhc", 0.02),
+        ("ioc", None),
+        ("pbc", None),
+    ]
+    assert [s.horizon_s for s in plan["fig4"]] == [0.02, 0.1, 1.0]
+    assert [(s.horizon_s, s.seed) for s in plan["table1"]] == [
+        (h, rep) for h in (0.02, 0.1, 1.0) for rep in range(2)
+    ]
+    # The embedded config has no camera noise: figures stay noise-free, table1 gets 0.5 px.
+    assert {s.noise_px for s in plan["fig3"] + plan["fig4"]} == {0.0}
+    assert {s.noise_px for s in plan["table1"]} == {ex.TABLE1_DEFAULT_NOISE_PX}
+    # fig3's RHC run is fig4's T = 0.02 s run: `all` runs it once.
+    assert plan["fig3"][0].name == plan["fig4"][0].name == "rhc-T0.02"
+    assert plan["table1"][3].name == "rhc-T0.1-noise0.5-seed1"
+
+
+def test_noise_option_and_config_noise(tmp_path):
+    plan = ex.plan(settings(tmp_path, noise_px=0.2), load_config())
+    assert {s.noise_px for specs in plan.values() for s in specs} == {0.2}
+    noisy = load_config().with_overrides({"camera.noise_px": 0.3})
+    plan = ex.plan(settings(tmp_path), noisy)
+    assert {s.noise_px for specs in plan.values() for s in specs} == {0.3}
+
+
+def test_run_config_uses_the_cli_step_rule_and_reads_back(tmp_path):
+    s = settings(tmp_path)
+    steps = {h: ex.run_config(s, ex.RunSpec("rhc", h, 0.5, 3)).rhc.steps for h in ex.HORIZONS_S}
+    assert steps == {0.02: 10, 0.1: 10, 1.0: 20}
+    cfg = ex.run_config(s, ex.RunSpec("rhc", 1.0, 0.5, 3))
+    assert (cfg.camera.noise_px, cfg.camera.seed, cfg.controller.clock) == (0.5, 3, "lockstep")
+    path = tmp_path / "c.toml"
+    path.write_text(ex.config_toml(cfg), encoding="utf-8")
+    assert load_config(path) == cfg
+
+
+def test_ordinals():
+    assert [exr.ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22, 101)] == [
+        "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "101st"
+    ]  # fmt: skip
+
+
+def test_table1_markdown_is_sorted_per_row_like_the_paper():
+    rows = [
+        {"horizon_s": 0.02, "J_sorted": [1.5, 2.25], "J": [2.25, 1.5], "average": 1.875},
+        {"horizon_s": 1.0, "J_sorted": [3.0], "J": [3.0, None], "average": None},
+    ]
+    assert exr.table1_markdown(rows).splitlines() == [
+        "| Horizon length | 1st | 2nd | average |",
+        "|---|---:|---:|---:|",
+        "| T = 0.02 s | 1.500 | 2.250 | 1.875 |",
+        "| T = 1.0 s | 3.000 | — | — |",
+    ]
+    paper = exr.paper_table1_markdown().splitlines()
+    assert paper[2] == "| T = 0.02 s | 3352 | 3357 | 3367 | 3477 | 3486 | 3408 |"
+    assert paper[4] == "| T = 1.0 s | 4097 | 4158 | 4204 | 4211 | 4252 | 4184 |"
+
+
+def test_settings_are_validated(tmp_path):
+    from rt_controller.errors import ControllerConfigError
+
+    for bad in ({"reps": 0}, {"duration_s": 0.0}, {"noise_px": -1.0}, {"duration_s": math.nan}):
+        with pytest.raises(ControllerConfigError):
+            settings(tmp_path, **bad).validate()
+    assert main(["experiment", "table1", "--reps", "0", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monkeypatch, capsys):
+    calls = []
+
+    def broken(opts):
+        calls.append(opts.law)
+        raise RigProcessError(f"controller exited with status 3:\nboom in {opts.law}")
+
+    monkeypatch.setattr(ex, "run_rig", broken)
+    out = tmp_path / "exp"
+    assert main(["experiment", "fig3", "--duration", "1", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert calls == ["rhc", "ioc", "pbc"]
+    assert "run pbc (PBC) failed: RigProcessError: controller exited with status 3" in err
+    assert "boom in pbc" in err
+    res = json.loads((out / "results.json").read_text())
+    assert [f["run"] for f in res["failures"]] == ["rhc-T0.02", "ioc", "pbc"]
+    assert res["fig3"]["J"] == {"rhc": None, "ioc": None, "pbc": None}
+    assert "## Failures" in (out / "report.md").read_text()
+
+
+# -------------------------------------------------------------- real daemons (integration)
+@pytest.fixture(scope="module")
+def table1(tmp_path_factory) -> tuple[Path, dict]:
+    """``hil experiment table1 --reps 2 --duration 4`` through the real daemons (lockstep)."""
+    out = tmp_path_factory.mktemp("exp") / "table1"
+    argv = ["experiment", "table1", "--reps", "2", "--duration", "4", "--out", str(out)]
+    assert main(argv) == 0
+    assert not live_children(), "the experiment left processes behind"
+    return out, json.loads((out / "results.json").read_text())
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_table1_writes_report_results_and_logs(table1):
+    out, res = table1
+    assert (out / "report.md").is_file() and (out / "results.json").is_file()
+    rows = res["table1"]["rows"]
+    assert [r["horizon_s"] for r in rows] == [0.02, 0.1, 1.0]
+    assert [r["steps"] for r in rows] == [10, 10, 20]
+    for r in rows:
+        assert len(r["J"]) == 2 and all(math.isfinite(j) and j > 0 for j in r["J"])
+        assert r["J"][0] != r["J"][1], "repetitions must differ by their noise seed"
+        assert r["seeds"] == [0, 1]
+        assert r["average"] == pytest.approx(sum(r["J"]) / 2)
+    assert res["table1"]["noise_px"] == ex.TABLE1_DEFAULT_NOISE_PX
+    assert res["clock"] == "lockstep" and not res["failures"]
+    for run in res["runs"]:
+        log = read_log(out / run["log"], raw=False)
+        assert log.n_cycles == 200 and not log.truncated  # 4 s at 50 Hz
+        assert log.config.camera.seed == run["seed"]
+        assert log.config.camera.noise_px == 0.5
+    assert (out / "table1_J.png").read_bytes()[:8] == PNG_MAGIC
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_table1_markdown_in_report(table1):
+    out, res = table1
+    report = (out / "report.md").read_text()
+    head = "| Horizon length | 1st | 2nd | average |"
+    assert head in report and res["table1"]["markdown"] in report
+    lines = report.splitlines()
+    i = lines.index(head)
+    assert lines[i + 1] == "|---|---:|---:|---:|"
+    num = r"(\d+\.\d{3})"
+    for line, h in zip(lines[i + 2 : i + 5], ("0.02", "0.1", "1.0"), strict=True):
+        m = re.fullmatch(rf"\| T = {h} s \| {num} \| {num} \| {num} \|", line)
+        assert m, line
+        a, b, avg = (float(g) for g in m.groups())
+        assert a <= b and avg == pytest.approx((a + b) / 2, abs=1e-3)
+    assert "| T = 0.02 s | 3352 | 3357 | 3367 | 3477 | 3486 | 3408 |" in report
+    assert "seeds [0, 1]" in report and "lockstep" in report
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_fig3_writes_figures(tmp_path, capsys):
+    out = tmp_path / "fig3"
+    assert main(["experiment", "fig3", "--duration", "2", "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert set(res["fig3"]["J"]) == {"rhc", "ioc", "pbc"}
+    assert all(math.isfinite(j) and j > 0 for j in res["fig3"]["J"].values())
+    assert res["fig3"]["figures"] == ["fig3_f.png", "fig3_xi.png", "fig3_u.png"]
+    for name in res["fig3"]["figures"]:
+        data = (out / name).read_bytes()
+        assert data[:8] == PNG_MAGIC and len(data) > 10_000
+    report = (out / "report.md").read_text()
+    assert "![fig3_f.png](fig3_f.png)" in report
+    assert {r["law"] for r in res["runs"]} == {"rhc", "ioc", "pbc"}
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_failing_daemon_fails_the_experiment_without_leftovers(tmp_path, capsys):
+    out = tmp_path / "fail"
+    argv = ["experiment", "table1", "--reps", "1", "--duration", "1", "--out", str(out)]
+    assert main([*argv, "--can", "socketcan:hil-no-such-bus"]) == 1
+    err = capsys.readouterr().err
+    assert "run rhc-T0.02-noise0.5-seed0 (RHC T = 0.02 s, noise 0.5 px, seed 0) failed" in err
+    assert "RigProcessError" in err and "exited with status" in err
+    assert not live_children()
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["failures"]) == 3

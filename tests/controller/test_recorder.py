@@ -1,0 +1,274 @@
+"""MCAP recording: read-back with the mcap library, durability, and the never-blocking hot path."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import can
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from hal.config import config_from_json
+from rt_controller.errors import LogError
+from rt_controller.logtools.reader import read_log
+from rt_controller.runtime.recorder import (
+    CAN_RX_TOPIC,
+    CAN_TX_TOPIC,
+    CYCLE_TOPIC,
+    VISION_TOPIC,
+    CycleRecorder,
+    cycle_schema,
+)
+
+
+def cycle(i: int, t0: int = 1_000_000_000, period_ns: int = 20_000_000) -> dict:
+    """A plausible cycle record (numpy arrays, as the loop produces them)."""
+    return {
+        "tick": i,
+        "t_ns": t0 + i * period_ns,
+        "sim_time_s": None,
+        "lateness_us": 10.0 + i,
+        "read_us": 3.0,
+        "solve_us": 40.0,
+        "write_us": 5.0,
+        "cycle_us": 60.0,
+        "deadline_miss": False,
+        "missed_periods": 0,
+        "q": np.array([0.5, -0.5]),
+        "dq": np.array([0.0, 0.1]),
+        "f": np.array([-120.0 + i, -160.0]),
+        "f_age_ms": 3.2,
+        "state_age_ms": 1.0,
+        "f_valid": True,
+        "f_stale": False,
+        "xi": np.array([0.1, 0.2]),
+        "u": np.array([1.0, 2.0]),
+        "tau": np.array([3.0, 4.0]),
+        "tau_saturated": False,
+        "law": "rhc",
+        "residual": 1e-6,
+        "iterations": np.int64(5),
+        "fallback": False,
+        "cost": 2.0,
+        "V": 10.0,
+    }
+
+
+def test_read_back_with_mcap_library(tmp_path, cfg):
+    path = tmp_path / "run.mcap"
+    frame = can.Message(arbitration_id=0x123, data=bytes(range(8)), is_extended_id=False)
+    with CycleRecorder(path, cfg, run_info={"law": "rhc", "rate_hz": 50}) as rec:
+        for i in range(100):
+            c = cycle(i)
+            if i == 7:
+                c["residual"] = float("nan")
+            assert rec.record_cycle(c)
+            rec.record_can(frame, c["t_ns"] + 1, "rx")
+            rec.record_can(frame, c["t_ns"] + 2, "tx")
+        rec.record_vision(b"\x00\x01payload\xff", 1_500_000_000)
+    assert rec.finished and rec.error is None
+    assert rec.written == 100 + 200 + 1 and rec.dropped == 0
+
+    with path.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        topics = {ch.topic: ch for ch in summary.channels.values()}
+        assert set(topics) == {CYCLE_TOPIC, CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC}
+        for ch in topics.values():
+            assert ch.message_encoding == "json"
+            schema = summary.schemas[ch.schema_id]
+            assert schema.encoding == "jsonschema"
+            assert json.loads(schema.data)["type"] == "object"
+        assert summary.schemas[topics[CYCLE_TOPIC].schema_id].name == "hil.ControllerCycle"
+        counts = summary.statistics.channel_message_counts
+        assert counts[topics[CYCLE_TOPIC].id] == 100
+        cycles = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=[CYCLE_TOPIC])]
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+
+    assert [c["tick"] for c in cycles] == list(range(100))
+    assert cycles[3]["f"] == [-117.0, -160.0] and cycles[3]["iterations"] == 5
+    assert cycles[7]["residual"] is None  # NaN is not JSON: written as null
+    assert set(cycles[0]) >= set(cycle_schema()["required"])
+    assert config_from_json(metadata["hil.config"]["json"]) == cfg
+    run = metadata["hil.run"]
+    assert run["law"] == "rhc" and run["rate_hz"] == "50" and run["clock"] == "realtime"
+    for key in ("start_wall_time", "hostname", "hil_version", "mcap_version", "python_version"):
+        assert run[key]
+    assert metadata["hil.recorder"]["dropped"] == "0"
+
+    log = read_log(path)
+    assert not log.truncated and log.notes == []
+    assert log.config == cfg and log.n_cycles == 100
+    assert log.cycles["f"].shape == (100, 2) and math.isnan(log.cycles["residual"][7])
+    assert log.cycles["deadline_miss"].dtype == bool
+    assert log.can_rx[0]["data"] == bytes(range(8)).hex()
+    assert log.can_rx[0]["arbitration_id"] == 0x123
+    assert len(log.can_tx) == 100 and log.can_tx[0]["t_ns"] == 1_000_000_002
+    assert base64.b64decode(log.vision[0]["data"]) == b"\x00\x01payload\xff"
+
+
+def test_cycle_schema_is_foxglove_compatible():
+    """Foxglove's JSON Schema parser needs one string type per field and no $ref."""
+    schema = cycle_schema()
+    assert schema["type"] == "object"
+    for name, field in schema["properties"].items():
+        assert isinstance(field["type"], str), name
+        assert "$ref" not in json.dumps(field), name
+        if field["type"] == "array":
+            assert field["items"]["type"] == "number", name
+    assert set(schema["required"]) <= set(schema["properties"])
+
+
+def test_data_reaches_the_file_before_close(tmp_path, cfg):
+    path = tmp_path / "open.mcap"
+    rec = CycleRecorder(path, cfg, flush_interval_s=0.1)
+    try:
+        for i in range(20):
+            rec.record_cycle(cycle(i))
+        deadline = time.monotonic() + 5.0
+        log = read_log(path)
+        while log.n_cycles < 20 and time.monotonic() < deadline:
+            time.sleep(0.05)
+            log = read_log(path)
+        assert log.n_cycles == 20 and log.truncated
+        assert log.config == cfg
+    finally:
+        rec.close()
+    assert read_log(path).truncated is False
+
+
+def test_close_is_idempotent_and_refuses_late_records(tmp_path, cfg):
+    rec = CycleRecorder(tmp_path / "c.mcap", cfg)
+    rec.record_cycle(cycle(0))
+    rec.close()
+    rec.close()
+    with rec:
+        pass
+    assert rec.closed and rec.finished
+    assert rec.record_cycle(cycle(1)) is False
+    assert rec.record_vision(b"x", 1) is False
+    assert rec.dropped == 2 and rec.stats()[CYCLE_TOPIC] == 1
+
+
+def test_bad_arguments(tmp_path, cfg):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(LogError, match="cannot create MCAP log"):
+        CycleRecorder(blocker / "x.mcap", cfg)
+    with pytest.raises(LogError, match="flush_interval_s"):
+        CycleRecorder(tmp_path / "y.mcap", cfg, flush_interval_s=0)
+    with CycleRecorder(tmp_path / "z.mcap", cfg) as rec, pytest.raises(LogError, match="'rx'"):
+        rec.record_can(can.Message(arbitration_id=1), 0, "sideways")
+
+
+def test_slow_writer_never_blocks_the_hot_path(tmp_path, cfg, monkeypatch):
+    """A writer stuck on I/O must cost the loop nothing: a full queue drops and counts."""
+
+    def slow_write(self, item):
+        time.sleep(0.01)
+        self._written[item[0]] += 1
+
+    monkeypatch.setattr(CycleRecorder, "_write_one", slow_write)
+    n = 2000
+    rec = CycleRecorder(tmp_path / "slow.mcap", cfg, queue_size=8)
+    try:
+        records = [cycle(i) for i in range(n)]
+        t0 = time.perf_counter()
+        accepted = sum(rec.record_cycle(r) for r in records)
+        elapsed = time.perf_counter() - t0
+    finally:
+        rec.close()
+    # Blocking on the writer would take n * 10 ms = 20 s; dropping takes microseconds.
+    assert elapsed < 2.0
+    assert rec.dropped == n - accepted and rec.dropped >= n - 8 - 200
+    assert rec.written == accepted and rec.pending == 0
+
+
+CHILD = textwrap.dedent(
+    """
+    import sys, time
+    from hal.config import load_config
+    from rt_controller.runtime.recorder import CycleRecorder
+
+    rec = CycleRecorder(sys.argv[1], load_config(), run_info={"law": "ioc"})
+    period = 5_000_000  # 200 Hz
+    nxt = time.monotonic_ns()
+    i = 0
+    while True:
+        now = time.monotonic_ns()
+        rec.record_cycle({"tick": i, "t_ns": now, "lateness_us": (now - nxt) / 1e3,
+                          "deadline_miss": False, "missed_periods": 0, "f": [1.0, 2.0]})
+        if i == 0:
+            print("ready", flush=True)
+        i += 1
+        nxt += period
+        time.sleep(max(0.0, (nxt - time.monotonic_ns()) / 1e9))
+    """
+)
+
+
+@pytest.mark.slow
+def test_sigkilled_writer_keeps_all_but_the_last_second(tmp_path):
+    path = tmp_path / "killed.mcap"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(path)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(2.5)
+        killed_at = time.monotonic_ns()
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)
+        proc.stdout.close()
+    assert proc.returncode == -signal.SIGKILL
+
+    log = read_log(path)
+    assert log.truncated and log.notes
+    assert log.run_info["law"] == "ioc" and log.config is not None
+    ticks = log.cycles["tick"]
+    assert np.array_equal(ticks, np.arange(len(ticks)))  # every finished chunk, no holes
+    assert len(ticks) >= 200  # at least ~1 s of the ~2.5 s at 200 Hz
+    assert log.cycles["t_ns"][-1] >= killed_at - 1_000_000_000
+
+
+def test_close_from_a_signal_handler_mid_recording(tmp_path, cfg):
+    rec = CycleRecorder(tmp_path / "sig.mcap", cfg)
+    previous = signal.signal(signal.SIGUSR1, lambda *_: rec.close())
+    try:
+        for i in range(500):
+            rec.record_cycle(cycle(i))
+            if i == 250:
+                os.kill(os.getpid(), signal.SIGUSR1)
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+        rec.close()
+    log = read_log(tmp_path / "sig.mcap")
+    assert rec.finished and not log.truncated
+    assert log.n_cycles + rec.dropped == 500 and log.n_cycles >= 251
+
+
+def test_unclosed_recorder_is_finished_at_exit(tmp_path):
+    path = tmp_path / "atexit.mcap"
+    code = (
+        "import sys\n"
+        "from hal.config import load_config\n"
+        "from rt_controller.runtime.recorder import CycleRecorder\n"
+        "rec = CycleRecorder(sys.argv[1], load_config())\n"
+        "for i in range(10):\n"
+        "    rec.record_cycle({'tick': i, 't_ns': i})\n"
+    )
+    subprocess.run([sys.executable, "-c", code, str(path)], check=True, timeout=60)
+    log = read_log(path)
+    assert not log.truncated and log.n_cycles == 10

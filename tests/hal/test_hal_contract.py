@@ -1,0 +1,391 @@
+"""One contract suite for every CAN transport (python-can style), plus the bus factory.
+
+Every ``transport`` test runs on ``virtual`` (in-process), ``udp_multicast`` (host-local,
+loopback only) and ``socketcan`` (a real vcan0; marked ``vcan``, run by scripts/vcan_pytest.py).
+Receive timeouts are generous because user-mode Linux is slow; nothing asserts on timings.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import can.util
+import pytest
+
+from hal import bus as hal_bus
+from hal.bus import BusSpec, isolated_spec, open_bus, parse_spec, resolve_spec
+from hal.can_codec import (
+    RAD_PER_COUNT,
+    ControllerCodec,
+    DspCodec,
+    DspCommand,
+    DspControl,
+    DspStatus,
+    Frame,
+    JointState,
+    TorqueCommand,
+)
+from hal.config import RigConfig
+from hal.errors import HalConfigError, HalError, HalTimeoutError, HalTransportError
+from hal.joint_client import JointClient
+from hal.udp_loopback import DEFAULT_GROUP, LoopbackMulticastBus
+from tests.support.vcan import VCAN_CHANNEL, requires_vcan
+
+RECV_TIMEOUT_S = 5.0
+
+TRANSPORTS = [
+    pytest.param("virtual", id="virtual"),
+    pytest.param("udp_multicast", id="udp_multicast"),
+    pytest.param("socketcan", id="socketcan", marks=[pytest.mark.vcan, requires_vcan]),
+]
+
+
+@pytest.fixture(params=TRANSPORTS)
+def spec(request: pytest.FixtureRequest) -> str:
+    if request.param == "socketcan":
+        return f"socketcan:{VCAN_CHANNEL}"
+    return isolated_spec(request.param)
+
+
+@pytest.fixture
+def dsp_bus(spec: str) -> Iterator[can.BusABC]:
+    with open_bus(spec) as bus:
+        yield bus
+
+
+@pytest.fixture
+def client(spec: str, cfg: RigConfig) -> Iterator[JointClient]:
+    with JointClient.open(spec, cfg) as joint_client:
+        yield joint_client
+
+
+def recv_frames(bus: can.BusABC, codec: DspCodec, count: int) -> list[Frame]:
+    """The next ``count`` frames that ``codec`` accepts (fails after RECV_TIMEOUT_S)."""
+    frames: list[Frame] = []
+    deadline = time.monotonic() + RECV_TIMEOUT_S
+    while len(frames) < count:
+        remaining = deadline - time.monotonic()
+        assert remaining > 0, f"only {frames} received; codec stats {codec.stats}"
+        msg = bus.recv(timeout=remaining)
+        if msg is not None and (frame := codec.decode(msg)) is not None:
+            frames.append(frame)
+    return frames
+
+
+def send_state(bus: can.BusABC, dsp: DspCodec, q: tuple[float, float], sample: int) -> None:
+    for msg in dsp.encode_state(q, (0.5, -0.25), sample):
+        bus.send(msg)
+
+
+# ------------------------------------------------------------------------------ contract
+
+
+def test_bus_is_a_context_manager_and_shutdown_twice_is_safe(spec: str) -> None:
+    with open_bus(spec) as bus:
+        assert isinstance(bus, can.BusABC)
+    bus.shutdown()
+
+
+def test_frames_travel_unchanged_and_not_back_to_the_sender(spec: str) -> None:
+    ctl, dsp = ControllerCodec(), DspCodec()
+    sent = [
+        ctl.encode_torque(3.0, -1.0, tick=5),
+        ctl.encode_control(DspCommand.ENABLE),
+        *dsp.encode_state((0.1, 0.2), (0.3, 0.4), 1),
+        dsp.encode_status(DspStatus(True, False)),
+        dsp.encode_sync(99),
+    ]
+    with open_bus(spec) as tx, open_bus(spec) as rx:
+        for msg in sent:
+            tx.send(msg)
+        for msg in sent:
+            got = rx.recv(timeout=RECV_TIMEOUT_S)
+            assert got is not None, f"frame {msg.arbitration_id:#x} not received"
+            assert got.arbitration_id == msg.arbitration_id
+            assert not got.is_extended_id and not got.is_remote_frame
+            assert bytes(got.data) == bytes(msg.data)
+        assert tx.recv(timeout=0.05) is None
+
+
+def test_receive_own_messages_when_asked(spec: str) -> None:
+    msg = DspCodec().encode_sync(1)
+    with open_bus(spec, receive_own_messages=True) as bus:
+        bus.send(msg)
+        got = bus.recv(timeout=RECV_TIMEOUT_S)
+        assert got is not None and bytes(got.data) == bytes(msg.data)
+
+
+def test_client_assembles_state_status_and_sync(dsp_bus: can.BusABC, client: JointClient) -> None:
+    dsp = DspCodec()
+    t0 = time.monotonic_ns()
+    send_state(dsp_bus, dsp, (1000 * RAD_PER_COUNT, -0.5), 3)
+    state = client.wait_state_after(t0, RECV_TIMEOUT_S)
+    assert isinstance(state, JointState)
+    assert state.q == (1000 * RAD_PER_COUNT, pytest.approx(-0.5, abs=RAD_PER_COUNT))
+    assert state.dq == (pytest.approx(0.5), pytest.approx(-0.25))
+    assert state.sample == 3 and state.t_ns > t0
+    assert client.latest_state(max_age_s=60.0) == state
+    assert client.state_age_s() is not None
+
+    dsp_bus.send(dsp.encode_status(DspStatus(True, False, lockstep=True, tick=77)))
+    dsp_bus.send(dsp.encode_sync(42))
+    assert client.wait_sync(RECV_TIMEOUT_S) == 42
+    assert client.sync_tick == 42
+    assert client.latest_status(max_age_s=60.0) == DspStatus(True, False, lockstep=True, tick=77)
+    stats = client.stats
+    assert (stats.states, stats.syncs, stats.statuses, stats.e2e.rejected) == (1, 1, 1, 0)
+
+
+def test_client_commands_reach_the_dsp_in_order(dsp_bus: can.BusABC, client: JointClient) -> None:
+    dsp = DspCodec()
+    client.enable()
+    client.send_torque(1.5, -0.25, tick=7)
+    client.disable()
+    frames = recv_frames(dsp_bus, dsp, 6)
+    assert frames == [
+        DspControl(DspCommand.ENABLE),
+        DspControl(DspCommand.ENABLE),
+        TorqueCommand(1.5, -0.25, True, 7),
+        DspControl(DspCommand.DISABLE),
+        DspControl(DspCommand.DISABLE),
+        TorqueCommand(0.0, 0.0, False, 0),
+    ]
+    assert dsp.stats.rejected == 0
+
+
+def test_lockstep_exchange(dsp_bus: can.BusABC, client: JointClient) -> None:
+    dsp = DspCodec()
+    for k in range(20):
+        send_state(dsp_bus, dsp, (0.01 * k, 0.0), k)
+        dsp_bus.send(dsp.encode_sync(k))
+        tick = client.wait_sync(RECV_TIMEOUT_S)
+        assert tick == k
+        assert client.latest_state(max_age_s=60.0).sample == k % 16
+        client.send_torque(0.1 * k, -0.01 * k)  # tick defaults to the latest Sync
+        (command,) = recv_frames(dsp_bus, dsp, 1)
+        assert isinstance(command, TorqueCommand)
+        assert command.tick == k and command.enable is False
+    assert dsp.stats.rejected == 0 and client.stats.e2e.rejected == 0
+
+
+def test_silent_dsp_raises_timeouts(client: JointClient) -> None:
+    with pytest.raises(HalTimeoutError, match="no joint state"):
+        client.latest_state()
+    with pytest.raises(HalTimeoutError):
+        client.latest_status()
+    with pytest.raises(HalTimeoutError, match="Sync"):
+        client.wait_sync(0.05)
+    with pytest.raises(HalTimeoutError):
+        client.wait_state_after(0, 0.05)
+    assert client.status is None and client.sync_tick is None and client.state_age_s() is None
+
+
+def test_stale_state_raises_timeout(dsp_bus: can.BusABC, client: JointClient) -> None:
+    send_state(dsp_bus, DspCodec(), (0.0, 0.0), 0)
+    client.wait_state_after(0, RECV_TIMEOUT_S)
+    time.sleep(0.02)
+    with pytest.raises(HalTimeoutError, match="DSP silent"):
+        client.latest_state(max_age_s=0.001)
+    with pytest.raises(TimeoutError):  # the builtin is catchable too
+        client.latest_state(max_age_s=0.001)
+
+
+def test_bad_frames_on_the_wire_are_counted_and_hooked(spec: str, dsp_bus: can.BusABC) -> None:
+    dsp = DspCodec()
+    seen: list[can.Message] = []
+    good_pos, _ = dsp.encode_state((0.0, 0.0), (0.0, 0.0), 0)
+    corrupted = bytearray(good_pos.data)
+    corrupted[4] ^= 0x10
+    bad = [
+        can.Message(arbitration_id=good_pos.arbitration_id, data=corrupted, is_extended_id=False),
+        good_pos,  # repeated counter (sent once before)
+        can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False),
+        can.Message(arbitration_id=good_pos.arbitration_id, data=bytes(4), is_extended_id=False),
+    ]
+    with JointClient.open(spec, frame_hook=seen.append) as client:
+        dsp_bus.send(good_pos)
+        for msg in bad:
+            dsp_bus.send(msg)
+        dsp_bus.send(dsp.encode_sync(1))  # sentinel: frames arrive in order
+        client.wait_sync(RECV_TIMEOUT_S)
+        stats = client.stats
+    e2e = stats.e2e
+    assert (e2e.bad_crc, e2e.repeated_counter, e2e.unknown_id, e2e.wrong_length) == (1, 1, 1, 1)
+    assert e2e.rejected == 4 and e2e.accepted == 2
+    assert [bytes(m.data) for m in seen[:5]] == [bytes(m.data) for m in (good_pos, *bad)]
+    assert seen[5].arbitration_id == 0x080  # the Sync
+    assert stats.frames == len(seen) == 6
+
+
+def test_close_disarms_an_armed_dsp_and_is_idempotent(spec: str, dsp_bus: can.BusABC) -> None:
+    client = JointClient.open(spec)
+    client.enable()
+    client.close()
+    client.close()
+    assert client.closed and client.bus._is_shutdown
+    frames = recv_frames(dsp_bus, DspCodec(), 5)
+    assert frames == [
+        DspControl(DspCommand.ENABLE),
+        DspControl(DspCommand.ENABLE),
+        DspControl(DspCommand.DISABLE),
+        DspControl(DspCommand.DISABLE),
+        TorqueCommand(0.0, 0.0, False, 0),
+    ]
+
+
+def test_client_does_not_own_a_bus_it_was_given(spec: str) -> None:
+    with open_bus(spec) as bus:
+        with JointClient(bus) as client:
+            client.send_torque(0.0, 0.0)
+        assert not bus._is_shutdown
+        with pytest.raises(HalError, match="closed"):
+            client.send_torque(0.0, 0.0)
+
+
+# --------------------------------------------------------------------------- bus factory
+
+
+@pytest.fixture
+def no_python_can_config(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """No CAN_* variables and no can.conf: returns where a test may write one."""
+    for var in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG"):
+        monkeypatch.delenv(var, raising=False)
+    conf = tmp_path / "can.conf"
+    monkeypatch.setattr(can.util, "CONFIG_FILES", [str(conf)])
+    monkeypatch.setattr(can, "rc", {})
+    return conf
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("socketcan:vcan0", BusSpec("socketcan", "vcan0")),
+        ("socketcan", BusSpec("socketcan", "vcan0")),
+        ("socketcan:can1", BusSpec("socketcan", "can1")),
+        ("virtual", BusSpec("virtual", "hil")),
+        ("virtual:mychannel", BusSpec("virtual", "mychannel")),
+        ("udp_multicast", BusSpec("udp_multicast", DEFAULT_GROUP)),
+        ("udp_multicast:239.74.163.9", BusSpec("udp_multicast", "239.74.163.9")),
+        (
+            "udp_multicast:239.74.163.2:45000",
+            BusSpec("udp_multicast", DEFAULT_GROUP, {"port": 45000}),
+        ),
+        ("udp_multicast:[ff15::1]:45000", BusSpec("udp_multicast", "ff15::1", {"port": 45000})),
+        ("udp_multicast:ff15::1", BusSpec("udp_multicast", "ff15::1")),
+    ],
+)
+def test_parse_spec(text: str, expected: BusSpec) -> None:
+    assert parse_spec(text) == expected
+
+
+@pytest.mark.parametrize(
+    "text", ["", "nosuchbus", "udp_multicast:10.0.0.1", "udp_multicast:239.1.1.1:99999", "auto"]
+)
+def test_bad_specs_name_the_problem(text: str) -> None:
+    with pytest.raises(HalConfigError):
+        parse_spec(text)
+
+
+def test_auto_prefers_vcan0_then_udp_multicast(
+    no_python_can_config: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    net = tmp_path / "net"
+    net.mkdir()
+    monkeypatch.setattr(hal_bus, "SYS_CLASS_NET", net)
+    assert resolve_spec(None) == BusSpec("udp_multicast", DEFAULT_GROUP, {}, "auto")
+    (net / "vcan0").mkdir()
+    assert resolve_spec("auto") == BusSpec("socketcan", "vcan0", {}, "auto")
+
+
+def test_auto_honours_python_can_environment(
+    no_python_can_config: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    channel = isolated_spec("virtual").partition(":")[2]
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", channel)
+    assert resolve_spec("auto").channel == channel
+    with open_bus() as bus:
+        assert bus.channel_info.endswith(channel)
+    monkeypatch.setenv("CAN_INTERFACE", "udp_multicast")
+    monkeypatch.delenv("CAN_CHANNEL")
+    monkeypatch.setenv("CAN_CONFIG", '{"port": 45123}')
+    assert str(resolve_spec(None)) == f"udp_multicast:{DEFAULT_GROUP}:45123"
+
+
+def test_auto_honours_a_can_conf_file(no_python_can_config: Path) -> None:
+    no_python_can_config.write_text("[default]\ninterface = virtual\nchannel = from-file\n")
+    resolved = resolve_spec(None)
+    assert (resolved.interface, resolved.channel, resolved.source) == (
+        "virtual",
+        "from-file",
+        "python-can config",
+    )
+
+
+def test_explicit_spec_wins_over_python_can_config(
+    no_python_can_config: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    assert resolve_spec("udp_multicast").interface == "udp_multicast"
+
+
+def test_invalid_python_can_config_is_a_config_error(
+    no_python_can_config: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "nosuchbus")
+    with pytest.raises(HalConfigError, match="CAN_INTERFACE"):
+        open_bus()
+
+
+def test_missing_socketcan_interface_is_one_clear_line() -> None:
+    with pytest.raises(HalTransportError) as info:
+        open_bus("socketcan:vcan97")
+    text = str(info.value)
+    assert "\n" not in text
+    assert "udp_multicast" in text
+    assert "modprobe vcan" in text or "AF_CAN" in text
+
+
+def test_udp_multicast_stays_on_loopback_with_hop_limit_0() -> None:
+    with open_bus(isolated_spec("udp_multicast")) as bus:
+        assert isinstance(bus, LoopbackMulticastBus)
+        tx = bus._tx
+        assert tx is not None
+        assert tx.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 0
+        out_if = tx.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, 4)
+        assert socket.inet_ntoa(out_if) == "127.0.0.1"
+        assert tx.getsockname()[0] == "127.0.0.1"
+        assert "hop limit 0" in bus.channel_info
+
+
+def test_udp_multicast_hop_limit_only_when_passed_explicitly() -> None:
+    with open_bus(isolated_spec("udp_multicast"), hop_limit=1) as bus:
+        assert bus._tx.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 1
+
+
+@pytest.mark.parametrize("interface", ["virtual", "udp_multicast"])
+def test_isolated_specs_do_not_cross_talk(interface: str) -> None:
+    first, second = isolated_spec(interface), isolated_spec(interface)
+    assert first != second
+    with open_bus(first) as a_tx, open_bus(first) as a_rx, open_bus(second) as b_rx:
+        a_tx.send(DspCodec().encode_sync(1))
+        assert a_rx.recv(timeout=RECV_TIMEOUT_S) is not None
+        assert b_rx.recv(timeout=0.1) is None
+
+
+def test_udp_multicast_skips_garbage_datagrams() -> None:
+    spec = isolated_spec("udp_multicast")
+    port = int(spec.rsplit(":", 1)[1])
+    with open_bus(spec) as bus, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+        raw.sendto(b"\xc1 not msgpack", (DEFAULT_GROUP, port))
+        with open_bus(spec) as tx:
+            tx.send(DspCodec().encode_sync(3))
+            got = bus.recv(timeout=RECV_TIMEOUT_S)
+        assert got is not None and got.arbitration_id == 0x080
+        assert bus.malformed_datagrams == 1

@@ -1,0 +1,576 @@
+"""The live service end to end, natively: ``hil up`` (emulator, vision, controller as separate
+processes) over CAN on ``udp_multicast`` and zenoh on loopback, and its MCAP log.
+
+Every run gets its own CAN port (:func:`hal.bus.isolated_spec`) and zenoh port, so parallel runs
+and other rigs on the host never meet. Lockstep runs are deterministic and faster than real time;
+realtime runs are used where the claim is about wall-clock behaviour (SIGKILL, vision dropout).
+No timing is asserted (that is ``hil bench``'s job).
+
+What is checked (issue 5, "Tests"):
+
+* the paper scenario in lockstep with each law: |f| below 1 px just before the t = 3 s target
+  jump and again at the end, and the HIL run tracks the transport-free simulation
+  (:func:`rt_controller.control.simulate.run_closed_loop` on the emulator's physics) tick by tick;
+* the MCAP log reads back with the ``mcap`` library itself: one ``/controller/cycle`` message per
+  tick, JSON Schema present, ``hil.config`` / ``hil.run`` metadata, raw CAN and vision messages;
+* a SIGKILLed controller's log still yields its cycles up to the last second;
+* a 0.5 s vision dropout (``hil vision --dropout``): stale features put the loop in hold, no NaN
+  reaches the bus, the arm stays within limits and the loop converges after the features return;
+* ``hil up --json`` from the command line, and a dying rig process reported with its exit status
+  and stderr tail, nothing left running.
+
+A note on the passivity-based law: with the paper's gains (eq. 34) PBC has half the gain of the
+inverse-optimal law, and even the transport-free simulation only gets to |f| = 2.2 px at
+t = 2.98 s and 4.8 px at 6 s (``hil simulate --law pbc --duration 2.98``): "< 1 px before the
+disturbance" is out of its reach on physical grounds. PBC therefore runs 8 s (|f| < 1 px at the end)
+and its pre-jump |f| is checked against the simulation; the literal 1 px claim is kept as a strict
+xfail so the gap stays visible.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cantools
+import numpy as np
+import pytest
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from hal.bus import isolated_spec
+from hal.can_codec import DBC_PATH
+from hal.config import RigConfig, config_from_json, load_config
+from hal.vision_codec import decode_features
+from hal.zenoh_session import free_loopback_port
+from rt_controller.logtools.reader import read_log
+from rt_controller.rig.processes import Rig, RigOptions, RigProcessError, run_rig
+from rt_controller.runtime.recorder import (
+    CAN_RX_TOPIC,
+    CAN_TX_TOPIC,
+    CONFIG_METADATA,
+    CYCLE_TOPIC,
+    RUN_METADATA,
+    VISION_TOPIC,
+    cycle_schema,
+)
+from tests.support.proc import processes_mentioning
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+
+REPO = Path(__file__).resolve().parents[2]
+LAWS = ("pbc", "ioc", "rhc")
+CFG = load_config()
+PERIOD_S = CFG.rates.control_period_ns / 1e9
+RATE_HZ = CFG.rates.control_hz
+JUMP_S = 3.0
+"""The paper scenario's target jump (DESIGN.md)."""
+TAU_MAX = np.array(CFG.robot.tau_max, dtype=float)
+FEATURE_TIMEOUT_S = CFG.controller.feature_timeout_s
+
+DURATION_S = {"pbc": 8.0, "ioc": 6.0, "rhc": 6.0}
+"""Lockstep run per law: the shortest that reaches |f| < 1 px at the end (PBC: see the module
+docstring; the transport-free simulation gives 0.22 px at 8 s)."""
+PRE_JUMP_LIMIT_PX = {"pbc": 2.6, "ioc": 1.0, "rhc": 1.0}
+"""Max |f| over t in [2.9, 3.0). PBC's bound is the physics (simulation: 2.46 px at 2.9 s)."""
+SIM_TRACKING_PX = 2.0
+"""Largest |f_HIL - f_simulation| at any tick. The rig adds encoder quantisation, the DSP's
+velocity filter and the 60 fps camera (observed: at most 1.1 px, on a 200 px start)."""
+DROPOUT = (1.0, 0.5)
+"""Vision dropout (start, duration) in seconds of simulation time (the issue: paused 0.5 s)."""
+DROPOUT_DURATION_S = 8.0
+DQ_LIMIT = 10.0
+"""rad/s: the paper scenario never comes near this (observed max 4.2 rad/s on joint 2)."""
+
+
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_loopback_port()}"
+
+
+def rig_options(log: Path, **kw: Any) -> RigOptions:
+    """A rig on its own CAN port and zenoh port, logging to ``log``."""
+    kw.setdefault("can", isolated_spec("udp_multicast"))
+    kw.setdefault("zenoh_endpoint", endpoint())
+    return RigOptions(log=log, **kw)
+
+
+def norm(f: np.ndarray) -> np.ndarray:
+    return np.hypot(f[:, 0], f[:, 1])
+
+
+def pre_jump(cycles: dict[str, np.ndarray]) -> np.ndarray:
+    """|f| at the ticks just before the disturbance: sim time in [2.9, 3.0)."""
+    t = cycles["sim_time_s"]
+    sel = (t >= JUMP_S - 0.1 - 1e-9) & (t < JUMP_S - 1e-9)
+    assert sel.sum() == 5, t
+    return norm(cycles["f"][sel])
+
+
+def assert_nothing_left(token: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while (left := processes_mentioning(token)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not left, f"left running: {left}"
+
+
+def wait_for_cycles(log: Path, n: int, rig: Rig, timeout_s: float = 60.0) -> dict[str, Any]:
+    """Poll the growing log until it holds ``n`` cycles; the first cycle record."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for c in rig.children:
+            assert c.proc.poll() is None, f"{c.name} exited early:\n{c.tail()}"
+        if log.exists() and log.stat().st_size > 0:
+            cycles = read_log(log, raw=False).cycles
+            if len(cycles.get("tick", ())) >= n:
+                return {k: v[0] for k, v in cycles.items()}
+        time.sleep(0.1)
+    raise AssertionError(f"the controller logged fewer than {n} cycles in {timeout_s} s")
+
+
+def simulate(law: str, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Transport-free closed loop on the emulator's physics: (t, f) per tick."""
+    from plant_emulator.world import World
+    from rt_controller.control.controller import Controller
+    from rt_controller.control.simulate import run_closed_loop
+
+    cfg = CFG.with_overrides({"controller.law": law})
+    trace = run_closed_loop(World(cfg), Controller(cfg), cfg, duration_s).trace
+    return trace.array("t"), trace.array("f")
+
+
+@dataclass
+class Run:
+    summary: dict[str, Any]
+    log: Path
+    wall_s: float
+
+
+class LockstepRuns:
+    """One lockstep ``run_rig`` per law, shared by the module's tests (each takes a few s)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.runs: dict[str, Run] = {}
+
+    def __call__(self, law: str) -> Run:
+        if law not in self.runs:
+            log = self.root / f"lockstep-{law}.mcap"
+            opts = rig_options(log, law=law, lockstep=True, duration_s=DURATION_S[law])
+            t0 = time.monotonic()
+            summary = run_rig(opts)
+            self.runs[law] = Run(summary, log, time.monotonic() - t0)
+        return self.runs[law]
+
+
+@pytest.fixture(scope="module")
+def lockstep_runs(tmp_path_factory: pytest.TempPathFactory) -> LockstepRuns:
+    return LockstepRuns(tmp_path_factory.mktemp("live"))
+
+
+# ------------------------------------------------------------------ (a) the paper scenario
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_lockstep_paper_scenario_converges_before_and_after_the_jump(lockstep_runs, law):
+    run = lockstep_runs(law)
+    s = run.summary
+    print(f"lockstep {law} {DURATION_S[law]:g} s: {run.wall_s:.1f} s wall, J = {s['J']:.3f}")
+    ticks = round(DURATION_S[law] * RATE_HZ)
+    assert s["law"] == law and s["log"] == str(run.log)
+    assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
+    assert s["ticks"] == ticks and s["missed_periods"] == 0
+    assert s["stale_features"] == 0 and s["stale_states"] == 0
+    assert s["f_final_norm"] < 1.0, s["f_final"]
+    assert math.isfinite(s["J"]) and s["J"] > 0
+
+    cycles = read_log(run.log, raw=False).cycles
+    before = pre_jump(cycles)
+    assert before.max() < PRE_JUMP_LIMIT_PX[law], before
+    f = norm(cycles["f"])
+    t = cycles["sim_time_s"]
+    assert f[0] == pytest.approx(200.0, abs=1e-6)  # f(0) = (-120, -160) px
+    jumped = f[(t >= JUMP_S) & (t < JUMP_S + 0.1)]
+    assert jumped.max() > 100.0, "the target jump at 3 s did not reach the controller"
+    assert f[-1] == pytest.approx(s["f_final_norm"])
+    assert np.all(cycles["law"] == law) and not cycles["fallback"].any()
+
+    # the rig (CAN, zenoh, encoders, velocity filter, 60 fps camera) tracks the simulation
+    t_sim, f_sim = simulate(law, DURATION_S[law])
+    assert np.allclose(t_sim, t)
+    gap = np.abs(f - norm(f_sim))
+    assert gap.max() < SIM_TRACKING_PX, (gap.argmax(), gap.max())
+    if law == "pbc":  # the physics bound of the module docstring, in the simulation itself
+        assert pre_jump({"sim_time_s": t_sim, "f": f_sim}).min() > 2.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="spec vs physics: with the paper's gains PBC is at 2.2 px at t = 2.98 s even without "
+    "transports (hil simulate --law pbc --duration 2.98); the issue asks < 1 px for all laws",
+)
+def test_pbc_below_1px_before_the_jump(lockstep_runs):
+    assert pre_jump(read_log(lockstep_runs("pbc").log, raw=False).cycles).max() < 1.0
+
+
+# ------------------------------------------------------------------ (b) the MCAP log, via mcap
+
+
+def check_cycle_against_schema(record: dict[str, Any], schema: dict[str, Any]) -> None:
+    """The subset of JSON Schema the cycle schema uses: required keys and property types
+    (``null`` allowed for numbers: NaN is written as null)."""
+    types = {
+        "integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+        "number": lambda v: v is None or (isinstance(v, int | float) and not isinstance(v, bool)),
+        "boolean": lambda v: isinstance(v, bool),
+        "string": lambda v: isinstance(v, str),
+        "array": lambda v: isinstance(v, list),
+    }
+    missing = [k for k in schema["required"] if k not in record]
+    assert not missing, missing
+    for key, value in record.items():
+        spec = schema["properties"].get(key)
+        assert spec is not None, f"field {key!r} is not in the schema"
+        assert types[spec["type"]](value), (key, value, spec["type"])
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_mcap_log_reads_back_with_the_mcap_library(lockstep_runs, law):
+    run = lockstep_runs(law)
+    with run.log.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert set(channels) >= {CYCLE_TOPIC, CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC}
+        counts = summary.statistics.channel_message_counts
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        cycles = [
+            json.loads(msg.data) for _s, _c, msg in reader.iter_messages(topics=[CYCLE_TOPIC])
+        ]
+        vision = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=[VISION_TOPIC])]
+        can_rx = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=[CAN_RX_TOPIC])]
+
+    # one /controller/cycle message per tick, ticks consecutive (lockstep: tick = Sync index)
+    ticks = run.summary["ticks"]
+    assert counts[channels[CYCLE_TOPIC].id] == len(cycles) == ticks
+    assert [c["tick"] for c in cycles] == list(range(ticks))
+    assert [c["sim_time_s"] for c in cycles] == pytest.approx(np.arange(ticks) * PERIOD_S)
+    assert all(c["missed_periods"] == 0 and not c["deadline_miss"] for c in cycles)
+
+    # the schema: JSON Schema, the recorder's own, and every message conforms
+    ch = channels[CYCLE_TOPIC]
+    schema = summary.schemas[ch.schema_id]
+    assert ch.message_encoding == "json"
+    assert schema.encoding == "jsonschema" and schema.name == "hil.ControllerCycle"
+    assert json.loads(schema.data) == cycle_schema()
+    for record in cycles:
+        check_cycle_against_schema(record, cycle_schema())
+    for topic in (CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC):
+        raw_schema = summary.schemas[channels[topic].schema_id]
+        assert raw_schema.encoding == "jsonschema" and json.loads(raw_schema.data)["title"]
+
+    # metadata: the configuration round-trips and is the run's; hil.run says how it ran
+    assert {CONFIG_METADATA, RUN_METADATA} <= set(metadata)
+    text = metadata[CONFIG_METADATA]["json"]
+    cfg = config_from_json(text)
+    assert isinstance(cfg, RigConfig)
+    assert json.loads(cfg.to_json()) == json.loads(text)
+    assert config_from_json(cfg.to_json()) == cfg
+    assert cfg.controller.law == law and cfg.robot == CFG.robot and cfg.scenario == CFG.scenario
+    run_info = metadata[RUN_METADATA]
+    assert run_info["law"] == law and run_info["clock"] == "lockstep"
+    assert float(run_info["rate_hz"]) == RATE_HZ
+    assert metadata.get("hil.recorder", {}).get("dropped") == "0"
+
+    # raw inputs as received: vision payloads decode (one answer per tick in lockstep) and the
+    # CAN frames decode with the DBC
+    assert len(vision) >= ticks
+    decoded = [decode_features(base64.b64decode(v["data"])) for v in vision]
+    assert all(d.lockstep for d in decoded) and {d.pose_seq for d in decoded} >= set(range(ticks))
+    assert len(can_rx) >= ticks
+    db = cantools.database.load_file(str(DBC_PATH))
+    names = {db.get_message_by_frame_id(fr["arbitration_id"]).name for fr in can_rx}
+    assert {"Sync", "JointPosition", "JointVelocity", "DspStatus"} <= names, names
+    for fr in can_rx:
+        db.decode_message(fr["arbitration_id"], bytes.fromhex(fr["data"]))
+    syncs = [fr for fr in can_rx if fr["arbitration_id"] == db.get_message_by_name("Sync").frame_id]
+    assert len(syncs) >= ticks
+
+    # logread agrees with the library
+    loaded = read_log(run.log)
+    assert not loaded.truncated and loaded.n_cycles == ticks
+    assert loaded.topic_counts[VISION_TOPIC] == len(vision)
+
+
+# ------------------------------------------------------------------ (c) SIGKILL
+
+
+def stream_cycles(path: Path) -> tuple[list[dict[str, Any]], bool, dict[str, dict[str, str]]]:
+    """Read a possibly unfinished MCAP file with mcap's stream reader: the cycles of every
+    complete chunk, whether a footer was found, and the metadata."""
+    topics: dict[int, str] = {}
+    cycles: list[dict[str, Any]] = []
+    metadata: dict[str, dict[str, str]] = {}
+    footer = False
+    schemas = 0
+    with path.open("rb") as fh:
+        reader = StreamReader(fh, validate_crcs=True, record_size_limit=path.stat().st_size)
+        with contextlib.suppress(McapError, EOFError, ValueError):
+            for rec in reader.records:
+                if isinstance(rec, Schema):
+                    schemas += 1
+                elif isinstance(rec, Channel):
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Message) and topics.get(rec.channel_id) == CYCLE_TOPIC:
+                    cycles.append(json.loads(rec.data))
+                elif isinstance(rec, Metadata):
+                    metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Footer):
+                    footer = True
+    assert schemas >= 1
+    return cycles, footer, metadata
+
+
+def test_sigkilled_controller_log_keeps_all_but_the_last_second(tmp_path):
+    log = tmp_path / "killed.mcap"
+    opts = rig_options(log, law="ioc", duration_s=120.0, extra_emulator=["--json"])
+    with Rig(opts) as rig:
+        rig.start()
+        first = wait_for_cycles(log, 1, rig)
+        run_s = 4.0
+        while time.monotonic_ns() < first["t_ns"] + run_s * 1e9:
+            time.sleep(0.02)
+        ctl = next(c for c in rig.children if c.name == "controller")
+        assert ctl.proc.poll() is None, ctl.tail()
+        kill_ns = time.monotonic_ns()
+        os.kill(ctl.proc.pid, signal.SIGKILL)
+        assert ctl.proc.wait(30) == -signal.SIGKILL
+        codes = rig.stop()
+        emu = next(c for c in rig.children if c.name == "emulator")
+        emulator = json.loads(next(ln for ln in emu.output().splitlines() if ln.startswith("{")))
+    assert codes == {"controller": -signal.SIGKILL, "vision": 0, "emulator": 0}
+
+    cycles, footer, metadata = stream_cycles(log)
+    assert not footer, "a SIGKILLed writer cannot have finished the file"
+    assert {CONFIG_METADATA, RUN_METADATA} <= set(metadata)
+    elapsed_ticks = (kill_ns - first["t_ns"]) / 1e9 * RATE_HZ + 1
+    assert elapsed_ticks >= run_s * RATE_HZ
+    ticks = np.array([c["tick"] for c in cycles])
+    missed = np.array([c["missed_periods"] for c in cycles])
+    # every tick up to the last record is there (realtime ticks may skip missed periods)
+    assert ticks[0] == first["tick"] and np.array_equal(np.diff(ticks), 1 + missed[1:])
+    periods_logged = ticks[-1] - ticks[0] + 1
+    assert periods_logged >= elapsed_ticks - RATE_HZ, (periods_logged, elapsed_ticks)
+    assert cycles[-1]["t_ns"] >= kill_ns - 1_000_000_000
+
+    # logread reads the same file and says it is truncated
+    loaded = read_log(log)
+    assert loaded.truncated and loaded.n_cycles == len(cycles)
+    assert any("footer" in n or "killed" in n for n in loaded.notes), loaded.notes
+    # the dead controller's torque was removed by the DSP's watchdog (DSP clock, 3 periods)
+    assert emulator["watchdog_trips"] >= 1
+    assert emulator["last_trip_latency_ms"] <= 3 * PERIOD_S * 1e3 + 1.0
+
+
+# ------------------------------------------------------------------ (d) vision dropout
+
+
+def tx_torques(can_tx: list[dict[str, Any]]) -> np.ndarray:
+    """(Tau1, Tau2) of every TorqueCommand frame the controller sent, decoded with the DBC."""
+    db = cantools.database.load_file(str(DBC_PATH))
+    msg = db.get_message_by_name("TorqueCommand")
+    out = [
+        (d["Tau1"], d["Tau2"])
+        for fr in can_tx
+        if fr["arbitration_id"] == msg.frame_id
+        for d in [msg.decode(bytes.fromhex(fr["data"]), decode_choices=False)]
+    ]
+    return np.array(out, dtype=float)
+
+
+def longest_run(mask: np.ndarray) -> tuple[int, int]:
+    """(start index, length) of the longest run of True."""
+    best, start = (0, 0), None
+    for i, v in enumerate([*mask, False]):
+        if v and start is None:
+            start = i
+        elif not v and start is not None:
+            best = max(best, (i - start, start))
+            start = None
+    length, first = best
+    return first, length
+
+
+@pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "realtime"])
+def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
+    log = tmp_path / "dropout.mcap"
+    start_s, length_s = DROPOUT
+    opts = rig_options(
+        log,
+        law="rhc",
+        lockstep=lockstep,
+        duration_s=DROPOUT_DURATION_S,
+        extra_vision=["--dropout", f"{start_s}:{length_s}"],
+    )
+    s = run_rig(opts)
+    assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
+    loaded = read_log(log)
+    c = loaded.cycles
+    t, stale, law = c["sim_time_s"], c["f_stale"], c["law"]
+
+    # the controller flagged the dropout: stale ticks, all of them in hold
+    assert s["stale_features"] == int(stale.sum()) > 0
+    assert np.all(law[stale] == "hold")
+    if lockstep:
+        assert np.all(law[~stale] == "rhc") and s["stale_states"] == 0
+    else:  # a realtime tick may find the joint state late on a busy host: zero torque then
+        assert set(law[~stale]) <= {"rhc", "no_state"} and s["stale_states"] <= 3
+    expected = (length_s - FEATURE_TIMEOUT_S) / PERIOD_S  # 20 ticks
+    if lockstep:  # deterministic: exactly the window, once the last frame aged past the timeout
+        first, n = longest_run(stale)
+        assert n == stale.sum() and expected - 1 <= n <= expected + 1, n
+        assert start_s + FEATURE_TIMEOUT_S - 1e-9 <= t[first] <= start_s + FEATURE_TIMEOUT_S + 0.05
+        assert t[first + n - 1] < start_s + length_s
+    else:
+        # realtime: the window is on the emulator's clock, which leads the controller's by its
+        # start-up difference; find it from the target jump (emulator t = 3 s). A busy host may
+        # add short stale stretches elsewhere (vision frames delayed > 100 ms in transit): they
+        # are flagged and held the same way, and are not the dropout.
+        f = norm(c["f"])
+        jump = t[np.argmax((f > 100) & (t > 1.5) & ~stale)]
+        offset = JUMP_S - jump
+        assert -0.5 < offset < 2.0, offset
+        lo, hi = start_s + FEATURE_TIMEOUT_S - offset, start_s + length_s - offset
+        window = (t >= lo - 0.2) & (t <= hi + 0.2)
+        first, n = longest_run(stale & window)
+        assert expected - 5 <= n <= expected + 8, n
+        assert lo - 0.2 <= t[first] <= lo + 0.2, (t[first], lo)
+        assert stale[~window].sum() < 0.1 * len(t), "stale far beyond the dropout"
+    assert c["f_valid"][stale].all()  # the controller still holds the last valid (old) frame
+    assert (c["f_age_ms"][stale] > FEATURE_TIMEOUT_S * 1e3).all()
+
+    # no NaN ever sent: the logged commands and the TorqueCommand frames on the bus
+    tau = c["tau"]
+    assert np.isfinite(tau).all()
+    sent = tx_torques(loaded.can_tx)
+    assert len(sent) >= len(tau) and np.isfinite(sent).all()
+    # the arm is safe: torque within the amplifier limits, velocities bounded, and in hold the
+    # pure damper tau = -2 R dq only takes energy out
+    assert (np.abs(tau) <= TAU_MAX + 1e-9).all() and (np.abs(sent) <= TAU_MAX + 0.01).all()
+    dq = c["dq"]
+    assert np.isfinite(dq).all() and np.abs(dq).max() < DQ_LIMIT
+    hold = slice(first, first + n)
+    assert np.all(tau[hold] * dq[hold] <= 1e-12), "hold torque must oppose the motion"
+    assert np.linalg.norm(dq[first + n - 1]) <= np.linalg.norm(dq[first]) + 0.05
+
+    # after the features return the law takes over again and converges
+    after = law[first + n :]
+    assert (after == "rhc").mean() > (0.999 if lockstep else 0.9), "features did not return"
+    assert s["f_final_norm"] < 1.0, s["f_final"]
+    assert norm(c["f"])[-1] < 1.0
+
+
+# ------------------------------------------------------------------ (e) the CLI and failures
+
+
+def hil_command() -> list[str]:
+    script = Path(sys.executable).with_name("hil")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
+
+
+def run_hil(args: list[str], timeout_s: float) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.Popen(
+        [*hil_command(), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        cwd=REPO,
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:  # pragma: no cover - only on a hang
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def test_hil_up_json_from_the_command_line(tmp_path):
+    ep = endpoint()
+    log = tmp_path / "cli.mcap"
+    args = ["up", "--lockstep", "--duration", "2", "--json", "--law", "ioc"]
+    args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", ep, "--log", str(log)]
+    try:
+        done = run_hil(args, 120)
+    finally:
+        assert_nothing_left(ep)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    for key in ("J", "f_final", "ticks", "deadline_misses", "solve_us_p99", "log"):
+        assert key in summary, key
+    assert summary["ticks"] == 100 and summary["log"] == str(log) and log.exists()
+    assert len(summary["f_final"]) == 2 and math.isfinite(summary["J"])
+    assert summary["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
+    assert read_log(log, raw=False).n_cycles == 100
+
+
+def test_hil_up_reports_a_process_that_cannot_start(tmp_path):
+    """A bad CAN spec: the emulator (or controller) exits 2; ``hil up`` names it with its exit
+    status and stderr tail, exits non-zero, and leaves nothing running."""
+    ep = endpoint()
+    args = ["up", "--lockstep", "--duration", "2", "--json", "--can", "udp_multicast:nowhere:1"]
+    args += ["--zenoh-endpoint", ep, "--log", str(tmp_path / "bad.mcap")]
+    try:
+        done = run_hil(args, 120)
+    finally:
+        assert_nothing_left(ep)
+    assert done.returncode == 2, (done.stdout, done.stderr)
+    err = done.stderr
+    assert err.startswith("hil up: error:"), err
+    m = re.search(r"(emulator|vision|controller) exited with status (-?\d+)", err)
+    assert m and m.group(2) == "2", err
+    assert f"hil {m.group(1)}: error:" in err  # the stderr tail of the process that died
+    assert not done.stdout.strip().startswith("{")
+
+
+def test_run_rig_reports_an_emulator_killed_mid_run(tmp_path):
+    log = tmp_path / "emu-killed.mcap"
+    opts = rig_options(log, law="ioc", lockstep=True, duration_s=600.0)
+    with Rig(opts) as rig:
+        rig.start()
+        children = list(rig.children)
+        wait_for_cycles(log, 50, rig)
+        emu = next(c for c in rig.children if c.name == "emulator")
+        os.kill(emu.proc.pid, signal.SIGKILL)
+        with pytest.raises(RigProcessError) as info:
+            rig.wait_controller()
+        message = str(info.value)
+        assert message.startswith(f"emulator exited with status {-signal.SIGKILL}"), message
+        assert "hil emulator: serving the arm on" in message  # its stderr tail
+    # the context manager stopped the others; the conftest fixture checks for leaks as well
+    assert len(children) == 3 and all(c.proc.returncode is not None for c in children)
+    assert_nothing_left(opts.zenoh_endpoint)
+    loaded = read_log(log)  # the controller was stopped with SIGTERM: a finished file
+    assert loaded.n_cycles >= 50 and not loaded.truncated
+
+
+def test_run_rig_bad_spec_raises_naming_the_process(tmp_path):
+    opts = rig_options(tmp_path / "x.mcap", can="nosuchbus:0", lockstep=True, duration_s=2.0)
+    with pytest.raises(RigProcessError, match=r"(emulator|controller) exited with status 2"):
+        run_rig(opts)
+    assert_nothing_left(opts.zenoh_endpoint)

@@ -1,0 +1,61 @@
+"""Helpers for tests that need a real SocketCAN ``vcan0`` (pytest marker ``vcan``).
+
+Usage in a test module::
+
+    import pytest
+    from tests.support.vcan import VCAN_CHANNEL, requires_vcan
+
+    pytestmark = [pytest.mark.vcan, requires_vcan]
+
+``requires_vcan`` skips when the interface is missing, unless ``HIL_VCAN_REQUIRED=1`` is set
+(``scripts/vcan_pytest.py`` sets it after creating vcan0, natively or inside user-mode Linux):
+then the tests run and fail loudly rather than skip silently.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+VCAN_CHANNEL = os.environ.get("HIL_VCAN_CHANNEL", "vcan0")
+ENABLE_HINT = (
+    "run `scripts/vcan_pytest.py` (boots user-mode Linux if needed) or create it: "
+    "sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; sudo ip link set up vcan0"
+)
+
+
+def vcan_required() -> bool:
+    """True when a missing vcan interface must fail the tests instead of skipping them."""
+    return os.environ.get("HIL_VCAN_REQUIRED", "").strip().lower() in {"1", "true", "yes"}
+
+
+def vcan_available(channel: str = VCAN_CHANNEL) -> bool:
+    """True when ``channel`` exists as a network interface and is administratively up."""
+    net = Path("/sys/class/net") / channel
+    try:
+        flags = int((net / "flags").read_text().strip(), 16)
+    except (OSError, ValueError):
+        return False
+    return bool(flags & 0x1)  # IFF_UP
+
+
+def vcan_skip_reason(channel: str = VCAN_CHANNEL) -> str:
+    if not (Path("/sys/class/net") / channel).exists():
+        return f"no SocketCAN interface {channel}; {ENABLE_HINT}"
+    return f"SocketCAN interface {channel} is down; sudo ip link set up {channel}"
+
+
+def candump_available() -> bool:
+    return shutil.which("candump") is not None
+
+
+requires_vcan = pytest.mark.skipif(
+    not vcan_available() and not vcan_required(), reason=vcan_skip_reason()
+)
+requires_candump = pytest.mark.skipif(
+    not candump_available() and not vcan_required(),
+    reason="candump not found (sudo apt-get install can-utils)",
+)
