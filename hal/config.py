@@ -19,6 +19,10 @@ from typing import TYPE_CHECKING, Any
 
 from hal.errors import HalConfigError
 
+LAW_NAMES = ("pbc", "ioc", "rhc")
+"""Control-law names (``controller.law``, ``--law``); rt_controller's law table has one entry
+per name (``rt_controller.control.law_table.LAWS``, checked by a test)."""
+
 if TYPE_CHECKING:  # numpy is imported where used: `hil --help` does not need it
     import numpy as np
 
@@ -380,9 +384,9 @@ def validate(cfg: RigConfig) -> RigConfig:
     _require(h.init_iterations >= 1, "rhc.init_iterations", "must be at least 1")
     ct = cfg.controller
     _require(
-        ct.law in ("pbc", "ioc", "rhc"),
+        ct.law in LAW_NAMES,
         "controller.law",
-        f"must be pbc, ioc or rhc, not {ct.law!r}",
+        f"must be {', '.join(LAW_NAMES[:-1])} or {LAW_NAMES[-1]}, not {ct.law!r}",
     )
     _require(
         ct.clock in ("realtime", "lockstep"),

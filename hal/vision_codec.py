@@ -79,7 +79,7 @@ class FeatureMsg(NamedTuple):
     lockstep: bool = False
     source: int = 0
 
-    def to_dict(self) -> dict[str, object]:
+    def as_dict(self) -> dict[str, object]:
         """Plain dict for JSON logs (``f`` as a list)."""
         d: dict[str, object] = self._asdict()
         d["f"] = list(self.f)
@@ -253,7 +253,7 @@ class RxCounts:
     def rejected(self) -> int:
         return self.malformed + self.stale
 
-    def to_dict(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         d = asdict(self)
         d.update(malformed=self.malformed, stale=self.stale, rejected=self.rejected)
         return d

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 import time
@@ -134,16 +133,10 @@ def _config(args: argparse.Namespace) -> Any:
 
 def run_emulator(args: argparse.Namespace) -> int:
     """Body of ``hil emulator``; returns the exit status (HalError propagates to the CLI)."""
-    stop = threading.Event()
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():  # before the slow imports
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    try:
+    from hal.signals import stop_on_signals
+
+    with stop_on_signals() as stop:  # before the slow imports
         return _serve(args, stop)
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
@@ -227,18 +220,14 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Stand-alone entry point (``python -m plant_emulator.entry``), same as ``hil emulator``."""
-    from hal.errors import HalError
+    from hal.signals import run_standalone
 
     parser = argparse.ArgumentParser(
         prog="hil emulator", description="Emulated DSP of the two-link arm on CAN."
     )
     add_emulator_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        return run_emulator(args)
-    except HalError as exc:
-        print(f"hil emulator: error: {exc}", file=sys.stderr)
-        return 2
+    return run_standalone("hil emulator", lambda: run_emulator(args))
 
 
 if __name__ == "__main__":  # pragma: no cover

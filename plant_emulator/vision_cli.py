@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from hal.errors import HalConfigError, HalError
+from hal.signals import run_standalone, stop_on_signals
 
 if TYPE_CHECKING:
     from hal.config import RigConfig
@@ -94,12 +93,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     fps = resolve_fps(cfg, args.fps)
     dropouts = [Dropout.parse(text) for text in getattr(args, "dropout", None) or []]
     lockstep = {"auto": None, "lockstep": True, "realtime": False}[args.clock]
-    stop = threading.Event()
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    try:
+    with stop_on_signals() as stop:
         print(
             f"hil vision: {fps:g} fps, clock {args.clock}, "
             f"zenoh {args.zenoh_config or args.zenoh_endpoint or cfg.transport.zenoh_endpoint}"
@@ -124,11 +118,8 @@ def run_from_args(args: argparse.Namespace) -> int:
             if stop.is_set():  # told to stop while waiting for the hub
                 return 0
             raise
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     if args.json:
-        print(json.dumps(stats.to_dict()), flush=True)
+        print(json.dumps(stats.as_dict()), flush=True)
     else:
         print(
             f"hil vision: {stats.poses} poses, {stats.frames} frames, "
@@ -148,11 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     add_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        return run_from_args(args)
-    except HalError as exc:
-        print(f"hil vision: error: {exc}", file=sys.stderr)
-        return 2
+    return run_standalone("hil vision", lambda: run_from_args(args))
 
 
 if __name__ == "__main__":  # pragma: no cover

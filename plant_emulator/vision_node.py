@@ -197,7 +197,7 @@ class VisionStats:
     dropout_answers: int = 0
     """Lockstep answers sent with valid = 0 during a dropout (also counted in ``invalid``)."""
 
-    def to_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -391,7 +391,7 @@ class VisionNode:
     def stats(self) -> VisionStats:
         with self._lock:
             s = self.core.stats
-            s.pose_rx = self.decoder.counts.to_dict()
+            s.pose_rx = self.decoder.counts.as_dict()
             s.callback_errors = self.session.callback_errors
             return VisionStats(**asdict(s))
 

@@ -8,12 +8,10 @@ packages meet).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
 
-from hal.errors import HalError
+from hal.signals import run_standalone
 from rt_controller.errors import ControllerError
 
 Handler = Callable[[argparse.Namespace], int]
@@ -30,26 +28,6 @@ COMMAND_MODULES = (
     "bench",
 )
 """Modules of :mod:`rt_controller.commands`, each with ``register(subparsers)``."""
-
-
-def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
-    """One JSON object on stdout, or a two-column table for people."""
-    if as_json:
-        print(json.dumps(summary, sort_keys=False))
-        return
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=title, show_header=False)
-    for key, value in summary.items():
-        if isinstance(value, float):
-            text = f"{value:.6g}"
-        elif isinstance(value, list):
-            text = ", ".join(f"{v:.6g}" if isinstance(v, float) else str(v) for v in value)
-        else:
-            text = str(value)
-        table.add_row(key, text)
-    Console().print(table)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,13 +47,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handler: Handler = args.handler
-    try:
-        return handler(args)
-    except (HalError, ControllerError) as exc:
-        print(f"hil {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    return run_standalone(f"hil {args.command}", lambda: handler(args), (ControllerError,))
 
 
 if __name__ == "__main__":  # pragma: no cover

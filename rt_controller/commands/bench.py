@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from hal.config import LAW_NAMES
 from rt_controller.commands.common import add_config_option, config_from_args
 
 
@@ -25,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--rates", default="50,200,500,1000", help="comma-separated control rates in Hz"
     )
     lp.add_argument("--duration", type=float, default=10.0, help="seconds per rate (default 10)")
-    lp.add_argument("--law", choices=("pbc", "ioc", "rhc"), default="rhc", help="default rhc")
+    lp.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
     lp.add_argument(
         "--lockstep-duration",
         type=float,

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from rt_controller.commands.common import add_config_option, add_law_options, config_from_args
@@ -49,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rt_controller.cli import print_summary
+    from hal.signals import stop_on_signals
+    from rt_controller.commands.output import print_summary
     from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
 
     cfg = config_from_args(args)
@@ -65,15 +64,13 @@ def run(args: argparse.Namespace) -> int:
         realtime_settings=not args.no_rt,
         record_raw=not args.no_raw,
     )
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-    daemon = ControllerDaemon(cfg, opts, stop)
-    print(
-        f"hil controller: law {cfg.controller.law} at {cfg.rates.control_hz:g} Hz "
-        f"({cfg.controller.clock}), logging to {daemon.log_path}",
-        file=sys.stderr,
-    )
-    summary = daemon.run()
+    with stop_on_signals() as stop:
+        daemon = ControllerDaemon(cfg, opts, stop)
+        print(
+            f"hil controller: law {cfg.controller.law} at {cfg.rates.control_hz:g} Hz "
+            f"({cfg.controller.clock}), logging to {daemon.log_path}",
+            file=sys.stderr,
+        )
+        summary = daemon.run()
     print_summary(summary, args.json, "hil controller")
     return 0

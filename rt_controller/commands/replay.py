@@ -110,7 +110,7 @@ def _config(args: argparse.Namespace, log_cfg: RigConfig | None) -> RigConfig | 
 
 
 def run(args: argparse.Namespace) -> int:
-    from rt_controller.cli import print_summary
+    from rt_controller.commands.output import print_summary
 
     if args.republish:
         return _republish(args)
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     result = replay_loaded(
         log, cfg_override=cfg, tol=args.tol, out=Path(args.out) if args.out else None
     )
-    summary = result.summary()
+    summary = result.as_dict()
     if args.json:
         print(json.dumps(summary))
     else:
@@ -139,22 +139,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _republish(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-
-    from rt_controller.cli import print_summary
+    from hal.signals import stop_on_signals
+    from rt_controller.commands.output import print_summary
     from rt_controller.logtools.reader import read_log
     from rt_controller.logtools.republish import republish_log
 
     cfg = None
     if args.config or args.sets:
         cfg = _config(args, read_log(args.log, raw=False).config)
-    stop = threading.Event()
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    try:
+    with stop_on_signals() as stop:
         result = republish_log(
             args.log,
             speed=args.speed,
@@ -166,10 +159,7 @@ def _republish(args: argparse.Namespace) -> int:
             lead_in_s=max(0.0, args.lead_in),
             stop=stop,
         )
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    summary = result.summary()
+    summary = result.as_dict()
     if args.json:
         print(json.dumps(summary))
     else:

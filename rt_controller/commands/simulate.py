@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from plant_emulator.world import World
-    from rt_controller.cli import print_summary
+    from rt_controller.commands.output import print_summary
     from rt_controller.control.controller import Controller
     from rt_controller.control.simulate import run_closed_loop
     from rt_controller.errors import ControllerConfigError
@@ -38,5 +38,5 @@ def run(args: argparse.Namespace) -> int:
         raise ControllerConfigError(f"--duration must be positive, got {args.duration}")
     cfg = config_from_args(args)
     result = run_closed_loop(World(cfg), Controller(cfg), cfg, args.duration)
-    print_summary(result.summary(), args.json, f"hil simulate --law {result.law}")
+    print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
     return 0

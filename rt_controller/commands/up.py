@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hal.config import LAW_NAMES
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -14,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "processes on the embedded defaults, waits --duration, stops them cleanly and prints "
         "final |f|, J, deadline misses, solve time and the log path.",
     )
-    p.add_argument("--law", choices=("pbc", "ioc", "rhc"), help="control law (default: config)")
+    p.add_argument("--law", choices=LAW_NAMES, help="control law (default: config)")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="default 10")
     p.add_argument(
         "--lockstep",
@@ -30,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rt_controller.cli import print_summary
+    from rt_controller.commands.output import print_summary
     from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.processes import RigOptions, run_rig
 

@@ -8,7 +8,8 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control import model_kernels
-from rt_controller.control.laws import ControlLaw, LawOutput, Measurement, make_law
+from rt_controller.control.law_table import make_law
+from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
 from rt_controller.control.model import NominalModel
 
 

@@ -1,8 +1,8 @@
 """Control laws for the input u of eq. (11): each maps a measurement to u.
 
 ``pbc`` and ``ioc`` are pure functions of the state (eq. 15 and 27). ``rhc`` (eq. 30) carries the
-C/GMRES warm start between ticks; it lives in
-:mod:`rt_controller.control.rhc` and is imported lazily.
+C/GMRES warm start between ticks; it lives in :mod:`rt_controller.control.rhc`. Laws are looked
+up by name in :mod:`rt_controller.control.law_table`.
 """
 
 from __future__ import annotations
@@ -14,9 +14,6 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.errors import ControllerConfigError
-
-LAW_NAMES = ("pbc", "ioc", "rhc")
 
 
 @dataclass(frozen=True)
@@ -66,7 +63,7 @@ class PassivityBasedLaw:
 
     name = "pbc"
 
-    def __init__(self, model: NominalModel) -> None:
+    def __init__(self, model: NominalModel, cfg: RigConfig | None = None) -> None:
         self.model = model
 
     def __call__(self, m: Measurement) -> LawOutput:
@@ -83,16 +80,3 @@ class InverseOptimalLaw(PassivityBasedLaw):
 
     def __call__(self, m: Measurement) -> LawOutput:
         return LawOutput(u=inverse_optimal(self.model, m.xi))
-
-
-def make_law(name: str, model: NominalModel, cfg: RigConfig) -> ControlLaw:
-    """The law called ``name`` (pbc | ioc | rhc) for this model and configuration."""
-    if name == "pbc":
-        return PassivityBasedLaw(model)
-    if name == "ioc":
-        return InverseOptimalLaw(model)
-    if name == "rhc":
-        from rt_controller.control.rhc import RecedingHorizonLaw
-
-        return RecedingHorizonLaw(model, cfg)
-    raise ControllerConfigError(f"unknown law {name!r} (choose from {', '.join(LAW_NAMES)})")

@@ -14,6 +14,8 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.controller import Controller
+from rt_controller.runtime.cycle_record import decision_fields
+from rt_controller.sample_stats import percentile
 
 
 class Plant(Protocol):
@@ -61,7 +63,7 @@ class SimResult:
         """Eq. (25) integrated over the run: sum over ticks of l(x_k, u_k) / rate."""
         return float(np.sum(self.trace.cost) / self.rate)
 
-    def summary(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, Any]:
         tr = self.trace
         tau = np.abs(tr.array("tau"))
         f_final = tr.f[-1]
@@ -84,7 +86,7 @@ class SimResult:
                 residual_max=float(np.max(res)),
                 fallbacks=int(np.sum(tr.fallback)),
                 solve_us_median=float(np.median(solve_us)),
-                solve_us_p99=float(np.percentile(solve_us, 99)),
+                solve_us_p99=percentile(solve_us, 99),
             )
         return out
 
@@ -98,22 +100,24 @@ def run_closed_loop(
     ticks = math.floor(duration * rate + 1e-9)
     tr = Trace()
     for _ in range(ticks):
-        q, dq, f = plant.measure()
-        cmd = controller.step(plant.t, q, dq, f)
-        m, out = cmd.measurement, cmd.law
-        tr.t.append(m.t)
-        tr.q.append(m.q)
-        tr.dq.append(m.dq)
-        tr.f.append(m.f)
-        tr.xi.append(m.xi)
-        tr.u.append(out.u)
-        tr.tau.append(cmd.tau)
-        held = not np.all(np.isfinite(m.f))
-        tr.cost.append(0.0 if held else controller.stage_cost(cmd))
-        tr.V.append(np.nan if held else controller.energy(cmd))
-        tr.residual.append(out.residual)
-        tr.iterations.append(out.iterations)
-        tr.fallback.append(out.fallback)
-        tr.solve_ns.append(out.solve_ns)
-        plant.hold(cmd.tau, substeps)
+        t = plant.t
+        q, dq, f = (np.asarray(v, dtype=float) for v in plant.measure())
+        # The daemon's per-tick rule; in process the features are stale exactly when missing.
+        d = controller.decide(t, q, dq, f, f_stale=not np.all(np.isfinite(f)), state_stale=False)
+        rec = decision_fields(controller, d)
+        held = d.command is None
+        tr.t.append(t)
+        tr.q.append(q)
+        tr.dq.append(dq)
+        tr.f.append(f)
+        tr.xi.append(np.full(2, np.nan) if held else np.asarray(rec["xi"]))
+        tr.u.append(np.asarray(rec["u"]))
+        tr.tau.append(d.tau)
+        tr.cost.append(0.0 if held else rec["cost"])
+        tr.V.append(rec["V"])
+        tr.residual.append(rec["residual"])
+        tr.iterations.append(rec["iterations"])
+        tr.fallback.append(rec["fallback"])
+        tr.solve_ns.append(0 if held else d.command.law.solve_ns)
+        plant.hold(d.tau, substeps)
     return SimResult(controller.law.name, rate, duration, tr)

@@ -17,6 +17,7 @@ import numpy as np
 
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, CYCLE_TOPIC, VISION_TOPIC
+from rt_controller.sample_stats import finite, summary_stats
 
 #: Edges (µs) of the log-scale lateness histogram; below 0 and above the last edge get buckets.
 HIST_EDGES_US: tuple[float, ...] = (
@@ -43,19 +44,10 @@ TIMING_FIELDS = ("lateness_us", "cycle_us", "read_us", "solve_us", "write_us")
 
 def stats(values: np.ndarray | None) -> dict[str, float] | None:
     """min / median / p99 / max / mean of the finite samples, or None when there are none."""
-    if values is None:
-        return None
-    v = np.asarray(values, dtype=float).ravel()
-    v = v[np.isfinite(v)]
+    v = finite(values)
     if v.size == 0:
         return None
-    return {
-        "min": float(v.min()),
-        "median": float(np.median(v)),
-        "p99": float(np.percentile(v, 99)),
-        "max": float(v.max()),
-        "mean": float(v.mean()),
-    }
+    return summary_stats(v, ("min", "median", "p99", "max", "mean"))
 
 
 def histogram(values: np.ndarray | None, edges: tuple[float, ...] = HIST_EDGES_US) -> list[dict]:

@@ -40,13 +40,11 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
-from rt_controller.control.controller import Controller, Decision
+from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log
+from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
 from rt_controller.runtime.recorder import CycleRecorder
-
-TIMING_FIELDS = ("lateness_us", "read_us", "solve_us", "write_us", "cycle_us", "e2e_us")
-"""Loop-timing fields of a cycle record; zero in a replayed log (when the source had them)."""
 
 
 @dataclass
@@ -79,7 +77,7 @@ class ReplayResult:
         """Every tick within ``tol`` for both u and tau."""
         return self.ticks_over_tol == 0
 
-    def summary(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, Any]:
         """The JSON object of ``hil replay --json`` (non-finite values as None)."""
 
         def num(v: float) -> float | None:
@@ -215,35 +213,6 @@ def _cycle_record(log: LoadedLog, i: int) -> dict[str, Any]:
     return rec
 
 
-def _replayed_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
-    """The output fields of one replayed tick, shaped as the daemon records them."""
-    out: dict[str, Any] = {
-        "u": [0.0, 0.0],
-        "xi": [0.0, 0.0],
-        "tau": [float(d.tau[0]), float(d.tau[1])],
-        "law": d.mode if d.command is None else ctl.law.name,
-        "residual": 0.0,
-        "iterations": 0,
-        "fallback": False,
-        "tau_saturated": False,
-        "cost": math.nan,
-        "V": math.nan,
-    }
-    cmd = d.command
-    if cmd is not None:
-        out.update(
-            u=[float(x) for x in cmd.law.u],
-            xi=[float(x) for x in cmd.measurement.xi],
-            residual=float(cmd.law.residual),
-            iterations=int(cmd.law.iterations),
-            fallback=bool(cmd.law.fallback),
-            tau_saturated=bool(cmd.saturated),
-            cost=ctl.stage_cost(cmd),
-            V=ctl.energy(cmd),
-        )
-    return out
-
-
 class _OutLog:
     """The ``--out`` writer: replayed cycles plus the recorded raw inputs, with back-pressure."""
 
@@ -340,7 +309,7 @@ def replay_loaded(
                 f_stale=bool(inputs["f_stale"][i]),
                 state_stale=bool(inputs["state_stale"][i]),
             )
-            fields = _replayed_fields(ctl, d)
+            fields = decision_fields(ctl, d)
             u[i], tau[i] = fields["u"], fields["tau"]
             laws.append(fields["law"])
             if writer is not None:

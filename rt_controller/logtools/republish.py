@@ -71,7 +71,7 @@ class RepublishResult:
     truncated: bool = False
     notes: list[str] = field(default_factory=list)
 
-    def summary(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, Any]:
         """The JSON object of ``hil replay --republish --json``."""
         return {
             "log": str(self.path),

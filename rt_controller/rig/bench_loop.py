@@ -17,52 +17,21 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig, load_config
+from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.processes import RigOptions, run_rig
+from rt_controller.sample_stats import summary_stats
 
 DEFAULT_RATES = (50.0, 200.0, 500.0, 1000.0)
 
 
-def _stats(values: np.ndarray) -> dict[str, float]:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return {"median": math.nan, "p99": math.nan, "max": math.nan}
-    return {
-        "median": float(np.median(v)),
-        "p99": float(np.percentile(v, 99)),
-        "max": float(np.max(v)),
-    }
-
-
 def _rate_config(cfg: RigConfig, rate: float) -> RigConfig:
-    physics = max(cfg.rates.physics_hz, rate)
-    physics = rate * math.ceil(physics / rate)
-    return cfg.with_overrides(
-        {
-            "rates.control_hz": rate,
-            "rates.physics_hz": physics,
-            "rates.state_hz": min(cfg.rates.state_hz, physics),
-        }
-    )
+    rcfg = apply_overrides(cfg, rate=rate)
+    return rcfg.with_overrides({"rates.state_hz": min(cfg.rates.state_hz, rcfg.rates.physics_hz)})
 
 
 def _write_toml(cfg: RigConfig, path: Path) -> None:
-    lines = []
-    for section, values in cfg.to_dict().items():
-        lines.append(f"[{section}]")
-        for key, value in values.items():
-            lines.append(f"{key} = {_toml_value(value)}")
-    path.write_text("\n".join(lines) + "\n")
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return repr(value)
+    path.write_text(config_toml(cfg))
 
 
 def bench_rate(cfg: RigConfig, rate: float, duration: float, law: str, workdir: Path) -> dict:
@@ -85,10 +54,10 @@ def bench_rate(cfg: RigConfig, rate: float, duration: float, law: str, workdir: 
         "deadline_misses": misses,
         "miss_percent": 100.0 * misses / max(1, ticks + missed_periods),
         "missed_periods": missed_periods,
-        "lateness_us": _stats(c["lateness_us"]),
-        "cycle_us": _stats(c["cycle_us"]),
-        "solve_us": _stats(c["solve_us"]),
-        "e2e_us": _stats(c["e2e_us"]) if "e2e_us" in c else None,
+        "lateness_us": summary_stats(c["lateness_us"]),
+        "cycle_us": summary_stats(c["cycle_us"]),
+        "solve_us": summary_stats(c["solve_us"]),
+        "e2e_us": summary_stats(c["e2e_us"]) if "e2e_us" in c else None,
         "f_final_norm": summary.get("f_final_norm"),
         "fallbacks": summary.get("fallbacks"),
     }

@@ -25,6 +25,7 @@ from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc.reference import ReferenceSolver
 from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
+from rt_controller.sample_stats import summary_stats
 
 PlantStep = Callable[
     [np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -60,13 +61,7 @@ def nominal_plant_step(model: NominalModel, cfg: RigConfig) -> PlantStep:
 
 
 def _stats(us: np.ndarray) -> dict[str, float]:
-    if us.size == 0:
-        return {"median": float("nan"), "p99": float("nan"), "max": float("nan")}
-    return {
-        "median": float(np.median(us)),
-        "p99": float(np.percentile(us, 99)),
-        "max": float(np.max(us)),
-    }
+    return summary_stats(us)
 
 
 def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, np.ndarray]:

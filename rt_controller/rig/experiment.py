@@ -12,8 +12,6 @@ Identical specs are run once (``all`` shares the RHC T = 0.02 s run between Fig.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 from collections.abc import Callable
@@ -25,6 +23,7 @@ import numpy as np
 
 from hal.config import RigConfig, load_config
 from hal.errors import HalError
+from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerError
 from rt_controller.rig.processes import RigOptions, private_default_bus, run_rig
 
@@ -171,10 +170,7 @@ def run_config(settings: Settings, spec: RunSpec) -> RigConfig:
 
     When only the horizon is given, N = max(rhc.steps, ceil(T / 0.05)) (T = 1.0 s -> N = 20).
     """
-    from rt_controller.commands.common import config_from_args
-
-    ns = argparse.Namespace(config=settings.config, law=spec.law, horizon=spec.horizon_s)
-    cfg = config_from_args(ns)
+    cfg = apply_overrides(load_config(settings.config), law=spec.law, horizon=spec.horizon_s)
     return cfg.with_overrides(
         {
             "camera.noise_px": spec.noise_px,
@@ -182,15 +178,6 @@ def run_config(settings: Settings, spec: RunSpec) -> RigConfig:
             "controller.clock": settings.clock,
         }
     )
-
-
-def config_toml(cfg: RigConfig) -> str:
-    """The configuration as TOML that :func:`hal.config.load_config` reads back unchanged."""
-    lines = ["# written by hil experiment"]
-    for section, body in cfg.to_dict().items():
-        lines.append(f"\n[{section}]")
-        lines += [f"{key} = {json.dumps(value)}" for key, value in body.items()]
-    return "\n".join(lines) + "\n"
 
 
 def prepare(settings: Settings) -> tuple[dict[str, list[RunSpec]], dict[str, RunResult]]:

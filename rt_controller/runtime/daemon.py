@@ -30,8 +30,10 @@ from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
 from rt_controller.runtime.cadence import Cadence, MonotonicClock
+from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder import CycleRecorder
+from rt_controller.sample_stats import percentile
 
 STARTUP_TIMEOUT_S = 20.0
 """How long the daemon waits for the first joint state and features before giving up."""
@@ -73,10 +75,8 @@ class RunStats:
     lateness_us: list[float] = field(default_factory=list)
     cycle_us: list[float] = field(default_factory=list)
 
-    def summary(self) -> dict[str, Any]:
-        def pct(values: list[float], q: float) -> float:
-            return float(np.percentile(values, q)) if values else math.nan
-
+    def as_dict(self) -> dict[str, Any]:
+        pct = percentile
         return {
             "ticks": self.ticks,
             "J": self.J,
@@ -98,10 +98,6 @@ class RunStats:
 def default_log_path(cfg: RigConfig, law: str) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
-
-
-def _vec(a: Any) -> list[float]:
-    return [float(a[0]), float(a[1])]
 
 
 class ControllerDaemon:
@@ -161,8 +157,8 @@ class ControllerDaemon:
                 session.close()
         finally:
             rec.close()
-        out = self.stats.summary()
-        out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.stats())
+        out = self.stats.as_dict()
+        out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.as_dict())
         return out
 
     def _on_features(self, rec: CycleRecorder):
@@ -300,22 +296,15 @@ class ControllerDaemon:
         t_read = time.monotonic_ns()
         # --- decide
         d = self.controller.decide(t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale)
-        u = xi = np.zeros(2)
-        residual, iterations, fallback, saturated = 0.0, 0, False, False
-        cost = V = math.nan
+        fields = decision_fields(self.controller, d)
         if d.mode == "no_state":
             st.stale_states += 1
         elif d.mode == "hold":
             st.stale_features += 1
         else:
-            cmd = d.command
-            u, xi = cmd.law.u, cmd.measurement.xi
-            residual, iterations, fallback = cmd.law.residual, cmd.law.iterations, cmd.law.fallback
-            saturated = cmd.saturated
-            cost, V = self.controller.costs(cmd)
-            st.J += cost / cfg.rates.control_hz
-            st.fallbacks += int(fallback)
-            st.f_final = _vec(f)
+            st.J += fields["cost"] / cfg.rates.control_hz
+            st.fallbacks += int(fields["fallback"])
+            st.f_final = vec2(f)
         t_solve = time.monotonic_ns()
         # --- write
         tau = d.tau
@@ -329,34 +318,26 @@ class ControllerDaemon:
         st.lateness_us.append(lateness_ns / 1e3)
         cycle_us = (t_write - wake_ns) / 1e3
         st.cycle_us.append(cycle_us)
-        self._last_record = {
-            "tick": index,
-            "t_ns": wake_ns,
-            "sim_time_s": t_s,
-            "lateness_us": lateness_ns / 1e3,
-            "read_us": (t_read - wake_ns) / 1e3,
-            "solve_us": solve_us,
-            "write_us": (t_write - t_solve) / 1e3,
-            "cycle_us": cycle_us,
-            "e2e_us": math.nan if state_ns is None else (t_write - state_ns) / 1e3,
-            "deadline_miss": False,
-            "missed_periods": missed,
-            "q": _vec(q),
-            "dq": _vec(dq),
-            "f": _vec(f),
-            "f_age_ms": f_age_ms,
-            "state_age_ms": state_age_ms,
-            "f_valid": feat is not None and feat.valid,
-            "f_stale": f_stale,
-            "state_stale": state_stale,
-            "xi": _vec(xi),
-            "u": _vec(u),
-            "tau": _vec(tau),
-            "tau_saturated": saturated,
-            "law": self.controller.law.name if d.mode == "control" else d.mode,
-            "residual": residual,
-            "iterations": iterations,
-            "fallback": fallback,
-            "cost": cost,
-            "V": V,
-        }
+        self._last_record = cycle_record(
+            tick=index,
+            t_ns=wake_ns,
+            sim_time_s=t_s,
+            timing=Timing(
+                lateness_us=lateness_ns / 1e3,
+                read_us=(t_read - wake_ns) / 1e3,
+                solve_us=solve_us,
+                write_us=(t_write - t_solve) / 1e3,
+                cycle_us=cycle_us,
+                e2e_us=math.nan if state_ns is None else (t_write - state_ns) / 1e3,
+                missed_periods=missed,
+            ),
+            q=q,
+            dq=dq,
+            f=f,
+            f_age_ms=f_age_ms,
+            state_age_ms=state_age_ms,
+            f_valid=feat is not None and feat.valid,
+            f_stale=f_stale,
+            state_stale=state_stale,
+            decision=fields,
+        )

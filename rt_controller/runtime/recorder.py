@@ -345,7 +345,7 @@ class CycleRecorder:
         """The exception that stopped the writer thread, if any."""
         return self._error
 
-    def stats(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         """Counters per topic plus ``dropped``, ``encode_errors`` and ``pending``."""
         out = {_TOPICS[k]: v for k, v in self._written.items()}
         out.update(
@@ -415,7 +415,7 @@ class CycleRecorder:
                     break
                 time.sleep(self.yield_s if self._q else self.poll_s)
             self._writer.add_metadata(
-                RECORDER_METADATA, {k: str(v) for k, v in self.stats().items()}
+                RECORDER_METADATA, {k: str(v) for k, v in self.as_dict().items()}
             )
             self._writer.finish()
             self._finished = True

@@ -60,7 +60,7 @@ def test_inverse_optimal_beats_passivity_based_fig3(cfg):
 
 def test_torque_is_held_between_ticks_and_summary_is_complete(cfg):
     r = simulate(cfg, "ioc", 1.0)
-    s = r.summary()
+    s = r.as_dict()
     assert s["ticks"] == 50
     assert s["V0"] == pytest.approx(r.trace.V[0])
     assert s["f_final"] == pytest.approx(list(r.trace.f[-1]))

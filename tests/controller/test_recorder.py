@@ -157,7 +157,7 @@ def test_close_is_idempotent_and_refuses_late_records(tmp_path, cfg):
     assert rec.closed and rec.finished
     assert rec.record_cycle(cycle(1)) is False
     assert rec.record_vision(b"x", 1) is False
-    assert rec.dropped == 2 and rec.stats()[CYCLE_TOPIC] == 1
+    assert rec.dropped == 2 and rec.as_dict()[CYCLE_TOPIC] == 1
 
 
 def test_bad_arguments(tmp_path, cfg):

@@ -31,6 +31,7 @@ from rt_controller.errors import LogError
 from rt_controller.logtools.reader import read_log
 from rt_controller.logtools.replay import TIMING_FIELDS, abs_diff, replay_log
 from rt_controller.logtools.republish import republish_log
+from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
 from rt_controller.runtime.recorder import CycleRecorder
 
 TICKS = 120
@@ -48,53 +49,31 @@ VISION_RX_LEAD_NS = 10_000
 """The synthetic vision message is received this long before the tick's wake-up."""
 
 
-def _vec(a) -> list[float]:
-    return [float(a[0]), float(a[1])]
-
-
 def daemon_record(ctl: Controller, k: int, wake: int, t_s: float, q, dq, f, d, stale) -> dict:
-    """The cycle dict ``ControllerDaemon._tick`` records (field for field)."""
+    """The cycle record the daemon's tick writes, with fixed synthetic timings."""
     f_stale, state_stale = stale
-    u = xi = np.zeros(2)
-    residual, iterations, fallback, saturated = 0.0, 0, False, False
-    cost = V = math.nan
-    if d.command is not None:
-        cmd = d.command
-        u, xi = cmd.law.u, cmd.measurement.xi
-        residual, iterations, fallback = cmd.law.residual, cmd.law.iterations, cmd.law.fallback
-        saturated = cmd.saturated
-        cost, V = ctl.stage_cost(cmd), ctl.energy(cmd)
-    return {
-        "tick": k,
-        "t_ns": wake,
-        "sim_time_s": t_s,
-        "lateness_us": 0.0,
-        "read_us": 3.0,
-        "solve_us": 40.0,
-        "write_us": 5.0,
-        "cycle_us": 50.0,
-        "e2e_us": math.nan if state_stale else 60.0,
-        "deadline_miss": False,
-        "missed_periods": 0,
-        "q": _vec(q),
-        "dq": _vec(dq),
-        "f": _vec(f),
-        "f_age_ms": math.nan if not np.all(np.isfinite(f)) else 4.0,
-        "state_age_ms": math.nan if state_stale else 0.5,
-        "f_valid": bool(np.all(np.isfinite(f))),
-        "f_stale": f_stale,
-        "state_stale": state_stale,
-        "xi": _vec(xi),
-        "u": _vec(u),
-        "tau": _vec(d.tau),
-        "tau_saturated": saturated,
-        "law": ctl.law.name if d.mode == "control" else d.mode,
-        "residual": residual,
-        "iterations": iterations,
-        "fallback": fallback,
-        "cost": cost,
-        "V": V,
-    }
+    f_ok = bool(np.all(np.isfinite(f)))
+    return cycle_record(
+        tick=k,
+        t_ns=wake,
+        sim_time_s=t_s,
+        timing=Timing(
+            read_us=3.0,
+            solve_us=40.0,
+            write_us=5.0,
+            cycle_us=50.0,
+            e2e_us=math.nan if state_stale else 60.0,
+        ),
+        q=q,
+        dq=dq,
+        f=f,
+        f_age_ms=4.0 if f_ok else math.nan,
+        state_age_ms=math.nan if state_stale else 0.5,
+        f_valid=f_ok,
+        f_stale=f_stale,
+        state_stale=state_stale,
+        decision=decision_fields(ctl, d),
+    )
 
 
 def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool = True) -> Path:
@@ -116,10 +95,10 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
             # raw inputs as the DSP and the vision process would have sent them
             rec.record_can(dsp.encode_sync(k), wake - 30_000, "rx")
             if not state_stale:
-                for msg in dsp.encode_state(_vec(q), _vec(dq), k):
+                for msg in dsp.encode_state(vec2(q), vec2(dq), k):
                     rec.record_can(msg, wake - 20_000, "rx")
             if not f_stale:
-                feat = FeatureMsg(k, wake - STAMP_AGE_NS, k * period, k, _vec(f), True, lockstep)
+                feat = FeatureMsg(k, wake - STAMP_AGE_NS, k * period, k, vec2(f), True, lockstep)
                 rec.record_vision(encode_features(feat), wake - VISION_RX_LEAD_NS)
                 last_f = f
             if state_stale:

@@ -44,7 +44,7 @@ def assert_converges(r: SimResult) -> None:
 
 def test_short_horizon_cost_within_5_percent_of_inverse_optimal(cfg, ioc):
     r = simulate(cfg, "rhc", **{"rhc.horizon": 0.02})
-    s = r.summary()
+    s = r.as_dict()
     assert s["fallbacks"] == 0
     assert abs(r.J - ioc.J) <= 0.05 * ioc.J
     assert_converges(r)
@@ -54,14 +54,14 @@ def test_short_horizon_cost_within_5_percent_of_inverse_optimal(cfg, ioc):
 @pytest.mark.parametrize(("horizon", "steps"), [(0.1, 10), (1.0, 50)])
 def test_longer_horizons_stabilise(cfg, ioc, horizon, steps):
     r = simulate(cfg, "rhc", **{"rhc.horizon": horizon, "rhc.steps": steps})
-    assert r.summary()["fallbacks"] == 0
+    assert r.as_dict()["fallbacks"] == 0
     assert_converges(r)
     assert abs(r.J - ioc.J) <= 0.2 * ioc.J
 
 
 def test_horizon_growth_stabilises(cfg):
     r = simulate(cfg, "rhc", **{"rhc.horizon": 0.1, "rhc.horizon_growth": 5.0})
-    assert r.summary()["fallbacks"] == 0
+    assert r.as_dict()["fallbacks"] == 0
     assert_converges(r)
 
 
@@ -71,7 +71,7 @@ def test_tight_bounds_hold_and_the_loop_converges(cfg, u_max):
     u = np.abs(r.trace.array("u"))
     assert np.all(u <= np.array(u_max))
     assert u.max(axis=0) == pytest.approx(u_max, rel=1e-3)  # the bounds are really active
-    assert r.summary()["fallbacks"] == 0
+    assert r.as_dict()["fallbacks"] == 0
     assert np.linalg.norm(r.trace.f[-1]) < 1.0
 
 

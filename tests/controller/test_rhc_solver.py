@@ -7,7 +7,8 @@ import pytest
 from scipy.optimize import minimize
 
 from hal.config import RigConfig
-from rt_controller.control.laws import Measurement, make_law
+from rt_controller.control.law_table import make_law
+from rt_controller.control.laws import Measurement
 from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw
 from rt_controller.control.rhc.reference import ReferenceSolver

@@ -47,7 +47,7 @@ def test_features_round_trip_is_bit_exact():
     assert len(buf) == FEATURES_SIZE == 56
     assert buf[:4] == b"HF\x01\x03"
     assert decode_features(buf) == msg
-    assert msg.to_dict()["f"] == [math.pi, -1e-300]
+    assert msg.as_dict()["f"] == [math.pi, -1e-300]
 
 
 def test_pose_round_trip():

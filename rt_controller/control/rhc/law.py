@@ -11,7 +11,7 @@ from hal.config import RigConfig
 from rt_controller.control.laws import LawOutput, Measurement, inverse_optimal
 from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc.problem import NX
-from rt_controller.control.rhc.solver import CGMRESSolver, SolveReport
+from rt_controller.control.rhc.solver import CGMRESSolver, SolveReport, pack_state
 
 
 class Solver(Protocol):
@@ -70,10 +70,7 @@ class RecedingHorizonLaw:
         start = time.perf_counter_ns()
         if self._t0 is None:
             self._t0 = m.t
-        x = self._x
-        x[0:2] = m.q
-        x[2:4] = m.xi
-        x[4:6] = m.f
+        x = pack_state(m.q, m.xi, m.f, out=self._x)
         rep = self.solver.update(x, m.t - self._t0)
         solve_ns = time.perf_counter_ns() - start
         if rep.ok:

@@ -1,0 +1,52 @@
+"""Process-level helpers shared by every stand-alone entry point (``hil`` and ``python -m``).
+
+:func:`stop_on_signals` replaces the install-handlers-then-restore block each long-running
+command needs; :func:`run_standalone` is the one ``main()`` error rule (a :class:`HalError` or a
+subclass of ``errors`` becomes one line on stderr and exit status 2). Lives in ``hal`` because
+both ``plant_emulator`` and ``rt_controller`` use it and neither may import the other.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.Event]:
+    """Yield an event that SIGTERM or SIGINT sets; restore the previous handlers on exit.
+
+    Outside the main thread (where Python cannot install handlers) the event is only set by
+    the caller.
+    """
+    event = threading.Event() if stop is None else stop
+    previous: dict[int, object] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            previous[sig] = signal.signal(sig, lambda *_: event.set())
+    try:
+        yield event
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)  # type: ignore[arg-type]
+
+
+def run_standalone(
+    prog: str, body: Callable[[], int], errors: tuple[type[BaseException], ...] = ()
+) -> int:
+    """Run ``body``; a :class:`HalError` (or one of ``errors``) is reported as
+    ``"<prog>: error: <message>"`` on stderr with exit status 2, Ctrl-C as 130."""
+    from hal.errors import HalError
+
+    try:
+        return body()
+    except (HalError, *errors) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
