@@ -22,7 +22,6 @@ from __future__ import annotations
 import configparser
 import errno
 import ipaddress
-import os
 import socket
 import uuid
 from dataclasses import dataclass, field
@@ -214,5 +213,9 @@ def isolated_spec(interface: str) -> str:
 
 
 def vcan_available(channel: str = DEFAULT_VCAN) -> bool:
-    """Whether a SocketCAN interface named ``channel`` exists on this host."""
-    return os.path.exists(SYS_CLASS_NET / channel)
+    """Whether a SocketCAN interface named ``channel`` exists on this host and is up."""
+    try:
+        flags = int((SYS_CLASS_NET / channel / "flags").read_text().strip(), 16)
+    except (OSError, ValueError):
+        return False
+    return bool(flags & 0x1)  # IFF_UP

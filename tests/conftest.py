@@ -80,6 +80,14 @@ def no_leaks():
 
 
 @pytest.fixture
+def endpoint() -> str:
+    """A zenoh endpoint on a free loopback port."""
+    from tests.support import free_endpoint
+
+    return free_endpoint()
+
+
+@pytest.fixture
 def cfg() -> RigConfig:
     """The embedded default configuration (DESIGN.md numbers)."""
     return load_config()

@@ -24,3 +24,14 @@ def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
             text = str(value)
         table.add_row(key, text)
     Console().print(table)
+
+
+def print_summary_with_notes(summary: dict[str, Any], as_json: bool, title: str) -> None:
+    """:func:`print_summary` for a summary with a ``notes`` list: notes as lines after the table."""
+    if as_json:
+        print(json.dumps(summary))
+        return
+    notes = summary.pop("notes")
+    print_summary(summary, False, title)
+    for note in notes:
+        print(f"note: {note}")

@@ -110,7 +110,7 @@ def _config(args: argparse.Namespace, log_cfg: RigConfig | None) -> RigConfig | 
 
 
 def run(args: argparse.Namespace) -> int:
-    from rt_controller.commands.output import print_summary
+    from rt_controller.commands.output import print_summary_with_notes
 
     if args.republish:
         return _republish(args)
@@ -124,14 +124,7 @@ def run(args: argparse.Namespace) -> int:
     result = replay_loaded(
         log, cfg_override=cfg, tol=args.tol, out=Path(args.out) if args.out else None
     )
-    summary = result.as_dict()
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        notes = summary.pop("notes")
-        print_summary(summary, False, f"hil replay {args.log}")
-        for note in notes:
-            print(f"note: {note}")
+    print_summary_with_notes(result.as_dict(), args.json, f"hil replay {args.log}")
     if not result.ok:
         print(f"hil replay: {result.failure_line()}", file=sys.stderr)
         return 1
@@ -140,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _republish(args: argparse.Namespace) -> int:
     from hal.signals import stop_on_signals
-    from rt_controller.commands.output import print_summary
+    from rt_controller.commands.output import print_summary_with_notes
     from rt_controller.logtools.reader import read_log
     from rt_controller.logtools.republish import republish_log
 
@@ -159,12 +152,5 @@ def _republish(args: argparse.Namespace) -> int:
             lead_in_s=max(0.0, args.lead_in),
             stop=stop,
         )
-    summary = result.as_dict()
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        notes = summary.pop("notes")
-        print_summary(summary, False, f"hil replay --republish {args.log}")
-        for note in notes:
-            print(f"note: {note}")
+    print_summary_with_notes(result.as_dict(), args.json, f"hil replay --republish {args.log}")
     return 0

@@ -48,3 +48,111 @@ def test_the_checker_sees_imports(tmp_path: Path):
     probe = tmp_path / "probe.py"
     probe.write_text("import plant_emulator.world\nfrom rt_controller.control.model import X\n")
     assert imported_packages(probe) == {"plant_emulator", "rt_controller"}
+
+
+# ------------------------------------------------------------ rt_controller's own layers
+
+IO_MODULES = (
+    "can",
+    "zenoh",
+    "mcap",
+    "cantools",
+    "hal.bus",
+    "hal.joint_client",
+    "hal.zenoh_session",
+    "hal.udp_loopback",
+    "rt_controller.runtime.recorder",
+    "rt_controller.runtime.daemon",
+    "rt_controller.logtools",
+)
+"""What the pure control layer (``rt_controller/control/``) must not import."""
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module ``path`` imports, at any depth (lazy imports count), as dotted names;
+    ``from pkg import name`` yields ``pkg.name`` when that is a module of ours."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+            out.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return out
+
+
+def import_graph(package: str = "rt_controller") -> dict[str, set[str]]:
+    modules = {module_name(p): p for p in sorted((ROOT / package).rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        graph[name] = {m for m in imported_modules(path) if m in modules and m != name}
+    return graph
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every elementary cycle found by a depth-first search (one per back edge)."""
+    cycles: list[list[str]] = []
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for dep in sorted(graph.get(node, ())):
+            if state.get(dep) == 1:
+                cycles.append([*stack[stack.index(dep) :], dep])
+            elif dep not in state:
+                visit(dep)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node)
+    return cycles
+
+
+def test_no_import_cycles_in_rt_controller():
+    assert find_cycles(import_graph()) == []
+
+
+def test_the_cycle_finder_finds_cycles():
+    assert find_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == [["a", "b", "c", "a"]]
+    assert find_cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_control_layer_does_no_io():
+    offenders = []
+    for path in sorted((ROOT / "rt_controller" / "control").rglob("*.py")):
+        for mod in imported_modules(path):
+            if any(mod == io or mod.startswith(io + ".") for io in IO_MODULES):
+                offenders.append(f"{path.relative_to(ROOT).as_posix()} imports {mod}")
+    assert not offenders, offenders
+
+
+def test_cli_does_not_import_the_commands_it_registers():
+    assert not {
+        m for m in import_graph()["rt_controller.cli"] if m.startswith("rt_controller.commands")
+    }
+
+
+def test_experiment_runner_does_not_use_cli_modules():
+    rig = [m for m in import_graph() if m.startswith("rt_controller.rig")]
+    offenders = [
+        (m, d) for m in rig for d in import_graph()[m] if d.startswith("rt_controller.commands")
+    ]
+    assert not offenders, offenders
+
+
+def test_law_table_matches_the_config_names():
+    from hal.config import LAW_NAMES
+    from rt_controller.control.law_table import LAWS
+
+    assert tuple(LAWS) == LAW_NAMES

@@ -33,6 +33,7 @@ from rt_controller.logtools.replay import TIMING_FIELDS, abs_diff, replay_log
 from rt_controller.logtools.republish import republish_log
 from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
 from rt_controller.runtime.recorder import CycleRecorder
+from tests.support import wait_until
 
 TICKS = 120
 NO_FEATURES_YET = (0,)
@@ -268,15 +269,6 @@ def test_nan_compares_equal_only_to_nan():
 
 
 # ------------------------------------------------------------------------------- republish
-
-
-def wait_until(pred, timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def drain(bus: can.BusABC, expected: int, timeout_s: float = 10.0) -> list[can.Message]:

@@ -36,6 +36,7 @@ from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 from plant_emulator.dsp_node import DspNode
+from tests.support import e2e_crc_reference
 
 RECV_TIMEOUT_S = 10.0
 MS = 1_000_000
@@ -509,19 +510,9 @@ TORQUE_ID = RAW_DB.get_message_by_name("TorqueCommand").frame_id
 CONTROL_ID = RAW_DB.get_message_by_name("DspControl").frame_id
 
 
-def crc_reference(data: bytes) -> int:
-    """Bitwise CRC-8 SAE J1850, independent of hal."""
-    crc = 0xFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc ^ 0xFF
-
-
 def sign(fid: int, data: bytearray) -> bytes:
     data_id = DATA_IDS[fid]
-    data[0] = crc_reference(bytes([data_id & 0xFF, data_id >> 8]) + bytes(data[1:]))
+    data[0] = e2e_crc_reference(data_id, data)
     return bytes(data)
 
 

@@ -36,6 +36,8 @@ from hal.can_codec import DBC_PATH, RAD_PER_COUNT
 from hal.config import RigConfig
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
+from tests import support
+from tests.support import e2e_crc_reference
 from tests.support.vcan import VCAN_CHANNEL, candump_available, requires_vcan, vcan_required
 
 REPO = Path(__file__).resolve().parents[2]
@@ -176,11 +178,8 @@ def stop_emulator(proc: Proc, sig: int = signal.SIGTERM) -> dict[str, Any]:
 
 def wait_until(cond: Callable[[], bool], what: str, timeout: float = RECV_TIMEOUT_S) -> float:
     """Poll ``cond`` every millisecond; the monotonic time at which it became true."""
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(0.001)
+    if not support.wait_until(cond, timeout, poll_s=0.001):
+        pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
     return time.monotonic()
 
 
@@ -394,16 +393,6 @@ DB = cantools.database.load_file(str(DBC_PATH))
 DATA_IDS = {m.frame_id: int(m.dbc.attributes["E2EDataID"].value) for m in DB.messages}
 
 
-def crc_reference(data_id: int, payload: bytes) -> int:
-    """CRC-8 SAE J1850 over the data id and payload bytes 1..7 (bitwise, independent of hal)."""
-    crc = 0xFF
-    for byte in bytes([data_id & 0xFF, data_id >> 8]) + payload[1:]:
-        crc ^= byte
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc ^ 0xFF
-
-
 def decode_candump_line(line: str) -> tuple[str, dict[str, Any]] | None:
     """``(1700000000.123456) vcan0 180#A1B2...`` -> (message name, signals), None if not ours."""
     parts = line.split()
@@ -416,7 +405,7 @@ def decode_candump_line(line: str) -> tuple[str, dict[str, Any]] | None:
     data = bytes.fromhex(data_hex)
     msg = DB.get_message_by_frame_id(frame_id)
     assert len(data) == 8, line
-    assert crc_reference(DATA_IDS[frame_id], data) == data[0], f"bad E2E CRC: {line}"
+    assert e2e_crc_reference(DATA_IDS[frame_id], data) == data[0], f"bad E2E CRC: {line}"
     return msg.name, msg.decode(data, decode_choices=False)
 
 

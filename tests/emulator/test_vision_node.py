@@ -19,7 +19,7 @@ import pytest
 from hal.config import RigConfig
 from hal.errors import HalConfigError
 from hal.vision_codec import FeatureDecoder, FeatureMsg, PoseMsg, encode_features
-from hal.zenoh_session import KEY_FEATURES, ZenohSession, free_loopback_port, open_session
+from hal.zenoh_session import KEY_FEATURES, ZenohSession, open_session
 from plant_emulator.camera import CameraPose, camera_pose, project
 from plant_emulator.pose_link import PosePublisher
 from plant_emulator.scenario import paper_target
@@ -232,11 +232,6 @@ def sync_lockstep(poses: PosePublisher, decoder: FeatureDecoder, pose: CameraPos
             return seq + 1
         seq += 1
         assert seq < 40, "no features reached the controller"
-
-
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_loopback_port()}"
 
 
 def test_end_to_end_lockstep_one_answer_per_pose(cfg, endpoint):

@@ -33,22 +33,13 @@ from hal.can_codec import (
 )
 from hal.e2e import DEFAULT_MAX_DELTA
 from hal.joint_client import JointClient
+from tests.support import e2e_crc_reference
 
 N_FRAMES = 10_000
 RAW_DB = cantools.database.load_file(str(DBC_PATH))
 DATA_IDS = {m.frame_id: m.dbc.attributes["E2EDataID"].value for m in RAW_DB.messages}
 SENDERS = {m.frame_id: m.senders[0] for m in RAW_DB.messages}
 COMMAND_ID = RAW_DB.get_message_by_name("DspControl").frame_id
-
-
-def crc_reference(data: bytes) -> int:
-    """Bitwise CRC-8 SAE J1850 (poly 0x1D, init 0xFF, xor-out 0xFF), independent of hal."""
-    crc = 0xFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc ^ 0xFF
 
 
 class Oracle:
@@ -71,7 +62,7 @@ class Oracle:
         if msg.is_remote_frame or len(data) != 8:
             return "wrong_length"
         data_id = DATA_IDS[fid]
-        if crc_reference(bytes([data_id & 0xFF, data_id >> 8]) + data[1:]) != data[0]:
+        if e2e_crc_reference(data_id, data) != data[0]:
             return "bad_crc"
         counter, last = data[1] & 0xF, self.last.get(fid)
         self.last[fid] = counter
@@ -168,7 +159,7 @@ class FrameSource:
         if fid == COMMAND_ID and self.rng.random() < 0.5:
             data[2] = self.rng.randrange(256)
         data_id = DATA_IDS[fid]
-        data[0] = crc_reference(bytes([data_id & 0xFF, data_id >> 8]) + bytes(data[1:]))
+        data[0] = e2e_crc_reference(data_id, data)
         return self._copy(self.history[-1], data=bytes(data))
 
     def odd_frame(self) -> can.Message:

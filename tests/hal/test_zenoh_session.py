@@ -16,29 +16,15 @@ from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
 from hal.zenoh_session import (
     KEY_CAMERA_POSE,
     KEY_FEATURES,
-    free_loopback_port,
     loopback_config_dict,
     open_session,
     parse_loopback_endpoint,
 )
-
-
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_loopback_port()}"
+from tests.support import wait_until
 
 
 def _endpoints(doc: dict) -> list[str]:
     return [*doc["listen"]["endpoints"], *doc["connect"]["endpoints"]]
-
-
-def wait_until(pred, timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def test_key_expressions_are_the_contract():

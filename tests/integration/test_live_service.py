@@ -36,8 +36,6 @@ import math
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +53,6 @@ from hal.bus import isolated_spec
 from hal.can_codec import DBC_PATH
 from hal.config import RigConfig, config_from_json, load_config
 from hal.vision_codec import decode_features
-from hal.zenoh_session import free_loopback_port
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.processes import Rig, RigOptions, RigProcessError, run_rig
 from rt_controller.runtime.recorder import (
@@ -67,6 +64,7 @@ from rt_controller.runtime.recorder import (
     VISION_TOPIC,
     cycle_schema,
 )
+from tests.support import free_endpoint, run_hil
 from tests.support.proc import processes_mentioning
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
@@ -96,14 +94,10 @@ DQ_LIMIT = 10.0
 """rad/s: the paper scenario never comes near this (observed max 4.2 rad/s on joint 2)."""
 
 
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_loopback_port()}"
-
-
 def rig_options(log: Path, **kw: Any) -> RigOptions:
     """A rig on its own CAN port and zenoh port, logging to ``log``."""
     kw.setdefault("can", isolated_spec("udp_multicast"))
-    kw.setdefault("zenoh_endpoint", endpoint())
+    kw.setdefault("zenoh_endpoint", free_endpoint())
     return RigOptions(log=log, **kw)
 
 
@@ -487,31 +481,8 @@ def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
 # ------------------------------------------------------------------ (e) the CLI and failures
 
 
-def hil_command() -> list[str]:
-    script = Path(sys.executable).with_name("hil")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
-
-
-def run_hil(args: list[str], timeout_s: float) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.Popen(
-        [*hil_command(), *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        cwd=REPO,
-    )
-    try:
-        out, err = proc.communicate(timeout=timeout_s)
-    finally:
-        if proc.poll() is None:  # pragma: no cover - only on a hang
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-
-
 def test_hil_up_json_from_the_command_line(tmp_path):
-    ep = endpoint()
+    ep = free_endpoint()
     log = tmp_path / "cli.mcap"
     args = ["up", "--lockstep", "--duration", "2", "--json", "--law", "ioc"]
     args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", ep, "--log", str(log)]
@@ -532,7 +503,7 @@ def test_hil_up_json_from_the_command_line(tmp_path):
 def test_hil_up_reports_a_process_that_cannot_start(tmp_path):
     """A bad CAN spec: the emulator (or controller) exits 2; ``hil up`` names it with its exit
     status and stderr tail, exits non-zero, and leaves nothing running."""
-    ep = endpoint()
+    ep = free_endpoint()
     args = ["up", "--lockstep", "--duration", "2", "--json", "--can", "udp_multicast:nowhere:1"]
     args += ["--zenoh-endpoint", ep, "--log", str(tmp_path / "bad.mcap")]
     try:

@@ -3,11 +3,11 @@
 Marked ``vcan``: run with ``.venv/bin/python scripts/vcan_pytest.py -- tests/test_live_vcan.py``
 (a native vcan0 if the host has one, else user-mode Linux). Lockstep keeps the run deterministic
 however slow the machine (UML is about 10x slower than the host), so the same claims hold as in
-``tests/test_live_service.py`` over ``udp_multicast``: |f| below 1 px just before the target jump
+``test_live_service.py`` over ``udp_multicast``: |f| below 1 px just before the target jump
 at t = 3 s and again at the end, and the run tracks the transport-free simulation.
 
 PBC: with the paper's gains it cannot be below 1 px at t = 3 s (2.2 px even in the transport-free
-simulation, see ``tests/test_live_service.py``); it runs 8 s and its pre-jump |f| is bounded by
+simulation, see ``test_live_service.py``); it runs 8 s and its pre-jump |f| is bounded by
 the physics instead. The durations are the shortest that reach |f| < 1 px at the end.
 """
 
@@ -15,9 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -27,6 +24,7 @@ import pytest
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.logtools.reader import read_log
+from tests.support import run_hil
 from tests.support.proc import processes_mentioning
 from tests.support.vcan import VCAN_CHANNEL, requires_vcan
 
@@ -44,11 +42,6 @@ PRE_JUMP_LIMIT_PX = {"pbc": 2.6, "ioc": 1.0, "rhc": 1.0}
 SIM_TRACKING_PX = 2.0
 
 
-def hil_command() -> list[str]:
-    script = Path(sys.executable).with_name("hil")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
-
-
 def simulate_f(law: str, duration_s: float) -> np.ndarray:
     from plant_emulator.world import World
     from rt_controller.control.controller import Controller
@@ -64,31 +57,20 @@ def test_hil_up_lockstep_on_vcan_converges_before_and_after_the_jump(tmp_path, l
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     log = tmp_path / f"vcan-{law}.mcap"
     can = f"socketcan:{VCAN_CHANNEL}"
-    cmd = [*hil_command(), "up", "--lockstep", "--can", can, "--law", law, "--json"]
-    cmd += ["--duration", f"{DURATION_S[law]:g}", "--zenoh-endpoint", ep, "--log", str(log)]
+    args = ["up", "--lockstep", "--can", can, "--law", law, "--json"]
+    args += ["--duration", f"{DURATION_S[law]:g}", "--zenoh-endpoint", ep, "--log", str(log)]
     t0 = time.monotonic()
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-        start_new_session=True,
-    )
     try:
-        out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
+        proc = run_hil(args, RUN_TIMEOUT_S)
     finally:
-        if proc.poll() is None:  # pragma: no cover - only on a hang
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
         deadline = time.monotonic() + 30
         while processes_mentioning(ep) and time.monotonic() < deadline:
             time.sleep(0.2)
         assert not processes_mentioning(ep), "rig processes left running"
     wall_s = time.monotonic() - t0
     print(f"hil up --lockstep --can {can} --law {law}: {wall_s:.1f} s wall")
-    assert proc.returncode == 0, err
-    s = json.loads(out.strip().splitlines()[-1])
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads(proc.stdout.strip().splitlines()[-1])
     assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
     assert s["law"] == law and s["ticks"] == round(DURATION_S[law] * RATE_HZ)
     assert s["stale_features"] == 0 and s["missed_periods"] == 0

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from hal.bus import vcan_available
+
 VCAN_CHANNEL = os.environ.get("HIL_VCAN_CHANNEL", "vcan0")
 ENABLE_HINT = (
     "run `scripts/vcan_pytest.py` (boots user-mode Linux if needed) or create it: "
@@ -30,16 +32,6 @@ ENABLE_HINT = (
 def vcan_required() -> bool:
     """True when a missing vcan interface must fail the tests instead of skipping them."""
     return os.environ.get("HIL_VCAN_REQUIRED", "").strip().lower() in {"1", "true", "yes"}
-
-
-def vcan_available(channel: str = VCAN_CHANNEL) -> bool:
-    """True when ``channel`` exists as a network interface and is administratively up."""
-    net = Path("/sys/class/net") / channel
-    try:
-        flags = int((net / "flags").read_text().strip(), 16)
-    except (OSError, ValueError):
-        return False
-    return bool(flags & 0x1)  # IFF_UP
 
 
 def vcan_skip_reason(channel: str = VCAN_CHANNEL) -> str:
@@ -53,7 +45,7 @@ def candump_available() -> bool:
 
 
 requires_vcan = pytest.mark.skipif(
-    not vcan_available() and not vcan_required(), reason=vcan_skip_reason()
+    not vcan_available(VCAN_CHANNEL) and not vcan_required(), reason=vcan_skip_reason()
 )
 requires_candump = pytest.mark.skipif(
     not candump_available() and not vcan_required(),

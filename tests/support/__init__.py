@@ -1,0 +1,77 @@
+"""Helpers shared by the test modules (importable because pytest puts the repository root on
+``sys.path``: ``pythonpath = ["."]`` in pyproject.toml).
+
+Sub-modules: :mod:`tests.support.vcan` (SocketCAN markers), :mod:`tests.support.proc` (finding
+processes a test started).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from hal.zenoh_session import free_loopback_port
+
+REPO = Path(__file__).resolve().parents[2]
+"""The repository root."""
+
+
+def crc_reference(data: bytes) -> int:
+    """Bitwise CRC-8 SAE J1850 (poly 0x1D, init 0xFF, xor-out 0xFF), independent of hal."""
+    crc = 0xFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc ^ 0xFF
+
+
+def e2e_crc_reference(data_id: int, payload: bytes) -> int:
+    """The E2E CRC of a frame: over the data id (little endian) and payload bytes 1..7."""
+    return crc_reference(bytes([data_id & 0xFF, data_id >> 8]) + bytes(payload[1:]))
+
+
+def wait_until(pred: Callable[[], object], timeout_s: float = 10.0, poll_s: float = 0.005) -> bool:
+    """Poll ``pred`` until it is true (True) or ``timeout_s`` passes (False)."""
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
+def free_endpoint() -> str:
+    """A zenoh endpoint on a free loopback TCP port."""
+    return f"tcp/127.0.0.1:{free_loopback_port()}"
+
+
+def hil_command() -> list[str]:
+    """How to run the ``hil`` console script of this interpreter's environment."""
+    script = Path(sys.executable).with_name("hil")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
+
+
+def run_hil(args: list[str], timeout_s: float) -> subprocess.CompletedProcess[str]:
+    """Run ``hil ARGS`` from the repository root in its own session; on a hang, kill the whole
+    session (the rig's children too) and re-raise ``TimeoutExpired``."""
+    proc = subprocess.Popen(
+        [*hil_command(), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        cwd=REPO,
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:  # pragma: no cover - only on a hang
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
