@@ -19,6 +19,7 @@ do. The returned bus is a context manager and its ``shutdown()`` is safe to call
 
 from __future__ import annotations
 
+import atexit
 import configparser
 import errno
 import ipaddress
@@ -218,6 +219,14 @@ class _PortReservation:
         self._guards: list[socket.socket] = []
         self.port = 0
         self._next = 0
+        atexit.register(self.close)
+
+    def close(self) -> None:
+        """Give the ports back (at interpreter exit)."""
+        with self._lock:
+            for guard in self._guards:
+                guard.close()
+            self._guards = []
 
     def _reserve(self) -> None:
         guard = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

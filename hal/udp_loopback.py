@@ -40,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import ipaddress
 import logging
+import os
 import select
 import socket
 import sys
@@ -70,6 +71,8 @@ _LINUX = sys.platform.startswith("linux")
 CAN_FD_LENGTHS = frozenset((*range(9), 12, 16, 20, 24, 32, 48, 64))
 """Payload lengths a CAN FD frame can carry (DLC 0..15)."""
 RMEM_MAX = "/proc/sys/net/core/rmem_max"
+LOOP_PROBE_TIMEOUT_S = 2.0
+"""How long open waits for its probe datagram to come back through lo (a refusal waits this)."""
 
 
 class GroupUnreachableError(HalTransportError, can.CanInitializationError):
@@ -190,11 +193,8 @@ class LoopbackMulticastBus(can.BusABC):
         self._tx: socket.socket | None = None
         self._dest: tuple[Any, ...] = (self._group, self._port)
         try:
-            if group.version == 4:
-                self._open_v4(int(hop_limit))
-            else:
-                self._open_v6(int(hop_limit))
-            self._check_route()
+            self._open(int(hop_limit))
+            self._check_route(int(hop_limit))
         except BaseException as exc:
             self._close_sockets()
             self._is_shutdown = True
@@ -234,61 +234,111 @@ class LoopbackMulticastBus(can.BusABC):
         except OSError as exc:  # pragma: no cover - not Linux
             log.debug("SO_RXQ_OVFL unavailable, kernel drops are not counted: %s", exc)
 
-    def _open_v4(self, hop_limit: int) -> None:
-        rx = self._rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    def _v6(self) -> bool:
+        return ":" in self._group
+
+    def _join(self, rx: socket.socket, port: int) -> None:
+        """Bind ``rx`` to the group on ``port`` and join the group on ``lo`` only."""
+        if self._v6():
+            lo_index = socket.if_nametoindex("lo")
+            rx.bind((self._group, port, 0, lo_index))
+            mreq = socket.inet_pton(socket.AF_INET6, self._group) + lo_index.to_bytes(4, "little")
+            rx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, mreq)
+        else:
+            rx.bind((self._group, port))
+            lo = socket.inet_aton("127.0.0.1")
+            mreq = socket.inet_aton(self._group) + lo
+            rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+            with contextlib.suppress(OSError):  # not Linux: binding to the group filters already
+                rx.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
+
+    def _sender(self, hop_limit: int) -> socket.socket:
+        """A socket that sends to the group through ``lo`` only, with ``hop_limit``."""
+        if self._v6():
+            tx = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+            try:
+                tx.setsockopt(
+                    socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, socket.if_nametoindex("lo")
+                )
+                tx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, hop_limit)
+                tx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
+                tx.bind(("::1", 0))
+            except BaseException:
+                tx.close()
+                raise
+            return tx
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+            tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, hop_limit)
+            tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            tx.bind(("127.0.0.1", 0))
+        except BaseException:
+            tx.close()
+            raise
+        return tx
+
+    def _dest_for(self, port: int) -> tuple[Any, ...]:
+        if self._v6():
+            return (self._group, port, 0, socket.if_nametoindex("lo"))
+        return (self._group, port)
+
+    def _open(self, hop_limit: int) -> None:
+        family = socket.AF_INET6 if self._v6() else socket.AF_INET
+        rx = self._rx = socket.socket(family, socket.SOCK_DGRAM)
         self._setup_rx(rx)
-        rx.bind((self._group, self._port))
-        lo = socket.inet_aton("127.0.0.1")
-        rx.setsockopt(
-            socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(self._group) + lo
+        self._join(rx, self._port)
+        self._tx = self._sender(hop_limit)
+        self._dest = self._dest_for(self._port)
+
+    def _refusal(self, what: str) -> GroupUnreachableError:
+        if self._v6():
+            hint = (
+                "lo does not carry IPv6 multicast here (Linux gives lo no MULTICAST flag and "
+                "routes ff00::/8 to the LAN interface); use an IPv4 group such as "
+                f"udp_multicast:{DEFAULT_GROUP}:{self._port}"
+            )
+        else:
+            hint = "check that lo is up and routes 224.0.0.0/4, or use --can virtual"
+        family = "IPv6" if self._v6() else "IPv4"
+        return GroupUnreachableError(
+            f"cannot use {family} multicast group {self._group} port {self._port} on lo: "
+            f"{what}; {hint}"
         )
-        with contextlib.suppress(OSError):  # not Linux: binding to the group filters already
-            rx.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
-        tx = self._tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, lo)
-        tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, hop_limit)
-        tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-        tx.bind(("127.0.0.1", 0))
 
-    def _open_v6(self, hop_limit: int) -> None:
-        lo_index = socket.if_nametoindex("lo")
-        rx = self._rx = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
-        self._setup_rx(rx)
-        rx.bind((self._group, self._port, 0, lo_index))
-        mreq = socket.inet_pton(socket.AF_INET6, self._group) + lo_index.to_bytes(4, "little")
-        rx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, mreq)
-        tx = self._tx = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
-        tx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, lo_index)
-        tx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, hop_limit)
-        tx.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
-        tx.bind(("::1", 0))
-        self._dest = (self._group, self._port, 0, lo_index)
+    def _check_route(self, hop_limit: int) -> None:
+        """Refuse a group whose datagrams would not reach the buses on this host.
 
-    def _check_route(self) -> None:
-        """Refuse a group the host cannot send to through ``lo``.
-
-        ``connect()`` of the sending socket makes the kernel look up the route exactly as a send
-        would, without sending anything; sends then use the connected socket.
+        First ``connect()`` of the sending socket: the kernel looks the route up as a send
+        would, without sending (sends then use the connected socket). Then one datagram is
+        sent, with the bus's own options, to the group on a private port that only a probe
+        socket of this bus listens on, and must come back: a host may route the group and
+        still not deliver it (IPv6 with hop limit 0 on ``lo``). The peers on the bus's port
+        see nothing of it.
         """
-        if self._tx is None:  # pragma: no cover - _open_v4/_open_v6 set it or raise
+        if self._tx is None:  # pragma: no cover - _open sets it or raises
             raise can.CanInitializationError("the sending socket is not open")
         try:
             self._tx.connect(self._dest)
         except OSError as exc:
-            family = "IPv4" if ":" not in self._group else "IPv6"
-            if family == "IPv6":
-                hint = (
-                    "lo has no IPv6 multicast route (Linux gives lo no MULTICAST flag and routes "
-                    "ff00::/8 to the LAN interface); use an IPv4 group such as "
-                    f"udp_multicast:{DEFAULT_GROUP}:{self._port}, or as root: ip link set lo "
-                    "multicast on && ip -6 route add multicast ff00::/8 dev lo table local"
-                )
-            else:
-                hint = "check that lo is up and has a 224.0.0.0/4 route, or use --can virtual"
-            raise GroupUnreachableError(
-                f"cannot send to {family} multicast group {self._group} port {self._port} "
-                f"through lo: {exc.strerror or exc}; {hint}"
-            ) from exc
+            raise self._refusal(f"no route ({exc.strerror or exc})") from exc
+        family = socket.AF_INET6 if self._v6() else socket.AF_INET
+        nonce = os.urandom(16)
+        with socket.socket(family, socket.SOCK_DGRAM) as probe:
+            self._join(probe, 0)  # an ephemeral port of its own, bound without reuse
+            probe_port = probe.getsockname()[1]
+            with self._sender(hop_limit) as tx:
+                try:
+                    tx.sendto(nonce, self._dest_for(probe_port))
+                except OSError as exc:
+                    raise self._refusal(f"send failed ({exc.strerror or exc})") from exc
+            deadline = time.monotonic() + LOOP_PROBE_TIMEOUT_S
+            while (left := deadline - time.monotonic()) > 0:
+                if select.select([probe], [], [], left)[0] and probe.recv(64) == nonce:
+                    return
+        raise self._refusal(
+            f"a datagram sent to the group did not come back within {LOOP_PROBE_TIMEOUT_S} s"
+        )
 
     def _check_rcvbuf(self) -> None:
         if self.rcvbuf_granted < self.rcvbuf_asked:
