@@ -19,10 +19,12 @@ do. The returned bus is a context manager and its ``shutdown()`` is safe to call
 
 from __future__ import annotations
 
+import atexit
 import configparser
 import errno
 import ipaddress
 import socket
+import threading
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -190,23 +192,111 @@ def open_bus(
             options.setdefault("hop_limit", 0)
             return LoopbackMulticastBus(channel=resolved.channel or DEFAULT_GROUP, **options)
         return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
+    except HalTransportError:  # already one line saying what to do (e.g. a refused group)
+        raise
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         raise _transport_error(resolved, exc) from exc
+
+
+ISOLATED_GROUP_BASE = ipaddress.IPv4Address("239.75.0.0")
+"""Isolated udp_multicast specs use groups 239.75.0.1 .. 239.75.255.255 (administratively
+scoped, distinct from the default group 239.74.163.2)."""
+_ISOLATED_GROUPS = 0xFFFF
+
+
+class _PortReservation:
+    """A UDP port held by this process for its whole life, so no other process is given it.
+
+    The guard sockets are bound to ``127.0.0.1:PORT`` (and ``[::1]:PORT``) *without*
+    ``SO_REUSEADDR``/``SO_REUSEPORT``: the kernel then never hands the port out to another
+    ``bind(("127.0.0.1", 0))`` (another process's :func:`isolated_spec`) nor to a wildcard bind.
+    The buses themselves bind to the group address, which does not overlap the guard's.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._guards: list[socket.socket] = []
+        self.port = 0
+        self._next = 0
+        atexit.register(self.close)
+
+    def close(self) -> None:
+        """Give the ports back (at interpreter exit)."""
+        with self._lock:
+            for guard in self._guards:
+                guard.close()
+            self._guards = []
+
+    def _reserve(self) -> None:
+        guard = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        guard.bind(("127.0.0.1", 0))
+        port = guard.getsockname()[1]
+        guards = [guard]
+        if socket.has_ipv6:
+            v6 = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+            try:
+                v6.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+                v6.bind(("::1", port))
+                guards.append(v6)
+            except OSError:  # no IPv6 on this host (or ::1 taken: IPv4 specs only anyway)
+                v6.close()
+        # Earlier ports stay reserved: specs made on them may still be in use.
+        self._guards += guards
+        self.port, self._next = port, 0
+
+    def next_group(self) -> tuple[str, int]:
+        """A (group, port) pair that no bus on this host is bound to and nobody else will get."""
+        with self._lock:
+            for _ in range(4 * _ISOLATED_GROUPS):
+                if not self._guards or self._next >= _ISOLATED_GROUPS:
+                    self._reserve()
+                self._next += 1
+                group = str(ISOLATED_GROUP_BASE + self._next)
+                if _unbound(group, self.port):
+                    return group, self.port
+        raise HalTransportError(  # pragma: no cover - every group on every port taken
+            "no free udp_multicast group/port for an isolated bus; use --can virtual"
+        )
+
+
+def _unbound(group: str, port: int) -> bool:
+    """Whether no socket on this host listens on ``group:port`` (or the wildcard ``:port``).
+
+    A bind without reuse options fails with EADDRINUSE if any socket is bound there, whatever
+    options it used; so a bus opened on this pair by hand (an explicit port) is detected.
+    """
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((group, port))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                return False
+            raise HalTransportError(
+                f"cannot bind a UDP socket to {group}:{port}: {exc}; check that lo is up "
+                "(sudo ip link set lo up), or use --can virtual"
+            ) from exc
+    return True
+
+
+_RESERVATION = _PortReservation()
 
 
 def isolated_spec(interface: str) -> str:
     """A spec on ``interface`` that no other test or process uses (for parallel test runs).
 
-    ``virtual`` gets a unique channel name, ``udp_multicast`` a free UDP port; ``socketcan``
-    cannot be isolated and returns ``socketcan:vcan0``.
+    ``virtual`` gets a unique channel name; ``socketcan`` cannot be isolated and returns
+    ``socketcan:vcan0``. ``udp_multicast`` gets a group and port pair that cannot be handed out
+    twice, without a race: the port is reserved by this process for its lifetime (a guard socket
+    the kernel will not let any other process bind over, see :class:`_PortReservation`) and
+    each call gets the next group of ``239.75.0.0/16`` on it; a pair some bus is already bound
+    to (opened by hand on an explicit port) is skipped. Child processes given the spec share
+    the reservation of the process that made it.
     """
     if interface == "virtual":
         return f"virtual:hal-test-{uuid.uuid4().hex[:12]}"
     if interface == "udp_multicast":
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        return f"udp_multicast:{DEFAULT_GROUP}:{port}"
+        group, port = _RESERVATION.next_group()
+        return f"udp_multicast:{group}:{port}"
     if interface == "socketcan":
         return f"socketcan:{DEFAULT_VCAN}"
     raise HalConfigError(f"no isolated spec for interface {interface!r}")

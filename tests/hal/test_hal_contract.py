@@ -379,11 +379,12 @@ def test_isolated_specs_do_not_cross_talk(interface: str) -> None:
 
 def test_udp_multicast_skips_garbage_datagrams() -> None:
     spec = isolated_spec("udp_multicast")
-    port = int(spec.rsplit(":", 1)[1])
+    parsed = parse_spec(spec)
+    group, port = parsed.channel, parsed.kwargs["port"]
     with open_bus(spec) as bus, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
         raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
         raw.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
-        raw.sendto(b"\xc1 not msgpack", (DEFAULT_GROUP, port))
+        raw.sendto(b"\xc1 not msgpack", (group, port))
         with open_bus(spec) as tx:
             tx.send(DspCodec().encode_sync(3))
             got = bus.recv(timeout=RECV_TIMEOUT_S)
