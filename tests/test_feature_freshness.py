@@ -16,7 +16,14 @@ MS = 1_000_000
 def msg(frame: int, stamp_ns: int, *, source: int = 7, lockstep: bool = False) -> bytes:
     return encode_features(
         FeatureMsg(
-            frame, stamp_ns, frame * 20 * MS, frame, (-120.0, -160.0), True, lockstep, source
+            frame,
+            stamp_ns,
+            (frame % 1000) * 20 * MS,
+            frame,
+            (-120.0, -160.0),
+            True,
+            lockstep,
+            source,
         )
     )
 
