@@ -9,13 +9,21 @@ and runs a watchdog that removes torque when commands stop. Two clock modes:
   one period only after the controller's command for period ``k`` arrived, so a run is
   deterministic and as fast as the processes allow.
 
-Watchdog: a trip happens when ``dsp.watchdog_periods`` control periods passed since the last valid
+Watchdog: a trip (FAULT, reason WATCHDOG) happens when ``dsp.watchdog_periods`` control periods passed since the last valid
 command (TorqueCommand or DspControl ENABLE), on the DSP's own clock: in realtime it is evaluated
 at the scheduled time of every physics step (so a descheduled emulator process still removes the
 torque at the right physics step), in lockstep on the simulation clock at the start of each
 period. Every change of TorqueEnabled, WatchdogTripped or TorqueSaturated sends a DspStatus at
 once (besides the periodic ones), and :attr:`DspStats.last_trip_latency_ns` records how long
 after its last command the DSP tripped.
+
+Drive state (``hal.drive_state``, CiA 402 style): the node boots in SWITCH_ON_DISABLED with a
+random ``session`` id (``DspStatus.Session``); torque reaches the arm only in OPERATION_ENABLED.
+A watchdog trip, a joint beyond ``dsp.q_min``/``dsp.q_max`` or faster than ``dsp.dq_max`` (with
+operation enabled) or an encoder value the CAN frame cannot carry (any state) puts the drive in
+FAULT with that reason: torque off at once, a DspStatus goes out, ENABLE is refused until
+FAULT_RESET. Out-of-frame joint states are withheld, never pinned. Limits are checked after each
+physics step in realtime and at the end of each control period in lockstep.
 
 Lockstep details: if the command of period ``k`` does not come within ``sync_resend_s`` of real
 time, the DSP re-sends the state and ``Sync(k)`` (the command may have been rejected, e.g. on an
