@@ -9,12 +9,12 @@ and runs a watchdog that removes torque when commands stop. Two clock modes:
   one period only after the controller's command for period ``k`` arrived, so a run is
   deterministic and as fast as the processes allow.
 
-Watchdog: a trip (FAULT, reason WATCHDOG) happens when ``dsp.watchdog_periods`` control periods passed since the last valid
-command (TorqueCommand or DspControl ENABLE), on the DSP's own clock: in realtime it is evaluated
-at the scheduled time of every physics step (so a descheduled emulator process still removes the
-torque at the right physics step), in lockstep on the simulation clock at the start of each
-period. Every change of TorqueEnabled, WatchdogTripped or TorqueSaturated sends a DspStatus at
-once (besides the periodic ones), and :attr:`DspStats.last_trip_latency_ns` records how long
+Watchdog: a trip (FAULT, reason WATCHDOG) happens when ``dsp.watchdog_periods`` control
+periods passed since the last valid command (TorqueCommand or DspControl ENABLE), on the DSP's
+own clock: in realtime it is evaluated at the scheduled time of every physics step (so a
+descheduled emulator process still removes the torque at the right physics step), in lockstep on
+the simulation clock at the start of each period. Every change of DriveState, FaultReason or
+TorqueSaturated sends a DspStatus at once (besides the periodic ones), and :attr:`DspStats.last_trip_latency_ns` records how long
 after its last command the DSP tripped.
 
 Drive state (``hal.drive_state``, CiA 402 style): the node boots in SWITCH_ON_DISABLED with a
