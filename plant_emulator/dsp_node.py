@@ -14,8 +14,8 @@ periods passed since the last valid command (TorqueCommand or DspControl ENABLE)
 own clock: in realtime it is evaluated at the scheduled time of every physics step (so a
 descheduled emulator process still removes the torque at the right physics step), in lockstep on
 the simulation clock at the start of each period. Every change of DriveState, FaultReason or
-TorqueSaturated sends a DspStatus at once (besides the periodic ones), and :attr:`DspStats.last_trip_latency_ns` records how long
-after its last command the DSP tripped.
+TorqueSaturated sends a DspStatus at once (besides the periodic ones), and
+:attr:`DspStats.last_trip_latency_ns` records how long after its last command the DSP tripped.
 
 Drive state (``hal.drive_state``, CiA 402 style): the node boots in SWITCH_ON_DISABLED with a
 random ``session`` id (``DspStatus.Session``); torque reaches the arm only in OPERATION_ENABLED.
