@@ -16,7 +16,6 @@ raise :class:`~hal.errors.HalCodecError` (a command is never silently invented).
 
 from __future__ import annotations
 
-import enum
 import functools
 import math
 import time
@@ -30,6 +29,7 @@ import cantools
 from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 
+from hal.drive_state import DriveState, DspCommand, FaultReason
 from hal.e2e import (
     DEFAULT_MAX_DELTA,
     DEFAULT_REINIT_AFTER_NS,
@@ -45,6 +45,11 @@ DBC_PATH = Path(__file__).with_name("hil.dbc")
 CONTROLLER = "Controller"
 DSP = "DSP"
 E2E_SIGNALS = ("CRC", "Counter")
+
+STRICT_SIGNALS = frozenset({"Q1", "Q2", "Dq1", "Dq2"})
+"""Measurements that are never saturated on encode: a value beyond the signal's range raises
+:class:`~hal.errors.HalCodecError` (a pinned joint angle or speed would lie to the controller;
+the DSP faults with FaultReason ENCODER instead)."""
 
 ENCODER_COUNTS_PER_REV = 1 << 20
 RAD_PER_COUNT = 2.0 * math.pi / ENCODER_COUNTS_PER_REV
@@ -62,15 +67,6 @@ class TorqueCommand:
     tau2: float
     enable: bool = True
     tick: int = 0
-
-
-class DspCommand(enum.IntEnum):
-    """Values of ``DspControl.Command``."""
-
-    ENABLE = 1
-    """Arm the amplifiers and clear WatchdogTripped."""
-    DISABLE = 2
-    """Remove torque (the amplifiers stay disarmed until the next ENABLE)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,7 +96,13 @@ class JointVelocity:
 
 @dataclass(frozen=True, slots=True)
 class DspStatus:
-    """DSP -> controller status flags and counters."""
+    """DSP -> controller status flags, counters and drive state (see :mod:`hal.drive_state`).
+
+    ``drive_state`` / ``fault_reason`` default to what the legacy flags imply (TorqueEnabled ->
+    OPERATION_ENABLED, WatchdogTripped -> FAULT/WATCHDOG, else SWITCH_ON_DISABLED), so a status
+    built from the flags alone round-trips. ``session`` is the DSP process's random id (0 =
+    unknown); ``tick`` is carried mod 4096, ``watchdog_trips`` saturates at 15.
+    """
 
     torque_enabled: bool
     watchdog_tripped: bool
@@ -109,6 +111,32 @@ class DspStatus:
     rejected_frames: int = 0
     watchdog_trips: int = 0
     tick: int = 0
+    drive_state: DriveState | None = None
+    fault_reason: FaultReason | None = None
+    session: int = 0
+
+    def __post_init__(self) -> None:
+        state = self.drive_state
+        if state is None:
+            if self.watchdog_tripped:
+                state = DriveState.FAULT
+            elif self.torque_enabled:
+                state = DriveState.OPERATION_ENABLED
+            else:
+                state = DriveState.SWITCH_ON_DISABLED
+        object.__setattr__(self, "drive_state", DriveState(state))
+        reason = self.fault_reason
+        if reason is None:
+            reason = (
+                FaultReason.WATCHDOG
+                if self.watchdog_tripped and state is DriveState.FAULT
+                else FaultReason.NONE
+            )
+        object.__setattr__(self, "fault_reason", FaultReason(reason))
+
+    @property
+    def fault(self) -> bool:
+        return self.drive_state is DriveState.FAULT
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,8 +201,11 @@ _TO_SIGNALS: dict[type, tuple[str, Callable[[Any], dict[str, Any]]]] = {
             "TorqueSaturated": int(bool(f.torque_saturated)),
             "Lockstep": int(bool(f.lockstep)),
             "RejectedFrames": _sat(f.rejected_frames, 255),
-            "Tick": int(f.tick) & 0xFFFFFFFF,
-            "WatchdogTrips": _sat(f.watchdog_trips, 255),
+            "DriveState": int(f.drive_state),
+            "FaultReason": int(f.fault_reason),
+            "Session": int(f.session) & 0xFFFF,
+            "WatchdogTrips": _sat(f.watchdog_trips, 15),
+            "Tick": int(f.tick) & 0xFFF,
         },
     ),
     Sync: ("Sync", lambda f: {"Tick": int(f.tick) & 0xFFFFFFFF}),
@@ -193,6 +224,9 @@ _FROM_SIGNALS: dict[str, Callable[[dict[str, Any]], Frame]] = {
         s["RejectedFrames"],
         s["WatchdogTrips"],
         s["Tick"],
+        DriveState(s["DriveState"]),
+        FaultReason(s["FaultReason"]),
+        s["Session"],
     ),
     "Sync": lambda s: Sync(s["Tick"]),
 }
@@ -284,6 +318,14 @@ class HilDatabase:
         ]
 
 
+def signal_range(message: str, signal: str) -> tuple[float, float]:
+    """Lowest and highest physical value the DBC signal can carry (scaled signals only)."""
+    for sig, lo, hi in load_database().by_name[message].clamps:
+        if sig == signal:
+            return lo, hi
+    raise HalCodecError(f"{message}.{signal} is not a scaled signal of {DBC_PATH.name}")
+
+
 @functools.cache
 def load_database() -> HilDatabase:
     """The rig's database from :data:`DBC_PATH`, loaded and validated once per process."""
@@ -343,6 +385,8 @@ class CanEndpoint:
             value = float(signals[sig])
             if not math.isfinite(value):
                 raise HalCodecError(f"{name}.{sig} must be finite, got {value!r}")
+            if sig in STRICT_SIGNALS and not lo <= value <= hi:
+                raise HalCodecError(f"{name}.{sig} = {value!r} is beyond the frame's [{lo}, {hi}]")
             signals[sig] = lo if value < lo else hi if value > hi else value
         signals["CRC"] = 0
         signals["Counter"] = 0

@@ -187,6 +187,13 @@ class ControllerConfig:
     cpu: int = -1
     """CPU to pin the loop to; -1 = leave affinity alone."""
     log_dir: str = "logs"
+    max_clock_skew_s: float = 0.005
+    """A feature message stamped further than this in the future (receive clock) is rejected
+    (``future_stamp``): its age would come out negative and defeat the stale check."""
+    feature_source_takeover_s: float = 1.0
+    """After the first feature source id is locked in, another source id is rejected
+    (``foreign_source``) unless the locked source sent nothing accepted for this long (a
+    restarted vision process); 0 lets any new source take over at once."""
     rearm_after_trip: bool = True
     """Re-enable the DSP once after each watchdog trip it reports (the trip means this loop
     was late); false leaves the amplifiers off until restarted."""
@@ -202,6 +209,15 @@ class DspConfig:
     """Encoder counts per revolution (20-bit absolute encoder)."""
     velocity_filter_hz: float = 200.0
     """Cut-off of the first-order velocity estimate filter; 0 = raw finite difference."""
+    q_min: Vec2 = (-math.pi, -2.6)
+    """Lowest joint angles, rad: with operation enabled, crossing one faults the DSP (torque off,
+    ``DspStatus.FaultReason`` POSITION_LIMIT). Joint 1 may turn half a revolution either way;
+    the elbow stops 2.6 rad (149 deg) short of folding link 2 onto link 1."""
+    q_max: Vec2 = (math.pi, 2.6)
+    """Highest joint angles, rad (see ``q_min``)."""
+    dq_max: Vec2 = (8.0, 8.0)
+    """Joint speed limits, rad/s (about 1.3 rev/s, several times what a visual-servo run needs):
+    with operation enabled, exceeding one faults the DSP (VELOCITY_LIMIT)."""
 
 
 @dataclass(frozen=True)
@@ -238,7 +254,8 @@ class RigConfig:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     def with_overrides(self, overrides: dict[str, Any]) -> RigConfig:
-        """A validated copy with ``{"section.key": value}`` overrides applied."""
+        """A validated copy with ``{"section.key": value}`` overrides applied (command-line
+        options): every value gets the same type and range checks as in a file."""
         data = self.to_dict()
         for dotted, value in overrides.items():
             section, _, key = dotted.partition(".")
@@ -327,8 +344,96 @@ def _check_spd(matrix: Mat2, key: str) -> None:
     )
 
 
+_INT_MAX = 2**63 - 1
+_RANGES: dict[str, tuple[float, float, str]] = {
+    # key: (low, high, kind) -- kind "[]" closed, "(]" low open, "[)" high open, "()" open.
+    "robot.l1": (0, 10, "(]"),
+    "robot.l2": (0, 10, "(]"),
+    "robot.lc1": (0, 10, "[]"),
+    "robot.lc2": (0, 10, "[]"),
+    "robot.m1": (0, 1e4, "(]"),
+    "robot.m2": (0, 1e4, "(]"),
+    "robot.I1": (0, 1e4, "(]"),
+    "robot.I2": (0, 1e4, "(]"),
+    "robot.gravity": (0, 100, "[]"),
+    "robot.tau_max": (0, 1e4, "(]"),
+    "robot.viscous": (0, 1e4, "[]"),
+    "robot.coulomb": (0, 1e4, "[]"),
+    "camera.s_lambda": (0, 1e6, "(]"),
+    "camera.z_wo": (0, 1e3, "(]"),
+    "camera.noise_px": (0, 1e4, "[]"),
+    "camera.frame_rate_hz": (0, 1e4, "[]"),
+    "camera.latency_s": (0, 10, "[]"),
+    "camera.seed": (0, _INT_MAX, "[]"),
+    "gains.kp": (0, 1e6, "(]"),
+    "gains.alpha": (-1e6, 1e6, "[]"),
+    "gains.K": (-1e6, 1e6, "[]"),
+    "scenario.q0": (-50, 50, "[]"),
+    "scenario.dq0": (-80, 80, "[]"),
+    "scenario.f0": (-1e6, 1e6, "[]"),
+    "scenario.jump_time": (0, 1e6, "[]"),
+    "scenario.f_jump": (-1e6, 1e6, "[]"),
+    "rates.control_hz": (1, 2000, "[]"),
+    "rates.physics_hz": (1, 100_000, "[]"),
+    "rates.state_hz": (1, 100_000, "[]"),
+    "rates.status_hz": (1, 1000, "[]"),
+    "rhc.horizon": (0, 10, "(]"),
+    "rhc.steps": (1, 200, "[]"),
+    "rhc.kmax": (1, 50, "[]"),
+    "rhc.zeta": (0, 1e4, "(]"),
+    "rhc.horizon_growth": (0, 1e4, "[]"),
+    "rhc.u_max": (0, 1e4, "(]"),
+    "rhc.dummy_weight": (0, 1e6, "(]"),
+    "rhc.fd_step": (0, 1e-2, "()"),
+    "rhc.residual_bound": (0, 1e12, "(]"),
+    "rhc.init_tol": (0, 1, "(]"),
+    "rhc.init_iterations": (1, 10_000, "[]"),
+    "controller.feature_timeout_s": (0, 10, "(]"),
+    "controller.state_timeout_s": (0, 10, "(]"),
+    "controller.spin_us": (0, 100_000, "[]"),
+    "controller.rt_priority": (1, 99, "[]"),
+    "controller.cpu": (-1, 4095, "[]"),
+    "controller.max_clock_skew_s": (0, 1, "[]"),
+    "controller.feature_source_takeover_s": (0, 3600, "[]"),
+    "dsp.watchdog_periods": (1, 100, "[]"),
+    "dsp.encoder_counts": (2, 1 << 24, "[]"),
+    "dsp.velocity_filter_hz": (0, 100_000, "[]"),
+    "dsp.q_min": (-50, 50, "[]"),
+    "dsp.q_max": (-50, 50, "[]"),
+    "dsp.dq_max": (0, 83, "(]"),
+}
+"""Sane range of every numeric setting (each element of a vector or matrix): a value outside,
+like ``rhc.steps = 1000000000`` or ``rates.physics_hz = 1e300``, is a one-line
+:class:`HalConfigError` naming the key, before anything allocates or waits."""
+
+
+def _in_range(value: float, lo: float, hi: float, kind: str) -> bool:
+    above = value > lo if kind[0] == "(" else value >= lo
+    below = value < hi if kind[1] == ")" else value <= hi
+    return above and below
+
+
+def _flat(value: Any) -> list[float]:
+    if isinstance(value, list | tuple):
+        return [v for item in value for v in _flat(item)]
+    return [value]
+
+
+def _check_ranges(cfg: RigConfig) -> None:
+    for key, (lo, hi, kind) in _RANGES.items():
+        section, _, name = key.partition(".")
+        value = getattr(getattr(cfg, section), name)
+        for v in _flat(value):
+            if not (isinstance(v, int | float) and math.isfinite(v)):
+                raise HalConfigError(f"{key}: must be finite, got {value!r}")
+            if not _in_range(v, lo, hi, kind):
+                interval = f"{kind[0]}{lo:g}, {hi:g}{kind[1]}"
+                raise HalConfigError(f"{key}: {value!r} is out of range {interval}")
+
+
 def validate(cfg: RigConfig) -> RigConfig:
-    """Check cross-field constraints; returns ``cfg`` or raises :class:`HalConfigError`."""
+    """Check every setting's range (:data:`_RANGES`) and the cross-field constraints; returns
+    ``cfg`` or raises :class:`HalConfigError` naming the key."""
     r = cfg.robot
     for key in ("l1", "l2", "m1", "m2", "I1", "I2"):
         _require(getattr(r, key) > 0, f"robot.{key}", "must be positive")
@@ -401,21 +506,46 @@ def validate(cfg: RigConfig) -> RigConfig:
     _require(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")
     _require(d.encoder_counts >= 2, "dsp.encoder_counts", "must be at least 2")
     _require(d.velocity_filter_hz >= 0, "dsp.velocity_filter_hz", "must be non-negative")
+    _check_ranges(cfg)
+    for j in range(2):
+        _require(
+            d.q_min[j] < d.q_max[j],
+            "dsp.q_min",
+            f"must be below dsp.q_max on every joint, got {d.q_min} and {d.q_max}",
+        )
+    for j, q in enumerate(s.q0):
+        _require(
+            d.q_min[j] <= q <= d.q_max[j],
+            "scenario.q0",
+            f"must lie within dsp.q_min {d.q_min} .. dsp.q_max {d.q_max}, got {s.q0}",
+        )
     return cfg
 
 
-def config_from_dict(data: dict[str, Any]) -> RigConfig:
-    """Build and validate a :class:`RigConfig` from a nested dict (parsed TOML or JSON)."""
-    if not isinstance(data, dict):
-        raise HalConfigError(f"config: expected a table of sections, got {type(data).__name__}")
-    sections = {}
-    for name, body in data.items():
-        if name not in _SECTIONS:
-            raise HalConfigError(
-                f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
-            )
-        sections[name] = _build_section(name, body)
-    return validate(RigConfig(**sections))
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def config_from_dict(data: dict[str, Any], *, source: str | None = None) -> RigConfig:
+    """Build and validate a :class:`RigConfig` from a nested dict (parsed TOML or JSON).
+
+    Exactly the checks of a file (types, ranges, cross-field constraints); ``source`` (e.g.
+    ``"log metadata"``) prefixes the one-line error, as the path does for a file.
+    """
+    try:
+        if not isinstance(data, dict):
+            raise HalConfigError(f"config: expected a table of sections, got {type(data).__name__}")
+        sections = {}
+        for name, body in data.items():
+            if name not in _SECTIONS:
+                raise HalConfigError(
+                    f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
+                )
+            sections[name] = _build_section(name, body)
+        return validate(RigConfig(**sections))
+    except HalConfigError as exc:
+        msg = _one_line(str(exc))
+        raise HalConfigError(f"{source}: {msg}" if source else msg) from None
 
 
 def load_config(path: str | Path | None = None) -> RigConfig:
@@ -424,23 +554,29 @@ def load_config(path: str | Path | None = None) -> RigConfig:
         return validate(RigConfig())
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        raw = p.read_bytes()
     except OSError as exc:
-        raise HalConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from exc
+        raise HalConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise HalConfigError(
+            f"{p}: not UTF-8 text (invalid byte 0x{raw[exc.start]:02x} at offset {exc.start})"
+        ) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise HalConfigError(f"{p}: not valid TOML: {exc}") from exc
-    try:
-        return config_from_dict(data)
-    except HalConfigError as exc:
-        raise HalConfigError(f"{p}: {exc}") from exc
+        raise HalConfigError(f"{p}: not valid TOML: {_one_line(str(exc))}") from None
+    except RecursionError:
+        raise HalConfigError(f"{p}: not valid TOML: nested too deeply") from None
+    return config_from_dict(data, source=str(p))
 
 
-def config_from_json(text: str) -> RigConfig:
-    """Inverse of :meth:`RigConfig.to_json` (used to replay a log's embedded configuration)."""
+def config_from_json(text: str | bytes, *, source: str = "embedded config") -> RigConfig:
+    """Inverse of :meth:`RigConfig.to_json` (used to replay a log's embedded configuration);
+    validated exactly like a file, errors prefixed with ``source``."""
     try:
         data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise HalConfigError(f"embedded config is not valid JSON: {exc}") from exc
-    return config_from_dict(data)
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise HalConfigError(f"{source}: not valid JSON: {_one_line(str(exc))}") from None
+    return config_from_dict(data, source=source)

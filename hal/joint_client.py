@@ -9,7 +9,7 @@ and the latest :class:`Sync` tick. The control loop reads them without blocking
 Typical use::
 
     with JointClient.open("auto", cfg) as dsp:
-        dsp.enable()
+        dsp.enable()                               # FAULT_RESET + ENABLE
         tick = dsp.wait_sync(timeout=1.0)          # lockstep mode only
         state = dsp.latest_state()                 # HalTimeoutError when the DSP went silent
         dsp.send_torque(tau[0], tau[1], tick=tick)
@@ -39,6 +39,7 @@ from hal.can_codec import (
     Sync,
 )
 from hal.config import RigConfig
+from hal.drive_state import DriveState
 from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS, E2EStats
 from hal.errors import HalError, HalTimeoutError, HalTransportError
 from hal.resources import release, track
@@ -218,15 +219,32 @@ class JointClient:
         enable = self._armed
         self._send(lambda c: c.encode_torque(tau1, tau2, enable=enable, tick=tick))
 
-    def enable(self) -> None:
-        """Arm the DSP's amplifiers and clear a watchdog trip (DspControl ENABLE).
+    def enable(self, *, reset_fault: bool = True) -> None:
+        """Arm the DSP: DspControl ENABLE (drive state -> OPERATION_ENABLED).
 
-        Sent twice with consecutive counters so that a receiver that has to resynchronise on
-        the first one (e.g. after a controller restart) still accepts the second.
+        With ``reset_fault`` (the default, the behaviour the controller had before the drive
+        state machine: "arm and clear a watchdog trip") a FAULT_RESET goes first, so a DSP in
+        FAULT is armed too; ``reset_fault=False`` leaves a faulted DSP in FAULT (ENABLE is
+        refused there), for callers that decide about faults themselves.
+
+        Each command is sent twice with consecutive counters so that a receiver that has to
+        resynchronise on the first one (e.g. after a controller restart) still accepts the
+        second.
         """
         self._armed = True
-        for _ in range(2):
-            self._send(lambda c: c.encode_control(DspCommand.ENABLE))
+        if reset_fault:
+            self.send_command(DspCommand.FAULT_RESET)
+        self.send_command(DspCommand.ENABLE)
+
+    def fault_reset(self) -> None:
+        """DspControl FAULT_RESET (twice): FAULT -> SWITCH_ON_DISABLED; no torque until ENABLE."""
+        self.send_command(DspCommand.FAULT_RESET)
+
+    def send_command(self, command: DspCommand, *, repeat: int = 2) -> None:
+        """Send one DspControl ``command`` ``repeat`` times (consecutive counters)."""
+        cmd = DspCommand(command)
+        for _ in range(repeat):
+            self._send(lambda c: c.encode_control(cmd))
 
     def disable(self) -> None:
         """Remove torque: DspControl DISABLE (twice) and a zero TorqueCommand with Enable=0."""
@@ -349,8 +367,25 @@ class JointClient:
 
     @property
     def status(self) -> DspStatus | None:
-        """The latest DspStatus (``None`` before the first one); never raises."""
+        """The latest DspStatus (``None`` before the first one); never raises.
+
+        Feed it to a :class:`hal.drive_state.DriveMonitor` every tick to follow the DSP's
+        drive state, faults and restarts.
+        """
         return self._status
+
+    @property
+    def status_age_s(self) -> float | None:
+        """Seconds since the latest DspStatus arrived; ``None`` before the first one."""
+        if self._status is None:
+            return None
+        return (time.monotonic_ns() - self._status_t_ns) * 1e-9
+
+    @property
+    def drive_state(self) -> DriveState | None:
+        """DriveState of the latest DspStatus (``None`` before the first one)."""
+        status = self._status
+        return None if status is None else status.drive_state
 
     def latest_status(self, max_age_s: float | None = None) -> DspStatus:
         """The newest DspStatus; :class:`HalTimeoutError` when none or older than ``max_age_s``.

@@ -47,7 +47,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from hal.errors import HalCodecError
 
@@ -225,12 +225,21 @@ class RxCounts:
     """Older than the age limit when received."""
     stale_order: int = 0
     """Not newer than the last accepted message (replayed, repeated or going backwards)."""
+    backwards_stamp: int = 0
+    """Realtime: capture stamp older than the last accepted one of the same source."""
+    future_stamp: int = 0
+    """Realtime: stamped further in the future than the allowed clock skew (its age would be
+    negative and pass any stale check)."""
+    foreign_source: int = 0
+    """From another source id than the locked-in publisher, which was not silent long enough
+    for a takeover."""
     invalid: int = 0
     """Accepted messages flagged not valid (no measurement yet); subset of ``accepted``."""
     repeats: int = 0
     """Accepted re-sends of the same frame answering a newer pose; subset of ``accepted``."""
     source_changes: int = 0
-    """The publisher restarted (new source id); ordering restarts."""
+    """A new source id took over (the first one, or after the locked source went silent for the
+    takeover time); ordering restarts."""
     resyncs: int = 0
     """Ordering restarted after too many consecutive ``stale_order`` rejections."""
 
@@ -247,31 +256,70 @@ class RxCounts:
 
     @property
     def stale(self) -> int:
-        return self.stale_age + self.stale_order
+        return self.stale_age + self.stale_order + self.backwards_stamp
+
+    @property
+    def untrusted(self) -> int:
+        return self.future_stamp + self.foreign_source
 
     @property
     def rejected(self) -> int:
-        return self.malformed + self.stale
+        return self.malformed + self.stale + self.untrusted
 
     def as_dict(self) -> dict[str, int]:
         d = asdict(self)
-        d.update(malformed=self.malformed, stale=self.stale, rejected=self.rejected)
+        d.update(
+            malformed=self.malformed,
+            stale=self.stale,
+            untrusted=self.untrusted,
+            rejected=self.rejected,
+        )
         return d
 
 
 class _Receiver:
     """Shared ordering/locking of the two receivers."""
 
-    def __init__(self, resync_after: int, clock: Callable[[], int]) -> None:
+    def __init__(
+        self, resync_after: int, clock: Callable[[], int], source_takeover_ns: int | None = 0
+    ) -> None:
         if resync_after < 1:
             raise ValueError("resync_after must be at least 1")
+        if source_takeover_ns is not None and source_takeover_ns < 0:
+            raise ValueError("source_takeover_ns must be non-negative or None")
         self.counts = RxCounts()
         self.resync_after = resync_after
+        self.source_takeover_ns = source_takeover_ns
         self._clock = clock
         self._cond = threading.Condition(threading.Lock())
         self._source: int | None = None
         self._key: tuple[int, int] | None = None
         self._order_rejects = 0
+        self._accepted_ns: int | None = None
+        """Receive time of the last accepted message (the source lock's silence timer)."""
+
+    @property
+    def source(self) -> int | None:
+        """The locked-in source id (``None`` before the first accepted message)."""
+        return self._source
+
+    def counters(self) -> dict[str, int]:
+        """Every counter by name (``accepted``, ``future_stamp``, ``foreign_source``, ...,
+        plus the sums ``malformed``, ``stale``, ``untrusted``, ``rejected``)."""
+        with self._cond:
+            return self.counts.to_dict()
+
+    def _foreign(self, source: int, now: int) -> bool:
+        """With the lock held: whether ``source`` must be rejected (counted) as foreign."""
+        if self._source is None or source == self._source:
+            return False
+        takeover = self.source_takeover_ns
+        if takeover is not None and (
+            self._accepted_ns is None or now - self._accepted_ns >= takeover
+        ):
+            return False
+        self.counts.foreign_source += 1
+        return True
 
     def _count(self, parsed: object) -> bool:
         """Count one received payload (caller holds the lock); False for a malformed one,
@@ -291,6 +339,7 @@ class _Receiver:
         if self._source is not None and source != self._source:
             c.source_changes += 1
             self._key = None
+            self._order_rejects = 0
             verdict = 2
         if self._key is not None and key <= self._key:
             self._order_rejects += 1
@@ -305,22 +354,44 @@ class _Receiver:
         return verdict
 
     def reset(self) -> None:
-        """Forget ordering and latest message (counters stay)."""
+        """Forget the source lock, ordering and latest message (counters stay)."""
         with self._cond:
             self._source = None
             self._key = None
             self._order_rejects = 0
+            self._accepted_ns = None
+
+
+def feature_age_ns(now_ns: int, stamp_ns: int, recv_ns: int) -> int:
+    """Age of a feature measurement for staleness: the larger of its age by capture stamp and
+    by receive time, never negative. A stamp from the future (within the allowed clock skew)
+    cannot make a message look fresher than its arrival, and a message that arrived long ago
+    stays old whatever its stamp says."""
+    return max(now_ns - stamp_ns, now_ns - recv_ns, 0)
 
 
 class FeatureDecoder(_Receiver):
     """Receiver side of ``hil/vision/features``: :meth:`feed` never raises.
 
-    A message is accepted when well formed, not older than ``max_age_ns`` at reception (realtime
-    messages only; lockstep messages are judged in simulation time by the controller, see
-    :meth:`sim_age_ns`), and newer than the last accepted one by ``(frame, pose_seq)`` — a lockstep
-    re-send of the same frame answering a newer pose is newer; a replay is not. A publisher
-    restart (new source id) restarts the ordering, and so do ``resync_after`` consecutive
-    ordering rejections (a corrupted huge counter cannot lock the receiver out forever).
+    A message is accepted when, in this order (the first failing check names the counter):
+
+    1. it is well formed (``bad_*``);
+    2. realtime only: its ``stamp_ns`` is at most ``max_clock_skew_ns`` ahead of the receive
+       clock (``future_stamp``) and at most ``max_age_ns`` behind it (``stale_age``); lockstep
+       messages are judged in simulation time by the controller (see :meth:`sim_age_ns`);
+    3. it comes from the locked-in source id (``foreign_source``). The first accepted message
+       locks its source; another source takes over only once the locked one sent nothing
+       accepted for ``source_takeover_ns`` (a restarted vision process; ``0`` = at once,
+       ``None`` = never without :meth:`reset`). A second publisher can never interleave;
+    4. realtime only: its stamp is not older than the last accepted one (``backwards_stamp``);
+    5. it is newer than the last accepted one by ``(frame, pose_seq)`` (``stale_order``) — a
+       lockstep re-send of the same frame answering a newer pose is newer; a replay is not.
+       ``resync_after`` consecutive ordering rejections of otherwise fresh messages restart the
+       ordering (a corrupted huge counter cannot lock the receiver out forever; checks 2-4
+       still hold, so a resync never admits old data).
+
+    Staleness: :meth:`age_ns` uses both the capture stamp and the receive time
+    (:func:`feature_age_ns`), so it is never negative. :meth:`counters` returns every counter.
 
     Thread-safe: zenoh's callback thread feeds, the control loop reads :attr:`latest` or waits
     with :meth:`wait_pose_seq`. Wiring: ``session.subscribe(KEY_FEATURES, decoder.feed)``.
@@ -332,9 +403,14 @@ class FeatureDecoder(_Receiver):
         max_age_ns: int | None = 100_000_000,
         resync_after: int = 10,
         clock: Callable[[], int] = time.monotonic_ns,
+        max_clock_skew_ns: int = 5_000_000,
+        source_takeover_ns: int | None = 1_000_000_000,
     ) -> None:
-        super().__init__(resync_after, clock)
+        super().__init__(resync_after, clock, source_takeover_ns)
+        if max_clock_skew_ns < 0:
+            raise ValueError("max_clock_skew_ns must be non-negative")
         self.max_age_ns = max_age_ns
+        self.max_clock_skew_ns = max_clock_skew_ns
         self.latest: FeatureMsg | None = None
         """Newest accepted *valid* message."""
         self.latest_recv_ns: int | None = None
@@ -343,6 +419,15 @@ class FeatureDecoder(_Receiver):
         """Newest accepted message, valid or not."""
         self.pose_seq = -1
         """Highest ``pose_seq`` of an accepted message (-1 before the first)."""
+
+    @classmethod
+    def from_config(cls, controller: Any, **kwargs: Any) -> FeatureDecoder:
+        """A decoder with the limits of a ``hal.config.ControllerConfig``: ``feature_timeout_s``,
+        ``max_clock_skew_s``, ``feature_source_takeover_s``."""
+        kwargs.setdefault("max_age_ns", round(controller.feature_timeout_s * 1e9))
+        kwargs.setdefault("max_clock_skew_ns", round(controller.max_clock_skew_s * 1e9))
+        kwargs.setdefault("source_takeover_ns", round(controller.feature_source_takeover_s * 1e9))
+        return cls(**kwargs)
 
     def feed(self, payload: bytes, recv_ns: int | None = None) -> FeatureMsg | None:
         """Decode one payload; the accepted message, or None when it was rejected (counted)."""
@@ -353,17 +438,29 @@ class FeatureDecoder(_Receiver):
             if not self._count(out):
                 return None
             msg = out
-            if (
-                self.max_age_ns is not None
-                and not msg.lockstep
-                and now - msg.stamp_ns > self.max_age_ns
-            ):
-                c.stale_age += 1
+            if not msg.lockstep:
+                if msg.stamp_ns - now > self.max_clock_skew_ns:
+                    c.future_stamp += 1
+                    return None
+                if self.max_age_ns is not None and now - msg.stamp_ns > self.max_age_ns:
+                    c.stale_age += 1
+                    return None
+            if self._foreign(msg.source, now):
                 return None
             last = self.last
+            if (
+                not msg.lockstep
+                and last is not None
+                and not last.lockstep
+                and msg.source == last.source
+                and msg.stamp_ns < last.stamp_ns
+            ):
+                c.backwards_stamp += 1
+                return None
             verdict = self._order(msg.source, (msg.frame, msg.pose_seq))
             if not verdict:
                 return None
+            self._accepted_ns = now
             c.accepted += 1
             if last is not None and msg.frame == last.frame and msg.source == last.source:
                 c.repeats += 1
@@ -379,14 +476,30 @@ class FeatureDecoder(_Receiver):
             return msg
 
     def age_ns(self, now_ns: int | None = None) -> int | None:
-        """Age of :attr:`latest` by its capture stamp (None before the first valid message)."""
-        latest = self.latest
-        if latest is None:
+        """Age of :attr:`latest` for staleness (None before the first valid message): the larger
+        of its age by capture stamp and by receive time (:func:`feature_age_ns`), never
+        negative. Realtime; lockstep runs judge :meth:`sim_age_ns`."""
+        with self._cond:
+            latest, recv = self.latest, self.latest_recv_ns
+        if latest is None or recv is None:
             return None
-        return (self._clock() if now_ns is None else now_ns) - latest.stamp_ns
+        now = self._clock() if now_ns is None else now_ns
+        return feature_age_ns(now, latest.stamp_ns, recv)
+
+    def fresh_latest(self, max_age_ns: int, now_ns: int | None = None) -> FeatureMsg | None:
+        """:attr:`latest` if its :meth:`age_ns` is at most ``max_age_ns``, else None."""
+        with self._cond:
+            latest, recv = self.latest, self.latest_recv_ns
+        if latest is None or recv is None:
+            return None
+        now = self._clock() if now_ns is None else now_ns
+        return latest if feature_age_ns(now, latest.stamp_ns, recv) <= max_age_ns else None
 
     def sim_age_ns(self, sim_now_ns: int) -> int | None:
-        """Age of :attr:`latest` in emulator time (lockstep): ``sim_now_ns - sim_time_ns``."""
+        """Age of :attr:`latest` in emulator time (lockstep): ``sim_now_ns - sim_time_ns``.
+
+        Negative means the message claims a simulation time after ``sim_now_ns``: treat it as
+        stale (``not 0 <= age <= timeout``), never as fresh."""
         latest = self.latest
         return None if latest is None else sim_now_ns - latest.sim_time_ns
 
@@ -412,7 +525,7 @@ class PoseDecoder(_Receiver):
     def __init__(
         self, *, resync_after: int = 10, clock: Callable[[], int] = time.monotonic_ns
     ) -> None:
-        super().__init__(resync_after, clock)
+        super().__init__(resync_after, clock, source_takeover_ns=0)  # follow emulator restarts
         self.latest: PoseMsg | None = None
         self.latest_recv_ns: int | None = None
 
@@ -426,6 +539,7 @@ class PoseDecoder(_Receiver):
                 return None
             if not self._order(out.source, (out.seq, 0)):
                 return None
+            self._accepted_ns = now
             c.accepted += 1
             self.latest = out
             self.latest_recv_ns = now

@@ -9,13 +9,21 @@ and runs a watchdog that removes torque when commands stop. Two clock modes:
   one period only after the controller's command for period ``k`` arrived, so a run is
   deterministic and as fast as the processes allow.
 
-Watchdog: a trip happens when ``dsp.watchdog_periods`` control periods passed since the last valid
-command (TorqueCommand or DspControl ENABLE), on the DSP's own clock: in realtime it is evaluated
-at the scheduled time of every physics step (so a descheduled emulator process still removes the
-torque at the right physics step), in lockstep on the simulation clock at the start of each
-period. Every change of TorqueEnabled, WatchdogTripped or TorqueSaturated sends a DspStatus at
-once (besides the periodic ones), and :attr:`DspStats.last_trip_latency_ns` records how long
-after its last command the DSP tripped.
+Watchdog: a trip (FAULT, reason WATCHDOG) happens when ``dsp.watchdog_periods`` control
+periods passed since the last valid command (TorqueCommand or DspControl ENABLE), on the DSP's
+own clock: in realtime it is evaluated at the scheduled time of every physics step (so a
+descheduled emulator process still removes the torque at the right physics step), in lockstep on
+the simulation clock at the start of each period. Every change of DriveState, FaultReason or
+TorqueSaturated sends a DspStatus at once (besides the periodic ones), and
+:attr:`DspStats.last_trip_latency_ns` records how long after its last command the DSP tripped.
+
+Drive state (``hal.drive_state``, CiA 402 style): the node boots in SWITCH_ON_DISABLED with a
+random ``session`` id (``DspStatus.Session``); torque reaches the arm only in OPERATION_ENABLED.
+A watchdog trip, a joint beyond ``dsp.q_min``/``dsp.q_max`` or faster than ``dsp.dq_max`` (with
+operation enabled) or an encoder value the CAN frame cannot carry (any state) puts the drive in
+FAULT with that reason: torque off at once, a DspStatus goes out, ENABLE is refused until
+FAULT_RESET. Out-of-frame joint states are withheld, never pinned. Limits are checked after each
+physics step in realtime and at the end of each control period in lockstep.
 
 Lockstep details: if the command of period ``k`` does not come within ``sync_resend_s`` of real
 time, the DSP re-sends the state and ``Sync(k)`` (the command may have been rejected, e.g. on an
@@ -30,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import secrets
 import threading
 import time
 from collections.abc import Callable
@@ -39,8 +48,16 @@ from typing import Any
 import can
 import numpy as np
 
-from hal.can_codec import RAD_PER_COUNT, DspCodec, DspCommand, DspControl, DspStatus, TorqueCommand
+from hal.can_codec import (
+    RAD_PER_COUNT,
+    DspCodec,
+    DspControl,
+    DspStatus,
+    TorqueCommand,
+    signal_range,
+)
 from hal.config import RigConfig
+from hal.drive_state import Drive, DriveState, DspCommand, FaultReason
 from plant_emulator.arm import Encoder
 from plant_emulator.camera import CameraPose
 from plant_emulator.world import World
@@ -81,6 +98,21 @@ class DspStats:
     """Realtime: the most a physics step ran after its scheduled time (host scheduling)."""
     rejected: dict[str, int] = field(default_factory=dict)
     """Receive verdicts of the DSP's codec (filled in when the run ends)."""
+    session: int = 0
+    """This DSP process's random id (``DspStatus.Session``)."""
+    drive_state: str = DriveState.SWITCH_ON_DISABLED.label
+    """Drive state at the end of the run (``operation_enabled``, ``fault``, ...)."""
+    fault_reason: str = FaultReason.NONE.label
+    """Reason of the fault the run ended in (``none`` when it did not end in FAULT)."""
+    faults: dict[str, int] = field(default_factory=dict)
+    """Faults entered, by reason (``watchdog``, ``position_limit``, ``velocity_limit``,
+    ``encoder``)."""
+    last_fault: str | None = None
+    """The latest fault in one line (reason, joint, value, limit), for logs."""
+    refused_commands: int = 0
+    """DspControl commands the drive state refused (e.g. ENABLE in FAULT)."""
+    states_withheld: int = 0
+    """Joint states not sent because the frame could not carry them (encoder fault)."""
 
     def as_dict(self) -> dict[str, Any]:
         """Plain counters for ``--json`` (latencies also in ms)."""
@@ -105,10 +137,12 @@ class DspNode:
         reply_timeout_s: float = LOCKSTEP_REPLY_TIMEOUT_S,
         sync_resend_s: float = SYNC_RESEND_S,
         wait_for_controller: bool = True,
+        session: int | None = None,
     ) -> None:
         """``reply_timeout_s``, ``sync_resend_s``: lockstep waits (real time, see the module
         docstring); ``wait_for_controller``: in lockstep, hold period 0 until the first command
-        arrives (``False`` counts it missing after ``reply_timeout_s`` like any other)."""
+        arrives (``False`` counts it missing after ``reply_timeout_s`` like any other);
+        ``session``: the id reported in ``DspStatus.Session`` (default: random, non-zero)."""
         self.cfg = cfg
         self.bus = bus
         self.lockstep = lockstep
@@ -128,10 +162,16 @@ class DspNode:
         fc = cfg.dsp.velocity_filter_hz
         dt = 1.0 / rates.physics_hz
         self.filter_gain = 1.0 - math.exp(-2 * math.pi * fc * dt) if fc > 0 else 1.0
-        # Amplifier and watchdog state.
-        self.armed = False
-        self.tripped = False
+        # Drive state machine, amplifier and watchdog state.
+        self.drive = Drive()
+        self.session = secrets.randbelow(0xFFFF) + 1 if session is None else int(session)
+        self.stats.session = self.session
         self.tau_cmd = np.zeros(2)
+        d = cfg.dsp
+        self.q_min, self.q_max = np.array(d.q_min, float), np.array(d.q_max, float)
+        self.dq_max = np.array(d.dq_max, float)
+        self._q_frame = signal_range("JointPosition", "Q1")
+        self._dq_frame = signal_range("JointVelocity", "Dq1")
         self._tau_max = np.array(cfg.robot.tau_max, dtype=float)
         self.last_cmd_ns: int | None = None
         self.last_cmd_tick = -1
@@ -152,6 +192,11 @@ class DspNode:
             self.stats.send_errors += 1
 
     def send_state(self) -> None:
+        """The encoder's angles and velocity estimate; withheld (and the drive faulted with
+        ENCODER) when the frame cannot carry them, never pinned to the frame's range."""
+        if not self._sensors_in_range():
+            self.stats.states_withheld += 1
+            return
         sample = self.world.step_index % 16
         q = (float(self.encoder.q[0]), float(self.encoder.q[1]))
         dq = (float(self.encoder.dq[0]), float(self.encoder.dq[1]))
@@ -167,8 +212,11 @@ class DspNode:
             torque_saturated=self.torque_saturated,
             lockstep=self.lockstep,
             rejected_frames=min(st.rejected, 255),
-            watchdog_trips=min(self.stats.watchdog_trips, 255),
+            watchdog_trips=min(self.stats.watchdog_trips, 15),
             tick=self.world.step_index,
+            drive_state=self.drive.state,
+            fault_reason=self.drive.fault_reason,
+            session=self.session,
         )
         self._send(self.codec.encode_status(status))
         self.stats.status_frames += 1
@@ -185,15 +233,42 @@ class DspNode:
 
     @property
     def torque_enabled(self) -> bool:
-        return self.armed and not self.tripped
+        """Drive state OPERATION_ENABLED: the held command reaches the arm."""
+        return self.drive.torque_allowed
+
+    @property
+    def armed(self) -> bool:
+        """Same as :attr:`torque_enabled` (setting it forces the drive state, for tests:
+        True -> OPERATION_ENABLED, False -> READY_TO_SWITCH_ON unless in FAULT)."""
+        return self.drive.torque_allowed
+
+    @armed.setter
+    def armed(self, value: bool) -> None:
+        if value:
+            self.drive.state, self.drive.fault_reason = (
+                DriveState.OPERATION_ENABLED,
+                FaultReason.NONE,
+            )
+        elif self.drive.state is not DriveState.FAULT:
+            self.drive.state = DriveState.READY_TO_SWITCH_ON
+        if not self.drive.torque_allowed:
+            self.tau_cmd = np.zeros(2)
+
+    @property
+    def tripped(self) -> bool:
+        """In FAULT because of the watchdog (``DspStatus.WatchdogTripped``)."""
+        return (
+            self.drive.state is DriveState.FAULT and self.drive.fault_reason is FaultReason.WATCHDOG
+        )
 
     @property
     def torque_saturated(self) -> bool:
         """Whether the held command exceeds ``robot.tau_max`` on a joint (the amplifier clips)."""
         return bool(np.any(np.abs(self.tau_cmd) > self._tau_max))
 
-    def _flags(self) -> tuple[bool, bool, bool]:
-        return (self.torque_enabled, self.tripped, self.torque_saturated)
+    def _flags(self) -> tuple[object, ...]:
+        d = self.drive
+        return (d.state, d.fault_reason, self.torque_saturated)
 
     def handle(self, msg: can.Message, now_ns: int) -> TorqueCommand | None:
         """Apply one received frame; returns the torque command it carried (if valid).
@@ -208,11 +283,12 @@ class DspNode:
         before = self._flags()
         accepted: TorqueCommand | None = None
         if isinstance(frame, DspControl):
-            if frame.command is DspCommand.ENABLE:
-                self.armed, self.tripped = True, False
+            accepted_cmd = self.drive.command(frame.command)
+            self.stats.refused_commands = self.drive.refused
+            if accepted_cmd and frame.command is DspCommand.ENABLE:
                 self._command_seen(now_ns)
-            else:
-                self.armed = False
+                self.check_limits()  # enabling beyond a limit faults at once
+            if not self.torque_enabled:
                 self.tau_cmd = np.zeros(2)
         else:
             self.stats.commands += 1
@@ -248,13 +324,57 @@ class DspNode:
             return False
         if now_ns - self.last_cmd_ns < self.watchdog_ns:
             return False
-        self.tripped = True
-        self.tau_cmd = np.zeros(2)
         self.stats.watchdog_trips += 1
         self.stats.last_trip_ns = now_ns
         self.stats.last_trip_latency_ns = now_ns - self.last_cmd_ns
+        self.fault(FaultReason.WATCHDOG, f"no valid command for {now_ns - self.last_cmd_ns} ns")
+        return True
+
+    def fault(self, reason: FaultReason, detail: str = "") -> bool:
+        """Enter FAULT (torque off at once, a DspStatus goes out); False if already faulted."""
+        if not self.drive.fault(reason):
+            return False
+        self.tau_cmd = np.zeros(2)
+        self.stats.faults = dict(self.drive.faults)
+        self.stats.last_fault = f"{reason.label} at tick {self.world.step_index}: {detail}"
         self.send_status()
         return True
+
+    def _sensors_in_range(self) -> bool:
+        """Whether the CAN frames can carry the encoder's angles and velocity; if not, the
+        drive faults with ENCODER (in any state: a sensor fault, not a motion limit)."""
+        q, dq = self.encoder.q, self.encoder.dq
+        (qlo, qhi), (vlo, vhi) = self._q_frame, self._dq_frame
+        for j in range(2):
+            if not qlo <= q[j] <= qhi:
+                self.fault(FaultReason.ENCODER, f"q{j + 1} = {q[j]:.4f} rad beyond +-8 rev")
+                return False
+            if not vlo <= dq[j] <= vhi:
+                self.fault(FaultReason.ENCODER, f"dq{j + 1} = {dq[j]:.3f} rad/s beyond the frame")
+                return False
+        return True
+
+    def check_limits(self) -> bool:
+        """Fault on an encoder out of the frame's range (any state) or, with operation enabled,
+        a joint beyond ``dsp.q_min``/``dsp.q_max`` or faster than ``dsp.dq_max`` (measured by
+        the DSP's own encoder). Returns whether it faulted now."""
+        if self.drive.state is DriveState.FAULT:
+            return False
+        if not self._sensors_in_range():
+            return True
+        if not self.drive.torque_allowed:
+            return False
+        q, dq = self.encoder.q, self.encoder.dq
+        for j in range(2):
+            if not self.q_min[j] <= q[j] <= self.q_max[j]:
+                lim = f"[{self.q_min[j]:g}, {self.q_max[j]:g}]"
+                return self.fault(
+                    FaultReason.POSITION_LIMIT, f"q{j + 1} = {q[j]:.4f} rad not in {lim}"
+                )
+            if abs(dq[j]) > self.dq_max[j]:
+                detail = f"|dq{j + 1}| = {abs(dq[j]):.3f} rad/s > {self.dq_max[j]:g}"
+                return self.fault(FaultReason.VELOCITY_LIMIT, detail)
+        return False
 
     def applied_torque(self) -> np.ndarray:
         return self.tau_cmd if self.torque_enabled else np.zeros(2)
@@ -264,6 +384,7 @@ class DspNode:
         """One physics step with the held torque, then sensors and periodic frames."""
         self.world.hold(self.applied_torque(), 1, self.encoder)
         self.stats.physics_steps += 1
+        self.check_limits()
         k = self.world.step_index
         if not self.lockstep:
             if k % self.state_every == 0:
@@ -389,6 +510,7 @@ class DspNode:
         k0 = self.world.step_index
         self.world.hold(self.applied_torque(), self.substeps, self.encoder)
         self.stats.physics_steps += self.substeps
+        self.check_limits()  # lockstep: at the end of each control period
         if self.world.step_index // self.status_every != k0 // self.status_every:
             self.send_status()
 
@@ -413,10 +535,15 @@ class DspNode:
 
     def _finish(self) -> None:
         """Torque off and a last status frame."""
-        self.armed = False
+        if self.drive.state is not DriveState.FAULT:
+            self.drive.state = DriveState.SWITCH_ON_DISABLED
         self.tau_cmd = np.zeros(2)
         self.send_status()
         self.stats.rejected = self.codec.stats.as_dict()
+        self.stats.drive_state = self.drive.state.label
+        self.stats.fault_reason = self.drive.fault_reason.label
+        self.stats.faults = dict(self.drive.faults)
+        self.stats.refused_commands = self.drive.refused
 
 
 __all__ = ["LOCKSTEP_REPLY_TIMEOUT_S", "RAD_PER_COUNT", "SYNC_RESEND_S", "DspNode", "DspStats"]

@@ -546,7 +546,7 @@ class DspOracle:
                 return "repeated_counter"
             if delta > DEFAULT_MAX_DELTA:
                 return "counter_jump"
-        if fid == CONTROL_ID and data[2] not in (1, 2):
+        if fid == CONTROL_ID and data[2] not in {int(c) for c in DspCommand}:
             return "decode_error"
         return "accepted"
 

@@ -161,12 +161,13 @@ def test_joint_state_roundtrip_within_half_an_lsb() -> None:
 
 def test_status_and_sync_roundtrip_and_wrap() -> None:
     dsp, ctl = DspCodec(), ControllerCodec()
-    status = DspStatus(True, True, True, True, rejected_frames=17, watchdog_trips=3, tick=2**32 - 1)
+    status = DspStatus(True, True, True, True, rejected_frames=17, watchdog_trips=3, tick=4095)
     assert roundtrip(status, dsp, ctl) == status
+    assert roundtrip(DspStatus(True, False, tick=2**32 - 1), dsp, ctl).tick == 4095  # mod 4096
     saturated = roundtrip(
         DspStatus(False, False, rejected_frames=300, watchdog_trips=999), dsp, ctl
     )
-    assert (saturated.rejected_frames, saturated.watchdog_trips) == (255, 255)
+    assert (saturated.rejected_frames, saturated.watchdog_trips) == (255, 15)
     assert roundtrip(Sync(7), dsp, ctl) == Sync(7)
     assert roundtrip(Sync(2**32 + 5), dsp, ctl) == Sync(5)
     assert roundtrip(TorqueCommand(0, 0, False, 70_000), ControllerCodec(), DspCodec()).tick == (
@@ -192,9 +193,10 @@ def test_out_of_range_values_saturate_to_the_frame_range() -> None:
     got = roundtrip(TorqueCommand(1e6, -1e6), ctl, dsp)
     assert got.tau1 == pytest.approx(signal("TorqueCommand", "Tau1").maximum)
     assert got.tau2 == pytest.approx(signal("TorqueCommand", "Tau2").minimum)
-    pos = roundtrip(JointPosition(1e3, -1e3), dsp, ControllerCodec())
-    assert pos.q1 == pytest.approx(signal("JointPosition", "Q1").maximum)
-    assert pos.q2 == pytest.approx(signal("JointPosition", "Q2").minimum)
+    # Measured joint angles and speeds are never pinned: beyond the frame they raise.
+    for frame in (JointPosition(1e3, 0.0), JointPosition(0.0, -51.0), JointVelocity(90.0, 0.0)):
+        with pytest.raises(HalCodecError, match="beyond the frame"):
+            dsp.encode(frame)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

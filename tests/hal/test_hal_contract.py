@@ -145,8 +145,10 @@ def test_client_commands_reach_the_dsp_in_order(dsp_bus: can.BusABC, client: Joi
     client.enable()
     client.send_torque(1.5, -0.25, tick=7)
     client.disable()
-    frames = recv_frames(dsp_bus, dsp, 6)
+    frames = recv_frames(dsp_bus, dsp, 8)
     assert frames == [
+        DspControl(DspCommand.FAULT_RESET),
+        DspControl(DspCommand.FAULT_RESET),
         DspControl(DspCommand.ENABLE),
         DspControl(DspCommand.ENABLE),
         TorqueCommand(1.5, -0.25, True, 7),
@@ -227,8 +229,10 @@ def test_close_disarms_an_armed_dsp_and_is_idempotent(spec: str, dsp_bus: can.Bu
     client.close()
     client.close()
     assert client.closed and client.bus._is_shutdown
-    frames = recv_frames(dsp_bus, DspCodec(), 5)
+    frames = recv_frames(dsp_bus, DspCodec(), 7)
     assert frames == [
+        DspControl(DspCommand.FAULT_RESET),
+        DspControl(DspCommand.FAULT_RESET),
         DspControl(DspCommand.ENABLE),
         DspControl(DspCommand.ENABLE),
         DspControl(DspCommand.DISABLE),

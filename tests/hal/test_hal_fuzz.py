@@ -31,6 +31,7 @@ from hal.can_codec import (
     Sync,
     TorqueCommand,
 )
+from hal.drive_state import DriveState, FaultReason
 from hal.e2e import DEFAULT_MAX_DELTA
 from hal.joint_client import JointClient
 from tests.support import e2e_crc_reference
@@ -40,6 +41,7 @@ RAW_DB = cantools.database.load_file(str(DBC_PATH))
 DATA_IDS = {m.frame_id: m.dbc.attributes["E2EDataID"].value for m in RAW_DB.messages}
 SENDERS = {m.frame_id: m.senders[0] for m in RAW_DB.messages}
 COMMAND_ID = RAW_DB.get_message_by_name("DspControl").frame_id
+STATUS_ID = RAW_DB.get_message_by_name("DspStatus").frame_id
 
 
 class Oracle:
@@ -73,7 +75,13 @@ class Oracle:
                 return "repeated_counter"
             if delta > DEFAULT_MAX_DELTA:
                 return "counter_jump"
-        if fid == COMMAND_ID and data[2] not in (1, 2):
+        if fid == COMMAND_ID and data[2] not in {int(c) for c in DspCommand}:
+            return "decode_error"
+        # DspStatus: DriveState (bits 24..26) and FaultReason (27..30) outside their enums
+        if fid == STATUS_ID and (
+            data[3] & 7 not in {int(s) for s in DriveState}
+            or (data[3] >> 3) & 0xF not in {int(r) for r in FaultReason}
+        ):
             return "decode_error"
         return "accepted"
 
@@ -178,9 +186,9 @@ def dsp_frames(rng: random.Random) -> Callable[[], Frame]:
     def make() -> Frame:
         pick = rng.randrange(4)
         if pick == 0:
-            return JointPosition(rng.uniform(-60, 60), rng.uniform(-4, 4), rng.randrange(16))
+            return JointPosition(rng.uniform(-50, 50), rng.uniform(-4, 4), rng.randrange(16))
         if pick == 1:
-            return JointVelocity(rng.uniform(-100, 100), rng.uniform(-1, 1), rng.randrange(16))
+            return JointVelocity(rng.uniform(-80, 80), rng.uniform(-1, 1), rng.randrange(16))
         if pick == 2:
             return DspStatus(*(rng.random() < 0.5 for _ in range(4)), rng.randrange(300))
         return Sync(rng.getrandbits(32))
