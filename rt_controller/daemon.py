@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
-from hal.errors import HalTimeoutError
+from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, open_session
@@ -68,6 +68,8 @@ class RunStats:
     stale_states: int = 0
     fallbacks: int = 0
     watchdog_trips: int = 0
+    stopped_before_arming: bool = False
+    """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
@@ -88,6 +90,7 @@ class RunStats:
             "stale_states": self.stale_states,
             "fallbacks": self.fallbacks,
             "watchdog_trips": self.watchdog_trips,
+            "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
             "lateness_us_p99": pct(self.lateness_us, 99),
@@ -140,13 +143,17 @@ class ControllerDaemon:
             },
         )
         try:
-            session = open_session(
-                cfg,
-                listen=False,
-                endpoint=opts.zenoh_endpoint,
-                config_file=opts.zenoh_config,
-                stop_event=self.stop,
-            )
+            try:
+                session = open_session(
+                    cfg,
+                    listen=False,
+                    endpoint=opts.zenoh_endpoint,
+                    config_file=opts.zenoh_config,
+                    stop_event=self.stop,
+                )
+            except HalStopped:
+                self.stats.stopped_before_arming = True
+                return self._summary(rec)
             try:
                 session.subscribe(KEY_FEATURES, self._on_features(rec))
                 hooks: dict[str, Any] = {}
@@ -161,6 +168,10 @@ class ControllerDaemon:
                 session.close()
         finally:
             rec.close()
+        return self._summary(rec)
+
+    def _summary(self, rec: CycleRecorder) -> dict[str, Any]:
+        rec.close()
         out = self.stats.summary()
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.stats())
         return out
@@ -199,6 +210,9 @@ class ControllerDaemon:
             for w in rt.warnings:
                 print(f"hil controller: warning: {w}", file=sys.stderr)
         self._wait_ready(dsp)
+        if self.stop.is_set():
+            self.stats.stopped_before_arming = True
+            return  # told to stop during start-up: the DSP is never armed
         dsp.enable()
         max_ticks = (
             math.floor(self.opts.duration_s * cfg.rates.control_hz + 1e-9)

@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rt_controller.experiment import EXPERIMENTS, Settings, prepare
     from rt_controller.experiment_report import write_outputs
+    from rt_controller.supervise import RigInterrupted, supervised
 
     out = Path(args.out) if args.out else default_out()
     settings = Settings(
@@ -123,10 +124,17 @@ def run(args: argparse.Namespace) -> int:
     runs_by_exp, runs = prepare(settings)
     err = Console(stderr=True)
     err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}) -> {out}")
+    interrupted: RigInterrupted | None = None
     try:
-        sweep(runs, settings, err)
-    finally:  # a partial sweep (failure, Ctrl-C) is written up as far as it went
+        with supervised():
+            sweep(runs, settings, err)
+    except RigInterrupted as exc:
+        interrupted = exc
+    finally:  # a partial sweep (failure, signal) is written up as far as it went
         res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
+    if interrupted is not None:
+        print(f"hil experiment: {interrupted}: partial results in {out}", file=sys.stderr)
+        return interrupted.exit_code
     for f in res["failures"]:
         print(
             f"hil experiment: run {f['run']} ({f['label']}) failed: {f['error']}", file=sys.stderr

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 
@@ -33,20 +34,29 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.cli import print_summary
     from rt_controller.errors import ControllerConfigError
     from rt_controller.orchestrate import RigOptions, run_rig
+    from rt_controller.supervise import RigInterrupted, supervised
 
     if args.duration <= 0:
         raise ControllerConfigError(f"--duration must be positive, got {args.duration}")
-    summary = run_rig(
-        RigOptions(
-            config=args.config,
-            law=args.law,
-            duration_s=args.duration,
-            lockstep=args.lockstep,
-            can=args.can,
-            zenoh_endpoint=args.zenoh_endpoint,
-            log=Path(args.log) if args.log else None,
+    try:
+        with supervised():
+            summary = run_rig(
+                RigOptions(
+                    config=args.config,
+                    law=args.law,
+                    duration_s=args.duration,
+                    lockstep=args.lockstep,
+                    can=args.can,
+                    zenoh_endpoint=args.zenoh_endpoint,
+                    log=Path(args.log) if args.log else None,
+                )
+            )
+    except RigInterrupted as exc:
+        print(
+            f"hil up: {exc}: stopped the rig (controller first), nothing left running",
+            file=sys.stderr,
         )
-    )
+        return exc.exit_code
     keys = (
         "law", "ticks", "J", "f_final", "f_final_norm", "deadline_misses", "missed_periods",
         "stale_features", "stale_states", "fallbacks", "watchdog_trips", "solve_us_median",
