@@ -98,6 +98,24 @@ class RunStats:
         }
 
 
+def run_problems(summary: dict[str, Any]) -> list[str]:
+    """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
+
+    A run is not clean when it lost log records or tripped the DSP's watchdog; the commands
+    exit non-zero and print these on one line.
+    """
+    out: list[str] = []
+    rec = summary.get("recorder") or {}
+    lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))
+    if lost:
+        out.append(f"{lost} log record(s) lost")
+    if rec.get("encode_errors"):
+        out.append(f"{rec['encode_errors']} log record(s) could not be encoded")
+    if summary.get("watchdog_trips"):
+        out.append(f"{summary['watchdog_trips']} DSP watchdog trip(s)")
+    return out
+
+
 def default_log_path(cfg: RigConfig, law: str) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
@@ -174,6 +192,7 @@ class ControllerDaemon:
         rec.close()
         out = self.stats.summary()
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.stats())
+        out["problems"] = run_problems(out)
         return out
 
     def _on_features(self, rec: CycleRecorder):

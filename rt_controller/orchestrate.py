@@ -157,11 +157,12 @@ class Rig:
             if time.monotonic() > deadline:
                 raise RigProcessError(f"controller still running after its duration:\n{ctl.tail()}")
             time.sleep(0.05)
-        if ctl.proc.returncode != 0:
+        lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
+        # Status 1 with a summary: the run finished but is not clean (its "problems" say why).
+        if ctl.proc.returncode not in (0, 1) or (ctl.proc.returncode == 1 and not lines):
             raise RigProcessError(
                 f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
             )
-        lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
         if not lines:
             raise RigProcessError(f"controller printed no summary:\n{ctl.tail()}")
         return json.loads(lines[-1])

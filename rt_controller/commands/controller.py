@@ -76,4 +76,7 @@ def run(args: argparse.Namespace) -> int:
     )
     summary = daemon.run()
     print_summary(summary, args.json, "hil controller")
+    if summary["problems"]:
+        print(f"hil controller: run not clean: {'; '.join(summary['problems'])}", file=sys.stderr)
+        return 1
     return 0
