@@ -160,30 +160,31 @@ class ControllerDaemon:
                 "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
             },
         )
+        hooks: dict[str, Any] = {}
+        if opts.record_raw:
+            hooks = {
+                "frame_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "rx"),
+                "tx_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "tx"),
+            }
         try:
-            try:
-                session = open_session(
-                    cfg,
-                    listen=False,
-                    endpoint=opts.zenoh_endpoint,
-                    config_file=opts.zenoh_config,
-                    stop_event=self.stop,
-                )
-            except HalStopped:
-                self.stats.stopped_before_arming = True
-                return self._summary(rec)
-            try:
-                session.subscribe(KEY_FEATURES, self._on_features(rec))
-                hooks: dict[str, Any] = {}
-                if opts.record_raw:
-                    hooks = {
-                        "frame_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "rx"),
-                        "tx_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "tx"),
-                    }
-                with JointClient.open(opts.can, cfg, **hooks) as dsp:
+            # The bus first: a bad --can is reported at once, not after waiting for zenoh.
+            with JointClient.open(opts.can, cfg, **hooks) as dsp:
+                try:
+                    session = open_session(
+                        cfg,
+                        listen=False,
+                        endpoint=opts.zenoh_endpoint,
+                        config_file=opts.zenoh_config,
+                        stop_event=self.stop,
+                    )
+                except HalStopped:
+                    self.stats.stopped_before_arming = True
+                    return self._summary(rec)
+                try:
+                    session.subscribe(KEY_FEATURES, self._on_features(rec))
                     self._loop(dsp, rec)
-            finally:
-                session.close()
+                finally:
+                    session.close()
         finally:
             rec.close()
         return self._summary(rec)

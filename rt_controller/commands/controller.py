@@ -8,6 +8,7 @@ import sys
 import threading
 from pathlib import Path
 
+from hal.arguments import duration
 from rt_controller.commands.common import add_config_option, add_law_options, config_from_args
 
 
@@ -38,7 +39,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="realtime (monotonic deadlines) or lockstep (tick on the DSP's Sync frames); "
         "default: controller.clock",
     )
-    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="0 = until stopped")
+    p.add_argument(
+        "--duration",
+        type=duration(zero_means_forever=True),
+        default=0.0,
+        metavar="S",
+        help="0 = until stopped",
+    )
     p.add_argument("--log", metavar="FILE.mcap", help="log path (default: logs/run-...mcap)")
     p.add_argument(
         "--no-rt", action="store_true", help="skip SCHED_FIFO/mlockall/affinity settings"
@@ -58,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     opts = DaemonOptions(
         can=args.can,
         lockstep=cfg.controller.clock == "lockstep",
-        duration_s=max(0.0, args.duration),
+        duration_s=args.duration,
         log_path=Path(args.log) if args.log else None,
         zenoh_endpoint=args.zenoh_endpoint,
         zenoh_config=args.zenoh_config,

@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hal.arguments import bounded_float, bounded_int, duration
+
 if TYPE_CHECKING:
     from rich.console import Console
 
@@ -52,13 +54,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("which", choices=("fig3", "fig4", "table1", "all"), help="what to run")
     p.add_argument("--out", metavar="DIR", help="output folder (default experiments/<timestamp>)")
-    p.add_argument("--reps", type=int, default=5, metavar="N", help="table1 runs per horizon (5)")
     p.add_argument(
-        "--duration", type=float, default=10.0, metavar="S", help="plant time per run (10)"
+        "--reps",
+        type=bounded_int(1, 1000, what="repetitions"),
+        default=5,
+        metavar="N",
+        help="table1 runs per horizon (5)",
+    )
+    p.add_argument(
+        "--duration", type=duration(), default=10.0, metavar="S", help="plant time per run (10)"
     )
     p.add_argument(
         "--noise",
-        type=float,
+        type=bounded_float(0.0, 1000.0, lo_inclusive=True, what="pixel noise"),
         metavar="PX",
         help="camera pixel noise std for every run (default: the config's; table1: 0.5 px if "
         "the config's is 0)",

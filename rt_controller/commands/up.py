@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from hal.arguments import duration
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -16,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "final |f|, J, deadline misses, solve time and the log path.",
     )
     p.add_argument("--law", choices=("pbc", "ioc", "rhc"), help="control law (default: config)")
-    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="default 10")
+    p.add_argument("--duration", type=duration(), default=10.0, metavar="S", help="default 10")
     p.add_argument(
         "--lockstep",
         action="store_true",
@@ -32,12 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rt_controller.cli import print_summary
-    from rt_controller.errors import ControllerConfigError
     from rt_controller.orchestrate import RigOptions, run_rig
     from rt_controller.supervise import RigInterrupted, supervised
 
-    if args.duration <= 0:
-        raise ControllerConfigError(f"--duration must be positive, got {args.duration}")
     try:
         with supervised():
             summary = run_rig(
