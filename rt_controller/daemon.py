@@ -27,6 +27,7 @@ from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, open_session
+from rt_controller import diagnostics
 from rt_controller.cadence import Cadence, MonotonicClock
 from rt_controller.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
@@ -132,6 +133,8 @@ class ControllerDaemon:
         self.cfg = cfg
         self.opts = options
         self.stop = stop
+        self._diag_every = max(1, round(cfg.rates.control_hz))
+        self._final_diagnostics: dict[str, Any] | None = None
         self.controller = Controller(cfg)
         self.model = self.controller.model
         self.period_ns = cfg.rates.control_period_ns
@@ -193,6 +196,11 @@ class ControllerDaemon:
         rec.close()
         out = self.stats.summary()
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.stats())
+        final = self._final_diagnostics or {}
+        out["rejections"] = {
+            "can_rx": diagnostics.values_of(final, "can_rx"),
+            "features": diagnostics.values_of(final, "features"),
+        }
         out["problems"] = run_problems(out)
         return out
 
@@ -248,6 +256,45 @@ class ControllerDaemon:
         finally:
             dsp.send_torque(0.0, 0.0)
             dsp.disable()
+            self._final_diagnostics = self.diagnostics(dsp, rec, final=True)
+            rec.record_diagnostics(self._final_diagnostics, final=True)
+
+    # --- diagnostics ------------------------------------------------------------------------
+    def _maybe_diagnostics(self, dsp: JointClient, rec: CycleRecorder) -> None:
+        """About once a second (every ``control_hz`` ticks), after the tick's write."""
+        if self.stats.ticks % self._diag_every == 0:
+            rec.record_diagnostics(self.diagnostics(dsp, rec))
+
+    def diagnostics(self, dsp: JointClient, rec: CycleRecorder, final: bool = False) -> dict:
+        """The ``/diagnostics`` record of this moment (:mod:`rt_controller.diagnostics`)."""
+        st = self.stats
+        status = dsp.status
+        recorder = rec.stats()
+        if final:
+            recorder.pop("pending", None)  # the final record is itself still queued
+        return diagnostics.build(
+            t_ns=time.monotonic_ns(),
+            tick=st.ticks,
+            can_rx=diagnostics.counters(dsp.stats.e2e),
+            features=diagnostics.counters(self.features.counts),
+            dsp={
+                "status_received": status is not None,
+                "torque_enabled": bool(status and status.torque_enabled),
+                "watchdog_tripped": bool(status and status.watchdog_tripped),
+                "watchdog_trips_reported": int(status.watchdog_trips) if status else 0,
+            },
+            controller={
+                "ticks": st.ticks,
+                "deadline_misses": st.deadline_misses,
+                "missed_periods": st.missed_periods,
+                "stale_features": st.stale_features,
+                "stale_states": st.stale_states,
+                "fallbacks": st.fallbacks,
+                "watchdog_trips": st.watchdog_trips,
+            },
+            recorder=recorder,
+            final=final,
+        )
 
     def _warm_up(self) -> None:
         """Compile and exercise every branch of the tick before the DSP is armed (never inside
@@ -270,6 +317,7 @@ class ControllerDaemon:
                 self.stats.deadline_misses += 1
                 self._last_record["deadline_miss"] = True
             rec.record_cycle(self._last_record)
+            self._maybe_diagnostics(dsp, rec)
 
     def _run_lockstep(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         last = None
@@ -289,6 +337,7 @@ class ControllerDaemon:
             self.features.wait_pose_seq(k, LOCKSTEP_FEATURE_TIMEOUT_S)
             self._tick(dsp, rec, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
             rec.record_cycle(self._last_record)
+            self._maybe_diagnostics(dsp, rec)
 
     def _check_watchdog(self, dsp: JointClient) -> None:
         """Count each watchdog trip the DSP reports and re-arm once per trip (if configured)."""
@@ -337,11 +386,10 @@ class ControllerDaemon:
         u = xi = np.zeros(2)
         residual, iterations, fallback, saturated = 0.0, 0, False, False
         cost = V = math.nan
-        if d.mode == "no_state":
-            st.stale_states += 1
-        elif d.mode == "hold":
-            st.stale_features += 1
-        else:
+        # Counted per tick as recorded (f_stale / state_stale), the same way `hil report` does.
+        st.stale_states += int(state_stale)
+        st.stale_features += int(f_stale)
+        if d.command is not None:
             cmd = d.command
             u, xi = cmd.law.u, cmd.measurement.xi
             residual, iterations, fallback = cmd.law.residual, cmd.law.iterations, cmd.law.fallback
