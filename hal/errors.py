@@ -25,3 +25,7 @@ class HalTransportError(HalError, OSError):
 
 class HalCodecError(HalError, ValueError):
     """A frame or message could not be encoded or decoded (bad CRC, length, counter, schema)."""
+
+
+class HalStopped(HalError, InterruptedError):
+    """A wait was abandoned because the caller asked to stop (not a failure of the other side)."""

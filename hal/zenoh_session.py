@@ -42,7 +42,7 @@ from typing import Any
 import zenoh
 
 from hal.config import RigConfig
-from hal.errors import HalConfigError, HalTransportError
+from hal.errors import HalConfigError, HalStopped, HalTransportError
 from hal.resources import release, track
 
 KEY_FEATURES = "hil/vision/features"
@@ -247,6 +247,10 @@ def _open_hub(endpoint: str, mode: str | None) -> tuple[zenoh.Session, dict[str,
         raise HalTransportError(f"zenoh: cannot listen on {endpoint}: {text}") from exc
 
 
+CONNECT_ATTEMPT_S = 0.25
+"""Longest single connection attempt while waiting for the hub."""
+
+
 class _PortInUse(HalTransportError):
     pass
 
@@ -256,15 +260,18 @@ def _open_client(
 ) -> tuple[zenoh.Session, dict[str, Any]]:
     deadline = time.monotonic() + wait_s
     while True:
-        remaining = max(0.0, deadline - time.monotonic())
-        doc = loopback_config_dict(endpoint, listen=False, mode=mode, wait_s=remaining)
+        # Short attempts, so that a stop request is seen within a fraction of a second.
+        attempt_s = min(max(0.0, deadline - time.monotonic()), CONNECT_ATTEMPT_S)
+        doc = loopback_config_dict(endpoint, listen=False, mode=mode, wait_s=attempt_s)
         try:
             return zenoh.open(_zenoh_config(doc)), doc
         except zenoh.ZError as exc:
             last = _short(exc)
             if "Timeout" not in last and "Unable to connect" not in last:
                 raise HalTransportError(f"zenoh: cannot connect to {endpoint}: {last}") from exc
-            if (stop_event is not None and stop_event.is_set()) or time.monotonic() >= deadline:
+            if stop_event is not None and stop_event.is_set():
+                raise HalStopped(f"zenoh: stopped while waiting for the hub at {endpoint}") from exc
+            if time.monotonic() >= deadline:
                 raise HalTransportError(
                     f"zenoh: no hub at {endpoint} after {wait_s:g} s (start the emulator, "
                     "`hil emulator`, or check --zenoh-endpoint)"

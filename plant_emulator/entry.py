@@ -30,6 +30,8 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+from hal.arguments import bounded_float, duration
+
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
     from plant_emulator.camera import CameraPose
     from plant_emulator.pose_link import PosePublisher
@@ -56,14 +58,14 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--duration",
-        type=float,
+        type=duration(zero_means_forever=True),
         default=0.0,
         metavar="S",
         help="stop after S seconds (simulated seconds in lockstep); 0 = until SIGTERM/SIGINT",
     )
     p.add_argument(
         "--state-rate",
-        type=float,
+        type=bounded_float(0.0, 100_000.0, what="state rate in Hz"),
         metavar="HZ",
         help="joint-state frame rate (rates.state_hz, default 1000; at most rates.physics_hz)",
     )
@@ -118,8 +120,6 @@ def _config(args: argparse.Namespace) -> Any:
     from hal.config import load_config
     from hal.errors import HalConfigError
 
-    if args.duration < 0:
-        raise HalConfigError(f"--duration must be non-negative (0 = forever), got {args.duration}")
     if args.vision_wait < 0:
         raise HalConfigError(f"--vision-wait must be non-negative, got {args.vision_wait}")
     cfg = load_config(args.config)

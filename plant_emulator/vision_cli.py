@@ -13,7 +13,8 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from hal.errors import HalConfigError, HalError
+from hal.arguments import bounded_float, duration
+from hal.errors import HalError
 from hal.signals import run_standalone, stop_on_signals
 
 if TYPE_CHECKING:
@@ -25,13 +26,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="rig config TOML (default: embedded)")
     p.add_argument(
         "--fps",
-        type=float,
+        type=bounded_float(0.0, 10_000.0, lo_inclusive=True, what="frame rate in Hz"),
         default=None,
         metavar="HZ",
         help="frame rate; 0 = one frame per pose (default: camera.frame_rate_hz, else 60)",
     )
-    p.add_argument("--noise", type=float, metavar="PX", help="pixel noise std (camera.noise_px)")
-    p.add_argument("--latency", type=float, metavar="S", help="delivery delay (camera.latency_s)")
+    p.add_argument(
+        "--noise",
+        type=bounded_float(0.0, 1000.0, lo_inclusive=True, what="pixel noise"),
+        metavar="PX",
+        help="pixel noise std (camera.noise_px)",
+    )
+    p.add_argument(
+        "--latency",
+        type=bounded_float(0.0, 10.0, lo_inclusive=True, what="latency in seconds"),
+        metavar="S",
+        help="delivery delay (camera.latency_s)",
+    )
     p.add_argument("--seed", type=int, help="noise seed (camera.seed)")
     p.add_argument(
         "--clock",
@@ -57,9 +68,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(run without an emulator), auto = hub if the port is free",
     )
     p.add_argument(
-        "--wait", type=float, default=None, metavar="S", help="wait for the hub (default 10 s)"
+        "--wait",
+        type=bounded_float(0.0, 3600.0, lo_inclusive=True, what="wait in seconds"),
+        default=None,
+        metavar="S",
+        help="wait for the hub (default 10 s)",
     )
-    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="0 = until SIGTERM")
+    p.add_argument(
+        "--duration",
+        type=duration(zero_means_forever=True),
+        default=0.0,
+        metavar="S",
+        help="0 = until SIGTERM",
+    )
     p.add_argument(
         "--dropout",
         action="append",
@@ -87,8 +108,6 @@ def run_from_args(args: argparse.Namespace) -> int:
     """Body of ``hil vision``: SIGTERM/SIGINT end it cleanly with status 0."""
     from plant_emulator.vision_node import Dropout, resolve_fps, run_vision
 
-    if args.duration < 0:
-        raise HalConfigError(f"--duration must be non-negative (0 = forever), got {args.duration}")
     cfg = _config(args)
     fps = resolve_fps(cfg, args.fps)
     dropouts = [Dropout.parse(text) for text in getattr(args, "dropout", None) or []]

@@ -44,6 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from rt_controller.rig.supervise import follow_parent
+
+    follow_parent()  # a rig child never outlives `hil up`
     parser = build_parser()
     args = parser.parse_args(argv)
     handler: Handler = args.handler

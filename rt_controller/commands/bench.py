@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from hal.arguments import bounded_int, duration
 from hal.config import LAW_NAMES
 from rt_controller.commands.common import add_config_option, config_from_args
 
@@ -14,7 +15,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench = p.add_subparsers(dest="bench", metavar="WHAT", required=True)
     s = bench.add_parser("solver", help="C/GMRES update time on the paper scenario closed loop")
     add_config_option(s)
-    s.add_argument("--updates", type=int, default=2000, help="updates per configuration")
+    s.add_argument(
+        "--updates",
+        type=bounded_int(1, 10_000_000, what="updates"),
+        default=2000,
+        help="updates per configuration",
+    )
     s.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
     s.set_defaults(handler=run_solver)
     lp = bench.add_parser(
@@ -25,7 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     lp.add_argument(
         "--rates", default="50,200,500,1000", help="comma-separated control rates in Hz"
     )
-    lp.add_argument("--duration", type=float, default=10.0, help="seconds per rate (default 10)")
+    lp.add_argument(
+        "--duration", type=duration(), default=10.0, help="seconds per rate (default 10)"
+    )
     lp.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
     lp.add_argument(
         "--lockstep-duration",

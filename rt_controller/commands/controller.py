@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from hal.arguments import duration
 from rt_controller.commands.common import add_config_option, add_law_options, config_from_args
 
 
@@ -36,7 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="realtime (monotonic deadlines) or lockstep (tick on the DSP's Sync frames); "
         "default: controller.clock",
     )
-    p.add_argument("--duration", type=float, default=0.0, metavar="S", help="0 = until stopped")
+    p.add_argument(
+        "--duration",
+        type=duration(zero_means_forever=True),
+        default=0.0,
+        metavar="S",
+        help="0 = until stopped",
+    )
     p.add_argument("--log", metavar="FILE.mcap", help="log path (default: logs/run-...mcap)")
     p.add_argument(
         "--no-rt", action="store_true", help="skip SCHED_FIFO/mlockall/affinity settings"
@@ -57,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     opts = DaemonOptions(
         can=args.can,
         lockstep=cfg.controller.clock == "lockstep",
-        duration_s=max(0.0, args.duration),
+        duration_s=args.duration,
         log_path=Path(args.log) if args.log else None,
         zenoh_endpoint=args.zenoh_endpoint,
         zenoh_config=args.zenoh_config,
@@ -73,4 +80,7 @@ def run(args: argparse.Namespace) -> int:
         )
         summary = daemon.run()
     print_summary(summary, args.json, "hil controller")
+    if summary["problems"]:
+        print(f"hil controller: run not clean: {'; '.join(summary['problems'])}", file=sys.stderr)
+        return 1
     return 0

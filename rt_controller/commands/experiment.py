@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hal.arguments import bounded_float, bounded_int, duration
+
 if TYPE_CHECKING:
     from rich.console import Console
 
@@ -52,13 +54,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("which", choices=("fig3", "fig4", "table1", "all"), help="what to run")
     p.add_argument("--out", metavar="DIR", help="output folder (default experiments/<timestamp>)")
-    p.add_argument("--reps", type=int, default=5, metavar="N", help="table1 runs per horizon (5)")
     p.add_argument(
-        "--duration", type=float, default=10.0, metavar="S", help="plant time per run (10)"
+        "--reps",
+        type=bounded_int(1, 1000, what="repetitions"),
+        default=5,
+        metavar="N",
+        help="table1 runs per horizon (5)",
+    )
+    p.add_argument(
+        "--duration", type=duration(), default=10.0, metavar="S", help="plant time per run (10)"
     )
     p.add_argument(
         "--noise",
-        type=float,
+        type=bounded_float(0.0, 1000.0, lo_inclusive=True, what="pixel noise"),
         metavar="PX",
         help="camera pixel noise std for every run (default: the config's; table1: 0.5 px if "
         "the config's is 0)",
@@ -107,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rt_controller.rig.experiment import EXPERIMENTS, Settings, prepare
     from rt_controller.rig.experiment_report import write_outputs
+    from rt_controller.rig.supervise import RigInterrupted, supervised
 
     out = Path(args.out) if args.out else default_out()
     settings = Settings(
@@ -123,10 +132,17 @@ def run(args: argparse.Namespace) -> int:
     runs_by_exp, runs = prepare(settings)
     err = Console(stderr=True)
     err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}) -> {out}")
+    interrupted: RigInterrupted | None = None
     try:
-        sweep(runs, settings, err)
-    finally:  # a partial sweep (failure, Ctrl-C) is written up as far as it went
+        with supervised():
+            sweep(runs, settings, err)
+    except RigInterrupted as exc:
+        interrupted = exc
+    finally:  # a partial sweep (failure, signal) is written up as far as it went
         res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
+    if interrupted is not None:
+        print(f"hil experiment: {interrupted}: partial results in {out}", file=sys.stderr)
+        return interrupted.exit_code
     for f in res["failures"]:
         print(
             f"hil experiment: run {f['run']} ({f['label']}) failed: {f['error']}", file=sys.stderr

@@ -14,14 +14,16 @@ Re-run the controller offline on the inputs recorded in LOG.mcap (per tick: sim_
 f, f_stale, state_stale as received) with the configuration stored in the log, and compare its
 u and tau with the recorded ones. Exit 0 when every component is within --tol, 1 when not (one
 line on stderr: "replay differs from the log: max |dtau| = ... at tick ... (tol ...)"), 2 for a
-bad file or option. A truncated log is replayed as far as it goes, with a note.
+bad file or option. A truncated or damaged log is replayed as far as it goes, with a note, and
+fails (exit 1, "log is incomplete or damaged: ...") unless --allow-partial.
 
 --config FILE replaces the log's configuration; --set KEY=VALUE (repeatable, VALUE parsed as
 JSON, else taken as a string) changes single settings on top, e.g. --set gains.kp=0.2 or
 --set rhc.kmax=8: the regression check of a changed solver against yesterday's rig run.
 --out NEW.mcap writes the replayed run (replayed u/tau, zero loop-timing fields).
 --json keys: log, law, ticks, max_abs_du, max_abs_dtau, worst_tick, worst_tick_du,
-worst_tick_dtau, ticks_over_tol, law_mismatches, tol, ok, truncated, notes (and out).
+worst_tick_dtau, ticks_over_tol, law_mismatches, tol, ok, matches, truncated, allow_partial,
+notes (and out).
 
 --republish plays the recorded raw inputs back instead: the /hal/can/rx frames onto CAN (raw,
 original E2E counters and CRCs) and the /vision/features payloads onto zenoh (realtime messages
@@ -44,6 +46,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--tol", type=float, default=1e-9, help="largest |difference| counted as equal (1e-9)"
     )
     p.add_argument("--out", metavar="NEW.mcap", help="write the replayed run to this log")
+    p.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="accept a truncated or damaged log (replayed as far as it goes) as a success",
+    )
     p.add_argument("--config", metavar="FILE", help="configuration replacing the log's (TOML)")
     p.add_argument(
         "--set",
@@ -122,7 +129,11 @@ def run(args: argparse.Namespace) -> int:
     log = read_log(args.log, raw=args.out is not None)
     cfg = _config(args, log.config)
     result = replay_loaded(
-        log, cfg_override=cfg, tol=args.tol, out=Path(args.out) if args.out else None
+        log,
+        cfg_override=cfg,
+        tol=args.tol,
+        out=Path(args.out) if args.out else None,
+        allow_partial=args.allow_partial,
     )
     print_summary_with_notes(result.as_dict(), args.json, f"hil replay {args.log}")
     if not result.ok:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from hal.arguments import duration
 from rt_controller.commands.common import (
     add_config_option,
     add_law_options,
@@ -22,7 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_law_options(p)
     add_scenario_options(p)
     add_config_option(p)
-    p.add_argument("--duration", type=float, default=6.0, metavar="S", help="seconds (default 6)")
+    p.add_argument(
+        "--duration", type=duration(), default=6.0, metavar="S", help="seconds (default 6)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
 
@@ -32,10 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import print_summary
     from rt_controller.control.controller import Controller
     from rt_controller.control.simulate import run_closed_loop
-    from rt_controller.errors import ControllerConfigError
 
-    if args.duration <= 0:
-        raise ControllerConfigError(f"--duration must be positive, got {args.duration}")
     cfg = config_from_args(args)
     result = run_closed_loop(World(cfg), Controller(cfg), cfg, args.duration)
     print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")

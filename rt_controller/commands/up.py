@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
+from hal.arguments import duration
 from hal.config import LAW_NAMES
 
 
@@ -17,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "final |f|, J, deadline misses, solve time and the log path.",
     )
     p.add_argument("--law", choices=LAW_NAMES, help="control law (default: config)")
-    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="default 10")
+    p.add_argument("--duration", type=duration(), default=10.0, metavar="S", help="default 10")
     p.add_argument(
         "--lockstep",
         action="store_true",
@@ -33,27 +35,38 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import print_summary
-    from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.processes import RigOptions, run_rig
+    from rt_controller.rig.supervise import RigInterrupted, supervised
 
-    if args.duration <= 0:
-        raise ControllerConfigError(f"--duration must be positive, got {args.duration}")
-    summary = run_rig(
-        RigOptions(
-            config=args.config,
-            law=args.law,
-            duration_s=args.duration,
-            lockstep=args.lockstep,
-            can=args.can,
-            zenoh_endpoint=args.zenoh_endpoint,
-            log=Path(args.log) if args.log else None,
+    try:
+        with supervised():
+            summary = run_rig(
+                RigOptions(
+                    config=args.config,
+                    law=args.law,
+                    duration_s=args.duration,
+                    lockstep=args.lockstep,
+                    can=args.can,
+                    zenoh_endpoint=args.zenoh_endpoint,
+                    log=Path(args.log) if args.log else None,
+                )
+            )
+    except RigInterrupted as exc:
+        print(
+            f"hil up: {exc}: stopped the rig (controller first), nothing left running",
+            file=sys.stderr,
         )
-    )
+        return exc.exit_code
     keys = (
         "law", "ticks", "J", "f_final", "f_final_norm", "deadline_misses", "missed_periods",
         "stale_features", "stale_states", "fallbacks", "watchdog_trips", "solve_us_median",
         "solve_us_p99",
-        "lateness_us_p99", "cycle_us_p99", "log", "exit_codes",
+        "lateness_us_p99", "cycle_us_p99", "log", "rejections", "recorder", "problems",
+        "exit_codes",
     )  # fmt: skip
     print_summary({k: summary.get(k) for k in keys}, args.json, "hil up")
+    problems = summary.get("problems") or []
+    if problems:
+        print(f"hil up: run not clean: {'; '.join(problems)}", file=sys.stderr)
+        return 1
     return 0

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from rt_controller.logtools.reader import LoadedLog
+from rt_controller.runtime import diagnostics
 from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, CYCLE_TOPIC, VISION_TOPIC
 from rt_controller.sample_stats import finite, summary_stats
 
@@ -205,10 +206,33 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     out["J"] = J
     out["messages"] = dict(log.topic_counts)
     out["recorder_dropped"] = _int_or_none(log.recorder_info.get("dropped"))
+    out["diagnostics"] = _final_diagnostics(log)
     if out["recorder_dropped"]:
         out["notes"].append(f"the recorder dropped {out['recorder_dropped']} records")
     if n == 0:
         out["notes"].append(f"no {CYCLE_TOPIC} messages in the log")
+    return out
+
+
+def _final_diagnostics(log: LoadedLog) -> dict[str, Any] | None:
+    """The counters of the run's last ``/diagnostics`` record: rejections by reason (non-zero
+    ones) per receiver, the DSP's state, the controller's and the recorder's counters."""
+    if not log.diagnostics:
+        return None
+    last = log.diagnostics[-1]
+    out: dict[str, Any] = {"final": bool(last.get("final")), "level": last.get("level")}
+    for name in ("can_rx", "features"):
+        values = diagnostics.values_of(last, name)
+        out[f"{name}_rejected"] = diagnostics.rejected(values)
+        out[f"{name}_by_reason"] = {
+            k: v
+            for k, v in values.items()
+            if k.startswith(("bad_", "stale_", "repeated_", "counter_", "wrong_", "unknown_"))
+            or k in ("decode_error",)
+            if v
+        }
+    for name in ("dsp", "controller", "recorder"):
+        out[name] = diagnostics.values_of(last, name)
     return out
 
 
@@ -290,6 +314,16 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         ("raw messages CAN rx / tx / vision", _raw_counts(report["messages"])),
         ("records dropped by the recorder", _fmt(report["recorder_dropped"])),
     ]
+    diag = report.get("diagnostics")
+    if diag is not None:
+        for name, label in (("can_rx", "CAN frames rejected"), ("features", "features rejected")):
+            reasons = ", ".join(f"{k} {v}" for k, v in diag[f"{name}_by_reason"].items())
+            rows.append(
+                (label, f"{diag[f'{name}_rejected']}" + (f" ({reasons})" if reasons else ""))
+            )
+        rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
+    else:
+        rows.append(("diagnostics", "none in this log"))
     for k, v in rows:
         summary.add_row(k, v)
     con.print(summary)

@@ -27,6 +27,7 @@ from rt_controller.runtime.recorder import (
     CAN_TX_TOPIC,
     CONFIG_METADATA,
     CYCLE_TOPIC,
+    DIAGNOSTICS_TOPIC,
     RECORDER_METADATA,
     RUN_METADATA,
     VISION_TOPIC,
@@ -52,6 +53,8 @@ class LoadedLog:
     can_rx: list[dict[str, Any]] = field(default_factory=list)
     can_tx: list[dict[str, Any]] = field(default_factory=list)
     vision: list[dict[str, Any]] = field(default_factory=list)
+    diagnostics: list[dict[str, Any]] = field(default_factory=list)
+    """``/diagnostics`` records (always kept: about one a second)."""
     topic_counts: dict[str, int] = field(default_factory=dict)
     """Messages read per topic (also for raw topics that were not kept)."""
     schemas: dict[str, str] = field(default_factory=dict)
@@ -161,7 +164,8 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                 if isinstance(rec, Message):
                     topic = channels.get(rec.channel_id, f"#{rec.channel_id}")
                     counts[topic] += 1
-                    if topic != CYCLE_TOPIC and not (raw and topic in raw_lists):
+                    keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC)
+                    if not keep and not (raw and topic in raw_lists):
                         continue
                     try:
                         obj = json.loads(rec.data)
@@ -172,6 +176,8 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                         bad[topic] += 1
                     elif topic == CYCLE_TOPIC:
                         cycle_records.append(obj)
+                    elif topic == DIAGNOSTICS_TOPIC:
+                        out.diagnostics.append(obj)
                     else:
                         raw_lists[topic].append(obj)
                 elif isinstance(rec, Channel):

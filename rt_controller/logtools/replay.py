@@ -65,6 +65,9 @@ class ReplayResult:
     law_mismatches: int = 0
     """Ticks whose mode/law name (``ioc``, ``hold``, ``no_state``...) differs from the log's."""
     truncated: bool = False
+    """The log ends early or is damaged: only the ticks before the damage were replayed."""
+    allow_partial: bool = False
+    """Accept a truncated log as a successful replay of what it holds."""
     notes: list[str] = field(default_factory=list)
     out: Path | None = None
     u: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
@@ -73,9 +76,14 @@ class ReplayResult:
     """Replayed tau, one row per tick."""
 
     @property
-    def ok(self) -> bool:
-        """Every tick within ``tol`` for both u and tau."""
+    def matches(self) -> bool:
+        """Every replayed tick within ``tol`` for both u and tau."""
         return self.ticks_over_tol == 0
+
+    @property
+    def ok(self) -> bool:
+        """Every tick matches, and the log was whole (or a partial one was allowed)."""
+        return self.matches and (not self.truncated or self.allow_partial)
 
     def as_dict(self) -> dict[str, Any]:
         """The JSON object of ``hil replay --json`` (non-finite values as None)."""
@@ -96,7 +104,9 @@ class ReplayResult:
             "law_mismatches": self.law_mismatches,
             "tol": self.tol,
             "ok": self.ok,
+            "matches": self.matches,
             "truncated": self.truncated,
+            "allow_partial": self.allow_partial,
             "notes": list(self.notes),
         }
         if self.out is not None:
@@ -104,7 +114,13 @@ class ReplayResult:
         return out
 
     def failure_line(self) -> str:
-        """One line saying how the replay differs (for a non-zero exit)."""
+        """One line saying why the replay failed (for a non-zero exit)."""
+        if self.matches:
+            first = self.notes[0] if self.notes else "the log ends early"
+            return (
+                f"log is incomplete or damaged: only its first {self.ticks} ticks were replayed "
+                f"({first}); pass --allow-partial to accept a partial replay"
+            )
         return (
             f"replay differs from the log: max |dtau| = {self.max_abs_dtau:.6g} at tick "
             f"{self.worst_tick_dtau} (tol {self.tol:g}); max |du| = {self.max_abs_du:.6g} at "
@@ -270,6 +286,7 @@ def replay_loaded(
     cfg_override: RigConfig | None = None,
     tol: float = 1e-9,
     out: Path | None = None,
+    allow_partial: bool = False,
 ) -> ReplayResult:
     """:func:`replay_log` on a log already read with
     :func:`~rt_controller.logtools.reader.read_log`."""
@@ -324,6 +341,7 @@ def replay_loaded(
         if writer is not None:
             writer.close()
     result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
+    result.allow_partial = allow_partial
     if recorded_law is not None and recorded_law.dtype == object:
         result.law_mismatches = sum(
             str(a) != b for a, b in zip(recorded_law, laws, strict=True) if a is not None
@@ -371,6 +389,7 @@ def replay_log(
     cfg_override: RigConfig | None = None,
     tol: float = 1e-9,
     out: Path | None = None,
+    allow_partial: bool = False,
 ) -> ReplayResult:
     """Re-run a fresh controller on the inputs recorded in ``path`` and compare u and tau.
 
@@ -378,7 +397,10 @@ def replay_log(
     largest absolute difference of any component of u or tau that still counts as equal;
     ``out`` writes the replayed run as a new MCAP log (see the module docstring). Raises
     :class:`~rt_controller.errors.LogError` for a missing/non-MCAP file, a log without
-    configuration (and no override) or without cycles.
+    configuration (and no override) or without cycles. A truncated or damaged log replays as
+    far as it goes; it counts as ``ok`` only with ``allow_partial``.
     """
     log = read_log(path, raw=out is not None)
-    return replay_loaded(log, cfg_override=cfg_override, tol=tol, out=out)
+    return replay_loaded(
+        log, cfg_override=cfg_override, tol=tol, out=out, allow_partial=allow_partial
+    )

@@ -26,6 +26,7 @@ from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerError
 from rt_controller.rig.processes import RigOptions, private_default_bus, run_rig
+from rt_controller.rig.supervise import RigInterrupted
 
 EXPERIMENTS = ("fig3", "fig4", "table1")
 FIG3_LAWS = ("rhc", "ioc", "pbc")
@@ -219,8 +220,14 @@ def execute(run: RunResult, settings: Settings, runner: Runner | None = None) ->
             log=run.log,
         )
         run.summary = (runner or run_rig)(opts)
-        run.status = "ok"
+        problems = run.summary.get("problems") or []
+        if problems:
+            run.status, run.error = "failed", f"run not clean: {'; '.join(problems)}"
+        else:
+            run.status = "ok"
         run.J_steady = steady_cost(run.log)
+    except RigInterrupted:
+        raise  # the whole sweep stops; the caller writes up what ran
     except (ControllerError, HalError, OSError) as exc:
         run.status, run.error = "failed", f"{type(exc).__name__}: {exc}"
     finally:

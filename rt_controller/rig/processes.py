@@ -2,11 +2,21 @@
 
 Used by ``hil up`` and ``hil experiment``. Every child runs ``python -m rt_controller.cli``; a
 child that dies is reported with its exit status and the tail of its stderr, and nothing is
-left running on any exit path.
+left running on any exit path:
+
+* the children share one process group of their own (the first child leads it), so a stop can
+  signal all of them, and anything they started, at once;
+* each child asks the kernel for SIGTERM when its parent dies (``PR_SET_PDEATHSIG``, see
+  :func:`follow_parent`), so even a SIGKILLed ``hil up`` leaves nothing running: the controller
+  turns torque off and finishes its log, the DSP removes torque on its own;
+* :func:`supervised` turns SIGTERM, SIGINT and SIGHUP to the supervisor into
+  :class:`RigInterrupted`, so the children are stopped in order (controller first: torque off
+  while the DSP still listens) before it exits.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -22,6 +32,7 @@ from hal.bus import isolated_spec, resolve_spec
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.errors import ControllerError
+from rt_controller.rig.supervise import PARENT_ENV, signals_deferred
 
 STOP_TIMEOUT_S = 10.0
 STARTUP_MARGIN_S = 60.0
@@ -100,8 +111,16 @@ class Rig:
     def _start(self, name: str, args: list[str]) -> Child:
         err = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
         out = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        proc = subprocess.Popen(args, stdout=out, stderr=err, stdin=subprocess.DEVNULL, env=env)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())}
+        group = self.children[0].proc.pid if self.children else 0
+        proc = subprocess.Popen(
+            args,
+            stdout=out,
+            stderr=err,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            process_group=group,
+        )
         child = Child(name, proc, err, out)
         self.children.append(child)
         return child
@@ -138,36 +157,44 @@ class Rig:
             if time.monotonic() > deadline:
                 raise RigProcessError(f"controller still running after its duration:\n{ctl.tail()}")
             time.sleep(0.05)
-        if ctl.proc.returncode != 0:
+        lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
+        # Status 1 with a summary: the run finished but is not clean (its "problems" say why).
+        if ctl.proc.returncode not in (0, 1) or (ctl.proc.returncode == 1 and not lines):
             raise RigProcessError(
                 f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
             )
-        lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
         if not lines:
             raise RigProcessError(f"controller printed no summary:\n{ctl.tail()}")
         return json.loads(lines[-1])
 
     def stop(self) -> dict[str, int | None]:
-        """SIGTERM every child still running (controller first), SIGKILL after a timeout."""
+        """SIGTERM every child still running (controller first, so torque goes off while the
+        DSP still listens), SIGKILL after a timeout, then anything left in their group."""
         order = {"controller": 0, "vision": 1, "emulator": 2}
         codes: dict[str, int | None] = {}
-        for c in sorted(self.children, key=lambda c: order.get(c.name, 9)):
-            if c.proc.poll() is None:
-                c.proc.send_signal(signal.SIGTERM)
-                try:
-                    c.proc.wait(STOP_TIMEOUT_S)
-                except subprocess.TimeoutExpired:
-                    c.proc.kill()
-                    c.proc.wait()
-            codes[c.name] = c.proc.returncode
+        with signals_deferred():
+            for c in sorted(self.children, key=lambda c: order.get(c.name, 9)):
+                if c.proc.poll() is None:
+                    c.proc.send_signal(signal.SIGTERM)
+                    try:
+                        c.proc.wait(STOP_TIMEOUT_S)
+                    except subprocess.TimeoutExpired:
+                        c.proc.kill()
+                        c.proc.wait()
+                codes[c.name] = c.proc.returncode
+            if self.children:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(self.children[0].proc.pid, signal.SIGKILL)
         return codes
 
     def close(self) -> None:
-        self.stop()
-        for c in self.children:
-            c.stderr.close()
-            c.stdout.close()
-        self.children.clear()
+        try:
+            self.stop()
+        finally:
+            for c in self.children:
+                c.stderr.close()
+                c.stdout.close()
+            self.children.clear()
 
     def __enter__(self) -> Rig:
         return self
@@ -177,7 +204,10 @@ class Rig:
 
 
 def run_rig(opts: RigOptions) -> dict[str, Any]:
-    """Start, wait for the controller's duration, stop; the controller's summary plus exits."""
+    """Start, wait for the controller's duration, stop; the controller's summary plus exits.
+
+    Call it inside :func:`supervised` to turn SIGTERM/SIGINT/SIGHUP into an orderly stop.
+    """
     with Rig(opts) as rig:
         rig.start()
         summary = rig.wait_controller()

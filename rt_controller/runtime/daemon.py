@@ -23,12 +23,13 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
-from hal.errors import HalTimeoutError
+from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
+from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Cadence, MonotonicClock
 from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
@@ -70,6 +71,8 @@ class RunStats:
     stale_states: int = 0
     fallbacks: int = 0
     watchdog_trips: int = 0
+    stopped_before_arming: bool = False
+    """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
@@ -88,11 +91,30 @@ class RunStats:
             "stale_states": self.stale_states,
             "fallbacks": self.fallbacks,
             "watchdog_trips": self.watchdog_trips,
+            "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
             "lateness_us_p99": pct(self.lateness_us, 99),
             "cycle_us_p99": pct(self.cycle_us, 99),
         }
+
+
+def run_problems(summary: dict[str, Any]) -> list[str]:
+    """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
+
+    A run is not clean when it lost log records or tripped the DSP's watchdog; the commands
+    exit non-zero and print these on one line.
+    """
+    out: list[str] = []
+    rec = summary.get("recorder") or {}
+    lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))
+    if lost:
+        out.append(f"{lost} log record(s) lost")
+    if rec.get("encode_errors"):
+        out.append(f"{rec['encode_errors']} log record(s) could not be encoded")
+    if summary.get("watchdog_trips"):
+        out.append(f"{summary['watchdog_trips']} DSP watchdog trip(s)")
+    return out
 
 
 def default_log_path(cfg: RigConfig, law: str) -> Path:
@@ -107,6 +129,8 @@ class ControllerDaemon:
         self.cfg = cfg
         self.opts = options
         self.stop = stop
+        self._diag_every = max(1, round(cfg.rates.control_hz))
+        self._final_diagnostics: dict[str, Any] | None = None
         self.controller = Controller(cfg)
         self.model = self.controller.model
         self.period_ns = cfg.rates.control_period_ns
@@ -135,30 +159,45 @@ class ControllerDaemon:
                 "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
             },
         )
+        hooks: dict[str, Any] = {}
+        if opts.record_raw:
+            hooks = {
+                "frame_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "rx"),
+                "tx_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "tx"),
+            }
         try:
-            session = open_session(
-                cfg,
-                listen=False,
-                endpoint=opts.zenoh_endpoint,
-                config_file=opts.zenoh_config,
-                stop_event=self.stop,
-            )
-            try:
-                session.subscribe(KEY_FEATURES, self._on_features(rec))
-                hooks: dict[str, Any] = {}
-                if opts.record_raw:
-                    hooks = {
-                        "frame_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "rx"),
-                        "tx_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "tx"),
-                    }
-                with JointClient.open(opts.can, cfg, **hooks) as dsp:
+            # The bus first: a bad --can is reported at once, not after waiting for zenoh.
+            with JointClient.open(opts.can, cfg, **hooks) as dsp:
+                try:
+                    session = open_session(
+                        cfg,
+                        listen=False,
+                        endpoint=opts.zenoh_endpoint,
+                        config_file=opts.zenoh_config,
+                        stop_event=self.stop,
+                    )
+                except HalStopped:
+                    self.stats.stopped_before_arming = True
+                    return self._summary(rec)
+                try:
+                    session.subscribe(KEY_FEATURES, self._on_features(rec))
                     self._loop(dsp, rec)
-            finally:
-                session.close()
+                finally:
+                    session.close()
         finally:
             rec.close()
+        return self._summary(rec)
+
+    def _summary(self, rec: CycleRecorder) -> dict[str, Any]:
+        rec.close()
         out = self.stats.as_dict()
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.as_dict())
+        final = self._final_diagnostics or {}
+        out["rejections"] = {
+            "can_rx": diagnostics.values_of(final, "can_rx"),
+            "features": diagnostics.values_of(final, "features"),
+        }
+        out["problems"] = run_problems(out)
         return out
 
     def _on_features(self, rec: CycleRecorder):
@@ -195,6 +234,9 @@ class ControllerDaemon:
             for w in rt.warnings:
                 print(f"hil controller: warning: {w}", file=sys.stderr)
         self._wait_ready(dsp)
+        if self.stop.is_set():
+            self.stats.stopped_before_arming = True
+            return  # told to stop during start-up: the DSP is never armed
         dsp.enable()
         max_ticks = (
             math.floor(self.opts.duration_s * cfg.rates.control_hz + 1e-9)
@@ -210,6 +252,45 @@ class ControllerDaemon:
         finally:
             dsp.send_torque(0.0, 0.0)
             dsp.disable()
+            self._final_diagnostics = self.diagnostics(dsp, rec, final=True)
+            rec.record_diagnostics(self._final_diagnostics, final=True)
+
+    # --- diagnostics ------------------------------------------------------------------------
+    def _maybe_diagnostics(self, dsp: JointClient, rec: CycleRecorder) -> None:
+        """About once a second (every ``control_hz`` ticks), after the tick's write."""
+        if self.stats.ticks % self._diag_every == 0:
+            rec.record_diagnostics(self.diagnostics(dsp, rec))
+
+    def diagnostics(self, dsp: JointClient, rec: CycleRecorder, final: bool = False) -> dict:
+        """The ``/diagnostics`` record of this moment (:mod:`rt_controller.runtime.diagnostics`)."""
+        st = self.stats
+        status = dsp.status
+        recorder = rec.as_dict()
+        if final:
+            recorder.pop("pending", None)  # the final record is itself still queued
+        return diagnostics.build(
+            t_ns=time.monotonic_ns(),
+            tick=st.ticks,
+            can_rx=diagnostics.counters(dsp.stats.e2e),
+            features=diagnostics.counters(self.features.counts),
+            dsp={
+                "status_received": status is not None,
+                "torque_enabled": bool(status and status.torque_enabled),
+                "watchdog_tripped": bool(status and status.watchdog_tripped),
+                "watchdog_trips_reported": int(status.watchdog_trips) if status else 0,
+            },
+            controller={
+                "ticks": st.ticks,
+                "deadline_misses": st.deadline_misses,
+                "missed_periods": st.missed_periods,
+                "stale_features": st.stale_features,
+                "stale_states": st.stale_states,
+                "fallbacks": st.fallbacks,
+                "watchdog_trips": st.watchdog_trips,
+            },
+            recorder=recorder,
+            final=final,
+        )
 
     def _warm_up(self) -> None:
         """Compile and exercise every branch of the tick before the DSP is armed (never inside
@@ -232,6 +313,7 @@ class ControllerDaemon:
                 self.stats.deadline_misses += 1
                 self._last_record["deadline_miss"] = True
             rec.record_cycle(self._last_record)
+            self._maybe_diagnostics(dsp, rec)
 
     def _run_lockstep(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         last = None
@@ -251,6 +333,7 @@ class ControllerDaemon:
             self.features.wait_pose_seq(k, LOCKSTEP_FEATURE_TIMEOUT_S)
             self._tick(dsp, rec, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
             rec.record_cycle(self._last_record)
+            self._maybe_diagnostics(dsp, rec)
 
     def _check_watchdog(self, dsp: JointClient) -> None:
         """Count each watchdog trip the DSP reports and re-arm once per trip (if configured)."""
@@ -297,11 +380,10 @@ class ControllerDaemon:
         # --- decide
         d = self.controller.decide(t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale)
         fields = decision_fields(self.controller, d)
-        if d.mode == "no_state":
-            st.stale_states += 1
-        elif d.mode == "hold":
-            st.stale_features += 1
-        else:
+        # Counted per tick as recorded (f_stale / state_stale), the same way `hil report` does.
+        st.stale_states += int(state_stale)
+        st.stale_features += int(f_stale)
+        if d.command is not None:
             st.J += fields["cost"] / cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])
             st.f_final = vec2(f)

@@ -51,6 +51,7 @@ from mcap.writer import CompressionType, Writer
 
 from hal.config import RigConfig
 from rt_controller.errors import LogError
+from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
 
 log = logging.getLogger(__name__)
 
@@ -58,13 +59,20 @@ CYCLE_TOPIC = "/controller/cycle"
 CAN_RX_TOPIC = "/hal/can/rx"
 CAN_TX_TOPIC = "/hal/can/tx"
 VISION_TOPIC = "/vision/features"
+DIAGNOSTICS_TOPIC = "/diagnostics"
 CONFIG_METADATA = "hil.config"
 RUN_METADATA = "hil.run"
 RECORDER_METADATA = "hil.recorder"
 SCHEMA_VERSION = "1"
 
-_CYCLE, _CAN_RX, _CAN_TX, _VISION = 0, 1, 2, 3
-_TOPICS = {_CYCLE: CYCLE_TOPIC, _CAN_RX: CAN_RX_TOPIC, _CAN_TX: CAN_TX_TOPIC, _VISION: VISION_TOPIC}
+_CYCLE, _CAN_RX, _CAN_TX, _VISION, _DIAG = 0, 1, 2, 3, 4
+_TOPICS = {
+    _CYCLE: CYCLE_TOPIC,
+    _CAN_RX: CAN_RX_TOPIC,
+    _CAN_TX: CAN_TX_TOPIC,
+    _VISION: VISION_TOPIC,
+    _DIAG: DIAGNOSTICS_TOPIC,
+}
 _DIRECTIONS = {"rx": _CAN_RX, "tx": _CAN_TX}
 _SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
 
@@ -287,7 +295,8 @@ class CycleRecorder:
         cycle = w.register_schema("hil.ControllerCycle", "jsonschema", encode_json(cycle_schema()))
         can = w.register_schema("hil.CanFrame", "jsonschema", encode_json(CAN_SCHEMA))
         vision = w.register_schema("hil.VisionPayload", "jsonschema", encode_json(VISION_SCHEMA))
-        schema_of = {_CYCLE: cycle, _CAN_RX: can, _CAN_TX: can, _VISION: vision}
+        diag = w.register_schema("hil.Diagnostics", "jsonschema", encode_json(DIAGNOSTICS_SCHEMA))
+        schema_of = {_CYCLE: cycle, _CAN_RX: can, _CAN_TX: can, _VISION: vision, _DIAG: diag}
         return {k: w.register_channel(_TOPICS[k], "json", schema_of[k]) for k in _TOPICS}
 
     # ----------------------------------------------------------------- hot path (loop thread)
@@ -300,6 +309,16 @@ class CycleRecorder:
             return False
         t_ns = record.get("t_ns")
         q.append((_CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record, None))
+        return True
+
+    def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
+        """Queue one ``/diagnostics`` record (see :mod:`rt_controller.runtime.diagnostics`). A final
+        record is queued even when the queue is full (it carries the run's totals)."""
+        q = self._q
+        if self._closed or (len(q) >= self.queue_size and not final):
+            self._dropped += 1
+            return False
+        q.append((_DIAG, int(record["t_ns"]), record, None))
         return True
 
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
@@ -360,6 +379,8 @@ class CycleRecorder:
 
     def _encode(self, item: tuple[int, int, Any, Any]) -> tuple[int, bytes]:
         kind, t_ns, obj, extra = item
+        if kind == _DIAG:
+            return t_ns, encode_json(obj)
         if kind == _CYCLE:
             if "t_ns" not in obj:
                 obj = {**obj, "t_ns": t_ns}

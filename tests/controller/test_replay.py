@@ -207,12 +207,38 @@ def test_truncated_log_replays_as_far_as_it_goes(ioc_log, tmp_path, capsys):
     data = ioc_log.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
-    result = replay_log(cut)
-    assert result.truncated and 0 < result.ticks < TICKS and result.ok
+    result = replay_log(cut, allow_partial=True)
+    assert result.truncated and 0 < result.ticks < TICKS and result.ok and result.matches
     assert any("truncated" in note for note in result.notes)
-    assert main(["replay", str(cut), "--json"]) == 0
+    assert main(["replay", str(cut), "--json", "--allow-partial"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["truncated"] is True and out["ticks"] == result.ticks
+    assert out["truncated"] is True and out["ticks"] == result.ticks and out["ok"] is True
+
+
+@pytest.mark.parametrize("damage", ["cut", "bit_flips"])
+def test_a_damaged_log_fails_the_replay_unless_partial_is_allowed(
+    ioc_log, tmp_path, capsys, damage
+):
+    """Half a log, or bit flips in the middle of it: the ticks before the damage match, but the
+    replay is not a success (rc 1, one line naming the damage) without --allow-partial."""
+    data = bytearray(ioc_log.read_bytes())
+    if damage == "cut":
+        data = data[: len(data) // 2]
+    else:
+        mid = len(data) // 2
+        for i in range(mid, mid + 64, 8):
+            data[i] ^= 0xFF
+    bad = tmp_path / f"{damage}.mcap"
+    bad.write_bytes(bytes(data))
+    result = replay_log(bad)
+    assert result.truncated and result.ticks < TICKS and result.matches and not result.ok
+    assert main(["replay", str(bad), "--json"]) == 1
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    assert out["ok"] is False and out["matches"] is True and out["truncated"] is True
+    line = captured.err.strip()
+    assert "\n" not in line and line.startswith("hil replay: log is incomplete or damaged")
+    assert "--allow-partial" in line
 
 
 def test_missing_cycle_records_are_noted(ioc_log, tmp_path, cfg):

@@ -1,0 +1,58 @@
+"""Validated argparse value types shared by every ``hil`` subcommand (controller and emulator
+side alike): a bad number is refused while the command line is parsed, with argparse's one-line
+``error: argument --X: ...`` and status 2, before anything starts or waits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+MAX_DURATION_S = 7 * 24 * 3600.0
+"""Longest run a command accepts (one week)."""
+
+
+def bounded_float(
+    lo: float, hi: float, *, lo_inclusive: bool = False, what: str = "value"
+) -> Callable[[str], float]:
+    """A float in ``(lo, hi]`` (``[lo, hi]`` with ``lo_inclusive``); NaN and inf refused."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a number, got {text!r}") from None
+        above = value >= lo if lo_inclusive else value > lo
+        if not (math.isfinite(value) and above and value <= hi):
+            bracket = "[" if lo_inclusive else "("
+            raise argparse.ArgumentTypeError(
+                f"{what} must be in {bracket}{lo:g}, {hi:g}], got {text}"
+            )
+        return value
+
+    parse.__name__ = what  # argparse names the type in its messages
+    return parse
+
+
+def bounded_int(lo: int, hi: int, *, what: str = "value") -> Callable[[str], int]:
+    """An integer in ``[lo, hi]``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be an integer, got {text!r}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{what} must be in [{lo}, {hi}], got {text}")
+        return value
+
+    parse.__name__ = what
+    return parse
+
+
+def duration(*, zero_means_forever: bool = False) -> Callable[[str], float]:
+    """Seconds in ``(0, one week]``; with ``zero_means_forever`` also 0 (run until stopped)."""
+    return bounded_float(
+        0.0, MAX_DURATION_S, lo_inclusive=zero_means_forever, what="duration in seconds"
+    )

@@ -1,0 +1,89 @@
+"""Process supervision shared by ``hil up`` (the supervisor) and its children.
+
+* :func:`follow_parent`: a child asks the kernel for SIGTERM when the supervisor dies
+  (``PR_SET_PDEATHSIG``), so even a SIGKILLed ``hil up`` leaves nothing running;
+* :func:`supervised`: SIGTERM, SIGINT and SIGHUP to the supervisor become
+  :class:`RigInterrupted`, so it stops its children in order before it exits;
+* :func:`signals_deferred`: those signals wait while the children are being stopped.
+
+Light on purpose (no numpy, python-can or zenoh): :mod:`rt_controller.cli` calls
+:func:`follow_parent` before it builds its parser.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+
+from rt_controller.errors import ControllerError
+
+PARENT_ENV = "HIL_SUPERVISOR_PID"
+"""Set in each child's environment to the supervisor's pid (see :func:`follow_parent`)."""
+SUPERVISED_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+_PR_SET_PDEATHSIG = 1
+
+
+class RigInterrupted(ControllerError):
+    """The supervisor was told to stop by a signal; the children have been stopped."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(f"interrupted by {signal.Signals(signum).name}")
+
+    @property
+    def exit_code(self) -> int:
+        """The shell's convention for a process ended by a signal: 128 + its number."""
+        return 128 + self.signum
+
+
+def follow_parent() -> None:
+    """In a rig child: ask for SIGTERM when the supervisor dies, so the child never outlives it.
+
+    Does nothing outside a rig (no :data:`PARENT_ENV`). If the supervisor already died before
+    the request took effect, the child sends itself the signal at once.
+    """
+    parent = os.environ.get(PARENT_ENV)
+    if not parent or not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() != int(parent):
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def supervised() -> Iterator[None]:
+    """While inside, SIGTERM/SIGINT/SIGHUP raise :class:`RigInterrupted` in the main thread
+    (the previous handlers are restored on exit). Outside the main thread it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, _frame: object) -> None:
+        raise RigInterrupted(signum)
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in SUPERVISED_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Block the supervised signals while the children are being stopped (a second SIGTERM
+    must not cut the orderly stop short); they are delivered afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, SUPERVISED_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)

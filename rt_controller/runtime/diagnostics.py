@@ -1,0 +1,132 @@
+"""The ``/diagnostics`` record: every counter a supervisor needs, about once a second, in the
+spirit of ROS ``diagnostic_msgs/DiagnosticArray`` (one status per component, a level, a message
+and key/values).
+
+Components: ``can_rx`` (the controller's receive verdicts by reason), ``features`` (vision
+messages by reason), ``dsp`` (the drive's last reported state), ``controller`` (ticks, misses,
+stale inputs, fallbacks) and ``recorder`` (records written, dropped). The controller's summary
+and ``hil report`` take their counters from the same place, so they agree.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+OK, WARN, ERROR = 0, 1, 2
+LEVEL_NAMES = {OK: "ok", WARN: "warn", ERROR: "error"}
+
+DIAGNOSTICS_SCHEMA: dict[str, Any] = {
+    "title": "hil.Diagnostics",
+    "description": "Counters of every component of the controller process (about 1 Hz, and a "
+    "final one at the end of the run), like ROS diagnostic_msgs/DiagnosticArray.",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer", "description": "time.monotonic_ns() when taken"},
+        "tick": {"type": "integer", "description": "ticks run so far"},
+        "final": {"type": "boolean", "description": "the last record of the run"},
+        "level": {"type": "integer", "description": "worst status level: 0 ok, 1 warn, 2 error"},
+        "status": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "name": {"type": "string"},
+                    "level": {"type": "integer"},
+                    "message": {"type": "string"},
+                    "values": {"type": "object", "additionalProperties": {}},
+                },
+                "required": ["name", "level", "message", "values"],
+            },
+        },
+    },
+    "required": ["t_ns", "tick", "level", "status"],
+}
+
+
+def counters(obj: Any) -> dict[str, Any]:
+    """A counters object as a flat dict: its ``as_dict()``, else its dataclass fields."""
+    if obj is None:
+        return {}
+    if hasattr(obj, "as_dict"):
+        return dict(obj.as_dict())
+    if dataclasses.is_dataclass(obj):
+        return dataclasses.asdict(obj)
+    return dict(obj)
+
+
+def _status(name: str, level: int, message: str, values: dict[str, Any]) -> dict[str, Any]:
+    return {"name": name, "level": level, "message": message, "values": values}
+
+
+def rejected(values: dict[str, Any]) -> int:
+    """Rejections in a receiver's counters (its ``rejected`` total, else every ``bad_*`` and
+    ``stale_*`` bucket)."""
+    if "rejected" in values:
+        return int(values["rejected"])
+    return sum(int(v) for k, v in values.items() if k.startswith(("bad_", "stale_")))
+
+
+def build(
+    *,
+    t_ns: int,
+    tick: int,
+    can_rx: dict[str, Any],
+    features: dict[str, Any],
+    dsp: dict[str, Any],
+    controller: dict[str, Any],
+    recorder: dict[str, Any],
+    final: bool = False,
+) -> dict[str, Any]:
+    """One ``/diagnostics`` record from the components' counters."""
+    can_bad, feat_bad = rejected(can_rx), rejected(features)
+    lost = int(recorder.get("dropped", 0)) + int(recorder.get("encode_errors", 0))
+    dsp_bad = bool(dsp.get("watchdog_tripped")) or int(controller.get("watchdog_trips", 0)) > 0
+    misses = int(controller.get("deadline_misses", 0))
+    status = [
+        _status(
+            "can_rx",
+            WARN if can_bad else OK,
+            f"{can_bad} frame(s) rejected" if can_bad else "all frames accepted",
+            can_rx,
+        ),
+        _status(
+            "features",
+            WARN if feat_bad else OK,
+            f"{feat_bad} message(s) rejected" if feat_bad else "all messages accepted",
+            features,
+        ),
+        _status(
+            "dsp",
+            ERROR if dsp_bad else OK,
+            "watchdog tripped" if dsp_bad else ("armed" if dsp.get("torque_enabled") else "idle"),
+            dsp,
+        ),
+        _status(
+            "controller",
+            WARN if misses else OK,
+            f"{misses} deadline miss(es)" if misses else "on time",
+            controller,
+        ),
+        _status(
+            "recorder",
+            ERROR if lost else OK,
+            f"{lost} record(s) lost" if lost else "nothing lost",
+            recorder,
+        ),
+    ]
+    return {
+        "t_ns": int(t_ns),
+        "tick": int(tick),
+        "final": final,
+        "level": max(s["level"] for s in status),
+        "status": status,
+    }
+
+
+def values_of(record: dict[str, Any], name: str) -> dict[str, Any]:
+    """The key/values of component ``name`` in a diagnostics record ({} if absent)."""
+    for s in record.get("status", []):
+        if s.get("name") == name:
+            return dict(s.get("values", {}))
+    return {}

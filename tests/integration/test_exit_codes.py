@@ -1,0 +1,120 @@
+"""Exit codes tell the truth: a run that lost log records or tripped the DSP's watchdog exits
+non-zero and says why in one line, from ``hil controller`` up through ``hil up``.
+
+The faults are injected into the real daemons: the log is written to a tiny tmpfs that fills up,
+and the controller is frozen (SIGSTOP) for longer than the DSP's watchdog allows.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hal.bus import isolated_spec
+from hal.zenoh_session import free_loopback_port
+from rt_controller.runtime.daemon import run_problems
+from tests.support.proc import processes_mentioning
+
+REPO = Path(__file__).resolve().parents[2]
+WAIT_S = 180.0
+
+
+def test_a_clean_summary_has_no_problems():
+    clean = {"watchdog_trips": 0, "recorder": {"dropped": 0, "encode_errors": 0, "pending": 0}}
+    assert run_problems(clean) == []
+
+
+def test_each_problem_is_named():
+    bad = {"watchdog_trips": 2, "recorder": {"dropped": 5, "encode_errors": 1, "pending": 3}}
+    assert run_problems(bad) == [
+        "8 log record(s) lost",
+        "1 log record(s) could not be encoded",
+        "2 DSP watchdog trip(s)",
+    ]
+
+
+def _hil_up(ep: str, log: Path, *extra: str) -> subprocess.Popen:
+    args = [sys.executable, "-m", "rt_controller.cli", "up", "--json"]
+    args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", ep, "--log", str(log)]
+    return subprocess.Popen(
+        [*args, *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        cwd=REPO,
+    )
+
+
+def _finish(proc: subprocess.Popen, ep: str) -> tuple[int, dict, str]:
+    try:
+        out, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:  # pragma: no cover - only on a hang
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    deadline = time.monotonic() + 30
+    while processes_mentioning(ep) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not processes_mentioning(ep)
+    lines = [ln for ln in out.splitlines() if ln.startswith("{")]
+    return proc.returncode, json.loads(lines[-1]) if lines else {}, err
+
+
+@pytest.fixture
+def tiny_tmpfs(tmp_path):
+    """A 192 KiB tmpfs: a 10 s run's log does not fit."""
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=192k", "tmpfs", str(mnt)],
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip()}): disk-full test skipped")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+@pytest.mark.integration
+def test_disk_full_for_the_log_fails_the_run(tiny_tmpfs):
+    ep = f"tcp/127.0.0.1:{free_loopback_port()}"
+    proc = _hil_up(ep, tiny_tmpfs / "run.mcap", "--lockstep", "--duration", "10")
+    rc, summary, err = _finish(proc, ep)
+    assert rc == 1, err
+    assert summary["recorder"]["dropped"] > 0
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("hil up: run not clean:") and "log record(s) lost" in last, err
+
+
+@pytest.mark.integration
+def test_a_watchdog_trip_fails_the_run(tmp_path):
+    """Freeze the controller for 0.5 s (the watchdog allows three 20 ms periods)."""
+    ep = f"tcp/127.0.0.1:{free_loopback_port()}"
+    log = tmp_path / "run.mcap"
+    proc = _hil_up(ep, log, "--duration", "4")
+    deadline = time.monotonic() + WAIT_S
+    controller = []
+    while not controller and time.monotonic() < deadline:
+        controller = [p for p in processes_mentioning(ep) if " controller " in p]
+        time.sleep(0.05)
+    assert controller, "the controller never started"
+    pid = int(controller[0].split(":")[0])
+    while time.monotonic() < deadline and not (log.exists() and log.stat().st_size > 20_000):
+        time.sleep(0.05)  # running: its log grows
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(0.5)  # fault injection, not a timing assertion: any freeze > 60 ms trips it
+    os.kill(pid, signal.SIGCONT)
+    rc, summary, err = _finish(proc, ep)
+    assert summary["watchdog_trips"] >= 1, err
+    assert rc == 1 and "DSP watchdog trip(s)" in err.strip().splitlines()[-1], err
