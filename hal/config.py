@@ -195,8 +195,11 @@ class ControllerConfig:
     (``foreign_source``) unless the locked source sent nothing accepted for this long (a
     restarted vision process); 0 lets any new source take over at once."""
     rearm_after_trip: bool = True
-    """Re-enable the DSP once after each watchdog trip it reports (the trip means this loop
-    was late); false leaves the amplifiers off until restarted."""
+    """Reset and re-enable the DSP once after each watchdog fault it reports (the trip means
+    this loop was late); false leaves the amplifiers off. The run still counts as not clean."""
+    rearm_after_restart: bool = False
+    """Re-enable a DSP that restarted (new session) or was disabled by another node. Default:
+    no: the controller holds zero torque, reports the mode and exits non-zero."""
 
 
 @dataclass(frozen=True)
@@ -215,9 +218,10 @@ class DspConfig:
     the elbow stops 2.6 rad (149 deg) short of folding link 2 onto link 1."""
     q_max: Vec2 = (math.pi, 2.6)
     """Highest joint angles, rad (see ``q_min``)."""
-    dq_max: Vec2 = (8.0, 8.0)
-    """Joint speed limits, rad/s (about 1.3 rev/s, several times what a visual-servo run needs):
-    with operation enabled, exceeding one faults the DSP (VELOCITY_LIMIT)."""
+    dq_max: Vec2 = (10.0, 20.0)
+    """Joint speed limits, rad/s: with operation enabled, exceeding one faults the DSP
+    (VELOCITY_LIMIT). The paper scenario's live runs peak near 1.2 and 8.3 rad/s (the light
+    elbow swings fast after the first torque); a runaway arm passes 20 rad/s within a second."""
 
 
 @dataclass(frozen=True)

@@ -486,6 +486,11 @@ class FeatureDecoder(_Receiver):
         now = self._clock() if now_ns is None else now_ns
         return feature_age_ns(now, latest.stamp_ns, recv)
 
+    def latest_received(self) -> tuple[FeatureMsg | None, int | None]:
+        """(:attr:`latest`, :attr:`latest_recv_ns`) read together (one consistent pair)."""
+        with self._cond:
+            return self.latest, self.latest_recv_ns
+
     def fresh_latest(self, max_age_ns: int, now_ns: int | None = None) -> FeatureMsg | None:
         """:attr:`latest` if its :meth:`age_ns` is at most ``max_age_ns``, else None."""
         with self._cond:

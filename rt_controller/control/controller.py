@@ -102,12 +102,19 @@ class Controller:
         *,
         f_stale: bool,
         state_stale: bool,
+        drive_mode: str = "enabled",
     ) -> Decision:
         """The daemon's per-tick rule, shared with ``hil replay`` so a log replays exactly.
 
-        No joint state: zero torque. Stale features: hold (:meth:`hold_torque`) and re-initialise
-        the law when features return. Otherwise the law and eq. (11). Never returns NaN torque.
+        A DSP not in *operation enabled* (``drive_mode`` is ``disarmed``, ``fault``,
+        ``dsp_restarted`` or ``no_status``, see :mod:`hal.drive_state`): zero torque, the law does
+        not run and restarts when the drive is enabled again. No joint state: zero torque. Stale
+        features: hold (:meth:`hold_torque`) and re-initialise the law when features return.
+        Otherwise the law and eq. (11). Never returns NaN torque.
         """
+        if drive_mode != "enabled":
+            self._holding = True
+            return Decision(np.zeros(2), drive_mode, None)
         if state_stale:
             return Decision(np.zeros(2), "no_state", None)
         if f_stale or not np.all(np.isfinite(f)):
@@ -130,8 +137,10 @@ def warm_up(ctl: Controller, cfg: RigConfig) -> None:
     """
     sc = cfg.scenario
     q, dq, f = np.array(sc.q0, float), np.array(sc.dq0, float), np.array(sc.f0, float)
-    for f_stale, state_stale in ((False, False), (True, False), (False, True), (False, False)):
-        d = ctl.decide(0.0, q, dq, f, f_stale=f_stale, state_stale=state_stale)
+    cases = ((False, False, "enabled"), (True, False, "enabled"), (False, True, "enabled"))
+    cases += ((False, False, "disarmed"), (False, False, "enabled"))
+    for f_stale, state_stale, mode in cases:
+        d = ctl.decide(0.0, q, dq, f, f_stale=f_stale, state_stale=state_stale, drive_mode=mode)
         if d.command is not None:
             ctl.costs(d.command)
     ctl.step(0.0, q, dq, np.full(2, np.nan))  # the no-features branch of step

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
+from hal.drive_state import MODE_ENABLED, MODES
 from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log
@@ -280,6 +281,19 @@ class _OutLog:
             raise LogError(f"cannot write {self.rec.path}: {self.rec.error}") from self.rec.error
 
 
+DISABLED_MODES = frozenset(MODES) - {MODE_ENABLED}
+"""Modes in which the daemon does not run the law (recorded as the tick's ``law``)."""
+
+
+def _drive_mode(recorded_law: np.ndarray | None, i: int) -> str:
+    """The DSP's drive mode at tick ``i`` as the daemon recorded it in the ``law`` field (a
+    tick without an enabled DSP is recorded under its mode's name)."""
+    if recorded_law is None:
+        return MODE_ENABLED
+    law = recorded_law[i]
+    return law if law in DISABLED_MODES else MODE_ENABLED
+
+
 def replay_loaded(
     log: LoadedLog,
     *,
@@ -325,6 +339,7 @@ def replay_loaded(
                 inputs["f"][i],
                 f_stale=bool(inputs["f_stale"][i]),
                 state_stale=bool(inputs["state_stale"][i]),
+                drive_mode=_drive_mode(recorded_law, i),
             )
             fields = decision_fields(ctl, d)
             u[i], tau[i] = fields["u"], fields["tau"]

@@ -23,9 +23,10 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
+from hal.drive_state import MODE_ENABLED, MODE_NO_STATUS, DriveEvent, DriveMonitor, FaultReason
 from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
-from hal.vision_codec import FeatureDecoder
+from hal.vision_codec import FeatureDecoder, feature_age_ns
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
@@ -41,6 +42,8 @@ STARTUP_TIMEOUT_S = 20.0
 LOCKSTEP_SYNC_TIMEOUT_S = 2.0
 """Lockstep: without a Sync for this long the emulator is taken to have finished."""
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
+ENABLE_TIMEOUT_S = 5.0
+"""How long the daemon waits for the DSP to report *operation enabled* after ENABLE."""
 
 
 @dataclass
@@ -71,6 +74,12 @@ class RunStats:
     stale_states: int = 0
     fallbacks: int = 0
     watchdog_trips: int = 0
+    drive_ticks: dict[str, int] = field(default_factory=dict)
+    """Ticks run while the DSP was not in *operation enabled*, by mode (no law ran in them)."""
+    dsp_faults: dict[str, int] = field(default_factory=dict)
+    """Faults the DSP reported, by reason (``watchdog``, ``position_limit``, ...)."""
+    rearms: int = 0
+    """Times the controller re-armed the DSP by its re-arm policy."""
     stopped_before_arming: bool = False
     """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
@@ -91,6 +100,9 @@ class RunStats:
             "stale_states": self.stale_states,
             "fallbacks": self.fallbacks,
             "watchdog_trips": self.watchdog_trips,
+            "drive_ticks": dict(self.drive_ticks),
+            "dsp_faults": dict(self.dsp_faults),
+            "rearms": self.rearms,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
@@ -102,8 +114,9 @@ class RunStats:
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
 
-    A run is not clean when it lost log records or tripped the DSP's watchdog; the commands
-    exit non-zero and print these on one line.
+    A run is not clean when it lost log records, tripped the DSP's watchdog, saw the DSP
+    fault, or ran ticks without an enabled DSP (disarmed, restarted, silent); the commands exit
+    non-zero and print these on one line.
     """
     out: list[str] = []
     rec = summary.get("recorder") or {}
@@ -114,6 +127,13 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         out.append(f"{rec['encode_errors']} log record(s) could not be encoded")
     if summary.get("watchdog_trips"):
         out.append(f"{summary['watchdog_trips']} DSP watchdog trip(s)")
+    faults = {k: v for k, v in (summary.get("dsp_faults") or {}).items() if k != "watchdog"}
+    if faults:
+        out.append("DSP fault(s): " + ", ".join(f"{k} {v}" for k, v in faults.items()))
+    drive = summary.get("drive_ticks") or {}
+    if drive:
+        what = ", ".join(f"{k} {v}" for k, v in drive.items())
+        out.append(f"{sum(drive.values())} tick(s) without an enabled DSP ({what})")
     return out
 
 
@@ -136,7 +156,10 @@ class ControllerDaemon:
         self.period_ns = cfg.rates.control_period_ns
         self.stats = RunStats()
         self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
-        self._trip_seen = -1
+        self.drive = DriveMonitor()
+        self._status_limit_s = 3.0 / cfg.rates.status_hz
+        """Realtime: a DspStatus older than three status periods means the DSP went silent
+        (lockstep needs no such limit: without a live DSP there is no Sync and no tick)."""
         # Lockstep: the DSP announces the state with every Sync, so its wall-clock age only
         # reflects how long this tick waited (for features); a silent DSP ends the run instead.
         self._state_limit_s = (
@@ -144,7 +167,7 @@ class ControllerDaemon:
             if options.lockstep
             else cfg.controller.state_timeout_s
         )
-        self.features = FeatureDecoder(max_age_ns=round(cfg.controller.feature_timeout_s * 1e9))
+        self.features = FeatureDecoder.from_config(cfg.controller)
 
     # --- wiring -----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -225,6 +248,24 @@ class ControllerDaemon:
                 )
             time.sleep(0.01)
 
+    def _wait_enabled(self, dsp: JointClient) -> None:
+        """After ENABLE: wait until the DSP reports *operation enabled* (it answers a state
+        change with a DspStatus at once), so the first tick runs the law."""
+        deadline = time.monotonic() + ENABLE_TIMEOUT_S
+        while not self.stop.is_set():
+            status = dsp.status
+            self.drive.update(status)
+            if self.drive.mode == MODE_ENABLED:
+                return
+            if time.monotonic() > deadline:
+                state = "no DspStatus" if status is None else status.drive_state.label
+                fault = "" if status is None else f", fault {status.fault_reason.label}"
+                raise ControllerError(
+                    f"the DSP did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
+                    f"(state {state}{fault})"
+                )
+            time.sleep(0.002)
+
     # --- the loop ---------------------------------------------------------------------------
     def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
         cfg = self.cfg
@@ -238,6 +279,7 @@ class ControllerDaemon:
             self.stats.stopped_before_arming = True
             return  # told to stop during start-up: the DSP is never armed
         dsp.enable()
+        self._wait_enabled(dsp)
         max_ticks = (
             math.floor(self.opts.duration_s * cfg.rates.control_hz + 1e-9)
             if self.opts.duration_s > 0
@@ -275,9 +317,14 @@ class ControllerDaemon:
             features=diagnostics.counters(self.features.counts),
             dsp={
                 "status_received": status is not None,
+                "mode": self.drive.mode,
+                "drive_state": status.drive_state.label if status else "none",
+                "fault_reason": status.fault_reason.label if status else "none",
+                "session": int(status.session) if status else 0,
                 "torque_enabled": bool(status and status.torque_enabled),
                 "watchdog_tripped": bool(status and status.watchdog_tripped),
-                "watchdog_trips_reported": int(status.watchdog_trips) if status else 0,
+                **{f"events.{k}": v for k, v in self.drive.counters().items()},
+                **{f"ticks.{k}": v for k, v in st.drive_ticks.items()},
             },
             controller={
                 "ticks": st.ticks,
@@ -335,17 +382,40 @@ class ControllerDaemon:
             rec.record_cycle(self._last_record)
             self._maybe_diagnostics(dsp, rec)
 
-    def _check_watchdog(self, dsp: JointClient) -> None:
-        """Count each watchdog trip the DSP reports and re-arm once per trip (if configured)."""
-        status = dsp.status
-        if status is None or not status.watchdog_tripped:
-            return
-        if status.watchdog_trips == self._trip_seen:
-            return
-        self._trip_seen = status.watchdog_trips
-        self.stats.watchdog_trips += 1
-        if self.cfg.controller.rearm_after_trip:
-            dsp.enable()
+    def _follow_drive(self, dsp: JointClient) -> str:
+        """Track the DSP's drive state (:class:`hal.drive_state.DriveMonitor`), count faults and
+        apply the re-arm policy; the drive mode of this tick (the law runs only in ``enabled``).
+
+        Policy (``controller.rearm_after_trip``, ``controller.rearm_after_restart``): a watchdog
+        fault means this loop was late, so it may be reset and re-armed once per trip; a DSP
+        that restarted (new session) or was disabled by someone else is re-armed only when
+        configured; a limit or encoder fault never is.
+        """
+        ctl_cfg = self.cfg.controller
+        upd = self.drive.update(dsp.status)
+        for ev in upd.events:
+            if ev is DriveEvent.FAULT:
+                reason = upd.fault.label
+                self.stats.dsp_faults[reason] = self.stats.dsp_faults.get(reason, 0) + 1
+                if upd.fault is FaultReason.WATCHDOG:
+                    self.stats.watchdog_trips += 1
+                    if ctl_cfg.rearm_after_trip:
+                        dsp.enable(reset_fault=True)
+                        self.stats.rearms += 1
+            elif ev is DriveEvent.DSP_RESTARTED and ctl_cfg.rearm_after_restart:
+                self.drive.acknowledge_restart()
+                dsp.enable(reset_fault=False)
+                self.stats.rearms += 1
+            elif ev is DriveEvent.DISARMED and ctl_cfg.rearm_after_restart:
+                dsp.enable(reset_fault=False)
+                self.stats.rearms += 1
+        mode = self.drive.mode
+        age = dsp.status_age_s
+        if not self.opts.lockstep and (age is None or age > self._status_limit_s):
+            mode = MODE_NO_STATUS  # a silent DSP: its last word no longer counts
+        if mode != MODE_ENABLED:
+            self.stats.drive_ticks[mode] = self.stats.drive_ticks.get(mode, 0) + 1
+        return mode
 
     def _tick(
         self,
@@ -368,17 +438,20 @@ class ControllerDaemon:
             state_age_ms = (wake_ns - state.t_ns) / 1e6
         except HalTimeoutError:
             state_stale, q, dq, state_age_ms = True, np.full(2, math.nan), np.zeros(2), math.nan
-        feat = self.features.latest
-        if feat is None:
+        feat, recv_ns = self.features.latest_received()
+        if feat is None or recv_ns is None:
             f, f_age_ms = np.full(2, math.nan), math.nan
         elif self.opts.lockstep:
             f, f_age_ms = np.array(feat.f), (t_s * 1e9 - feat.sim_time_ns) / 1e6
-        else:
-            f, f_age_ms = np.array(feat.f), (wake_ns - feat.stamp_ns) / 1e6
-        f_stale = not (f_age_ms <= cfg.controller.feature_timeout_s * 1e3)
+        else:  # by stamp and by arrival: a future stamp cannot make old data look fresh
+            f, f_age_ms = np.array(feat.f), feature_age_ns(wake_ns, feat.stamp_ns, recv_ns) / 1e6
+        f_stale = not (0.0 <= f_age_ms <= cfg.controller.feature_timeout_s * 1e3)
+        drive_mode = self._follow_drive(dsp)
         t_read = time.monotonic_ns()
         # --- decide
-        d = self.controller.decide(t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale)
+        d = self.controller.decide(
+            t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale, drive_mode=drive_mode
+        )
         fields = decision_fields(self.controller, d)
         # Counted per tick as recorded (f_stale / state_stale), the same way `hil report` does.
         st.stale_states += int(state_stale)
@@ -392,7 +465,6 @@ class ControllerDaemon:
         tau = d.tau
         dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
         t_write = time.monotonic_ns()
-        self._check_watchdog(dsp)
         st.ticks += 1
         st.missed_periods += missed
         solve_us = (t_solve - t_read) / 1e3
