@@ -91,13 +91,14 @@ def test_terminal_gradient_against_finite_differences(model, params, case):
 
 
 def sweep_work(N: int):
-    """The (X, Lam, Aux, hx, hu) work tuple of :func:`eval_F`."""
+    """The (X, Lam, Aux, hx, hu, cnt) work tuple of :func:`eval_F` (one Euler step per stage)."""
     return (
         np.zeros((N + 1, 6)),
         np.zeros((N + 1, 6)),
         np.zeros((N, pb.NAUX)),
         np.zeros(6),
         np.zeros(6),
+        np.zeros(1),
     )
 
 
