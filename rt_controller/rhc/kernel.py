@@ -74,7 +74,7 @@ JIT = {"cache": True, "error_model": "numpy", "fastmath": {"nsz", "arcp", "contr
 """numba options: cached, IEEE NaN/inf semantics kept (the fallback relies on them)."""
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def horizon_at(P, t):
     """T(t) = Tf (1 - exp(-a t)), or Tf when a = 0."""
     a = P[GROWTH]
@@ -87,7 +87,7 @@ NAUX = 13
 """Intermediates of one stage kept from the forward sweep for the backward sweep."""
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def stage_forward(P, x, u, aux, out):
     """Right-hand side of eq. (12) in (q, xi, f) coordinates into ``out`` (6).
 
@@ -158,7 +158,7 @@ def terminal_cost(P, x):
     return 2.0 * xmx + 2.0 * P[KP] / P[GAIN] * (f1 * f1 + f2 * f2)
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def terminal_grad(P, x, out):
     """Gradient of phi = 4 V(x) with respect to x into ``out`` (6)."""
     t1, t2, t3 = P[T1], P[T2], P[T3]
@@ -192,7 +192,7 @@ def hamiltonian_grad(P, x, u, lam, hx, hu):
     stage_adjoint(P, x, u, lam, aux, hx, hu)
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def stage_adjoint(P, x, u, lam, aux, hx, hu):
     """:func:`hamiltonian_grad` from the intermediates ``aux`` of :func:`stage_forward`."""
     t3, l1, l2, g, kp = P[T3], P[L1], P[L2], P[GAIN], P[KP]
@@ -320,7 +320,7 @@ def clip_dummies(P, N, U):
             U[j + 2] = v
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def norm(a):
     s = 0.0
     for i in range(a.shape[0]):
@@ -372,7 +372,7 @@ def precond_setup(P, N, U, X, T, pre):
         pre[o + 3] = s11 / sdet
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def precond_apply(N, pre, r, d):
     """d = P^-1 r with the factors of :func:`precond_setup`."""
     for k in range(N):
