@@ -315,3 +315,18 @@ def test_ticks_are_deterministic(cfg):
         reps = [solver.update(x + 0.01 * k, 0.02 * k) for k in range(6)]
         outs.append((np.array([r.u for r in reps]), solver.U.copy()))
     assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+
+
+def test_direct_compiled_entry_gives_the_dispatcher_results(cfg):
+    """After warm_up the tick skips numba's dispatcher; the results are bit for bit the same."""
+    fast, model, c = solver_for(cfg)
+    fast.warm_up()
+    assert fast._tick is not kernel.rhc_tick
+    slow, _, _ = solver_for(cfg)
+    assert slow._tick is kernel.rhc_tick
+    x = initial_state(c, model)
+    for k in range(5):
+        a, b = fast.update(x + 0.01 * k, 0.02 * k), slow.update(x + 0.01 * k, 0.02 * k)
+        assert np.array_equal(a.u, b.u) and a.residual == b.residual
+        assert a.iterations == b.iterations and a.ok == b.ok
+    assert np.array_equal(fast.st, slow.st)

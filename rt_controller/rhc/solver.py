@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from hal.config import RigConfig
@@ -44,6 +46,18 @@ class SolveReport(NamedTuple):
     """This update solved from scratch (Newton-GMRES)."""
 
 
+def compiled_entry(dispatcher, *args) -> Callable:
+    """The compiled function of ``dispatcher`` for the types of ``args``, called directly.
+
+    The overload's own CPython wrapper skips the dispatcher's per-call type resolution (a few
+    microseconds when the interpreter's caches are cold, as at 50 Hz). The arrays passed later
+    must have exactly these types; falls back to the dispatcher if there is no such overload.
+    """
+    sig = tuple(numba.typeof(a) for a in args)
+    cres = dispatcher.overloads.get(sig)
+    return dispatcher if cres is None else cres.entry_point
+
+
 def pack_state(q: np.ndarray, xi: np.ndarray, f: np.ndarray, out: np.ndarray | None = None):
     """The prediction state x = (q, xi, f) (6)."""
     x = np.empty(NX) if out is None else out
@@ -58,7 +72,8 @@ class CGMRESSolver:
 
     All the solver's state lives in one float64 vector ``st`` (the measured state, the flags, the
     outputs, U and Udot; layout ``kernel.ST_*``) and one work array, so a tick is a single
-    compiled call with four array arguments and nothing is allocated but the report.
+    compiled call with four array arguments (after :meth:`warm_up`, straight to the compiled
+    overload) and nothing is allocated but the report.
     """
 
     def __init__(self, model: NominalModel, cfg: RigConfig) -> None:
@@ -78,6 +93,7 @@ class CGMRESSolver:
             self.N, self.kmax, int(self.iP[I_INIT_KRYLOV]), int(self.iP[I_SUB])
         )
         self.needs_init = True
+        self._tick: Callable = rhc_tick
 
     def reset(self) -> None:
         """Forget the warm start: the next update solves from scratch."""
@@ -111,7 +127,7 @@ class CGMRESSolver:
         else:
             st[ST_MODEL_XDOT] = 0.0
             self._xdot[:] = xdot
-        rhc_tick(self.P, self.iP, st, self.work)
+        self._tick(self.P, self.iP, st, self.work)
         residual = float(st[ST_RES])
         ok = st[ST_STATUS] == OK and residual <= self.residual_bound
         self.needs_init = not ok
@@ -127,3 +143,4 @@ class CGMRESSolver:
         self.update(x, 0.0)
         self.update(x, 1.0 / self.cfg.rates.control_hz)
         self.reset()
+        self._tick = compiled_entry(rhc_tick, self.P, self.iP, self.st, self.work)
