@@ -7,6 +7,13 @@ updates cover the transient and not only the rest state. Each update is timed wi
 ``time.perf_counter_ns`` around :meth:`CGMRESSolver.update` (what the law reports as
 ``solve_ns``); the first tick of an episode is the Newton-GMRES initial solve and is reported
 apart (``init_us``). The plain-NumPy reference runs the same loop for fewer updates.
+
+``profile`` splits a continuation tick into its parts: F evaluations per tick (each one forward and
+one backward sweep), the time of one evaluation (``sweep_us``, compiled loop), hence the time in
+sweeps; the rest of the compiled tick (``gmres_us``: Arnoldi, preconditioner, least squares,
+projections); and the Python wrapper around it (``wrapper_us``: :meth:`CGMRESSolver.update` minus
+the bare compiled call). The parts are measured by replaying up to :data:`PROFILE_TICKS` recorded
+ticks back to back (warm caches), so they add up to less than ``solve_us`` of the closed loop.
 """
 
 from __future__ import annotations
@@ -23,6 +30,14 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
+from rt_controller.control.rhc.kernel import (
+    ST_INIT,
+    ST_MODEL_XDOT,
+    ST_T,
+    ST_X,
+    rhc_tick,
+    sweep_probe,
+)
 from rt_controller.control.rhc.reference import ReferenceSolver
 from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
 from rt_controller.sample_stats import summary_stats
@@ -35,6 +50,8 @@ PlantStep = Callable[
 EPISODE_S = 6.0
 """Length of one run of the paper scenario before it restarts."""
 SWEEP_STEPS = (5, 20, 50)
+PROFILE_TICKS = 400
+"""Continuation ticks recorded (evenly spread over the run) and replayed for the profile."""
 
 
 def nominal_plant_step(model: NominalModel, cfg: RigConfig) -> PlantStep:
@@ -64,19 +81,25 @@ def _stats(us: np.ndarray) -> dict[str, float]:
     return summary_stats(us)
 
 
-def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, np.ndarray]:
-    """Closed loop of ``updates`` ticks; per-tick time (ns), residual, iterations, flags."""
+def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, Any]:
+    """Closed loop of ``updates`` ticks; per-tick time (ns), residual, iterations, F evaluations,
+    flags, and (compiled solver) ``snapshots``: (state vector before the tick, x, t) of up to
+    :data:`PROFILE_TICKS` continuation ticks for :func:`_profile`."""
     s = cfg.scenario
     period = 1.0 / cfg.rates.control_hz
     episode = max(1, round(EPISODE_S * cfg.rates.control_hz))
     ns = np.zeros(updates, dtype=np.int64)
     res = np.zeros(updates)
     its = np.zeros(updates, dtype=np.int64)
+    fev = np.zeros(updates, dtype=np.int64)
     init = np.zeros(updates, dtype=bool)
     bad = np.zeros(updates, dtype=bool)
     umax = np.asarray(cfg.rhc.u_max, dtype=float)
     x = np.zeros(6)
     q = dq = f = np.zeros(2)
+    compiled = isinstance(solver, CGMRESSolver)
+    every = max(1, updates // PROFILE_TICKS)
+    snapshots = []
     gc_was_enabled = gc.isenabled()
     gc.disable()
     try:
@@ -88,8 +111,11 @@ def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, np.ndarray]:
                 solver.reset()
             xi = model.xi(q, dq, f)
             pack_state(q, xi, f, x)
+            t = (k % episode) * period
+            if compiled and k % every == 0 and not solver.needs_init:
+                snapshots.append((solver.st.copy(), x.copy(), t))
             start = time.perf_counter_ns()
-            rep = solver.update(x, (k % episode) * period)
+            rep = solver.update(x, t)
             ns[k] = time.perf_counter_ns() - start
             res[k], its[k], init[k], bad[k] = (
                 rep.residual,
@@ -97,15 +123,84 @@ def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, np.ndarray]:
                 rep.initialised,
                 not rep.ok,
             )
+            fev[k] = solver.last_fevals
             u = rep.u if rep.ok else np.clip(-2.0 * model.R @ xi, -umax, umax)
             q, dq, f = plant_step(q, dq, f, u)
     finally:
         if gc_was_enabled:
             gc.enable()
-    return {"ns": ns, "residual": res, "iterations": its, "init": init, "fallback": bad}
+    return {
+        "ns": ns,
+        "residual": res,
+        "iterations": its,
+        "fevals": fev,
+        "init": init,
+        "fallback": bad,
+        "snapshots": snapshots,
+    }
 
 
-def _summary(cfg: RigConfig, run: dict[str, np.ndarray]) -> dict[str, Any]:
+def _profile(solver: CGMRESSolver, run: dict[str, Any]) -> dict[str, Any]:
+    """Per-part split of a continuation tick from replays of the recorded ticks (see module)."""
+    snaps = run["snapshots"]
+    cont = ~run["init"]
+    fevals = run["fevals"][cont]
+    out: dict[str, Any] = {
+        "fevals_per_tick": float(np.median(fevals)) if fevals.size else 0.0,
+        "fevals_mean": float(np.mean(fevals)) if fevals.size else 0.0,
+        "replayed_ticks": len(snaps),
+    }
+    if not snaps:
+        return out
+    st, P, iP, work = solver.st, solver.P, solver.iP, solver.work
+    wrapped = np.zeros(len(snaps))
+    bare = np.zeros(len(snaps))
+    sweep = np.zeros(len(snaps))
+    reps = 20
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for i, (snap, x, t) in enumerate(snaps):
+            st[:] = snap
+            solver.needs_init = False
+            start = time.perf_counter_ns()
+            solver.update(x, t)
+            wrapped[i] = time.perf_counter_ns() - start
+            st[:] = snap
+            st[ST_X : ST_X + 6] = x
+            st[ST_T] = t
+            st[ST_INIT] = 0.0
+            st[ST_MODEL_XDOT] = 1.0
+            start = time.perf_counter_ns()
+            rhc_tick(P, iP, st, work)
+            bare[i] = time.perf_counter_ns() - start
+            st[:] = snap
+            st[ST_X : ST_X + 6] = x
+            st[ST_T] = t
+            start = time.perf_counter_ns()
+            sweep_probe(P, iP, st, work, reps)
+            sweep[i] = (time.perf_counter_ns() - start) / reps
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+        solver.reset()
+    sweep_us = float(np.median(sweep)) / 1e3
+    bare_us = float(np.median(bare)) / 1e3
+    sweeps_us = out["fevals_mean"] * sweep_us
+    out.update(
+        {
+            "sweep_us": sweep_us,
+            "update_us": float(np.median(wrapped)) / 1e3,
+            "kernel_us": bare_us,
+            "sweeps_us": sweeps_us,
+            "gmres_us": bare_us - sweeps_us,
+            "wrapper_us": float(np.median(wrapped - bare)) / 1e3,
+        }
+    )
+    return out
+
+
+def _summary(cfg: RigConfig, run: dict[str, Any]) -> dict[str, Any]:
     cont = ~run["init"]
     us = run["ns"] / 1e3
     return {
@@ -118,6 +213,7 @@ def _summary(cfg: RigConfig, run: dict[str, np.ndarray]) -> dict[str, Any]:
         "residual_median": float(np.median(run["residual"])),
         "residual_max": float(np.max(run["residual"])),
         "iterations_median": float(np.median(run["iterations"][cont])) if cont.any() else 0.0,
+        "fevals_median": float(np.median(run["fevals"][cont])) if cont.any() else 0.0,
         "fallbacks": int(np.sum(run["fallback"])),
     }
 
@@ -134,7 +230,9 @@ def bench_one(
     step = plant_step if plant_step is not None else nominal_plant_step(model, cfg)
     solver = CGMRESSolver(model, cfg)
     solver.warm_up()
-    out = _summary(cfg, _run(solver, model, cfg, step, updates))
+    run = _run(solver, model, cfg, step, updates)
+    out = _summary(cfg, run)
+    out["profile"] = _profile(solver, run)
     if reference_updates > 0:
         ref = _summary(cfg, _run(ReferenceSolver(model, cfg), model, cfg, step, reference_updates))
         median = ref["solve_us"]["median"]

@@ -91,13 +91,14 @@ def test_terminal_gradient_against_finite_differences(model, params, case):
 
 
 def sweep_work(N: int):
-    """The (X, Lam, Aux, hx, hu) work tuple of :func:`eval_F`."""
+    """The (X, Lam, Aux, hx, hu, cnt) work tuple of :func:`eval_F` (one Euler step per stage)."""
     return (
         np.zeros((N + 1, 6)),
         np.zeros((N + 1, 6)),
         np.zeros((N, pb.NAUX)),
         np.zeros(6),
         np.zeros(6),
+        np.zeros(1),
     )
 
 
@@ -156,3 +157,49 @@ def test_horizon_growth(params, cfg):
     assert pb.horizon_at(grown, 0.0) == 0.0
     assert pb.horizon_at(grown, 0.5) == pytest.approx(cfg.rhc.horizon * (1 - np.exp(-1.0)))
     assert pb.horizon_length(grown, 0.5) == pytest.approx(pb.horizon_at(grown, 0.5))
+
+
+def test_substeps_keep_each_euler_step_short():
+    assert pb.substeps(0.1, 10) == 1
+    assert pb.substeps(0.02, 10) == 1
+    assert pb.substeps(1.0, 50) == 1
+    assert pb.substeps(1.0, 20) == 2
+    assert pb.substeps(1.0, 10) == 4
+    for T, N in [(1.0, 10), (0.3, 3), (2.0, 7)]:
+        assert T / N / pb.substeps(T, N) <= pb.MAX_SUBSTEP_S + 1e-12
+
+
+def test_F_with_substeps_is_the_gradient_of_the_discretised_cost(model, params):
+    """Each stage held over S substeps: dtau times F's input rows are dJ/du_k."""
+    P, _ = params
+    N, S, T = 4, 3, 0.3
+    rng = np.random.default_rng(5)
+    x0 = np.array([np.pi / 6, -np.pi / 6, 3.1, 6.2, -120.0, -160.0])
+    u = rng.normal(0, 3, (N, 2))
+    U = np.zeros((N, pb.NS))
+    U[:, 0:2] = u
+    U[:, 2:4] = 1.0
+    sw = (
+        np.zeros((N * S + 1, 6)),
+        np.zeros((N * S + 1, 6)),
+        np.zeros((N * S, pb.NAUX)),
+        np.zeros(6),
+        np.zeros(6),
+        np.zeros(1),
+    )
+    F = np.zeros(N * pb.NS)
+    eval_F(P, N, U.ravel(), x0, T, sw, F)
+    assert sw[5][0] == 1.0  # the call counter
+
+    def cost(z: np.ndarray) -> float:
+        uu = z.reshape(N, 2)
+        h = T / (N * S)
+        x, J = x0.copy(), 0.0
+        for r in range(N * S):
+            J += h * model.stage_cost(x[0:2], x[2:4], x[4:6], uu[r // S])
+            x = x + h * model_rhs(model, x, uu[r // S])
+        return J + 4.0 * model.V(x[0:2], x[2:4], x[4:6])
+
+    grad = central(cost, u.ravel(), 1e-5)
+    got = F.reshape(N, pb.NS)[:, 0:2].ravel() * (T / N)
+    np.testing.assert_allclose(got, grad, rtol=1e-5, atol=1e-6 * np.abs(grad).max())

@@ -10,7 +10,7 @@ from hal.config import RigConfig
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import Measurement
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw
+from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw, kernel
 from rt_controller.control.rhc.reference import ReferenceSolver
 from rt_controller.control.rhc.solver import pack_state
 
@@ -208,3 +208,126 @@ def test_residual_above_the_bound_falls_back_every_tick(cfg):
         np.testing.assert_allclose(out.u, np.clip(-2 * model.R @ x[2:4], [-3, -2], [3, 2]))
     assert law.fallbacks == 3
     assert law.solver.needs_init
+
+
+def kernel_setup(cfg: RigConfig, **overrides):
+    """A solver solved from scratch at the initial state, and the arrays of one tick."""
+    solver, model, cfg = solver_for(cfg, **overrides)
+    x = initial_state(cfg, model)
+    solver.update(x, 0.0, xdot=FROZEN)
+    sw, ws, _vecs, pre, _ = kernel._views(solver.iP, solver.work)
+    return solver, model, cfg, x, sw, ws, pre
+
+
+def test_block_gmres_with_one_right_hand_side_is_gmres(cfg):
+    solver, _model, cfg, x, sw, ws, pre = kernel_setup(cfg)
+    P, N, U = solver.P, solver.N, solver.U.copy()
+    x1 = x + np.array([0.02, -0.02, -0.5, 1.0, 10.0, -10.0])
+    T = cfg.rhc.horizon
+    F = np.zeros_like(U)
+    kernel.eval_F(P, N, U, x1, T, sw, F)
+    kernel.precond_setup(P, N, U, sw[0], T, pre)
+    b, zero = -F, np.zeros_like(U)
+    d1, d2, ref = np.zeros_like(U), np.ones_like(U), np.zeros_like(U)
+    k = kernel.block_gmres(P, N, U, x1, T, F, b, zero, d1, d2, 5, pre, ws, sw)
+    kg = kernel.fd_gmres(P, N, U, x1, T, F, b.copy(), ref, False, 5, 0.0, pre, ws, sw)
+    assert k == kg == 5
+    np.testing.assert_allclose(d1, ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+    assert np.all(d2 == 0.0)
+
+
+def test_block_gmres_solves_both_right_hand_sides(cfg):
+    """With a Krylov space as large as the problem both solutions are exact up to the forward
+    differences (step 1e-8, so to ~1e-3 here), and the correction cuts the residual."""
+    solver, _model, cfg, x, sw, ws, pre = kernel_setup(cfg, **{"rhc.steps": 3})
+    P, N, U = solver.P, solver.N, solver.U.copy()
+    n = U.size
+    x1 = x + np.array([0.02, -0.02, -0.5, 1.0, 10.0, -10.0])
+    T = cfg.rhc.horizon
+    F = np.zeros(n)
+    kernel.eval_F(P, N, U, x1, T, sw, F)
+    kernel.precond_setup(P, N, U, sw[0], T, pre)
+    rng = np.random.default_rng(2)
+    b2 = rng.normal(size=n) * np.abs(F).max()
+    d1, d2 = np.zeros(n), np.zeros(n)
+    k = kernel.block_gmres(P, N, U, x1, T, F, -F, b2, d1, d2, n, pre, ws, sw)
+    assert k == n
+    for b, d in ((-F, d1), (b2, d2)):
+        Ad = np.zeros(n)
+        scale = 1.0 / np.linalg.norm(d)
+        kernel._jvp(P, N, U, x1, T, F, d, scale, Ad, np.zeros(n), sw)
+        assert np.linalg.norm(Ad - b) <= 1e-3 * np.linalg.norm(b)
+    # The Newton step d1 cuts the residual at the new state by orders of magnitude.
+    F1 = np.zeros(n)
+    Un = U + d1
+    kernel.clip_dummies(P, N, Un)
+    kernel.eval_F(P, N, Un, x1, T, sw, F1)
+    assert np.linalg.norm(F1) < 1e-2 * np.linalg.norm(F)
+
+
+def test_a_continuation_tick_evaluates_F_kmax_plus_3_times(cfg):
+    solver, model, cfg = solver_for(cfg)
+    x = initial_state(cfg, model)
+    solver.update(x, 0.0)
+    period = 1.0 / cfg.rates.control_hz
+    for k in range(1, 5):
+        rep = solver.update(x, k * period)
+        assert rep.ok and not rep.initialised
+        assert solver.last_fevals == cfg.rhc.kmax + 3
+        assert rep.iterations == cfg.rhc.kmax
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {},
+        {"rhc.horizon": 1.0, "rhc.steps": 10},  # 4 Euler substeps per stage
+        {"rhc.u_max": [2.0, 1.0]},  # bounds active
+    ],
+)
+def test_compiled_and_numpy_reference_agree_on_one_tick(cfg, overrides):
+    """Newton start, then one continuation tick away from the solution: same u, U, Udot."""
+    solver, model, cfg = solver_for(cfg, **overrides)
+    ref = ReferenceSolver(model, cfg)
+    x = initial_state(cfg, model)
+    a, b = solver.update(x, 0.0), ref.update(x, 0.0)
+    assert a.ok and b.ok
+    x1 = x + np.array([0.01, -0.01, -0.3, 0.5, 5.0, -5.0])
+    a, b = solver.update(x1, 0.02), ref.update(x1, 0.02)
+    assert a.ok and b.ok and a.iterations == b.iterations
+    assert solver.last_fevals == ref.last_fevals
+    # Agreement to the forward differences' rounding (step 1e-8), as tick by tick above.
+    np.testing.assert_allclose(a.u, b.u, rtol=1e-6)
+    assert a.residual == pytest.approx(b.residual, rel=1e-3, abs=1e-8)
+    A, B = solver.stages, ref.U.reshape(-1, 6)
+    np.testing.assert_allclose(A[:, 0:4], B[:, 0:4], rtol=1e-5, atol=1e-6 * np.abs(B).max())
+    # Multipliers of active bounds (mu = r_v / 2v, v ~ 0) are the most sensitive unknowns.
+    np.testing.assert_allclose(A[:, 4:6], B[:, 4:6], rtol=1e-4, atol=1e-6 * np.abs(B).max())
+    np.testing.assert_allclose(solver.Udot, ref.Udot, rtol=1e-3, atol=1e-4 * np.abs(ref.Udot).max())
+
+
+def test_ticks_are_deterministic(cfg):
+    """Replay needs the output to be a function of the inputs: two solvers, same inputs."""
+    x = None
+    outs = []
+    for _ in range(2):
+        solver, model, c = solver_for(cfg)
+        x = initial_state(c, model)
+        reps = [solver.update(x + 0.01 * k, 0.02 * k) for k in range(6)]
+        outs.append((np.array([r.u for r in reps]), solver.U.copy()))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+
+
+def test_direct_compiled_entry_gives_the_dispatcher_results(cfg):
+    """After warm_up the tick skips numba's dispatcher; the results are bit for bit the same."""
+    fast, model, c = solver_for(cfg)
+    fast.warm_up()
+    assert fast._tick is not kernel.rhc_tick
+    slow, _, _ = solver_for(cfg)
+    assert slow._tick is kernel.rhc_tick
+    x = initial_state(c, model)
+    for k in range(5):
+        a, b = fast.update(x + 0.01 * k, 0.02 * k), slow.update(x + 0.01 * k, 0.02 * k)
+        assert np.array_equal(a.u, b.u) and a.residual == b.residual
+        assert a.iterations == b.iterations and a.ok == b.ok
+    assert np.array_equal(fast.st, slow.st)

@@ -175,7 +175,7 @@ def test_future_stamped_and_foreign_features_are_rejected_and_a_dead_camera_goes
         vision.proc.wait()
         _wait_cycles(log, _cycles(log) + 100, rig)
         _child(rig, "controller").proc.send_signal(signal.SIGTERM)
-        rc, summary, err = _controller_result(rig)
+        _, summary, _ = _controller_result(rig)
     features = summary["rejections"]["features"]
     assert features["future_stamp"] == future and features["foreign_source"] == foreign, features
     cycles = read_log(log, raw=False).cycles

@@ -46,6 +46,7 @@ from rt_controller.control.rhc.kernel import (  # noqa: F401  (re-exported: the 
     I_INIT_KRYLOV,
     I_KMAX,
     I_N,
+    I_SUB,
     INIT_TOL,
     KP,
     L1,
@@ -83,6 +84,16 @@ DUMMY_FLOOR = 1e-6
 INIT_KRYLOV = 60
 """Largest Krylov dimension of one Newton-GMRES step of the initial solve."""
 
+MAX_SUBSTEP_S = 0.025
+"""Longest explicit Euler step of the prediction. The arm's fast modes are about 40 /s, so a step
+of T_f / N longer than ~0.05 s is unstable (T = 1 s with N = 10); each stage is then split into
+``ceil(T_f / (N MAX_SUBSTEP_S))`` substeps with the input held (same unknowns, finer sweep)."""
+
+
+def substeps(horizon: float, steps: int) -> int:
+    """Euler substeps per horizon stage so that each is at most :data:`MAX_SUBSTEP_S`."""
+    return max(1, math.ceil(horizon / steps / MAX_SUBSTEP_S - 1e-9))
+
 
 def pack_params(model: NominalModel, cfg: RigConfig) -> tuple[np.ndarray, np.ndarray]:
     """Float and integer parameter vectors (P, iP) for the compiled kernels."""
@@ -108,6 +119,7 @@ def pack_params(model: NominalModel, cfg: RigConfig) -> tuple[np.ndarray, np.nda
     iP[I_KMAX] = h.kmax
     iP[I_INIT_ITERS] = h.init_iterations
     iP[I_INIT_KRYLOV] = min(NS * h.steps, max(INIT_KRYLOV, h.kmax))
+    iP[I_SUB] = substeps(h.horizon, h.steps)
     return P, iP
 
 

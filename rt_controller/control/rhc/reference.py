@@ -16,7 +16,7 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.problem import DUMMY_FLOOR, INIT_KRYLOV, NS, NX
+from rt_controller.control.rhc.problem import DUMMY_FLOOR, INIT_KRYLOV, NS, NX, substeps
 from rt_controller.control.rhc.solver import SolveReport
 
 _SKEW = np.array([[0.0, -1.0], [1.0, 0.0]])
@@ -119,10 +119,17 @@ class ReferenceSolver:
         self.init_tol = h.init_tol
         self.init_iterations = h.init_iterations
         self.init_krylov = min(NS * h.steps, max(INIT_KRYLOV, h.kmax))
+        self.S = substeps(h.horizon, h.steps)
         self.U = np.zeros(NS * self.N)
         self.Udot = np.zeros(NS * self.N)
         self.needs_init = True
-        self._X = np.zeros((self.N + 1, NX))
+        self._X = np.zeros((self.N * self.S + 1, NX))
+        self.fevals = 0
+
+    @property
+    def last_fevals(self) -> int:
+        """Evaluations of F in the last update (as CGMRESSolver.last_fevals)."""
+        return self.fevals
 
     def reset(self) -> None:
         self.U[:] = 0.0
@@ -136,23 +143,30 @@ class ReferenceSolver:
 
     # --- F(U, x, T) -----------------------------------------------------------------------
     def F(self, U: np.ndarray, x0: np.ndarray, T: float) -> np.ndarray:
-        """Optimality residual; leaves the forward sweep's states in ``self._X``."""
-        p, N = self.prob, self.N
-        dtau = T / N
-        S = U.reshape(N, NS)
+        """Optimality residual; leaves the forward sweep's states in ``self._X``.
+
+        Each stage holds its input over ``S`` Euler substeps; its input rows are the average of
+        H_u over them (kernel.eval_F)."""
+        p, N, S = self.prob, self.N, self.S
+        h = T / (N * S)
+        self.fevals += 1
+        Us = U.reshape(N, NS)
         X = self._X
         X[0] = x0
-        for k in range(N):
-            X[k + 1] = X[k] + dtau * p.rhs(X[k], S[k, 0:2])
-        lam = p.terminal_grad(X[N])
+        for r in range(N * S):
+            X[r + 1] = X[r] + h * p.rhs(X[r], Us[r // S, 0:2])
+        lam = p.terminal_grad(X[N * S])
         F = np.empty((N, NS))
         for k in range(N - 1, -1, -1):
-            u, v, mu = S[k, 0:2], S[k, 2:4], S[k, 4:6]
-            hx, hu = p.hamiltonian_grad(X[k], u, lam)
-            F[k, 0:2] = hu + 2.0 * mu * u
+            u, v, mu = Us[k, 0:2], Us[k, 2:4], Us[k, 4:6]
+            g = np.zeros(2)
+            for r in range(k * S + S - 1, k * S - 1, -1):
+                hx, hu = p.hamiltonian_grad(X[r], u, lam)
+                g += hu
+                lam = lam + h * hx
+            F[k, 0:2] = g / S + 2.0 * mu * u
             F[k, 2:4] = -p.rv + 2.0 * mu * v
             F[k, 4:6] = u * u + v * v - p.umax**2
-            lam = lam + dtau * hx
         return F.ravel()
 
     def clip(self, U: np.ndarray) -> None:
@@ -194,7 +208,7 @@ class ReferenceSolver:
         u, v, mu = S[:, 0:2], S[:, 2:4], S[:, 4:6]
         Hs = np.empty((N, 2, 2))
         for k in range(N):
-            Hs[k] = m.R_inv + m.R_inv.T + 4.0 * dtau * np.linalg.inv(m.M(self._X[k, 0:2]))
+            Hs[k] = m.R_inv + m.R_inv.T + 4.0 * dtau * np.linalg.inv(m.M(self._X[k * self.S, 0:2]))
         Hs[:, [0, 1], [0, 1]] += 2.0 * mu + 2.0 * u * u * mu / (v * v)
         Hinv = np.linalg.inv(Hs)
 
@@ -260,22 +274,82 @@ class ReferenceSolver:
             sol = sol + pre(np.asarray(V[:k]).T @ y)
         return sol, k
 
+    def block_gmres(self, U, x0, T, F0, b1, b2, m, pre):
+        """F_U d1 = b1 and F_U d2 = b2 from one basis of m products (kernel.block_gmres)."""
+        h = self.h
+
+        def jvp(v: np.ndarray) -> np.ndarray:
+            s = np.linalg.norm(v)
+            return (self.F(U + (h / s) * v, x0, T) - F0) / (h / s)
+
+        V: list[np.ndarray] = []
+        G = np.zeros((m + 2, 2))
+        for c, b in enumerate((b1, b2)):
+            bn = np.linalg.norm(b)
+            if not (bn > 0.0) or not np.isfinite(bn):
+                continue
+            v = b.copy()
+            for i, vi in enumerate(V):
+                G[i, c] = v @ vi
+                v = v - G[i, c] * vi
+            vn = np.linalg.norm(v)
+            if vn > 1e-12 * bn:
+                G[len(V), c] = vn
+                V.append(v / vn)
+        H = np.zeros((m + 2, m))
+        k = 0
+        while k < m and k < len(V):
+            z = pre(V[k])
+            zn = np.linalg.norm(z)
+            if not (zn > 0.0) or not np.isfinite(zn):
+                break
+            w = jvp(z)
+            wn0 = np.linalg.norm(w)
+            for i, vi in enumerate(V):
+                H[i, k] = w @ vi
+                w = w - H[i, k] * vi
+            hn = np.linalg.norm(w)
+            if not np.isfinite(hn):
+                break
+            if hn > 1e-12 * wn0 and hn > 1e-300:
+                H[len(V), k] = hn
+                V.append(w / hn)
+            k += 1
+        nv = len(V)
+        out = []
+        for c in range(2):
+            if k == 0:
+                out.append(np.zeros_like(b1))
+                continue
+            y = np.linalg.lstsq(H[:nv, :k], G[:nv, c], rcond=None)[0]
+            out.append(pre(np.asarray(V[:k]).T @ y))
+        return out[0], out[1], k
+
+    def _predict(self, U, x0, t, T, F, u, xdot):
+        """d2 = F_U^-1 b2, b2 = -dt (F(U, x0 + h xdot, T(t + h)) - F) / h (b1 = 0)."""
+        xd = self.prob.rhs(x0, u) if xdot is None else np.asarray(xdot, dtype=float)
+        h = self.h
+        b2 = -self.dt * (self.F(U, x0 + h * xd, self.horizon(t + h)) - F) / h
+        return b2
+
     # --- initial solution -----------------------------------------------------------------
     def initial_guess(self, x0: np.ndarray, T: float) -> np.ndarray:
-        """Rollout of u = -2 R xi, the gain scaled by 1 / (dtau tr(2 M^-1 R)) when that is > 1."""
-        p, N, m = self.prob, self.N, self.model
+        """Rollout of u = -2 R xi held over each stage (S substeps), the gain scaled by
+        1 / (dtau tr(2 M^-1 R)) when that is > 1."""
+        p, N, m, S = self.prob, self.N, self.model, self.S
         dtau = T / N
         gain = 2.0 / max(1.0, dtau * np.trace(2.0 * np.linalg.solve(m.M(x0[0:2]), m.R)))
-        S = np.zeros((N, NS))
+        Us = np.zeros((N, NS))
         x = x0.copy()
         for k in range(N):
             u = -gain * m.R @ x[2:4]
             u = np.where(np.isfinite(u), u, 0.0)
             u = np.clip(u, -0.9 * p.umax, 0.9 * p.umax)
             v = np.sqrt(p.umax**2 - u * u)
-            S[k] = np.concatenate([u, v, p.rv / (2.0 * v)])
-            x = x + dtau * p.rhs(x, u)
-        return S.ravel()
+            Us[k] = np.concatenate([u, v, p.rv / (2.0 * v)])
+            for _ in range(S):
+                x = x + dtau / S * p.rhs(x, u)
+        return Us.ravel()
 
     def newton(self, x0: np.ndarray, T: float) -> tuple[float, int]:
         U = self.U
@@ -329,30 +403,46 @@ class ReferenceSolver:
     def _tick(self, x0, t, T, init, xdot) -> SolveReport:
         U = self.U
         iters = 0
+        umax = self.prob.umax
+        zero = np.zeros_like(U)
+        self.fevals = 0
         if init:
             U[:] = self.initial_guess(x0, T)
-            self.Udot[:] = 0.0
             fn, iters = self.newton(x0, T)
             F = self.F(U, x0, T)
-        else:
-            F = self.F(U, x0, T)
-            F, k = self._correct(U, x0, T, F, min(self.zeta * self.dt, 1.0))
+            fn = float(np.linalg.norm(F))
+            u = np.clip(U[0:2], -umax, umax)
+            if not (np.isfinite(fn) and np.all(np.isfinite(U[0:2]))):
+                return SolveReport(u, fn, iters, False, init)
+            pre = self.precond(U, T)
+            b2 = self._predict(U, x0, t, T, F, u, xdot)
+            _, d2, k = self.block_gmres(U, x0, T, F, zero, b2, self.kmax, pre)
             iters += k
-            if self.release(U, F):
+        else:
+            u_warm = np.clip(U[0:2], -umax, umax)
+            F = self.F(U, x0, T)
+            pre = self.precond(U, T)
+            b2 = self._predict(U, x0, t, T, F, u_warm, xdot)
+            c = min(self.zeta * self.dt, 1.0)
+            d1, d2, k = self.block_gmres(U, x0, T, F, -c * F, b2, self.kmax, pre)
+            iters += k
+            U += d1
+            self.clip(U)
+            F = self.F(U, x0, T)
+            released = self.release(U, F) > 0
+            if released:
                 F, k = self._correct(U, x0, T, self.F(U, x0, T), 1.0)
                 iters += k
             fn = float(np.linalg.norm(F))
-        umax = self.prob.umax
-        u = np.clip(U[0:2], -umax, umax)
-        finite = bool(np.isfinite(fn) and np.all(np.isfinite(U[0:2])))
-        if not finite:
-            return SolveReport(u, float(fn), iters, False, init)
-        pre = self.precond(U, T)
-        xd = self.prob.rhs(x0, u) if xdot is None else np.asarray(xdot, dtype=float)
-        h = self.h
-        Fs = self.F(U, x0 + h * xd, self.horizon(t + h))
-        self.Udot[:], k = self.gmres(U, x0, T, F, -(Fs - F) / h, self.Udot, self.kmax, 0.0, pre)
-        iters += k
-        U += self.dt * self.Udot
+            u = np.clip(U[0:2], -umax, umax)
+            if not (np.isfinite(fn) and np.all(np.isfinite(U[0:2]))):
+                return SolveReport(u, fn, iters, False, init)
+            if released:
+                pre = self.precond(U, T)
+                b2 = self._predict(U, x0, t, T, F, u, xdot)
+                _, d2, k = self.block_gmres(U, x0, T, F, zero, b2, self.kmax, pre)
+                iters += k
+        self.Udot[:] = d2 / self.dt
+        U += d2
         self.clip(U)
-        return SolveReport(u, float(fn), iters, bool(fn <= self.residual_bound), init)
+        return SolveReport(u, fn, iters, bool(fn <= self.residual_bound), init)

@@ -2,30 +2,60 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.kernel import OK, new_workspace, rhc_tick
-from rt_controller.control.rhc.problem import I_INIT_KRYLOV, NS, NX, pack_params
+from rt_controller.control.rhc.kernel import (
+    OK,
+    ST_FEVALS,
+    ST_HEAD,
+    ST_INIT,
+    ST_ITERS,
+    ST_MODEL_XDOT,
+    ST_RES,
+    ST_STATUS,
+    ST_T,
+    ST_U,
+    ST_X,
+    ST_XDOT,
+    new_workspace,
+    rhc_tick,
+    state_size,
+)
+from rt_controller.control.rhc.problem import I_INIT_KRYLOV, I_SUB, NS, NX, pack_params
 
 
-@dataclass(frozen=True)
-class SolveReport:
-    """Result of one solver update."""
+class SolveReport(NamedTuple):
+    """Result of one solver update (a tuple: cheap to build on every tick)."""
 
     u: np.ndarray
     """Input to apply (clipped to the bounds); meaningless when not ``ok``."""
     residual: float
     """Optimality residual ||F|| of the solution the input comes from."""
     iterations: int
-    """GMRES iterations spent (all Newton steps when ``initialised``)."""
+    """GMRES iterations (forward-difference products) spent, all Newton steps when
+    ``initialised``."""
     ok: bool
     """Finite and below ``rhc.residual_bound``; otherwise the solver re-initialises next time."""
     initialised: bool
     """This update solved from scratch (Newton-GMRES)."""
+
+
+def compiled_entry(dispatcher, *args) -> Callable:
+    """The compiled function of ``dispatcher`` for the types of ``args``, called directly.
+
+    The overload's own CPython wrapper skips the dispatcher's per-call type resolution (a few
+    microseconds when the interpreter's caches are cold, as at 50 Hz). The arrays passed later
+    must have exactly these types; falls back to the dispatcher if there is no such overload.
+    """
+    sig = tuple(numba.typeof(a) for a in args)
+    cres = dispatcher.overloads.get(sig)
+    return dispatcher if cres is None else cres.entry_point
 
 
 def pack_state(q: np.ndarray, xi: np.ndarray, f: np.ndarray, out: np.ndarray | None = None):
@@ -38,7 +68,13 @@ def pack_state(q: np.ndarray, xi: np.ndarray, f: np.ndarray, out: np.ndarray | N
 
 
 class CGMRESSolver:
-    """Continuation/GMRES solver of eq. (30); one compiled call per :meth:`update`."""
+    """Continuation/GMRES solver of eq. (30); one compiled call per :meth:`update`.
+
+    All the solver's state lives in one float64 vector ``st`` (the measured state, the flags, the
+    outputs, U and Udot; layout ``kernel.ST_*``) and one work array, so a tick is a single
+    compiled call with four array arguments (after :meth:`warm_up`, straight to the compiled
+    overload) and nothing is allocated but the report.
+    """
 
     def __init__(self, model: NominalModel, cfg: RigConfig) -> None:
         self.model = model
@@ -48,12 +84,16 @@ class CGMRESSolver:
         self.kmax = cfg.rhc.kmax
         self.residual_bound = cfg.rhc.residual_bound
         n = NS * self.N
-        self.U = np.zeros(n)
-        self.Udot = np.zeros(n)
-        self.work = new_workspace(self.N, self.kmax, int(self.iP[I_INIT_KRYLOV]))
-        self._xdot = np.zeros(NX)
-        self._u = np.zeros(2)
+        self.st = np.zeros(state_size(self.N))
+        self.U = self.st[ST_HEAD : ST_HEAD + n]
+        self.Udot = self.st[ST_HEAD + n : ST_HEAD + 2 * n]
+        self._x = self.st[ST_X : ST_X + NX]
+        self._xdot = self.st[ST_XDOT : ST_XDOT + NX]
+        self.work = new_workspace(
+            self.N, self.kmax, int(self.iP[I_INIT_KRYLOV]), int(self.iP[I_SUB])
+        )
         self.needs_init = True
+        self._tick: Callable = rhc_tick
 
     def reset(self) -> None:
         """Forget the warm start: the next update solves from scratch."""
@@ -66,33 +106,32 @@ class CGMRESSolver:
         """View of U as (N, 6) rows (u1, u2, v1, v2, mu1, mu2)."""
         return self.U.reshape(self.N, NS)
 
+    @property
+    def last_fevals(self) -> int:
+        """Evaluations of F (forward and backward sweep pairs) in the last update."""
+        return int(self.st[ST_FEVALS])
+
     def update(self, x: np.ndarray, t: float, xdot: np.ndarray | None = None) -> SolveReport:
         """One tick at state ``x`` (6) and solver time ``t`` (s, for the horizon growth).
 
         ``xdot`` overrides the predicted state motion (zeros freeze the state); by default it is
-        eq. (12) under the applied input.
+        eq. (12) under the warm start's first input (under the applied one after a Newton solve).
         """
-        x = np.ascontiguousarray(x, dtype=np.float64)  # one compiled signature only
+        st = self.st
+        self._x[:] = x
         init = self.needs_init
-        model_xdot = xdot is None
-        if not model_xdot:
+        st[ST_T] = t
+        st[ST_INIT] = init
+        if xdot is None:
+            st[ST_MODEL_XDOT] = 1.0
+        else:
+            st[ST_MODEL_XDOT] = 0.0
             self._xdot[:] = xdot
-        residual, iterations, status = rhc_tick(
-            self.P,
-            self.iP,
-            self.U,
-            self.Udot,
-            x,
-            self._xdot,
-            float(t),
-            init,
-            model_xdot,
-            self._u,
-            self.work,
-        )
-        ok = status == OK and residual <= self.residual_bound
+        self._tick(self.P, self.iP, st, self.work)
+        residual = float(st[ST_RES])
+        ok = st[ST_STATUS] == OK and residual <= self.residual_bound
         self.needs_init = not ok
-        return SolveReport(self._u.copy(), float(residual), int(iterations), bool(ok), init)
+        return SolveReport(st[ST_U : ST_U + 2].copy(), residual, int(st[ST_ITERS]), ok, init)
 
     def warm_up(self) -> None:
         """Compile (or load from the numba cache) before the first tick, then reset."""
@@ -104,3 +143,4 @@ class CGMRESSolver:
         self.update(x, 0.0)
         self.update(x, 1.0 / self.cfg.rates.control_hz)
         self.reset()
+        self._tick = compiled_entry(rhc_tick, self.P, self.iP, self.st, self.work)
