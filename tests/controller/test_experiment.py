@@ -14,7 +14,7 @@ from hal.config import load_config
 from rt_controller.cli import main
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig import experiment as ex
-from rt_controller.rig import experiment_report as exr
+from rt_controller.rig import experiment_results as exr
 from rt_controller.rig.processes import RigProcessError
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -107,7 +107,9 @@ def test_settings_are_validated(tmp_path):
     for bad in ({"reps": 0}, {"duration_s": 0.0}, {"noise_px": -1.0}, {"duration_s": math.nan}):
         with pytest.raises(ControllerConfigError):
             settings(tmp_path, **bad).validate()
-    assert main(["experiment", "table1", "--reps", "0", "--out", str(tmp_path / "x")]) == 2
+    with pytest.raises(SystemExit) as exc:  # refused while parsing the command line
+        main(["experiment", "table1", "--reps", "0", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
 
 
 def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monkeypatch, capsys):
