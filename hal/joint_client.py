@@ -281,6 +281,37 @@ class JointClient:
             if msg is not None:
                 self.process_frame(msg)
 
+    def drain(self, now_ns: int | None = None, *, timestamps: bool = False) -> int:
+        """Poll mode (``start=False``): read every frame waiting on the bus without blocking,
+        in the caller's thread, and decode it; the number of frames read.
+
+        Used by the controller's tick, so that no other Python thread runs on its path. Each
+        frame's receive time is ``now_ns`` (default ``time.monotonic_ns()``), or, with
+        ``timestamps``, the bus's receive stamp (``Message.timestamp``, wall clock) moved to
+        the monotonic clock and capped at ``now_ns``. Never raises for a bad frame or a driver
+        error (both counted).
+        """
+        if self._thread is not None:
+            raise HalError("JointClient.drain() is for poll mode; the receive thread is running")
+        now = time.monotonic_ns() if now_ns is None else now_ns
+        wall_minus_mono = time.time_ns() - time.monotonic_ns() if timestamps else 0
+        n = 0
+        while True:
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except Exception as exc:  # driver errors must not reach the tick
+                self._transport_errors += 1
+                if self._transport_errors == 1 or self._transport_errors % 1000 == 0:
+                    log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
+                return n
+            if msg is None:
+                return n
+            t = now
+            if timestamps and msg.timestamp:
+                t = min(now, round(msg.timestamp * 1e9) - wall_minus_mono)
+            self.process_frame(msg, t)
+            n += 1
+
     def process_frame(self, msg: can.Message, t_ns: int | None = None) -> None:
         """The receive path for one frame: hook, E2E check, decode, update. Never raises."""
         now = time.monotonic_ns() if t_ns is None else t_ns
@@ -325,14 +356,15 @@ class JointClient:
     def _limit_s(self, max_age_s: float | None) -> float:
         return self.cfg.controller.state_timeout_s if max_age_s is None else max_age_s
 
-    def latest_state(self, max_age_s: float | None = None) -> JointState:
+    def latest_state(self, max_age_s: float | None = None, now_ns: int | None = None) -> JointState:
         """The newest joint state; :class:`HalTimeoutError` when none is newer than the limit.
 
-        ``max_age_s`` defaults to ``cfg.controller.state_timeout_s``.
+        ``max_age_s`` defaults to ``cfg.controller.state_timeout_s``; ``now_ns`` (default
+        ``time.monotonic_ns()``) is the caller's clock.
         """
         limit = self._limit_s(max_age_s)
         state = self._state
-        now = time.monotonic_ns()
+        now = time.monotonic_ns() if now_ns is None else now_ns
         if state is None:
             raise HalTimeoutError(
                 f"no joint state received from the DSP on {self.bus.channel_info} yet "
@@ -377,9 +409,13 @@ class JointClient:
     @property
     def status_age_s(self) -> float | None:
         """Seconds since the latest DspStatus arrived; ``None`` before the first one."""
+        return self.status_age_s_at(time.monotonic_ns())
+
+    def status_age_s_at(self, now_ns: int) -> float | None:
+        """Seconds from the latest DspStatus's arrival to ``now_ns``; ``None`` before one."""
         if self._status is None:
             return None
-        return (time.monotonic_ns() - self._status_t_ns) * 1e-9
+        return (now_ns - self._status_t_ns) * 1e-9
 
     @property
     def drive_state(self) -> DriveState | None:
@@ -408,6 +444,12 @@ class JointClient:
         """The latest Sync tick (``None`` before the first one)."""
         return self._sync_tick
 
+    def _no_sync(self, timeout: float) -> HalTimeoutError:
+        return HalTimeoutError(
+            f"no Sync from the DSP within {timeout * 1e3:.1f} ms on "
+            f"{self.bus.channel_info} (is the emulator in lockstep mode?)"
+        )
+
     def wait_sync(self, timeout: float) -> int:
         """Block until a Sync arrives that no earlier call returned; its tick.
 
@@ -415,14 +457,26 @@ class JointClient:
         :class:`HalTimeoutError` after ``timeout`` seconds.
         """
         deadline = time.monotonic() + timeout
+        if self._thread is None:  # poll mode: block on the bus in the caller's thread
+            while self._sync_seq == self._sync_seen:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closed:
+                    raise self._no_sync(timeout)
+                try:
+                    msg = self.bus.recv(timeout=remaining)
+                except Exception as exc:  # counted like the receive thread does
+                    self._transport_errors += 1
+                    log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
+                    continue
+                if msg is not None:
+                    self.process_frame(msg)
+            self._sync_seen = self._sync_seq
+            return int(self._sync_tick or 0)
         with self._cond:
             while self._sync_seq == self._sync_seen:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or self._closed:
-                    raise HalTimeoutError(
-                        f"no Sync from the DSP within {timeout * 1e3:.1f} ms on "
-                        f"{self.bus.channel_info} (is the emulator in lockstep mode?)"
-                    )
+                    raise self._no_sync(timeout)
                 self._cond.wait(remaining)
             self._sync_seen = self._sync_seq
             return int(self._sync_tick or 0)

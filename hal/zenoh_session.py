@@ -29,6 +29,7 @@ defaults verbatim; it is the only way to spread the processes over several hosts
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import json
 import re
@@ -208,6 +209,18 @@ class ZenohSession:
                 f"zenoh: cannot declare subscriber {key}: {_short(exc)}"
             ) from exc
 
+    def subscribe_ring(self, key: str, capacity: int = 16) -> PayloadRing:
+        """Subscribe to ``key`` into a ring of the newest ``capacity`` samples (zenoh's
+        ``RingChannel``): no Python callback runs on zenoh's threads; the owner takes the
+        samples with :meth:`PayloadRing.drain` when it wants them (the control tick)."""
+        try:
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
+        except zenoh.ZError as exc:
+            raise HalTransportError(
+                f"zenoh: cannot declare subscriber {key}: {_short(exc)}"
+            ) from exc
+        return PayloadRing(sub)
+
     def close(self) -> None:
         """Close the session (undeclares its publishers and subscribers). Idempotent."""
         with self._lock:
@@ -249,6 +262,27 @@ def _open_hub(endpoint: str, mode: str | None) -> tuple[zenoh.Session, dict[str,
 
 CONNECT_ATTEMPT_S = 0.25
 """Longest single connection attempt while waiting for the hub."""
+
+
+class PayloadRing:
+    """The newest samples of one subscription, taken without blocking (see
+    :meth:`ZenohSession.subscribe_ring`); older samples beyond the ring's capacity are dropped by
+    zenoh (the reader wants the newest measurement, not a backlog)."""
+
+    def __init__(self, subscriber: zenoh.Subscriber) -> None:
+        self.subscriber = subscriber
+
+    def drain(self) -> list[bytes]:
+        """Every sample waiting in the ring, oldest first (empty when none)."""
+        out: list[bytes] = []
+        while (sample := self.subscriber.try_recv()) is not None:
+            out.append(sample.payload.to_bytes())
+        return out
+
+    def close(self) -> None:
+        """Undeclare the subscriber (the session stays open). Idempotent."""
+        with contextlib.suppress(zenoh.ZError):
+            self.subscriber.undeclare()
 
 
 class _PortInUse(HalTransportError):

@@ -27,11 +27,11 @@ from hal.drive_state import MODE_ENABLED, MODE_NO_STATUS, DriveEvent, DriveMonit
 from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder, feature_age_ns
-from hal.zenoh_session import KEY_FEATURES, open_session
+from hal.zenoh_session import KEY_FEATURES, PayloadRing, open_session
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
-from rt_controller.runtime.cadence import Cadence, MonotonicClock
+from rt_controller.runtime.cadence import Cadence, Clock, MonotonicClock
 from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder import CycleRecorder
@@ -60,6 +60,9 @@ class DaemonOptions:
     realtime_settings: bool = True
     record_raw: bool = True
     """Also record every CAN frame and vision payload as received."""
+    clock: Clock | None = None
+    """The loop's clock (default: the monotonic clock, sleeping then spinning
+    ``controller.spin_us`` before each release); tests pass a fake one."""
 
 
 @dataclass
@@ -137,6 +140,24 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Inputs:
+    """What the read phase of one tick found (NaN where absent)."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    f: np.ndarray
+    state_ns: int | None
+    """Receive time of the joint state (None when stale)."""
+    state_age_ms: float
+    state_stale: bool
+    f_age_ms: float
+    f_stale: bool
+    f_valid: bool
+    drive_mode: str
+    """The DSP's drive mode (:data:`hal.drive_state.MODES`); the law runs only in ``enabled``."""
+
+
 def default_log_path(cfg: RigConfig, law: str) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
@@ -149,6 +170,12 @@ class ControllerDaemon:
         self.cfg = cfg
         self.opts = options
         self.stop = stop
+        self.clock: Clock = options.clock or MonotonicClock(
+            spin_ns=round(cfg.controller.spin_us * 1e3)
+        )
+        self._real_clock = options.clock is None
+        self._ring: PayloadRing | None = None
+        self._rec: CycleRecorder | None = None
         self._diag_every = max(1, round(cfg.rates.control_hz))
         self._final_diagnostics: dict[str, Any] | None = None
         self.controller = Controller(cfg)
@@ -182,15 +209,11 @@ class ControllerDaemon:
                 "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
             },
         )
-        hooks: dict[str, Any] = {}
-        if opts.record_raw:
-            hooks = {
-                "frame_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "rx"),
-                "tx_hook": lambda m: rec.record_can(m, time.monotonic_ns(), "tx"),
-            }
+        self._rec = rec
         try:
             # The bus first: a bad --can is reported at once, not after waiting for zenoh.
-            with JointClient.open(opts.can, cfg, **hooks) as dsp:
+            # Poll mode: the control thread reads the bus itself (no receive thread).
+            with JointClient.open(opts.can, cfg, start=False, **self._raw_hooks(rec)) as dsp:
                 try:
                     session = open_session(
                         cfg,
@@ -203,9 +226,14 @@ class ControllerDaemon:
                     self.stats.stopped_before_arming = True
                     return self._summary(rec)
                 try:
-                    session.subscribe(KEY_FEATURES, self._on_features(rec))
+                    if opts.lockstep:  # the tick waits for its pose's answer: a callback feeds
+                        session.subscribe(KEY_FEATURES, self._on_features(rec))
+                    else:  # the tick takes the newest features itself, no callback thread
+                        self._ring = session.subscribe_ring(KEY_FEATURES)
                     self._loop(dsp, rec)
                 finally:
+                    if self._ring is not None:
+                        self._ring.close()
                     session.close()
         finally:
             rec.close()
@@ -223,11 +251,32 @@ class ControllerDaemon:
         out["problems"] = run_problems(out)
         return out
 
+    def _raw_hooks(self, rec: CycleRecorder) -> dict[str, Any]:
+        """Record every CAN frame as received and sent (stamped with the loop's clock)."""
+        if not self.opts.record_raw:
+            return {}
+        now = self.clock.now_ns
+        return {
+            "frame_hook": lambda m: rec.record_can(m, now(), "rx"),
+            "tx_hook": lambda m: rec.record_can(m, now(), "tx"),
+        }
+
+    def read_inputs(self, dsp: JointClient, now_ns: int) -> None:
+        """The read phase's I/O, in the control thread: every CAN frame waiting on the bus and
+        (realtime) the newest feature messages from the zenoh ring, fed to their decoders."""
+        dsp.drain(now_ns, timestamps=self._real_clock)
+        if self._ring is not None:
+            rec = self._rec if self.opts.record_raw else None
+            for payload in self._ring.drain():
+                self.features.feed(payload, now_ns)
+                if rec is not None:
+                    rec.record_vision(payload, now_ns)
+
     def _on_features(self, rec: CycleRecorder):
         feed, record, raw = self.features.feed, rec.record_vision, self.opts.record_raw
 
         def on_payload(payload: bytes) -> None:
-            now = time.monotonic_ns()
+            now = self.clock.now_ns()
             feed(payload, now)
             if raw:
                 record(payload, now)
@@ -237,6 +286,7 @@ class ControllerDaemon:
     def _wait_ready(self, dsp: JointClient) -> None:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not self.stop.is_set():
+            self.read_inputs(dsp, self.clock.now_ns())
             have_state = dsp.state_age_s() is not None
             if have_state and (self.opts.lockstep or self.features.latest is not None):
                 return
@@ -246,13 +296,18 @@ class ControllerDaemon:
                     f"no {missing} within {STARTUP_TIMEOUT_S:.0f} s: is `hil emulator` "
                     f"(and `hil vision`) running on the same transports?"
                 )
-            time.sleep(0.01)
+            self._pause(10_000_000)
+
+    def _pause(self, ns: int) -> None:
+        """Wait ``ns`` on the loop's clock during start-up (a fake clock advances the rig)."""
+        self.clock.sleep_until(self.clock.now_ns() + ns)
 
     def _wait_enabled(self, dsp: JointClient) -> None:
         """After ENABLE: wait until the DSP reports *operation enabled* (it answers a state
         change with a DspStatus at once), so the first tick runs the law."""
         deadline = time.monotonic() + ENABLE_TIMEOUT_S
         while not self.stop.is_set():
+            self.read_inputs(dsp, self.clock.now_ns())
             status = dsp.status
             self.drive.update(status)
             if self.drive.mode == MODE_ENABLED:
@@ -264,7 +319,7 @@ class ControllerDaemon:
                     f"the DSP did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
                     f"(state {state}{fault})"
                 )
-            time.sleep(0.002)
+            self._pause(1_000_000)
 
     # --- the loop ---------------------------------------------------------------------------
     def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
@@ -311,7 +366,7 @@ class ControllerDaemon:
         if final:
             recorder.pop("pending", None)  # the final record is itself still queued
         return diagnostics.build(
-            t_ns=time.monotonic_ns(),
+            t_ns=self.clock.now_ns(),
             tick=st.ticks,
             can_rx=diagnostics.counters(dsp.stats.e2e),
             features=diagnostics.counters(self.features.counts),
@@ -345,8 +400,7 @@ class ControllerDaemon:
         warm_up(self.controller, self.cfg)
 
     def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
-        clock = MonotonicClock(spin_ns=round(self.cfg.controller.spin_us * 1e3))
-        cadence = Cadence(self.period_ns, clock)
+        cadence = Cadence(self.period_ns, self.clock)
         first = None
         while not self.stop.is_set():
             tick = cadence.wait()
@@ -354,19 +408,18 @@ class ControllerDaemon:
             if max_ticks is not None and tick.index - first >= max_ticks:
                 return
             t_s = (tick.release_ns - cadence.start_ns) / 1e9
-            self._tick(dsp, rec, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
-            end = time.monotonic_ns()
-            if end > cadence.deadline_of(tick):
+            self.read_inputs(dsp, tick.wake_ns)
+            self._tick(dsp, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
+            if self.clock.now_ns() > cadence.deadline_of(tick):
                 self.stats.deadline_misses += 1
                 self._last_record["deadline_miss"] = True
-            rec.record_cycle(self._last_record)
-            self._maybe_diagnostics(dsp, rec)
+            self._record(dsp, rec)
 
     def _run_lockstep(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         last = None
         while not self.stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
             try:
-                k = dsp.wait_sync(LOCKSTEP_SYNC_TIMEOUT_S)
+                k = dsp.wait_sync(LOCKSTEP_SYNC_TIMEOUT_S)  # reads the bus in this thread
             except HalTimeoutError:
                 return  # the emulator finished its run
             if last is not None and k <= last:
@@ -376,13 +429,19 @@ class ControllerDaemon:
                 continue
             missed = 0 if last is None else k - last - 1
             last = k
-            wake = time.monotonic_ns()
+            wake = self.clock.now_ns()
             self.features.wait_pose_seq(k, LOCKSTEP_FEATURE_TIMEOUT_S)
-            self._tick(dsp, rec, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
-            rec.record_cycle(self._last_record)
-            self._maybe_diagnostics(dsp, rec)
+            self.read_inputs(dsp, self.clock.now_ns())
+            self._tick(dsp, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
+            self._record(dsp, rec)
 
-    def _follow_drive(self, dsp: JointClient) -> str:
+    def _record(self, dsp: JointClient, rec: CycleRecorder) -> None:
+        """The record phase: hand the finished cycle to the recorder (queued, encoded by its
+        own thread) and, about once a second, the diagnostics."""
+        rec.record_cycle(self._last_record)
+        self._maybe_diagnostics(dsp, rec)
+
+    def _follow_drive(self, dsp: JointClient, now_ns: int) -> str:
         """Track the DSP's drive state (:class:`hal.drive_state.DriveMonitor`), count faults and
         apply the re-arm policy; the drive mode of this tick (the law runs only in ``enabled``).
 
@@ -410,30 +469,21 @@ class ControllerDaemon:
                 dsp.enable(reset_fault=False)
                 self.stats.rearms += 1
         mode = self.drive.mode
-        age = dsp.status_age_s
+        age = dsp.status_age_s_at(now_ns)
         if not self.opts.lockstep and (age is None or age > self._status_limit_s):
             mode = MODE_NO_STATUS  # a silent DSP: its last word no longer counts
         if mode != MODE_ENABLED:
             self.stats.drive_ticks[mode] = self.stats.drive_ticks.get(mode, 0) + 1
         return mode
 
-    def _tick(
-        self,
-        dsp: JointClient,
-        rec: CycleRecorder,
-        index: int,
-        wake_ns: int,
-        lateness_ns: int,
-        missed: int,
-        t_s: float,
-        sync: int | None = None,
-    ) -> None:
-        cfg, st = self.cfg, self.stats
-        # --- read
+    def _read(self, dsp: JointClient, wake_ns: int, t_s: float) -> Inputs:
+        """The read phase: the newest joint state and features, judged stale or not, and the
+        DSP's drive mode (the inputs themselves were taken off the transports just before)."""
+        cfg = self.cfg
         state_stale = False
         state_ns = None
         try:
-            state = dsp.latest_state(max_age_s=self._state_limit_s)
+            state = dsp.latest_state(max_age_s=self._state_limit_s, now_ns=wake_ns)
             q, dq, state_ns = np.array(state.q), np.array(state.dq), state.t_ns
             state_age_ms = (wake_ns - state.t_ns) / 1e6
         except HalTimeoutError:
@@ -445,26 +495,58 @@ class ControllerDaemon:
             f, f_age_ms = np.array(feat.f), (t_s * 1e9 - feat.sim_time_ns) / 1e6
         else:  # by stamp and by arrival: a future stamp cannot make old data look fresh
             f, f_age_ms = np.array(feat.f), feature_age_ns(wake_ns, feat.stamp_ns, recv_ns) / 1e6
-        f_stale = not (0.0 <= f_age_ms <= cfg.controller.feature_timeout_s * 1e3)
-        drive_mode = self._follow_drive(dsp)
-        t_read = time.monotonic_ns()
+        return Inputs(
+            q=q,
+            dq=dq,
+            f=f,
+            state_ns=state_ns,
+            state_age_ms=state_age_ms,
+            state_stale=state_stale,
+            f_age_ms=f_age_ms,
+            f_stale=not (0.0 <= f_age_ms <= cfg.controller.feature_timeout_s * 1e3),
+            f_valid=feat is not None and feat.valid,
+            drive_mode=self._follow_drive(dsp, wake_ns),
+        )
+
+    def _tick(
+        self,
+        dsp: JointClient,
+        index: int,
+        wake_ns: int,
+        lateness_ns: int,
+        missed: int,
+        t_s: float,
+        sync: int | None = None,
+    ) -> None:
+        """One tick as phases, ros2_control style: read -> decide -> write; the caller records.
+        Every time stamp comes from the loop's clock."""
+        cfg, st, now = self.cfg, self.stats, self.clock.now_ns
+        # --- read
+        inp = self._read(dsp, wake_ns, t_s)
+        t_read = now()
         # --- decide
         d = self.controller.decide(
-            t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale, drive_mode=drive_mode
+            t_s,
+            inp.q,
+            inp.dq,
+            inp.f,
+            f_stale=inp.f_stale,
+            state_stale=inp.state_stale,
+            drive_mode=inp.drive_mode,
         )
         fields = decision_fields(self.controller, d)
         # Counted per tick as recorded (f_stale / state_stale), the same way `hil report` does.
-        st.stale_states += int(state_stale)
-        st.stale_features += int(f_stale)
+        st.stale_states += int(inp.state_stale)
+        st.stale_features += int(inp.f_stale)
         if d.command is not None:
             st.J += fields["cost"] / cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])
-            st.f_final = vec2(f)
-        t_solve = time.monotonic_ns()
+            st.f_final = vec2(inp.f)
+        t_solve = now()
         # --- write
         tau = d.tau
         dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
-        t_write = time.monotonic_ns()
+        t_write = now()
         st.ticks += 1
         st.missed_periods += missed
         solve_us = (t_solve - t_read) / 1e3
@@ -482,16 +564,16 @@ class ControllerDaemon:
                 solve_us=solve_us,
                 write_us=(t_write - t_solve) / 1e3,
                 cycle_us=cycle_us,
-                e2e_us=math.nan if state_ns is None else (t_write - state_ns) / 1e3,
+                e2e_us=math.nan if inp.state_ns is None else (t_write - inp.state_ns) / 1e3,
                 missed_periods=missed,
             ),
-            q=q,
-            dq=dq,
-            f=f,
-            f_age_ms=f_age_ms,
-            state_age_ms=state_age_ms,
-            f_valid=feat is not None and feat.valid,
-            f_stale=f_stale,
-            state_stale=state_stale,
+            q=inp.q,
+            dq=inp.dq,
+            f=inp.f,
+            f_age_ms=inp.f_age_ms,
+            state_age_ms=inp.state_age_ms,
+            f_valid=inp.f_valid,
+            f_stale=inp.f_stale,
+            state_stale=inp.state_stale,
             decision=fields,
         )
