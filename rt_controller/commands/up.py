@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         "law", "ticks", "J", "f_final", "f_final_norm", "deadline_misses", "missed_periods",
         "stale_features", "stale_states", "fallbacks", "watchdog_trips", "solve_us_median",
         "solve_us_p99",
-        "lateness_us_p99", "cycle_us_p99", "log", "rejections", "recorder", "problems",
+        "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms", "log",
+        "rejections", "recorder", "problems",
         "exit_codes",
     )  # fmt: skip
     print_summary({k: summary.get(k) for k in keys}, args.json, "hil up")

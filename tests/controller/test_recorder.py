@@ -24,6 +24,7 @@ from rt_controller.runtime.recorder import (
     CAN_RX_TOPIC,
     CAN_TX_TOPIC,
     CYCLE_TOPIC,
+    DIAGNOSTICS_TOPIC,
     VISION_TOPIC,
     CycleRecorder,
     cycle_schema,
@@ -83,7 +84,13 @@ def test_read_back_with_mcap_library(tmp_path, cfg):
         summary = reader.get_summary()
         assert summary is not None
         topics = {ch.topic: ch for ch in summary.channels.values()}
-        assert set(topics) == {CYCLE_TOPIC, CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC}
+        assert set(topics) == {
+            CYCLE_TOPIC,
+            CAN_RX_TOPIC,
+            CAN_TX_TOPIC,
+            VISION_TOPIC,
+            DIAGNOSTICS_TOPIC,
+        }
         for ch in topics.values():
             assert ch.message_encoding == "json"
             schema = summary.schemas[ch.schema_id]

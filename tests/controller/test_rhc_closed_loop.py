@@ -86,7 +86,7 @@ def test_long_horizon_with_few_steps_is_stable(cfg, ioc):
     """T = 1 s with N = 10 (stages of 0.1 s, longer than the plant's ~1/40 s modes): the stages
     are integrated in Euler substeps, no tick falls back and J stays within 5 % of eq. (27)."""
     r = simulate(cfg, "rhc", **{"rhc.horizon": 1.0, "rhc.steps": 10})
-    assert r.summary()["fallbacks"] == 0
+    assert r.as_dict()["fallbacks"] == 0
     assert_converges(r)
     assert abs(r.J - ioc.J) <= 0.05 * ioc.J
 
@@ -95,9 +95,9 @@ def test_cost_of_the_paper_runs(cfg):
     """Closed-loop J of the one-solve tick against the two-solve tick it replaced (23.914 at
     T = 0.02 s; 18.7945 with u_max = (2, 1) and no target jump): no worse than 0.5 % and 18.8."""
     r = simulate(cfg, "rhc", **{"rhc.horizon": 0.02})
-    assert r.summary()["fallbacks"] == 0
+    assert r.as_dict()["fallbacks"] == 0
     assert r.J <= 23.914 * 1.005
     b = simulate(cfg, "rhc", **{"rhc.u_max": [2.0, 1.0], "scenario.disturbance": False})
-    assert b.summary()["fallbacks"] == 0
+    assert b.as_dict()["fallbacks"] == 0
     assert b.J <= 18.8
     assert np.linalg.norm(b.trace.f[-1]) < 1.0

@@ -304,9 +304,7 @@ def test_main_runs_for_a_duration_and_prints_json(endpoint, capsys):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--fps", "-1"], "--fps"),
         (["--zenoh-endpoint", "tcp/10.0.0.1:7447"], "loopback"),
-        (["--noise", "-1"], "camera.noise_px"),
         (["--zenoh-config", "/nonexistent/zenoh.json5"], "no such file"),
     ],
 )
@@ -314,6 +312,17 @@ def test_main_bad_options_are_one_clear_line(args, message, capsys):
     assert main([*args, "--duration", "0.1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("hil vision: error:") and message in err[-1]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"), [(["--fps", "-1"], "--fps"), (["--noise", "-1"], "--noise")]
+)
+def test_main_bad_numbers_are_refused_while_parsing(args, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([*args, "--duration", "0.1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("hil vision: error: argument") and message in err[-1]
 
 
 def test_main_without_hub_says_what_to_start(endpoint, capsys):

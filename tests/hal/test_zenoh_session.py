@@ -10,7 +10,7 @@ import pytest
 import zenoh
 
 from hal.config import RigConfig, load_config
-from hal.errors import HalConfigError, HalTransportError
+from hal.errors import HalConfigError, HalStopped, HalTransportError
 from hal.resources import open_resources
 from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
 from hal.zenoh_session import (
@@ -128,7 +128,7 @@ def test_client_wait_is_interrupted_by_stop_event(endpoint):
     timer.start()
     t0 = time.monotonic()
     try:
-        with pytest.raises(HalTransportError):
+        with pytest.raises(HalStopped):  # a stop request, not a transport failure
             open_session(listen=False, endpoint=endpoint, wait_s=60.0, stop_event=stop)
     finally:
         timer.join()

@@ -421,7 +421,7 @@ def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
         extra_vision=["--dropout", f"{start_s}:{length_s}"],
     )
     s = run_rig(opts)
-    assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
+    assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}, s["problems"]
     loaded = read_log(log)
     c = loaded.cycles
     t, stale, law = c["sim_time_s"], c["f_stale"], c["law"]
