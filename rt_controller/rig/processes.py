@@ -132,7 +132,9 @@ class Rig:
         if o.lockstep:
             emu.append("--lockstep")
         self._start("emulator", emu)
-        self._start("vision", _cli("vision", *self._common(), *o.extra_vision))
+        # the emulator is the zenoh hub: on a slow host it may take a while to come up
+        vision = _cli("vision", *self._common(), "--wait", f"{STARTUP_MARGIN_S:g}")
+        self._start("vision", vision + o.extra_vision)
         ctl = _cli("controller", *can, *self._common(), "--json", "--duration", f"{o.duration_s:g}")
         ctl += ["--clock", "lockstep" if o.lockstep else "realtime"]
         if o.law:

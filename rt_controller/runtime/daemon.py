@@ -220,6 +220,7 @@ class ControllerDaemon:
                         listen=False,
                         endpoint=opts.zenoh_endpoint,
                         config_file=opts.zenoh_config,
+                        wait_s=STARTUP_TIMEOUT_S,
                         stop_event=self.stop,
                     )
                 except HalStopped:

@@ -293,11 +293,8 @@ from hal.joint_client import JointClient
 with JointClient.open(sys.argv[1]) as dsp:
     dsp.enable()
     print("armed", flush=True)
-    k = 0
-    while True:  # 50 Hz until killed; the sign flips every 0.5 s so the arm stays near home
-        sign = 1.0 if (k // 25) % 2 == 0 else -1.0
-        dsp.send_torque(sign * 1.0, sign * 0.1)
-        k += 1
+    while True:  # 50 Hz until killed; zero torque keeps the arm at rest inside its limits
+        dsp.send_torque(0.0, 0.0)
         time.sleep(0.02)
 """
 
