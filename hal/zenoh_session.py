@@ -183,9 +183,10 @@ class ZenohSession:
 
         ``block=True`` (default) makes ``put`` wait for queue space when the link is congested;
         ``False`` drops the *new* sample instead. ``priority`` overrides ``REAL_TIME`` (monitoring
-        streams use a lower one, so they never delay the rig's own messages). The rig's messages are tiny and at most
-        1 kHz, so blocking only happens while the process is starved of CPU, and then it
-        delivers late rather than losing a lockstep answer (which would stall the run).
+        streams use a lower one, so they never delay the rig's own messages). The rig's messages
+        are tiny and at most 1 kHz, so blocking only happens while the process is starved of
+        CPU, and then it delivers late rather than losing a lockstep answer (which would stall
+        the run).
         """
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         try:

@@ -21,7 +21,9 @@ KEY_OF_TOPIC = {CYCLE_TOPIC: KEY_CONTROLLER_CYCLE, DIAGNOSTICS_TOPIC: KEY_CONTRO
 
 
 class LivePublisher:
-    """``publisher(topic, data)`` puts ``data`` on the zenoh key of ``topic``. Close is idempotent."""
+    """``publisher(topic, data)`` puts ``data`` on the zenoh key of ``topic``.
+
+    :meth:`close` is idempotent."""
 
     def __init__(self, session: ZenohSession) -> None:
         self._pubs = {
