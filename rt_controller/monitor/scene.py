@@ -28,6 +28,7 @@ import zlib
 from typing import Any
 
 from foxglove.messages import (
+    ArrowPrimitive,
     CameraCalibration,
     CircleAnnotation,
     Color,
@@ -62,6 +63,8 @@ ANNOTATIONS_TOPIC = "/camera/annotations"
 IMAGE_TOPIC = "/camera/image"
 
 WORLD, LINK1, LINK2, CAMERA = "world", "link1", "link2", "camera"
+SCENE_MAX_HZ = 50.0
+"""The scene is drawn for every tick up to this rate, for every n-th tick above it."""
 IMAGE_WIDTH, IMAGE_HEIGHT = 640, 480
 """The image plane drawn (px); features are offsets from its centre."""
 
@@ -128,6 +131,8 @@ class SceneBuilder:
         self.focal = cfg.camera.s_lambda
         self.depth = cfg.camera.z_wo
         self.cx, self.cy = IMAGE_WIDTH / 2, IMAGE_HEIGHT / 2
+        self.every = max(1, math.ceil(cfg.rates.control_hz / SCENE_MAX_HZ - 1e-9))
+        """Draw the ticks whose number is a multiple of this (both the log and the live view)."""
         self.image_every = max(1, round(cfg.rates.control_hz))
         """The background image goes with every ``image_every``-th tick (about 1 Hz)."""
         self._png = blank_png(IMAGE_WIDTH, IMAGE_HEIGHT)
@@ -280,6 +285,29 @@ class SceneBuilder:
                     color=_GREEN,
                 ),
             ],
+        )
+
+    def camera_marker(self, pose: tuple[float, float, float], log_time_ns: int) -> SceneUpdate:
+        """The emulator's true camera pose (live only): a small cyan arrow along the hand."""
+        x, y, phi = pose
+        return SceneUpdate(
+            entities=[
+                SceneEntity(
+                    timestamp=_stamp(log_time_ns),
+                    frame_id=WORLD,
+                    id="camera_emulator",
+                    arrows=[
+                        ArrowPrimitive(
+                            pose=Pose(position=Vector3(x=x, y=y, z=0.02), orientation=_yaw(phi)),
+                            shaft_length=0.06,
+                            shaft_diameter=0.01,
+                            head_length=0.03,
+                            head_diameter=0.025,
+                            color=Color(r=0.1, g=0.9, b=0.9, a=1.0),
+                        )
+                    ],
+                )
+            ]
         )
 
     def calibration(self, ts: Timestamp) -> CameraCalibration:

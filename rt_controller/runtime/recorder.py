@@ -25,7 +25,8 @@ the topic and the already-encoded JSON bytes of every ``/controller/cycle`` and 
 record (the daemon publishes them on zenoh, ``hil/controller/cycle`` and
 ``hil/controller/diagnostics``); and ``scene``, a builder whose ``messages(record, log_time)``
 turns a cycle record into Foxglove scene messages (:mod:`rt_controller.monitor.scene`), written on
-their own protobuf channels (``/tf``, ``/scene/arm``, ``/camera/...``) at most ``scene_max_hz``.
+their own protobuf channels (``/tf``, ``/scene/arm``, ``/camera/...``) for the ticks whose
+number is a multiple of ``scene.every``.
 
 Metadata: ``hil.config`` (key ``json``: :meth:`hal.config.RigConfig.to_json`), ``hil.run`` (law,
 rate, clock, start time, host, versions, and the caller's ``run_info``), and at a clean close
@@ -255,7 +256,6 @@ class CycleRecorder:
         chunk_size: int = 64 * 1024,
         live: Callable[[str, bytes], Any] | None = None,
         scene: Any | None = None,
-        scene_max_hz: float = 50.0,
     ) -> None:
         if not flush_interval_s > 0:
             raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
@@ -276,7 +276,7 @@ class CycleRecorder:
         self.live_errors = 0
         """Exceptions raised by the ``live`` sink (counted, never propagated)."""
         self._scene = scene
-        self._scene_every = max(1, math.ceil(cfg.rates.control_hz / scene_max_hz - 1e-9))
+        self._scene_every = max(1, int(getattr(scene, "every", 1)))
         self._scene_channels: dict[str, int] = {}
         self.scene_written = 0
         """Scene messages written (not part of :meth:`as_dict`)."""
