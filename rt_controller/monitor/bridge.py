@@ -173,7 +173,7 @@ class MonitorBridge:
             for ch in self._channels.values():
                 ch.close()
             raise MonitorError(f"cannot serve Foxglove WebSocket on {host}:{port}: {exc}") from exc
-        self.port = self.server.port()
+        self.port = int(self.server.port)
         self.host = host
         self._rings: dict[str, PayloadRing] = {}
         self._stop = threading.Event()
