@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
+import os
 import sys
 
 from hal.arguments import duration
@@ -77,12 +78,15 @@ def run(args: argparse.Namespace) -> int:
             stop_event=stop,
         )
         try:
-            with MonitorBridge(cfg, session, host=args.host, port=args.port) as bridge:
+            bridge = MonitorBridge(cfg, session, host=args.host, port=args.port)
+            try:
                 bridge.start()
                 print(f"hil monitor: Foxglove WebSocket on {bridge.url}", file=sys.stderr)
                 for topic, schema in bridge.channels().items():
                     print(f"hil monitor:   {topic}  [{schema}]", file=sys.stderr)
                 stop.wait(args.duration or None)
+            finally:
+                clean = bridge.close()
                 counts = dict(bridge.counts)
         finally:
             session.close()
@@ -90,4 +94,9 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"url": bridge.url, "channels": bridge.channels(), **counts}))
     else:
         print("hil monitor: " + ", ".join(f"{k} {v}" for k, v in counts.items()), file=sys.stderr)
+    if not clean:  # a client that never reads holds the server's shutdown (and its exit hook)
+        print("hil monitor: a client did not close; exiting without waiting", file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0

@@ -179,6 +179,7 @@ class MonitorBridge:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="hil-monitor", daemon=True)
         self._closed = False
+        self._server_stopped = threading.Event()
 
     @property
     def url(self) -> str:
@@ -267,9 +268,13 @@ class MonitorBridge:
         self.counts["poses"] += 1
 
     # --- closing --------------------------------------------------------------------------------
-    def close(self) -> None:
+    def close(self, timeout_s: float = 2.0) -> bool:
+        """Stop the worker, the subscriptions and the server. Idempotent. False when the server
+        did not stop within ``timeout_s`` (it waits for its clients' close handshakes, and a
+        client that never reads never answers): the caller should then exit the process
+        without the SDK's exit hook (``os._exit``)."""
         if self._closed:
-            return
+            return self._server_stopped.is_set()
         self._closed = True
         self._stop.set()
         if self._thread.is_alive():
@@ -279,7 +284,13 @@ class MonitorBridge:
         self._rings.clear()
         for ch in self._channels.values():
             ch.close()
-        self.server.stop()
+
+        def stop_server() -> None:
+            self.server.stop()
+            self._server_stopped.set()
+
+        threading.Thread(target=stop_server, name="hil-monitor-stop", daemon=True).start()
+        return self._server_stopped.wait(timeout_s)
 
     def __enter__(self) -> MonitorBridge:
         return self
