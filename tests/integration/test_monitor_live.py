@@ -72,6 +72,7 @@ def test_monitor_streams_the_run_and_a_silent_client_changes_nothing(tmp_path: P
         silent.wait_channels(topics)
         silent.subscribe(sorted(silent.channels))  # everything, then never read again
         reader.subscribe(sorted(topics))
+        advertised = dict(reader.channels)  # the server unadvertises them when it stops
 
         def read() -> None:
             try:
@@ -100,7 +101,7 @@ def test_monitor_streams_the_run_and_a_silent_client_changes_nothing(tmp_path: P
     assert summary["problems"] == []
     assert summary["exit_codes"]["monitor"] == 0
     assert not errors, errors
-    channels = reader.channels
+    channels = advertised
     assert channels[CYCLE_TOPIC]["encoding"] == "json"
     assert channels[CYCLE_TOPIC]["schemaName"] == "hil.ControllerCycle"
     assert channels[CYCLE_TOPIC]["schemaEncoding"] == "jsonschema"

@@ -50,6 +50,7 @@ class FoxgloveClient:
         for _ in range(attempts):
             try:
                 ws = connect(url, subprotocols=list(SUBPROTOCOLS), compression=None, **kwargs)
+                ws.__enter__()  # websockets 14+: a connection is a context manager
             except OSError as exc:
                 last = exc
                 time.sleep(0.1)
