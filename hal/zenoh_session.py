@@ -50,6 +50,11 @@ KEY_FEATURES = "hil/vision/features"
 """Image features, vision -> controller (payload: :mod:`hal.vision_codec` features v1)."""
 KEY_CAMERA_POSE = "hil/emulator/camera_pose"
 """Camera pose, emulator -> vision (payload: :mod:`hal.vision_codec` pose v1)."""
+KEY_CONTROLLER_CYCLE = "hil/controller/cycle"
+"""Every controller tick, controller -> anyone (payload: the ``/controller/cycle`` JSON record of
+the MCAP, schema ``rt_controller/runtime/cycle_schema.json``), sent off the tick's path."""
+KEY_CONTROLLER_DIAGNOSTICS = "hil/controller/diagnostics"
+"""The controller's ``/diagnostics`` JSON records (about 1 Hz and a final one)."""
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_WAIT_S = 10.0
@@ -171,18 +176,25 @@ class ZenohSession:
     def zid(self) -> str:
         return str(self.session.zid())
 
-    def publisher(self, key: str, *, block: bool = True) -> zenoh.Publisher:
+    def publisher(
+        self, key: str, *, block: bool = True, priority: zenoh.Priority | None = None
+    ) -> zenoh.Publisher:
         """Declare an express (unbatched), real-time-priority, reliable publisher.
 
         ``block=True`` (default) makes ``put`` wait for queue space when the link is congested;
-        ``False`` drops the *new* sample instead. The rig's messages are tiny and at most
-        1 kHz, so blocking only happens while the process is starved of CPU, and then it
-        delivers late rather than losing a lockstep answer (which would stall the run).
+        ``False`` drops the *new* sample instead. ``priority`` overrides ``REAL_TIME`` (monitoring
+        streams use a lower one, so they never delay the rig's own messages). The rig's messages
+        are tiny and at most 1 kHz, so blocking only happens while the process is starved of
+        CPU, and then it delivers late rather than losing a lockstep answer (which would stall
+        the run).
         """
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         try:
             return self.session.declare_publisher(
-                key, express=True, priority=zenoh.Priority.REAL_TIME, congestion_control=cc
+                key,
+                express=True,
+                priority=zenoh.Priority.REAL_TIME if priority is None else priority,
+                congestion_control=cc,
             )
         except zenoh.ZError as exc:
             raise HalTransportError(

@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "emulator",
     "vision",
     "controller",
+    "monitor",
     "simulate",
     "replay",
     "report",

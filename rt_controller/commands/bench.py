@@ -41,6 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=10.0,
         help="simulated seconds of the lockstep speed run (0 = skip)",
     )
+    lp.add_argument(
+        "--monitor-port",
+        type=int,
+        metavar="PORT",
+        help="also run `hil monitor` on this port during the real-time runs (connect a client)",
+    )
     lp.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
     lp.set_defaults(handler=run_loop)
 
@@ -72,6 +78,7 @@ def run_loop(args: argparse.Namespace) -> int:
         duration=args.duration,
         law=args.law,
         lockstep_duration=args.lockstep_duration,
+        monitor_port=args.monitor_port,
     )
     print(json.dumps(result))
     return 0

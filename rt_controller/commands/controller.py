@@ -49,6 +49,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--no-rt", action="store_true", help="skip SCHED_FIFO/mlockall/affinity settings"
     )
     p.add_argument("--no-raw", action="store_true", help="do not record raw CAN/vision inputs")
+    p.add_argument(
+        "--no-live",
+        action="store_true",
+        help="do not publish cycles/diagnostics on zenoh hil/controller/* (for hil monitor)",
+    )
+    p.add_argument("--no-scene", action="store_true", help="do not draw the arm into the log")
     p.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
     p.set_defaults(handler=run)
 
@@ -70,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
         zenoh_config=args.zenoh_config,
         realtime_settings=not args.no_rt,
         record_raw=not args.no_raw,
+        live=not args.no_live,
+        scene=not args.no_scene,
     )
     with stop_on_signals() as stop:
         daemon = ControllerDaemon(cfg, opts, stop)

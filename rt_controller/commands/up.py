@@ -29,6 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
     p.add_argument("--log", metavar="FILE.mcap", help="controller log path")
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="default: a free port")
+    p.add_argument(
+        "--monitor",
+        action="store_true",
+        help="also start `hil monitor`: a Foxglove WebSocket live view (ws://127.0.0.1:8765)",
+    )
+    p.add_argument("--monitor-port", type=int, metavar="PORT", help="live view port (8765)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
 
@@ -49,6 +55,8 @@ def run(args: argparse.Namespace) -> int:
                     can=args.can,
                     zenoh_endpoint=args.zenoh_endpoint,
                     log=Path(args.log) if args.log else None,
+                    monitor=args.monitor or args.monitor_port is not None,
+                    monitor_port=args.monitor_port,
                 )
             )
     except RigInterrupted as exc:
@@ -63,9 +71,11 @@ def run(args: argparse.Namespace) -> int:
         "solve_us_p99",
         "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms", "log",
         "rejections", "recorder", "problems",
-        "exit_codes",
+        "exit_codes", "monitor_error",
     )  # fmt: skip
     print_summary({k: summary.get(k) for k in keys}, args.json, "hil up")
+    if summary.get("monitor_error"):
+        print(f"hil up: warning: monitor {summary['monitor_error']}", file=sys.stderr)
     problems = summary.get("problems") or []
     if problems:
         print(f"hil up: run not clean: {'; '.join(problems)}", file=sys.stderr)

@@ -34,14 +34,33 @@ def _write_toml(cfg: RigConfig, path: Path) -> None:
     path.write_text(config_toml(cfg))
 
 
-def bench_rate(cfg: RigConfig, rate: float, duration: float, law: str, workdir: Path) -> dict:
-    """One real-time run at ``rate``; statistics from its log."""
+def _monitor(port: int | None) -> dict[str, Any]:
+    return {"monitor": port is not None, "monitor_port": port}
+
+
+def bench_rate(
+    cfg: RigConfig,
+    rate: float,
+    duration: float,
+    law: str,
+    workdir: Path,
+    monitor_port: int | None = None,
+) -> dict:
+    """One real-time run at ``rate``; statistics from its log. ``monitor_port``: also run
+    ``hil monitor`` on that port (connect a Foxglove client to measure its cost)."""
     rcfg = _rate_config(cfg, rate)
     conf = workdir / f"rig-{rate:g}.toml"
     _write_toml(rcfg, conf)
     log = workdir / f"loop-{rate:g}.mcap"
     summary = run_rig(
-        RigOptions(config=str(conf), law=law, duration_s=duration, lockstep=False, log=log)
+        RigOptions(
+            config=str(conf),
+            law=law,
+            duration_s=duration,
+            lockstep=False,
+            log=log,
+            **_monitor(monitor_port),
+        )
     )
     c = read_log(log).cycles
     ticks = int(c["tick"].size)
@@ -101,17 +120,19 @@ def bench_loop(
     duration: float = 10.0,
     law: str = "rhc",
     lockstep_duration: float = 10.0,
+    monitor_port: int | None = None,
 ) -> dict[str, Any]:
     """The JSON object ``hil bench loop`` prints."""
     cfg = cfg or load_config()
     with tempfile.TemporaryDirectory(prefix="hil-bench-") as tmp:
         work = Path(tmp)
-        runs = [bench_rate(cfg, r, duration, law, work) for r in rates]
+        runs = [bench_rate(cfg, r, duration, law, work, monitor_port) for r in rates]
         lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
     return {
         "duration_s": duration,
         "rates": runs,
         "lockstep": lock,
+        "monitor_port": monitor_port,
         "machine": {
             "cpus": os.cpu_count(),
             "load": dict(zip(("1min", "5min", "15min"), os.getloadavg(), strict=True)),

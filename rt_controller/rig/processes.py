@@ -1,4 +1,4 @@
-"""Start the rig's processes (emulator, vision, controller), wait, stop them cleanly.
+"""Start the rig's processes (emulator, vision, controller, optionally monitor), wait, stop them.
 
 Used by ``hil up`` and ``hil experiment``. Every child runs ``python -m rt_controller.cli``; a
 child that dies is reported with its exit status and the tail of its stderr, and nothing is
@@ -75,6 +75,11 @@ class RigOptions:
     extra_controller: list[str] = field(default_factory=list)
     extra_vision: list[str] = field(default_factory=list)
     extra_emulator: list[str] = field(default_factory=list)
+    monitor: bool = False
+    """Also start ``hil monitor`` (the live view); its failure never ends the run."""
+    monitor_host: str | None = None
+    monitor_port: int | None = None
+    extra_monitor: list[str] = field(default_factory=list)
 
 
 def private_default_bus(config: str | None) -> str | None:
@@ -135,6 +140,13 @@ class Rig:
         # the emulator is the zenoh hub: on a slow host it may take a while to come up
         vision = _cli("vision", *self._common(), "--wait", f"{STARTUP_MARGIN_S:g}")
         self._start("vision", vision + o.extra_vision)
+        if o.monitor:
+            mon = _cli("monitor", *self._common())
+            if o.monitor_host:
+                mon += ["--host", o.monitor_host]
+            if o.monitor_port is not None:
+                mon += ["--port", str(o.monitor_port)]
+            self._start("monitor", mon + o.extra_monitor)
         ctl = _cli("controller", *can, *self._common(), "--json", "--duration", f"{o.duration_s:g}")
         ctl += ["--clock", "lockstep" if o.lockstep else "realtime"]
         if o.law:
@@ -145,7 +157,7 @@ class Rig:
 
     def _check_alive(self, but: str) -> None:
         for c in self.children:
-            if c.name != but and c.proc.poll() is not None:
+            if c.name not in (but, "monitor") and c.proc.poll() is not None:
                 raise RigProcessError(
                     f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}"
                 )
@@ -172,7 +184,7 @@ class Rig:
     def stop(self) -> dict[str, int | None]:
         """SIGTERM every child still running (controller first, so torque goes off while the
         DSP still listens), SIGKILL after a timeout, then anything left in their group."""
-        order = {"controller": 0, "vision": 1, "emulator": 2}
+        order = {"controller": 0, "monitor": 1, "vision": 2, "emulator": 3}
         codes: dict[str, int | None] = {}
         with signals_deferred():
             for c in sorted(self.children, key=lambda c: order.get(c.name, 9)):
@@ -214,7 +226,8 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
         rig.start()
         summary = rig.wait_controller()
         codes = rig.stop()
-        bad = {n: c for n, c in codes.items() if n != "controller" and c not in (0, None)}
+        watch = {"controller", "monitor"}  # a failed live view is reported, never fatal
+        bad = {n: c for n, c in codes.items() if n not in watch and c not in (0, None)}
         if bad:
             tails = "\n".join(
                 f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}"
@@ -223,4 +236,7 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
             )
             raise RigProcessError(tails)
         summary["exit_codes"] = codes
+        mon = next((c for c in rig.children if c.name == "monitor"), None)
+        if mon is not None and codes.get("monitor") not in (0, None):
+            summary["monitor_error"] = f"exited with status {codes['monitor']}: {mon.tail(3)}"
         return summary

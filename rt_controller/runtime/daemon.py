@@ -42,6 +42,8 @@ STARTUP_TIMEOUT_S = 20.0
 LOCKSTEP_SYNC_TIMEOUT_S = 2.0
 """Lockstep: without a Sync for this long the emulator is taken to have finished."""
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
+LIVE_DRAIN_TIMEOUT_S = 1.0
+"""After the loop: how long the live stream may wait for the recorder's queue to drain."""
 ENABLE_TIMEOUT_S = 5.0
 """How long the daemon waits for the DSP to report *operation enabled* after ENABLE."""
 
@@ -60,6 +62,11 @@ class DaemonOptions:
     realtime_settings: bool = True
     record_raw: bool = True
     """Also record every CAN frame and vision payload as received."""
+    live: bool = True
+    """Publish every cycle and diagnostics record on zenoh (``hil/controller/cycle``,
+    ``hil/controller/diagnostics``) from the recorder's writer thread, for ``hil monitor``."""
+    scene: bool = True
+    """Draw the arm into the MCAP (Foxglove scene topics, :mod:`rt_controller.monitor.scene`)."""
     clock: Clock | None = None
     """The loop's clock (default: the monotonic clock, sleeping then spinning
     ``controller.spin_us`` before each release); tests pass a fake one."""
@@ -163,6 +170,31 @@ def default_log_path(cfg: RigConfig, law: str) -> Path:
     return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
 
 
+def _scene_builder(cfg: RigConfig) -> Any:
+    from rt_controller.monitor.scene import SceneBuilder
+
+    return SceneBuilder(cfg)
+
+
+def _live_publisher(session: Any) -> Any:
+    """The recorder's live sink on ``session``, or None (with a warning) if zenoh refuses it:
+    watching is optional, the run goes on without it."""
+    from hal.errors import HalError
+    from rt_controller.monitor.live import LivePublisher
+
+    try:
+        return LivePublisher(session)
+    except HalError as exc:
+        print(f"hil controller: warning: no live stream: {exc}", file=sys.stderr)
+        return None
+
+
+def _wait_drained(rec: CycleRecorder, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while rec.pending and time.monotonic() < deadline:
+        time.sleep(0.002)
+
+
 class ControllerDaemon:
     """Owns the law, the DSP client, the feature subscriber and the recorder for one run."""
 
@@ -208,6 +240,7 @@ class ControllerDaemon:
                 "can": opts.can or cfg.transport.can,
                 "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
             },
+            scene=_scene_builder(cfg) if opts.scene else None,
         )
         self._rec = rec
         try:
@@ -226,6 +259,8 @@ class ControllerDaemon:
                 except HalStopped:
                     self.stats.stopped_before_arming = True
                     return self._summary(rec)
+                live = _live_publisher(session) if opts.live else None
+                rec.set_live(live)
                 try:
                     if opts.lockstep:  # the tick waits for its pose's answer: a callback feeds
                         session.subscribe(KEY_FEATURES, self._on_features(rec))
@@ -233,6 +268,11 @@ class ControllerDaemon:
                         self._ring = session.subscribe_ring(KEY_FEATURES)
                     self._loop(dsp, rec)
                 finally:
+                    if live is not None:  # let the last records (final diagnostics) go out
+                        _wait_drained(rec, LIVE_DRAIN_TIMEOUT_S)
+                    rec.set_live(None)
+                    if live is not None:
+                        live.close()
                     if self._ring is not None:
                         self._ring.close()
                     session.close()

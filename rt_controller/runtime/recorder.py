@@ -20,6 +20,14 @@ Message ``log_time`` is the record's monotonic time shifted to the Unix epoch (t
 stored in the ``hil.run`` metadata), so viewers show wall-clock dates while ``t_ns`` inside the
 messages stays the loop's monotonic clock.
 
+Optional extras, both fed by the writer thread (never by the tick): ``live``, a callable given
+the topic and the already-encoded JSON bytes of every ``/controller/cycle`` and ``/diagnostics``
+record (the daemon publishes them on zenoh, ``hil/controller/cycle`` and
+``hil/controller/diagnostics``); and ``scene``, a builder whose ``messages(record, log_time)``
+turns a cycle record into Foxglove scene messages (:mod:`rt_controller.monitor.scene`), written on
+their own protobuf channels (``/tf``, ``/scene/arm``, ``/camera/...``) for the ticks whose
+number is a multiple of ``scene.every``.
+
 Metadata: ``hil.config`` (key ``json``: :meth:`hal.config.RigConfig.to_json`), ``hil.run`` (law,
 rate, clock, start time, host, versions, and the caller's ``run_info``), and at a clean close
 ``hil.recorder`` (written/dropped counters). Durability: the chunk in progress is closed and
@@ -43,6 +51,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -245,6 +254,8 @@ class CycleRecorder:
         flush_interval_s: float = 0.5,
         queue_size: int = 16384,
         chunk_size: int = 64 * 1024,
+        live: Callable[[str, bytes], Any] | None = None,
+        scene: Any | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
@@ -259,6 +270,17 @@ class CycleRecorder:
         self._dropped = 0
         self._written = dict.fromkeys(_TOPICS, 0)
         self._encode_errors = 0
+        self._live = live
+        self.live_sent = 0
+        """Records handed to the ``live`` sink."""
+        self.live_errors = 0
+        """Exceptions raised by the ``live`` sink (counted, never propagated)."""
+        self._scene = scene
+        self._scene_every = max(1, int(getattr(scene, "every", 1)))
+        self._scene_channels: dict[str, int] = {}
+        self.scene_written = 0
+        """Scene messages written (not part of :meth:`as_dict`)."""
+        self.scene_errors = 0
         self._error: BaseException | None = None
         self._finished = False
         self._released = False
@@ -276,6 +298,8 @@ class CycleRecorder:
             )
             self._writer.start(profile="", library=f"hil-rt_controller/{info['hil_version']}")
             self._channels = self._register_channels()
+            if scene is not None:
+                self._scene_channels = self._register_scene_channels(scene)
             self._writer.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
             self._writer.add_metadata(RUN_METADATA, info)
             self._stream.flush()
@@ -298,6 +322,18 @@ class CycleRecorder:
         diag = w.register_schema("hil.Diagnostics", "jsonschema", encode_json(DIAGNOSTICS_SCHEMA))
         schema_of = {_CYCLE: cycle, _CAN_RX: can, _CAN_TX: can, _VISION: vision, _DIAG: diag}
         return {k: w.register_channel(_TOPICS[k], "json", schema_of[k]) for k in _TOPICS}
+
+    def _register_scene_channels(self, scene: Any) -> dict[str, int]:
+        w, out = self._writer, {}
+        for topic, cls in scene.schemas().items():
+            schema = cls.get_schema()
+            sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data))
+            out[topic] = w.register_channel(topic, "protobuf", sid)
+        return out
+
+    def set_live(self, sink: Callable[[str, bytes], Any] | None) -> None:
+        """Attach (or detach with None) the ``live`` sink; safe while the writer runs."""
+        self._live = sink
 
     # ----------------------------------------------------------------- hot path (loop thread)
 
@@ -400,8 +436,36 @@ class CycleRecorder:
                 log.warning("recorder: cannot encode a %s record: %s", _TOPICS[item[0]], exc)
             return
         log_time = max(0, t_ns + self._mono_to_unix)
-        self._writer.add_message(self._channels[item[0]], log_time, data, log_time)
-        self._written[item[0]] += 1
+        kind = item[0]
+        self._writer.add_message(self._channels[kind], log_time, data, log_time)
+        self._written[kind] += 1
+        if kind in (_CYCLE, _DIAG):
+            live = self._live
+            if live is not None:
+                try:
+                    live(_TOPICS[kind], data)
+                    self.live_sent += 1
+                except Exception as exc:  # a monitor never stops the log
+                    self.live_errors += 1
+                    if self.live_errors == 1:
+                        log.warning("recorder: live sink failed: %s", exc)
+            if kind == _CYCLE and self._scene is not None:
+                self._write_scene(item[2], log_time)
+
+    def _write_scene(self, record: dict[str, Any], log_time: int) -> None:
+        tick = record.get("tick")
+        if not isinstance(tick, int) or tick % self._scene_every:
+            return
+        try:
+            msgs = [(t, m.encode()) for t, m in self._scene.messages(record, log_time)]
+        except Exception as exc:
+            self.scene_errors += 1
+            if self.scene_errors == 1:
+                log.warning("recorder: cannot draw the scene of a cycle: %s", exc)
+            return
+        for topic, data in msgs:
+            self._writer.add_message(self._scene_channels[topic], log_time, data, log_time)
+            self.scene_written += 1
 
     def _drain_burst(self) -> int:
         q, n = self._q, 0

@@ -1,0 +1,102 @@
+"""``hil monitor``: the running rig in Foxglove (or Lichtblick) over a Foxglove WebSocket."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import json
+import os
+import sys
+
+from hal.arguments import duration
+from rt_controller.commands.common import add_config_option
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "monitor",
+        help="bridge the rig's zenoh streams to a Foxglove WebSocket server (live view)",
+        description="Subscribes to hil/controller/cycle, hil/controller/diagnostics, the "
+        "features and the emulator's camera pose, and serves them with foxglove-sdk: the cycle "
+        "topic with its JSON Schema (the plots of foxglove/layout.json work live) and the arm, "
+        "camera, target and image features drawn with Foxglove's schemas. Open Foxglove -> "
+        "Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765. Runs until SIGTERM/SIGINT "
+        "or --duration.",
+    )
+    add_config_option(p)
+    p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
+    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (multi-host)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765; 0 = any)")
+    p.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow a --host that is not a loopback address (the view is unauthenticated)",
+    )
+    p.add_argument(
+        "--duration",
+        type=duration(zero_means_forever=True),
+        default=0.0,
+        metavar="S",
+        help="0 = until stopped",
+    )
+    p.add_argument("--json", action="store_true", help="print counters as JSON at the end")
+    p.set_defaults(handler=run)
+
+
+def _check_host(host: str, allow_remote: bool) -> None:
+    from hal.errors import HalConfigError
+
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = host == "localhost"
+    if not loopback and not allow_remote:
+        raise HalConfigError(
+            f"--host {host} is not a loopback address: the live view has no authentication; "
+            "add --allow-remote to serve it anyway"
+        )
+
+
+def run(args: argparse.Namespace) -> int:
+    from hal.config import load_config
+    from hal.errors import HalConfigError
+    from hal.signals import stop_on_signals
+    from hal.zenoh_session import open_session
+    from rt_controller.monitor.bridge import MonitorBridge
+
+    _check_host(args.host, args.allow_remote)
+    if not 0 <= args.port <= 65535:
+        raise HalConfigError(f"--port must be in 0..65535, got {args.port}")
+    cfg = load_config(args.config)
+    with stop_on_signals() as stop:
+        session = open_session(
+            cfg,
+            listen=False,
+            endpoint=args.zenoh_endpoint,
+            config_file=args.zenoh_config,
+            stop_event=stop,
+        )
+        try:
+            bridge = MonitorBridge(cfg, session, host=args.host, port=args.port)
+            try:
+                bridge.start()
+                print(f"hil monitor: Foxglove WebSocket on {bridge.url}", file=sys.stderr)
+                for topic, schema in bridge.channels().items():
+                    print(f"hil monitor:   {topic}  [{schema}]", file=sys.stderr)
+                stop.wait(args.duration or None)
+            finally:
+                clean = bridge.close()
+                counts = dict(bridge.counts)
+        finally:
+            session.close()
+    if args.json:
+        print(json.dumps({"url": bridge.url, "channels": bridge.channels(), **counts}))
+    else:
+        print("hil monitor: " + ", ".join(f"{k} {v}" for k, v in counts.items()), file=sys.stderr)
+    if not clean:  # a client that never reads holds the server's shutdown (and its exit hook)
+        print("hil monitor: a client did not close; exiting without waiting", file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    return 0

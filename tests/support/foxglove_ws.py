@@ -1,0 +1,117 @@
+"""An independent Foxglove WebSocket client (protocol ``foxglove.websocket.v1``) for tests.
+
+foxglove-sdk servers speak the same protocol under the subprotocol name ``foxglove.sdk.v1``
+(identical so far); the client offers both and accepts either.
+
+Written from the protocol specification, not from foxglove-sdk: text frames are JSON
+(``serverInfo``, ``advertise``, ...); the client sends ``subscribe``; binary frames with opcode 1
+are ``messageData``: ``u8 op | u32 subscription id | u64 log time ns | payload`` (little-endian).
+Protobuf channels carry a base64 ``FileDescriptorSet`` as their schema; :func:`decoder_for`
+builds the message class from it with ``google.protobuf``.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from websockets.sync.client import ClientConnection, connect
+
+SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
+_MESSAGE_DATA = 0x01
+_HEAD = struct.Struct("<BIQ")
+
+
+@dataclass
+class Received:
+    topic: str
+    log_time: int
+    payload: bytes
+
+
+@dataclass
+class FoxgloveClient:
+    """A connected client: :meth:`wait_channels`, :meth:`subscribe`, :meth:`recv`."""
+
+    ws: ClientConnection
+    channels: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """topic -> the advertised channel (id, encoding, schemaName, schema, schemaEncoding)."""
+    server_info: dict[str, Any] | None = None
+    _subs: dict[int, str] = field(default_factory=dict)
+
+    @classmethod
+    def open(cls, url: str, attempts: int = 300, **kwargs: Any) -> FoxgloveClient:
+        """Connect, retrying while the server is not up yet (``attempts`` × 0.1 s)."""
+        last: Exception | None = None
+        for _ in range(attempts):
+            try:
+                ws = connect(url, subprotocols=list(SUBPROTOCOLS), compression=None, **kwargs)
+                ws.__enter__()  # websockets 14+: a connection is a context manager
+            except OSError as exc:
+                last = exc
+                time.sleep(0.1)
+                continue
+            if ws.subprotocol not in SUBPROTOCOLS:
+                raise AssertionError(f"server chose subprotocol {ws.subprotocol!r}")
+            return cls(ws)
+        raise AssertionError(f"cannot connect to {url}: {last}")
+
+    def _handle_text(self, text: str) -> None:
+        msg = json.loads(text)
+        op = msg.get("op")
+        if op == "serverInfo":
+            self.server_info = msg
+        elif op == "advertise":
+            for ch in msg["channels"]:
+                self.channels[ch["topic"]] = ch
+        elif op == "unadvertise":
+            gone = set(msg["channelIds"])
+            self.channels = {t: c for t, c in self.channels.items() if c["id"] not in gone}
+
+    def wait_channels(self, topics: set[str], max_frames: int = 1000) -> None:
+        for _ in range(max_frames):
+            if topics <= set(self.channels):
+                return
+            frame = self.ws.recv(timeout=30)
+            if isinstance(frame, str):
+                self._handle_text(frame)
+        raise AssertionError(f"not advertised: {topics - set(self.channels)}")
+
+    def subscribe(self, topics: list[str]) -> None:
+        subs = []
+        for topic in topics:
+            sub_id = len(self._subs) + 1
+            self._subs[sub_id] = topic
+            subs.append({"id": sub_id, "channelId": self.channels[topic]["id"]})
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def recv(self, timeout: float | None = None) -> Received | None:
+        """The next message of a subscription (None on a text frame)."""
+        frame = self.ws.recv(timeout=timeout)
+        if isinstance(frame, str):
+            self._handle_text(frame)
+            return None
+        if not frame or frame[0] != _MESSAGE_DATA:
+            return None
+        _op, sub_id, log_time = _HEAD.unpack_from(frame)
+        return Received(self._subs[sub_id], log_time, bytes(frame[_HEAD.size :]))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def decoder_for(channel: dict[str, Any]) -> Any:
+    """The protobuf message class of an advertised protobuf channel."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    assert channel["encoding"] == "protobuf"
+    assert channel["schemaEncoding"] == "protobuf"
+    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+    pool = descriptor_pool.DescriptorPool()
+    for fd in fds.file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
