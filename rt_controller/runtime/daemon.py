@@ -82,6 +82,8 @@ class RunStats:
     """Times the controller re-armed the DSP by its re-arm policy."""
     stopped_before_arming: bool = False
     """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
+    spin_s: float = 0.0
+    """Realtime: seconds spent busy-waiting before deadlines (``controller.spin_us``)."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
@@ -103,6 +105,7 @@ class RunStats:
             "drive_ticks": dict(self.drive_ticks),
             "dsp_faults": dict(self.dsp_faults),
             "rearms": self.rearms,
+            "spin_s": self.spin_s,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
@@ -270,14 +273,16 @@ class ControllerDaemon:
     def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
         cfg = self.cfg
         self._warm_up()
-        if self.opts.realtime_settings:
-            rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
-            for w in rt.warnings:
-                print(f"hil controller: warning: {w}", file=sys.stderr)
         self._wait_ready(dsp)
         if self.stop.is_set():
             self.stats.stopped_before_arming = True
             return  # told to stop during start-up: the DSP is never armed
+        if self.opts.realtime_settings:
+            # After warm-up and the first inputs: the pages locked are those the tick, the
+            # receive paths and the recorder have touched (runtime/realtime.py).
+            rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
+            for w in rt.warnings:
+                print(f"hil controller: warning: {w}", file=sys.stderr)
         dsp.enable()
         self._wait_enabled(dsp)
         max_ticks = (
@@ -347,6 +352,14 @@ class ControllerDaemon:
     def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         clock = MonotonicClock(spin_ns=round(self.cfg.controller.spin_us * 1e3))
         cadence = Cadence(self.period_ns, clock)
+        try:
+            self._cadence_loop(dsp, rec, max_ticks, cadence)
+        finally:
+            self.stats.spin_s = clock.spun_ns / 1e9
+
+    def _cadence_loop(
+        self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None, cadence: Cadence
+    ) -> None:
         first = None
         while not self.stop.is_set():
             tick = cadence.wait()
