@@ -94,7 +94,9 @@ def thread_ticks(pid: int, proc: Path = Path("/proc")) -> dict[str, int]:
     return out
 
 
-def read_footprint(pid: int, proc: Path = Path("/proc"), per_thread: bool = True) -> Snapshot | None:
+def read_footprint(
+    pid: int, proc: Path = Path("/proc"), per_thread: bool = True
+) -> Snapshot | None:
     """One snapshot of ``pid``; ``None`` when it is gone (or a zombie without memory)."""
     status, stat = _read(proc / str(pid) / "status"), _read(proc / str(pid) / "stat")
     if status is None or stat is None:
