@@ -126,7 +126,9 @@ class RatesConfig:
     control_hz: float = 50.0
     physics_hz: float = 1000.0
     state_hz: float = 1000.0
-    """Rate of the DSP's joint-state frames."""
+    """Rate of the camera poses the emulator publishes for vision, and of the DSP's joint-state
+    frames with ``dsp.state_sync = free`` (``command``, the default, sends one state per control
+    period, in step with the controller)."""
     status_hz: float = 10.0
     """Rate of the DSP's status frames."""
 
@@ -222,6 +224,16 @@ class DspConfig:
     """Joint speed limits, rad/s: with operation enabled, exceeding one faults the DSP
     (VELOCITY_LIMIT). The paper scenario's live runs peak near 1.2 and 8.3 rad/s (the light
     elbow swings fast after the first torque); a runaway arm passes 20 rad/s within a second."""
+    state_sync: str = "command"
+    """Realtime: when the joint state goes out (the camera pose for vision keeps ``state_hz``).
+    ``command``: once
+    per control period, ``state_lead_us`` before the controller's next tick, the phase learnt from
+    the arrival of its torque commands (what a DSP synchronised to its master's cycle sends; on
+    its own control-period clock until commands arrive); ``free``: at ``rates.state_hz`` on the
+    DSP's own clock. Lockstep always sends the state with each Sync."""
+    state_lead_us: float = 3000.0
+    """``state_sync = command``: how long before the controller's tick the state is sampled; it
+    covers the command's delay after the tick, one physics step and the transport."""
 
 
 @dataclass(frozen=True)
@@ -402,6 +414,7 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "dsp.watchdog_periods": (1, 100, "[]"),
     "dsp.encoder_counts": (2, 1 << 24, "[]"),
     "dsp.velocity_filter_hz": (0, 100_000, "[]"),
+    "dsp.state_lead_us": (0, 1e6, "[]"),
     "dsp.q_min": (-50, 50, "[]"),
     "dsp.q_max": (-50, 50, "[]"),
     "dsp.dq_max": (0, 83, "(]"),
@@ -510,6 +523,11 @@ def validate(cfg: RigConfig) -> RigConfig:
     _require(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")
     _require(d.encoder_counts >= 2, "dsp.encoder_counts", "must be at least 2")
     _require(d.velocity_filter_hz >= 0, "dsp.velocity_filter_hz", "must be non-negative")
+    _require(
+        d.state_sync in ("command", "free"),
+        "dsp.state_sync",
+        f"must be command or free, got {d.state_sync!r}",
+    )
     _check_ranges(cfg)
     for j in range(2):
         _require(

@@ -4,7 +4,11 @@ It applies the latest valid :class:`~hal.can_codec.TorqueCommand` (saturated by 
 publishes quantised joint angles and a filtered velocity estimate, reports :class:`DspStatus`,
 and runs a watchdog that removes torque when commands stop. Two clock modes:
 
-* **realtime**: physics follows ``time.monotonic_ns()`` at ``rates.physics_hz``;
+* **realtime**: physics follows ``time.monotonic_ns()`` at ``rates.physics_hz``; the joint
+  state goes out once per control period, ``dsp.state_lead_us`` before the
+  controller's next tick (:class:`CommandPhase` learns the controller's phase from when its
+  torque commands arrive), as a DSP synchronised to its master's cycle would send them, or with
+  ``dsp.state_sync = free`` at ``rates.state_hz`` on the DSP's own clock;
 * **lockstep**: once per control period the DSP sends ``Sync(k)`` and advances the physics by
   one period only after the controller's command for period ``k`` arrived, so a run is
   deterministic and as fast as the processes allow.
@@ -36,6 +40,7 @@ cannot change a lockstep run. Re-sends never change the physics: a run stays det
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import secrets
@@ -123,6 +128,32 @@ class DspStats:
         return out
 
 
+class CommandPhase:
+    """Where in its period the controller's cycle runs, learnt from when its commands arrive.
+
+    A command leaves the controller a little after its tick and is seen here up to one physics
+    step later, so the earliest arrival of the last ``window`` commands (modulo the period,
+    taken around the newest one so a phase near the period boundary does not wrap) is the best
+    estimate of the tick; later arrivals only mean a busier machine.
+    """
+
+    def __init__(self, period_ns: int, window: int = 16) -> None:
+        self.period_ns = period_ns
+        self._recent: collections.deque[int] = collections.deque(maxlen=window)
+        self.residue_ns: int | None = None
+        """The estimate: tick times are ``residue_ns`` modulo the period (``None``: unknown)."""
+
+    def observe(self, t_ns: int) -> None:
+        p = self.period_ns
+        self._recent.append(t_ns % p)
+        ref, half = self._recent[-1], p // 2
+        self.residue_ns = (ref + min((r - ref + half) % p - half for r in self._recent)) % p
+
+    def reset(self) -> None:
+        self._recent.clear()
+        self.residue_ns = None
+
+
 class DspNode:
     """One emulated DSP on one bus. Not thread-safe: drive it from a single thread."""
 
@@ -157,6 +188,9 @@ class DspNode:
         self.state_every = max(1, round(rates.physics_hz / rates.state_hz))
         self.status_every = max(1, round(rates.physics_hz / rates.status_hz))
         self.pose_every = self.state_every
+        self.state_sync = cfg.dsp.state_sync == "command"
+        self.state_lead_ns = round(cfg.dsp.state_lead_us * 1e3)
+        self.phase = CommandPhase(self.control_period_ns)
         self.watchdog_ns = round(cfg.dsp.watchdog_periods * self.control_period_ns)
         self.encoder_lsb = 2 * math.pi / cfg.dsp.encoder_counts
         fc = cfg.dsp.velocity_filter_hz
@@ -296,6 +330,8 @@ class DspNode:
                 self.stats.late_commands += 1
             else:
                 self._command_seen(now_ns)
+                if not self.lockstep:
+                    self.phase.observe(now_ns)
                 self.last_cmd_tick = frame.tick
                 self.tau_cmd = np.array([frame.tau1, frame.tau2]) if frame.enable else np.zeros(2)
                 accepted = frame
@@ -387,12 +423,31 @@ class DspNode:
         self.check_limits()
         k = self.world.step_index
         if not self.lockstep:
-            if k % self.state_every == 0:
+            if self.state_due(k) if self.state_sync else k % self.state_every == 0:
                 self.send_state()
+            # The camera watches the arm, not the CAN bus: its pose keeps the world's rate.
             if k % self.pose_every == 0:
                 self.publish_pose()
         if k % self.status_every == 0:
             self.send_status()
+
+    def state_due(self, k: int) -> bool:
+        """``state_sync = command``: whether the sample after physics step ``k`` goes out.
+
+        One step per control period: the one whose time lies ``state_lead_ns`` (up to a step)
+        before the controller's next tick. Until the controller's phase is known, or once its
+        commands stopped for a watchdog time, on the DSP's own control-period clock; at control
+        rates whose period is not longer than the lead, after every step.
+        """
+        period, step = self.control_period_ns, self.physics_period_ns
+        if period <= self.state_lead_ns + step:
+            return True
+        t_k = self._t0_ns + k * step
+        phase = self.phase.residue_ns
+        if phase is None or self.last_cmd_ns is None or t_k - self.last_cmd_ns > self.watchdog_ns:
+            return k % self.substeps == 0
+        m = (t_k - phase) % period
+        return period - self.state_lead_ns <= m < period - self.state_lead_ns + step
 
     # --- clock modes ------------------------------------------------------------------------
     def start_realtime(self, now_ns: int) -> None:

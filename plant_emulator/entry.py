@@ -67,7 +67,9 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
         "--state-rate",
         type=bounded_float(0.0, 100_000.0, what="state rate in Hz"),
         metavar="HZ",
-        help="joint-state frame rate (rates.state_hz, default 1000; at most rates.physics_hz)",
+        help="joint-state frame rate on the DSP's own clock (rates.state_hz with "
+        "dsp.state_sync = free; at most rates.physics_hz); default: one per control period, "
+        "in step with the controller's commands",
     )
     p.add_argument("--json", action="store_true", help="print the final counters as one JSON line")
     p.add_argument(
@@ -125,7 +127,7 @@ def _config(args: argparse.Namespace) -> Any:
     cfg = load_config(args.config)
     if args.state_rate is not None:
         try:
-            cfg = cfg.with_overrides({"rates.state_hz": args.state_rate})
+            cfg = cfg.with_overrides({"rates.state_hz": args.state_rate, "dsp.state_sync": "free"})
         except HalConfigError as exc:
             raise HalConfigError(f"--state-rate: {exc}") from exc
     return cfg

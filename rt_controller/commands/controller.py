@@ -60,6 +60,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rt_controller.runtime.realtime import lean_process
+
+    if not args.no_rt:
+        lean_process()  # before the first thread starts (small stacks, few malloc arenas)
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import print_summary
     from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions

@@ -2,7 +2,12 @@
 
 For each rate the three processes run for ``duration`` seconds; the numbers come from the
 controller's MCAP log: wake-up lateness, cycle time (read + solve + write), deadline misses and
-the end-to-end latency from a joint-state frame's arrival to the torque frame it caused.
+the end-to-end latency from a joint-state frame's arrival to the torque frame it caused. The
+footprint of each process comes from ``/proc`` while it runs (:mod:`rt_controller.rig.footprint`):
+peak RSS (anonymous and file-backed), peak locked memory, peak thread count, and CPU % of one
+core over the controller's steady second half, per thread name too; the controller's busy-wait
+before each deadline (``controller.spin_us``) is reported apart (``spin_cpu_percent``) and
+``cpu_percent_excluding_spin`` is the rest.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import numpy as np
 from hal.config import RigConfig, load_config
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.logtools.reader import read_log
+from rt_controller.rig.footprint import FootprintSampler
 from rt_controller.rig.processes import RigOptions, run_rig
 from rt_controller.sample_stats import summary_stats
 
@@ -52,16 +58,17 @@ def bench_rate(
     conf = workdir / f"rig-{rate:g}.toml"
     _write_toml(rcfg, conf)
     log = workdir / f"loop-{rate:g}.mcap"
-    summary = run_rig(
-        RigOptions(
-            config=str(conf),
-            law=law,
-            duration_s=duration,
-            lockstep=False,
-            log=log,
-            **_monitor(monitor_port),
+    with FootprintSampler() as sampler:
+        summary = run_rig(
+            RigOptions(
+                config=str(conf),
+                law=law,
+                duration_s=duration,
+                lockstep=False,
+                log=log,
+                **_monitor(monitor_port),
+            )
         )
-    )
     c = read_log(log).cycles
     ticks = int(c["tick"].size)
     misses = int(np.sum(c["deadline_miss"]))
@@ -79,7 +86,23 @@ def bench_rate(
         "e2e_us": summary_stats(c["e2e_us"]) if "e2e_us" in c else None,
         "f_final_norm": summary.get("f_final_norm"),
         "fallbacks": summary.get("fallbacks"),
+        "footprint": footprint(sampler, duration, summary),
     }
+
+
+def footprint(sampler: FootprintSampler, duration: float, summary: dict) -> dict[str, Any]:
+    """Per process: peaks and CPU (:meth:`FootprintSampler.summary`); for the controller also
+    the CPU of its spin window, measured by the daemon (``spin_s``), and the rest."""
+    out = sampler.summary(steady_s=duration / 2)
+    ctl = out.get("controller")
+    spin_s = summary.get("spin_s")
+    if ctl is not None and spin_s is not None and duration > 0:
+        ctl["spin_cpu_percent"] = 100.0 * spin_s / duration
+        total = ctl.get("cpu_percent")
+        ctl["cpu_percent_excluding_spin"] = (
+            None if total is None else max(0.0, total - ctl["spin_cpu_percent"])
+        )
+    return out
 
 
 def bench_lockstep(cfg: RigConfig, duration: float, law: str, workdir: Path) -> dict:

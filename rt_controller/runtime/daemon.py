@@ -92,6 +92,8 @@ class RunStats:
     """Times the controller re-armed the DSP by its re-arm policy."""
     stopped_before_arming: bool = False
     """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
+    spin_s: float = 0.0
+    """Realtime: seconds spent busy-waiting before deadlines (``controller.spin_us``)."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
@@ -113,6 +115,7 @@ class RunStats:
             "drive_ticks": dict(self.drive_ticks),
             "dsp_faults": dict(self.dsp_faults),
             "rearms": self.rearms,
+            "spin_s": self.spin_s,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
@@ -366,14 +369,16 @@ class ControllerDaemon:
     def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
         cfg = self.cfg
         self._warm_up()
-        if self.opts.realtime_settings:
-            rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
-            for w in rt.warnings:
-                print(f"hil controller: warning: {w}", file=sys.stderr)
         self._wait_ready(dsp)
         if self.stop.is_set():
             self.stats.stopped_before_arming = True
             return  # told to stop during start-up: the DSP is never armed
+        if self.opts.realtime_settings:
+            # After warm-up and the first inputs: the pages locked are those the tick, the
+            # receive paths and the recorder have touched (runtime/realtime.py).
+            rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
+            for w in rt.warnings:
+                print(f"hil controller: warning: {w}", file=sys.stderr)
         dsp.enable()
         self._wait_enabled(dsp)
         max_ticks = (
@@ -442,6 +447,15 @@ class ControllerDaemon:
 
     def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         cadence = Cadence(self.period_ns, self.clock)
+        try:
+            self._cadence_loop(dsp, rec, max_ticks, cadence)
+        finally:
+            spun = getattr(self.clock, "spun_ns", 0)  # a fake clock never spins
+            self.stats.spin_s = spun / 1e9
+
+    def _cadence_loop(
+        self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None, cadence: Cadence
+    ) -> None:
         first = None
         while not self.stop.is_set():
             tick = cadence.wait()

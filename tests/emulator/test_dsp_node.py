@@ -46,6 +46,13 @@ T0 = 1_000_000_000_000
 TRANSPORTS = ["virtual", "udp_multicast"]
 
 
+@pytest.fixture
+def cfg(cfg: RigConfig) -> RigConfig:
+    """These tests read the joint state after every physics step: the DSP's own clock at
+    ``rates.state_hz`` (the command-synchronised default is tested in test_state_sync.py)."""
+    return cfg.with_overrides({"dsp.state_sync": "free"})
+
+
 def wait_for(cond: Callable[[], bool], what: str, poll: Callable[[], object] | None = None) -> None:
     """Spin until ``cond()``; ``poll()`` in between (e.g. let the node drain its bus)."""
     deadline = time.monotonic() + RECV_TIMEOUT_S

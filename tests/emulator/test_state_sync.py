@@ -1,0 +1,103 @@
+"""``dsp.state_sync = command``: one joint state per control period, ``state_lead_us`` before
+the controller's tick, the phase learnt from when its commands arrive (fake clock, no sleeps)."""
+
+from __future__ import annotations
+
+import can
+import pytest
+
+from hal.bus import isolated_spec, open_bus
+from hal.can_codec import ControllerCodec, JointPosition
+from hal.config import RigConfig
+from plant_emulator.dsp_node import CommandPhase, DspNode
+
+MS = 1_000_000
+T0 = 1_000_000_000_000
+PERIOD = 20 * MS
+
+
+def test_phase_is_the_earliest_arrival_of_recent_commands() -> None:
+    ph = CommandPhase(PERIOD, window=4)
+    assert ph.residue_ns is None
+    for k, delay in enumerate((900_000, 400_000, 1_300_000)):
+        ph.observe(T0 + 7 * MS + k * PERIOD + delay)
+    assert ph.residue_ns == (T0 + 7 * MS + 400_000) % PERIOD
+    ph.reset()
+    assert ph.residue_ns is None
+
+
+def test_phase_near_the_period_boundary_does_not_wrap() -> None:
+    """Ticks at 19.9 ms into the period: arrivals land on both sides of the boundary."""
+    ph = CommandPhase(PERIOD, window=8)
+    base = T0 - (T0 % PERIOD) + PERIOD - 100_000
+    for k, delay in enumerate((50_000, 300_000, 120_000, 500_000)):
+        ph.observe(base + k * PERIOD + delay)
+    assert ph.residue_ns == (base + 50_000) % PERIOD
+
+
+def _node(cfg: RigConfig, bus: can.BusABC, **dsp: object) -> DspNode:
+    return DspNode(cfg.with_overrides({f"dsp.{k}": v for k, v in dsp.items()}), bus)
+
+
+def test_one_state_per_period_lead_before_the_commanded_tick(cfg: RigConfig) -> None:
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus, open_bus(spec) as ctl_bus:
+        node = _node(cfg, bus, state_lead_us=3000.0)
+        node.start_realtime(T0)
+        codec = ControllerCodec()
+        # Until a command arrives: on the DSP's own control-period clock.
+        due = [k for k in range(1, 61) if node.state_due(k)]
+        assert due == [20, 40, 60]
+        # The controller ticks 7 ms into each period; its commands arrive 0.5-1 ms later.
+        tick_offset = 7 * MS
+        for k in range(3):
+            t_cmd = T0 + k * PERIOD + tick_offset + (500_000 if k else 1_000_000)
+            ctl_bus.send(codec.encode_torque(0.0, 0.0, enable=False))
+            node.drain(t_cmd)
+        assert node.phase.residue_ns == (T0 + tick_offset + 500_000) % PERIOD
+        assert node.stats.commands == 3
+        node.last_cmd_ns = T0 + 3 * PERIOD  # keep the "commands stopped" rule out of the way
+        k0 = 3 * PERIOD // MS
+        due = [k for k in range(k0, k0 + 40) if node.state_due(k)]
+        assert len(due) == 2  # once per period
+        for k in due:
+            t = T0 + k * MS
+            to_tick = (T0 + tick_offset + 500_000 - t) % PERIOD
+            assert 2 * MS < to_tick <= 3 * MS  # sampled a lead (within a step) before the tick
+
+
+def test_commands_that_stopped_fall_back_to_the_dsp_clock(cfg: RigConfig) -> None:
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus:
+        node = _node(cfg, bus)
+        node.start_realtime(T0)
+        node.phase.observe(T0 + 7 * MS)
+        node.last_cmd_ns = T0 + 7 * MS
+        late = round(node.watchdog_ns / MS) + 40
+        due = [k for k in range(late, late + 40) if node.state_due(k)]
+        assert due == [k for k in range(late, late + 40) if k % node.substeps == 0]
+
+
+@pytest.mark.parametrize("control_hz", [500.0, 1000.0])
+def test_short_periods_get_a_state_after_every_step(cfg: RigConfig, control_hz: float) -> None:
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus:
+        node = DspNode(cfg.with_overrides({"rates.control_hz": control_hz}), bus)
+        node.start_realtime(T0)
+        node.phase.observe(T0)
+        node.last_cmd_ns = T0
+        assert all(node.state_due(k) for k in range(1, 10))
+
+
+def test_free_mode_keeps_the_configured_state_rate(cfg: RigConfig) -> None:
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus, open_bus(spec) as tap:
+        node = DspNode(cfg.with_overrides({"dsp.state_sync": "free"}), bus)
+        node.start_realtime(T0)
+        for i in range(10):
+            node.service(T0 + (i + 1) * MS)
+        states = 0
+        codec = ControllerCodec()
+        while (msg := tap.recv(timeout=0)) is not None:
+            states += isinstance(codec.decode(msg), JointPosition)
+        assert states == 11  # the initial one and one per physics step at 1000 Hz
