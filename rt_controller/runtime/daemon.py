@@ -463,7 +463,9 @@ class ControllerDaemon:
             if max_ticks is not None and tick.index - first >= max_ticks:
                 return
             t_s = (tick.release_ns - cadence.start_ns) / 1e9
-            self.read_inputs(dsp, tick.wake_ns)
+            # the inputs are stamped when actually read (a preempted tick reads later than it
+            # woke): a message that arrived after the wake-up is not "from the future"
+            self.read_inputs(dsp, self.clock.now_ns())
             self._tick(dsp, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
             if self.clock.now_ns() > cadence.deadline_of(tick):
                 self.stats.deadline_misses += 1

@@ -90,17 +90,34 @@ def _laws_after(log: Path, first_mode: str) -> list[str]:
     return laws[laws.index(first_mode) :]
 
 
+def _wait_law(log: Path, mode: str, rig: Rig) -> None:
+    """Wait until a tick was recorded in ``mode`` (then 25 more)."""
+    deadline = time.monotonic() + WAIT_S
+    while True:
+        try:
+            laws = list(read_log(log, raw=False).column("law"))
+        except Exception:
+            laws = []
+        if mode in laws:
+            _wait_cycles(log, len(laws) + 25, rig)
+            return
+        if time.monotonic() > deadline:
+            pytest.fail(f"no tick in mode {mode}: {sorted(set(laws))}")
+        time.sleep(0.1)
+
+
 def test_emulator_killed_and_restarted_is_reported_and_never_rearmed(tmp_path):
-    opts, log = _opts(tmp_path)
+    opts, log = _opts(tmp_path, duration_s=300.0)
     with Rig(opts) as rig:
         rig.start()
         _wait_cycles(log, 50, rig)
         emulator = _child(rig, "emulator")
         emulator.proc.send_signal(signal.SIGKILL)
         emulator.proc.wait()
-        n_dead = _wait_cycles(log, _cycles(log) + 25, rig)  # the loop goes on without a DSP
+        _wait_cycles(log, _cycles(log) + 25, rig)  # the loop goes on without a DSP
         rig._start("emulator", list(emulator.proc.args))  # a new DSP process (new session)
-        _wait_cycles(log, n_dead + 60, rig)
+        _wait_law(log, "dsp_restarted", rig)
+        _child(rig, "controller").proc.send_signal(signal.SIGTERM)
         rc, summary, err = _controller_result(rig)
     assert rc == 1, err
     assert summary["drive_ticks"].get("dsp_restarted", 0) > 0, summary["drive_ticks"]
