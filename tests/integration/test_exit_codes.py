@@ -11,16 +11,14 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from hal.bus import isolated_spec
 from hal.zenoh_session import free_loopback_port
-from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.daemon import run_problems
+from tests.support import cycles_logged, start_hil_up
 from tests.support.proc import processes_mentioning
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,19 +37,6 @@ def test_each_problem_is_named():
         "1 log record(s) could not be encoded",
         "2 DSP watchdog trip(s)",
     ]
-
-
-def _hil_up(ep: str, log: Path, *extra: str) -> subprocess.Popen:
-    args = [sys.executable, "-m", "rt_controller.cli", "up", "--json"]
-    args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", ep, "--log", str(log)]
-    return subprocess.Popen(
-        [*args, *extra],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        cwd=REPO,
-    )
 
 
 def _finish(proc: subprocess.Popen, ep: str) -> tuple[int, dict, str]:
@@ -90,19 +75,12 @@ def tiny_tmpfs(tmp_path):
 @pytest.mark.integration
 def test_disk_full_for_the_log_fails_the_run(tiny_tmpfs):
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
-    proc = _hil_up(ep, tiny_tmpfs / "run.mcap", "--lockstep", "--duration", "10")
+    proc = start_hil_up(ep, tiny_tmpfs / "run.mcap", "--json", "--lockstep", "--duration", "10")
     rc, summary, err = _finish(proc, ep)
     assert rc == 1, err
     assert summary["recorder"]["dropped"] > 0
     last = err.strip().splitlines()[-1]
     assert last.startswith("hil up: run not clean:") and "log record(s) lost" in last, err
-
-
-def _cycles(log: Path) -> int:
-    try:
-        return read_log(log, raw=False).n_cycles
-    except Exception:
-        return 0
 
 
 @pytest.mark.integration
@@ -111,7 +89,7 @@ def test_a_watchdog_trip_fails_the_run(tmp_path):
     has settled (the torque the DSP holds until the trip is then small)."""
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     log = tmp_path / "run.mcap"
-    proc = _hil_up(ep, log, "--duration", "10")
+    proc = start_hil_up(ep, log, "--json", "--duration", "10")
     deadline = time.monotonic() + WAIT_S
     controller = []
     while not controller and time.monotonic() < deadline:
@@ -119,7 +97,7 @@ def test_a_watchdog_trip_fails_the_run(tmp_path):
         time.sleep(0.05)
     assert controller, "the controller never started"
     pid = int(controller[0].split(":")[0])
-    while time.monotonic() < deadline and _cycles(log) < 100:
+    while time.monotonic() < deadline and cycles_logged(log) < 100:
         time.sleep(0.05)  # running for 2 s: the transient is over
     os.kill(pid, signal.SIGSTOP)
     time.sleep(0.5)  # fault injection, not a timing assertion: any freeze > 60 ms trips it

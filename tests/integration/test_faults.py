@@ -26,7 +26,7 @@ from hal.vision_codec import decode_features, encode_features
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.processes import Child, Rig, RigOptions
-from tests.support import free_endpoint
+from tests.support import cycles_logged, free_endpoint
 
 pytestmark = pytest.mark.integration
 
@@ -34,17 +34,10 @@ WAIT_S = 120.0
 LAWS = ("pbc", "ioc", "rhc")
 
 
-def _cycles(log: Path) -> int:
-    try:
-        return read_log(log, raw=False).n_cycles
-    except Exception:
-        return 0
-
-
 def _wait_cycles(log: Path, n: int, rig: Rig) -> int:
     """Wait until the log holds at least ``n`` cycles (the controller is running)."""
     deadline = time.monotonic() + WAIT_S
-    while (have := _cycles(log)) < n:
+    while (have := cycles_logged(log)) < n:
         ctl = _child(rig, "controller")
         if ctl.proc.poll() is not None:
             pytest.fail(f"controller exited early ({ctl.proc.returncode}):\n{ctl.tail()}")
@@ -114,7 +107,7 @@ def test_emulator_killed_and_restarted_is_reported_and_never_rearmed(tmp_path):
         emulator = _child(rig, "emulator")
         emulator.proc.send_signal(signal.SIGKILL)
         emulator.proc.wait()
-        _wait_cycles(log, _cycles(log) + 25, rig)  # the loop goes on without a DSP
+        _wait_cycles(log, cycles_logged(log) + 25, rig)  # the loop goes on without a DSP
         rig._start("emulator", list(emulator.proc.args))  # a new DSP process (new session)
         _wait_law(log, "dsp_restarted", rig)
         _child(rig, "controller").proc.send_signal(signal.SIGTERM)
@@ -190,7 +183,7 @@ def test_future_stamped_and_foreign_features_are_rejected_and_a_dead_camera_goes
         vision = _child(rig, "vision")
         vision.proc.send_signal(signal.SIGKILL)
         vision.proc.wait()
-        _wait_cycles(log, _cycles(log) + 100, rig)
+        _wait_cycles(log, cycles_logged(log) + 100, rig)
         _child(rig, "controller").proc.send_signal(signal.SIGTERM)
         _, summary, _ = _controller_result(rig)
     features = summary["rejections"]["features"]

@@ -10,17 +10,16 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from hal.bus import isolated_spec
 from hal.can_codec import DspCodec, TorqueCommand
 from hal.zenoh_session import free_loopback_port
 from rt_controller.logtools.reader import read_log
 from rt_controller.logtools.republish import can_message
+from tests.support import cycles_logged, start_hil_up
 from tests.support.proc import processes_mentioning
 
 pytestmark = pytest.mark.integration
@@ -39,19 +38,6 @@ def _wait(cond, what: str, proc: subprocess.Popen | None = None) -> None:
         if time.monotonic() > deadline:
             pytest.fail(f"timed out waiting for {what}")
         time.sleep(0.05)
-
-
-def _hil_up(ep: str, log: Path, *extra: str) -> subprocess.Popen:
-    args = [sys.executable, "-m", "rt_controller.cli", "up", "--duration", "600"]
-    args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", ep, "--log", str(log)]
-    return subprocess.Popen(
-        [*args, *extra],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        cwd=REPO,
-    )
 
 
 def _children(ep: str) -> list[str]:
@@ -80,19 +66,12 @@ def last_torque(can_tx: list[dict]) -> tuple[float, float]:
     return last
 
 
-def _cycles_logged(log: Path) -> int:
-    try:
-        return read_log(log, raw=False).n_cycles
-    except Exception:
-        return 0
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
 def test_a_signal_to_hil_up_stops_the_rig_torque_first(tmp_path, sig):
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
-    proc = _hil_up(ep, log, "--lockstep")
+    proc = start_hil_up(ep, log, "--duration", "600", "--lockstep")
     _wait(lambda: len(_children(ep)) == 3, "three children", proc)
-    _wait(lambda: _cycles_logged(log) >= 20, "the controller's first ticks", proc)
+    _wait(lambda: cycles_logged(log) >= 20, "the controller's first ticks", proc)
     proc.send_signal(sig)
     rc, err = _finish(proc, ep)
     assert rc == 128 + sig, err
@@ -108,7 +87,7 @@ def test_sigterm_during_start_up_stops_cleanly(tmp_path):
     """Before the controller has armed the DSP: exit 143 with one line, nothing left, and no
     misleading "no hub" error from a child told to stop while it waited."""
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
-    proc = _hil_up(ep, log)
+    proc = start_hil_up(ep, log, "--duration", "600")
     _wait(lambda: len(_children(ep)) == 3, "three children", proc)
     proc.send_signal(signal.SIGTERM)
     rc, err = _finish(proc, ep)
@@ -121,9 +100,9 @@ def test_a_killed_hil_up_leaves_nothing_running(tmp_path):
     """SIGKILL cannot be caught: the children learn of their parent's death from the kernel
     (parent-death signal), stop on their own and the controller still finishes its log."""
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
-    proc = _hil_up(ep, log, "--lockstep")
+    proc = start_hil_up(ep, log, "--duration", "600", "--lockstep")
     _wait(lambda: len(_children(ep)) == 3, "three children", proc)
-    _wait(lambda: _cycles_logged(log) >= 20, "the controller's first ticks", proc)
+    _wait(lambda: cycles_logged(log) >= 20, "the controller's first ticks", proc)
     proc.kill()  # only hil up itself, not its process group
     proc.communicate()
     _wait(lambda: not processes_mentioning(ep), "the orphaned children to stop")

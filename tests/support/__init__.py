@@ -75,3 +75,30 @@ def run_hil(args: list[str], timeout_s: float) -> subprocess.CompletedProcess[st
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def start_hil_up(endpoint: str, log: Path, *extra: str) -> subprocess.Popen:
+    """``hil up`` on a private CAN bus and zenoh endpoint, in a session of its own (so a test
+    can signal it alone), with text pipes for its output."""
+    from hal.bus import isolated_spec
+
+    args = [sys.executable, "-m", "rt_controller.cli", "up"]
+    args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", endpoint]
+    return subprocess.Popen(
+        [*args, "--log", str(log), *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        cwd=REPO,
+    )
+
+
+def cycles_logged(log: Path) -> int:
+    """Cycles in a log that is still being written (0 while it is not readable yet)."""
+    from rt_controller.logtools.reader import read_log
+
+    try:
+        return read_log(log, raw=False).n_cycles
+    except Exception:
+        return 0
