@@ -271,8 +271,11 @@ def test_end_to_end_realtime_decimation(cfg, endpoint):
             assert time.monotonic() - t0 < 20, "no realtime frames"
         elapsed = time.monotonic() - t0
     stats: VisionStats = out["stats"]
-    assert stats.poses > 3 * stats.frames  # decimated: far fewer frames than poses
-    assert stats.frames <= 20.0 * (time.monotonic() - t0) + 2
+    # Bounds that hold under any scheduling: at most one frame per 50 ms slot of the monotonic
+    # frame clock (which starts at the first pose, after t0) and never more frames than poses.
+    # How much is decimated depends on how fast this loop got to publish; the decimation ratio
+    # itself is checked on a fake clock (test_realtime_decimates_to_the_frame_rate).
+    assert 5 <= stats.frames <= min(stats.poses, 20.0 * (time.monotonic() - t0) + 2)
     assert elapsed > 0 and dec.counts.rejected == 0
     assert dec.latest is not None and not dec.latest.lockstep
     assert np.allclose(dec.latest.f, (-120.0, -160.0))
