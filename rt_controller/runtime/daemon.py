@@ -442,7 +442,10 @@ class ControllerDaemon:
         if feat is None or recv_ns is None:
             f, f_age_ms = np.full(2, math.nan), math.nan
         elif self.opts.lockstep:
-            f, f_age_ms = np.array(feat.f), (t_s * 1e9 - feat.sim_time_ns) / 1e6
+            # in integer ns: t_s * 1e9 rounds below k * period_ns at some ticks (4.02 s, ...),
+            # and a frame captured at the tick itself came out 5e-13 ms "in the future": stale
+            now_ns = sync * self.period_ns if sync is not None else round(t_s * 1e9)
+            f, f_age_ms = np.array(feat.f), (now_ns - feat.sim_time_ns) / 1e6
         else:  # by stamp and by arrival: a future stamp cannot make old data look fresh
             f, f_age_ms = np.array(feat.f), feature_age_ns(wake_ns, feat.stamp_ns, recv_ns) / 1e6
         f_stale = not (0.0 <= f_age_ms <= cfg.controller.feature_timeout_s * 1e3)
