@@ -307,7 +307,7 @@ class _Receiver:
         """Every counter by name (``accepted``, ``future_stamp``, ``foreign_source``, ...,
         plus the sums ``malformed``, ``stale``, ``untrusted``, ``rejected``)."""
         with self._cond:
-            return self.counts.to_dict()
+            return self.counts.as_dict()
 
     def _foreign(self, source: int, now: int) -> bool:
         """With the lock held: whether ``source`` must be rejected (counted) as foreign."""

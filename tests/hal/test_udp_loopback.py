@@ -34,7 +34,7 @@ from hal.udp_loopback import (
     ReceiveBufferWarning,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 RECV_TIMEOUT_S = 5.0
 IPV6_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"  # python-can's host-local test group
 

@@ -99,6 +99,8 @@ def rig_options(log: Path, **kw: Any) -> RigOptions:
     """A rig on its own CAN port and zenoh port, logging to ``log``."""
     kw.setdefault("can", isolated_spec("udp_multicast"))
     kw.setdefault("zenoh_endpoint", free_endpoint())
+    # a busy host can take longer than vision's default 10 s to bring the emulator's hub up
+    kw["extra_vision"] = ["--wait", "120", *kw.get("extra_vision", [])]
     return RigOptions(log=log, **kw)
 
 
@@ -108,6 +110,11 @@ DSP_PROTECTION = re.compile(
 """What may make a realtime run not clean on a busy host: the controller stalled past the DSP's
 watchdog (3 periods) or its late commands let the arm exceed a DSP limit; either way the DSP's
 protection took the torque off (a fault), and the ticks after ran without an enabled DSP."""
+
+
+ZERO_TORQUE_MODES = {"no_state", "no_status", "fault", "disarmed", "dsp_restarted"}
+"""Cycle ``law`` values in which the controller commands zero torque (a late joint state, or a
+DSP that is not enabled; see hal.drive_state)."""
 
 
 def assert_exit_codes(s: dict[str, Any], *, realtime: bool) -> bool:
@@ -478,12 +485,20 @@ def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
     # the controller flagged the dropout: stale ticks, all of them in hold; the summary's
     # counters are exactly the per-tick records'
     assert s["stale_features"] == int(stale.sum()) > 0
-    assert np.all(law[stale] == "hold")
-    assert s["stale_states"] == int(np.sum(law == "no_state"))
+    assert s["stale_states"] == int(c["state_stale"].sum())
     if lockstep:
+        assert np.all(law[stale] == "hold")
         assert np.all(law[~stale] == "rhc") and s["stale_states"] == 0
-    else:  # a realtime tick may find the joint state late on a busy host: zero torque then
-        assert set(law[~stale]) <= {"rhc", "no_state"}
+    else:
+        # A busy host may make a realtime tick find the joint state late ("no_state"), or the
+        # DSP's protection may have taken the torque off ("fault", "no_status", ...): the
+        # controller then commands zero torque. Under any scheduling: the law never acts on
+        # stale features, and every tick is the law, the hold damper, or zero torque.
+        assert not np.any(law[stale] == "rhc")
+        zero = ~np.isin(law, ["rhc", "hold"])
+        assert set(law[zero]) <= ZERO_TORQUE_MODES, set(law[zero])
+        assert np.all(c["tau"][zero] == 0.0)
+        assert np.all(law[c["state_stale"].astype(bool)] != "rhc")
     expected = (length_s - FEATURE_TIMEOUT_S) / PERIOD_S  # 20 ticks
     if lockstep:  # deterministic: exactly the window, once the last frame aged past the timeout
         first, n = longest_run(stale)
@@ -515,10 +530,18 @@ def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
     # pure damper tau = -2 R dq only takes energy out
     assert (np.abs(tau) <= TAU_MAX + 1e-9).all() and (np.abs(sent) <= TAU_MAX + 0.01).all()
     dq = c["dq"]
-    assert np.isfinite(dq).all() and np.abs(dq).max() < DQ_LIMIT
+    assert np.isfinite(dq).all()
+    if clean:
+        assert np.abs(dq).max() < DQ_LIMIT
+    else:  # a loop stalled by the host may excite joint 2; the DSP's velocity limit caught it
+        dq_max = np.array(CFG.dsp.dq_max)
+        if np.any(np.abs(dq) > dq_max):
+            assert "velocity_limit" in s["dsp_faults"], s["dsp_faults"]
+        print(f"realtime, not clean: max |dq| {np.abs(dq).max(axis=0)} (DSP limit {dq_max})")
     hold = slice(first, first + n)
     assert np.all(tau[hold] * dq[hold] <= 1e-12), "hold torque must oppose the motion"
-    assert np.linalg.norm(dq[first + n - 1]) <= np.linalg.norm(dq[first]) + 0.05
+    if clean:  # the damper alone acted throughout (no fault let the arm coast)
+        assert np.linalg.norm(dq[first + n - 1]) <= np.linalg.norm(dq[first]) + 0.05
 
     # after the features return the law takes over again and converges (in real time: when the
     # DSP's protection did not have to take the torque off on a busy host)
