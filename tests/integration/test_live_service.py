@@ -90,6 +90,10 @@ SIM_TRACKING_PX = 2.0
 velocity filter and the 60 fps camera (observed: at most 1.1 px, on a 200 px start)."""
 DROPOUT = (1.0, 0.5)
 """Vision dropout (start, duration) in seconds of simulation time (the issue: paused 0.5 s)."""
+REALTIME_DROPOUT_START_S = 4.0
+"""In real time the dropout is on the emulator's clock, which starts before the controller's
+first tick; a host loaded far beyond its cores can delay that tick by seconds, so the realtime
+run drops out later (the run is long enough to converge again after it)."""
 DROPOUT_DURATION_S = 8.0
 DQ_LIMIT = 10.0
 """rad/s: the paper scenario never comes near this (observed max 4.2 rad/s on joint 2)."""
@@ -469,6 +473,8 @@ def longest_run(mask: np.ndarray) -> tuple[int, int]:
 def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
     log = tmp_path / "dropout.mcap"
     start_s, length_s = DROPOUT
+    if not lockstep:
+        start_s = REALTIME_DROPOUT_START_S
     opts = rig_options(
         log,
         law="rhc",
