@@ -15,8 +15,15 @@ group and for python-can's host-local IPv6 group. A group the bus refuses at ope
 is skipped with the bus's one-line reason; any failure or error fails the check. The port is
 reserved for this process with :func:`hal.bus.isolated_spec`, so parallel runs never cross-talk.
 
-Prints one summary line; exit status 0 = passed, 1 = a test failed, 2 = the suite could not be
-obtained or run.
+Flaky-test policy: upstream's suite has wall-clock assertions of its own (e.g.
+``test_send_periodic_duration`` needs python-can's periodic thread to start within 10 ms), which
+a loaded machine can miss. Tests that fail (or error) in the first run are therefore run once
+more, alone, in a fresh pytest process; a test that passes on that rerun counts as passed and is
+named in the summary line (``flaky: passed on rerun: ...``), a test that fails twice fails the
+check. Nothing else is retried, and a rerun never hides a failure that repeats.
+
+Prints one summary line; exit status 0 = passed, 1 = a test failed (twice), 2 = the suite could
+not be obtained or run.
 
     python scripts/can_peer_suite.py [--cache DIR] [-v] [--keep]
 """
@@ -178,6 +185,19 @@ def register_plugin(dest: Path) -> None:
     )
 
 
+def failed_tests(junit: Path) -> dict[str, str]:
+    """Node id (``test_hal_peer.py::Class::test``) -> ``failed`` or ``error``, of every test
+    that did not pass."""
+    out = {}
+    for case in ET.parse(junit).iter("testcase"):
+        kinds = [child.tag for child in case if child.tag in ("failure", "error")]
+        if kinds:
+            cls = case.get("classname", "").rsplit(".", 1)[-1]
+            kind = "failed" if kinds[0] == "failure" else "error"
+            out[f"test_hal_peer.py::{cls}::{case.get('name', '')}"] = kind
+    return out
+
+
 def summarise(junit: Path) -> dict[str, Counter[str]]:
     """Outcome counts per address family from pytest's JUnit XML."""
     out: dict[str, Counter[str]] = {"IPv4": Counter(), "IPv6": Counter()}
@@ -217,15 +237,37 @@ def run(cache: Path, verbose: bool, keep: bool) -> tuple[int, str]:
         env["HAL_PEER_IPV4_GROUP"] = str(spec.channel)
         for var in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE"):
             env.pop(var, None)
+
+        def pytest_run(junit: Path, targets: list[str]) -> subprocess.CompletedProcess[str]:
+            cmd = [sys.executable, "-m", "pytest", "-c", str(work / "pytest.ini")]
+            cmd += ["--rootdir", str(work), "--junitxml", str(junit), "-o", "timeout=120"]
+            cmd += ["-q", *targets]
+            proc = subprocess.run(cmd, cwd=work, env=env, capture_output=not verbose, text=True)
+            if not junit.exists():
+                tail = (proc.stdout or "").strip().splitlines()[-5:] if not verbose else []
+                raise PeerSuiteError(
+                    f"pytest did not run the suite (exit {proc.returncode}): {tail}"
+                )
+            return proc
+
         junit = work / "junit.xml"
-        cmd = [sys.executable, "-m", "pytest", "-c", str(work / "pytest.ini")]
-        cmd += ["--rootdir", str(work), "--junitxml", str(junit), "-o", "timeout=120"]
-        cmd += ["-q", str(work / "test_hal_peer.py")]
-        proc = subprocess.run(cmd, cwd=work, env=env, capture_output=not verbose, text=True)
-        if not junit.exists():
-            tail = (proc.stdout or "").strip().splitlines()[-5:] if not verbose else []
-            raise PeerSuiteError(f"pytest did not run the suite (exit {proc.returncode}): {tail}")
+        proc = pytest_run(junit, [str(work / "test_hal_peer.py")])
         counts = summarise(junit)
+        flaky: list[str] = []
+        first_failed = failed_tests(junit)
+        if first_failed:  # the flaky-test policy: each failed test once more, alone
+            rerun_junit = work / "junit-rerun.xml"
+            rerun = pytest_run(rerun_junit, list(first_failed))
+            still = failed_tests(rerun_junit)
+            flaky = [t for t in first_failed if t not in still]
+            for test in flaky:
+                family = "IPv6" if "IPv6" in test else "IPv4"
+                counts[family][first_failed[test]] -= 1
+                counts[family]["passed"] += 1
+            if flaky and not verbose:  # the first failure stays visible
+                sys.stderr.write(proc.stdout[-3000:])
+            if not still and rerun.returncode == 0:
+                proc = rerun  # every failure of the first run passed on its rerun
         parts = []
         for family in ("IPv4", "IPv6"):
             c = counts[family]
@@ -246,6 +288,9 @@ def run(cache: Path, verbose: bool, keep: bool) -> tuple[int, str]:
             sys.stderr.write(proc.stdout[-6000:])
         head = f"python-can {version} test/{SUITE} ({', '.join(modules)}) vs hal.udp_loopback"
         verdict = "OK" if ok else "FAILED"
+        if flaky:
+            names = ", ".join(t.split("::", 1)[1] for t in flaky)
+            verdict += f" (flaky: passed on rerun: {names})"
         return (0 if ok else 1), f"{head}: {'; '.join(parts)}: {verdict}"
     finally:
         if keep:

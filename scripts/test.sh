@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # The README's test command: install, lint, run the whole suite, run it again on a clock that
-# reads like a machine booted 30 s ago, then the vcan tests on a real SocketCAN vcan0 (natively
-# where the host has one, otherwise inside user-mode Linux).
+# reads like a machine booted 30 s ago, then python-can's own back-to-back suite against the
+# loopback CAN bus (peer check; its flaky-test policy: a test that fails is rerun once, alone,
+# and passes only if the rerun passes, named as "flaky: passed on rerun" in the summary line;
+# see scripts/can_peer_suite.py), then the vcan tests on a real SocketCAN vcan0 (natively where
+# the host has one, otherwise inside user-mode Linux).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
@@ -9,4 +12,5 @@ bash scripts/bootstrap.sh
 .venv/bin/ruff format --check .
 .venv/bin/python -m pytest -m "not vcan" "$@"
 bash scripts/fresh_clock_pytest.sh -m "not vcan" "$@"
+.venv/bin/python scripts/can_peer_suite.py
 .venv/bin/python scripts/vcan_pytest.py

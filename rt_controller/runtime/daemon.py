@@ -549,8 +549,10 @@ class ControllerDaemon:
         if feat is None or recv_ns is None:
             f, f_age_ms = np.full(2, math.nan), math.nan
         elif self.opts.lockstep:
-            # integer simulation nanoseconds: exact, never a spurious -1e-13 ms
-            f, f_age_ms = np.array(feat.f), (round(t_s * 1e9) - feat.sim_time_ns) / 1e6
+            # in integer ns: t_s * 1e9 rounds below k * period_ns at some ticks (4.02 s, ...),
+            # and a frame captured at the tick itself came out 5e-13 ms "in the future": stale
+            now_ns = round(t_s * 1e9)  # t_s = k * period exactly; rounding undoes the float
+            f, f_age_ms = np.array(feat.f), (now_ns - feat.sim_time_ns) / 1e6
         else:  # by stamp and by arrival: a future stamp cannot make old data look fresh
             f, f_age_ms = np.array(feat.f), feature_age_ns(wake_ns, feat.stamp_ns, recv_ns) / 1e6
         return Inputs(

@@ -8,6 +8,7 @@ import pytest
 from hal.config import RigConfig
 from plant_emulator.world import World
 from rt_controller.control.controller import Controller
+from rt_controller.control.model import NominalModel
 from rt_controller.control.simulate import SimResult, run_closed_loop
 
 
@@ -58,11 +59,78 @@ def test_inverse_optimal_beats_passivity_based_fig3(cfg):
     assert np.linalg.norm(ioc.trace.f[-1]) < 1.0
 
 
-def test_torque_is_held_between_ticks_and_summary_is_complete(cfg):
+def nominal_rk4(model: NominalModel, q, dq, tau, dt):
+    """One classic RK4 step of the controller's nominal model (an implementation independent of
+    the emulator's physics, see tests/integration/test_physics_crosscheck.py)."""
+
+    def acc(q, dq):
+        return np.linalg.solve(model.M(q), tau - model.C(q, dq) @ dq - model.g(q))
+
+    k1q, k1v = dq, acc(q, dq)
+    k2q, k2v = dq + 0.5 * dt * k1v, acc(q + 0.5 * dt * k1q, dq + 0.5 * dt * k1v)
+    k3q, k3v = dq + 0.5 * dt * k2v, acc(q + 0.5 * dt * k2q, dq + 0.5 * dt * k2v)
+    k4q, k4v = dq + dt * k3v, acc(q + dt * k3q, dq + dt * k3v)
+    return (
+        q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q),
+        dq + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v),
+    )
+
+
+def test_torque_is_held_between_ticks(cfg, monkeypatch):
+    """Between two ticks the physics integrates exactly the tick's torque, constant over every
+    substep: (1) each physics step the world takes applies the torque the controller decided at
+    the tick before it, and (2) an independent integration of the controller's nominal model with
+    tau_k held for one period reproduces the next sampled state; holding any other torque (the
+    next tick's, or a ramp between the two) does not."""
+    steps: list[np.ndarray] = []
+    hold = World.hold
+
+    def spy(self, tau, n, encoder=None):
+        before = self.step_index
+        hold(self, tau, n, encoder)
+        assert self.step_index - before == n
+        steps.extend(np.array(self.tau_applied) for _ in range(n))
+
+    monkeypatch.setattr(World, "hold", spy)
+    r = simulate(cfg, "ioc", 1.0)
+    tr = r.trace
+    tau, q, dq = tr.array("tau"), tr.array("q"), tr.array("dq")
+    sub = cfg.rates.substeps
+    assert len(tau) == 50 and len(steps) == 50 * sub
+    # (1) the torque applied at every physics step is the one decided at its tick, unchanged
+    applied = np.array(steps).reshape(50, sub, 2)
+    np.testing.assert_array_equal(applied, np.repeat(tau[:, None, :], sub, axis=1))
+    assert np.ptp(tau, axis=0).min() > 0.1  # the law really changes the torque tick by tick
+
+    # (2) independent integration with the held torque, tick by tick
+    model = NominalModel.from_config(cfg)
+    dt = 1.0 / cfg.rates.physics_hz
+    gaps = {"held": [], "next": [], "ramp": []}
+    for k in range(49):
+        candidates = {
+            "held": lambda s, k=k: tau[k],
+            "next": lambda s, k=k: tau[k + 1],
+            "ramp": lambda s, k=k: tau[k] + (tau[k + 1] - tau[k]) * (s + 0.5) / sub,
+        }
+        for name, torque in candidates.items():
+            qk, dqk = q[k], dq[k]
+            for s in range(sub):
+                qk, dqk = nominal_rk4(model, qk, dqk, torque(s), dt)
+            gaps[name].append(max(np.abs(qk - q[k + 1]).max(), np.abs(dqk - dq[k + 1]).max()))
+    held = max(gaps["held"])
+    print({name: f"{max(g):.3g}" for name, g in gaps.items()})
+    assert held < 1e-8, held
+    for other in ("next", "ramp"):  # the check can tell a held torque from the alternatives
+        assert max(gaps[other]) > 1e3 * max(held, 1e-12), (other, max(gaps[other]))
+
+
+def test_summary_is_complete(cfg):
     r = simulate(cfg, "ioc", 1.0)
     s = r.as_dict()
-    assert s["ticks"] == 50
-    assert s["V0"] == pytest.approx(r.trace.V[0])
-    assert s["f_final"] == pytest.approx(list(r.trace.f[-1]))
-    assert len(s["max_abs_tau"]) == 2
-    assert s["J"] == pytest.approx(sum(r.trace.cost) / 50)
+    tr = r.trace
+    assert s["ticks"] == 50 == len(tr.t)
+    assert s["V0"] == tr.V[0]
+    assert s["f_final"] == [float(v) for v in tr.f[-1]]
+    assert s["f_final_norm"] == float(np.linalg.norm(tr.f[-1]))
+    assert s["max_abs_tau"] == [float(v) for v in np.abs(tr.array("tau")).max(axis=0)]
+    assert s["J"] == pytest.approx(sum(tr.cost) / 50, rel=1e-12)

@@ -107,9 +107,11 @@ def test_settings_are_validated(tmp_path):
     for bad in ({"reps": 0}, {"duration_s": 0.0}, {"noise_px": -1.0}, {"duration_s": math.nan}):
         with pytest.raises(ControllerConfigError):
             settings(tmp_path, **bad).validate()
-    with pytest.raises(SystemExit) as exc:  # refused while parsing the command line
+    # the command line refuses it before anything runs: argparse's usage error, exit status 2
+    with pytest.raises(SystemExit) as exc:
         main(["experiment", "table1", "--reps", "0", "--out", str(tmp_path / "x")])
     assert exc.value.code == 2
+    assert not (tmp_path / "x").exists()
 
 
 def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monkeypatch, capsys):

@@ -6,10 +6,15 @@
 * ``udp_multicast`` cases (host-local, isolated port) are marked ``integration`` and run natively
   everywhere; that variant also checks the camera poses the emulator publishes on zenoh.
 
-User-mode Linux is about 10x slower than the host: timeouts are generous and no wall-clock timing
-is asserted there. The watchdog requirement (torque off within 3 control periods) is checked on
-the DSP's own clock: the emulator reports in its ``--json`` summary how long after the last valid
-command it tripped.
+No wall-clock timing is asserted anywhere (user-mode Linux is about 10x slower than the host,
+and a loaded CI machine stalls any process for tens of ms): the state rate and the watchdog
+requirement (torque off within 3 control periods) are checked on the DSP's own clock, from the
+emulator's ``--json`` summary (physics steps, state frames, the trip's latency after the last
+valid command). A client streaming torque at 50 Hz may be descheduled past the 60 ms watchdog on
+a busy host; that is a legitimate trip, so the streaming clients re-arm after one and the tests
+check what holds under any scheduling (every trip on the DSP clock, torque off at the end). That
+the watchdog stays quiet while commands arrive in time is checked on a fake clock in
+``test_dsp_node.py``.
 """
 
 from __future__ import annotations
@@ -46,7 +51,11 @@ SLOW = 10.0 if IN_UML else 1.0
 START_TIMEOUT_S = 30.0 * SLOW
 """Python + numba + python-can start-up of the emulator process."""
 RECV_TIMEOUT_S = 5.0 * SLOW
-STOP_TIMEOUT_S = 10.0 * SLOW
+STOP_TIMEOUT_S = 60.0 * SLOW
+"""Generous: a loaded 2-core host (load average > 10 seen) can take many seconds to run the
+emulator's last periods and exit; only a hang should hit this."""
+EVENT_TIMEOUT_S = 60.0 * SLOW
+"""Waiting for an event the DSP must report (a trip after SIGKILL): bounds a wait only."""
 LIGHT = ["--state-rate", "250"] if IN_UML else []
 """Under user-mode Linux (one slow CPU) three Python processes decoding 2000 frames/s each cannot
 keep up: the emulator then runs seconds behind real time and wall-clock observations measure that
@@ -197,13 +206,21 @@ def constant(tau: tuple[float, float]) -> Law:
 @contextlib.contextmanager
 def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[list[int]]:
     """Enable the DSP and send ``law(q, dq)`` of the latest state at ``hz`` from a thread, like
-    a controller; on exit the same thread disables the DSP right after its last command."""
+    a controller; on exit the same thread disables the DSP right after its last command.
+
+    A busy host may stall this thread past the DSP's watchdog (3 periods of 20 ms): the DSP then
+    trips, as it must, and the thread re-arms it (``enable`` resets the fault) so the test goes
+    on; ``sent[1]`` counts the re-arms."""
     stop = threading.Event()
-    sent = [0]
+    sent = [0, 0]
 
     def run() -> None:
         client.enable()
         while not stop.is_set():
+            status = client.status
+            if status is not None and status.watchdog_tripped:
+                client.enable()
+                sent[1] += 1
             state = client.latest_state(max_age_s=1e9)
             client.send_torque(*law(state.q, state.dq))
             sent[0] += 1
@@ -217,6 +234,22 @@ def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[list[
     finally:
         stop.set()
         thread.join(timeout=STOP_TIMEOUT_S)
+
+
+def assert_dsp_clock_invariants(cfg: RigConfig, summary: dict[str, Any]) -> None:
+    """What the emulator's summary must say under any host scheduling: realtime physics catches
+    up step by step (never skips), so the joint state goes out exactly every ``state_every``
+    physics steps of the DSP clock (plus the initial one), i.e. at ``rates.state_hz``; and every
+    watchdog trip came between 3 control periods and 3 periods + one physics step after the last
+    valid command (DSP clock)."""
+    state_every = max(1, round(cfg.rates.physics_hz / cfg.rates.state_hz))
+    steps = summary["physics_steps"]
+    assert steps > 0
+    assert summary["state_frames"] + summary["states_withheld"] == 1 + steps // state_every
+    if summary["watchdog_trips"]:
+        limit_ms = cfg.dsp.watchdog_periods * 1e3 / cfg.rates.control_hz
+        lat = summary["last_trip_latency_ms"]
+        assert limit_ms - 1e-6 <= lat <= limit_ms + 1e3 / cfg.rates.physics_hz + 1e-6, lat
 
 
 # ------------------------------------------------------------------ commands and state
@@ -248,17 +281,13 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
                 zs.subscribe(KEY_CAMERA_POSE, on_pose)
             q0 = first_state(client)
             assert q0 == pytest.approx(cfg.scenario.q0, abs=RAD_PER_COUNT)
-            # State rate, over one second of wall time.
+            # The state rate is a DSP-clock property, checked on the summary below; the wall
+            # clock rate is only reported.
             n0, t0 = client.stats.states, time.monotonic()
             time.sleep(1.0)
             rate = (client.stats.states - n0) / (time.monotonic() - t0)
-            # No commands yet: one state per control period on the DSP's own clock (or
-            # rates.state_hz with dsp.state_sync = free).
-            expected = cfg.rates.state_hz if cfg.dsp.state_sync == "free" else cfg.rates.control_hz
-            print(f"joint state received at {rate:.0f} Hz (expected {expected:g})")
-            if not IN_UML:
-                assert rate > 0.5 * expected
-            assert rate > 0
+            print(f"joint state received at {rate:.0f} Hz (rates.state_hz {cfg.rates.state_hz:g})")
+            assert client.stats.states > n0
 
             # A constant torque until joint 1 moved, then torque off (state in UML may lag by
             # seconds, so no feedback law here: it would go unstable on stale states).
@@ -271,16 +300,15 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
                     "joint 1 moving under +3 N·m",
                 )
                 q1 = client.latest_state(max_age_s=RECV_TIMEOUT_S).q
-                assert not client.status.watchdog_tripped  # type: ignore[union-attr]
             print(f"q: {q0} -> {q1} after {sent[0]} torque commands (3, 0.3) N·m")
             assert q1[1] > q0[1], "joint 2 did not move under +0.3 N·m"
             wait_until(lambda: not client.status.torque_enabled, "disarmed")  # type: ignore[union-attr]
         summary = stop_emulator(emu)
     print(f"emulator summary: {json.dumps(summary)}")
     assert summary["commands"] >= sent[0]
-    assert summary["watchdog_trips"] == 0
     assert summary["rejected"]["rejected"] == 0
-    assert summary["physics_steps"] > 0 and summary["state_frames"] > 0
+    assert_dsp_clock_invariants(cfg, summary)
+    assert summary["drive_state"] != "operation_enabled"  # disarmed at the end
     if native:
         assert summary["poses_published"] > 0
         assert len(poses) > 10, "no camera poses arrived over zenoh"
@@ -297,6 +325,9 @@ with JointClient.open(sys.argv[1]) as dsp:
     dsp.enable()
     print("armed", flush=True)
     while True:  # 50 Hz until killed; zero torque keeps the arm at rest inside its limits
+        if dsp.status is not None and dsp.status.watchdog_tripped:
+            dsp.enable()  # stalled past the watchdog by a busy host: re-arm (resets the fault)
+            print("re-armed", flush=True)
         dsp.send_torque(0.0, 0.0)
         time.sleep(0.02)
 """
@@ -319,37 +350,45 @@ def test_watchdog_trips_when_the_client_is_killed(cfg: RigConfig, can_spec: str)
                 "torque enabled by the client process",
             )
             time.sleep(0.5 * SLOW)  # the client streams torque at 50 Hz
-            status = observer.latest_status(max_age_s=RECV_TIMEOUT_S)
-            assert status.torque_enabled and not status.watchdog_tripped
-            assert status.watchdog_trips == 0, "the watchdog tripped while the client was alive"
+            # armed by the live client (re-armed by it if a stall tripped the watchdog)
+            wait_until(
+                lambda: observer.status is not None and observer.status.torque_enabled,
+                "torque enabled while the client streams",
+            )
             os.kill(client.pid, signal.SIGKILL)
             killed = time.monotonic()
             client.popen.wait(timeout=STOP_TIMEOUT_S)
             seen = wait_until(
                 lambda: observer.status is not None and observer.status.watchdog_tripped,
                 "WatchdogTripped after SIGKILL of the client",
+                EVENT_TIMEOUT_S,
             )
-            status = observer.status
-            assert status is not None
-            assert not status.torque_enabled
-            assert status.watchdog_trips == 1
+            # nobody is left to re-arm it: the trip latches, torque stays off
+            time.sleep(0.2 * SLOW)
+            status = observer.latest_status(max_age_s=RECV_TIMEOUT_S)
+            assert status.watchdog_tripped and not status.torque_enabled
         finally:
             client.close()
         summary = stop_emulator(emu)
+    rearms = client.out.count("re-armed")
     dsp_ms = summary["last_trip_latency_ms"]
     print(f"emulator summary: {json.dumps(summary)}")
     print(
         f"watchdog: the DSP tripped {dsp_ms:.3f} ms after the last valid command (DSP clock; "
         f"limit {limit_ms:g} ms = {cfg.dsp.watchdog_periods:g} periods); the observer saw "
         f"WatchdogTripped {1e3 * (seen - killed):.1f} ms after SIGKILL (wall clock"
-        f"{', user-mode Linux' if IN_UML else ''})"
+        f"{', user-mode Linux' if IN_UML else ''}, reported only); "
+        f"{rearms} re-arms after stalls of the live client"
     )
-    assert summary["watchdog_trips"] == 1
+    # Every trip is one the client survived and re-armed, plus the final one after the kill
+    # (a stall's trip that the client had no time to see before it died adds at most one).
+    assert rearms + 1 <= summary["watchdog_trips"] <= rearms + 2
+    assert status.watchdog_trips == min(summary["watchdog_trips"], 15)
     # Requirement, on the DSP's own clock: torque off within 3 control periods of the last
     # command (the trip is evaluated once per physics step).
     assert limit_ms - 1e-6 <= dsp_ms <= limit_ms + physics_ms + 1e-6
-    if not IN_UML:
-        assert seen - killed < 1.0  # sanity only; the requirement is checked on the DSP clock
+    assert summary["drive_state"] == "fault" and summary["fault_reason"] == "watchdog"
+    assert_dsp_clock_invariants(cfg, summary)
 
 
 # --------------------------------------------------------------------------------- signals
@@ -371,7 +410,10 @@ def test_signal_turns_torque_off_and_exits_zero(
             # The last frame of the DSP: a DspStatus with the torque off.
             wait_until(lambda: not client.status.torque_enabled, "final status, torque off")  # type: ignore[union-attr]
     assert summary["commands"] >= 1
-    assert summary["watchdog_trips"] == 0
+    # torque off at the end whatever happened before (a stall's trip was re-armed)
+    assert summary["drive_state"] != "operation_enabled"
+    assert summary["watchdog_trips"] <= sent[1] + 1
+    assert_dsp_clock_invariants(cfg, summary)
 
 
 @pytest.mark.integration

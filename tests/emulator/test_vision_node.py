@@ -271,8 +271,11 @@ def test_end_to_end_realtime_decimation(cfg, endpoint):
             assert time.monotonic() - t0 < 20, "no realtime frames"
         elapsed = time.monotonic() - t0
     stats: VisionStats = out["stats"]
-    assert stats.poses > 3 * stats.frames  # decimated: far fewer frames than poses
-    assert stats.frames <= 20.0 * (time.monotonic() - t0) + 2
+    # Bounds that hold under any scheduling: at most one frame per 50 ms slot of the monotonic
+    # frame clock (which starts at the first pose, after t0) and never more frames than poses.
+    # How much is decimated depends on how fast this loop got to publish; the decimation ratio
+    # itself is checked on a fake clock (test_realtime_decimates_to_the_frame_rate).
+    assert 5 <= stats.frames <= min(stats.poses, 20.0 * (time.monotonic() - t0) + 2)
     assert elapsed > 0 and dec.counts.rejected == 0
     assert dec.latest is not None and not dec.latest.lockstep
     assert np.allclose(dec.latest.f, (-120.0, -160.0))
@@ -304,25 +307,22 @@ def test_main_runs_for_a_duration_and_prints_json(endpoint, capsys):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
+        (["--fps", "-1"], "argument --fps: frame rate in Hz must be in [0, 10000], got -1"),
         (["--zenoh-endpoint", "tcp/10.0.0.1:7447"], "loopback"),
+        (["--noise", "-1"], "argument --noise: pixel noise must be in [0, 1000], got -1"),
         (["--zenoh-config", "/nonexistent/zenoh.json5"], "no such file"),
     ],
 )
 def test_main_bad_options_are_one_clear_line(args, message, capsys):
-    assert main([*args, "--duration", "0.1"]) == 2
+    """Exit status 2 and one ``hil vision: error:`` line, whether the command line parser
+    refuses the value (argparse exits 2 itself) or the run does."""
+    try:
+        status = main([*args, "--duration", "0.1"])
+    except SystemExit as exc:
+        status = exc.code
+    assert status == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("hil vision: error:") and message in err[-1]
-
-
-@pytest.mark.parametrize(
-    ("args", "message"), [(["--fps", "-1"], "--fps"), (["--noise", "-1"], "--noise")]
-)
-def test_main_bad_numbers_are_refused_while_parsing(args, message, capsys):
-    with pytest.raises(SystemExit) as exc:
-        main([*args, "--duration", "0.1"])
-    assert exc.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("hil vision: error: argument") and message in err[-1]
+    assert err[-1].startswith("hil vision: error:") and message in err[-1], err
 
 
 def test_main_without_hub_says_what_to_start(endpoint, capsys):

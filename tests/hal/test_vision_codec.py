@@ -205,43 +205,72 @@ def _mutate(rng: random.Random, good: bytes) -> tuple[bytes, str]:
     return bytes(buf), "random"
 
 
+BUCKETS = (
+    "accepted",
+    "bad_size",
+    "bad_magic",
+    "bad_version",
+    "bad_flags",
+    "bad_value",
+    "bad_type",
+    "stale_age",
+    "stale_order",
+    "backwards_stamp",
+    "future_stamp",
+    "foreign_source",
+)
+"""The counters of :class:`RxCounts` of which every message increments exactly one."""
+
+
 def test_fuzz_5000_payloads_no_crash_every_bad_one_counted():
+    """Every feed lands in exactly one bucket, and the one the test knows it must (an oracle
+    per message, so a double count or a wrong bucket fails, not only a missing count)."""
     rng = random.Random(1234)
     d = FeatureDecoder(max_age_ns=50_000_000, clock=lambda: NOW)
-    expected = {"bad_size": 0, "bad_magic": 0, "bad_version": 0, "bad_flags": 0, "bad_value": 0}
-    good_fed = bad_fed = random_fed = stale_expected = 0
+    expected = dict.fromkeys(BUCKETS, 0)
     frame = 0
+    random_fed = 0
+
+    def feed(payload: bytes, bucket: str | None) -> object:
+        """Feed one payload; check it landed in ``bucket`` (any one bucket when None)."""
+        before = [getattr(d.counts, k) for k in BUCKETS]
+        received = d.counts.received
+        msg = d.feed(payload, NOW)
+        delta = {k: getattr(d.counts, k) - b for k, b in zip(BUCKETS, before, strict=True)}
+        assert d.counts.received == received + 1
+        assert sorted(delta.values()) == [0] * (len(BUCKETS) - 1) + [1], delta
+        landed = next(k for k, v in delta.items() if v)
+        assert bucket is None or landed == bucket, (bucket, landed)
+        assert (landed == "accepted") == (msg is not None)
+        expected[landed] += 1
+        return msg
+
     for i in range(5000):
         if i % 5 == 0:  # interleave good traffic so the decoder keeps moving
             frame += 1
-            assert d.feed(encode_features(feat(frame=frame, pose_seq=frame)), NOW) is not None
-            good_fed += 1
+            feed(encode_features(feat(frame=frame, pose_seq=frame)), "accepted")
             continue
-        if i % 5 == 1:  # a replay or an old message
+        if i % 5 == 1:  # a replay (not newer than the last accepted) or an old message
             if rng.random() < 0.5:
-                payload = encode_features(feat(frame=frame, pose_seq=frame))
+                feed(encode_features(feat(frame=frame, pose_seq=frame)), "stale_order")
             else:
-                payload = encode_features(feat(frame=frame + 1, stamp_ns=NOW - 10**9))
-            assert d.feed(payload, NOW) is None
-            stale_expected += 1
+                feed(encode_features(feat(frame=frame + 1, stamp_ns=NOW - 10**9)), "stale_age")
             continue
         payload, kind = _mutate(rng, encode_features(feat(frame=frame + 1, pose_seq=frame + 1)))
-        msg = d.feed(payload, NOW)
-        if kind == "random":
+        if kind == "random":  # any one bucket; which one is the decoder's call
             random_fed += 1
+            msg = feed(payload, None)
             if msg is not None:  # astronomically unlikely but legal: keep the books straight
-                good_fed += 1
                 frame = max(frame, msg.frame)
             continue
-        assert msg is None, kind
-        expected[kind] += 1
-        bad_fed += 1
+        feed(payload, kind)
     c = d.counts
     assert c.received == 5000
+    assert {k: getattr(c, k) for k in BUCKETS} == expected  # exact, bucket by bucket
     assert c.accepted + c.rejected == 5000  # every message lands in one bucket
-    assert c.accepted == good_fed
-    for key, n in expected.items():
-        assert getattr(c, key) >= n > 0, key
-    assert c.malformed >= bad_fed and c.stale >= stale_expected
+    assert c.malformed == sum(expected[k] for k in BUCKETS if k.startswith("bad_"))
+    for kind in ("bad_size", "bad_magic", "bad_version", "bad_flags", "bad_value"):
+        assert expected[kind] > 0, kind  # every mutation kind was exercised
+    assert expected["stale_order"] > 0 and expected["stale_age"] > 0
     assert random_fed > 0 and c.bad_type == 0
     assert d.latest is not None and d.latest.frame == frame

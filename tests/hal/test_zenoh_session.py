@@ -123,16 +123,17 @@ def test_client_without_hub_gives_up_clearly(endpoint):
 
 
 def test_client_wait_is_interrupted_by_stop_event(endpoint):
+    """Waiting for a hub that never comes ends on the stop request, not on ``wait_s`` (an hour
+    here: a wait that ignored the stop would hit pytest's timeout instead)."""
     stop = threading.Event()
     timer = threading.Timer(0.2, stop.set)
     timer.start()
-    t0 = time.monotonic()
     try:
-        with pytest.raises(HalStopped):  # a stop request, not a transport failure
-            open_session(listen=False, endpoint=endpoint, wait_s=60.0, stop_event=stop)
+        with pytest.raises(HalStopped, match="stopped while waiting for the hub"):
+            open_session(listen=False, endpoint=endpoint, wait_s=3600.0, stop_event=stop)
     finally:
         timer.join()
-    assert time.monotonic() - t0 < 30.0
+    assert stop.is_set()
 
 
 def test_client_started_before_hub_connects_when_it_appears(endpoint):
