@@ -26,6 +26,7 @@ from hal.config import RigConfig
 from hal.drive_state import MODE_ENABLED, MODE_NO_STATUS, DriveEvent, DriveMonitor, FaultReason
 from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
+from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder, feature_age_ns
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.control.controller import Controller, warm_up
@@ -167,7 +168,7 @@ class ControllerDaemon:
             if options.lockstep
             else cfg.controller.state_timeout_s
         )
-        self.features = FeatureDecoder.from_config(cfg.controller)
+        self.features = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
 
     # --- wiring -----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
