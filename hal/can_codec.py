@@ -46,7 +46,7 @@ from hal.secoc import (
     TRAILER_BYTES,
     SecOCSigner,
     SecOCVerifier,
-    ephemeral_key,
+    rig_key,
 )
 
 DBC_PATH = Path(__file__).with_name("hil.dbc")
@@ -358,10 +358,11 @@ def load_database() -> HilDatabase:
 class CanEndpoint:
     """One node's end of the link: protected encode of what it sends, checked decode of the rest.
 
-    Every frame is authenticated (:mod:`hal.secoc`) with ``key``, the rig key (default: this
-    process's :func:`~hal.secoc.ephemeral_key`, so only endpoints of this process understand
-    each other). ``verify=False`` skips the authentication checks on receive (offline tools
-    reading a log whose key is gone); sending always signs.
+    Every frame is authenticated (:mod:`hal.secoc`) with ``key``, the rig key (default:
+    :func:`~hal.secoc.rig_key`: ``$HIL_KEY_FILE``, else this process's ephemeral key, so only
+    endpoints of this process understand each other). ``verify=False`` skips the
+    authentication checks on receive (offline tools reading a log whose key is gone); sending
+    always signs.
 
     Not thread-safe per direction: call :meth:`encode` from one thread (or under a lock) and
     :meth:`decode` from one thread (the receive thread); the two directions are independent.
@@ -387,7 +388,7 @@ class CanEndpoint:
             raise HalCodecError(f"node {node!r} is not in {DBC_PATH.name}")
         self._rx = {s.frame_id: s for s in rx}
         self._sender = E2ESender()
-        key = ephemeral_key() if key is None else key
+        key = rig_key() if key is None else key
         self._signer = SecOCSigner(key, node)
         peers = {n for s in rx for n in s.message.senders}
         verifiers = {

@@ -152,7 +152,6 @@ class E2EStats:
         """All counters plus ``rejected``, for logs and ``--json`` summaries."""
         out = dataclasses.asdict(self)
         out["rejected"] = self.rejected
-        out["auth_rejected"] = self.auth_rejected
         return out
 
 

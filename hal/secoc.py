@@ -11,10 +11,13 @@ use gets its own derived key (:func:`derive`: HMAC-SHA256 of the rig key over a 
 of one kind (a controller's CAN frame, a DSP's CAN frame, a features message, a camera pose)
 never verifies as another kind.
 
-Processes of a rig name the key with ``transport.key_file`` (``--key-file``);
-:func:`rig_key` loads it. Without a configured key a process uses :func:`ephemeral_key`, a random
-key of this process only: objects talking to each other inside one process (tests, benchmarks)
-still work, and nothing outside the process can speak to them. The rig's entry points (``hil
+Processes of a rig name the key with ``transport.key_file`` (``--key-file``), or the
+environment variable ``HIL_KEY_FILE`` when the config names none; :func:`rig_key` loads it.
+Every object of the HAL that signs or verifies (:class:`~hal.can_codec.CanEndpoint`,
+:class:`~hal.vision_codec.FeatureDecoder`, ...) takes a ``key`` and defaults to
+:func:`rig_key`. Without a configured key a process uses :func:`ephemeral_key`, a random key of
+this process only: objects talking to each other inside one process (tests, benchmarks) still
+work, and nothing outside the process can speak to them. The rig's entry points (``hil
 controller``, ``hil emulator``, ``hil vision``, ``hil replay --republish``) require a configured
 key (:func:`require_rig_key`).
 
@@ -73,6 +76,8 @@ DEFAULT_MAX_SKEW_US = 1_000_000
 VISION_MAC_BYTES = 16
 """zenoh messages: truncated HMAC-SHA256 tag (128 bits; size is no constraint there)."""
 
+KEY_ENV = "HIL_KEY_FILE"
+"""Environment variable naming the rig key file when the config names none."""
 KEYGEN_HINT = "create one with: hil keygen FILE (then --key-file FILE or transport.key_file)"
 
 
@@ -145,17 +150,39 @@ def ephemeral_key() -> bytes:
     return secrets.token_bytes(KEY_BYTES)
 
 
-def rig_key(cfg: Any = None) -> bytes:
-    """The key of ``cfg.transport.key_file`` (loaded and checked), else :func:`ephemeral_key`."""
+def key_path(cfg: Any = None) -> str:
+    """The configured key file: ``cfg.transport.key_file``, else ``$HIL_KEY_FILE``, else ""."""
     path = getattr(getattr(cfg, "transport", None), "key_file", "") if cfg is not None else ""
-    return load_key_file(path) if path else ephemeral_key()
+    return path or os.environ.get(KEY_ENV, "")
+
+
+_loaded: dict[tuple[str, int, int, int], bytes] = {}
+
+
+def rig_key(cfg: Any = None) -> bytes:
+    """The configured key (:func:`key_path`, loaded and checked), else :func:`ephemeral_key`.
+
+    A file already loaded is read again only when its inode, mode or mtime changed."""
+    path = key_path(cfg)
+    if not path:
+        return ephemeral_key()
+    try:
+        st = os.stat(path)
+        ident = (str(path), st.st_ino, st.st_mode, st.st_mtime_ns)
+    except OSError:
+        return load_key_file(path)  # raises the one-line error
+    key = _loaded.get(ident)
+    if key is None:
+        key = _loaded[ident] = load_key_file(path)
+    return key
 
 
 def require_rig_key(cfg: Any, who: str) -> bytes:
     """The configured rig key of a rig process; :class:`HalKeyError` if none is configured."""
-    if not getattr(cfg.transport, "key_file", ""):
+    path = key_path(cfg)
+    if not path:
         raise HalKeyError(f"{who}: no rig key configured; {KEYGEN_HINT}")
-    return load_key_file(cfg.transport.key_file)
+    return load_key_file(path)
 
 
 def configure_key(cfg: Any, key_file: str | None, who: str) -> Any:

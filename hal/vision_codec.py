@@ -60,7 +60,7 @@ from dataclasses import asdict, dataclass
 from typing import Any, NamedTuple
 
 from hal.errors import HalCodecError
-from hal.secoc import VISION_MAC_BYTES, Mac, derive, ephemeral_key
+from hal.secoc import VISION_MAC_BYTES, Mac, derive, rig_key
 
 FEATURES_MAGIC = b"HF"
 POSE_MAGIC = b"HP"
@@ -80,8 +80,13 @@ POSE_SIZE = _POSE.size + MAC_SIZE
 
 
 @functools.lru_cache(maxsize=16)
+def _mac_of(key: bytes, label: str) -> Mac:
+    return Mac(derive(key, label), MAC_SIZE)
+
+
 def _mac(key: bytes | None, label: str) -> Mac:
-    return Mac(derive(ephemeral_key() if key is None else key, label), MAC_SIZE)
+    """The MAC of ``label`` with ``key`` (default: :func:`hal.secoc.rig_key`)."""
+    return _mac_of(rig_key() if key is None else key, label)
 
 
 def _verified(buf: bytes, key: bytes | None, label: str) -> bool:
@@ -323,7 +328,7 @@ class _Receiver:
         if source_takeover_ns is not None and source_takeover_ns < 0:
             raise ValueError("source_takeover_ns must be non-negative or None")
         self.counts = RxCounts()
-        self.key = key
+        self.key = rig_key() if key is None else key
         self.resync_after = resync_after
         self.source_takeover_ns = source_takeover_ns
         self._clock = clock
@@ -343,7 +348,7 @@ class _Receiver:
         """Every counter by name (``accepted``, ``future_stamp``, ``foreign_source``, ...,
         plus the sums ``malformed``, ``stale``, ``untrusted``, ``rejected``)."""
         with self._cond:
-            return self.counts.to_dict()
+            return self.counts.as_dict()
 
     def _foreign(self, source: int, now: int) -> bool:
         """With the lock held: whether ``source`` must be rejected (counted) as foreign."""
