@@ -116,8 +116,10 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
 
     A run is not clean when it lost log records, tripped the DSP's watchdog, saw the DSP
-    fault, or ran ticks without an enabled DSP (disarmed, restarted, silent); the commands exit
-    non-zero and print these on one line.
+    fault, received a stream of frames or messages that failed authentication (another sender
+    on the rig's bus or zenoh: :data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without
+    an enabled DSP (disarmed, restarted, silent); the commands exit non-zero and print these on
+    one line.
     """
     out: list[str] = []
     rec = summary.get("recorder") or {}
@@ -131,6 +133,12 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     faults = {k: v for k, v in (summary.get("dsp_faults") or {}).items() if k != "watchdog"}
     if faults:
         out.append("DSP fault(s): " + ", ".join(f"{k} {v}" for k, v in faults.items()))
+    rejections = summary.get("rejections") or {}
+    for name, what in (("can_rx", "CAN frame(s)"), ("features", "vision message(s)")):
+        auth = diagnostics.auth_failures(rejections.get(name) or {})
+        if sum(auth.values()) >= diagnostics.AUTH_FAULT_MIN:
+            reasons = ", ".join(f"{k} {v}" for k, v in auth.items() if v)
+            out.append(f"{sum(auth.values())} {what} failed authentication ({reasons})")
     drive = summary.get("drive_ticks") or {}
     if drive:
         what = ", ".join(f"{k} {v}" for k, v in drive.items())
@@ -324,6 +332,7 @@ class ControllerDaemon:
                 "session": int(status.session) if status else 0,
                 "torque_enabled": bool(status and status.torque_enabled),
                 "watchdog_tripped": bool(status and status.watchdog_tripped),
+                "rejected_frames": int(status.rejected_frames) if status else 0,
                 **{f"events.{k}": v for k, v in self.drive.counters().items()},
                 **{f"ticks.{k}": v for k, v in st.drive_ticks.items()},
             },

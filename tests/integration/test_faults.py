@@ -22,6 +22,7 @@ from hal.bus import isolated_spec
 from hal.config import load_config
 from hal.drive_state import DspCommand
 from hal.joint_client import JointClient
+from hal.secoc import load_key_file
 from hal.vision_codec import decode_features, encode_features
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.logtools.reader import read_log
@@ -118,8 +119,9 @@ def test_a_disable_from_another_node_disarms_and_the_run_fails(tmp_path):
     with Rig(opts) as rig:
         rig.start()
         _wait_cycles(log, 50, rig)
-        with JointClient.open(opts.can) as rogue:
-            rogue.send_command(DspCommand.DISABLE, repeat=3)
+        # a second node *with the rig's key* (an operator's tool); without it, see test_secoc.py
+        with JointClient.open(opts.can, key=load_key_file(rig.key_file)) as tool:
+            tool.send_command(DspCommand.DISABLE, repeat=3)
         rc, summary, err = _controller_result(rig)
     assert rc == 1, err
     assert summary["drive_ticks"].get("disarmed", 0) > 0, summary
