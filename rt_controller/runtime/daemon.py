@@ -139,6 +139,9 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         if sum(auth.values()) >= diagnostics.AUTH_FAULT_MIN:
             reasons = ", ".join(f"{k} {v}" for k, v in auth.items() if v)
             out.append(f"{sum(auth.values())} {what} failed authentication ({reasons})")
+    dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
+    if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
+        out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")
     drive = summary.get("drive_ticks") or {}
     if drive:
         what = ", ".join(f"{k} {v}" for k, v in drive.items())
@@ -228,6 +231,9 @@ class ControllerDaemon:
         out["rejections"] = {
             "can_rx": diagnostics.values_of(final, "can_rx"),
             "features": diagnostics.values_of(final, "features"),
+            "dsp_rejected_frames": int(
+                diagnostics.values_of(final, "dsp").get("rejected_frames", 0)
+            ),
         }
         out["problems"] = run_problems(out)
         return out

@@ -162,14 +162,15 @@ def test_future_stamped_and_foreign_features_are_rejected_and_a_dead_camera_goes
         source, frame = _vision_source(log)
         now = time.monotonic_ns()
         cfg_f = (12.0, -7.0)
+        key = load_key_file(rig.key_file)  # signed with the rig's key: these test the checks
         with open_session(load_config(), listen=False, endpoint=opts.zenoh_endpoint) as session:
             pub = session.publisher(KEY_FEATURES)
             for i in range(future):  # the real source, an hour ahead: would never go stale
                 msg = (frame + 10_000 + i, now + 3600 * 10**9, 0, 0, cfg_f, True, False, source)
-                pub.put(encode_features(_feature(msg)))
+                pub.put(encode_features(_feature(msg), key))
             for i in range(foreign):  # a rogue publisher, perfectly fresh
                 msg = (frame + 20_000 + i, time.monotonic_ns(), 0, 0, cfg_f, True, False, 777)
-                pub.put(encode_features(_feature(msg)))
+                pub.put(encode_features(_feature(msg), key))
             time.sleep(0.5)
             pub.undeclare()
         vision = _child(rig, "vision")
