@@ -256,6 +256,20 @@ class MessageSpec:
     clamps: tuple[tuple[str, float, float], ...]
     """(signal, lowest, highest) physical value of every scaled (non-integer) signal."""
 
+    @functools.cached_property
+    def head(self) -> DbcMessage:
+        """The message's bytes 0..7 alone (E2E header and signals, no SecOC trailer): what the
+        codec encodes and decodes with cantools, the trailer being :mod:`hal.secoc`'s."""
+        m = self.message
+        return DbcMessage(
+            frame_id=m.frame_id,
+            name=m.name,
+            length=FRAME_LENGTH,
+            signals=[s for s in m.signals if s.name not in SECOC_SIGNALS],
+            senders=m.senders,
+            strict=False,
+        )
+
     @property
     def name(self) -> str:
         return self.message.name
@@ -444,9 +458,9 @@ class CanEndpoint:
             if sig in STRICT_SIGNALS and not lo <= value <= hi:
                 raise HalCodecError(f"{name}.{sig} = {value!r} is beyond the frame's [{lo}, {hi}]")
             signals[sig] = lo if value < lo else hi if value > hi else value
-        signals["CRC"] = signals["Counter"] = signals["Freshness"] = signals["Mac"] = 0
+        signals["CRC"] = signals["Counter"] = 0
         try:
-            encoded = spec.message.encode(signals, scaling=True, strict=False)
+            encoded = spec.head.encode(signals, scaling=True, strict=False)
         except Exception as exc:  # cantools EncodeError, bitstruct errors
             raise HalCodecError(f"cannot encode {name}: {exc}") from exc
         head = self._sender.protect(spec.data_id, bytearray(encoded[:FRAME_LENGTH]))
@@ -470,8 +484,8 @@ class CanEndpoint:
             if self.receiver.check(msg, now) is not Verdict.OK:
                 return None
             spec = self._rx[msg.arbitration_id]
-            signals = spec.message.decode_simple(
-                bytes(msg.data), decode_choices=False, scaling=True
+            signals = spec.head.decode_simple(
+                bytes(msg.data[:FRAME_LENGTH]), decode_choices=False, scaling=True
             )
             frame = _FROM_SIGNALS[spec.name](signals)
         except Exception:  # a bad frame must never escape the receive path
