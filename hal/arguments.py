@@ -56,3 +56,13 @@ def duration(*, zero_means_forever: bool = False) -> Callable[[str], float]:
     return bounded_float(
         0.0, MAX_DURATION_S, lo_inclusive=zero_means_forever, what="duration in seconds"
     )
+
+
+def add_key_option(p: argparse.ArgumentParser) -> None:
+    """``--key-file``: the rig key (``hil keygen FILE``), overriding ``transport.key_file``."""
+    p.add_argument(
+        "--key-file",
+        metavar="FILE",
+        help="rig key authenticating CAN frames and vision messages (make one with `hil keygen "
+        "FILE`, mode 0600; default: transport.key_file of the config)",
+    )

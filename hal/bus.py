@@ -46,7 +46,7 @@ def vcan_hint(channel: str = DEFAULT_VCAN) -> str:
     """The shell line that creates and raises a vcan interface."""
     return (
         f"sudo modprobe vcan && sudo ip link add dev {channel} type vcan "
-        f"&& sudo ip link set up {channel}"
+        f"&& sudo ip link set {channel} mtu 72 && sudo ip link set up {channel}"
     )
 
 
@@ -177,6 +177,23 @@ def _transport_error(spec: BusSpec, exc: BaseException) -> HalTransportError:
     )
 
 
+CANFD_MTU = 72
+
+
+def _check_fd_mtu(name: str) -> None:
+    """:class:`HalTransportError` when interface ``name`` cannot carry CAN FD frames (MTU 16)."""
+    try:
+        mtu = int((SYS_CLASS_NET / name / "mtu").read_text())
+    except (OSError, ValueError):
+        return  # unknown: let the driver decide
+    if mtu < CANFD_MTU:
+        raise HalTransportError(
+            f"socketcan:{name} has MTU {mtu}: the rig's 16-byte CAN FD frames need "
+            f"{CANFD_MTU}; run: sudo ip link set {name} down; sudo ip link set {name} mtu "
+            f"{CANFD_MTU}; sudo ip link set up {name}"
+        )
+
+
 def open_bus(
     spec: str | None = None, *, receive_own_messages: bool = False, **kwargs: Any
 ) -> can.BusABC:
@@ -191,6 +208,9 @@ def open_bus(
         if resolved.interface == "udp_multicast":
             options.setdefault("hop_limit", 0)
             return LoopbackMulticastBus(channel=resolved.channel or DEFAULT_GROUP, **options)
+        if resolved.interface == "socketcan":
+            options.setdefault("fd", True)  # the rig's frames are 16-byte CAN FD (SecOC)
+            _check_fd_mtu(resolved.channel or DEFAULT_VCAN)
         return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
     except HalTransportError:  # already one line saying what to do (e.g. a refused group)
         raise

@@ -40,11 +40,23 @@ from hal.e2e import (
     Verdict,
 )
 from hal.errors import HalCodecError
+from hal.secoc import (
+    DEFAULT_MAX_AGE_US,
+    DEFAULT_MAX_SKEW_US,
+    TRAILER_BYTES,
+    SecOCSigner,
+    SecOCVerifier,
+    rig_key,
+)
 
 DBC_PATH = Path(__file__).with_name("hil.dbc")
 CONTROLLER = "Controller"
 DSP = "DSP"
 E2E_SIGNALS = ("CRC", "Counter")
+SECOC_SIGNALS = ("Freshness", "Mac")
+FD_FRAME_LENGTH = FRAME_LENGTH + TRAILER_BYTES
+"""Every message: 8 E2E-protected bytes + SecOC trailer (freshness, MAC) = a 16-byte CAN FD
+frame."""
 
 STRICT_SIGNALS = frozenset({"Q1", "Q2", "Dq1", "Dq2"})
 """Measurements that are never saturated on encode: a value beyond the signal's range raises
@@ -244,6 +256,20 @@ class MessageSpec:
     clamps: tuple[tuple[str, float, float], ...]
     """(signal, lowest, highest) physical value of every scaled (non-integer) signal."""
 
+    @functools.cached_property
+    def head(self) -> DbcMessage:
+        """The message's bytes 0..7 alone (E2E header and signals, no SecOC trailer): what the
+        codec encodes and decodes with cantools, the trailer being :mod:`hal.secoc`'s."""
+        m = self.message
+        return DbcMessage(
+            frame_id=m.frame_id,
+            name=m.name,
+            length=FRAME_LENGTH,
+            signals=[s for s in m.signals if s.name not in SECOC_SIGNALS],
+            senders=m.senders,
+            strict=False,
+        )
+
     @property
     def name(self) -> str:
         return self.message.name
@@ -256,7 +282,11 @@ class MessageSpec:
 def _clamps(msg: DbcMessage) -> tuple[tuple[str, float, float], ...]:
     out = []
     for sig in msg.signals:
-        if sig.name in E2E_SIGNALS or (sig.scale == 1 and sig.offset == 0):
+        if (
+            sig.name in E2E_SIGNALS
+            or sig.name in SECOC_SIGNALS
+            or (sig.scale == 1 and sig.offset == 0)
+        ):
             continue
         raw_lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
         raw_hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
@@ -267,13 +297,17 @@ def _clamps(msg: DbcMessage) -> tuple[tuple[str, float, float], ...]:
 def _validate_e2e_layout(msg: DbcMessage) -> int:
     """Check that ``msg`` carries CRC/Counter where :mod:`hal.e2e` expects them; its data id."""
     where = f"{DBC_PATH.name}: message {msg.name}"
-    if msg.length != FRAME_LENGTH or msg.is_extended_frame or msg.is_fd:
-        raise HalCodecError(f"{where}: must be a classic 8-byte frame with an 11-bit id")
+    if msg.length != FD_FRAME_LENGTH or msg.is_extended_frame or not msg.is_fd:
+        raise HalCodecError(f"{where}: must be a 16-byte CAN FD frame with an 11-bit id")
     layout = {s.name: (s.start, s.length, s.byte_order, s.is_signed) for s in msg.signals}
     if layout.get("CRC") != (0, 8, "little_endian", False):
         raise HalCodecError(f"{where}: signal CRC must be unsigned 0|8@1+")
     if layout.get("Counter") != (8, 4, "little_endian", False):
         raise HalCodecError(f"{where}: signal Counter must be unsigned 8|4@1+")
+    if layout.get("Freshness") != (64, 32, "little_endian", False):
+        raise HalCodecError(f"{where}: signal Freshness must be unsigned 64|32@1+")
+    if layout.get("Mac") != (96, 32, "little_endian", False):
+        raise HalCodecError(f"{where}: signal Mac must be unsigned 96|32@1+")
     attr = msg.dbc.attributes.get("E2EDataID") if msg.dbc is not None else None
     if attr is None or not 0 < int(attr.value) <= 0xFFFF:
         raise HalCodecError(f"{where}: needs a non-zero E2EDataID attribute")
@@ -338,6 +372,12 @@ def load_database() -> HilDatabase:
 class CanEndpoint:
     """One node's end of the link: protected encode of what it sends, checked decode of the rest.
 
+    Every frame is authenticated (:mod:`hal.secoc`) with ``key``, the rig key (default:
+    :func:`~hal.secoc.rig_key`: ``$HIL_KEY_FILE``, else this process's ephemeral key, so only
+    endpoints of this process understand each other). ``verify=False`` skips the
+    authentication checks on receive (offline tools reading a log whose key is gone); sending
+    always signs.
+
     Not thread-safe per direction: call :meth:`encode` from one thread (or under a lock) and
     :meth:`decode` from one thread (the receive thread); the two directions are independent.
     """
@@ -349,6 +389,10 @@ class CanEndpoint:
         max_delta: int = DEFAULT_MAX_DELTA,
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
         database: HilDatabase | None = None,
+        key: bytes | None = None,
+        verify: bool = True,
+        max_age_us: int = DEFAULT_MAX_AGE_US,
+        max_skew_us: int = DEFAULT_MAX_SKEW_US,
     ) -> None:
         self.node = node
         self.database = database or load_database()
@@ -358,12 +402,38 @@ class CanEndpoint:
             raise HalCodecError(f"node {node!r} is not in {DBC_PATH.name}")
         self._rx = {s.frame_id: s for s in rx}
         self._sender = E2ESender()
+        key = rig_key() if key is None else key
+        self._signer = SecOCSigner(key, node)
+        peers = {n for s in rx for n in s.message.senders}
+        verifiers = {
+            peer: SecOCVerifier(
+                key, peer, max_age_us=max_age_us, max_skew_us=max_skew_us, verify=verify
+            )
+            for peer in peers
+        }
+        self._verifier_of = {s.frame_id: verifiers[s.message.senders[0]] for s in rx}
         reinit_ns = None if reinit_after_s is None else round(reinit_after_s * 1e9)
         self.receiver = E2EReceiver(
             {s.frame_id: s.data_id for s in rx},
             ignore_ids=[s.frame_id for s in self._tx.values()],
             max_delta=max_delta,
             reinit_after_ns=reinit_ns,
+            frame_length=FD_FRAME_LENGTH,
+            authenticate=self._authenticate,
+        )
+
+    def _authenticate(self, frame_id: int, data_id: int, data: bytes) -> str | None:
+        return self._verifier_of[frame_id].check(frame_id, data_id, data)
+
+    def sign(self, msg: can.Message) -> can.Message:
+        """``msg`` (a frame of this node, e.g. from a log) with a fresh SecOC trailer of this
+        endpoint's key: bytes 0..7 (E2E CRC and counter included) as they were."""
+        spec = next((s for s in self._tx.values() if s.frame_id == msg.arbitration_id), None)
+        if spec is None or msg.data is None or len(msg.data) < FRAME_LENGTH:
+            raise HalCodecError(f"{self.node} does not send frame id {msg.arbitration_id:#x}")
+        data = self._signer.sign(spec.data_id, bytes(msg.data[:FRAME_LENGTH]))
+        return can.Message(
+            arbitration_id=spec.frame_id, is_extended_id=False, is_fd=True, data=data, check=False
         )
 
     @property
@@ -388,15 +458,18 @@ class CanEndpoint:
             if sig in STRICT_SIGNALS and not lo <= value <= hi:
                 raise HalCodecError(f"{name}.{sig} = {value!r} is beyond the frame's [{lo}, {hi}]")
             signals[sig] = lo if value < lo else hi if value > hi else value
-        signals["CRC"] = 0
-        signals["Counter"] = 0
+        signals["CRC"] = signals["Counter"] = 0
         try:
-            payload = bytearray(spec.message.encode(signals, scaling=True, strict=False))
+            encoded = spec.head.encode(signals, scaling=True, strict=False)
         except Exception as exc:  # cantools EncodeError, bitstruct errors
             raise HalCodecError(f"cannot encode {name}: {exc}") from exc
-        self._sender.protect(spec.data_id, payload)
+        head = self._sender.protect(spec.data_id, bytearray(encoded[:FRAME_LENGTH]))
         return can.Message(
-            arbitration_id=spec.frame_id, is_extended_id=False, data=payload, check=False
+            arbitration_id=spec.frame_id,
+            is_extended_id=False,
+            is_fd=True,
+            data=self._signer.sign(spec.data_id, head),
+            check=False,
         )
 
     def decode(self, msg: can.Message, t_ns: int | None = None) -> Frame | None:
@@ -411,8 +484,8 @@ class CanEndpoint:
             if self.receiver.check(msg, now) is not Verdict.OK:
                 return None
             spec = self._rx[msg.arbitration_id]
-            signals = spec.message.decode_simple(
-                bytes(msg.data), decode_choices=False, scaling=True
+            signals = spec.head.decode_simple(
+                bytes(msg.data[:FRAME_LENGTH]), decode_choices=False, scaling=True
             )
             frame = _FROM_SIGNALS[spec.name](signals)
         except Exception:  # a bad frame must never escape the receive path

@@ -246,6 +246,10 @@ class TransportConfig:
     """Loopback endpoint the processes meet on."""
     zenoh_config: str = ""
     """Path of a zenoh json5 config replacing the loopback defaults (multi-host setups)."""
+    key_file: str = ""
+    """Path of the rig key (``hil keygen FILE``, mode 0600): authenticates CAN frames and vision
+    messages (hal/secoc.py). Required by every process of a rig; ``hil up`` makes a fresh one
+    per run unless given ``--key-file``."""
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,8 @@ Layout shared by every message of ``hal/hil.dbc`` (checked when the database is 
   id (low byte, then high byte) followed by payload bytes 1..7;
 * bits 8..11 (low nibble of byte 1): rolling counter 0..15, incremented by one per frame sent.
 
-The receiver checks, in this order: known id, length, CRC, counter. A counter equal to the last
+The receiver checks, in this order: known id, length, authentication (optional, SecOC trailer
+of :mod:`hal.secoc` after these 8 bytes), CRC, counter. A counter equal to the last
 accepted one is a repeated frame; a forward step of 1..``max_delta`` is accepted (steps above 1
 are counted as ``lost`` frames); anything else is a counter jump: the frame is rejected and the
 receiver resynchronises on it, so the next consecutive frame is accepted again. The first frame of
@@ -20,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import can
@@ -28,7 +29,8 @@ import can
 from hal.errors import HalCodecError
 
 FRAME_LENGTH = 8
-"""Every E2E-protected frame is a classic CAN frame of 8 bytes."""
+"""The E2E-protected part of every frame: bytes 0..7 (the SecOC trailer of :mod:`hal.secoc`
+follows it in the 16-byte CAN FD frame)."""
 COUNTER_MODULO = 16
 DEFAULT_MAX_DELTA = 3
 """Largest accepted counter step: up to two frames in a row may be lost."""
@@ -81,6 +83,12 @@ class Verdict(enum.StrEnum):
     UNKNOWN_ID = "unknown_id"
     DECODE_ERROR = "decode_error"
     ERROR_FRAME = "error_frame"
+    BAD_MAC = "bad_mac"
+    """SecOC: the MAC does not verify (forged, another rig's key, corrupted)."""
+    STALE_FRESHNESS = "stale_freshness"
+    """SecOC: authentic but not fresh (a replayed or repeated frame)."""
+    FUTURE_FRESHNESS = "future_freshness"
+    """SecOC: authentic but its freshness value runs ahead of the receiver's clock."""
 
 
 REJECTIONS: tuple[Verdict, ...] = (
@@ -91,8 +99,17 @@ REJECTIONS: tuple[Verdict, ...] = (
     Verdict.UNKNOWN_ID,
     Verdict.DECODE_ERROR,
     Verdict.ERROR_FRAME,
+    Verdict.BAD_MAC,
+    Verdict.STALE_FRESHNESS,
+    Verdict.FUTURE_FRESHNESS,
 )
 """The verdicts that count as a rejected (bad) frame."""
+AUTH_REJECTIONS: tuple[Verdict, ...] = (
+    Verdict.BAD_MAC,
+    Verdict.STALE_FRESHNESS,
+    Verdict.FUTURE_FRESHNESS,
+)
+"""The rejections by authentication (:mod:`hal.secoc`): a frame not from this rig's members."""
 
 
 @dataclass
@@ -110,6 +127,9 @@ class E2EStats:
     unknown_id: int = 0
     decode_error: int = 0
     error_frame: int = 0
+    bad_mac: int = 0
+    stale_freshness: int = 0
+    future_freshness: int = 0
 
     def record(self, verdict: Verdict) -> None:
         """Count one frame under ``verdict``."""
@@ -119,6 +139,11 @@ class E2EStats:
     def rejected(self) -> int:
         """Total of rejected (bad) frames."""
         return sum(getattr(self, v.value) for v in REJECTIONS)
+
+    @property
+    def auth_rejected(self) -> int:
+        """Frames rejected by authentication (bad MAC or freshness)."""
+        return self.bad_mac + self.stale_freshness + self.future_freshness
 
     def copy(self) -> E2EStats:
         return dataclasses.replace(self)
@@ -169,6 +194,8 @@ class E2EReceiver:
         max_delta: int = DEFAULT_MAX_DELTA,
         reinit_after_ns: int | None = DEFAULT_REINIT_AFTER_NS,
         stats: E2EStats | None = None,
+        frame_length: int = FRAME_LENGTH,
+        authenticate: Callable[[int, int, bytes], str | None] | None = None,
     ) -> None:
         if not 1 <= max_delta < COUNTER_MODULO:
             raise HalCodecError(f"max_delta must be in 1..{COUNTER_MODULO - 1}, got {max_delta}")
@@ -177,6 +204,11 @@ class E2EReceiver:
         self.max_delta = max_delta
         self.reinit_after_ns = reinit_after_ns
         self.stats = stats if stats is not None else E2EStats()
+        self.frame_length = frame_length
+        self.authenticate = authenticate
+        """``(frame_id, data_id, data) -> None | verdict name``, checked after the length and
+        before the CRC (SecOC, :class:`hal.secoc.SecOCVerifier`): a frame that is not authentic
+        never touches the counter state."""
         self._last: dict[int, tuple[int, int]] = {}  # frame id -> (counter, t_ns)
 
     def reset(self) -> None:
@@ -202,8 +234,12 @@ class E2EReceiver:
                 return Verdict.IGNORED, 0
             return Verdict.UNKNOWN_ID, 0
         data = msg.data
-        if msg.is_remote_frame or data is None or len(data) != FRAME_LENGTH:
+        if msg.is_remote_frame or data is None or len(data) != self.frame_length:
             return Verdict.WRONG_LENGTH, 0
+        if self.authenticate is not None:
+            failed = self.authenticate(frame_id, data_id, data)
+            if failed is not None:
+                return Verdict(failed), 0
         if e2e_crc(data_id, data) != data[0]:
             return Verdict.BAD_CRC, 0
         counter = data[1] & 0x0F

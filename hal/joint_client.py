@@ -43,6 +43,7 @@ from hal.drive_state import DriveState
 from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS, E2EStats
 from hal.errors import HalError, HalTimeoutError, HalTransportError
 from hal.resources import release, track
+from hal.secoc import rig_key
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,8 @@ class JointClient:
     :param tx_hook: called with every frame after it was sent, in the sender's thread (quick).
     :param owns_bus: shut ``bus`` down on :meth:`close`.
     :param start: start the receive thread now (tests may feed :meth:`process_frame` instead).
+    :param key: the rig key (default: ``cfg.transport.key_file``, loaded and checked, else this
+        process's ephemeral key; see :mod:`hal.secoc`).
     """
 
     def __init__(
@@ -102,6 +105,7 @@ class JointClient:
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
         poll_s: float = 0.05,
         start: bool = True,
+        key: bytes | None = None,
     ) -> None:
         self.cfg = cfg if cfg is not None else RigConfig()
         self.bus = bus
@@ -109,7 +113,11 @@ class JointClient:
         self.tx_hook = tx_hook
         self._owns_bus = owns_bus
         self._poll_s = poll_s
-        self._codec = ControllerCodec(max_delta=max_delta, reinit_after_s=reinit_after_s)
+        self._codec = ControllerCodec(
+            max_delta=max_delta,
+            reinit_after_s=reinit_after_s,
+            key=key if key is not None else rig_key(self.cfg),
+        )
         self._cond = threading.Condition()
         self._tx_lock = threading.Lock()
         self._stop = threading.Event()

@@ -6,11 +6,11 @@ microsecond with one precompiled :class:`struct.Struct` (JSON costs 5-10x more a
 varies), floats travel bit-exact (lockstep runs stay deterministic), and a fixed size per version
 makes malformed input trivial to spot. JSON stays where people read it (the MCAP log).
 
-Features v1 — key ``hil/vision/features``, 56 bytes, little-endian (``<2sBBIQqqQdd``)::
+Features v2 — key ``hil/vision/features``, 72 bytes, little-endian (``<2sBBIQqqQdd16s``)::
 
     off size type  field
       0    2 bytes magic        b"HF"
-      2    1 u8    version      1
+      2    1 u8    version      2
       3    1 u8    flags        bit0 valid (f holds a measurement), bit1 lockstep; others 0
       4    4 u32   source       random id of the publishing vision process (restart detection)
       8    8 u64   frame        frame counter of the image (0, 1, ...)
@@ -21,11 +21,13 @@ Features v1 — key ``hil/vision/features``, 56 bytes, little-endian (``<2sBBIQq
                                 the pose this message answers
      40    8 f64   fx           feature x, px
      48    8 f64   fy           feature y, px (f must be finite; (0, 0) when not valid)
+     56   16 bytes mac          HMAC-SHA256 of bytes 0..55, truncated to 128 bits, with the
+                                rig key derived for "hil/zenoh/features" (hal/secoc.py)
 
-Camera pose v1 — key ``hil/emulator/camera_pose``, 56 bytes (``<2sBBIQqqddd``)::
+Camera pose v2 — key ``hil/emulator/camera_pose``, 72 bytes (``<2sBBIQqqddd16s``)::
 
       0    2 bytes magic        b"HP"
-      2    1 u8    version      1
+      2    1 u8    version      2
       3    1 u8    flags        bit0 lockstep (one pose per control period, answer each); others 0
       4    4 u32   source       random id of the publishing emulator (restart detection)
       8    8 u64   seq          pose sequence number (the control tick in lockstep)
@@ -34,6 +36,13 @@ Camera pose v1 — key ``hil/emulator/camera_pose``, 56 bytes (``<2sBBIQqqddd``)
      32    8 f64   x            camera position, m
      40    8 f64   y            camera position, m
      48    8 f64   phi          camera heading q1 + q2, rad
+     56   16 bytes mac          as for features, key derived for "hil/zenoh/camera_pose"
+
+Authentication: the receivers (:class:`FeatureDecoder`, :class:`PoseDecoder`) verify the MAC
+with the rig key first (``bad_mac``), so only the rig's own vision process (and emulator) can
+speak; their ordering and staleness checks then stop replays of authentic messages.
+:func:`decode_features` / :func:`decode_pose` only unpack (logs stay readable after the run's
+key is gone). v1 (no MAC) is refused as ``bad_version``.
 
 Compatibility: a receiver accepts exactly the versions it knows; any change of layout or meaning
 bumps the version byte. Reserved flag bits must be zero.
@@ -41,6 +50,7 @@ bumps the version byte. Reserved flag bits must be zero.
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import threading
@@ -50,10 +60,14 @@ from dataclasses import asdict, dataclass
 from typing import Any, NamedTuple
 
 from hal.errors import HalCodecError
+from hal.secoc import VISION_MAC_BYTES, Mac, derive, rig_key
 
 FEATURES_MAGIC = b"HF"
 POSE_MAGIC = b"HP"
-VERSION = 1
+VERSION = 2
+MAC_SIZE = VISION_MAC_BYTES
+FEATURES_LABEL = "hil/zenoh/features"
+POSE_LABEL = "hil/zenoh/camera_pose"
 FLAG_VALID = 0x01
 FLAG_LOCKSTEP = 0x02
 POSE_FLAG_LOCKSTEP = 0x01
@@ -61,8 +75,24 @@ _FEATURE_FLAGS = FLAG_VALID | FLAG_LOCKSTEP
 _POSE_FLAGS = POSE_FLAG_LOCKSTEP
 _FEAT = struct.Struct("<2sBBIQqqQdd")
 _POSE = struct.Struct("<2sBBIQqqddd")
-FEATURES_SIZE = _FEAT.size
-POSE_SIZE = _POSE.size
+FEATURES_SIZE = _FEAT.size + MAC_SIZE
+POSE_SIZE = _POSE.size + MAC_SIZE
+
+
+@functools.lru_cache(maxsize=16)
+def _mac_of(key: bytes, label: str) -> Mac:
+    return Mac(derive(key, label), MAC_SIZE)
+
+
+def _mac(key: bytes | None, label: str) -> Mac:
+    """The MAC of ``label`` with ``key`` (default: :func:`hal.secoc.rig_key`)."""
+    return _mac_of(rig_key() if key is None else key, label)
+
+
+def _verified(buf: bytes, key: bytes | None, label: str) -> bool:
+    body = len(buf) - MAC_SIZE
+    return _mac(key, label).verify(buf[body:], buf[:body])
+
 
 _isfinite = math.isfinite
 
@@ -99,14 +129,15 @@ class PoseMsg(NamedTuple):
     source: int = 0
 
 
-def encode_features(msg: FeatureMsg) -> bytes:
-    """Pack ``msg`` as features v1; :class:`HalCodecError` for values the receiver would reject."""
+def encode_features(msg: FeatureMsg, key: bytes | None = None) -> bytes:
+    """Pack ``msg`` as features v2, authenticated with the rig ``key`` (default: this process's
+    ephemeral key); :class:`HalCodecError` for values the receiver would reject."""
     fx, fy = msg.f
     if not (_isfinite(fx) and _isfinite(fy)):
         raise HalCodecError(f"features: f must be finite, got {msg.f}")
     flags = (FLAG_VALID if msg.valid else 0) | (FLAG_LOCKSTEP if msg.lockstep else 0)
     try:
-        return _FEAT.pack(
+        body = _FEAT.pack(
             FEATURES_MAGIC,
             VERSION,
             flags,
@@ -120,14 +151,15 @@ def encode_features(msg: FeatureMsg) -> bytes:
         )
     except struct.error as exc:
         raise HalCodecError(f"features: field out of range: {exc}") from exc
+    return body + _mac(key, FEATURES_LABEL).tag(body)
 
 
-def encode_pose(msg: PoseMsg) -> bytes:
-    """Pack ``msg`` as camera pose v1."""
+def encode_pose(msg: PoseMsg, key: bytes | None = None) -> bytes:
+    """Pack ``msg`` as camera pose v2, authenticated with the rig ``key`` (as features)."""
     if not (_isfinite(msg.x) and _isfinite(msg.y) and _isfinite(msg.phi)):
         raise HalCodecError(f"camera pose: x, y, phi must be finite, got {msg}")
     try:
-        return _POSE.pack(
+        body = _POSE.pack(
             POSE_MAGIC,
             VERSION,
             POSE_FLAG_LOCKSTEP if msg.lockstep else 0,
@@ -141,13 +173,14 @@ def encode_pose(msg: PoseMsg) -> bytes:
         )
     except struct.error as exc:
         raise HalCodecError(f"camera pose: field out of range: {exc}") from exc
+    return body + _mac(key, POSE_LABEL).tag(body)
 
 
 def _parse_features(buf: bytes) -> FeatureMsg | str:
     """The message, or the name of the malformation counter."""
     if len(buf) != FEATURES_SIZE:
         return "bad_size"
-    magic, version, flags, source, frame, stamp, sim, seq, fx, fy = _FEAT.unpack(buf)
+    magic, version, flags, source, frame, stamp, sim, seq, fx, fy = _FEAT.unpack_from(buf)
     if magic != FEATURES_MAGIC:
         return "bad_magic"
     if version != VERSION:
@@ -171,7 +204,7 @@ def _parse_features(buf: bytes) -> FeatureMsg | str:
 def _parse_pose(buf: bytes) -> PoseMsg | str:
     if len(buf) != POSE_SIZE:
         return "bad_size"
-    magic, version, flags, source, seq, sim, stamp, x, y, phi = _POSE.unpack(buf)
+    magic, version, flags, source, seq, sim, stamp, x, y, phi = _POSE.unpack_from(buf)
     if magic != POSE_MAGIC:
         return "bad_magic"
     if version != VERSION:
@@ -184,7 +217,8 @@ def _parse_pose(buf: bytes) -> PoseMsg | str:
 
 
 def decode_features(buf: bytes) -> FeatureMsg:
-    """Unpack features v1 or raise :class:`HalCodecError` naming the problem."""
+    """Unpack features v2 (without checking the MAC: logs, tools) or raise
+    :class:`HalCodecError` naming the problem."""
     out = _parse_features(bytes(buf))
     if isinstance(out, str):
         raise HalCodecError(f"features: malformed message ({out}, {len(buf)} bytes)")
@@ -192,7 +226,7 @@ def decode_features(buf: bytes) -> FeatureMsg:
 
 
 def decode_pose(buf: bytes) -> PoseMsg:
-    """Unpack camera pose v1 or raise :class:`HalCodecError` naming the problem."""
+    """Unpack camera pose v2 (without checking the MAC) or raise :class:`HalCodecError`."""
     out = _parse_pose(bytes(buf))
     if isinstance(out, str):
         raise HalCodecError(f"camera pose: malformed message ({out}, {len(buf)} bytes)")
@@ -221,6 +255,8 @@ class RxCounts:
     bad_value: int = 0
     bad_type: int = 0
     """Not bytes-like at all (a bug on the caller's side, still never raised)."""
+    bad_mac: int = 0
+    """Well formed but not authenticated by the rig key (a rogue publisher, another rig)."""
     stale_age: int = 0
     """Older than the age limit when received."""
     stale_order: int = 0
@@ -260,7 +296,7 @@ class RxCounts:
 
     @property
     def untrusted(self) -> int:
-        return self.future_stamp + self.foreign_source
+        return self.future_stamp + self.foreign_source + self.bad_mac
 
     @property
     def rejected(self) -> int:
@@ -281,13 +317,18 @@ class _Receiver:
     """Shared ordering/locking of the two receivers."""
 
     def __init__(
-        self, resync_after: int, clock: Callable[[], int], source_takeover_ns: int | None = 0
+        self,
+        resync_after: int,
+        clock: Callable[[], int],
+        source_takeover_ns: int | None = 0,
+        key: bytes | None = None,
     ) -> None:
         if resync_after < 1:
             raise ValueError("resync_after must be at least 1")
         if source_takeover_ns is not None and source_takeover_ns < 0:
             raise ValueError("source_takeover_ns must be non-negative or None")
         self.counts = RxCounts()
+        self.key = rig_key() if key is None else key
         self.resync_after = resync_after
         self.source_takeover_ns = source_takeover_ns
         self._clock = clock
@@ -321,13 +362,16 @@ class _Receiver:
         self.counts.foreign_source += 1
         return True
 
-    def _count(self, parsed: object) -> bool:
+    def _count(self, parsed: object, payload: bytes, label: str) -> bool:
         """Count one received payload (caller holds the lock); False for a malformed one,
-        whose kind (the string the parser returned) is counted too."""
+        whose kind (the string the parser returned) is counted too, or an unauthentic one."""
         c = self.counts
         c.received += 1
         if isinstance(parsed, str):
             setattr(c, parsed, getattr(c, parsed) + 1)
+            return False
+        if not _verified(bytes(payload), self.key, label):
+            c.bad_mac += 1
             return False
         return True
 
@@ -375,7 +419,8 @@ class FeatureDecoder(_Receiver):
 
     A message is accepted when, in this order (the first failing check names the counter):
 
-    1. it is well formed (``bad_*``);
+    1. it is well formed (``bad_*``) and authentic: its MAC verifies with ``key``, the rig key
+       (default: this process's ephemeral key) (``bad_mac``);
     2. realtime only: its ``stamp_ns`` is at most ``max_clock_skew_ns`` ahead of the receive
        clock (``future_stamp``) and at most ``max_age_ns`` behind it (``stale_age``); lockstep
        messages are judged in simulation time by the controller (see :meth:`sim_age_ns`);
@@ -405,8 +450,9 @@ class FeatureDecoder(_Receiver):
         clock: Callable[[], int] = time.monotonic_ns,
         max_clock_skew_ns: int = 5_000_000,
         source_takeover_ns: int | None = 1_000_000_000,
+        key: bytes | None = None,
     ) -> None:
-        super().__init__(resync_after, clock, source_takeover_ns)
+        super().__init__(resync_after, clock, source_takeover_ns, key)
         if max_clock_skew_ns < 0:
             raise ValueError("max_clock_skew_ns must be non-negative")
         self.max_age_ns = max_age_ns
@@ -435,7 +481,7 @@ class FeatureDecoder(_Receiver):
         out = _parse_guarded(_parse_features, payload)
         with self._cond:
             c = self.counts
-            if not self._count(out):
+            if not self._count(out, payload, FEATURES_LABEL):
                 return None
             msg = out
             if not msg.lockstep:
@@ -528,9 +574,13 @@ class PoseDecoder(_Receiver):
     raises; rejects malformed poses and poses not newer (by ``seq``) than the last one."""
 
     def __init__(
-        self, *, resync_after: int = 10, clock: Callable[[], int] = time.monotonic_ns
+        self,
+        *,
+        resync_after: int = 10,
+        clock: Callable[[], int] = time.monotonic_ns,
+        key: bytes | None = None,
     ) -> None:
-        super().__init__(resync_after, clock, source_takeover_ns=0)  # follow emulator restarts
+        super().__init__(resync_after, clock, 0, key)  # source takeover 0: follow restarts
         self.latest: PoseMsg | None = None
         self.latest_recv_ns: int | None = None
 
@@ -540,7 +590,7 @@ class PoseDecoder(_Receiver):
         out = _parse_guarded(_parse_pose, payload)
         with self._cond:
             c = self.counts
-            if not self._count(out):
+            if not self._count(out, payload, POSE_LABEL):
                 return None
             if not self._order(out.source, (out.seq, 0)):
                 return None

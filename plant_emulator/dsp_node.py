@@ -63,6 +63,7 @@ from hal.can_codec import (
 )
 from hal.config import RigConfig
 from hal.drive_state import Drive, DriveState, DspCommand, FaultReason
+from hal.secoc import rig_key
 from plant_emulator.arm import Encoder
 from plant_emulator.camera import CameraPose
 from plant_emulator.world import World
@@ -169,17 +170,20 @@ class DspNode:
         sync_resend_s: float = SYNC_RESEND_S,
         wait_for_controller: bool = True,
         session: int | None = None,
+        key: bytes | None = None,
     ) -> None:
         """``reply_timeout_s``, ``sync_resend_s``: lockstep waits (real time, see the module
         docstring); ``wait_for_controller``: in lockstep, hold period 0 until the first command
         arrives (``False`` counts it missing after ``reply_timeout_s`` like any other);
-        ``session``: the id reported in ``DspStatus.Session`` (default: random, non-zero)."""
+        ``session``: the id reported in ``DspStatus.Session`` (default: random, non-zero);
+        ``key``: the rig key (default: ``cfg.transport.key_file``, else this process's
+        ephemeral key, see :mod:`hal.secoc`)."""
         self.cfg = cfg
         self.bus = bus
         self.lockstep = lockstep
         self.pose_sink = pose_sink
         self.world = world or World(cfg)
-        self.codec = DspCodec()
+        self.codec = DspCodec(key=key if key is not None else rig_key(cfg))
         self.stats = DspStats()
         rates = cfg.rates
         self.substeps = rates.substeps

@@ -30,7 +30,7 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from hal.arguments import bounded_float, duration
+from hal.arguments import add_key_option, bounded_float, duration
 
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
     from plant_emulator.camera import CameraPose
@@ -50,6 +50,7 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
         "host-local udp_multicast)",
     )
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
+    add_key_option(p)
     p.add_argument(
         "--lockstep",
         action="store_true",
@@ -130,6 +131,9 @@ def _config(args: argparse.Namespace) -> Any:
             cfg = cfg.with_overrides({"rates.state_hz": args.state_rate, "dsp.state_sync": "free"})
         except HalConfigError as exc:
             raise HalConfigError(f"--state-rate: {exc}") from exc
+    from hal.secoc import configure_key
+
+    cfg = configure_key(cfg, args.key_file, "hil emulator")
     return cfg
 
 
@@ -157,6 +161,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
         link: _PoseLink | None = None
         zenoh_where = ""
         if args.vision_link:
+            from hal.secoc import rig_key
             from hal.zenoh_session import open_session
             from plant_emulator.pose_link import PosePublisher
 
@@ -168,7 +173,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
                     config_file=args.zenoh_config,
                 )
             )
-            publisher = PosePublisher(session)
+            publisher = PosePublisher(session, key=rig_key(cfg))
             stack.callback(publisher.close)
             link = _PoseLink(publisher)
             zenoh_where = f", camera poses on zenoh {session.endpoint}"

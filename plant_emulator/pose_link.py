@@ -31,8 +31,12 @@ from plant_emulator.camera import CameraPose
 class PosePublisher:
     """Publishes camera poses; one per emulator run (its random ``source`` id marks the run)."""
 
-    def __init__(self, session: ZenohSession, *, source: int | None = None) -> None:
+    def __init__(
+        self, session: ZenohSession, *, source: int | None = None, key: bytes | None = None
+    ) -> None:
         self.session = session
+        self.key = key
+        """Rig key the poses are authenticated with (None: this process's ephemeral key)."""
         self.source = secrets.randbits(32) if source is None else source
         self.published = 0
         self.errors = 0
@@ -60,7 +64,7 @@ class PosePublisher:
             lockstep,
             self.source,
         )
-        payload = encode_pose(msg)
+        payload = encode_pose(msg, self.key)
         try:
             self._pub.put(payload)
         except zenoh.ZError as exc:

@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from hal.arguments import bounded_float, duration
+from hal.arguments import add_key_option, bounded_float, duration
 from hal.errors import HalError
 from hal.signals import run_standalone, stop_on_signals
 
@@ -24,6 +24,7 @@ if TYPE_CHECKING:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``hil vision`` (for the lead's subcommand wiring)."""
     p.add_argument("--config", metavar="FILE", help="rig config TOML (default: embedded)")
+    add_key_option(p)
     p.add_argument(
         "--fps",
         type=bounded_float(0.0, 10_000.0, lo_inclusive=True, what="frame rate in Hz"),
@@ -101,7 +102,10 @@ def _config(args: argparse.Namespace) -> RigConfig:
         value = getattr(args, opt)
         if value is not None:
             overrides[f"camera.{key}"] = value
-    return cfg.with_overrides(overrides) if overrides else cfg
+    from hal.secoc import configure_key
+
+    cfg = cfg.with_overrides(overrides) if overrides else cfg
+    return configure_key(cfg, args.key_file, "hil vision")
 
 
 def run_from_args(args: argparse.Namespace) -> int:

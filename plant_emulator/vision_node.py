@@ -47,6 +47,7 @@ import zenoh
 
 from hal.config import RigConfig
 from hal.errors import HalConfigError, HalError
+from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features
 from hal.zenoh_session import (
     DEFAULT_WAIT_S,
@@ -381,7 +382,8 @@ class VisionNode:
             source=secrets.randbits(32) if source is None else source,
             dropouts=dropouts,
         )
-        self.decoder = PoseDecoder()
+        self.key = rig_key(cfg)
+        self.decoder = PoseDecoder(key=self.key)
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._pub = session.publisher(KEY_FEATURES)
@@ -398,7 +400,7 @@ class VisionNode:
     def _publish(self, msgs: list[FeatureMsg]) -> None:
         for msg in msgs:
             try:
-                self._pub.put(encode_features(msg))
+                self._pub.put(encode_features(msg, self.key))
                 self.core.stats.published += 1
             except (zenoh.ZError, HalError):
                 self.core.stats.publish_errors += 1

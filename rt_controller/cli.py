@@ -18,6 +18,7 @@ Handler = Callable[[argparse.Namespace], int]
 
 COMMAND_MODULES = (
     "up",
+    "keygen",
     "emulator",
     "vision",
     "controller",

@@ -49,6 +49,7 @@ for m in @MODULES@; do
     insmod "$f" || fail_setup "insmod $f"
 done
 ip link add dev @CHANNEL@ type vcan || fail_setup "ip link add dev @CHANNEL@ type vcan"
+ip link set @CHANNEL@ mtu 72 || fail_setup "ip link set @CHANNEL@ mtu 72 (CAN FD)"
 ip link set up @CHANNEL@ || fail_setup "ip link set up @CHANNEL@"
 ip -details link show @CHANNEL@
 set +x

@@ -17,7 +17,7 @@ Where the command runs, first match wins:
 
 1. Native: the host already has a ``vcan0`` interface (``/sys/class/net/vcan0`` exists).
    Create one with ``sudo modprobe vcan; sudo ip link add dev vcan0 type vcan;
-   sudo ip link set up vcan0``.
+   sudo ip link set vcan0 mtu 72; sudo ip link set up vcan0`` (MTU 72: CAN FD frames).
 2. User-mode Linux (UML): ``linux.uml`` and its module tree ``/usr/lib/uml/modules/<version>``
    are installed (Debian/Ubuntu package ``user-mode-linux``). UML is a real Linux kernel running
    as an ordinary process, so this works in containers and CI runners whose kernel has no
@@ -67,7 +67,8 @@ CAN_MODULES = ("can", "can-raw", "can-dev", "vcan")
 APT_PACKAGES = ("user-mode-linux", "kmod", "can-utils")
 ENABLE_HINT = (
     "enable with: sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; "
-    "sudo ip link set up vcan0  (or: sudo apt-get install user-mode-linux kmod can-utils)"
+    "sudo ip link set vcan0 mtu 72; sudo ip link set up vcan0  "
+    "(or: sudo apt-get install user-mode-linux kmod can-utils)"
 )
 # Environment passed into the UML guest: exact names and name prefixes. Everything else on the
 # host (tokens, sockets, display, ...) stays out, because the init script is a file on disk.

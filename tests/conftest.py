@@ -17,6 +17,22 @@ from hal.config import RigConfig, load_config
 LEAK_GRACE_S = 3.0
 
 
+def _session_rig_key() -> None:
+    """One rig key for the whole test session (``$HIL_KEY_FILE``): processes a test starts by
+    hand (``hil emulator``, ``hil vision``, ``hil controller``) and the clients it opens in this
+    process share it; ``hil up`` / ``Rig`` still make a fresh key per run."""
+    import tempfile
+
+    from hal.secoc import KEY_ENV, write_key_file
+
+    if not os.environ.get(KEY_ENV):
+        path = Path(tempfile.mkdtemp(prefix="hil-test-key-")) / "rig.key"
+        os.environ[KEY_ENV] = str(write_key_file(path))
+
+
+_session_rig_key()
+
+
 def _child_pids() -> set[int]:
     pids: set[int] = set()
     for task in Path(f"/proc/{os.getpid()}/task").glob("*/children"):

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hal.arguments import duration
+from hal.arguments import add_key_option, duration
 from rt_controller.commands.common import add_config_option, add_law_options, config_from_args
 
 
@@ -19,6 +19,7 @@ def add_transport_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (multi-host)")
+    add_key_option(p)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -64,11 +65,12 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.no_rt:
         lean_process()  # before the first thread starts (small stacks, few malloc arenas)
+    from hal.secoc import configure_key
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import print_summary
     from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
 
-    cfg = config_from_args(args)
+    cfg = configure_key(config_from_args(args), args.key_file, "hil controller")
     if args.clock:
         cfg = cfg.with_overrides({"controller.clock": args.clock})
     opts = DaemonOptions(

@@ -143,6 +143,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _republish(args: argparse.Namespace) -> int:
+    from hal.config import RigConfig, load_config
+    from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import print_summary_with_notes
     from rt_controller.logtools.reader import read_log
@@ -151,6 +153,9 @@ def _republish(args: argparse.Namespace) -> int:
     cfg = None
     if args.config or args.sets:
         cfg = _config(args, read_log(args.log, raw=False).config)
+    # the live rig's key, never the recorded run's
+    live = load_config(args.config) if args.config else RigConfig()
+    key = rig_key(configure_key(live, args.key_file, "hil replay --republish"))
     with stop_on_signals() as stop:
         result = republish_log(
             args.log,
@@ -162,6 +167,7 @@ def _republish(args: argparse.Namespace) -> int:
             wait_subscriber_s=max(0.0, args.wait_subscriber),
             lead_in_s=max(0.0, args.lead_in),
             stop=stop,
+            key=key,
         )
     print_summary_with_notes(result.as_dict(), args.json, f"hil replay --republish {args.log}")
     return 0

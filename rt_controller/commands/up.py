@@ -28,6 +28,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: auto)")
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
     p.add_argument("--log", metavar="FILE.mcap", help="controller log path")
+    p.add_argument(
+        "--key-file",
+        metavar="FILE",
+        help="rig key for all three processes (default: a fresh key for this run, so two rigs "
+        "never share one; give one when a process of the rig runs elsewhere)",
+    )
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="default: a free port")
     p.add_argument(
         "--monitor",
@@ -57,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
                     log=Path(args.log) if args.log else None,
                     monitor=args.monitor or args.monitor_port is not None,
                     monitor_port=args.monitor_port,
+                    key_file=Path(args.key_file) if args.key_file else None,
                 )
             )
     except RigInterrupted as exc:

@@ -227,7 +227,10 @@ def _final_diagnostics(log: LoadedLog) -> dict[str, Any] | None:
         out[f"{name}_by_reason"] = {
             k: v
             for k, v in values.items()
-            if k.startswith(("bad_", "stale_", "repeated_", "counter_", "wrong_", "unknown_"))
+            if k.startswith(
+                ("bad_", "stale_", "future_", "foreign_", "repeated_", "counter_", "wrong_")
+            )
+            or k.startswith("unknown_")
             or k in ("decode_error",)
             if v
         }
@@ -322,6 +325,9 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
                 (label, f"{diag[f'{name}_rejected']}" + (f" ({reasons})" if reasons else ""))
             )
         rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
+        dsp_rejected = diag["dsp"].get("rejected_frames")
+        if dsp_rejected is not None:
+            rows.append(("frames the DSP rejected (saturates at 255)", _fmt(dsp_rejected)))
     else:
         rows.append(("diagnostics", "none in this log"))
     for k, v in rows:

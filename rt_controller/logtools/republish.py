@@ -5,15 +5,19 @@ What the controller received is sent again, in the recorded order and at the rec
 ``hil controller`` can be fed a recorded run:
 
 * ``/hal/can/rx`` frames (joint state, DSP status, Sync, as the DSP sent them) go onto the CAN
-  bus unchanged — arbitration id, flags and data bytes as recorded, so the end-to-end rolling
-  counters and CRCs are the original ones. Frames the controller itself sends
-  (``TorqueCommand``, ``DspControl``: seen when a bus echoes them) and error frames are skipped.
+  bus with arbitration id, flags and the E2E-protected bytes 0..7 as recorded (the rolling
+  counters and CRCs are the original ones) and a new SecOC trailer (bytes 8..15: fresh freshness
+  value and MAC with the live rig's ``key``, :mod:`hal.secoc`): the recorded trailer was made
+  with the key of the recorded run and carries freshness values a live receiver has seen pass.
+  Frames the controller itself sends (``TorqueCommand``, ``DspControl``: seen when a bus
+  echoes them) and error frames are skipped.
 * ``/vision/features`` payloads go onto zenoh key ``hil/vision/features``. Lockstep messages are
-  judged by simulation time and are sent byte for byte. Realtime messages carry a capture stamp
+  judged by simulation time and keep their stamps. Realtime messages carry a capture stamp
   (``stamp_ns``, monotonic) that a live controller checks for staleness, so they are
   **re-stamped**: decoded, ``stamp_ns`` shifted by the replay offset of that message
   (its send time minus its recorded receive time), re-encoded. Each message therefore arrives
-  exactly as old as it was when it was recorded. Undecodable payloads are sent as recorded.
+  exactly as old as it was when it was recorded. Every payload is re-signed with the live rig's
+  key (its MAC covers the stamp). Undecodable payloads are sent as recorded.
 
 The zenoh session defaults to ``listen=None``: the hub if the endpoint's port is free (nothing
 else of the rig is running), else a client of the running hub. Before the first message the
@@ -30,6 +34,7 @@ tick matters. A realtime log is best played at ``speed=1``.
 from __future__ import annotations
 
 import base64
+import contextlib
 import threading
 import time
 from contextlib import ExitStack
@@ -39,9 +44,10 @@ from typing import Any
 
 import can
 
-from hal.can_codec import CONTROLLER, load_database
+from hal.can_codec import CONTROLLER, DspCodec, load_database
 from hal.config import RigConfig
 from hal.errors import HalCodecError, HalConfigError
+from hal.secoc import rig_key
 from hal.vision_codec import decode_features, encode_features
 from rt_controller.logtools.reader import LoadedLog, read_log
 
@@ -105,16 +111,17 @@ def can_message(rec: dict[str, Any]) -> can.Message:
     )
 
 
-def restamp(payload: bytes, shift_ns: int) -> bytes | None:
-    """A realtime features payload with ``stamp_ns`` shifted by ``shift_ns``; None when the
-    payload is a lockstep message (send as is) or cannot be decoded (send as recorded)."""
+def restamp(payload: bytes, shift_ns: int, key: bytes | None = None) -> tuple[bytes, bool]:
+    """``(payload to send, restamped)``: a realtime features payload with ``stamp_ns`` shifted
+    by ``shift_ns``, a lockstep one unchanged, both signed with ``key`` (default: this process's
+    ephemeral key); an undecodable payload as recorded."""
     try:
         msg = decode_features(payload)
         if msg.lockstep:
-            return None
-        return encode_features(msg._replace(stamp_ns=msg.stamp_ns + shift_ns))
+            return encode_features(msg, key), False
+        return encode_features(msg._replace(stamp_ns=msg.stamp_ns + shift_ns), key), True
     except HalCodecError:
-        return None
+        return payload, False
 
 
 def playback_events(log: LoadedLog, result: RepublishResult) -> list[tuple[int, int, Any]]:
@@ -153,6 +160,7 @@ def republish_log(
     wait_subscriber_s: float = WAIT_SUBSCRIBER_S,
     lead_in_s: float = LEAD_IN_S,
     stop: threading.Event | None = None,
+    key: bytes | None = None,
 ) -> RepublishResult:
     """Send the raw inputs recorded in ``path`` onto CAN and zenoh (see the module docstring).
 
@@ -160,7 +168,9 @@ def republish_log(
     ``zenoh_config``), else ``cfg``, else the embedded defaults; a bus or session is only opened
     when the log has something to send on it. Playback starts ``lead_in_s`` after the features
     subscriber appeared (or after ``wait_subscriber_s`` without one, or at once when both are
-    0). ``stop`` ends the playback early. Raises
+    0). ``stop`` ends the playback early. ``key``: the live rig's key that CAN frames and
+    features are re-signed with (default: ``cfg.transport.key_file`` of the ``cfg`` given, else
+    this process's ephemeral key; never the log's, whose run is over). Raises
     :class:`~rt_controller.errors.LogError` for a bad file and :class:`~hal.errors.HalError`
     for a transport that cannot be opened.
     """
@@ -170,6 +180,7 @@ def republish_log(
     if not speed >= 0:
         raise HalConfigError(f"--speed must be non-negative (0 = as fast as possible), got {speed}")
     stop = stop or threading.Event()
+    key = key if key is not None else rig_key(cfg)
     log = read_log(path)
     cfg = cfg or log.config or RigConfig()
     result = RepublishResult(Path(path), speed, truncated=log.truncated, notes=list(log.notes))
@@ -200,7 +211,7 @@ def republish_log(
         if lead_in_s > 0 and stop.wait(lead_in_s):
             result.stopped = True
             return result
-        _play(events, bus, publisher, speed, stop, result)
+        _play(events, bus, publisher, speed, stop, result, DspCodec(key=key), key)
     return result
 
 
@@ -211,6 +222,8 @@ def _play(
     speed: float,
     stop: threading.Event,
     result: RepublishResult,
+    signer: DspCodec,
+    key: bytes,
 ) -> None:
     t0 = events[0][0]
     start = time.monotonic_ns()
@@ -224,16 +237,17 @@ def _play(
                 result.stopped = True
                 break
         if kind == _CAN:
+            with contextlib.suppress(HalCodecError):  # not a DSP frame: sent as recorded
+                obj = signer.sign(obj)
             try:
                 bus.send(obj, timeout=0.05)
                 result.can_frames += 1
             except (can.CanError, OSError):
                 result.send_errors += 1
             continue
-        payload = restamp(obj, time.monotonic_ns() - t_ns)
-        if payload is not None:
-            result.restamped += 1
-        publisher.put(obj if payload is None else payload)
+        payload, shifted = restamp(obj, time.monotonic_ns() - t_ns, key)
+        result.restamped += shifted
+        publisher.put(payload)
         result.payloads += 1
     result.duration_s = (time.monotonic_ns() - start) / 1e9
     if result.send_errors:

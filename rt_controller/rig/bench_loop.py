@@ -151,11 +151,15 @@ def bench_loop(
         work = Path(tmp)
         runs = [bench_rate(cfg, r, duration, law, work, monitor_port) for r in rates]
         lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
+    from hal.can_codec import bench_codec
+    from hal.secoc import bench_mac
+
     return {
         "duration_s": duration,
         "rates": runs,
         "lockstep": lock,
         "monitor_port": monitor_port,
+        "can_frame_us": {**bench_mac(), **bench_codec(2000)},
         "machine": {
             "cpus": os.cpu_count(),
             "load": dict(zip(("1min", "5min", "15min"), os.getloadavg(), strict=True)),

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -72,6 +73,8 @@ class RigOptions:
     can: str | None = None
     zenoh_endpoint: str | None = None
     log: Path | None = None
+    key_file: Path | None = None
+    """The rig key of every child; None: a fresh key for this run (private temporary dir)."""
     extra_controller: list[str] = field(default_factory=list)
     extra_vision: list[str] = field(default_factory=list)
     extra_emulator: list[str] = field(default_factory=list)
@@ -106,9 +109,24 @@ class Rig:
         self.children: list[Child] = []
         self.endpoint = opts.zenoh_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
         self.can = opts.can or private_default_bus(opts.config)
+        self._key_dir: str | None = None
+        self.key_file: Path | None = Path(opts.key_file) if opts.key_file else None
+        """The rig key the children load (set by :meth:`start` when made fresh)."""
+
+    def _ensure_key(self) -> Path:
+        """The run's rig key: the given one (checked now), else a fresh one in a private
+        directory (mode 0700, removed by :meth:`close`), so two rigs never share a key."""
+        from hal.secoc import load_key_file, write_key_file
+
+        if self.key_file is None:
+            self._key_dir = tempfile.mkdtemp(prefix="hil-rig-key-")
+            self.key_file = write_key_file(Path(self._key_dir) / "rig.key")
+        else:
+            load_key_file(self.key_file)
+        return self.key_file
 
     def _common(self) -> list[str]:
-        out = ["--zenoh-endpoint", self.endpoint]
+        out = ["--zenoh-endpoint", self.endpoint, "--key-file", str(self._ensure_key())]
         if self.opts.config:
             out += ["--config", self.opts.config]
         return out
@@ -209,6 +227,9 @@ class Rig:
                 c.stderr.close()
                 c.stdout.close()
             self.children.clear()
+            if self._key_dir is not None:
+                shutil.rmtree(self._key_dir, ignore_errors=True)
+                self._key_dir = None
 
     def __enter__(self) -> Rig:
         return self

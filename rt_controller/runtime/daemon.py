@@ -26,6 +26,7 @@ from hal.config import RigConfig
 from hal.drive_state import MODE_ENABLED, MODE_NO_STATUS, DriveEvent, DriveMonitor, FaultReason
 from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
+from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder, feature_age_ns
 from hal.zenoh_session import KEY_FEATURES, PayloadRing, open_session
 from rt_controller.control.controller import Controller, warm_up
@@ -128,8 +129,10 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
 
     A run is not clean when it lost log records, tripped the DSP's watchdog, saw the DSP
-    fault, or ran ticks without an enabled DSP (disarmed, restarted, silent); the commands exit
-    non-zero and print these on one line.
+    fault, received a stream of frames or messages that failed authentication (another sender
+    on the rig's bus or zenoh: :data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without
+    an enabled DSP (disarmed, restarted, silent); the commands exit non-zero and print these on
+    one line.
     """
     out: list[str] = []
     rec = summary.get("recorder") or {}
@@ -143,6 +146,15 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     faults = {k: v for k, v in (summary.get("dsp_faults") or {}).items() if k != "watchdog"}
     if faults:
         out.append("DSP fault(s): " + ", ".join(f"{k} {v}" for k, v in faults.items()))
+    rejections = summary.get("rejections") or {}
+    for name, what in (("can_rx", "CAN frame(s)"), ("features", "vision message(s)")):
+        auth = diagnostics.auth_failures(rejections.get(name) or {})
+        if sum(auth.values()) >= diagnostics.AUTH_FAULT_MIN:
+            reasons = ", ".join(f"{k} {v}" for k, v in auth.items() if v)
+            out.append(f"{sum(auth.values())} {what} failed authentication ({reasons})")
+    dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
+    if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
+        out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")
     drive = summary.get("drive_ticks") or {}
     if drive:
         what = ", ".join(f"{k} {v}" for k, v in drive.items())
@@ -229,7 +241,7 @@ class ControllerDaemon:
             if options.lockstep
             else cfg.controller.state_timeout_s
         )
-        self.features = FeatureDecoder.from_config(cfg.controller)
+        self.features = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
 
     # --- wiring -----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -291,6 +303,9 @@ class ControllerDaemon:
         out["rejections"] = {
             "can_rx": diagnostics.values_of(final, "can_rx"),
             "features": diagnostics.values_of(final, "features"),
+            "dsp_rejected_frames": int(
+                diagnostics.values_of(final, "dsp").get("rejected_frames", 0)
+            ),
         }
         out["problems"] = run_problems(out)
         return out
@@ -424,6 +439,7 @@ class ControllerDaemon:
                 "session": int(status.session) if status else 0,
                 "torque_enabled": bool(status and status.torque_enabled),
                 "watchdog_tripped": bool(status and status.watchdog_tripped),
+                "rejected_frames": int(status.rejected_frames) if status else 0,
                 **{f"events.{k}": v for k, v in self.drive.counters().items()},
                 **{f"ticks.{k}": v for k, v in st.drive_ticks.items()},
             },

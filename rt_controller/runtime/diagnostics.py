@@ -55,6 +55,27 @@ def counters(obj: Any) -> dict[str, Any]:
     return dict(obj)
 
 
+AUTH_REJECTIONS = ("bad_mac", "stale_freshness", "future_freshness")
+"""Receiver counters of frames/messages that failed authentication (hal/secoc.py)."""
+AUTH_FAULT_MIN = 10
+"""This many authentication failures in a run are a sustained stream, not a glitch: an error
+in ``/diagnostics`` and a reason the run is not clean."""
+
+
+def auth_failures(values: dict[str, Any]) -> dict[str, int]:
+    """The authentication failures among a receiver's counters, by reason."""
+    return {k: int(values.get(k, 0)) for k in AUTH_REJECTIONS if k in values}
+
+
+def _rx_status(name: str, values: dict[str, Any], what: str) -> dict[str, Any]:
+    bad, auth = rejected(values), sum(auth_failures(values).values())
+    if auth >= AUTH_FAULT_MIN:
+        return _status(name, ERROR, f"{auth} {what} failed authentication", values)
+    if bad:
+        return _status(name, WARN, f"{bad} {what} rejected", values)
+    return _status(name, OK, f"all {what} accepted", values)
+
+
 def _status(name: str, level: int, message: str, values: dict[str, Any]) -> dict[str, Any]:
     return {"name": name, "level": level, "message": message, "values": values}
 
@@ -79,23 +100,12 @@ def build(
     final: bool = False,
 ) -> dict[str, Any]:
     """One ``/diagnostics`` record from the components' counters."""
-    can_bad, feat_bad = rejected(can_rx), rejected(features)
     lost = int(recorder.get("dropped", 0)) + int(recorder.get("encode_errors", 0))
     dsp_bad = bool(dsp.get("watchdog_tripped")) or int(controller.get("watchdog_trips", 0)) > 0
     misses = int(controller.get("deadline_misses", 0))
     status = [
-        _status(
-            "can_rx",
-            WARN if can_bad else OK,
-            f"{can_bad} frame(s) rejected" if can_bad else "all frames accepted",
-            can_rx,
-        ),
-        _status(
-            "features",
-            WARN if feat_bad else OK,
-            f"{feat_bad} message(s) rejected" if feat_bad else "all messages accepted",
-            features,
-        ),
+        _rx_status("can_rx", can_rx, "frame(s)"),
+        _rx_status("features", features, "message(s)"),
         _status(
             "dsp",
             ERROR if dsp_bad else OK,

@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import ControllerCodec, DspCodec
+from hal.can_codec import ControllerCodec, DspCodec, load_database
 from hal.config import RigConfig
+from hal.secoc import SecOCVerifier, rig_key
 from hal.vision_codec import FeatureMsg, decode_features, encode_features
 from hal.zenoh_session import KEY_FEATURES, free_loopback_port, open_session
 from plant_emulator.world import World
@@ -329,9 +330,16 @@ def test_republish_sends_the_recorded_inputs(tmp_path, cfg, interface, lockstep)
         assert wait_until(lambda: len(got) == len(payloads))
     assert result.can_frames == len(frames) and result.skipped == 1
     assert result.payloads == len(payloads) and not result.stopped
-    assert [(m.arbitration_id, bytes(m.data).hex()) for m in received] == [
-        (r["arbitration_id"], r["data"]) for r in frames
+    # E2E bytes 0..7 as recorded; the SecOC trailer re-signed with the live key and fresh
+    # freshness values, so a live receiver accepts every frame once
+    assert [(m.arbitration_id, bytes(m.data[:8]).hex()) for m in received] == [
+        (r["arbitration_id"], r["data"][:16]) for r in frames
     ]
+    db = load_database()
+    live = SecOCVerifier(rig_key(), "DSP")
+    for m in received:
+        data_id = db.by_id[m.arbitration_id].data_id
+        assert live.check(m.arbitration_id, data_id, bytes(m.data)) is None
     if lockstep:
         assert got == payloads and result.restamped == 0
     else:

@@ -36,7 +36,7 @@ from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 from plant_emulator.dsp_node import DspNode
-from tests.support import e2e_crc_reference
+from tests.support import SecocReference, e2e_crc_reference
 
 RECV_TIMEOUT_S = 10.0
 MS = 1_000_000
@@ -296,7 +296,7 @@ class Responder:
             if k in self.spoil:
                 self.spoil.discard(k)
                 msg = client._codec.encode_torque(*tau, enable=True, tick=k)
-                msg.data[0] ^= 0x5A  # CRC broken: the DSP rejects it and counts bad_crc
+                msg.data[0] ^= 0x5A  # corrupted: the DSP rejects it (bad MAC)
                 client.bus.send(msg)
                 continue
             client.send_torque(*tau, tick=k)
@@ -346,7 +346,7 @@ def test_lockstep_resends_sync_when_the_answer_is_lost(cfg: RigConfig) -> None:
     spoiled, responder = lockstep_run(cfg, "virtual", periods, spoil=frozenset({3, 11}))
     assert spoiled.stats.missing_periods == 0
     assert spoiled.stats.sync_resends >= 2
-    assert spoiled.codec.stats.bad_crc == 2
+    assert spoiled.codec.stats.bad_mac == 2  # corrupted in transit: the MAC catches it first
     assert responder.answers[3] >= 2 and responder.answers[11] >= 2
     # The re-sends changed nothing in the physics.
     assert spoiled.world.q.tobytes() == clean.world.q.tobytes()
@@ -528,6 +528,7 @@ class DspOracle:
 
     def __init__(self) -> None:
         self.last: dict[int, tuple[int, int]] = {}
+        self.secoc = SecocReference()
         self.tally: Counter[str] = Counter()
         self.torques = 0
 
@@ -540,8 +541,11 @@ class DspOracle:
         if SENDER[fid] == "DSP":
             return "ignored"
         data = bytes(msg.data or b"")
-        if msg.is_remote_frame or len(data) != 8:
+        if msg.is_remote_frame or len(data) != 16:
             return "wrong_length"
+        failed = self.secoc.verdict(fid, SENDER[fid], DATA_IDS[fid], data)
+        if failed:
+            return failed
         if sign(fid, bytearray(data)) != data:
             return "bad_crc"
         counter, last = data[1] & 0xF, self.last.get(fid)
@@ -582,6 +586,7 @@ def fuzz_frames(rng: random.Random) -> Iterator[can.Message]:
 
     def copy(msg: can.Message, **kw: object) -> can.Message:
         fields = {"arbitration_id": msg.arbitration_id, "is_extended_id": msg.is_extended_id}
+        fields["is_fd"] = msg.is_fd
         fields["data"] = bytes(msg.data)
         fields.update(kw)
         return can.Message(**fields)  # type: ignore[arg-type]
@@ -591,19 +596,21 @@ def fuzz_frames(rng: random.Random) -> Iterator[can.Message]:
         for _ in range(rng.randint(1, 6)):
             bit = rng.randrange(64)
             data[bit // 8] ^= 1 << (bit % 8)
-        return copy(history[-1], data=bytes(data))
+        flipped = copy(history[-1], data=bytes(data))
+        # half of them signed by a rig member (a bug, not an attack): the CRC/counter catch it
+        return ctl.sign(flipped) if rng.random() < 0.5 else flipped
 
     def resigned() -> can.Message:
         """Random payload with a valid CRC: reaches the counter check and the decoder."""
         fid = rng.choice([TORQUE_ID, CONTROL_ID])
         data = bytearray(rng.getrandbits(8) for _ in range(8))
-        return can.Message(arbitration_id=fid, is_extended_id=False, data=sign(fid, data))
+        return ctl.sign(can.Message(arbitration_id=fid, is_extended_id=False, data=sign(fid, data)))
 
     def junk() -> can.Message:
         ext = rng.random() < 0.3
         fid = rng.randrange(1 << 29) if ext else rng.randrange(0x800)
-        data = bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 8)))
-        return can.Message(arbitration_id=fid, is_extended_id=ext, data=data)
+        data = bytes(rng.getrandbits(8) for _ in range(rng.choice([*range(9), 12, 16])))
+        return can.Message(arbitration_id=fid, is_extended_id=ext, data=data, is_fd=len(data) > 8)
 
     def replay() -> can.Message:
         return copy(rng.choice(history[-30:])) if history else valid()
@@ -655,7 +662,8 @@ def test_fuzz_into_the_dsp_receive_path(cfg: RigConfig, seed: int) -> None:
     assert stats["rejected"] == bad > N_FRAMES // 4
     assert sum(oracle.tally.values()) == N_FRAMES
     for kind in ("bad_crc", "repeated_counter", "counter_jump", "wrong_length", "unknown_id",
-                 "decode_error", "error_frame", "ignored"):  # fmt: skip
+                 "decode_error", "error_frame", "ignored", "bad_mac",
+                 "stale_freshness"):  # fmt: skip
         assert oracle.tally[kind] > 0, f"the fuzz never produced {kind}"
     assert node.stats.commands == oracle.torques > 1000
     assert node.stats.physics_steps == N_FRAMES // 10

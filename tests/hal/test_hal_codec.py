@@ -53,13 +53,15 @@ def test_database_has_the_names_design_md_fixes() -> None:
     assert "Command" in names["DspControl"]
 
 
-def test_every_message_is_classic_8_byte_with_crc_counter_and_unique_data_id() -> None:
+def test_every_message_is_fd_16_byte_with_crc_counter_secoc_and_unique_data_id() -> None:
     data_ids = set()
     for msg in RAW_DB.messages:
-        assert msg.length == 8 and not msg.is_fd and not msg.is_extended_frame, msg.name
+        assert msg.length == 16 and msg.is_fd and not msg.is_extended_frame, msg.name
         crc, counter = msg.get_signal_by_name("CRC"), msg.get_signal_by_name("Counter")
         assert (crc.start, crc.length) == (0, 8)
         assert (counter.start, counter.length) == (8, 4)
+        fv, mac = msg.get_signal_by_name("Freshness"), msg.get_signal_by_name("Mac")
+        assert (fv.start, fv.length, mac.start, mac.length) == (64, 32, 96, 32)
         data_id = msg.dbc.attributes["E2EDataID"].value
         assert 0 < data_id <= 0xFFFF
         data_ids.add(data_id)
@@ -114,7 +116,7 @@ def test_dbc_ranges_match_the_raw_integer_ranges() -> None:
 def roundtrip(frame, sender, receiver):  # type: ignore[no-untyped-def]
     msg = sender.encode(frame)
     assert isinstance(msg, can.Message)
-    assert msg.dlc == 8 and not msg.is_extended_id
+    assert msg.dlc == 16 and msg.is_fd and not msg.is_extended_id
     decoded = receiver.decode(msg, 0)
     assert decoded is not None, receiver.stats
     return decoded
@@ -237,10 +239,12 @@ def test_own_direction_frames_are_ignored() -> None:
 
 def test_unknown_command_with_valid_crc_is_a_decode_error() -> None:
     spec = load_database().by_name["DspControl"]
-    payload = bytearray(spec.message.encode({"CRC": 0, "Counter": 0, "Command": 7}))
+    signals = {"CRC": 0, "Counter": 0, "Freshness": 0, "Mac": 0, "Command": 7}
+    payload = bytearray(spec.message.encode(signals)[:8])
     E2ESender().protect(spec.data_id, payload)
     dsp = DspCodec()
-    msg = can.Message(arbitration_id=spec.frame_id, data=payload, is_extended_id=False)
+    raw = can.Message(arbitration_id=spec.frame_id, data=payload, is_extended_id=False)
+    msg = ControllerCodec().sign(raw)  # authentic: the rig's own key
     assert dsp.decode(msg, 0) is None
     assert dsp.stats.decode_error == 1 and dsp.stats.rejected == 1
 

@@ -203,7 +203,9 @@ def test_bad_frames_on_the_wire_are_counted_and_hooked(spec: str, dsp_bus: can.B
     corrupted = bytearray(good_pos.data)
     corrupted[4] ^= 0x10
     bad = [
-        can.Message(arbitration_id=good_pos.arbitration_id, data=corrupted, is_extended_id=False),
+        can.Message(
+            arbitration_id=good_pos.arbitration_id, data=corrupted, is_extended_id=False, is_fd=True
+        ),
         good_pos,  # repeated counter (sent once before)
         can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False),
         can.Message(arbitration_id=good_pos.arbitration_id, data=bytes(4), is_extended_id=False),
@@ -216,7 +218,8 @@ def test_bad_frames_on_the_wire_are_counted_and_hooked(spec: str, dsp_bus: can.B
         client.wait_sync(RECV_TIMEOUT_S)
         stats = client.stats
     e2e = stats.e2e
-    assert (e2e.bad_crc, e2e.repeated_counter, e2e.unknown_id, e2e.wrong_length) == (1, 1, 1, 1)
+    # the corrupted frame fails its MAC, the repeat its freshness (SecOC checks come first)
+    assert (e2e.bad_mac, e2e.stale_freshness, e2e.unknown_id, e2e.wrong_length) == (1, 1, 1, 1)
     assert e2e.rejected == 4 and e2e.accepted == 2
     assert [bytes(m.data) for m in seen[:5]] == [bytes(m.data) for m in (good_pos, *bad)]
     assert seen[5].arbitration_id == 0x080  # the Sync

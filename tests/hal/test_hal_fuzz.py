@@ -1,8 +1,8 @@
 """Fuzz: 10 000 random and mutated frames into the client's and the DSP's receive paths.
 
-An independent oracle (bitwise CRC, its own counter model, ids and data ids read with plain
-cantools) predicts the verdict of every frame; the receivers must never raise and must count
-every frame exactly as the oracle says, kind by kind.
+An independent oracle (its own SecOC MAC and freshness model, bitwise CRC, its own counter
+model, ids and data ids read with plain cantools) predicts the verdict of every frame; the
+receivers must never raise and must count every frame exactly as the oracle says, kind by kind.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from hal.can_codec import (
 from hal.drive_state import DriveState, FaultReason
 from hal.e2e import DEFAULT_MAX_DELTA
 from hal.joint_client import JointClient
-from tests.support import e2e_crc_reference
+from tests.support import SecocReference, e2e_crc_reference
 
 N_FRAMES = 10_000
 RAW_DB = cantools.database.load_file(str(DBC_PATH))
@@ -50,6 +50,7 @@ class Oracle:
     def __init__(self, node: str) -> None:
         self.node = node
         self.last: dict[int, int] = {}
+        self.secoc = SecocReference()
         self.tally: Counter[str] = Counter()
 
     def verdict(self, msg: can.Message) -> str:
@@ -61,8 +62,11 @@ class Oracle:
         if SENDERS[fid] == self.node:
             return "ignored"
         data = bytes(msg.data or b"")
-        if msg.is_remote_frame or len(data) != 8:
+        if msg.is_remote_frame or len(data) != 16:
             return "wrong_length"
+        failed = self.secoc.verdict(fid, SENDERS[fid], DATA_IDS[fid], data)
+        if failed:
+            return failed
         data_id = DATA_IDS[fid]
         if e2e_crc_reference(data_id, data) != data[0]:
             return "bad_crc"
@@ -109,6 +113,7 @@ class FrameSource:
             self.valid,
             self.valid,
             self.flip_bits,
+            self.flip_bits_signed,
             self.random_frame,
             self.replay,
             self.resize,
@@ -124,6 +129,7 @@ class FrameSource:
             "arbitration_id": msg.arbitration_id,
             "is_extended_id": msg.is_extended_id,
             "data": bytes(msg.data),
+            "is_fd": msg.is_fd,
         }
         fields.update(changes)
         return can.Message(**fields)  # type: ignore[arg-type]
@@ -135,6 +141,11 @@ class FrameSource:
             data[bit // 8] ^= 1 << (bit % 8)
         return self._copy(self.history[-1], data=bytes(data))
 
+    def flip_bits_signed(self) -> can.Message:
+        """Bits flipped in bytes 0..7 by an authentic sender (a rig member's bug): the CRC, the
+        counter or the decode catches it."""
+        return self.peer.sign(self.flip_bits())
+
     def random_frame(self) -> can.Message:
         rng = self.rng
         extended = rng.random() < 0.2
@@ -142,9 +153,10 @@ class FrameSource:
         fid = rng.choice(list(DATA_IDS)) if known else rng.randrange(0x800)
         if extended:
             fid = rng.randrange(1 << 29) if not known else fid
-        length = rng.choice([8, 8, 8, rng.randint(0, 8)])
+        length = rng.choice([16, 16, 8, rng.choice([*range(9), 12])])
         data = bytes(rng.getrandbits(8) for _ in range(length))
-        return can.Message(arbitration_id=fid, is_extended_id=extended, data=data)
+        fd = length > 8 or rng.random() < 0.5
+        return can.Message(arbitration_id=fid, is_extended_id=extended, data=data, is_fd=fd)
 
     def replay(self) -> can.Message:
         if not self.history:
@@ -153,7 +165,7 @@ class FrameSource:
 
     def resize(self) -> can.Message:
         data = bytes(self.valid().data)
-        length = self.rng.choice([0, 1, 4, 7])
+        length = self.rng.choice([0, 1, 4, 7, 8, 12])
         return self._copy(self.history[-1], data=data[:length])
 
     def retarget(self) -> can.Message:
@@ -168,7 +180,7 @@ class FrameSource:
             data[2] = self.rng.randrange(256)
         data_id = DATA_IDS[fid]
         data[0] = e2e_crc_reference(data_id, data)
-        return self._copy(self.history[-1], data=bytes(data))
+        return self.peer.sign(self._copy(self.history[-1], data=bytes(data)))  # authentic
 
     def odd_frame(self) -> can.Message:
         fid = self.rng.choice(list(DATA_IDS))

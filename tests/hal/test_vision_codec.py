@@ -44,8 +44,8 @@ def feat(frame: int = 1, pose_seq: int = 1, **kw) -> FeatureMsg:
 def test_features_round_trip_is_bit_exact():
     msg = feat(frame=2**40, pose_seq=2**63, f=(math.pi, -1e-300), lockstep=True, source=2**32 - 1)
     buf = encode_features(msg)
-    assert len(buf) == FEATURES_SIZE == 56
-    assert buf[:4] == b"HF\x01\x03"
+    assert len(buf) == FEATURES_SIZE == 72
+    assert buf[:4] == b"HF\x02\x03"
     assert decode_features(buf) == msg
     assert msg.as_dict()["f"] == [math.pi, -1e-300]
 
@@ -53,17 +53,18 @@ def test_features_round_trip_is_bit_exact():
 def test_pose_round_trip():
     msg = PoseMsg(5, 100_000_000, NOW, 0.45, 0.13, 0.0, True, 3)
     buf = encode_pose(msg)
-    assert len(buf) == POSE_SIZE == 56
-    assert buf[:4] == b"HP\x01\x01"
+    assert len(buf) == POSE_SIZE == 72
+    assert buf[:4] == b"HP\x02\x01"
     assert decode_pose(buf) == msg
 
 
 def test_little_endian_layout_is_documented_one():
     buf = encode_features(feat(frame=9, pose_seq=4, f=(1.5, -2.0)))
-    magic, ver, flags, src, frame, stamp, sim, seq, fx, fy = struct.unpack("<2sBBIQqqQdd", buf)
+    fields = struct.unpack("<2sBBIQqqQdd16s", buf)
+    magic, ver, flags, src, frame, stamp, sim, seq, fx, fy, _mac = fields
     assert (magic, ver, flags, src, frame, stamp, sim, seq, fx, fy) == (
         b"HF",
-        1,
+        2,
         1,
         7,
         9,
@@ -95,7 +96,7 @@ def test_decode_errors_name_the_problem():
     with pytest.raises(HalCodecError, match="bad_magic"):
         decode_features(b"XX" + good[2:])
     with pytest.raises(HalCodecError, match="bad_version"):
-        decode_features(good[:2] + b"\x02" + good[3:])
+        decode_features(good[:2] + b"\x01" + good[3:])
     with pytest.raises(HalCodecError, match="bad_magic"):
         decode_features(encode_pose(PoseMsg(0, 0, 0, 0.0, 0.0, 0.0)))
 
@@ -192,7 +193,7 @@ def _mutate(rng: random.Random, good: bytes) -> tuple[bytes, str]:
             magic = rng.randbytes(2)
         return magic + good[2:], "bad_magic"
     if kind == 3:
-        return good[:2] + bytes([rng.choice([0, *range(2, 256)])]) + good[3:], "bad_version"
+        return good[:2] + bytes([rng.choice([0, 1, *range(3, 256)])]) + good[3:], "bad_version"
     if kind == 4:
         return good[:3] + bytes([rng.randrange(4, 256)]) + good[4:], "bad_flags"
     if kind == 5:

@@ -77,12 +77,15 @@ def _inject(can_spec: str, endpoint: str, cfg) -> None:
     """Bad CAN frames (valid id and length, broken CRC) and malformed feature payloads."""
     good = DspCodec().encode_state((0.1, 0.2), (0.0, 0.0), 0)[0]
     data = bytearray(good.data)
-    data[0] ^= 0xFF  # CRC byte (or payload): the E2E check fails either way
+    data[0] ^= 0xFF  # CRC byte: the MAC (checked first) fails
     with open_bus(can_spec) as bus:
         for _ in range(BAD_CAN):
             bus.send(
                 can.Message(
-                    arbitration_id=good.arbitration_id, data=bytes(data), is_extended_id=False
+                    arbitration_id=good.arbitration_id,
+                    data=bytes(data),
+                    is_extended_id=False,
+                    is_fd=True,
                 )
             )
     with open_session(cfg, listen=False, endpoint=endpoint) as s:

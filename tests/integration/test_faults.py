@@ -22,6 +22,7 @@ from hal.bus import isolated_spec
 from hal.config import load_config
 from hal.drive_state import DspCommand
 from hal.joint_client import JointClient
+from hal.secoc import load_key_file
 from hal.vision_codec import decode_features, encode_features
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.logtools.reader import read_log
@@ -128,8 +129,9 @@ def test_a_disable_from_another_node_disarms_and_the_run_fails(tmp_path):
     with Rig(opts) as rig:
         rig.start()
         _wait_cycles(log, 50, rig)
-        with JointClient.open(opts.can) as rogue:
-            rogue.send_command(DspCommand.DISABLE, repeat=3)
+        # a second node *with the rig's key* (an operator's tool); without it, see test_secoc.py
+        with JointClient.open(opts.can, key=load_key_file(rig.key_file)) as tool:
+            tool.send_command(DspCommand.DISABLE, repeat=3)
         rc, summary, err = _controller_result(rig)
     assert rc == 1, err
     assert summary["drive_ticks"].get("disarmed", 0) > 0, summary
@@ -170,14 +172,15 @@ def test_future_stamped_and_foreign_features_are_rejected_and_a_dead_camera_goes
         source, frame = _vision_source(log)
         now = time.monotonic_ns()
         cfg_f = (12.0, -7.0)
+        key = load_key_file(rig.key_file)  # signed with the rig's key: these test the checks
         with open_session(load_config(), listen=False, endpoint=opts.zenoh_endpoint) as session:
             pub = session.publisher(KEY_FEATURES)
             for i in range(future):  # the real source, an hour ahead: would never go stale
                 msg = (frame + 10_000 + i, now + 3600 * 10**9, 0, 0, cfg_f, True, False, source)
-                pub.put(encode_features(_feature(msg)))
+                pub.put(encode_features(_feature(msg), key))
             for i in range(foreign):  # a rogue publisher, perfectly fresh
                 msg = (frame + 20_000 + i, time.monotonic_ns(), 0, 0, cfg_f, True, False, 777)
-                pub.put(encode_features(_feature(msg)))
+                pub.put(encode_features(_feature(msg), key))
             time.sleep(0.5)
             pub.undeclare()
         vision = _child(rig, "vision")

@@ -57,7 +57,7 @@ def _finish(proc: subprocess.Popen, ep: str) -> tuple[int, str]:
 
 def last_torque(can_tx: list[dict]) -> tuple[float, float]:
     """(Tau1, Tau2) of the last TorqueCommand the controller sent, decoded by the DSP's codec."""
-    codec, last = DspCodec(), None
+    codec, last = DspCodec(verify=False), None  # a log: its run's key is gone
     for rec in can_tx:
         frame = codec.decode_command(can_message(rec), 0)
         if isinstance(frame, TorqueCommand):

@@ -33,7 +33,46 @@ def crc_reference(data: bytes) -> int:
 
 def e2e_crc_reference(data_id: int, payload: bytes) -> int:
     """The E2E CRC of a frame: over the data id (little endian) and payload bytes 1..7."""
-    return crc_reference(bytes([data_id & 0xFF, data_id >> 8]) + bytes(payload[1:]))
+    return crc_reference(bytes([data_id & 0xFF, data_id >> 8]) + bytes(payload[1:8]))
+
+
+def session_key() -> bytes:
+    """The test session's rig key (``$HIL_KEY_FILE``, set by tests/conftest.py), read
+    independently of hal."""
+    return bytes.fromhex(Path(os.environ["HIL_KEY_FILE"]).read_text().strip())
+
+
+class SecocReference:
+    """The SecOC verdict a receiver must give (MAC, then freshness; hal/README.md), with its
+    own model of the last accepted freshness per frame id; independent of hal."""
+
+    def __init__(self, key: bytes | None = None) -> None:
+        self.key = key if key is not None else session_key()
+        self.last_fv: dict[int, int] = {}
+
+    def verdict(self, fid: int, sender: str, data_id: int, data: bytes) -> str | None:
+        now = time.time_ns() // 1000
+        low = int.from_bytes(data[8:12], "little")
+        candidates = (((now >> 32) + k) << 32 | low for k in (-1, 0, 1))
+        fv = min(candidates, key=lambda v: abs(v - now))
+        if secoc_tag_reference(self.key, sender, data_id, fv, data[:8]) != data[12:16]:
+            return "bad_mac"
+        if fv <= self.last_fv.get(fid, -1) or fv < now - 2_000_000:
+            return "stale_freshness"
+        if fv > now + 1_000_000:
+            return "future_freshness"
+        self.last_fv[fid] = fv
+        return None
+
+
+def secoc_tag_reference(key: bytes, sender: str, data_id: int, fv: int, head: bytes) -> bytes:
+    """The 32-bit SecOC MAC of a CAN frame (hal/README.md), independent of hal."""
+    import hashlib
+    import hmac
+
+    node_key = hmac.new(key, b"hil-secoc-v1\0hil/can/" + sender.encode(), hashlib.sha256).digest()
+    msg = data_id.to_bytes(2, "little") + fv.to_bytes(8, "little") + bytes(head[:8])
+    return hmac.new(node_key, msg, hashlib.sha256).digest()[:4]
 
 
 def wait_until(pred: Callable[[], object], timeout_s: float = 10.0, poll_s: float = 0.005) -> bool:

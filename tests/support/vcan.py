@@ -25,7 +25,8 @@ from hal.bus import vcan_available
 VCAN_CHANNEL = os.environ.get("HIL_VCAN_CHANNEL", "vcan0")
 ENABLE_HINT = (
     "run `scripts/vcan_pytest.py` (boots user-mode Linux if needed) or create it: "
-    "sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; sudo ip link set up vcan0"
+    "sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; sudo ip link set vcan0 mtu 72; "
+    "sudo ip link set up vcan0"
 )
 
 
