@@ -74,7 +74,8 @@ def test_diagnostics_round_trip_through_the_log(tmp_path):
 
 
 def _inject(can_spec: str, endpoint: str, cfg) -> None:
-    """Bad CAN frames (valid id and length, broken CRC) and malformed feature payloads."""
+    """Bad CAN frames (valid id and length, a byte flipped: the MAC fails) and malformed
+    feature payloads."""
     good = DspCodec().encode_state((0.1, 0.2), (0.0, 0.0), 0)[0]
     data = bytearray(good.data)
     data[0] ^= 0xFF  # CRC byte: the MAC (checked first) fails
@@ -117,7 +118,7 @@ def test_injected_rejections_are_counted_alike_in_summary_log_and_report(tmp_pat
         summary = rig.wait_controller()
     can_rx = summary["rejections"]["can_rx"]
     features = summary["rejections"]["features"]
-    assert can_rx["bad_crc"] == BAD_CAN, can_rx  # a loaded host may add others (e.g. stale)
+    assert can_rx["bad_mac"] == BAD_CAN, can_rx  # a loaded host may add others (e.g. stale)
     malformed = sum(v for k, v in features.items() if k.startswith("bad_"))
     assert malformed == BAD_FEATURES, features
     loaded = read_log(log, raw=False)
@@ -129,7 +130,7 @@ def test_injected_rejections_are_counted_alike_in_summary_log_and_report(tmp_pat
     diag = report["diagnostics"]
     assert diag["can_rx_rejected"] == can_rx["rejected"]
     assert diag["features_rejected"] == diagnostics.rejected(features)
-    assert diag["can_rx_by_reason"]["bad_crc"] == BAD_CAN
+    assert diag["can_rx_by_reason"]["bad_mac"] == BAD_CAN
     assert report["stale_features"] == summary["stale_features"]
     assert report["stale_state"] == summary["stale_states"]
     assert report["fallbacks"] == summary["fallbacks"]
