@@ -56,11 +56,12 @@ STOP_TIMEOUT_S = 60.0 * SLOW
 emulator's last periods and exit; only a hang should hit this."""
 EVENT_TIMEOUT_S = 60.0 * SLOW
 """Waiting for an event the DSP must report (a trip after SIGKILL): bounds a wait only."""
-LIGHT = ["--state-rate", "250"] if IN_UML else []
-"""Under user-mode Linux (one slow CPU) three Python processes decoding 2000 frames/s each cannot
-keep up: the emulator then runs seconds behind real time and wall-clock observations measure that
-backlog, not the DSP. The watchdog and signal tests therefore use 250 Hz joint state there (the
-DSP semantics under test do not depend on it); natively and in the state-rate test: 1 kHz."""
+LIGHT = ["--state-rate", "250" if IN_UML else "1000"]
+"""The DSP semantics under test (state rate, watchdog, signals) are checked in the emulator's
+fixed-rate state mode (``--state-rate``, ``dsp.state_sync = free``; the default mode phase-locks
+one state per control period to the controller's commands, see tests/emulator/test_state_sync.py).
+Under user-mode Linux (one slow CPU) three Python processes decoding 2000 frames/s each cannot
+keep up, so the state goes out at 250 Hz there; natively at 1 kHz."""
 
 TRANSPORTS = [
     pytest.param("socketcan", id="socketcan", marks=[pytest.mark.vcan, requires_vcan]),
@@ -273,7 +274,7 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
             if pose is not None:
                 poses.append(pose)
 
-    with emulator(can_spec, *extra) as emu:
+    with emulator(can_spec, *extra, *LIGHT) as emu:
         if native:
             zenoh_ctx = open_session(cfg, listen=False, endpoint=endpoint, wait_s=RECV_TIMEOUT_S)
         with zenoh_ctx as zs, JointClient.open(can_spec, cfg) as client:
