@@ -56,7 +56,8 @@ STOP_TIMEOUT_S = 60.0 * SLOW
 emulator's last periods and exit; only a hang should hit this."""
 EVENT_TIMEOUT_S = 60.0 * SLOW
 """Waiting for an event the DSP must report (a trip after SIGKILL): bounds a wait only."""
-LIGHT = ["--state-rate", "250" if IN_UML else "1000"]
+STATE_HZ = 250 if IN_UML else 1000
+LIGHT = ["--state-rate", str(STATE_HZ)]
 """The DSP semantics under test (state rate, watchdog, signals) are checked in the emulator's
 fixed-rate state mode (``--state-rate``, ``dsp.state_sync = free``; the default mode phase-locks
 one state per control period to the controller's commands, see tests/emulator/test_state_sync.py).
@@ -240,10 +241,10 @@ def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[list[
 def assert_dsp_clock_invariants(cfg: RigConfig, summary: dict[str, Any]) -> None:
     """What the emulator's summary must say under any host scheduling: realtime physics catches
     up step by step (never skips), so the joint state goes out exactly every ``state_every``
-    physics steps of the DSP clock (plus the initial one), i.e. at ``rates.state_hz``; and every
+    physics steps of the DSP clock (plus the initial one), i.e. at ``STATE_HZ``; and every
     watchdog trip came between 3 control periods and 3 periods + one physics step after the last
     valid command (DSP clock)."""
-    state_every = max(1, round(cfg.rates.physics_hz / cfg.rates.state_hz))
+    state_every = max(1, round(cfg.rates.physics_hz / STATE_HZ))  # the emulators run LIGHT
     steps = summary["physics_steps"]
     assert steps > 0
     assert summary["state_frames"] + summary["states_withheld"] == 1 + steps // state_every
@@ -442,6 +443,8 @@ def decode_candump_line(line: str) -> tuple[str, dict[str, Any]] | None:
     if len(parts) != 3 or "#" not in parts[2]:
         return None
     ident, _, data_hex = parts[2].partition("#")
+    if data_hex.startswith("#"):  # CAN FD: "ID##<flags nibble><data>"
+        data_hex = data_hex[2:]
     frame_id = int(ident, 16)
     if len(ident) > 3 or frame_id not in DATA_IDS:
         return None
