@@ -326,8 +326,11 @@ from hal.joint_client import JointClient
 with JointClient.open(sys.argv[1]) as dsp:
     dsp.enable()
     print("armed", flush=True)
+    seen = 0
     while True:  # 50 Hz until killed; zero torque keeps the arm at rest inside its limits
-        if dsp.status is not None and dsp.status.watchdog_tripped:
+        st = dsp.status
+        if st is not None and st.watchdog_tripped and st.watchdog_trips != seen:
+            seen = st.watchdog_trips  # once per trip, however long the status says tripped
             dsp.enable()  # stalled past the watchdog by a busy host: re-arm (resets the fault)
             print("re-armed", flush=True)
         dsp.send_torque(0.0, 0.0)
@@ -450,8 +453,8 @@ def decode_candump_line(line: str) -> tuple[str, dict[str, Any]] | None:
         return None
     data = bytes.fromhex(data_hex)
     msg = DB.get_message_by_frame_id(frame_id)
-    assert len(data) == 8, line
-    assert e2e_crc_reference(DATA_IDS[frame_id], data) == data[0], f"bad E2E CRC: {line}"
+    assert len(data) == 16, line  # CAN FD: E2E bytes 0..7, freshness, truncated MAC
+    assert e2e_crc_reference(DATA_IDS[frame_id], data[:8]) == data[0], f"bad E2E CRC: {line}"
     return msg.name, msg.decode(data, decode_choices=False)
 
 
