@@ -8,7 +8,7 @@ import json
 import os
 import sys
 
-from hal.arguments import duration
+from hal.arguments import add_key_option, duration
 from rt_controller.commands.common import add_config_option
 
 
@@ -40,6 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="0 = until stopped",
     )
+    add_key_option(p)
     p.add_argument("--json", action="store_true", help="print counters as JSON at the end")
     p.set_defaults(handler=run)
 
@@ -68,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
     _check_host(args.host, args.allow_remote)
     if not 0 <= args.port <= 65535:
         raise HalConfigError(f"--port must be in 0..65535, got {args.port}")
-    cfg = load_config(args.config)
+    from hal.secoc import configure_key
+
+    cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
     with stop_on_signals() as stop:
         session = open_session(
             cfg,

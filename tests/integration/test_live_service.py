@@ -390,7 +390,9 @@ def test_sigkilled_controller_log_keeps_every_flushed_cycle(tmp_path):
     of cycles, i.e. it flushed by itself; SIGKILL it; the file still yields every one of them
     and nothing after a hole. How many ticks the kill lost is reported, not asserted."""
     log = tmp_path / "killed.mcap"
-    opts = rig_options(log, law="ioc", duration_s=600.0, extra_emulator=["--json"])
+    # the rig uses the test session's key, so that the observer can verify the DSP's frames
+    key = Path(os.environ["HIL_KEY_FILE"])
+    opts = rig_options(log, law="ioc", duration_s=600.0, extra_emulator=["--json"], key_file=key)
     with Rig(opts) as rig, JointClient.open(opts.can, CFG) as observer:  # listens only
         rig.start()
         on_disk = wait_for_cycles(log, round(4.0 * RATE_HZ), rig)
