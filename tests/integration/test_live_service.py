@@ -558,8 +558,11 @@ def test_vision_dropout_holds_safely_and_recovers(tmp_path, lockstep):
     after = law[first + n :]
     if lockstep:
         assert np.all(after == "rhc")
-    else:  # fresh features again (the remaining stale or no_state ticks were held above)
+    elif clean or not s["dsp_faults"]:  # fresh features again (stale/no_state ticks held above)
         assert np.any(after == "rhc"), "features did not return"
+    else:  # a DSP fault is latched: from the first fault tick on, the law never runs again
+        faulted = np.flatnonzero(law == "fault")
+        assert faulted.size and not np.any(law[faulted[0] :] == "rhc"), sorted(set(law))
     if clean:
         assert s["f_final_norm"] < 1.0, s["f_final"]
         assert norm(c["f"])[-1] < 1.0
