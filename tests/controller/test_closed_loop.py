@@ -10,6 +10,7 @@ from plant_emulator.world import World
 from rt_controller.control.controller import Controller
 from rt_controller.control.model import NominalModel
 from rt_controller.control.simulate import SimResult, run_closed_loop
+from tests.support import nominal_rk4
 
 
 def simulate(cfg: RigConfig, law: str, duration: float, **overrides) -> SimResult:
@@ -57,23 +58,6 @@ def test_inverse_optimal_beats_passivity_based_fig3(cfg):
     # The disturbance at 3 s is rejected again.
     assert norm_at(ioc, 2.98) < 1.0
     assert np.linalg.norm(ioc.trace.f[-1]) < 1.0
-
-
-def nominal_rk4(model: NominalModel, q, dq, tau, dt):
-    """One classic RK4 step of the controller's nominal model (an implementation independent of
-    the emulator's physics, see tests/integration/test_physics_crosscheck.py)."""
-
-    def acc(q, dq):
-        return np.linalg.solve(model.M(q), tau - model.C(q, dq) @ dq - model.g(q))
-
-    k1q, k1v = dq, acc(q, dq)
-    k2q, k2v = dq + 0.5 * dt * k1v, acc(q + 0.5 * dt * k1q, dq + 0.5 * dt * k1v)
-    k3q, k3v = dq + 0.5 * dt * k2v, acc(q + 0.5 * dt * k2q, dq + 0.5 * dt * k2v)
-    k4q, k4v = dq + dt * k3v, acc(q + dt * k3q, dq + dt * k3v)
-    return (
-        q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q),
-        dq + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v),
-    )
 
 
 def test_torque_is_held_between_ticks(cfg, monkeypatch):

@@ -11,22 +11,9 @@ from plant_emulator.arm import ArmPhysics
 from plant_emulator.camera import camera_pose, project
 from plant_emulator.world import World
 from rt_controller.control.model import NominalModel
+from tests.support import nominal_rk4
 
 RNG = np.random.default_rng(7)
-
-
-def nominal_rk4(model: NominalModel, q, dq, tau, dt):
-    def acc(q, dq):
-        return np.linalg.solve(model.M(q), tau - model.C(q, dq) @ dq - model.g(q))
-
-    k1q, k1v = dq, acc(q, dq)
-    k2q, k2v = dq + 0.5 * dt * k1v, acc(q + 0.5 * dt * k1q, dq + 0.5 * dt * k1v)
-    k3q, k3v = dq + 0.5 * dt * k2v, acc(q + 0.5 * dt * k2q, dq + 0.5 * dt * k2v)
-    k4q, k4v = dq + dt * k3v, acc(q + dt * k3q, dq + dt * k3v)
-    return (
-        q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q),
-        dq + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v),
-    )
 
 
 @pytest.mark.parametrize("gravity", [0.0, 9.81])

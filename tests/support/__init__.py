@@ -15,6 +15,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from hal.zenoh_session import free_loopback_port
 
 REPO = Path(__file__).resolve().parents[2]
@@ -141,3 +143,20 @@ def cycles_logged(log: Path) -> int:
         return read_log(log, raw=False).n_cycles
     except Exception:
         return 0
+
+
+def nominal_rk4(model, q, dq, tau, dt):
+    """One classic RK4 step of the controller's nominal model (an implementation independent of
+    the emulator's physics, see tests/integration/test_physics_crosscheck.py)."""
+
+    def acc(q, dq):
+        return np.linalg.solve(model.M(q), tau - model.C(q, dq) @ dq - model.g(q))
+
+    k1q, k1v = dq, acc(q, dq)
+    k2q, k2v = dq + 0.5 * dt * k1v, acc(q + 0.5 * dt * k1q, dq + 0.5 * dt * k1v)
+    k3q, k3v = dq + 0.5 * dt * k2v, acc(q + 0.5 * dt * k2q, dq + 0.5 * dt * k2v)
+    k4q, k4v = dq + dt * k3v, acc(q + dt * k3q, dq + dt * k3v)
+    return (
+        q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q),
+        dq + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v),
+    )
