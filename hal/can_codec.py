@@ -412,6 +412,8 @@ class CanEndpoint:
             for peer in peers
         }
         self._verifier_of = {s.frame_id: verifiers[s.message.senders[0]] for s in rx}
+        self._rx_us: int | None = None
+        """The receive stamp of the frame being decoded (microseconds, wall clock)."""
         reinit_ns = None if reinit_after_s is None else round(reinit_after_s * 1e9)
         self.receiver = E2EReceiver(
             {s.frame_id: s.data_id for s in rx},
@@ -423,7 +425,7 @@ class CanEndpoint:
         )
 
     def _authenticate(self, frame_id: int, data_id: int, data: bytes) -> str | None:
-        return self._verifier_of[frame_id].check(frame_id, data_id, data)
+        return self._verifier_of[frame_id].check(frame_id, data_id, data, self._rx_us)
 
     def sign(self, msg: can.Message) -> can.Message:
         """``msg`` (a frame of this node, e.g. from a log) with a fresh SecOC trailer of this
@@ -481,6 +483,8 @@ class CanEndpoint:
         stats = self.receiver.stats
         try:
             now = time.monotonic_ns() if t_ns is None else t_ns
+            # freshness is judged at the bus's receive stamp (wall clock), see SecOCVerifier
+            self._rx_us = int(msg.timestamp * 1e6) if msg.timestamp else None
             if self.receiver.check(msg, now) is not Verdict.OK:
                 return None
             spec = self._rx[msg.arbitration_id]

@@ -305,10 +305,19 @@ class SecOCVerifier:
     def reset(self) -> None:
         self._last.clear()
 
-    def check(self, frame_id: int, data_id: int, data: bytes | bytearray) -> str | None:
+    def check(
+        self, frame_id: int, data_id: int, data: bytes | bytearray, rx_us: int | None = None
+    ) -> str | None:
+        """``rx_us``: when the frame reached this host (the bus's receive timestamp, wall clock
+        in microseconds). Freshness is judged at arrival, so a receiver that is busy for a while
+        does not reject the authentic frames queued meanwhile; a replayed frame is judged at its
+        own arrival and stays stale. A missing or implausible stamp (0, or later than the
+        clock) falls back to the clock."""
         if not self.verify:
             return None
         now = self._clock()
+        if rx_us is not None and 0 < rx_us < now:
+            now = rx_us
         fv = rebuild_fv(int.from_bytes(data[8:12], "little"), now)
         tag = self._mac.tag1(_MAC_INPUT.pack(data_id, fv, bytes(data[:8])))
         if not hmac.compare_digest(tag, bytes(data[12:16])):

@@ -43,6 +43,7 @@ import logging
 import os
 import select
 import socket
+import struct
 import sys
 import time
 import warnings
@@ -66,7 +67,11 @@ _MAX_DATAGRAM = 4096
 RCVBUF_BYTES = 4 * 1024 * 1024
 """Receive buffer asked for by default (the kernel caps it at net.core.rmem_max)."""
 _SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux value; absent in Python
-_CMSG_SPACE = socket.CMSG_SPACE(4) if hasattr(socket, "CMSG_SPACE") else 0
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux value; absent in Python
+_TIMESPEC = struct.Struct("@qq")
+_CMSG_SPACE = (
+    socket.CMSG_SPACE(4) + socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
+)
 _LINUX = sys.platform.startswith("linux")
 CAN_FD_LENGTHS = frozenset((*range(9), 12, 16, 20, 24, 32, 48, 64))
 """Payload lengths a CAN FD frame can carry (DLC 0..15)."""
@@ -233,6 +238,10 @@ class LoopbackMulticastBus(can.BusABC):
             rx.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
         except OSError as exc:  # pragma: no cover - not Linux
             log.debug("SO_RXQ_OVFL unavailable, kernel drops are not counted: %s", exc)
+        try:  # receive stamps from the kernel, as SocketCAN gives them
+            rx.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        except OSError as exc:  # pragma: no cover - not Linux
+            log.debug("SO_TIMESTAMPNS unavailable, frames are stamped when read: %s", exc)
 
     def _v6(self) -> bool:
         return ":" in self._group
@@ -374,9 +383,15 @@ class LoopbackMulticastBus(can.BusABC):
                 data, ancdata, flags, sender = rx.recvmsg(_MAX_DATAGRAM, _CMSG_SPACE)
             except (OSError, ValueError) as exc:
                 raise can.CanOperationError(f"UDP multicast receive failed: {exc}") from exc
+            stamp = None
             for level, kind, payload in ancdata:
-                if level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(payload) >= 4:
+                if level != socket.SOL_SOCKET:
+                    continue
+                if kind == _SO_RXQ_OVFL and len(payload) >= 4:
                     self._kernel_drops = int.from_bytes(payload[:4], sys.byteorder)
+                elif kind == _SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+                    sec, nsec = _TIMESPEC.unpack_from(payload)
+                    stamp = sec + nsec * 1e-9
             if self._receive_own or sender[:2] != self._own:
                 break
             # Our own frame: skip it and look at what else is already queued, so that a
@@ -385,7 +400,8 @@ class LoopbackMulticastBus(can.BusABC):
         try:
             if flags & socket.MSG_TRUNC:
                 raise ValueError(f"datagram longer than {_MAX_DATAGRAM} bytes")
-            msg = unpack_message(data, replace={"timestamp": time.time()}, check=True)
+            arrival = time.time() if stamp is None else stamp
+            msg = unpack_message(data, replace={"timestamp": arrival}, check=True)
         except Exception as exc:  # garbage on the group must not break the reader
             self.malformed_datagrams += 1
             log.debug("skipping a datagram that is not a CAN message: %s", exc)

@@ -499,6 +499,8 @@ class DspNode:
             delay = (next_ns - time.monotonic_ns()) / 1e9
             if delay > 0:
                 time.sleep(delay)
+        # Frames that arrived before the stop are handled (and counted), never silently lost.
+        self.drain(time.monotonic_ns())
         self._finish()
         return self.stats
 

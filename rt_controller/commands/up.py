@@ -25,6 +25,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="DSP clocks the run with Sync frames: deterministic, faster than real time",
     )
+    p.add_argument(
+        "--wall-timeout",
+        type=duration(),
+        metavar="S",
+        help="wall-clock seconds before the run is called hung (default: duration + 60 s; "
+        "lockstep: 20 x duration + 60 s)",
+    )
     p.add_argument("--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: auto)")
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
     p.add_argument("--log", metavar="FILE.mcap", help="controller log path")
@@ -58,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
                     law=args.law,
                     duration_s=args.duration,
                     lockstep=args.lockstep,
+                    wall_timeout_s=args.wall_timeout,
                     can=args.can,
                     zenoh_endpoint=args.zenoh_endpoint,
                     log=Path(args.log) if args.log else None,

@@ -37,6 +37,9 @@ from rt_controller.rig.supervise import PARENT_ENV, signals_deferred
 
 STOP_TIMEOUT_S = 10.0
 STARTUP_MARGIN_S = 60.0
+LOCKSTEP_SLOWEST = 20.0
+"""A lockstep run is simulated time: ``hil up`` calls it hung only when it runs more than this
+many times slower than real time (user-mode Linux runs about 10x slower than the host)."""
 
 
 class RigProcessError(ControllerError, RuntimeError):
@@ -78,11 +81,23 @@ class RigOptions:
     extra_controller: list[str] = field(default_factory=list)
     extra_vision: list[str] = field(default_factory=list)
     extra_emulator: list[str] = field(default_factory=list)
+    wall_timeout_s: float | None = None
+    """Wall-clock budget for the controller's run, start-up included; None: see
+    :meth:`wall_budget_s`."""
     monitor: bool = False
     """Also start ``hil monitor`` (the live view); its failure never ends the run."""
     monitor_host: str | None = None
     monitor_port: int | None = None
     extra_monitor: list[str] = field(default_factory=list)
+
+    def wall_budget_s(self) -> float:
+        """How long :meth:`Rig.wait_controller` waits before calling the run hung: the given
+        ``wall_timeout_s``, else the duration (realtime) or ``LOCKSTEP_SLOWEST`` times the
+        simulated duration (lockstep), plus ``STARTUP_MARGIN_S`` for start-up."""
+        if self.wall_timeout_s is not None:
+            return self.wall_timeout_s
+        scale = LOCKSTEP_SLOWEST if self.lockstep else 1.0
+        return scale * self.duration_s + STARTUP_MARGIN_S
 
 
 def private_default_bus(config: str | None) -> str | None:
@@ -183,11 +198,15 @@ class Rig:
     def wait_controller(self) -> dict[str, Any]:
         """Wait for the controller's run to end; its JSON summary."""
         ctl = next(c for c in self.children if c.name == "controller")
-        deadline = time.monotonic() + self.opts.duration_s + STARTUP_MARGIN_S
+        budget = self.opts.wall_budget_s()
+        deadline = time.monotonic() + budget
         while ctl.proc.poll() is None:
             self._check_alive(but="controller")
             if time.monotonic() > deadline:
-                raise RigProcessError(f"controller still running after its duration:\n{ctl.tail()}")
+                raise RigProcessError(
+                    f"controller still running after its wall-clock budget of {budget:g} s "
+                    f"(--wall-timeout):\n{ctl.tail()}"
+                )
             time.sleep(0.05)
         lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
         # Status 1 with a summary: the run finished but is not clean (its "problems" say why).

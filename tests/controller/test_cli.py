@@ -93,3 +93,22 @@ def test_help_imports_no_heavy_library(argv):
     got = json.loads(p.stdout.strip().splitlines()[-1])
     assert got["code"] == 0 and got["chars"] > 100
     assert got["heavy"] == []
+
+
+def test_rig_wall_budget_scales_with_simulated_time_in_lockstep():
+    """A lockstep run is simulated time: on a slow host (user-mode Linux, about 10x slower) it
+    must not be called hung after its simulated duration; an explicit budget wins."""
+    from rt_controller.rig.processes import LOCKSTEP_SLOWEST, STARTUP_MARGIN_S, RigOptions
+
+    assert RigOptions(duration_s=6.0).wall_budget_s() == 6.0 + STARTUP_MARGIN_S
+    lockstep = RigOptions(duration_s=6.0, lockstep=True)
+    assert lockstep.wall_budget_s() == LOCKSTEP_SLOWEST * 6.0 + STARTUP_MARGIN_S
+    assert LOCKSTEP_SLOWEST >= 10.0  # at least user-mode Linux's slowdown
+    assert RigOptions(duration_s=6.0, lockstep=True, wall_timeout_s=7.5).wall_budget_s() == 7.5
+
+
+def test_up_refuses_a_bad_wall_timeout(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["up", "--wall-timeout", "-3"])
+    assert exc.value.code == 2
+    assert "--wall-timeout" in capsys.readouterr().err

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import stat
+import time
 from pathlib import Path
 
 import can
@@ -121,6 +122,38 @@ def test_verifier_rejects_tampering_other_keys_replays_and_future_frames() -> No
     future = SecOCSigner(KEY_A, "DSP", clock_us=lambda: now[0] + 5_000_000).sign(0x2002, head)
     assert ok.check(0x180, 0x2002, future) == "future_freshness"
     assert SecOCVerifier(KEY_B, "DSP", verify=False).check(0x180, 0x2002, f1) is None
+
+
+def test_freshness_is_judged_at_arrival_so_a_busy_receiver_keeps_queued_frames() -> None:
+    now = [10**15]
+    signer = SecOCSigner(KEY_A, "DSP", clock_us=lambda: now[0])
+    rx = SecOCVerifier(KEY_A, "DSP", clock_us=lambda: now[0])
+    head = bytes(range(8))
+    queued = signer.sign(0x2002, head)
+    arrived = now[0]
+    now[0] += 5_000_000  # the receiver reads it 5 s later (busy host): judged at arrival
+    assert rx.check(0x180, 0x2002, queued, rx_us=arrived) is None
+    # a replay of an old authentic frame arrives now: stale at its own arrival
+    old = SecOCSigner(KEY_A, "DSP", clock_us=lambda: now[0] - 3_000_000).sign(0x2003, head)
+    assert rx.check(0x181, 0x2003, old, rx_us=now[0]) == "stale_freshness"
+    # a stamp later than the receiver's clock is not believed: the clock is used instead
+    late = SecOCSigner(KEY_A, "DSP", clock_us=lambda: now[0] - 3_000_000).sign(0x2004, head)
+    assert rx.check(0x182, 0x2004, late, rx_us=now[0] + 10**9) == "stale_freshness"
+    assert rx.check(0x183, 0x2004, late, rx_us=0) == "stale_freshness"
+
+
+def test_codec_judges_freshness_at_the_frames_receive_stamp() -> None:
+    """The codec hands the bus's receive stamp to the verifier: a frame signed now but stamped
+    as arrived 10 s ago is judged at that arrival (its freshness is then 10 s in the future);
+    the same frame unstamped, or stamped later than the clock, is judged now and accepted."""
+    ctl = ControllerCodec(key=KEY_A)
+    for stamp, verdict in ((time.time() - 10.0, "future"), (0.0, "ok"), (time.time() + 60, "ok")):
+        msg = ctl.encode_torque(1.0, 2.0)
+        msg.timestamp = stamp
+        dsp = DspCodec(key=KEY_A)
+        accepted = dsp.decode(msg) is not None
+        assert accepted == (verdict == "ok")
+        assert dsp.stats.future_freshness == (verdict == "future")
 
 
 def test_codecs_of_different_rigs_do_not_understand_each_other() -> None:

@@ -17,6 +17,7 @@ import socket
 import subprocess
 import sys
 import tarfile
+import time
 import warnings
 from pathlib import Path
 
@@ -202,6 +203,29 @@ def test_send_accepts_exactly_the_frames_a_receiver_accepts() -> None:
         assert rx.recv(timeout=0) is None  # nothing refused was sent after all
         assert rx.malformed_datagrams == 0 and rx.kernel_drops == 0
     assert sent > 50 and refused > 50  # both sides of the oracle were exercised
+
+
+def test_frames_carry_the_kernels_arrival_stamp_not_the_time_they_are_read() -> None:
+    """Like SocketCAN: the stamp is taken when the datagram is queued (during send on
+    loopback), so a frame read later still says when it arrived. Linux switches its receive
+    stamping on a moment after the first socket asks for it (a deferred static key) and stamps
+    at read time until then, so the frames are sent until one carries a queue-time stamp."""
+    spec = isolated_spec("udp_multicast")
+    stamped_at_arrival = False
+    with open_bus(spec) as tx, open_bus(spec) as rx:
+        for _ in range(50):
+            before = time.time()
+            tx.send(can.Message(arbitration_id=0x123, data=b"\x01"))
+            after = time.time()
+            time.sleep(0.02)
+            read = time.time()
+            got = rx.recv(timeout=RECV_TIMEOUT_S)
+            assert got is not None
+            assert before - 1e-6 <= got.timestamp  # never earlier than the send
+            if got.timestamp <= after + 1e-6 < read:
+                stamped_at_arrival = True
+                break
+    assert stamped_at_arrival
 
 
 # ----------------------------------------------------------------- receive buffer and drops
