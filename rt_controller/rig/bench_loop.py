@@ -130,9 +130,33 @@ def bench_lockstep(cfg: RigConfig, duration: float, law: str, workdir: Path) -> 
         "ticks": summary.get("ticks"),
         "wall_s_total": wall,
         "wall_s_loop": loop_wall,
+        "wall_s_outside_loop": wall - loop_wall,
         "speedup_total": sim / wall,
         "speedup_loop": sim / loop_wall if loop_wall > 0 else math.nan,
+        "period_us": lockstep_period_profile(c),
         "J": summary.get("J"),
+    }
+
+
+def lockstep_period_profile(cycles: dict[str, np.ndarray]) -> dict[str, float]:
+    """Where one lockstep period's wall time goes (medians over the run, microseconds), from the
+    controller's own cycle records: ``features_wait`` (Sync received until this period's
+    features arrived: the DSP's pose -> vision -> controller over zenoh), ``solve`` (the law),
+    ``write`` (torque frame out), and ``dsp_and_can`` (torque frame out until the next Sync is
+    received: the DSP's physics and state frames, both CAN directions, the recorder hand-off).
+    """
+    t = cycles["t_ns"]
+    if t.size < 2:
+        return {}
+    period = np.diff(t) / 1e3
+    cycle = cycles["cycle_us"][:-1]
+    return {
+        "period": float(np.median(period)),
+        "period_p99": float(np.percentile(period, 99)),
+        "features_wait": float(np.median(cycles["read_us"])),
+        "solve": float(np.median(cycles["solve_us"])),
+        "write": float(np.median(cycles["write_us"])),
+        "dsp_and_can": float(np.median(period - cycle)),
     }
 
 
