@@ -182,6 +182,11 @@ class ControllerConfig:
     """Features older than this are stale."""
     state_timeout_s: float = 0.05
     """Joint states older than this mean the DSP went silent."""
+    state_wait_us: float = 5000.0
+    """Realtime: when no joint state arrived since the last tick (a DSP that sampled late), the
+    tick waits up to this long after its release for this period's state instead of using the
+    last period's (a whole period of delay destabilises the IOC and RHC gains); capped at half
+    a control period; 0 = never wait."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
     rt_priority: int = 80
@@ -224,6 +229,11 @@ class DspConfig:
     """Joint speed limits, rad/s: with operation enabled, exceeding one faults the DSP
     (VELOCITY_LIMIT). The paper scenario's live runs peak near 1.2 and 8.3 rad/s (the light
     elbow swings fast after the first torque); a runaway arm passes 20 rad/s within a second."""
+    rt_priority: int = 70
+    """Realtime: SCHED_FIFO priority of the DSP loop's thread (best effort; 0 = normal
+    scheduling). The emulator stands in for hardware that is never starved: without it, a busy
+    host delays its samples by whole periods. Below the controller's (80), so the controller
+    still preempts it on a shared core."""
     state_sync: str = "command"
     """Realtime: when the joint state goes out (the camera pose for vision keeps ``state_hz``).
     ``command``: once
@@ -410,6 +420,7 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "rhc.init_iterations": (1, 10_000, "[]"),
     "controller.feature_timeout_s": (0, 10, "(]"),
     "controller.state_timeout_s": (0, 10, "(]"),
+    "controller.state_wait_us": (0, 1e6, "[]"),
     "controller.spin_us": (0, 100_000, "[]"),
     "controller.rt_priority": (1, 99, "[]"),
     "controller.cpu": (-1, 4095, "[]"),
@@ -419,6 +430,7 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "dsp.encoder_counts": (2, 1 << 24, "[]"),
     "dsp.velocity_filter_hz": (0, 100_000, "[]"),
     "dsp.state_lead_us": (0, 1e6, "[]"),
+    "dsp.rt_priority": (0, 99, "[]"),
     "dsp.q_min": (-50, 50, "[]"),
     "dsp.q_max": (-50, 50, "[]"),
     "dsp.dq_max": (0, 83, "(]"),

@@ -21,6 +21,7 @@ client made by :meth:`JointClient.open`, shuts the bus down.
 from __future__ import annotations
 
 import logging
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -385,6 +386,30 @@ class JointClient:
                 f"(limit {limit * 1e3:.1f} ms) on {self.bus.channel_info}"
             )
         return state
+
+    @property
+    def states_received(self) -> int:
+        """Joint states (position + velocity pairs) received so far."""
+        return self._states
+
+    def wait_readable(self, timeout_s: float) -> bool:
+        """Poll mode: block until a frame is waiting on the bus (not read) or ``timeout_s``
+        passed; whether one is waiting. A bus without a file descriptor is polled every
+        0.2 ms."""
+        if timeout_s <= 0:
+            return False
+        try:
+            fd = self.bus.fileno()
+        except (NotImplementedError, AttributeError, OSError):
+            fd = -1
+        if fd < 0:
+            time.sleep(min(timeout_s, 0.0002))
+            return False
+        try:
+            ready, _, _ = select.select([fd], [], [], timeout_s)
+        except (OSError, ValueError):
+            return False
+        return bool(ready)
 
     def state_age_s(self) -> float | None:
         """Seconds since the latest joint state arrived; ``None`` before the first one."""

@@ -450,8 +450,9 @@ class DspNode:
         phase = self.phase.residue_ns
         if phase is None or self.last_cmd_ns is None or t_k - self.last_cmd_ns > self.watchdog_ns:
             return k % self.substeps == 0
-        m = (t_k - phase) % period
-        return period - self.state_lead_ns <= m < period - self.state_lead_ns + step
+        # the step whose time lies within one step after (tick - lead), modulo the period
+        # (lead 0: the step at the tick itself; a lead of a period or more wraps around)
+        return (t_k - phase + self.state_lead_ns) % period < step
 
     # --- clock modes ------------------------------------------------------------------------
     def start_realtime(self, now_ns: int) -> None:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import time
@@ -137,6 +138,19 @@ def _config(args: argparse.Namespace) -> Any:
     return cfg
 
 
+def fifo_priority(priority: int) -> str | None:
+    """SCHED_FIFO at ``priority`` for the calling thread (the DSP loop; zenoh's threads keep
+    normal scheduling); 0 leaves scheduling alone. A refusal (no CAP_SYS_NICE) is returned as
+    a one-line warning, never raised: the emulator then runs with normal scheduling."""
+    if priority <= 0:
+        return None
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return f"SCHED_FIFO {priority} refused ({exc}); the DSP loop runs with normal scheduling"
+    return None
+
+
 def run_emulator(args: argparse.Namespace) -> int:
     """Body of ``hil emulator``; returns the exit status (HalError propagates to the CLI)."""
     from hal.signals import stop_on_signals
@@ -197,6 +211,10 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
                 file=sys.stderr,
                 flush=True,
             )
+        if not lockstep:
+            warning = fifo_priority(cfg.dsp.rt_priority)
+            if warning:
+                print(f"hil emulator: warning: {warning}", file=sys.stderr, flush=True)
         t0 = time.monotonic()
         stats = node.run(stop, args.duration)
         wall_s = time.monotonic() - t0

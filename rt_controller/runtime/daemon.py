@@ -40,6 +40,8 @@ from rt_controller.sample_stats import percentile
 
 STARTUP_TIMEOUT_S = 20.0
 """How long the daemon waits for the first joint state and features before giving up."""
+STATE_POLL_NS = 100_000
+"""Fake clock: the step by which a tick waiting for its joint state advances the clock."""
 LOCKSTEP_SYNC_TIMEOUT_S = 2.0
 """Lockstep: without a Sync for this long the emulator is taken to have finished."""
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
@@ -85,6 +87,11 @@ class RunStats:
     stale_states: int = 0
     fallbacks: int = 0
     watchdog_trips: int = 0
+    late_states: int = 0
+    """Realtime ticks whose period's joint state had not arrived at the release: they waited
+    for it (``controller.state_wait_us``)."""
+    old_states: int = 0
+    """Of those, the ticks whose wait ran out: they used the previous period's state."""
     drive_ticks: dict[str, int] = field(default_factory=dict)
     """Ticks run while the DSP was not in *operation enabled*, by mode (no law ran in them)."""
     dsp_faults: dict[str, int] = field(default_factory=dict)
@@ -113,6 +120,8 @@ class RunStats:
             "stale_states": self.stale_states,
             "fallbacks": self.fallbacks,
             "watchdog_trips": self.watchdog_trips,
+            "late_states": self.late_states,
+            "old_states": self.old_states,
             "drive_ticks": dict(self.drive_ticks),
             "dsp_faults": dict(self.dsp_faults),
             "rearms": self.rearms,
@@ -242,6 +251,9 @@ class ControllerDaemon:
             else cfg.controller.state_timeout_s
         )
         self.features = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
+        self._state_wait_ns = min(round(cfg.controller.state_wait_us * 1e3), self.period_ns // 2)
+        self._states_seen = -1
+        """Joint states received up to the last tick's read (-1: no tick yet)."""
 
     # --- wiring -----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
@@ -449,6 +461,8 @@ class ControllerDaemon:
                 "missed_periods": st.missed_periods,
                 "stale_features": st.stale_features,
                 "stale_states": st.stale_states,
+                "late_states": st.late_states,
+                "old_states": st.old_states,
                 "fallbacks": st.fallbacks,
                 "watchdog_trips": st.watchdog_trips,
             },
@@ -482,11 +496,39 @@ class ControllerDaemon:
             # the inputs are stamped when actually read (a preempted tick reads later than it
             # woke): a message that arrived after the wake-up is not "from the future"
             self.read_inputs(dsp, self.clock.now_ns())
+            if dsp.states_received == self._states_seen and self._state_wait_ns > 0:
+                self._await_state(dsp, tick.release_ns + self._state_wait_ns)
+            self._states_seen = dsp.states_received
             self._tick(dsp, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
             if self.clock.now_ns() > cadence.deadline_of(tick):
                 self.stats.deadline_misses += 1
                 self._last_record["deadline_miss"] = True
             self._record(dsp, rec)
+
+    def _await_state(self, dsp: JointClient, deadline_ns: int) -> None:
+        """Realtime read phase, when no joint state came since the last tick: wait for this
+        period's state until ``deadline_ns`` (the release plus ``controller.state_wait_us``).
+
+        The DSP samples a little before each tick (``dsp.state_lead_us``); a DSP process that
+        ran late sends that sample after the release. Using the previous period's state
+        instead would put a whole period of delay in the loop, and with one period of delay
+        the paper's IOC and RHC gains drive the arm past its velocity limit (the
+        transport-free simulation with a one-period-old state reaches 25 rad/s on the elbow).
+        A fresh state a few milliseconds late is the better trade. Counted in ``late_states``;
+        a wait that runs out (``old_states``) uses the last state as before.
+        """
+        self.stats.late_states += 1
+        seen = dsp.states_received
+        while dsp.states_received == seen:
+            now = self.clock.now_ns()
+            if now >= deadline_ns or self.stop.is_set():
+                self.stats.old_states += 1
+                return
+            if self._real_clock:
+                dsp.wait_readable((deadline_ns - now) / 1e9)
+            else:  # a fake clock advances the rig while the tick waits
+                self.clock.sleep_until(min(deadline_ns, now + STATE_POLL_NS))
+            self.read_inputs(dsp, self.clock.now_ns())
 
     def _run_lockstep(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         last = None

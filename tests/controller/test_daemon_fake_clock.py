@@ -37,6 +37,8 @@ class RigClock(FakeClock):
         self.features = daemon_features
         self.frame = 0
         self.next_frame = start_ns
+        self.stall: tuple[int, int] | None = None
+        """[from, to): the DSP process gets no CPU (a busy host); it catches up at ``to``."""
         node.start_realtime(start_ns)
         self._camera()
 
@@ -55,14 +57,23 @@ class RigClock(FakeClock):
     def sleep_until(self, deadline_ns: int) -> None:
         while self.t < deadline_ns:
             self.t = min(deadline_ns, self.t + MS)
-            self.node.service(self.t)
+            if self.stall is None or not self.stall[0] <= self.t < self.stall[1]:
+                self.node.service(self.t)
             if self.t >= self.next_frame:
                 self._camera()
 
 
-def run_daemon(tmp_path: Path, cfg: RigConfig, duration_s: float, slow_ticks: dict[int, int]):
+def run_daemon(
+    tmp_path: Path,
+    cfg: RigConfig,
+    duration_s: float,
+    slow_ticks: dict[int, int],
+    dsp_stalls: frozenset[int] = frozenset(),
+):
     """Run the daemon's loop for ``duration_s`` of fake time; ``slow_ticks`` maps a tick number
-    to extra nanoseconds its decide phase takes. Returns (summary, log)."""
+    to extra nanoseconds its decide phase takes; for each tick in ``dsp_stalls`` the DSP gets no
+    CPU from 4 ms before the next release to 2 ms after it, so the state it samples 3 ms before
+    that release goes out 2 ms after it. Returns (summary, log, node)."""
     spec = isolated_spec("virtual")
     log = tmp_path / "fake.mcap"
     opts = DaemonOptions(can=spec, duration_s=duration_s, log_path=log, realtime_settings=False)
@@ -75,6 +86,9 @@ def run_daemon(tmp_path: Path, cfg: RigConfig, duration_s: float, slow_ticks: di
         decide = daemon.controller.decide
 
         def slow_decide(*args, **kwargs):
+            if daemon.stats.ticks in dsp_stalls:
+                nxt = clock.t + cfg.rates.control_period_ns  # the fake clock wakes on time
+                clock.stall = (nxt - 4 * MS, nxt + 2 * MS)
             extra = slow_ticks.get(daemon.stats.ticks)
             if extra:
                 clock.advance(extra)  # this tick's work overruns
@@ -144,3 +158,40 @@ def test_an_overrun_past_the_watchdog_faults_the_dsp_and_fails_the_run(tmp_path,
     assert any("watchdog" in p for p in summary["problems"])
     laws = list(log.cycles["law"])
     assert "fault" in laws and laws[-1] == "ioc"  # re-armed, the law runs again
+
+
+STALLS = frozenset(range(50, 80, 3))
+
+
+def _reused(c) -> np.ndarray:
+    """Per tick: whether it used exactly the previous tick's joint state (the arm is moving)."""
+    dq = np.asarray(c["dq"])
+    return np.r_[False, np.all(dq[1:] == dq[:-1], axis=1)]
+
+
+def test_a_state_that_comes_after_the_release_is_waited_for_not_replaced_by_the_last_one(
+    tmp_path, cfg
+):
+    """A DSP process that got no CPU when it should have sampled (3 ms before the release)
+    sends that sample 2 ms after the release: the tick waits for it (up to
+    ``controller.state_wait_us``) instead of using the previous period's state. A period-old
+    state is a whole period of delay, which destabilises the paper's IOC and RHC gains."""
+    summary, log, _ = run_daemon(tmp_path, cfg, 2.0, {}, STALLS)
+    c = log.cycles
+    assert not _reused(c).any()  # every tick used its own period's sample
+    assert summary["late_states"] == len(STALLS) and summary["old_states"] == 0
+    read = np.asarray(c["read_us"])
+    assert sorted(np.flatnonzero(read > 0)) == sorted(np.flatnonzero(read == 2000.0))
+    assert np.count_nonzero(read == 2000.0) == len(STALLS)  # each waited exactly 2 ms
+    assert summary["problems"] == []
+
+
+def test_a_state_that_does_not_come_within_the_wait_is_counted_and_the_last_one_used(tmp_path, cfg):
+    """The same stalls with a wait budget of 0.1 ms: those ticks use the previous period's state
+    and count it (``old_states``); no tick waits longer than the budget."""
+    short = cfg.with_overrides({"controller.state_wait_us": 100.0})
+    summary, log, _ = run_daemon(tmp_path, short, 2.0, {}, STALLS)
+    c = log.cycles
+    assert summary["late_states"] == summary["old_states"] == len(STALLS)
+    assert np.count_nonzero(_reused(c)) == len(STALLS)
+    assert np.asarray(c["read_us"]).max() == 100.0  # the budget, on the fake clock
