@@ -101,3 +101,24 @@ def test_free_mode_keeps_the_configured_state_rate(cfg: RigConfig) -> None:
         while (msg := tap.recv(timeout=0)) is not None:
             states += isinstance(codec.decode(msg), JointPosition)
         assert states == 11  # the initial one and one per physics step at 1000 Hz
+
+
+@pytest.mark.parametrize("lead_us", [0.0, 500.0, 3000.0, 18_000.0])
+def test_every_lead_gives_exactly_one_state_per_period(cfg: RigConfig, lead_us: float) -> None:
+    """Leads from below one physics step (0: at the tick) to a period less a step: one state
+    per period, at the step that lies within one step after (tick - lead). The window test
+    once sent nothing at all for a lead below one step. (A lead of a period less a step or
+    more sends after every step, see ``state_due``.)"""
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus:
+        node = _node(cfg, bus, state_lead_us=lead_us)
+        node.start_realtime(T0)
+        tick = T0 + 7 * MS + 500_000
+        node.phase.observe(tick)
+        node.last_cmd_ns = T0 + 20 * PERIOD  # commands keep coming
+        due = [k for k in range(200, 400) if node.state_due(k)]
+        assert len(due) == 10
+        lead = round(lead_us * 1e3)
+        for k in due:
+            since = (T0 + k * MS - (tick - lead)) % PERIOD  # after (tick - lead), mod period
+            assert 0 <= since < MS
