@@ -19,6 +19,7 @@ import argparse
 import json
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -70,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--runs must be >= 1 and --hogs >= 0")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    # SIGTERM unwinds like Ctrl-C, so the hogs are stopped by the ``finally`` below
+    signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
     hogs = [multiprocessing.Process(target=_hog, daemon=True) for _ in range(args.hogs)]
     for h in hogs:
         h.start()
