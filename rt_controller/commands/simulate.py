@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hal.arguments import duration
+from hal.arguments import bounded_int, duration
 from rt_controller.commands.common import (
     add_config_option,
     add_law_options,
@@ -26,6 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--duration", type=duration(), default=6.0, metavar="S", help="seconds (default 6)"
     )
+    p.add_argument(
+        "--state-delay",
+        type=bounded_int(0, 1000, what="periods"),
+        default=0,
+        metavar="N",
+        help="the law sees the joint state of N control periods ago (default 0)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
 
@@ -37,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.control.simulate import run_closed_loop
 
     cfg = config_from_args(args)
-    result = run_closed_loop(World(cfg), Controller(cfg), cfg, args.duration)
+    result = run_closed_loop(
+        World(cfg), Controller(cfg), cfg, args.duration, state_delay=args.state_delay
+    )
     print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
     return 0

@@ -6,6 +6,7 @@ The plant is passed in (the ``hil`` CLI hands over the emulator's
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -77,6 +78,7 @@ class SimResult:
             "f_final": [float(v) for v in f_final],
             "f_final_norm": float(np.linalg.norm(f_final)),
             "max_abs_tau": [float(v) for v in tau.max(axis=0)],
+            "max_abs_dq": [float(v) for v in np.abs(tr.array("dq")).max(axis=0)],
         }
         if self.law == "rhc":
             res = tr.array("residual")
@@ -92,16 +94,26 @@ class SimResult:
 
 
 def run_closed_loop(
-    plant: Plant, controller: Controller, cfg: RigConfig, duration: float
+    plant: Plant, controller: Controller, cfg: RigConfig, duration: float, state_delay: int = 0
 ) -> SimResult:
-    """Sample, decide and hold the torque for one control period, ``duration * rate`` times."""
+    """Sample, decide and hold the torque for one control period, ``duration * rate`` times.
+
+    ``state_delay``: the controller sees the joint state (q, dq) of that many periods ago (the
+    first one until then) with the current features, what a live loop gets when the DSP's
+    sample misses the tick; 0 = none.
+    """
     rate = cfg.rates.control_hz
     substeps = cfg.rates.substeps
     ticks = math.floor(duration * rate + 1e-9)
     tr = Trace()
+    states: collections.deque[tuple[np.ndarray, np.ndarray]] = collections.deque(
+        maxlen=state_delay + 1
+    )
     for _ in range(ticks):
         t = plant.t
         q, dq, f = (np.asarray(v, dtype=float) for v in plant.measure())
+        states.append((q, dq))
+        q, dq = states[0]
         # The daemon's per-tick rule; in process the features are stale exactly when missing.
         d = controller.decide(t, q, dq, f, f_stale=not np.all(np.isfinite(f)), state_stale=False)
         rec = decision_fields(controller, d)

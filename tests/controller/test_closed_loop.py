@@ -118,3 +118,16 @@ def test_summary_is_complete(cfg):
     assert s["f_final_norm"] == float(np.linalg.norm(tr.f[-1]))
     assert s["max_abs_tau"] == [float(v) for v in np.abs(tr.array("tau")).max(axis=0)]
     assert s["J"] == pytest.approx(sum(tr.cost) / 50, rel=1e-12)
+
+
+@pytest.mark.parametrize("law", ["ioc", "rhc"])
+def test_one_period_of_state_delay_drives_the_elbow_past_its_velocity_limit(cfg, law):
+    """Why the live loop waits for a late joint state (controller.state_wait_us) instead of
+    using the previous period's: with the paper's gains, one period of state delay takes the
+    elbow past the DSP's velocity limit; without delay it stays far below."""
+    c = cfg.with_overrides({"controller.law": law})
+    on_time = run_closed_loop(World(c), Controller(c), c, 6.0).as_dict()
+    late = run_closed_loop(World(c), Controller(c), c, 6.0, state_delay=1).as_dict()
+    limit = c.dsp.dq_max[1]
+    assert on_time["max_abs_dq"][1] < 0.5 * limit and on_time["f_final_norm"] < 1.0
+    assert late["max_abs_dq"][1] > limit
