@@ -36,6 +36,8 @@ from plant_emulator.vision_node import (
 )
 
 MS = 1_000_000
+HANG_S = 20.0
+"""A loop that has not seen what it waits for after this long is a hang (not a timing claim)."""
 PERIOD = 20 * MS  # the paper's 50 Hz control period
 
 
@@ -268,14 +270,16 @@ def test_end_to_end_realtime_decimation(cfg, endpoint):
             poses.publish(seq, seq * MS, pose, False)
             seq += 1
             time.sleep(0.001)
-            assert time.monotonic() - t0 < 20, "no realtime frames"
+            if time.monotonic() - t0 > HANG_S:
+                pytest.fail(f"no realtime frames within {HANG_S:g} s")
         elapsed = time.monotonic() - t0
     stats: VisionStats = out["stats"]
     # Bounds that hold under any scheduling: at most one frame per 50 ms slot of the monotonic
     # frame clock (which starts at the first pose, after t0) and never more frames than poses.
     # How much is decimated depends on how fast this loop got to publish; the decimation ratio
     # itself is checked on a fake clock (test_realtime_decimates_to_the_frame_rate).
-    assert 5 <= stats.frames <= min(stats.poses, 20.0 * (time.monotonic() - t0) + 2)
+    slots = 20.0 * (time.monotonic() - t0) + 2  # 50 ms frame slots that have begun so far
+    assert 5 <= stats.frames <= min(stats.poses, slots)
     assert elapsed > 0 and dec.counts.rejected == 0
     assert dec.latest is not None and not dec.latest.lockstep
     assert np.allclose(dec.latest.f, (-120.0, -160.0))
@@ -293,7 +297,8 @@ def test_end_to_end_stale_features_are_rejected_and_counted(cfg, endpoint):
             poses.publish(seq, seq * MS, pose, False)
             seq += 1
             time.sleep(0.002)
-            assert time.monotonic() - t0 < 20, "no features arrived"
+            if time.monotonic() - t0 > HANG_S:
+                pytest.fail(f"no stale features within {HANG_S:g} s")
     assert strict.counts.accepted == 0 and strict.latest is None
 
 
