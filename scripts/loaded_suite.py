@@ -82,7 +82,10 @@ def main(argv: list[str] | None = None) -> int:
             junit = out / f"run{i}.xml"
             cmd = [sys.executable, "-m", "pytest", "-q", "-m", "not vcan", f"--junitxml={junit}"]
             t0 = time.monotonic()
-            proc = subprocess.run([*cmd, *args.pytest_args], cwd=REPO, check=False)
+            # pytest's own output goes to stderr: stdout carries only the JSON result
+            proc = subprocess.run(
+                [*cmd, *args.pytest_args], cwd=REPO, check=False, stdout=sys.stderr
+            )
             wall = time.monotonic() - t0
             res = outcomes(junit) if junit.exists() else {}
             results.append(res)
