@@ -182,11 +182,14 @@ class ControllerConfig:
     """Features older than this are stale."""
     state_timeout_s: float = 0.05
     """Joint states older than this mean the DSP went silent."""
-    state_wait_us: float = 5000.0
+    state_wait_us: float = 0.0
     """Realtime: when no joint state arrived since the last tick (a DSP that sampled late), the
     tick waits up to this long after its release for this period's state instead of using the
     last period's (a whole period of delay destabilises the IOC and RHC gains); capped at half
-    a control period; 0 = never wait."""
+    a control period; 0 = never wait (the default). Off by default: with the DSP's
+    phase-locked state (``dsp.state_sync = command``) a waiting tick sends its command later,
+    the DSP learns a later phase and samples later still; a 10-minute soak at 50 Hz with
+    5000 us drifted into waiting every tick and lost the target."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
     rt_priority: int = 80

@@ -496,8 +496,12 @@ class ControllerDaemon:
             # the inputs are stamped when actually read (a preempted tick reads later than it
             # woke): a message that arrived after the wake-up is not "from the future"
             self.read_inputs(dsp, self.clock.now_ns())
-            if dsp.states_received == self._states_seen and self._state_wait_ns > 0:
-                self._await_state(dsp, tick.release_ns + self._state_wait_ns)
+            if dsp.states_received == self._states_seen:  # this period's sample is late
+                self.stats.late_states += 1
+                if self._state_wait_ns > 0:
+                    self._await_state(dsp, tick.release_ns + self._state_wait_ns)
+                else:
+                    self.stats.old_states += 1
             self._states_seen = dsp.states_received
             self._tick(dsp, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
             if self.clock.now_ns() > cadence.deadline_of(tick):
@@ -514,10 +518,10 @@ class ControllerDaemon:
         instead would put a whole period of delay in the loop, and with one period of delay
         the paper's IOC and RHC gains drive the arm past its velocity limit (``hil simulate
         --law ioc --state-delay 1``: 25 rad/s on the elbow, limit 20; 4.6 without delay).
-        A fresh state a few milliseconds late is the better trade. Counted in ``late_states``;
-        a wait that runs out (``old_states``) uses the last state as before.
+        A wait that runs out uses the last state (counted in ``old_states``). Off by default
+        (``controller.state_wait_us = 0``): with the DSP's phase-locked state a waiting tick
+        sends its command later, so the DSP learns a later phase and samples later still.
         """
-        self.stats.late_states += 1
         seen = dsp.states_received
         while dsp.states_received == seen:
             now = self.clock.now_ns()

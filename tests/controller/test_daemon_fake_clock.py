@@ -174,9 +174,10 @@ def test_a_state_that_comes_after_the_release_is_waited_for_not_replaced_by_the_
 ):
     """A DSP process that got no CPU when it should have sampled (3 ms before the release)
     sends that sample 2 ms after the release: the tick waits for it (up to
-    ``controller.state_wait_us``) instead of using the previous period's state. A period-old
-    state is a whole period of delay, which destabilises the paper's IOC and RHC gains."""
-    summary, log, _ = run_daemon(tmp_path, cfg, 2.0, {}, STALLS)
+    ``controller.state_wait_us``, off by default) instead of using the previous period's.
+    A period-old state is a whole period of delay, which destabilises IOC and RHC."""
+    waiting = cfg.with_overrides({"controller.state_wait_us": 5000.0})
+    summary, log, _ = run_daemon(tmp_path, waiting, 2.0, {}, STALLS)
     c = log.cycles
     assert not _reused(c).any()  # every tick used its own period's sample
     assert summary["late_states"] == len(STALLS) and summary["old_states"] == 0
@@ -195,3 +196,12 @@ def test_a_state_that_does_not_come_within_the_wait_is_counted_and_the_last_one_
     assert summary["late_states"] == summary["old_states"] == len(STALLS)
     assert np.count_nonzero(_reused(c)) == len(STALLS)
     assert np.asarray(c["read_us"]).max() == 100.0  # the budget, on the fake clock
+
+
+def test_by_default_a_late_state_is_counted_and_the_last_one_used(tmp_path, cfg):
+    """``controller.state_wait_us = 0`` (the default): no waiting; every stalled period's tick
+    reuses the previous state and is counted, so a run shows how often the loop ran late data."""
+    summary, log, _ = run_daemon(tmp_path, cfg, 2.0, {}, STALLS)
+    assert summary["late_states"] == summary["old_states"] == len(STALLS)
+    assert np.count_nonzero(_reused(log.cycles)) == len(STALLS)
+    assert np.asarray(log.cycles["read_us"]).max() == 0.0  # nothing waited
