@@ -192,6 +192,11 @@ class ControllerConfig:
     5000 us drifted into waiting every tick and lost the target."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
+    gil_switch_us: float = 200.0
+    """The interpreter's switch interval inside the loop (``sys.setswitchinterval``). The tick
+    shares the GIL with the MCAP writer thread; every socket call of the tick releases it,
+    and taking it back waits up to this long for the writer to let go (Python's default is
+    5000 us: a 500 Hz run's write phase once took 11 ms and tripped the 6 ms watchdog)."""
     rt_priority: int = 80
     """SCHED_FIFO priority (best effort)."""
     cpu: int = -1
@@ -425,6 +430,7 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "controller.state_timeout_s": (0, 10, "(]"),
     "controller.state_wait_us": (0, 1e6, "[]"),
     "controller.spin_us": (0, 100_000, "[]"),
+    "controller.gil_switch_us": (1, 100_000, "[]"),
     "controller.rt_priority": (1, 99, "[]"),
     "controller.cpu": (-1, 4095, "[]"),
     "controller.max_clock_skew_s": (0, 1, "[]"),

@@ -40,6 +40,10 @@ run's full configuration: `hil up --config ...` repeats it), PNG figures, report
 J tables, figures, the paper's Table I for comparison) and results.json (also printed by --json).
 A failed run is reported with the error of its process; the experiment then exits with status 1
 after the remaining runs (it gives up after three failures in a row).
+
+Lockstep runs on private buses (the default host-local bus) run --jobs at a time, one per CPU
+by default: each lockstep run is deterministic, so the results are the same as one at a time.
+Real-time runs, and runs on one shared bus (--can, SocketCAN), run one at a time.
 """
 
 MAX_CONSECUTIVE_FAILURES = 3
@@ -79,6 +83,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="CAN bus (default: the config's; the automatic host-local udp_multicast bus gets a "
         "private port per run so other rigs on the host cannot interfere)",
     )
+    p.add_argument(
+        "--jobs",
+        type=bounded_int(1, 16, what="jobs"),
+        metavar="N",
+        help="rigs run at once (default: one per CPU for lockstep runs on private buses, else "
+        "1; lockstep results do not depend on it)",
+    )
     p.add_argument("--json", action="store_true", help="print results.json on stdout")
     p.set_defaults(handler=run)
 
@@ -107,6 +118,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
         parts += ["--config", args.config]
     if args.can:
         parts += ["--can", args.can]
+    if args.jobs is not None:
+        parts += ["--jobs", str(args.jobs)]
     return shlex.join(parts)
 
 
@@ -127,11 +140,14 @@ def run(args: argparse.Namespace) -> int:
         realtime=args.realtime,
         config=args.config,
         can=args.can,
+        jobs=args.jobs,
     )
     settings.validate()
     runs_by_exp, runs = prepare(settings)
     err = Console(stderr=True)
-    err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}) -> {out}")
+    jobs = settings.effective_jobs()
+    at_once = f", {jobs} at a time" if jobs > 1 else ""
+    err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}{at_once}) -> {out}")
     interrupted: RigInterrupted | None = None
     try:
         with supervised():
@@ -158,7 +174,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> None:
-    """Run every pending run in order with a progress bar on stderr."""
+    """Run every pending run, ``settings.effective_jobs()`` at a time, in worker threads, with
+    a progress bar on stderr. Signals reach the main thread only: a stop request
+    (:class:`~rt_controller.rig.supervise.RigInterrupted`) cancels the runs in flight, whose
+    workers stop their processes before this returns; those runs stay pending."""
+    import threading
+    from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -177,28 +199,50 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
+    jobs = settings.effective_jobs()
+    queue = list(runs.values())
+    running: dict[Future[RunResult], RunResult] = {}
+    cancel = threading.Event()
     failed_in_a_row = 0
-    with Progress(*columns, console=console, transient=False) as progress:
+    with (
+        Progress(*columns, console=console, transient=False) as progress,
+        ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="hil-rig") as pool,
+    ):
         task = progress.add_task("runs", total=len(runs))
-        for run in runs.values():
-            progress.update(task, description=run.spec.label)
-            execute(run, settings)
-            progress.advance(task)
-            if run.status == "ok":
-                failed_in_a_row = 0
-                progress.console.print(
-                    f"{run.spec.label}: J = {run.J:.4f}, |f_final| = "
-                    f"{run.summary.get('f_final_norm', float('nan')):.3g} px "
-                    f"({run.wall_s:.1f} s)"
-                )
-                continue
-            failed_in_a_row += 1
-            progress.console.print(f"[red]{run.spec.label}: FAILED[/] ({run.wall_s:.1f} s)")
-            if failed_in_a_row >= MAX_CONSECUTIVE_FAILURES:
-                progress.console.print(
-                    f"[red]{failed_in_a_row} failures in a row: giving up on the sweep[/]"
-                )
-                break
+        try:
+            while queue or running:
+                while queue and len(running) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES:
+                    run = queue.pop(0)
+                    running[pool.submit(execute, run, settings, None, cancel)] = run
+                if not running:
+                    break
+                labels = ", ".join(r.spec.label for r in running.values())
+                progress.update(task, description=labels)
+                done, _ = wait(running, timeout=0.25, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    run = running.pop(fut)
+                    fut.result()  # execute records failures on the run; anything else is a bug
+                    progress.advance(task)
+                    failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
+        finally:
+            cancel.set()  # no-op after a full sweep; on a stop request, the workers stop rigs
+
+
+def _report_run(console: Console, run: RunResult, failed_in_a_row: int) -> int:
+    """One finished run's line; the count of failures in a row after it."""
+    if run.status == "ok":
+        console.print(
+            f"{run.spec.label}: J = {run.J:.4f}, |f_final| = "
+            f"{run.summary.get('f_final_norm', float('nan')):.3g} px ({run.wall_s:.1f} s)"
+        )
+        return 0
+    if run.status == "pending":
+        return failed_in_a_row
+    console.print(f"[red]{run.spec.label}: FAILED[/] ({run.wall_s:.1f} s)")
+    failed_in_a_row += 1
+    if failed_in_a_row == MAX_CONSECUTIVE_FAILURES:
+        console.print(f"[red]{failed_in_a_row} failures in a row: giving up on the sweep[/]")
+    return failed_in_a_row
 
 
 def print_tables(res: dict[str, Any]) -> None:

@@ -13,6 +13,8 @@ Identical specs are run once (``all`` shares the RHC T = 0.02 s run between Fig.
 from __future__ import annotations
 
 import math
+import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,7 +27,7 @@ from hal.config import RigConfig, load_config
 from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerError
-from rt_controller.rig.processes import RigOptions, private_default_bus, run_rig
+from rt_controller.rig.processes import RigCancelled, RigOptions, private_default_bus, run_rig
 from rt_controller.rig.supervise import RigInterrupted
 
 EXPERIMENTS = ("fig3", "fig4", "table1")
@@ -83,6 +85,8 @@ class Settings:
     realtime: bool = False
     config: str | None = None
     can: str | None = None
+    jobs: int | None = None
+    """Rigs run at once (``--jobs``); None: :func:`default_jobs`."""
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
@@ -97,6 +101,39 @@ class Settings:
             raise ControllerConfigError(f"--duration must be positive, got {self.duration_s}")
         if self.noise_px is not None and not (self.noise_px >= 0 and math.isfinite(self.noise_px)):
             raise ControllerConfigError(f"--noise must be non-negative, got {self.noise_px}")
+        if self.jobs is not None and self.jobs > 1:
+            if self.jobs > MAX_JOBS:
+                raise ControllerConfigError(f"--jobs must be at most {MAX_JOBS}, got {self.jobs}")
+            if self.realtime:
+                raise ControllerConfigError(
+                    "--jobs above 1 needs lockstep runs: real-time runs at once would share "
+                    "the CPU, and their timing is part of the result"
+                )
+            if not self.private_buses():
+                raise ControllerConfigError(
+                    f"--jobs above 1 needs a private bus per run; {self.shared_bus()} is one "
+                    "bus that all runs would share"
+                )
+        elif self.jobs is not None and self.jobs < 1:
+            raise ControllerConfigError(f"--jobs must be at least 1, got {self.jobs}")
+
+    def shared_bus(self) -> str:
+        """The bus every run would use when runs cannot get private ones."""
+        from hal.bus import resolve_spec
+
+        cfg = load_config(self.config)
+        return self.can or str(
+            resolve_spec(None if cfg.transport.can == "auto" else cfg.transport.can)
+        )
+
+    def private_buses(self) -> bool:
+        """Whether each run gets a bus of its own (the automatic host-local ``udp_multicast``
+        bus, see :func:`bus_for_run`); ``--can`` or a SocketCAN interface is one shared bus."""
+        return self.can is None and private_default_bus(self.config) is not None
+
+    def effective_jobs(self) -> int:
+        """``jobs``, else :func:`default_jobs`."""
+        return self.jobs if self.jobs is not None else default_jobs(self)
 
     @property
     def clock(self) -> str:
@@ -125,6 +162,18 @@ class RunResult:
     def J(self) -> float | None:
         j = self.summary.get("J")
         return float(j) if isinstance(j, int | float) and math.isfinite(j) else None
+
+
+MAX_JOBS = 16
+
+
+def default_jobs(settings: Settings) -> int:
+    """Lockstep runs on private buses: one rig per CPU (a lockstep period passes from process
+    to process, so one rig keeps about one core busy; results do not depend on it, a lockstep
+    run is deterministic); otherwise 1."""
+    if settings.realtime or not settings.private_buses():
+        return 1
+    return max(1, min(os.cpu_count() or 1, MAX_JOBS))
 
 
 def fmt_t(horizon_s: float) -> str:
@@ -203,10 +252,16 @@ def prepare(settings: Settings) -> tuple[dict[str, list[RunSpec]], dict[str, Run
 
 
 # -------------------------------------------------------------------------------------- run
-def execute(run: RunResult, settings: Settings, runner: Runner | None = None) -> RunResult:
+def execute(
+    run: RunResult,
+    settings: Settings,
+    runner: Runner | None = None,
+    cancel: threading.Event | None = None,
+) -> RunResult:
     """Run one spec through the rig (``runner``, default :func:`run_rig`).
 
-    A failure is recorded on the result (status ``failed`` and the error), not raised.
+    A failure is recorded on the result (status ``failed`` and the error), not raised. A run
+    stopped through ``cancel`` stays ``pending`` (not run), as one cut short by a signal.
     """
     t0 = time.monotonic()
     try:
@@ -218,6 +273,7 @@ def execute(run: RunResult, settings: Settings, runner: Runner | None = None) ->
             lockstep=not settings.realtime,
             can=run.can,
             log=run.log,
+            cancel=cancel,
         )
         run.summary = (runner or run_rig)(opts)
         problems = run.summary.get("problems") or []
@@ -228,6 +284,8 @@ def execute(run: RunResult, settings: Settings, runner: Runner | None = None) ->
         run.J_steady = steady_cost(run.log)
     except RigInterrupted:
         raise  # the whole sweep stops; the caller writes up what ran
+    except RigCancelled:
+        run.status, run.summary = "pending", {}
     except (ControllerError, HalError, OSError) as exc:
         run.status, run.error = "failed", f"{type(exc).__name__}: {exc}"
     finally:

@@ -24,6 +24,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,11 @@ many times slower than real time (user-mode Linux runs about 10x slower than the
 
 class RigProcessError(ControllerError, RuntimeError):
     """A rig process failed; the message carries its exit status and stderr tail."""
+
+
+class RigCancelled(ControllerError):
+    """The run was cancelled (:attr:`RigOptions.cancel`) before it ended; its processes have
+    been stopped."""
 
 
 @dataclass
@@ -89,6 +95,10 @@ class RigOptions:
     monitor_host: str | None = None
     monitor_port: int | None = None
     extra_monitor: list[str] = field(default_factory=list)
+    cancel: threading.Event | None = None
+    """Set from another thread to stop this run (children stopped, :class:`RigCancelled`):
+    ``hil experiment --jobs`` runs rigs in worker threads, and only the main thread gets
+    signals."""
 
     def wall_budget_s(self) -> float:
         """How long :meth:`Rig.wait_controller` waits before calling the run hung: the given
@@ -201,6 +211,8 @@ class Rig:
         budget = self.opts.wall_budget_s()
         deadline = time.monotonic() + budget
         while ctl.proc.poll() is None:
+            if self.opts.cancel is not None and self.opts.cancel.is_set():
+                raise RigCancelled("cancelled")
             self._check_alive(but="controller")
             if time.monotonic() > deadline:
                 raise RigProcessError(

@@ -32,9 +32,9 @@ from hal.zenoh_session import KEY_FEATURES, PayloadRing, open_session
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
-from rt_controller.runtime.cadence import Cadence, Clock, MonotonicClock
+from rt_controller.runtime.cadence import Cadence, Clock, MonotonicClock, Tick
 from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
-from rt_controller.runtime.realtime import GcPaused, apply_realtime
+from rt_controller.runtime.realtime import GcPaused, GilSwitchInterval, apply_realtime
 from rt_controller.runtime.recorder import CycleRecorder
 from rt_controller.sample_stats import percentile
 
@@ -98,6 +98,9 @@ class RunStats:
     """Faults the DSP reported, by reason (``watchdog``, ``position_limit``, ...)."""
     rearms: int = 0
     """Times the controller re-armed the DSP by its re-arm policy."""
+    arming_ticks: int = 0
+    """Realtime releases between ENABLE and *operation enabled*: each sent a zero torque
+    (the command stream is cyclic from ENABLE on); no law ran, they are not in ``ticks``."""
     stopped_before_arming: bool = False
     """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
     spin_s: float = 0.0
@@ -125,6 +128,7 @@ class RunStats:
             "drive_ticks": dict(self.drive_ticks),
             "dsp_faults": dict(self.dsp_faults),
             "rearms": self.rearms,
+            "arming_ticks": self.arming_ticks,
             "spin_s": self.spin_s,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
@@ -373,24 +377,58 @@ class ControllerDaemon:
         """Wait ``ns`` on the loop's clock during start-up (a fake clock advances the rig)."""
         self.clock.sleep_until(self.clock.now_ns() + ns)
 
+    def _enabled_now(self, dsp: JointClient, expired: bool) -> bool:
+        """Whether the DSP reports *operation enabled*; raises once ``expired`` and it does not."""
+        self.read_inputs(dsp, self.clock.now_ns())
+        status = dsp.status
+        self.drive.update(status)
+        if self.drive.mode == MODE_ENABLED:
+            return True
+        if expired:
+            state = "no DspStatus" if status is None else status.drive_state.label
+            fault = "" if status is None else f", fault {status.fault_reason.label}"
+            raise ControllerError(
+                f"the DSP did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
+                f"(state {state}{fault})"
+            )
+        return False
+
     def _wait_enabled(self, dsp: JointClient) -> None:
-        """After ENABLE: wait until the DSP reports *operation enabled* (it answers a state
-        change with a DspStatus at once), so the first tick runs the law."""
+        """Lockstep, after ENABLE: wait until the DSP reports *operation enabled* (it answers a
+        state change with a DspStatus at once), so the first tick runs the law. The lockstep
+        DSP counts its watchdog in periods it advanced, and it advances none before this."""
         deadline = time.monotonic() + ENABLE_TIMEOUT_S
         while not self.stop.is_set():
-            self.read_inputs(dsp, self.clock.now_ns())
-            status = dsp.status
-            self.drive.update(status)
-            if self.drive.mode == MODE_ENABLED:
+            if self._enabled_now(dsp, time.monotonic() > deadline):
                 return
-            if time.monotonic() > deadline:
-                state = "no DspStatus" if status is None else status.drive_state.label
-                fault = "" if status is None else f", fault {status.fault_reason.label}"
-                raise ControllerError(
-                    f"the DSP did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
-                    f"(state {state}{fault})"
-                )
             self._pause(1_000_000)
+
+    def _arm_on_cadence(self, dsp: JointClient, cadence: Cadence) -> Tick | None:
+        """Realtime: ENABLE at the first release, then a zero torque at every release until
+        the DSP reports *operation enabled*; returns that release (its tick runs the law), or
+        ``None`` when told to stop first.
+
+        The command stream is cyclic from ENABLE on, as a CiA 402 master's PDOs are: the DSP
+        arms its watchdog (``dsp.watchdog_periods``, 6 ms at 500 Hz) on ENABLE. Each release
+        reads the transports first, so ENABLE goes out after the frames that queued up during
+        start-up (locking memory takes a while) were drained, never before a drain that the
+        watchdog would see as a gap. These releases are counted in ``arming_ticks``, not in
+        ``ticks``.
+        """
+        deadline: int | None = None
+        while not self.stop.is_set():
+            tick = cadence.wait()
+            expired = deadline is not None and self.clock.now_ns() > deadline
+            if self._enabled_now(dsp, expired):
+                return tick
+            if deadline is None:
+                dsp.enable()
+                deadline = self.clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
+            else:
+                dsp.send_torque(0.0, 0.0)
+            self._states_seen = dsp.states_received
+            self.stats.arming_ticks += 1
+        return None
 
     # --- the loop ---------------------------------------------------------------------------
     def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
@@ -406,16 +444,16 @@ class ControllerDaemon:
             rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
             for w in rt.warnings:
                 print(f"hil controller: warning: {w}", file=sys.stderr)
-        dsp.enable()
-        self._wait_enabled(dsp)
         max_ticks = (
             math.floor(self.opts.duration_s * cfg.rates.control_hz + 1e-9)
             if self.opts.duration_s > 0
             else None
         )
         try:
-            with GcPaused():
+            with GcPaused(), GilSwitchInterval(cfg.controller.gil_switch_us / 1e6):
                 if self.opts.lockstep:
+                    dsp.enable()
+                    self._wait_enabled(dsp)
                     self._run_lockstep(dsp, rec, max_ticks)
                 else:
                     self._run_realtime(dsp, rec, max_ticks)
@@ -478,21 +516,29 @@ class ControllerDaemon:
     def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
         cadence = Cadence(self.period_ns, self.clock)
         try:
-            self._cadence_loop(dsp, rec, max_ticks, cadence)
+            first = self._arm_on_cadence(dsp, cadence)
+            if first is not None:
+                self._cadence_loop(dsp, rec, max_ticks, cadence, first)
         finally:
             spun = getattr(self.clock, "spun_ns", 0)  # a fake clock never spins
             self.stats.spin_s = spun / 1e9
 
     def _cadence_loop(
-        self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None, cadence: Cadence
+        self,
+        dsp: JointClient,
+        rec: CycleRecorder,
+        max_ticks: int | None,
+        cadence: Cadence,
+        first: Tick,
     ) -> None:
-        first = None
+        """Realtime ticks from ``first`` (the release at which the DSP reported enabled)."""
+        tick: Tick | None = first
         while not self.stop.is_set():
-            tick = cadence.wait()
-            first = tick.index if first is None else first
-            if max_ticks is not None and tick.index - first >= max_ticks:
+            tick = cadence.wait() if tick is None else tick
+            if max_ticks is not None and tick.index - first.index >= max_ticks:
                 return
-            t_s = (tick.release_ns - cadence.start_ns) / 1e9
+            index = tick.index - first.index  # tick 0 is the first that runs the law
+            t_s = (tick.release_ns - first.release_ns) / 1e9
             # the inputs are stamped when actually read (a preempted tick reads later than it
             # woke): a message that arrived after the wake-up is not "from the future"
             self.read_inputs(dsp, self.clock.now_ns())
@@ -503,11 +549,12 @@ class ControllerDaemon:
                 else:
                     self.stats.old_states += 1
             self._states_seen = dsp.states_received
-            self._tick(dsp, tick.index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
+            self._tick(dsp, index, tick.wake_ns, tick.lateness_ns, tick.missed, t_s)
             if self.clock.now_ns() > cadence.deadline_of(tick):
                 self.stats.deadline_misses += 1
                 self._last_record["deadline_miss"] = True
             self._record(dsp, rec)
+            tick = None
 
     def _await_state(self, dsp: JointClient, deadline_ns: int) -> None:
         """Realtime read phase, when no joint state came since the last tick: wait for this

@@ -164,9 +164,10 @@ STALLS = frozenset(range(50, 80, 3))
 
 
 def _reused(c) -> np.ndarray:
-    """Per tick: whether it used exactly the previous tick's joint state (the arm is moving)."""
-    dq = np.asarray(c["dq"])
-    return np.r_[False, np.all(dq[1:] == dq[:-1], axis=1)]
+    """Per tick: whether it used exactly the previous tick's joint state (the arm is moving;
+    angles and velocities both equal: a quantised velocity alone can repeat by chance)."""
+    x = np.hstack([np.asarray(c["q"]), np.asarray(c["dq"])])
+    return np.r_[False, np.all(x[1:] == x[:-1], axis=1)]
 
 
 def test_a_state_that_comes_after_the_release_is_waited_for_not_replaced_by_the_last_one(
@@ -205,3 +206,35 @@ def test_by_default_a_late_state_is_counted_and_the_last_one_used(tmp_path, cfg)
     assert summary["late_states"] == summary["old_states"] == len(STALLS)
     assert np.count_nonzero(_reused(log.cycles)) == len(STALLS)
     assert np.asarray(log.cycles["read_us"]).max() == 0.0  # nothing waited
+
+
+@pytest.mark.parametrize("rate", [50.0, 500.0])
+def test_commands_flow_once_per_period_from_enable_on(tmp_path, cfg, rate):
+    """The command stream is cyclic from the moment the DSP is armed, as a CiA 402 master's
+    PDOs are: the release after ENABLE already carries a (zero) torque and every release after
+    it one, so the DSP's watchdog (a few periods) never sees the hand-over from arming to the
+    law as a gap. The fake clock wakes on time, so no gap exceeds one control period."""
+    rated = cfg.with_overrides({"rates.control_hz": rate})
+    period = rated.rates.control_period_ns
+    seen: list[tuple[int, str]] = []  # (DSP clock, what) of each accepted frame
+    handle = DspNode.handle
+
+    def spy(node, msg, now_ns):
+        before = node.last_cmd_ns
+        out = handle(node, msg, now_ns)
+        if node.last_cmd_ns != before:
+            seen.append((now_ns, "torque" if out is not None else "enable"))
+        return out
+
+    DspNode.handle = spy
+    try:
+        summary, log, node = run_daemon(tmp_path, rated, 0.5, {})
+    finally:
+        DspNode.handle = handle
+    enable = next(i for i, (_, what) in enumerate(seen) if what == "enable")
+    times = np.array([t for t, _ in seen[enable:]])
+    gaps = np.diff(times)
+    assert gaps.size > 0 and gaps.max() <= period, (gaps.max(), period)
+    assert summary["ticks"] == round(0.5 * rate) and summary["problems"] == []
+    assert set(log.cycles["law"]) == {"ioc"}  # the first tick after arming runs the law
+    assert node.stats.watchdog_trips == 0

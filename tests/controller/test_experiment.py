@@ -125,13 +125,77 @@ def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monke
     out = tmp_path / "exp"
     assert main(["experiment", "fig3", "--duration", "1", "--out", str(out)]) == 1
     err = capsys.readouterr().err
-    assert calls == ["rhc", "ioc", "pbc"]
+    assert sorted(calls) == ["ioc", "pbc", "rhc"]  # two at a time on a 2-CPU machine
     assert "run pbc (PBC) failed: RigProcessError: controller exited with status 3" in err
     assert "boom in pbc" in err
     res = json.loads((out / "results.json").read_text())
     assert [f["run"] for f in res["failures"]] == ["rhc-T0.02", "ioc", "pbc"]
     assert res["fig3"]["J"] == {"rhc": None, "ioc": None, "pbc": None}
     assert "## Failures" in (out / "report.md").read_text()
+
+
+def test_jobs_are_refused_where_runs_would_share_a_bus_or_the_cpu(tmp_path):
+    from rt_controller.errors import ControllerConfigError
+
+    for bad, words in (
+        ({"jobs": 2, "realtime": True}, "lockstep"),
+        ({"jobs": 2, "can": "socketcan:vcan0"}, "socketcan:vcan0"),
+        ({"jobs": 2, "can": "udp_multicast"}, "udp_multicast"),
+        ({"jobs": 0}, "at least 1"),
+        ({"jobs": ex.MAX_JOBS + 1}, "at most"),
+    ):
+        with pytest.raises(ControllerConfigError, match=words):
+            settings(tmp_path, **bad).validate()
+    settings(tmp_path, jobs=2).validate()  # lockstep on the private default bus
+    assert settings(tmp_path).effective_jobs() == min(os.cpu_count() or 1, ex.MAX_JOBS)
+    assert settings(tmp_path, realtime=True).effective_jobs() == 1
+    assert settings(tmp_path, can="socketcan:vcan0").effective_jobs() == 1
+    assert settings(tmp_path, jobs=1).effective_jobs() == 1
+    with pytest.raises(SystemExit) as exc:  # the command line: usage error, exit status 2
+        main(["experiment", "fig3", "--jobs", "0", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+
+
+def test_runs_go_jobs_at_a_time_and_a_stop_request_cancels_those_in_flight(
+    tmp_path, monkeypatch, capsys
+):
+    """Two at a time: the third run starts only when one of the first two ended. A SIGTERM
+    to the experiment (delivered to the main thread) cancels the run still in flight (its
+    worker stops it), the one not started stays pending, and the exit status is 128 + 15."""
+    import signal
+    import threading
+
+    from rt_controller.rig.processes import RigCancelled
+
+    started: list[str] = []
+    lock = threading.Lock()
+    cancelled: list[str] = []
+
+    def fake(opts):
+        with lock:
+            started.append(opts.law)
+            first = len(started) == 1
+        if first:  # ends at once; the third run may now start
+            return {"J": 1.0, "f_final_norm": 0.0, "problems": []}
+        if len(started) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)  # the user stops the experiment
+        if not opts.cancel.wait(30):
+            raise AssertionError("never cancelled")
+        cancelled.append(opts.law)
+        raise RigCancelled("cancelled")
+
+    monkeypatch.setattr(ex, "run_rig", fake)
+    out = tmp_path / "exp"
+    argv = ["experiment", "all", "--reps", "1", "--duration", "1", "--out", str(out), "--jobs", "2"]
+    assert main(argv) == 128 + signal.SIGTERM
+    assert len(started) == 3 and sorted(cancelled) == sorted(started[1:])
+    res = json.loads((out / "results.json").read_text())
+    status = [r["status"] for r in res["runs"]]
+    # the first ended (as failed: a fake run writes no log), the two cancelled and the five
+    # never started are pending, none is reported as failed for being stopped
+    assert status == ["failed"] + ["pending"] * 7
+    assert [f["run"] for f in res["failures"]] == [res["runs"][0]["name"]]
+    assert "interrupted by SIGTERM" in capsys.readouterr().err
 
 
 # -------------------------------------------------------------- real daemons (integration)
@@ -217,3 +281,49 @@ def test_a_failing_daemon_fails_the_experiment_without_leftovers(tmp_path, capsy
     assert not live_children()
     res = json.loads((out / "results.json").read_text())
     assert len(res["failures"]) == 3
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_lockstep_results_do_not_depend_on_jobs(tmp_path, capsys):
+    """Two rigs at a time give the same J, run by run, as one at a time (lockstep runs are
+    deterministic and each rig has its own bus, zenoh port and key)."""
+    got = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        argv = ["experiment", "fig3", "--duration", "1", "--out", str(out), "--jobs", str(jobs)]
+        assert main([*argv, "--json"]) == 0
+        res = json.loads(capsys.readouterr().out)
+        got[jobs] = {r["name"]: (r["J"], r["f_final"]) for r in res["runs"]}
+        assert not live_children()
+    assert got[1] == got[2] and len(got[1]) == 3
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_stop_request_during_a_parallel_sweep_stops_every_rig(tmp_path, capsys):
+    """SIGTERM while two rigs run: both are stopped (no process outlives the experiment),
+    the exit status is 128 + 15 and what ran is written up."""
+    import signal
+    import threading
+    import time
+
+    def stop_when_both_run() -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if len(live_children()) >= 6:  # two rigs of three processes
+                time.sleep(0.5)
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=stop_when_both_run, daemon=True)
+    killer.start()
+    out = tmp_path / "stop"
+    argv = ["experiment", "table1", "--reps", "1", "--duration", "30", "--out", str(out)]
+    assert main([*argv, "--jobs", "2"]) == 128 + signal.SIGTERM
+    killer.join(5)
+    assert not live_children(), "a rig outlived the stopped experiment"
+    res = json.loads((out / "results.json").read_text())
+    assert [r["status"] for r in res["runs"]] == ["pending"] * 3
+    assert "interrupted by SIGTERM" in capsys.readouterr().err
