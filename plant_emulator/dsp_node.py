@@ -439,12 +439,15 @@ class DspNode:
         """``state_sync = command``: whether the sample after physics step ``k`` goes out.
 
         One step per control period: the one whose time lies ``state_lead_ns`` (up to a step)
-        before the controller's next tick. Until the controller's phase is known, or once its
-        commands stopped for a watchdog time, on the DSP's own control-period clock; at control
-        rates whose period is not longer than the lead, after every step.
+        before the controller's next tick, the lead taken modulo the period (at 500 Hz the
+        default 3 ms lead samples 1 ms before the tick). Until the controller's phase is known,
+        or once its commands stopped for a watchdog time, on the DSP's own control-period
+        clock; when a period is a single physics step (1 kHz), after every step. A short
+        period once got a state after every step whenever it was not longer than the lead:
+        two per period at 500 Hz, twice the frames the controller decodes on its tick.
         """
         period, step = self.control_period_ns, self.physics_period_ns
-        if period <= self.state_lead_ns + step:
+        if period <= step:
             return True
         t_k = self._t0_ns + k * step
         phase = self.phase.residue_ns

@@ -78,15 +78,31 @@ def test_commands_that_stopped_fall_back_to_the_dsp_clock(cfg: RigConfig) -> Non
         assert due == [k for k in range(late, late + 40) if k % node.substeps == 0]
 
 
-@pytest.mark.parametrize("control_hz", [500.0, 1000.0])
-def test_short_periods_get_a_state_after_every_step(cfg: RigConfig, control_hz: float) -> None:
+def test_a_period_of_one_physics_step_gets_a_state_after_every_step(cfg: RigConfig) -> None:
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus:
-        node = DspNode(cfg.with_overrides({"rates.control_hz": control_hz}), bus)
+        node = DspNode(cfg.with_overrides({"rates.control_hz": 1000.0}), bus)
         node.start_realtime(T0)
         node.phase.observe(T0)
         node.last_cmd_ns = T0
         assert all(node.state_due(k) for k in range(1, 10))
+
+
+def test_a_period_shorter_than_the_lead_still_gets_one_state_per_period(cfg: RigConfig) -> None:
+    """500 Hz (2 ms, two physics steps) with the default 3 ms lead: one state per period, the
+    lead taken modulo the period (1 ms before the tick). It used to be one after every step,
+    twice the frames for the controller to decode on its tick for no fresher a sample."""
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus:
+        node = DspNode(cfg.with_overrides({"rates.control_hz": 500.0}), bus)
+        assert node.state_lead_ns == 3 * MS
+        node.start_realtime(T0)
+        tick = T0 + 7 * MS  # the controller's ticks: T0 + 1 ms (mod 2 ms)
+        node.phase.observe(tick)
+        node.last_cmd_ns = T0 + 100 * MS
+        due = [k for k in range(100, 140) if node.state_due(k)]
+        assert len(due) == 20  # one per 2 ms period
+        assert all((T0 + k * MS - (tick - MS)) % (2 * MS) == 0 for k in due)  # 1 ms before
 
 
 def test_free_mode_keeps_the_configured_state_rate(cfg: RigConfig) -> None:
@@ -108,7 +124,7 @@ def test_every_lead_gives_exactly_one_state_per_period(cfg: RigConfig, lead_us: 
     """Leads from below one physics step (0: at the tick) to a period less a step: one state
     per period, at the step that lies within one step after (tick - lead). The window test
     once sent nothing at all for a lead below one step. (A lead of a period less a step or
-    more sends after every step, see ``state_due``.)"""
+    more wraps around modulo the period, see ``state_due``.)"""
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus:
         node = _node(cfg, bus, state_lead_us=lead_us)
