@@ -83,11 +83,21 @@ def bench_rate(
         "lateness_us": summary_stats(c["lateness_us"]),
         "cycle_us": summary_stats(c["cycle_us"]),
         "solve_us": summary_stats(c["solve_us"]),
+        "law_us": _law_stats(c, law),
         "e2e_us": summary_stats(c["e2e_us"]) if "e2e_us" in c else None,
         "f_final_norm": summary.get("f_final_norm"),
         "fallbacks": summary.get("fallbacks"),
         "footprint": footprint(sampler, duration, summary),
     }
+
+
+def _law_stats(c: dict, law: str) -> dict | None:
+    """The law's own solve time per tick that ran it (``law_us``; RHC: the C/GMRES update,
+    comparable with ``hil bench solver``), or None for a closed-form law."""
+    if law != "rhc" or "law_us" not in c:
+        return None
+    ran = np.asarray(c["law"]) == "rhc"
+    return summary_stats(np.asarray(c["law_us"], dtype=float)[ran])
 
 
 def footprint(sampler: FootprintSampler, duration: float, summary: dict) -> dict[str, Any]:

@@ -14,7 +14,15 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rt_controller.control.controller import Controller, Decision
 
-TIMING_FIELDS = ("lateness_us", "read_us", "solve_us", "write_us", "cycle_us", "e2e_us")
+TIMING_FIELDS = (
+    "lateness_us",
+    "read_us",
+    "solve_us",
+    "law_us",
+    "write_us",
+    "cycle_us",
+    "e2e_us",
+)
 """Loop-timing fields of a cycle record (zero in a replayed log)."""
 
 
@@ -30,6 +38,9 @@ class Timing:
     lateness_us: float = 0.0
     read_us: float = 0.0
     solve_us: float = 0.0
+    law_us: float = 0.0
+    """Of ``solve_us``, the law's own solve: the C/GMRES update for RHC (what ``hil bench
+    solver`` times alone); 0 for the closed-form laws and ticks where no law ran."""
     write_us: float = 0.0
     cycle_us: float = 0.0
     e2e_us: float = 0.0
@@ -94,6 +105,7 @@ def cycle_record(
         "lateness_us": timing.lateness_us,
         "read_us": timing.read_us,
         "solve_us": timing.solve_us,
+        "law_us": timing.law_us,
         "write_us": timing.write_us,
         "cycle_us": timing.cycle_us,
         "e2e_us": timing.e2e_us,

@@ -731,6 +731,7 @@ class ControllerDaemon:
                 lateness_us=lateness_ns / 1e3,
                 read_us=(t_read - wake_ns) / 1e3,
                 solve_us=solve_us,
+                law_us=0.0 if d.command is None else d.command.law.solve_ns / 1e3,
                 write_us=(t_write - t_solve) / 1e3,
                 cycle_us=cycle_us,
                 e2e_us=math.nan if inp.state_ns is None else (t_write - inp.state_ns) / 1e3,

@@ -238,3 +238,16 @@ def test_commands_flow_once_per_period_from_enable_on(tmp_path, cfg, rate):
     assert summary["ticks"] == round(0.5 * rate) and summary["problems"] == []
     assert set(log.cycles["law"]) == {"ioc"}  # the first tick after arming runs the law
     assert node.stats.watchdog_trips == 0
+
+
+def test_the_laws_own_solve_time_is_recorded_apart_from_the_decide_phase(tmp_path, cfg):
+    """``law_us``: the C/GMRES update alone (the law's own stopwatch, what ``hil bench solver``
+    times), so the live figure compares with the isolated one; 0 for a closed-form law."""
+    rhc = cfg.with_overrides({"controller.law": "rhc"})
+    summary, log, _ = run_daemon(tmp_path / "rhc", rhc, 0.5, {})
+    c = log.cycles
+    assert set(c["law"]) == {"rhc"} and summary["problems"] == []
+    assert np.all(np.asarray(c["law_us"]) > 0.0)
+    _, log_ioc, _ = run_daemon(tmp_path / "ioc", cfg, 0.5, {})
+    assert set(log_ioc.cycles["law"]) == {"ioc"}
+    assert np.all(np.asarray(log_ioc.cycles["law_us"]) == 0.0)
