@@ -36,10 +36,21 @@ def _com_jacobians(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 @njit(cache=True)
+def _gram(j: np.ndarray) -> np.ndarray:
+    """J^T J of a 2x2 matrix, written out: numba's ``@`` on arrays calls SciPy's BLAS, which is
+    not a run-time dependency (without SciPy the compiled kernel aborts the process)."""
+    g = np.empty((2, 2))
+    for a in range(2):
+        for b in range(2):
+            g[a, b] = j[0, a] * j[0, b] + j[1, a] * j[1, b]
+    return g
+
+
+@njit(cache=True)
 def inertia_kernel(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """M(q) = sum over links of m Jv^T Jv + I Jw^T Jw (Jw1 = [1, 0], Jw2 = [1, 1])."""
     jv1, jv2 = _com_jacobians(p, q)
-    m = p[M1] * (jv1.T @ jv1) + p[M2] * (jv2.T @ jv2)
+    m = p[M1] * _gram(jv1) + p[M2] * _gram(jv2)
     m[0, 0] += p[I1] + p[I2]
     m[0, 1] += p[I2]
     m[1, 0] += p[I2]
