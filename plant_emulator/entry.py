@@ -153,7 +153,10 @@ def fifo_priority(priority: int) -> str | None:
 
 def run_emulator(args: argparse.Namespace) -> int:
     """Body of ``hil emulator``; returns the exit status (HalError propagates to the CLI)."""
+    from hal.lean_start import without_scipy_linalg
     from hal.signals import stop_on_signals
+
+    without_scipy_linalg()  # before numba: it would import SciPy's BLAS, which no kernel uses
 
     with stop_on_signals() as stop:  # before the slow imports
         return _serve(args, stop)

@@ -61,6 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hal.lean_start import without_scipy_linalg
+
+    without_scipy_linalg()  # before numba: it would import SciPy's BLAS, which no kernel uses
     from rt_controller.runtime.realtime import lean_process
 
     if not args.no_rt:
