@@ -84,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
         "law", "ticks", "J", "f_final", "f_final_norm", "deadline_misses", "missed_periods",
         "stale_features", "stale_states", "late_states", "old_states", "fallbacks",
         "watchdog_trips", "solve_us_median", "solve_us_p99",
-        "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms", "log",
+        "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms", "arming_ticks",
+        "log",
         "rejections", "recorder", "problems",
         "exit_codes", "monitor_error",
     )  # fmt: skip
