@@ -14,6 +14,11 @@ sweeps; the rest of the compiled tick (``gmres_us``: Arnoldi, preconditioner, le
 projections); and the Python wrapper around it (``wrapper_us``: :meth:`CGMRESSolver.update` minus
 the bare compiled call). The parts are measured by replaying up to :data:`PROFILE_TICKS` recorded
 ticks back to back (warm caches), so they add up to less than ``solve_us`` of the closed loop.
+
+``paced`` replays :data:`PACED_TICKS` recorded ticks once per control period, the core left
+idle (sleeping) in between as the live daemon leaves it: caches, TLB and branch predictors go
+cold, and the same update takes several times its back-to-back time. It is the isolated figure
+to hold the live daemon's ``law_us`` against (``hil bench loop``).
 """
 
 from __future__ import annotations
@@ -52,6 +57,8 @@ EPISODE_S = 6.0
 SWEEP_STEPS = (5, 20, 50)
 PROFILE_TICKS = 400
 """Continuation ticks recorded (evenly spread over the run) and replayed for the profile."""
+PACED_TICKS = 100
+"""Recorded ticks replayed one per control period for ``paced`` (2 s at 50 Hz)."""
 
 
 def nominal_plant_step(model: NominalModel, cfg: RigConfig) -> PlantStep:
@@ -200,6 +207,28 @@ def _profile(solver: CGMRESSolver, run: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _paced(solver: CGMRESSolver, run: dict[str, Any], period_s: float) -> dict[str, Any]:
+    """Replay up to :data:`PACED_TICKS` recorded ticks, sleeping one control period before
+    each (see module): the update time with the core idle in between."""
+    snaps = run["snapshots"][:PACED_TICKS]
+    ns = np.zeros(len(snaps), dtype=np.int64)
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for i, (snap, x, t) in enumerate(snaps):
+            solver.st[:] = snap
+            solver.needs_init = False
+            time.sleep(period_s)
+            start = time.perf_counter_ns()
+            solver.update(x, t)
+            ns[i] = time.perf_counter_ns() - start
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+        solver.reset()
+    return {"period_s": period_s, "ticks": len(snaps), "solve_us": _stats(ns / 1e3)}
+
+
 def _summary(cfg: RigConfig, run: dict[str, Any]) -> dict[str, Any]:
     cont = ~run["init"]
     us = run["ns"] / 1e3
@@ -224,8 +253,10 @@ def bench_one(
     *,
     plant_step: PlantStep | None = None,
     reference_updates: int = 100,
+    paced: bool = False,
 ) -> dict[str, Any]:
-    """Compiled solver and NumPy reference for the configuration as given."""
+    """Compiled solver and NumPy reference for the configuration as given; with ``paced``, the
+    update at the control rate too (``paced``, see module)."""
     model = NominalModel.from_config(cfg)
     step = plant_step if plant_step is not None else nominal_plant_step(model, cfg)
     solver = CGMRESSolver(model, cfg)
@@ -233,6 +264,8 @@ def bench_one(
     run = _run(solver, model, cfg, step, updates)
     out = _summary(cfg, run)
     out["profile"] = _profile(solver, run)
+    if paced:
+        out["paced"] = _paced(solver, run, 1.0 / cfg.rates.control_hz)
     if reference_updates > 0:
         ref = _summary(cfg, _run(ReferenceSolver(model, cfg), model, cfg, step, reference_updates))
         median = ref["solve_us"]["median"]
@@ -257,7 +290,9 @@ def bench_solver(
     ``plant_step`` replaces the default nominal-model plant (e.g. with the emulator);
     ``reference_updates`` is how many updates the (slow) NumPy reference runs per N (0: skip).
     """
-    out = bench_one(cfg, updates, plant_step=plant_step, reference_updates=reference_updates)
+    out = bench_one(
+        cfg, updates, plant_step=plant_step, reference_updates=reference_updates, paced=True
+    )
     out["sweep"] = [
         bench_one(
             cfg.with_overrides({"rhc.steps": n}),

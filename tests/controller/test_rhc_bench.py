@@ -32,3 +32,16 @@ def test_bench_profile_counts_one_solve_per_tick(cfg):
     for key in ("sweep_us", "update_us", "kernel_us", "sweeps_us", "gmres_us", "wrapper_us"):
         assert math.isfinite(prof[key])
     assert prof["sweep_us"] > 0 and prof["kernel_us"] > 0
+
+
+def test_bench_paced_replays_recorded_ticks_one_per_control_period(cfg):
+    """``paced``: the recorded continuation ticks, one per control period with the core idle
+    in between (the figure the live daemon's ``law_us`` is compared with); the configured N
+    only, not the sweep."""
+    out = bench_solver(cfg, updates=30, reference_updates=0, sweep=(5,))
+    paced = out["paced"]
+    assert paced["period_s"] == 1.0 / cfg.rates.control_hz
+    assert paced["ticks"] == out["profile"]["replayed_ticks"] > 0
+    assert set(paced["solve_us"]) == {"median", "p99", "max"}
+    assert all(math.isfinite(v) and v > 0 for v in paced["solve_us"].values())
+    assert "paced" not in out["sweep"][0]
