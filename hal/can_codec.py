@@ -65,6 +65,9 @@ the DSP faults with FaultReason ENCODER instead)."""
 
 ENCODER_COUNTS_PER_REV = 1 << 20
 RAD_PER_COUNT = 2.0 * math.pi / ENCODER_COUNTS_PER_REV
+RELEASE_DELAY_SATURATED = 0xFFFF
+"""Realtime ``TorqueCommand.Tick``: microseconds from the controller's release to the frame;
+this value means "this long or more" (the DSP then does not learn the phase from it)."""
 """Resolution of the joint-angle signals Q1/Q2 (20-bit direct-drive encoder)."""
 
 
@@ -73,7 +76,9 @@ RAD_PER_COUNT = 2.0 * math.pi / ENCODER_COUNTS_PER_REV
 
 @dataclass(frozen=True, slots=True)
 class TorqueCommand:
-    """Controller -> DSP torque command (N·m); ``tick`` answers a Sync (low 16 bits)."""
+    """Controller -> DSP torque command (N·m). ``tick``: in lockstep the Sync period it answers
+    (low 16 bits); in realtime the microseconds from the controller's release to this frame
+    (:data:`RELEASE_DELAY_SATURATED` and above saturate)."""
 
     tau1: float
     tau2: float

@@ -31,6 +31,7 @@ from typing import Any
 import can
 
 from hal.can_codec import (
+    RELEASE_DELAY_SATURATED,
     ControllerCodec,
     DspCommand,
     DspStatus,
@@ -216,14 +217,28 @@ class JointClient:
         if self.tx_hook is not None:
             self.tx_hook(msg)
 
-    def send_torque(self, tau1: float, tau2: float, *, tick: int | None = None) -> None:
+    def send_torque(
+        self,
+        tau1: float,
+        tau2: float,
+        *,
+        tick: int | None = None,
+        release_delay_us: int | None = None,
+    ) -> None:
         """Send a TorqueCommand (counter + CRC); ``tick`` defaults to the latest Sync tick.
+
+        Realtime callers pass ``release_delay_us`` instead: how long after the controller's
+        release (its tick) this command leaves, carried in ``Tick`` (saturated at 65535), so the
+        DSP learns the controller's cycle from the release and not from when commands happen to
+        arrive (a tick that waited for its input would otherwise move it).
 
         The Enable bit follows :meth:`enable`/:meth:`disable`. Raises
         :class:`~hal.errors.HalCodecError` for NaN/inf and :class:`HalTransportError` when the
         bus refuses the frame.
         """
-        if tick is None:
+        if release_delay_us is not None:
+            tick = min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
+        elif tick is None:
             tick = self._sync_tick or 0
         enable = self._armed
         self._send(lambda c: c.encode_torque(tau1, tau2, enable=enable, tick=tick))

@@ -7,7 +7,8 @@ and runs a watchdog that removes torque when commands stop. Two clock modes:
 * **realtime**: physics follows ``time.monotonic_ns()`` at ``rates.physics_hz``; the joint
   state goes out once per control period, ``dsp.state_lead_us`` before the
   controller's next tick (:class:`CommandPhase` learns the controller's phase from when its
-  torque commands arrive), as a DSP synchronised to its master's cycle would send them, or with
+  torque commands arrive, less the delay after its release each one carries in ``Tick``), as a
+  DSP synchronised to its master's cycle would send them, or with
   ``dsp.state_sync = free`` at ``rates.state_hz`` on the DSP's own clock;
 * **lockstep**: once per control period the DSP sends ``Sync(k)`` and advances the physics by
   one period only after the controller's command for period ``k`` arrived, so a run is
@@ -55,6 +56,7 @@ import numpy as np
 
 from hal.can_codec import (
     RAD_PER_COUNT,
+    RELEASE_DELAY_SATURATED,
     DspCodec,
     DspControl,
     DspStatus,
@@ -132,10 +134,11 @@ class DspStats:
 class CommandPhase:
     """Where in its period the controller's cycle runs, learnt from when its commands arrive.
 
-    A command leaves the controller a little after its tick and is seen here up to one physics
-    step later, so the earliest arrival of the last ``window`` commands (modulo the period,
-    taken around the newest one so a phase near the period boundary does not wrap) is the best
-    estimate of the tick; later arrivals only mean a busier machine.
+    Each observation is a command's arrival less the delay after its release that the command
+    reports (``TorqueCommand.Tick`` in realtime): the controller's release plus the transport
+    and up to one physics step of this loop. The earliest of the last ``window`` (modulo the
+    period, taken around the newest one so a phase near the period boundary does not wrap) is
+    the best estimate of the tick; later ones only mean a busier machine.
     """
 
     def __init__(self, period_ns: int, window: int = 16) -> None:
@@ -334,8 +337,9 @@ class DspNode:
                 self.stats.late_commands += 1
             else:
                 self._command_seen(now_ns)
-                if not self.lockstep:
-                    self.phase.observe(now_ns)
+                if not self.lockstep and frame.tick < RELEASE_DELAY_SATURATED:
+                    # realtime Tick: how long after the controller's release it was sent
+                    self.phase.observe(now_ns - frame.tick * 1000)
                 self.last_cmd_tick = frame.tick
                 self.tau_cmd = np.array([frame.tau1, frame.tau2]) if frame.enable else np.zeros(2)
                 accepted = frame

@@ -425,7 +425,7 @@ class ControllerDaemon:
                 dsp.enable()
                 deadline = self.clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
             else:
-                dsp.send_torque(0.0, 0.0)
+                dsp.send_torque(0.0, 0.0, release_delay_us=self._since_us(tick.release_ns))
             self._states_seen = dsp.states_received
             self.stats.arming_ticks += 1
         return None
@@ -555,6 +555,10 @@ class ControllerDaemon:
                 self._last_record["deadline_miss"] = True
             self._record(dsp, rec)
             tick = None
+
+    def _since_us(self, release_ns: int) -> int:
+        """Microseconds from ``release_ns`` to now on the loop's clock."""
+        return (self.clock.now_ns() - release_ns) // 1000
 
     def _await_state(self, dsp: JointClient, deadline_ns: int) -> None:
         """Realtime read phase, when no joint state came since the last tick: wait for this
@@ -712,9 +716,13 @@ class ControllerDaemon:
             st.fallbacks += int(fields["fallback"])
             st.f_final = vec2(inp.f)
         t_solve = now()
-        # --- write
+        # --- write (realtime: the command says how long after the release it leaves)
         tau = d.tau
-        dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
+        if sync is None:
+            delay = self._since_us(wake_ns - lateness_ns)
+            dsp.send_torque(float(tau[0]), float(tau[1]), release_delay_us=delay)
+        else:
+            dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)
         t_write = now()
         st.ticks += 1
         st.missed_periods += missed

@@ -69,6 +69,7 @@ def run_daemon(
     duration_s: float,
     slow_ticks: dict[int, int],
     dsp_stalls: frozenset[int] = frozenset(),
+    on_tick=None,
 ):
     """Run the daemon's loop for ``duration_s`` of fake time; ``slow_ticks`` maps a tick number
     to extra nanoseconds its decide phase takes; for each tick in ``dsp_stalls`` the DSP gets no
@@ -85,9 +86,21 @@ def run_daemon(
         daemon._real_clock = False
         decide = daemon.controller.decide
 
+        release = [0]
+        tick = daemon._tick
+
+        def timed_tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs):
+            release[0] = wake_ns - lateness_ns
+            return tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs)
+
+        daemon._tick = timed_tick
+
         def slow_decide(*args, **kwargs):
+            if on_tick is not None:
+                on_tick(daemon.stats.ticks, node)
             if daemon.stats.ticks in dsp_stalls:
-                nxt = clock.t + cfg.rates.control_period_ns  # the fake clock wakes on time
+                # the next release (this tick may have waited for its state)
+                nxt = release[0] + cfg.rates.control_period_ns
                 clock.stall = (nxt - 4 * MS, nxt + 2 * MS)
             extra = slow_ticks.get(daemon.stats.ticks)
             if extra:
@@ -251,3 +264,25 @@ def test_the_laws_own_solve_time_is_recorded_apart_from_the_decide_phase(tmp_pat
     _, log_ioc, _ = run_daemon(tmp_path / "ioc", cfg, 0.5, {})
     assert set(log_ioc.cycles["law"]) == {"ioc"}
     assert np.all(np.asarray(log_ioc.cycles["law_us"]) == 0.0)
+
+
+def test_ticks_that_wait_for_a_late_state_do_not_move_the_phase_the_dsp_learns(tmp_path, cfg):
+    """30 ticks in a row wait 2 ms for a DSP that sampled late, so their commands leave 2 ms
+    after the release. Each command tells the DSP how long after its release it was sent
+    (``TorqueCommand.Tick`` in realtime), so the DSP still places the controller's release
+    where it is: at most one physics step (its service granularity) after it. Learning the
+    phase from arrivals alone moved it 2 ms later, the DSP sampled later still, and a
+    10-minute soak ratcheted into waiting every tick."""
+    waiting = cfg.with_overrides({"controller.state_wait_us": 5000.0})
+    period = cfg.rates.control_period_ns
+    learnt: dict[int, int | None] = {}
+
+    def watch(tick, node):
+        learnt[tick] = node.phase.residue_ns
+
+    stalls = frozenset(range(40, 70))
+    summary, log, _ = run_daemon(tmp_path, waiting, 2.0, {}, stalls, on_tick=watch)
+    release = int(log.cycles["t_ns"][0]) % period  # the fake clock wakes on the release
+    offsets = {tick: (learnt[tick] - release) % period for tick in (39, 55, 70, 90)}
+    assert all(offset <= MS for offset in offsets.values()), offsets
+    assert summary["late_states"] == len(stalls) and summary["old_states"] == 0

@@ -1,5 +1,6 @@
 """``dsp.state_sync = command``: one joint state per control period, ``state_lead_us`` before
-the controller's tick, the phase learnt from when its commands arrive (fake clock, no sleeps)."""
+the controller's tick, the phase learnt from when its commands arrive less the delay after the
+release each reports (fake clock, no sleeps)."""
 
 from __future__ import annotations
 
@@ -37,6 +38,28 @@ def test_phase_near_the_period_boundary_does_not_wrap() -> None:
 
 def _node(cfg: RigConfig, bus: can.BusABC, **dsp: object) -> DspNode:
     return DspNode(cfg.with_overrides({f"dsp.{k}": v for k, v in dsp.items()}), bus)
+
+
+def test_the_phase_is_learnt_from_arrival_less_the_delay_each_command_reports(
+    cfg: RigConfig,
+) -> None:
+    """Realtime ``Tick`` = µs from the controller's release to the command: a command sent 4 ms
+    after its release (it waited for its input) places the release where it was; a saturated
+    delay (65535 µs or more) teaches nothing."""
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus, open_bus(spec) as ctl_bus:
+        node = _node(cfg, bus)
+        node.start_realtime(T0)
+        codec = ControllerCodec()
+        release = T0 + 7 * MS
+        for k in range(3):
+            ctl_bus.send(codec.encode_torque(0.0, 0.0, enable=False, tick=4000))
+            node.drain(release + k * PERIOD + 4 * MS + 300_000)  # seen 0.3 ms after sending
+        assert node.phase.residue_ns == (release + 300_000) % PERIOD
+        ctl_bus.send(codec.encode_torque(0.0, 0.0, enable=False, tick=0xFFFF))
+        node.drain(release + 3 * PERIOD + 1 * MS)  # would be the earliest if it counted
+        assert node.phase.residue_ns == (release + 300_000) % PERIOD
+        assert node.stats.commands == 4
 
 
 def test_one_state_per_period_lead_before_the_commanded_tick(cfg: RigConfig) -> None:

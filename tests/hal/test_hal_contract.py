@@ -159,6 +159,21 @@ def test_client_commands_reach_the_dsp_in_order(dsp_bus: can.BusABC, client: Joi
     assert dsp.stats.rejected == 0
 
 
+def test_realtime_commands_carry_their_delay_after_the_release(
+    dsp_bus: can.BusABC, client: JointClient
+) -> None:
+    """``release_delay_us`` goes out in ``Tick`` (µs), clamped to [0, 65535]; it overrides the
+    latest Sync tick (realtime has none)."""
+    dsp = DspCodec()
+    dsp_bus.send(dsp.encode_sync(9))
+    assert client.wait_sync(RECV_TIMEOUT_S) == 9
+    for delay, sent in ((0, 0), (1234, 1234), (-5, 0), (70_000, 65_535)):
+        client.send_torque(0.5, 0.1, release_delay_us=delay)
+        (command,) = recv_frames(dsp_bus, dsp, 1)
+        assert isinstance(command, TorqueCommand) and command.tick == sent
+    assert dsp.stats.rejected == 0
+
+
 def test_lockstep_exchange(dsp_bus: can.BusABC, client: JointClient) -> None:
     dsp = DspCodec()
     for k in range(20):
