@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 from hal.arguments import bounded_int, duration
 from hal.config import LAW_NAMES
@@ -47,6 +49,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="PORT",
         help="also run `hil monitor` on this port during the real-time runs (connect a client)",
     )
+    lp.add_argument(
+        "--keep",
+        metavar="DIR",
+        help="keep the runs' MCAP logs and configs in DIR (default: a temporary folder)",
+    )
     lp.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
     lp.set_defaults(handler=run_loop)
 
@@ -79,6 +86,13 @@ def run_loop(args: argparse.Namespace) -> int:
         law=args.law,
         lockstep_duration=args.lockstep_duration,
         monitor_port=args.monitor_port,
+        keep=Path(args.keep) if args.keep else None,
     )
     print(json.dumps(result))
-    return 0
+    unclean = [r for r in result["rates"] if r["problems"]]
+    for r in unclean:  # the figures are printed either way; the exit status tells the truth
+        print(
+            f"hil bench loop: run not clean at {r['rate_hz']:g} Hz: {'; '.join(r['problems'])}",
+            file=sys.stderr,
+        )
+    return 1 if unclean else 0

@@ -12,6 +12,7 @@ before each deadline (``controller.spin_us``) is reported apart (``spin_cpu_perc
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import tempfile
@@ -87,6 +88,13 @@ def bench_rate(
         "e2e_us": summary_stats(c["e2e_us"]) if "e2e_us" in c else None,
         "f_final_norm": summary.get("f_final_norm"),
         "fallbacks": summary.get("fallbacks"),
+        "late_states": summary.get("late_states"),
+        "old_states": summary.get("old_states"),
+        "watchdog_trips": summary.get("watchdog_trips"),
+        "dsp_faults": summary.get("dsp_faults"),
+        "drive_ticks": summary.get("drive_ticks"),
+        "problems": summary.get("problems") or [],
+        "log": str(log),
         "footprint": footprint(sampler, duration, summary),
     }
 
@@ -178,11 +186,17 @@ def bench_loop(
     law: str = "rhc",
     lockstep_duration: float = 10.0,
     monitor_port: int | None = None,
+    keep: Path | None = None,
 ) -> dict[str, Any]:
-    """The JSON object ``hil bench loop`` prints."""
+    """The JSON object ``hil bench loop`` prints. ``keep``: write the runs' logs and configs
+    there (kept) instead of a temporary folder."""
     cfg = cfg or load_config()
-    with tempfile.TemporaryDirectory(prefix="hil-bench-") as tmp:
-        work = Path(tmp)
+    with contextlib.ExitStack() as stack:
+        if keep is None:
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="hil-bench-")))
+        else:
+            work = keep
+            work.mkdir(parents=True, exist_ok=True)
         runs = [bench_rate(cfg, r, duration, law, work, monitor_port) for r in rates]
         lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
     from hal.can_codec import bench_codec

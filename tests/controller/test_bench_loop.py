@@ -34,3 +34,39 @@ def test_lockstep_period_profile_splits_each_period_exactly() -> None:
 def test_lockstep_period_profile_of_a_single_tick_is_empty() -> None:
     one = {k: np.zeros(1) for k in ("t_ns", "read_us", "solve_us", "write_us", "cycle_us")}
     assert lockstep_period_profile(one) == {}
+
+
+def test_a_run_that_was_not_clean_fails_the_bench_but_its_figures_are_printed(
+    monkeypatch, capsys
+) -> None:
+    import json
+
+    from rt_controller.cli import main
+    from rt_controller.rig import bench_loop as bl
+
+    def fake(cfg, **kw):
+        runs = [
+            {"rate_hz": 50.0, "problems": []},
+            {"rate_hz": 500.0, "problems": ["1 DSP watchdog trip(s)"]},
+        ]
+        return {"rates": runs, "lockstep": None}
+
+    monkeypatch.setattr(bl, "bench_loop", fake)
+    assert main(["bench", "loop", "--rates", "50,500", "--lockstep-duration", "0"]) == 1
+    out = capsys.readouterr()
+    assert [r["rate_hz"] for r in json.loads(out.out)["rates"]] == [50.0, 500.0]
+    assert "run not clean at 500 Hz: 1 DSP watchdog trip(s)" in out.err
+    assert "50 Hz" not in out.err
+
+
+@pytest.mark.integration
+def test_kept_logs_are_the_runs_logs(tmp_path) -> None:
+    """``--keep DIR``: each rate's MCAP log and config stay there, and the record names it."""
+    from rt_controller.logtools.reader import read_log
+    from rt_controller.rig.bench_loop import bench_loop
+
+    out = bench_loop(rates=(50.0,), duration=1.0, law="ioc", lockstep_duration=0, keep=tmp_path)
+    (run,) = out["rates"]
+    log = read_log(run["log"])
+    assert run["log"] == str(tmp_path / "loop-50.mcap") and (tmp_path / "rig-50.toml").is_file()
+    assert log.n_cycles == run["ticks"] and run["problems"] == []
