@@ -20,6 +20,7 @@ client made by :meth:`JointClient.open`, shuts the bus down.
 
 from __future__ import annotations
 
+import collections
 import logging
 import select
 import threading
@@ -48,6 +49,10 @@ from hal.resources import release, track
 from hal.secoc import rig_key
 
 log = logging.getLogger(__name__)
+
+STATUS_BACKLOG = 64
+"""DspStatus frames kept for :meth:`JointClient.take_statuses` between two calls (the DSP sends
+10 a second plus one per change)."""
 
 FrameHook = Callable[[can.Message], None]
 
@@ -132,6 +137,7 @@ class JointClient:
         self._state: JointState | None = None
         self._status: DspStatus | None = None
         self._status_t_ns = 0
+        self._new_statuses: collections.deque[DspStatus] = collections.deque(maxlen=STATUS_BACKLOG)
         self._sync_tick: int | None = None
         self._sync_t_ns = 0
         self._sync_seq = 0
@@ -360,6 +366,7 @@ class JointClient:
                 self._pair(now)
             elif isinstance(frame, DspStatus):
                 self._status, self._status_t_ns = frame, now
+                self._new_statuses.append(frame)
                 self._statuses += 1
             elif isinstance(frame, Sync):
                 self._sync_tick, self._sync_t_ns = frame.tick, now
@@ -449,10 +456,19 @@ class JointClient:
     def status(self) -> DspStatus | None:
         """The latest DspStatus (``None`` before the first one); never raises.
 
-        Feed it to a :class:`hal.drive_state.DriveMonitor` every tick to follow the DSP's
-        drive state, faults and restarts.
+        To follow the DSP's drive state, faults and restarts, feed a
+        :class:`hal.drive_state.DriveMonitor` every status in order (:meth:`take_statuses`):
+        the newest alone misses a fault, reset and enable that arrive between two reads.
         """
         return self._status
+
+    def take_statuses(self) -> list[DspStatus]:
+        """Every DspStatus received since the last call, oldest first (at most
+        ``STATUS_BACKLOG``: older ones are dropped, the newest always kept)."""
+        with self._cond:
+            out = list(self._new_statuses)
+            self._new_statuses.clear()
+        return out
 
     @property
     def status_age_s(self) -> float | None:

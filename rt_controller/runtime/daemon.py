@@ -23,7 +23,14 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
-from hal.drive_state import MODE_ENABLED, MODE_NO_STATUS, DriveEvent, DriveMonitor, FaultReason
+from hal.drive_state import (
+    MODE_ENABLED,
+    MODE_NO_STATUS,
+    DriveEvent,
+    DriveMonitor,
+    DriveUpdate,
+    FaultReason,
+)
 from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
@@ -381,7 +388,8 @@ class ControllerDaemon:
         """Whether the DSP reports *operation enabled*; raises once ``expired`` and it does not."""
         self.read_inputs(dsp, self.clock.now_ns())
         status = dsp.status
-        self.drive.update(status)
+        for st in dsp.take_statuses():  # before the run: followed, not acted on (ENABLE resets)
+            self.drive.update(st)
         if self.drive.mode == MODE_ENABLED:
             return True
         if expired:
@@ -620,8 +628,25 @@ class ControllerDaemon:
         that restarted (new session) or was disabled by someone else is re-armed only when
         configured; a limit or encoder fault never is.
         """
+        self._follow_statuses(dsp)
+        mode = self.drive.mode
+        age = dsp.status_age_s_at(now_ns)
+        if not self.opts.lockstep and (age is None or age > self._status_limit_s):
+            mode = MODE_NO_STATUS  # a silent DSP: its last word no longer counts
+        if mode != MODE_ENABLED:
+            self.stats.drive_ticks[mode] = self.stats.drive_ticks.get(mode, 0) + 1
+        return mode
+
+    def _follow_statuses(self, dsp: JointClient) -> None:
+        """Feed the drive monitor every status since the last read, in order, and act on each
+        update's events: a fault, reset and enable that arrived between two reads are all
+        seen (the newest status alone would show "fault, then fault" and no new trip)."""
+        for status in dsp.take_statuses():
+            self._on_drive_events(dsp, self.drive.update(status))
+
+    def _on_drive_events(self, dsp: JointClient, upd: DriveUpdate) -> None:
+        """Count faults and apply the re-arm policy for one monitor update."""
         ctl_cfg = self.cfg.controller
-        upd = self.drive.update(dsp.status)
         for ev in upd.events:
             if ev is DriveEvent.FAULT:
                 reason = upd.fault.label
@@ -638,13 +663,6 @@ class ControllerDaemon:
             elif ev is DriveEvent.DISARMED and ctl_cfg.rearm_after_restart:
                 dsp.enable(reset_fault=False)
                 self.stats.rearms += 1
-        mode = self.drive.mode
-        age = dsp.status_age_s_at(now_ns)
-        if not self.opts.lockstep and (age is None or age > self._status_limit_s):
-            mode = MODE_NO_STATUS  # a silent DSP: its last word no longer counts
-        if mode != MODE_ENABLED:
-            self.stats.drive_ticks[mode] = self.stats.drive_ticks.get(mode, 0) + 1
-        return mode
 
     def _read(self, dsp: JointClient, wake_ns: int, t_s: float) -> Inputs:
         """The read phase: the newest joint state and features, judged stale or not, and the

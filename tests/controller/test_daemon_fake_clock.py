@@ -286,3 +286,16 @@ def test_ticks_that_wait_for_a_late_state_do_not_move_the_phase_the_dsp_learns(t
     offsets = {tick: (learnt[tick] - release) % period for tick in (39, 55, 70, 90)}
     assert all(offset <= MS for offset in offsets.values()), offsets
     assert summary["late_states"] == len(stalls) and summary["old_states"] == 0
+
+
+def test_a_second_trip_whose_statuses_arrive_in_one_read_is_still_re_armed(tmp_path, cfg):
+    """Tick 100 overruns (trip 1); the next tick re-arms and overruns too, before the
+    controller reads anything, so the DSP's reset, enabled and second-trip statuses all wait
+    in the socket for one read. Judging the drive by the newest status alone saw "fault, then
+    fault": no new trip, no re-arm, and the rest of the run held zero torque (a 500 Hz bench
+    run sat 7 s in fault that way). Every status is fed to the drive monitor in order."""
+    summary, log, node = run_daemon(tmp_path, cfg, 4.0, {100: 65 * MS, 101: 70 * MS})
+    assert node.stats.watchdog_trips == 2
+    assert summary["watchdog_trips"] == 2 and summary["rearms"] == 2
+    laws = list(log.cycles["law"])
+    assert laws[-1] == "ioc" and laws.count("fault") <= 4  # re-armed each time, law again

@@ -174,6 +174,39 @@ def test_realtime_commands_carry_their_delay_after_the_release(
     assert dsp.stats.rejected == 0
 
 
+def test_every_status_since_the_last_take_comes_in_order(
+    dsp_bus: can.BusABC, spec: str, cfg: RigConfig
+) -> None:
+    """A fault, its reset and the re-enable that arrive between two reads are all handed
+    over, oldest first (the newest alone would look like "still in fault")."""
+    from hal.drive_state import DriveState, FaultReason
+    from hal.joint_client import STATUS_BACKLOG
+
+    dsp = DspCodec()
+    seq = [
+        DspStatus(False, True, drive_state=DriveState.FAULT, fault_reason=FaultReason.WATCHDOG),
+        DspStatus(False, False, drive_state=DriveState.SWITCH_ON_DISABLED),
+        DspStatus(True, False, drive_state=DriveState.OPERATION_ENABLED),
+    ]
+    with JointClient.open(spec, cfg, start=False) as client:
+        for st in seq:
+            dsp_bus.send(dsp.encode_status(st))
+        deadline = time.monotonic() + RECV_TIMEOUT_S
+        while client.stats.statuses < len(seq) and time.monotonic() < deadline:
+            client.drain()
+        got = client.take_statuses()
+        assert [(g.drive_state, g.fault_reason) for g in got] == [
+            (st.drive_state, st.fault_reason) for st in seq
+        ]
+        assert client.take_statuses() == [] and client.status == got[-1]
+        for _ in range(STATUS_BACKLOG + 5):  # a backlog keeps the newest
+            dsp_bus.send(dsp.encode_status(seq[0]))
+        while client.stats.statuses < len(seq) + STATUS_BACKLOG + 5:
+            assert time.monotonic() < deadline + RECV_TIMEOUT_S
+            client.drain()
+        assert len(client.take_statuses()) == STATUS_BACKLOG
+
+
 def test_lockstep_exchange(dsp_bus: can.BusABC, client: JointClient) -> None:
     dsp = DspCodec()
     for k in range(20):
