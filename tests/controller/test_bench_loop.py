@@ -61,7 +61,9 @@ def test_a_run_that_was_not_clean_fails_the_bench_but_its_figures_are_printed(
 
 @pytest.mark.integration
 def test_kept_logs_are_the_runs_logs(tmp_path) -> None:
-    """``--keep DIR``: each rate's MCAP log and config stay there, and the record names it."""
+    """``--keep DIR``: each rate's MCAP log and config stay there, and the record names it.
+    (A real-time run on a loaded host may fault, so its cleanliness is not asserted: the
+    record's ``problems`` must only agree with what the log says.)"""
     from rt_controller.logtools.reader import read_log
     from rt_controller.rig.bench_loop import bench_loop
 
@@ -69,4 +71,9 @@ def test_kept_logs_are_the_runs_logs(tmp_path) -> None:
     (run,) = out["rates"]
     log = read_log(run["log"])
     assert run["log"] == str(tmp_path / "loop-50.mcap") and (tmp_path / "rig-50.toml").is_file()
-    assert log.n_cycles == run["ticks"] and run["problems"] == []
+    assert log.n_cycles == run["ticks"] > 0
+    drive_modes = {"fault", "disarmed", "no_status", "dsp_restarted"}
+    held = sum(1 for law in log.cycles["law"] if law in drive_modes)
+    assert held == sum(run["drive_ticks"].values())
+    if held or run["dsp_faults"] or run["watchdog_trips"]:
+        assert run["problems"]  # a run that faulted is never reported clean
