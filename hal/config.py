@@ -186,10 +186,10 @@ class ControllerConfig:
     """Realtime: when no joint state arrived since the last tick (a DSP that sampled late), the
     tick waits up to this long after its release for this period's state instead of using the
     last period's (a whole period of delay destabilises the IOC and RHC gains); capped at half
-    a control period; 0 = never wait (the default). Off by default: with the DSP's
-    phase-locked state (``dsp.state_sync = command``) a waiting tick sends its command later,
-    the DSP learns a later phase and samples later still; a 10-minute soak at 50 Hz with
-    5000 us drifted into waiting every tick and lost the target."""
+    a control period; 0 = never wait (the default). Off by default: a waiting tick no longer
+    moves the phase the DSP learns (each command reports its delay after the release), but a
+    10-minute soak at 50 Hz with 5000 us on a busy host still ran 36 % of its ticks late and
+    ended in a velocity-limit fault, for reasons not yet understood."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
     gil_switch_us: float = 200.0
