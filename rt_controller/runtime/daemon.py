@@ -540,9 +540,8 @@ class ControllerDaemon:
         first: Tick,
     ) -> None:
         """Realtime ticks from ``first`` (the release at which the DSP reported enabled)."""
-        tick: Tick | None = first
+        tick = first
         while not self.stop.is_set():
-            tick = cadence.wait() if tick is None else tick
             if max_ticks is not None and tick.index - first.index >= max_ticks:
                 return
             index = tick.index - first.index  # tick 0 is the first that runs the law
@@ -562,7 +561,7 @@ class ControllerDaemon:
                 self.stats.deadline_misses += 1
                 self._last_record["deadline_miss"] = True
             self._record(dsp, rec)
-            tick = None
+            tick = cadence.wait()
 
     def _since_us(self, release_ns: int) -> int:
         """Microseconds from ``release_ns`` to now on the loop's clock."""
