@@ -121,6 +121,13 @@ class DspStats:
     """DspControl commands the drive state refused (e.g. ENABLE in FAULT)."""
     states_withheld: int = 0
     """Joint states not sent because the frame could not carry them (encoder fault)."""
+    states_late: int = 0
+    """Realtime: joint states that fell due while this process was behind schedule; each went
+    out after the catch-up, as a sample of the latest step (a real DSP samples when it sends),
+    not as the old sample of the step it was due at."""
+    states_merged: int = 0
+    """Due states that such a catch-up sample stood in for beyond the first (a catch-up over
+    more than one due step sends one state)."""
 
     def as_dict(self) -> dict[str, Any]:
         """Plain counters for ``--json`` (latencies also in ms)."""
@@ -197,6 +204,8 @@ class DspNode:
         self.pose_every = self.state_every
         self.state_sync = cfg.dsp.state_sync == "command"
         self.state_lead_ns = round(cfg.dsp.state_lead_us * 1e3)
+        self._states_owed = 0
+        """States due during a catch-up not yet sent (:meth:`physics_step`)."""
         self.phase = CommandPhase(self.control_period_ns)
         self.watchdog_ns = round(cfg.dsp.watchdog_periods * self.control_period_ns)
         self.encoder_lsb = 2 * math.pi / cfg.dsp.encoder_counts
@@ -424,14 +433,25 @@ class DspNode:
         return self.tau_cmd if self.torque_enabled else np.zeros(2)
 
     # --- physics ----------------------------------------------------------------------------
-    def physics_step(self) -> None:
-        """One physics step with the held torque, then sensors and periodic frames."""
+    def physics_step(self, last: bool = True) -> None:
+        """One physics step with the held torque, then sensors and periodic frames.
+
+        ``last = False``: more steps follow at once (a late process catching up); a joint
+        state due now waits for the last of them, so that it goes out as a sample of the
+        world when it is sent, as a real DSP's would, and not as an old one that looks fresh.
+        """
         self.world.hold(self.applied_torque(), 1, self.encoder)
         self.stats.physics_steps += 1
         self.check_limits()
         k = self.world.step_index
         if not self.lockstep:
-            if self.state_due(k) if self.state_sync else k % self.state_every == 0:
+            due = self.state_due(k) if self.state_sync else k % self.state_every == 0
+            if due and not last:
+                self._states_owed += 1
+            elif last and (due or self._states_owed):
+                self.stats.states_late += self._states_owed > 0
+                self.stats.states_merged += self._states_owed + due - 1
+                self._states_owed = 0
                 self.send_state()
             # The camera watches the arm, not the CAN bus: its pose keeps the world's rate.
             if k % self.pose_every == 0:
@@ -484,7 +504,7 @@ class DspNode:
             self.stats.max_lateness_ns = max(self.stats.max_lateness_ns, late)
         while self.world.step_index < due:
             self.check_watchdog(self._t0_ns + self.world.step_index * period)
-            self.physics_step()
+            self.physics_step(last=self.world.step_index + 1 == due)
         return self._t0_ns + (self.world.step_index + 1) * period
 
     def warm_up(self) -> None:

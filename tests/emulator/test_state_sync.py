@@ -161,3 +161,31 @@ def test_every_lead_gives_exactly_one_state_per_period(cfg: RigConfig, lead_us: 
         for k in due:
             since = (T0 + k * MS - (tick - lead)) % PERIOD  # after (tick - lead), mod period
             assert 0 <= since < MS
+
+
+def test_a_dsp_that_ran_late_sends_the_state_of_now_not_of_the_step_that_was_due(
+    cfg: RigConfig,
+) -> None:
+    """The emulator's process was descheduled for 15 ms across a state's due step: it catches
+    up on physics and then sends one state, of the latest step. A state of the due step, sent
+    15 ms late, would reach the controller looking fresh (its age is judged by arrival) while
+    it shows the arm as it was, and the controller would act on it as on the present."""
+    spec = isolated_spec("virtual")
+    with open_bus(spec) as bus, open_bus(spec) as tap:
+        node = _node(cfg, bus, state_lead_us=3000.0)
+        node.start_realtime(T0)
+        node.world.dq[:] = (1.0, -2.0)  # moving, so the sample's time shows in its angles
+        codec = ControllerCodec()
+        while tap.recv(timeout=0) is not None:  # the initial state and status
+            pass
+        node.service(T0 + 5 * MS)  # steps 1..5 on time: no state due yet (step 20 is)
+        node.service(T0 + 35 * MS)  # late: steps 6..35 at once; step 20 was due
+        states = []
+        while (msg := tap.recv(timeout=0)) is not None:
+            frame = codec.decode(msg)
+            if isinstance(frame, JointPosition):
+                states.append(frame)
+        assert node.world.step_index == 35
+        assert len(states) == 1
+        assert states[0].sample == 35 % 16
+        assert (node.stats.states_late, node.stats.states_merged) == (1, 0)
