@@ -185,11 +185,15 @@ class ControllerConfig:
     state_wait_us: float = 0.0
     """Realtime: when no joint state arrived since the last tick (a DSP that sampled late), the
     tick waits up to this long after its release for this period's state instead of using the
-    last period's (a whole period of delay destabilises the IOC and RHC gains); capped at half
-    a control period; 0 = never wait (the default). Off by default: a waiting tick no longer
-    moves the phase the DSP learns (each command reports its delay after the release), but a
-    10-minute soak at 50 Hz with 5000 us on a busy host still ran 36 % of its ticks late and
-    ended in a velocity-limit fault, for reasons not yet understood."""
+    last period's (compensated by ``predict_state``); capped at half a control period; 0 =
+    never wait (the default). Off by default: a 10-minute soak at 50 Hz with 5000 us on a busy
+    host still ran 36 % of its ticks late and ended in a velocity-limit fault."""
+    predict_state: bool = True
+    """Realtime: bring the joint state up to the tick before the law sees it (the nominal model
+    driven by the torques sent since the state arrived; the cycle record's ``predict_ms``). A
+    tick that runs on the previous period's state (``late_states``) otherwise acts on a whole
+    period of delay, which the paper's IOC and RHC gains do not tolerate. Lockstep states are
+    sampled at the tick and are never predicted."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
     gil_switch_us: float = 200.0

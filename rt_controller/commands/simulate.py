@@ -33,6 +33,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="the law sees the joint state of N control periods ago (default 0)",
     )
+    p.add_argument(
+        "--no-predict",
+        action="store_true",
+        help="do not compensate the state's age (controller.predict_state = false)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
 
@@ -44,8 +49,9 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.control.simulate import run_closed_loop
 
     cfg = config_from_args(args)
+    predict = cfg.controller.predict_state and not args.no_predict
     result = run_closed_loop(
-        World(cfg), Controller(cfg), cfg, args.duration, state_delay=args.state_delay
+        World(cfg), Controller(cfg), cfg, args.duration, args.state_delay, predict=predict
     )
     print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
     return 0

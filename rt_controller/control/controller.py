@@ -11,6 +11,7 @@ from rt_controller.control import model_kernels
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
 from rt_controller.control.model import NominalModel
+from rt_controller.control.state_predictor import StatePredictor
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,9 @@ class Decision:
     """``control`` (the law ran), ``hold`` (stale features: joint damper) or ``no_state``."""
     command: Command | None
     """The law's step when ``mode == "control"``."""
+    state: tuple[np.ndarray, np.ndarray] | None = None
+    """(q, dq) the hold or the law acted on: the joint state brought up to the tick (as
+    measured when its age was not given); ``None`` when neither ran."""
 
 
 class Controller:
@@ -46,6 +50,7 @@ class Controller:
         self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
         self._holding = False
+        self.predictor = StatePredictor(self._p, cfg.controller.state_timeout_s)
 
     def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
@@ -103,6 +108,8 @@ class Controller:
         f_stale: bool,
         state_stale: bool,
         drive_mode: str = "enabled",
+        state_age_s: float = 0.0,
+        now_s: float | None = None,
     ) -> Decision:
         """The daemon's per-tick rule, shared with ``hil replay`` so a log replays exactly.
 
@@ -111,21 +118,48 @@ class Controller:
         not run and restarts when the drive is enabled again. No joint state: zero torque. Stale
         features: hold (:meth:`hold_torque`) and re-initialise the law when features return.
         Otherwise the law and eq. (11). Never returns NaN torque.
+
+        ``state_age_s``: how long before ``now_s`` the joint state was sampled; a positive age
+        is compensated (:class:`~rt_controller.control.state_predictor.StatePredictor`: the
+        nominal model under the torques this method returned meanwhile) before the hold or the
+        law sees the state. ``now_s`` is when the tick actually runs on the time axis of ``t``
+        (the release plus the tick's lateness; default ``t``); every returned torque is taken
+        as sent then.
         """
+        now = t if now_s is None else now_s
+        d = self._decide(t, q, dq, f, f_stale, state_stale, drive_mode, state_age_s, now)
+        self.predictor.sent(now, d.tau)
+        return d
+
+    def _decide(
+        self,
+        t: float,
+        q: np.ndarray,
+        dq: np.ndarray,
+        f: np.ndarray,
+        f_stale: bool,
+        state_stale: bool,
+        drive_mode: str,
+        state_age_s: float,
+        now_s: float,
+    ) -> Decision:
         if drive_mode != "enabled":
             self._holding = True
             return Decision(np.zeros(2), drive_mode, None)
         if state_stale:
             return Decision(np.zeros(2), "no_state", None)
+        if state_age_s > 0:
+            q, dq = self.predictor.predict(now_s, q, dq, state_age_s)
         if f_stale or not np.all(np.isfinite(f)):
             self._holding = True
-            return Decision(self.hold_torque(np.asarray(dq, dtype=float)), "hold", None)
+            dq = np.asarray(dq, dtype=float)
+            return Decision(self.hold_torque(dq), "hold", None, (np.asarray(q, float), dq))
         if self._holding:
             self.law.reset()
             self._holding = False
         cmd = self.step(t, q, dq, f)
         tau = cmd.tau if np.all(np.isfinite(cmd.tau)) else np.zeros(2)
-        return Decision(tau, "control", cmd)
+        return Decision(tau, "control", cmd, (cmd.measurement.q, cmd.measurement.dq))
 
 
 def warm_up(ctl: Controller, cfg: RigConfig) -> None:
@@ -139,10 +173,20 @@ def warm_up(ctl: Controller, cfg: RigConfig) -> None:
     q, dq, f = np.array(sc.q0, float), np.array(sc.dq0, float), np.array(sc.f0, float)
     cases = ((False, False, "enabled"), (True, False, "enabled"), (False, True, "enabled"))
     cases += ((False, False, "disarmed"), (False, False, "enabled"))
-    for f_stale, state_stale, mode in cases:
-        d = ctl.decide(0.0, q, dq, f, f_stale=f_stale, state_stale=state_stale, drive_mode=mode)
+    for i, (f_stale, state_stale, mode) in enumerate(cases):
+        d = ctl.decide(
+            0.001 * i,
+            q,
+            dq,
+            f,
+            f_stale=f_stale,
+            state_stale=state_stale,
+            drive_mode=mode,
+            state_age_s=0.0005 * i,  # the prediction too
+        )
         if d.command is not None:
             ctl.costs(d.command)
     ctl.step(0.0, q, dq, np.full(2, np.nan))  # the no-features branch of step
     ctl.law.reset()
+    ctl.predictor.reset()
     ctl._holding = False

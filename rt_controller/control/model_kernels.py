@@ -108,3 +108,50 @@ def costs(p, q, xi, f, u):
     V = 0.5 * (m00 * xi[0] ** 2 + 2 * m01 * xi[0] * xi[1] + m11 * xi[1] ** 2)
     V += kp / (2.0 * g) * (f[0] ** 2 + f[1] ** 2)
     return cost, V
+
+
+@njit(cache=True, fastmath=False)
+def _accel(p, q0, q1, dq0, dq1, tau0, tau1):
+    """ddq of the nominal arm, M(q) ddq + C(q, dq) dq + g(q) = tau (eq. 1)."""
+    c2, s2 = np.cos(q1), np.sin(q1)
+    m00 = p[TH1] + p[TH2] + 2 * p[TH3] * c2
+    m01 = p[TH2] + p[TH3] * c2
+    m11 = p[TH2]
+    h = p[TH3] * s2
+    w = dq0 + dq1
+    c12 = np.cos(q0 + q1)
+    r0 = tau0 + h * dq1 * dq0 + h * w * dq1 - p[G1] * np.cos(q0) - p[G2] * c12
+    r1 = tau1 - h * dq0 * dq0 - p[G2] * c12
+    det = m00 * m11 - m01 * m01
+    return (m11 * r0 - m01 * r1) / det, (m00 * r1 - m01 * r0) / det
+
+
+@njit(cache=True, fastmath=False)
+def _rhs(p, x, tau):
+    """d/dt (q, dq) of the nominal arm under the torque ``tau``."""
+    a0, a1 = _accel(p, x[0], x[1], x[2], x[3], tau[0], tau[1])
+    out = np.empty(4)
+    out[0], out[1], out[2], out[3] = x[2], x[3], a0, a1
+    return out
+
+
+@njit(cache=True, fastmath=False)
+def predict(p, q, dq, taus, durations, h_max):
+    """(q, dq) after holding ``taus[i]`` for ``durations[i]`` seconds in turn, from (q, dq):
+    the nominal dynamics of eq. (1) integrated by classical Runge-Kutta, steps <= ``h_max``."""
+    x = np.empty(4)
+    x[0], x[1], x[2], x[3] = q[0], q[1], dq[0], dq[1]
+    for i in range(durations.shape[0]):
+        dur = durations[i]
+        if dur <= 0.0:
+            continue
+        n = int(np.ceil(dur / h_max))
+        h = dur / n
+        tau = taus[i]
+        for _ in range(n):
+            k1 = _rhs(p, x, tau)
+            k2 = _rhs(p, x + 0.5 * h * k1, tau)
+            k3 = _rhs(p, x + 0.5 * h * k2, tau)
+            k4 = _rhs(p, x + h * k3, tau)
+            x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return x[:2].copy(), x[2:].copy()

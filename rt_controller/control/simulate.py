@@ -94,13 +94,19 @@ class SimResult:
 
 
 def run_closed_loop(
-    plant: Plant, controller: Controller, cfg: RigConfig, duration: float, state_delay: int = 0
+    plant: Plant,
+    controller: Controller,
+    cfg: RigConfig,
+    duration: float,
+    state_delay: int = 0,
+    predict: bool = True,
 ) -> SimResult:
     """Sample, decide and hold the torque for one control period, ``duration * rate`` times.
 
     ``state_delay``: the controller sees the joint state (q, dq) of that many periods ago (the
     first one until then) with the current features, what a live loop gets when the DSP's
-    sample misses the tick; 0 = none.
+    sample misses the tick; 0 = none. ``predict``: the controller is told the state's age and
+    compensates it (the daemon's ``controller.predict_state``); false hides the age.
     """
     rate = cfg.rates.control_hz
     substeps = cfg.rates.substeps
@@ -114,8 +120,11 @@ def run_closed_loop(
         q, dq, f = (np.asarray(v, dtype=float) for v in plant.measure())
         states.append((q, dq))
         q, dq = states[0]
+        age = (len(states) - 1) / rate if predict else 0.0
         # The daemon's per-tick rule; in process the features are stale exactly when missing.
-        d = controller.decide(t, q, dq, f, f_stale=not np.all(np.isfinite(f)), state_stale=False)
+        d = controller.decide(
+            t, q, dq, f, f_stale=not np.all(np.isfinite(f)), state_stale=False, state_age_s=age
+        )
         rec = decision_fields(controller, d)
         held = d.command is None
         tr.t.append(t)

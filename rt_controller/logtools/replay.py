@@ -184,7 +184,22 @@ def _inputs(log: LoadedLog, cfg: RigConfig, notes: list[str]) -> dict[str, np.nd
     ):
         if missing:
             notes.append(f"some cycle records lack {what}")
-    return {"t": t, "q": q, "dq": dq, "f": f, "f_stale": f_stale, "state_stale": state_stale}
+    predict = log.column("predict_ms")  # logs before the state prediction did not predict
+    predict = np.zeros(n) if predict is None else np.asarray(predict, dtype=float)
+    predict = np.where(np.isfinite(predict), predict, 0.0)
+    late = log.column("lateness_us")  # the daemon's now_s: the release plus the lateness
+    late = np.zeros(n) if late is None else np.asarray(late, dtype=float)
+    now = t + np.where(np.isfinite(late), late, 0.0) / 1e6
+    return {
+        "t": t,
+        "q": q,
+        "dq": dq,
+        "f": f,
+        "f_stale": f_stale,
+        "state_stale": state_stale,
+        "predict_s": predict / 1e3,
+        "now_s": now,
+    }
 
 
 def _gap_note(log: LoadedLog) -> str | None:
@@ -340,6 +355,8 @@ def replay_loaded(
                 f_stale=bool(inputs["f_stale"][i]),
                 state_stale=bool(inputs["state_stale"][i]),
                 drive_mode=_drive_mode(recorded_law, i),
+                state_age_s=float(inputs["predict_s"][i]),
+                now_s=float(inputs["now_s"][i]),
             )
             fields = decision_fields(ctl, d)
             u[i], tau[i] = fields["u"], fields["tau"]

@@ -49,11 +49,16 @@ class Timing:
 
 
 def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
-    """The output fields of one tick (u, xi, tau, law, solver report, cost, V) from the
-    per-tick rule's :class:`Decision`; zeros / NaN when the law did not run."""
+    """The output fields of one tick (the state acted on, u, xi, tau, law, solver report, cost,
+    V) from the per-tick rule's :class:`Decision`; zeros / NaN when the law did not run."""
     cmd = d.command
+    acted = {
+        "q_pred": vec2(d.state[0]) if d.state is not None else [math.nan, math.nan],
+        "dq_pred": vec2(d.state[1]) if d.state is not None else [math.nan, math.nan],
+    }
     if cmd is None:
         return {
+            **acted,
             "xi": [0.0, 0.0],
             "u": [0.0, 0.0],
             "tau": vec2(d.tau),
@@ -67,6 +72,7 @@ def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
         }
     cost, V = ctl.costs(cmd)
     return {
+        **acted,
         "xi": vec2(cmd.measurement.xi),
         "u": vec2(cmd.law.u),
         "tau": vec2(d.tau),
@@ -95,9 +101,10 @@ def cycle_record(
     f_stale: bool,
     state_stale: bool,
     decision: dict[str, Any],
+    predict_ms: float = 0.0,
 ) -> dict[str, Any]:
     """One cycle record, fields in the order of ``cycle_schema.json``; ``decision`` comes from
-    :func:`decision_fields`."""
+    :func:`decision_fields`; ``predict_ms`` is the state age the tick compensated."""
     return {
         "tick": tick,
         "t_ns": t_ns,
@@ -116,6 +123,7 @@ def cycle_record(
         "f": vec2(f),
         "f_age_ms": f_age_ms,
         "state_age_ms": state_age_ms,
+        "predict_ms": predict_ms,
         "f_valid": f_valid,
         "f_stale": f_stale,
         "state_stale": state_stale,

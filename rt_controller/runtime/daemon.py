@@ -572,13 +572,10 @@ class ControllerDaemon:
         period's state until ``deadline_ns`` (the release plus ``controller.state_wait_us``).
 
         The DSP samples a little before each tick (``dsp.state_lead_us``); a DSP process that
-        ran late sends that sample after the release. Using the previous period's state
-        instead would put a whole period of delay in the loop, and with one period of delay
-        the paper's IOC and RHC gains drive the arm past its velocity limit (``hil simulate
-        --law ioc --state-delay 1``: 25 rad/s on the elbow, limit 20; 4.6 without delay).
+        ran late sends that sample after the release. The previous period's state is a whole
+        period old; ``controller.predict_state`` compensates that age, and this wait avoids it.
         A wait that runs out uses the last state (counted in ``old_states``). Off by default
-        (``controller.state_wait_us = 0``): with the DSP's phase-locked state a waiting tick
-        sends its command later, so the DSP learns a later phase and samples later still.
+        (``controller.state_wait_us = 0``).
         """
         seen = dsp.states_received
         while dsp.states_received == seen:
@@ -698,6 +695,15 @@ class ControllerDaemon:
             drive_mode=self._follow_drive(dsp, wake_ns),
         )
 
+    def _prediction_ms(self, inp: Inputs) -> float:
+        """How far this tick's joint state is brought forward (``controller.predict_state``):
+        its age in real time; 0 in lockstep (sampled at the tick), for a stale or missing state
+        and for one that arrived after the wake-up."""
+        if self.opts.lockstep or not self.cfg.controller.predict_state or inp.state_stale:
+            return 0.0
+        age = inp.state_age_ms
+        return age if math.isfinite(age) and age > 0 else 0.0
+
     def _tick(
         self,
         dsp: JointClient,
@@ -715,6 +721,7 @@ class ControllerDaemon:
         inp = self._read(dsp, wake_ns, t_s)
         t_read = now()
         # --- decide
+        predict_ms = self._prediction_ms(inp)
         d = self.controller.decide(
             t_s,
             inp.q,
@@ -723,6 +730,8 @@ class ControllerDaemon:
             f_stale=inp.f_stale,
             state_stale=inp.state_stale,
             drive_mode=inp.drive_mode,
+            state_age_s=predict_ms / 1e3,
+            now_s=t_s + lateness_ns / 1e3 / 1e6,  # as replay rebuilds it from the record
         )
         fields = decision_fields(self.controller, d)
         # Counted per tick as recorded (f_stale / state_stale), the same way `hil report` does.
@@ -771,4 +780,5 @@ class ControllerDaemon:
             f_stale=inp.f_stale,
             state_stale=inp.state_stale,
             decision=fields,
+            predict_ms=predict_ms,
         )

@@ -51,15 +51,20 @@ VISION_RX_LEAD_NS = 10_000
 """The synthetic vision message is received this long before the tick's wake-up."""
 
 
-def daemon_record(ctl: Controller, k: int, wake: int, t_s: float, q, dq, f, d, stale) -> dict:
-    """The cycle record the daemon's tick writes, with fixed synthetic timings."""
+def daemon_record(
+    ctl: Controller, k: int, wake: int, t_s: float, q, dq, f, d, stale, late=(0, 0.0)
+) -> dict:
+    """The cycle record the daemon's tick writes, with fixed synthetic timings; ``late`` is the
+    tick's (lateness in ns, state age it compensated in ms)."""
     f_stale, state_stale = stale
+    lateness_ns, predict_ms = late
     f_ok = bool(np.all(np.isfinite(f)))
     return cycle_record(
         tick=k,
         t_ns=wake,
         sim_time_s=t_s,
         timing=Timing(
+            lateness_us=lateness_ns / 1e3,
             read_us=3.0,
             solve_us=40.0,
             write_us=5.0,
@@ -70,11 +75,12 @@ def daemon_record(ctl: Controller, k: int, wake: int, t_s: float, q, dq, f, d, s
         dq=dq,
         f=f,
         f_age_ms=4.0 if f_ok else math.nan,
-        state_age_ms=math.nan if state_stale else 0.5,
+        state_age_ms=math.nan if state_stale else max(0.5, predict_ms),
         f_valid=f_ok,
         f_stale=f_stale,
         state_stale=state_stale,
         decision=decision_fields(ctl, d),
+        predict_ms=predict_ms,
     )
 
 
@@ -88,6 +94,7 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
     period = cfg.rates.control_period_ns
     last_f = np.full(2, np.nan)
     info = {"clock": "lockstep" if lockstep else "realtime", "can": "virtual"}
+    prev: tuple[np.ndarray, np.ndarray] = (np.array(sc.q0), np.array(sc.dq0))
     with CycleRecorder(path, cfg, run_info=info, chunk_size=4096) as rec:
         for k in range(ticks):
             wake, t_s = T0_NS + k * period, k * period / 1e9
@@ -106,8 +113,25 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
             if state_stale:
                 q, dq = np.full(2, np.nan), np.zeros(2)
             f = last_f if f_stale else f
-            d = ctl.decide(t_s, q, dq, f, f_stale=f_stale, state_stale=state_stale)
-            rec.record_cycle(daemon_record(ctl, k, wake, t_s, q, dq, f, d, (f_stale, state_stale)))
+            # realtime: some ticks run late, and every third one on the previous period's state
+            late = (0, 0.0)
+            if not lockstep and not state_stale and k > 0:
+                late = (700_123 * (k % 5 == 0), 19.25 if k % 3 == 0 else 2.5)
+                if k % 3 == 0:
+                    q, dq = prev
+            prev = (q, dq)
+            d = ctl.decide(
+                t_s,
+                q,
+                dq,
+                f,
+                f_stale=f_stale,
+                state_stale=state_stale,
+                state_age_s=late[1] / 1e3,
+                now_s=t_s + late[0] / 1e3 / 1e6,  # as the daemon does
+            )
+            stale = (f_stale, state_stale)
+            rec.record_cycle(daemon_record(ctl, k, wake, t_s, q, dq, f, d, stale, late))
             torque = own.encode_torque(float(d.tau[0]), float(d.tau[1]), tick=k)
             rec.record_can(torque, wake + 50_000, "tx")
             if k == 2:
@@ -148,6 +172,36 @@ def test_replay_reproduces_u_and_tau(recorded):
     assert result.ticks_over_tol == 0 and result.law_mismatches == 0
     assert np.all(result.tau[NO_STATE[0]] == 0.0)
     assert result.notes == []
+
+
+def test_a_realtime_log_with_predicted_states_replays_exactly(tmp_path):
+    """Realtime ticks that ran late and on a state they compensated (``predict_ms``, the
+    torque history on the ``sim_time_s + lateness`` axis) replay to the last bit; the
+    prediction mattered (without it the same ticks decide otherwise)."""
+    cfg = RigConfig().with_overrides({"controller.law": "rhc"})
+    path = record_run(tmp_path / "rt.mcap", cfg, lockstep=False)
+    log = read_log(path)
+    assert np.count_nonzero(np.asarray(log.cycles["predict_ms"]) > 15.0) > 30
+    result = replay_log(path)
+    assert result.ok and result.max_abs_du <= 1e-9 and result.max_abs_dtau <= 1e-9
+    blind = Controller(cfg)
+    blind.step(
+        0.0, np.array(cfg.scenario.q0), np.array(cfg.scenario.dq0), np.array(cfg.scenario.f0)
+    )
+    blind.law.reset()
+    c = log.cycles
+    taus = [
+        blind.decide(
+            float(c["sim_time_s"][i]),
+            np.asarray(c["q"][i]),
+            np.asarray(c["dq"][i]),
+            np.asarray(c["f"][i]),
+            f_stale=bool(c["f_stale"][i]),
+            state_stale=bool(c["state_stale"][i]),
+        ).tau
+        for i in range(log.n_cycles)
+    ]
+    assert abs_diff(np.asarray(taus), np.asarray(c["tau"])).max() > 1e-3
 
 
 def test_cli_json_within_tolerance(recorded, capsys):

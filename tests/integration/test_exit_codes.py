@@ -86,10 +86,16 @@ def test_disk_full_for_the_log_fails_the_run(tiny_tmpfs):
 @pytest.mark.integration
 def test_a_watchdog_trip_fails_the_run(tmp_path):
     """Freeze the controller for 0.5 s (the watchdog allows three 20 ms periods), once the arm
-    has settled (the torque the DSP holds until the trip is then small)."""
+    has settled (the torque the DSP holds until the trip is then small).
+
+    The velocity limits are raised out of the way: this test is about the watchdog, and a
+    host busy enough to stall the loop in the IOC transient once put the drive in a
+    velocity-limit fault first (no watchdog runs in FAULT; CI saw it)."""
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     log = tmp_path / "run.mcap"
-    proc = start_hil_up(ep, log, "--json", "--duration", "10")
+    rig = tmp_path / "rig.toml"
+    rig.write_text("[dsp]\ndq_max = [80.0, 80.0]\n")
+    proc = start_hil_up(ep, log, "--json", "--duration", "10", "--config", str(rig))
     deadline = time.monotonic() + WAIT_S
     controller = []
     while not controller and time.monotonic() < deadline:
