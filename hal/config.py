@@ -194,6 +194,11 @@ class ControllerConfig:
     tick that runs on the previous period's state (``late_states``) otherwise acts on a whole
     period of delay, which the paper's IOC and RHC gains do not tolerate. Lockstep states are
     sampled at the tick and are never predicted."""
+    predict_features: bool = True
+    """Realtime: bring the image features up to the tick before the law sees them: the target
+    (static) seen from the predicted pose of now instead of the pose at capture (eq. 6; the
+    cycle record's ``f_predict_ms``). Vision, zenoh and the camera make features one to three
+    periods old on a busy host."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
     gil_switch_us: float = 200.0

@@ -26,17 +26,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--duration", type=duration(), default=6.0, metavar="S", help="seconds (default 6)"
     )
-    p.add_argument(
-        "--state-delay",
-        type=bounded_int(0, 1000, what="periods"),
-        default=0,
-        metavar="N",
-        help="the law sees the joint state of N control periods ago (default 0)",
-    )
+    for flag, what in (("--state-delay", "joint state"), ("--feature-delay", "image features")):
+        p.add_argument(
+            flag,
+            type=bounded_int(0, 1000, what="periods"),
+            default=0,
+            metavar="N",
+            help=f"the law sees the {what} of N control periods ago (default 0)",
+        )
     p.add_argument(
         "--no-predict",
         action="store_true",
-        help="do not compensate the state's age (controller.predict_state = false)",
+        help="do not compensate the ages of state and features (controller.predict_state and "
+        "predict_features = false)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
@@ -49,9 +51,15 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.control.simulate import run_closed_loop
 
     cfg = config_from_args(args)
-    predict = cfg.controller.predict_state and not args.no_predict
+    ctl = cfg.controller
     result = run_closed_loop(
-        World(cfg), Controller(cfg), cfg, args.duration, args.state_delay, predict=predict
+        World(cfg),
+        Controller(cfg),
+        cfg,
+        args.duration,
+        args.state_delay,
+        predict=ctl.predict_state and ctl.predict_features and not args.no_predict,
+        feature_delay=args.feature_delay,
     )
     print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
     return 0

@@ -37,6 +37,9 @@ class Decision:
     state: tuple[np.ndarray, np.ndarray] | None = None
     """(q, dq) the hold or the law acted on: the joint state brought up to the tick (as
     measured when its age was not given); ``None`` when neither ran."""
+    features: np.ndarray | None = None
+    """f the law acted on: the features brought up to the tick (as measured when their age was
+    not given); ``None`` when the law did not run."""
 
 
 class Controller:
@@ -50,7 +53,8 @@ class Controller:
         self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
         self._holding = False
-        self.predictor = StatePredictor(self._p, cfg.controller.state_timeout_s)
+        c = cfg.controller
+        self.predictor = StatePredictor(self._p, max(c.state_timeout_s, c.feature_timeout_s))
 
     def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
@@ -109,6 +113,7 @@ class Controller:
         state_stale: bool,
         drive_mode: str = "enabled",
         state_age_s: float = 0.0,
+        feature_age_s: float = 0.0,
         now_s: float | None = None,
     ) -> Decision:
         """The daemon's per-tick rule, shared with ``hil replay`` so a log replays exactly.
@@ -122,12 +127,15 @@ class Controller:
         ``state_age_s``: how long before ``now_s`` the joint state was sampled; a positive age
         is compensated (:class:`~rt_controller.control.state_predictor.StatePredictor`: the
         nominal model under the torques this method returned meanwhile) before the hold or the
-        law sees the state. ``now_s`` is when the tick actually runs on the time axis of ``t``
-        (the release plus the tick's lateness; default ``t``); every returned torque is taken
-        as sent then.
+        law sees the state. ``feature_age_s``: how long before ``now_s`` the features were
+        captured; a positive age is compensated by seeing the (static) target from the
+        predicted pose of now instead of the pose at capture. ``now_s`` is when the tick
+        actually runs on the time axis of ``t`` (the release plus the tick's lateness; default
+        ``t``); every returned torque is taken as sent then.
         """
         now = t if now_s is None else now_s
-        d = self._decide(t, q, dq, f, f_stale, state_stale, drive_mode, state_age_s, now)
+        ages = (state_age_s, feature_age_s)
+        d = self._decide(t, q, dq, f, f_stale, state_stale, drive_mode, ages, now)
         self.predictor.sent(now, d.tau)
         return d
 
@@ -140,7 +148,7 @@ class Controller:
         f_stale: bool,
         state_stale: bool,
         drive_mode: str,
-        state_age_s: float,
+        ages: tuple[float, float],
         now_s: float,
     ) -> Decision:
         if drive_mode != "enabled":
@@ -148,18 +156,26 @@ class Controller:
             return Decision(np.zeros(2), drive_mode, None)
         if state_stale:
             return Decision(np.zeros(2), "no_state", None)
-        if state_age_s > 0:
-            q, dq = self.predictor.predict(now_s, q, dq, state_age_s)
+        state_age, feature_age = ages
+        q_meas, dq_meas = q, dq
+        if state_age > 0:
+            q, dq = self.predictor.predict(now_s, q, dq, state_age)
         if f_stale or not np.all(np.isfinite(f)):
             self._holding = True
             dq = np.asarray(dq, dtype=float)
             return Decision(self.hold_torque(dq), "hold", None, (np.asarray(q, float), dq))
+        if feature_age > 0:  # the pose at capture, from the measured state, then eq. (6)
+            t_state = now_s - min(max(state_age, 0.0), self.predictor.horizon_s)
+            t_capture = now_s - min(feature_age, self.predictor.horizon_s)
+            q_capture, _ = self.predictor.advance(q_meas, dq_meas, t_state, t_capture)
+            f = self.predictor.features(np.asarray(f, float), q_capture, np.asarray(q, float))
         if self._holding:
             self.law.reset()
             self._holding = False
         cmd = self.step(t, q, dq, f)
         tau = cmd.tau if np.all(np.isfinite(cmd.tau)) else np.zeros(2)
-        return Decision(tau, "control", cmd, (cmd.measurement.q, cmd.measurement.dq))
+        m = cmd.measurement
+        return Decision(tau, "control", cmd, (m.q, m.dq), m.f)
 
 
 def warm_up(ctl: Controller, cfg: RigConfig) -> None:
@@ -183,6 +199,7 @@ def warm_up(ctl: Controller, cfg: RigConfig) -> None:
             state_stale=state_stale,
             drive_mode=mode,
             state_age_s=0.0005 * i,  # the prediction too
+            feature_age_s=0.0007 * i,
         )
         if d.command is not None:
             ctl.costs(d.command)

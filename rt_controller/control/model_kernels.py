@@ -138,14 +138,15 @@ def _rhs(p, x, tau):
 @njit(cache=True, fastmath=False)
 def predict(p, q, dq, taus, durations, h_max):
     """(q, dq) after holding ``taus[i]`` for ``durations[i]`` seconds in turn, from (q, dq):
-    the nominal dynamics of eq. (1) integrated by classical Runge-Kutta, steps <= ``h_max``."""
+    the nominal dynamics of eq. (1) integrated by classical Runge-Kutta, steps <= ``h_max``;
+    a negative duration integrates backwards in time."""
     x = np.empty(4)
     x[0], x[1], x[2], x[3] = q[0], q[1], dq[0], dq[1]
     for i in range(durations.shape[0]):
         dur = durations[i]
-        if dur <= 0.0:
+        if dur == 0.0:
             continue
-        n = int(np.ceil(dur / h_max))
+        n = int(np.ceil(abs(dur) / h_max))
         h = dur / n
         tau = taus[i]
         for _ in range(n):
@@ -155,3 +156,19 @@ def predict(p, q, dq, taus, durations, h_max):
             k4 = _rhs(p, x + h * k3, tau)
             x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
     return x[:2].copy(), x[2:].copy()
+
+
+@njit(cache=True, fastmath=False)
+def reproject(p, q_then, q_now, f):
+    """Features of eq. (6) seen from ``q_now`` of the target that showed as ``f`` from
+    ``q_then`` (a static target: p_wo = p_wc + R_wc f / gain, then eq. 6 at ``q_now``)."""
+    l1, l2, g = p[L1], p[L2], p[GAIN]
+    c, s = np.cos(q_then[0] + q_then[1]), np.sin(q_then[0] + q_then[1])
+    x = l1 * np.cos(q_then[0]) + l2 * c + (c * f[0] - s * f[1]) / g
+    y = l1 * np.sin(q_then[0]) + l2 * s + (s * f[0] + c * f[1]) / g
+    c, s = np.cos(q_now[0] + q_now[1]), np.sin(q_now[0] + q_now[1])
+    dx = x - l1 * np.cos(q_now[0]) - l2 * c
+    dy = y - l1 * np.sin(q_now[0]) - l2 * s
+    out = np.empty(2)
+    out[0], out[1] = g * (c * dx + s * dy), g * (-s * dx + c * dy)
+    return out

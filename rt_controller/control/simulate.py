@@ -100,13 +100,16 @@ def run_closed_loop(
     duration: float,
     state_delay: int = 0,
     predict: bool = True,
+    feature_delay: int = 0,
 ) -> SimResult:
     """Sample, decide and hold the torque for one control period, ``duration * rate`` times.
 
     ``state_delay``: the controller sees the joint state (q, dq) of that many periods ago (the
     first one until then) with the current features, what a live loop gets when the DSP's
-    sample misses the tick; 0 = none. ``predict``: the controller is told the state's age and
-    compensates it (the daemon's ``controller.predict_state``); false hides the age.
+    sample misses the tick; 0 = none. ``feature_delay``: likewise for the image features (the
+    camera, vision and zenoh in between). ``predict``: the controller is told the ages and
+    compensates them (the daemon's ``controller.predict_state`` and ``predict_features``);
+    false hides them.
     """
     rate = cfg.rates.control_hz
     substeps = cfg.rates.substeps
@@ -115,15 +118,26 @@ def run_closed_loop(
     states: collections.deque[tuple[np.ndarray, np.ndarray]] = collections.deque(
         maxlen=state_delay + 1
     )
+    features: collections.deque[np.ndarray] = collections.deque(maxlen=feature_delay + 1)
     for _ in range(ticks):
         t = plant.t
         q, dq, f = (np.asarray(v, dtype=float) for v in plant.measure())
         states.append((q, dq))
+        features.append(f)
         q, dq = states[0]
+        f = features[0]
         age = (len(states) - 1) / rate if predict else 0.0
+        f_age = (len(features) - 1) / rate if predict else 0.0
         # The daemon's per-tick rule; in process the features are stale exactly when missing.
         d = controller.decide(
-            t, q, dq, f, f_stale=not np.all(np.isfinite(f)), state_stale=False, state_age_s=age
+            t,
+            q,
+            dq,
+            f,
+            f_stale=not np.all(np.isfinite(f)),
+            state_stale=False,
+            state_age_s=age,
+            feature_age_s=f_age,
         )
         rec = decision_fields(controller, d)
         held = d.command is None

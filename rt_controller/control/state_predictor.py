@@ -1,4 +1,5 @@
-"""Delay compensation: a joint state sampled before the tick, brought up to the tick.
+"""Delay compensation: a joint state and image features measured before the tick, brought up
+to the tick.
 
 A live loop does not always read the DSP's sample of this period: a DSP process that ran late
 sends it after the controller's release, and the tick then runs on the previous period's state.
@@ -6,7 +7,9 @@ With one whole period of delay the paper's IOC and RHC gains are unstable (``hil
 ioc --state-delay 1 --no-predict``). The controller knows what happened since the sample: its
 own nominal model (eq. 1) and the torques it sent. It integrates the one under the other over
 the state's age, the way a Smith predictor removes a known dead time, so the law sees the
-state of now.
+state of now. Image features are older still (capture, vision, zenoh); the camera's pose at
+capture follows from the same trajectory, and a static target seen from there is seen from the
+pose of now by eq. (6).
 """
 
 from __future__ import annotations
@@ -22,10 +25,10 @@ STEP_S = 1e-3
 
 
 class StatePredictor:
-    """Torques sent, by release time, and the prediction of a state over its age.
+    """Torques sent, by release time, and the motion of the nominal arm under them.
 
-    ``horizon_s`` is the oldest state worth predicting (older ones are not kept in the torque
-    history; before the first torque sent, the drive applied none).
+    ``horizon_s`` is the oldest measurement worth compensating (older torques are not kept in
+    the history; before the first torque sent, the drive applied none).
     """
 
     def __init__(self, params: np.ndarray, horizon_s: float) -> None:
@@ -45,20 +48,31 @@ class StatePredictor:
         while len(self._sent) > 1 and self._sent[1][0] <= t - self.horizon_s:
             self._sent.popleft()
 
-    def segments(self, t: float, age_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(torques, durations): what the drive held over [t - age_s, t], in order."""
-        start = t - min(age_s, self.horizon_s)
+    def segments(self, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
+        """(torques, durations): what the drive held over [start, end], in order."""
         taus, bounds = [np.zeros(2)], [start]
         for ts, tau in self._sent:
-            if ts >= t:
+            if ts >= end:
                 break
             if ts <= start:
                 taus[0] = tau
             else:
                 taus.append(tau)
                 bounds.append(ts)
-        bounds.append(t)
+        bounds.append(end)
         return np.array(taus), np.diff(np.array(bounds))
+
+    def advance(
+        self, q: np.ndarray, dq: np.ndarray, t_from: float, t_to: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(q, dq) at ``t_to`` of the state (q, dq) at ``t_from``, forwards or backwards in
+        time; neither end further than ``horizon_s`` before the other."""
+        lo, hi = min(t_from, t_to), max(t_from, t_to)
+        taus, durations = self.segments(max(lo, hi - self.horizon_s), hi)
+        if t_to < t_from:
+            taus, durations = taus[::-1].copy(), -durations[::-1]
+        q, dq = np.asarray(q, float), np.asarray(dq, float)
+        return model_kernels.predict(self._p, q, dq, taus, durations, STEP_S)
 
     def predict(
         self, t: float, q: np.ndarray, dq: np.ndarray, age_s: float
@@ -67,7 +81,8 @@ class StatePredictor:
         is not positive."""
         if not age_s > 0:
             return q, dq
-        taus, durations = self.segments(t, age_s)
-        return model_kernels.predict(
-            self._p, np.asarray(q, float), np.asarray(dq, float), taus, durations, STEP_S
-        )
+        return self.advance(q, dq, t - min(age_s, self.horizon_s), t)
+
+    def features(self, f: np.ndarray, q_then: np.ndarray, q_now: np.ndarray) -> np.ndarray:
+        """The features ``f`` captured at joint angles ``q_then``, as seen from ``q_now``."""
+        return model_kernels.reproject(self._p, np.asarray(q_then, float), q_now, f)

@@ -161,6 +161,13 @@ def _vec(log: LoadedLog, name: str) -> np.ndarray:
     return np.asarray(col[:, :2], dtype=float)
 
 
+def _ms_column(log: LoadedLog, name: str) -> np.ndarray:
+    """A per-tick age in ms the daemon compensated; 0 where missing (logs before it did)."""
+    col = log.column(name)
+    col = np.zeros(log.n_cycles) if col is None else np.asarray(col, dtype=float)
+    return np.where(np.isfinite(col), col, 0.0)
+
+
 def _inputs(log: LoadedLog, cfg: RigConfig, notes: list[str]) -> dict[str, np.ndarray]:
     """Per-tick inputs of :meth:`Controller.decide`; derived optional fields go to ``notes``."""
     n = log.n_cycles
@@ -184,9 +191,7 @@ def _inputs(log: LoadedLog, cfg: RigConfig, notes: list[str]) -> dict[str, np.nd
     ):
         if missing:
             notes.append(f"some cycle records lack {what}")
-    predict = log.column("predict_ms")  # logs before the state prediction did not predict
-    predict = np.zeros(n) if predict is None else np.asarray(predict, dtype=float)
-    predict = np.where(np.isfinite(predict), predict, 0.0)
+    predict, f_predict = (_ms_column(log, k) for k in ("predict_ms", "f_predict_ms"))
     late = log.column("lateness_us")  # the daemon's now_s: the release plus the lateness
     late = np.zeros(n) if late is None else np.asarray(late, dtype=float)
     now = t + np.where(np.isfinite(late), late, 0.0) / 1e6
@@ -198,6 +203,7 @@ def _inputs(log: LoadedLog, cfg: RigConfig, notes: list[str]) -> dict[str, np.nd
         "f_stale": f_stale,
         "state_stale": state_stale,
         "predict_s": predict / 1e3,
+        "f_predict_s": f_predict / 1e3,
         "now_s": now,
     }
 
@@ -356,6 +362,7 @@ def replay_loaded(
                 state_stale=bool(inputs["state_stale"][i]),
                 drive_mode=_drive_mode(recorded_law, i),
                 state_age_s=float(inputs["predict_s"][i]),
+                feature_age_s=float(inputs["f_predict_s"][i]),
                 now_s=float(inputs["now_s"][i]),
             )
             fields = decision_fields(ctl, d)

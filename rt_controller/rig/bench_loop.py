@@ -86,6 +86,8 @@ def bench_rate(
         "solve_us": summary_stats(c["solve_us"]),
         "law_us": _law_stats(c, law),
         "e2e_us": summary_stats(c["e2e_us"]) if "e2e_us" in c else None,
+        "predict_ms": _ran_stats(c, "predict_ms", law),
+        "f_predict_ms": _ran_stats(c, "f_predict_ms", law),
         "f_final_norm": summary.get("f_final_norm"),
         "fallbacks": summary.get("fallbacks"),
         "late_states": summary.get("late_states"),
@@ -106,6 +108,15 @@ def _law_stats(c: dict, law: str) -> dict | None:
         return None
     ran = np.asarray(c["law"]) == "rhc"
     return summary_stats(np.asarray(c["law_us"], dtype=float)[ran])
+
+
+def _ran_stats(c: dict, name: str, law: str) -> dict | None:
+    """Statistics of a per-tick age the controller compensated, over the ticks that ran the
+    law (``predict_ms``, ``f_predict_ms``); None in a log without it."""
+    if name not in c:
+        return None
+    ran = np.asarray(c["law"]) == law
+    return summary_stats(np.asarray(c[name], dtype=float)[ran])
 
 
 def footprint(sampler: FootprintSampler, duration: float, summary: dict) -> dict[str, Any]:

@@ -55,6 +55,7 @@ def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
     acted = {
         "q_pred": vec2(d.state[0]) if d.state is not None else [math.nan, math.nan],
         "dq_pred": vec2(d.state[1]) if d.state is not None else [math.nan, math.nan],
+        "f_pred": vec2(d.features) if d.features is not None else [math.nan, math.nan],
     }
     if cmd is None:
         return {
@@ -102,9 +103,11 @@ def cycle_record(
     state_stale: bool,
     decision: dict[str, Any],
     predict_ms: float = 0.0,
+    f_predict_ms: float = 0.0,
 ) -> dict[str, Any]:
     """One cycle record, fields in the order of ``cycle_schema.json``; ``decision`` comes from
-    :func:`decision_fields`; ``predict_ms`` is the state age the tick compensated."""
+    :func:`decision_fields`; ``predict_ms`` and ``f_predict_ms`` are the ages of the state and
+    of the features the tick compensated."""
     return {
         "tick": tick,
         "t_ns": t_ns,
@@ -124,6 +127,7 @@ def cycle_record(
         "f_age_ms": f_age_ms,
         "state_age_ms": state_age_ms,
         "predict_ms": predict_ms,
+        "f_predict_ms": f_predict_ms,
         "f_valid": f_valid,
         "f_stale": f_stale,
         "state_stale": state_stale,

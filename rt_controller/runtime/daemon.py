@@ -695,14 +695,20 @@ class ControllerDaemon:
             drive_mode=self._follow_drive(dsp, wake_ns),
         )
 
-    def _prediction_ms(self, inp: Inputs) -> float:
-        """How far this tick's joint state is brought forward (``controller.predict_state``):
-        its age in real time; 0 in lockstep (sampled at the tick), for a stale or missing state
-        and for one that arrived after the wake-up."""
-        if self.opts.lockstep or not self.cfg.controller.predict_state or inp.state_stale:
-            return 0.0
-        age = inp.state_age_ms
-        return age if math.isfinite(age) and age > 0 else 0.0
+    def _prediction_ms(self, inp: Inputs) -> tuple[float, float]:
+        """How far this tick's joint state and features are brought forward
+        (``controller.predict_state``, ``controller.predict_features``): their ages in real
+        time; 0 in lockstep (sampled at the tick), when stale or missing, and for a state that
+        arrived after the wake-up."""
+        if self.opts.lockstep:
+            return 0.0, 0.0
+        ctl = self.cfg.controller
+        state = inp.state_age_ms if ctl.predict_state and not inp.state_stale else 0.0
+        feats = inp.f_age_ms if ctl.predict_features and not inp.f_stale else 0.0
+        return (
+            state if math.isfinite(state) and state > 0 else 0.0,
+            feats if math.isfinite(feats) and feats > 0 else 0.0,
+        )
 
     def _tick(
         self,
@@ -721,7 +727,7 @@ class ControllerDaemon:
         inp = self._read(dsp, wake_ns, t_s)
         t_read = now()
         # --- decide
-        predict_ms = self._prediction_ms(inp)
+        predict_ms, f_predict_ms = self._prediction_ms(inp)
         d = self.controller.decide(
             t_s,
             inp.q,
@@ -731,6 +737,7 @@ class ControllerDaemon:
             state_stale=inp.state_stale,
             drive_mode=inp.drive_mode,
             state_age_s=predict_ms / 1e3,
+            feature_age_s=f_predict_ms / 1e3,
             now_s=t_s + lateness_ns / 1e3 / 1e6,  # as replay rebuilds it from the record
         )
         fields = decision_fields(self.controller, d)
@@ -781,4 +788,5 @@ class ControllerDaemon:
             state_stale=inp.state_stale,
             decision=fields,
             predict_ms=predict_ms,
+            f_predict_ms=f_predict_ms,
         )

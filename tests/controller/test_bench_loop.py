@@ -77,3 +77,7 @@ def test_kept_logs_are_the_runs_logs(tmp_path) -> None:
     assert held == sum(run["drive_ticks"].values())
     if held or run["dsp_faults"] or run["watchdog_trips"]:
         assert run["problems"]  # a run that faulted is never reported clean
+    ran = [i for i, law in enumerate(log.cycles["law"]) if law == "ioc"]
+    ages = sorted(float(log.cycles["predict_ms"][i]) for i in ran)
+    assert run["predict_ms"]["max"] == ages[-1]  # the compensated ages, over the law's ticks
+    assert run["f_predict_ms"]["max"] == max(float(log.cycles["f_predict_ms"][i]) for i in ran)

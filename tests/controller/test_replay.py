@@ -52,12 +52,12 @@ VISION_RX_LEAD_NS = 10_000
 
 
 def daemon_record(
-    ctl: Controller, k: int, wake: int, t_s: float, q, dq, f, d, stale, late=(0, 0.0)
+    ctl: Controller, k: int, wake: int, t_s: float, q, dq, f, d, stale, late=(0, 0.0, 0.0)
 ) -> dict:
     """The cycle record the daemon's tick writes, with fixed synthetic timings; ``late`` is the
-    tick's (lateness in ns, state age it compensated in ms)."""
+    tick's (lateness in ns, state and feature ages it compensated in ms)."""
     f_stale, state_stale = stale
-    lateness_ns, predict_ms = late
+    lateness_ns, predict_ms, f_predict_ms = late
     f_ok = bool(np.all(np.isfinite(f)))
     return cycle_record(
         tick=k,
@@ -81,6 +81,7 @@ def daemon_record(
         state_stale=state_stale,
         decision=decision_fields(ctl, d),
         predict_ms=predict_ms,
+        f_predict_ms=f_predict_ms,
     )
 
 
@@ -114,9 +115,10 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
                 q, dq = np.full(2, np.nan), np.zeros(2)
             f = last_f if f_stale else f
             # realtime: some ticks run late, and every third one on the previous period's state
-            late = (0, 0.0)
+            late = (0, 0.0, 0.0)
             if not lockstep and not state_stale and k > 0:
-                late = (700_123 * (k % 5 == 0), 19.25 if k % 3 == 0 else 2.5)
+                f_age = 0.0 if f_stale else 7.5 + 3.25 * (k % 4)
+                late = (700_123 * (k % 5 == 0), 19.25 if k % 3 == 0 else 2.5, f_age)
                 if k % 3 == 0:
                     q, dq = prev
             prev = (q, dq)
@@ -128,6 +130,7 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
                 f_stale=f_stale,
                 state_stale=state_stale,
                 state_age_s=late[1] / 1e3,
+                feature_age_s=late[2] / 1e3,
                 now_s=t_s + late[0] / 1e3 / 1e6,  # as the daemon does
             )
             stale = (f_stale, state_stale)
@@ -182,6 +185,7 @@ def test_a_realtime_log_with_predicted_states_replays_exactly(tmp_path):
     path = record_run(tmp_path / "rt.mcap", cfg, lockstep=False)
     log = read_log(path)
     assert np.count_nonzero(np.asarray(log.cycles["predict_ms"]) > 15.0) > 30
+    assert np.count_nonzero(np.asarray(log.cycles["f_predict_ms"]) > 10.0) > 30
     result = replay_log(path)
     assert result.ok and result.max_abs_du <= 1e-9 and result.max_abs_dtau <= 1e-9
     blind = Controller(cfg)

@@ -644,8 +644,8 @@ def test_a_dsp_sampling_after_the_release_gets_its_states_compensated(tmp_path):
     (``dsp.state_lead_us`` = a period less 1 ms): every tick reads a state about 19 ms old
     (fault injection: without compensation, three runs of three ended in a velocity-limit
     fault). What holds under any scheduling: each tick that ran the law compensated the age it
-    measured (``predict_ms`` = ``state_age_ms``), the law acted on a state other than the
-    measured one, and the log replays exactly."""
+    measured (``predict_ms`` = ``state_age_ms``, and ``f_predict_ms`` = ``f_age_ms``), the law
+    acted on a state other than the measured one, and the log replays exactly."""
     from rt_controller.logtools.replay import replay_log
 
     rig = tmp_path / "rig.toml"
@@ -660,6 +660,8 @@ def test_a_dsp_sampling_after_the_release_gets_its_states_compensated(tmp_path):
     assert np.array_equal(predicted, np.where(age > 0, age, 0.0))
     assert np.median(predicted) > 10.0  # most ticks ran on the previous period's sample
     moved = np.any(np.asarray(c["q_pred"])[ran] != np.asarray(c["q"])[ran], axis=1)
-    assert moved[predicted > 10.0].all()
+    assert moved[1:][predicted[1:] > 10.0].all()  # (at the first, the arm rests, no torque yet)
+    f_age, f_predicted = np.asarray(c["f_age_ms"])[ran], np.asarray(c["f_predict_ms"])[ran]
+    assert np.array_equal(f_predicted, np.where(f_age > 0, f_age, 0.0))  # the features too
     result = replay_log(log)
     assert result.ok and result.max_abs_dtau <= 1e-9
