@@ -157,18 +157,15 @@ class Controller:
         if state_stale:
             return Decision(np.zeros(2), "no_state", None)
         state_age, feature_age = ages
-        q_meas, dq_meas = q, dq
-        if state_age > 0:
-            q, dq = self.predictor.predict(now_s, q, dq, state_age)
-        if f_stale or not np.all(np.isfinite(f)):
+        usable = not f_stale and bool(np.all(np.isfinite(f)))
+        if state_age > 0 or (usable and feature_age > 0):
+            q, dq, f = self.predictor.compensate(
+                now_s, q, dq, f, state_age, feature_age if usable else 0.0
+            )
+        if not usable:
             self._holding = True
             dq = np.asarray(dq, dtype=float)
             return Decision(self.hold_torque(dq), "hold", None, (np.asarray(q, float), dq))
-        if feature_age > 0:  # the pose at capture, from the measured state, then eq. (6)
-            t_state = now_s - min(max(state_age, 0.0), self.predictor.horizon_s)
-            t_capture = now_s - min(feature_age, self.predictor.horizon_s)
-            q_capture, _ = self.predictor.advance(q_meas, dq_meas, t_state, t_capture)
-            f = self.predictor.features(np.asarray(f, float), q_capture, np.asarray(q, float))
         if self._holding:
             self.law.reset()
             self._holding = False

@@ -172,3 +172,54 @@ def reproject(p, q_then, q_now, f):
     out = np.empty(2)
     out[0], out[1] = g * (c * dx + s * dy), g * (-s * dx + c * dy)
     return out
+
+
+@njit(cache=True, fastmath=False)
+def held_torques(times, taus, n, start, end):
+    """(torques, durations): what the drive held over [start, end] given the first ``n``
+    torques sent (``taus[i]`` from ``times[i]`` on, times ascending; none before the first)."""
+    out_tau = np.zeros((n + 1, 2))
+    bounds = np.empty(n + 2)
+    bounds[0] = start
+    m = 1
+    for i in range(n):
+        ts = times[i]
+        if ts >= end:
+            break
+        if ts <= start:
+            out_tau[0, 0], out_tau[0, 1] = taus[i, 0], taus[i, 1]
+        else:
+            out_tau[m, 0], out_tau[m, 1] = taus[i, 0], taus[i, 1]
+            bounds[m] = ts
+            m += 1
+    bounds[m] = end
+    return out_tau[:m].copy(), np.diff(bounds[: m + 1])
+
+
+@njit(cache=True, fastmath=False)
+def advance(p, q, dq, times, taus, n, t_from, t_to, horizon, h_max):
+    """(q, dq) at ``t_to`` of the state (q, dq) at ``t_from`` under the torques sent, forwards
+    or backwards in time, over at most ``horizon`` seconds before the later end."""
+    lo, hi = min(t_from, t_to), max(t_from, t_to)
+    held, durations = held_torques(times, taus, n, max(lo, hi - horizon), hi)
+    if t_to < t_from:
+        held, durations = held[::-1].copy(), -durations[::-1]
+    return predict(p, q, dq, held, durations, h_max)
+
+
+@njit(cache=True, fastmath=False)
+def compensate(p, q, dq, f, times, taus, n, now, state_age, f_age, horizon, h_max):
+    """(q, dq, f) brought up to ``now``: the joint state measured ``state_age`` before (0: as
+    measured) by the nominal dynamics under the torques sent; the features captured ``f_age``
+    before (0: as measured) by seeing the static target from the pose of now instead of the
+    pose at capture, which follows from the same trajectory."""
+    t_state = now - min(max(state_age, 0.0), horizon)
+    q_now, dq_now = q.copy(), dq.copy()
+    if state_age > 0.0:
+        q_now, dq_now = advance(p, q, dq, times, taus, n, t_state, now, horizon, h_max)
+    f_now = f.copy()
+    if f_age > 0.0:
+        t_capture = now - min(f_age, horizon)
+        q_capture, _ = advance(p, q, dq, times, taus, n, t_state, t_capture, horizon, h_max)
+        f_now = reproject(p, q_capture, q_now, f)
+    return q_now, dq_now, f_now

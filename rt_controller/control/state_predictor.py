@@ -14,8 +14,6 @@ pose of now by eq. (6).
 
 from __future__ import annotations
 
-import collections
-
 import numpy as np
 
 from rt_controller.control import model_kernels
@@ -23,12 +21,16 @@ from rt_controller.control import model_kernels
 STEP_S = 1e-3
 """Longest Runge-Kutta step of the prediction, s."""
 
+CAPACITY = 1024
+"""Torques the history holds before it drops those older than the horizon (amortised)."""
+
 
 class StatePredictor:
     """Torques sent, by release time, and the motion of the nominal arm under them.
 
-    ``horizon_s`` is the oldest measurement worth compensating (older torques are not kept in
-    the history; before the first torque sent, the drive applied none).
+    ``horizon_s`` is the oldest measurement worth compensating (older torques are dropped from
+    the history; before the first torque sent, the drive applied none). The work is done by
+    compiled kernels (:mod:`~rt_controller.control.model_kernels`) on the history's arrays.
     """
 
     def __init__(self, params: np.ndarray, horizon_s: float) -> None:
@@ -36,43 +38,47 @@ class StatePredictor:
             raise ValueError(f"prediction horizon must be positive, got {horizon_s}")
         self._p = params
         self.horizon_s = float(horizon_s)
-        self._sent: collections.deque[tuple[float, np.ndarray]] = collections.deque()
+        self._times = np.zeros(CAPACITY)
+        self._taus = np.zeros((CAPACITY, 2))
+        self._n = 0
+
+    def __len__(self) -> int:
+        """Torques held in the history."""
+        return self._n
 
     def reset(self) -> None:
         """Forget the torques sent (a new run)."""
-        self._sent.clear()
+        self._n = 0
 
     def sent(self, t: float, tau: np.ndarray) -> None:
         """Record that ``tau`` was sent at tick time ``t`` (held until the next one)."""
-        self._sent.append((float(t), np.array(tau, dtype=float)))
-        while len(self._sent) > 1 and self._sent[1][0] <= t - self.horizon_s:
-            self._sent.popleft()
+        if self._n == CAPACITY:  # keep the one held at t - horizon and all after it
+            held = np.flatnonzero(self._times[: self._n] <= t - self.horizon_s)
+            first = int(held[-1]) if held.size else 0
+            keep = self._n - first
+            self._times[:keep] = self._times[first : self._n]
+            self._taus[:keep] = self._taus[first : self._n]
+            self._n = keep
+            if keep == CAPACITY:  # a horizon longer than the history: drop the oldest
+                self._times[:-1], self._taus[:-1] = self._times[1:], self._taus[1:]
+                self._n -= 1
+        self._times[self._n] = t
+        self._taus[self._n] = tau
+        self._n += 1
 
     def segments(self, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
         """(torques, durations): what the drive held over [start, end], in order."""
-        taus, bounds = [np.zeros(2)], [start]
-        for ts, tau in self._sent:
-            if ts >= end:
-                break
-            if ts <= start:
-                taus[0] = tau
-            else:
-                taus.append(tau)
-                bounds.append(ts)
-        bounds.append(end)
-        return np.array(taus), np.diff(np.array(bounds))
+        return model_kernels.held_torques(self._times, self._taus, self._n, start, end)
 
     def advance(
         self, q: np.ndarray, dq: np.ndarray, t_from: float, t_to: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """(q, dq) at ``t_to`` of the state (q, dq) at ``t_from``, forwards or backwards in
         time; neither end further than ``horizon_s`` before the other."""
-        lo, hi = min(t_from, t_to), max(t_from, t_to)
-        taus, durations = self.segments(max(lo, hi - self.horizon_s), hi)
-        if t_to < t_from:
-            taus, durations = taus[::-1].copy(), -durations[::-1]
         q, dq = np.asarray(q, float), np.asarray(dq, float)
-        return model_kernels.predict(self._p, q, dq, taus, durations, STEP_S)
+        return model_kernels.advance(
+            self._p, q, dq, self._times, self._taus, self._n, t_from, t_to, self.horizon_s, STEP_S
+        )
 
     def predict(
         self, t: float, q: np.ndarray, dq: np.ndarray, age_s: float
@@ -83,6 +89,29 @@ class StatePredictor:
             return q, dq
         return self.advance(q, dq, t - min(age_s, self.horizon_s), t)
 
-    def features(self, f: np.ndarray, q_then: np.ndarray, q_now: np.ndarray) -> np.ndarray:
-        """The features ``f`` captured at joint angles ``q_then``, as seen from ``q_now``."""
-        return model_kernels.reproject(self._p, np.asarray(q_then, float), q_now, f)
+    def compensate(
+        self,
+        now: float,
+        q: np.ndarray,
+        dq: np.ndarray,
+        f: np.ndarray,
+        state_age_s: float,
+        feature_age_s: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, dq, f) at ``now`` of a state measured ``state_age_s`` and features captured
+        ``feature_age_s`` before it (0 or less: as measured), in one compiled call."""
+        q, dq, f = (np.asarray(v, float) for v in (q, dq, f))
+        return model_kernels.compensate(
+            self._p,
+            q,
+            dq,
+            f,
+            self._times,
+            self._taus,
+            self._n,
+            now,
+            state_age_s,
+            feature_age_s,
+            self.horizon_s,
+            STEP_S,
+        )

@@ -12,7 +12,7 @@ from hal.config import RigConfig
 from rt_controller.control import model_kernels
 from rt_controller.control.controller import Controller
 from rt_controller.control.model import NominalModel
-from rt_controller.control.state_predictor import StatePredictor
+from rt_controller.control.state_predictor import CAPACITY, StatePredictor
 
 
 @pytest.fixture(scope="module")
@@ -63,11 +63,15 @@ def test_the_torques_held_over_the_age_come_from_the_history(model):
 
 def test_old_torques_are_forgotten_but_the_one_still_held_is_kept(model):
     pred = StatePredictor(model_kernels.pack(model), horizon_s=0.05)
-    for k in range(100):
+    n = CAPACITY + 10
+    for k in range(n):
         pred.sent(k * 0.02, np.array([k, 0.0]))
-    assert len(pred._sent) <= 4
-    taus, _ = pred.segments(1.935, 1.985)
-    assert taus[0][0] == 96.0  # held from 1.92 s, before the window opened at 1.935 s
+    assert len(pred) <= 16  # dropped when the history filled up
+    t_last = (n - 1) * 0.02
+    taus, durations = pred.segments(t_last - 0.045, t_last + 0.005)
+    assert taus[0][0] == n - 4  # held from t_last - 0.06, before the window opened
+    assert [t[0] for t in taus] == [n - 4, n - 3, n - 2, n - 1]
+    assert np.isclose(durations.sum(), 0.05)
 
 
 def test_no_age_no_prediction(model):
