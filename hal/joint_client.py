@@ -288,6 +288,51 @@ class JointClient:
         tick = self._sync_tick or 0
         self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick), closing=closing)
 
+    def reset_scenario(self, timeout_s: float) -> DspStatus:
+        """Poll mode, against an emulated lockstep DSP that is not armed: DspControl
+        RESET_SCENARIO, then read the bus until the DspStatus of the DSP's new session (Tick 0,
+        switch-on disabled) arrives; every joint state, Sync and status received before it
+        is forgotten, so the next run sees only its own inputs. Returns that status.
+
+        :class:`HalTimeoutError` when no such status comes within ``timeout_s`` (a realtime
+        or real DSP refuses the command; so does one in operation enabled).
+        """
+        if self._thread is not None:
+            raise HalError("JointClient.reset_scenario() is for poll mode")
+        old = None if self._status is None else self._status.session
+        self.send_command(DspCommand.RESET_SCENARIO, repeat=1)
+        deadline = time.monotonic() + timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            try:
+                msg = self.bus.recv(timeout=min(remaining, 0.05))
+            except Exception as exc:  # counted like the receive thread does
+                self._transport_errors += 1
+                log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
+                continue
+            if msg is None:
+                continue
+            before = self._statuses
+            self.process_frame(msg)
+            st = self._status
+            if (
+                self._statuses != before
+                and st is not None
+                and st.session != old
+                and st.tick == 0
+                and st.drive_state is DriveState.SWITCH_ON_DISABLED
+            ):
+                with self._cond:
+                    self._pos = self._vel = self._state = None
+                    self._sync_tick = None
+                    self._sync_seen = self._sync_seq
+                    self._new_statuses.clear()
+                    self._new_statuses.append(st)
+                return st
+        raise HalTimeoutError(
+            f"the DSP on {self.bus.channel_info} did not confirm a scenario reset within "
+            f"{timeout_s:g} s (only an emulated DSP in lockstep that is not armed resets)"
+        )
+
     @property
     def armed(self) -> bool:
         """Whether :meth:`enable` was called (and not :meth:`disable` since)."""

@@ -128,6 +128,8 @@ class DspStats:
     states_merged: int = 0
     """Due states that such a catch-up sample stood in for beyond the first (a catch-up over
     more than one due step sends one state)."""
+    scenario_resets: int = 0
+    """Lockstep: DspControl RESET_SCENARIO applied (the world back to its start, new session)."""
 
     def as_dict(self) -> dict[str, Any]:
         """Plain counters for ``--json`` (latencies also in ms)."""
@@ -181,17 +183,22 @@ class DspNode:
         wait_for_controller: bool = True,
         session: int | None = None,
         key: bytes | None = None,
+        on_reset: Callable[[], None] | None = None,
     ) -> None:
         """``reply_timeout_s``, ``sync_resend_s``: lockstep waits (real time, see the module
         docstring); ``wait_for_controller``: in lockstep, hold period 0 until the first command
         arrives (``False`` counts it missing after ``reply_timeout_s`` like any other);
         ``session``: the id reported in ``DspStatus.Session`` (default: random, non-zero);
         ``key``: the rig key (default: ``cfg.transport.key_file``, else this process's
-        ephemeral key, see :mod:`hal.secoc`)."""
+        ephemeral key, see :mod:`hal.secoc`); ``on_reset``: called when a scenario reset
+        (DspControl RESET_SCENARIO) is applied, e.g. to give the pose link a new source id."""
         self.cfg = cfg
         self.bus = bus
         self.lockstep = lockstep
         self.pose_sink = pose_sink
+        self.on_reset = on_reset
+        self._reset_pending = False
+        """A RESET_SCENARIO was accepted; applied between periods (:meth:`reset_scenario`)."""
         self.world = world or World(cfg)
         self.codec = DspCodec(key=key if key is not None else rig_key(cfg))
         self.stats = DspStats()
@@ -333,7 +340,12 @@ class DspNode:
         before = self._flags()
         accepted: TorqueCommand | None = None
         if isinstance(frame, DspControl):
-            accepted_cmd = self.drive.command(frame.command)
+            if frame.command is DspCommand.RESET_SCENARIO and not self.lockstep:
+                self.drive.refused += 1  # a realtime arm cannot be rewound
+                accepted_cmd = False
+            else:
+                accepted_cmd = self.drive.command(frame.command)
+            self._reset_pending |= accepted_cmd and frame.command is DspCommand.RESET_SCENARIO
             self.stats.refused_commands = self.drive.refused
             if accepted_cmd and frame.command is DspCommand.ENABLE:
                 self._command_seen(now_ns)
@@ -557,6 +569,8 @@ class DspNode:
             if msg is not None and self.handle(msg, self._sim_ns()) is not None:
                 self._awaiting_controller = False
                 return True
+            if self._reset_pending:
+                return False
         return False
 
     def _await_enable(self, stop: threading.Event) -> bool:
@@ -564,6 +578,8 @@ class DspNode:
         controller arms the DSP, so every subscriber is in place when period 0 starts."""
         resend_at = 0.0
         while not stop.is_set() and not self.armed:
+            if self._reset_pending:
+                self.reset_scenario()
             now = time.monotonic()
             if now >= resend_at:
                 self.send_state()
@@ -585,6 +601,9 @@ class DspNode:
         self.publish_pose()
         self._announce()
         answered = self._await_command(stop)
+        if self._reset_pending:  # the period is void: the next one is period 0 of a new run
+            self.reset_scenario()
+            return True
         if not answered:
             if stop.is_set():
                 return False
@@ -605,6 +624,33 @@ class DspNode:
 
     def _sim_ns(self) -> int:
         return round(self.world.t * 1e9)
+
+    def reset_scenario(self) -> None:
+        """Lockstep: apply an accepted RESET_SCENARIO. The world goes back to the scenario's
+        start (simulation time 0, the configured initial state) with fresh sensors, the DSP
+        takes a new session id and holds period 0 until the controller arms it again, as a
+        freshly started emulator does; its DspStatus (drive state switch-on disabled, Tick 0,
+        the new session) tells the controller that every frame after it is of the new run.
+        Codec counters and the freshness values go on (replay protection spans runs)."""
+        self._reset_pending = False
+        self.world.reset()
+        self.encoder = Encoder(self.world.q, self.world.dq, self.encoder_lsb, self.filter_gain)
+        self.tau_cmd = np.zeros(2)
+        self.last_cmd_ns = None
+        self.last_cmd_tick = -1
+        self.sync_tick = 0
+        self.pose_seq = 0
+        self._states_owed = 0
+        self.phase.reset()
+        self._awaiting_controller = True
+        old = self.session
+        while self.session == old:
+            self.session = secrets.randbelow(0xFFFF) + 1
+        self.stats.session = self.session
+        self.stats.scenario_resets += 1
+        if self.on_reset is not None:
+            self.on_reset()
+        self.send_status()
 
     def run_lockstep(self, stop: threading.Event, duration_s: float = 0.0) -> DspStats:
         """Control periods back to back on the simulation clock (the watchdog counts periods).

@@ -119,6 +119,15 @@ class _PoseLink:
                     f"hil emulator: warning: {exc} (further errors only counted)", file=sys.stderr
                 )
 
+    def new_run(self) -> None:
+        """A scenario reset: later poses carry a new source id, so the vision process starts a
+        new run (frame counter, clocks, noise generator from its seed) as for a new emulator."""
+        import secrets
+
+        old = self.publisher.source
+        while self.publisher.source == old:
+            self.publisher.source = secrets.randbits(32)
+
 
 def _config(args: argparse.Namespace) -> Any:
     from hal.config import load_config
@@ -194,7 +203,13 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             stack.callback(publisher.close)
             link = _PoseLink(publisher)
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
-        node = DspNode(cfg, bus, lockstep=lockstep, pose_sink=link)
+        node = DspNode(
+            cfg,
+            bus,
+            lockstep=lockstep,
+            pose_sink=link,
+            on_reset=None if link is None else link.new_run,
+        )
         node.warm_up()
         print(
             f"hil emulator: serving the arm on {where} ({mode}){zenoh_where}",

@@ -436,6 +436,91 @@ def test_lockstep_waits_for_the_controller_to_arm(cfg: RigConfig) -> None:
         assert node.stats.missing_periods == 1
 
 
+# ---------------------------------------------------------------------- scenario reset
+
+
+def _answer_periods(client: JointClient, periods: int) -> dict[int, tuple]:
+    """Poll-mode controller: arm, answer Sync 0 .. periods-1 with the PD law, disarm."""
+    client.enable()
+    seen: dict[int, tuple] = {}
+    while len(seen) < periods:
+        k = client.wait_sync(timeout=RECV_TIMEOUT_S)
+        state = client.latest_state(max_age_s=1e9)
+        seen.setdefault(k, (state.q, state.dq))
+        client.send_torque(*pd_torque(state.q, state.dq), tick=k)
+    client.disable()
+    return seen
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_a_scenario_reset_runs_again_exactly_as_a_fresh_dsp(cfg: RigConfig, transport: str):
+    """RESET_SCENARIO between two runs on one running DSP: the second run sees the same
+    states as the first and as a freshly started DSP, under a new session; nothing of the
+    first run (states, Syncs) reaches the second."""
+    periods = 30
+    _, fresh = lockstep_run(cfg, transport, periods)
+    spec = isolated_spec(transport)
+    resets: list[int] = []
+    with open_bus(spec) as bus, JointClient.open(spec, cfg, start=False) as client:
+        node = DspNode(
+            cfg,
+            bus,
+            lockstep=True,
+            sync_resend_s=0.02,
+            reply_timeout_s=5.0,
+            on_reset=lambda: resets.append(node.session),
+        )
+        stop = threading.Event()
+        thread = threading.Thread(target=node.run, args=(stop,), name="dsp")
+        thread.start()
+        try:
+            first = _answer_periods(client, periods)
+            session = node.session
+            status = client.reset_scenario(RECV_TIMEOUT_S)
+            assert status.session == node.session != session
+            assert client.sync_tick is None and client.take_statuses() == [status]
+            second = _answer_periods(client, periods)
+        finally:
+            stop.set()
+            thread.join(RECV_TIMEOUT_S)
+    assert first == second == {k: fresh.states[k] for k in range(periods)}
+    assert node.stats.scenario_resets == 1 and resets == [node.session]
+    assert node.stats.missing_periods == 0
+
+
+def test_a_scenario_reset_is_refused_while_enabled_and_by_a_realtime_dsp(cfg: RigConfig):
+    with rig(cfg, "virtual", lockstep=True, sync_resend_s=0.01) as (node, client):
+        client.enable()
+        stop = threading.Event()
+        thread = threading.Thread(target=node.lockstep_period, args=(stop,), name="dsp")
+        thread.start()
+        try:
+            wait_for(lambda: node.torque_enabled, "ENABLE")
+            client.send_command(DspCommand.RESET_SCENARIO, repeat=1)
+            wait_for(lambda: node.drive.refused == 1, "the refusal")
+        finally:
+            stop.set()
+            thread.join(RECV_TIMEOUT_S)
+        assert node.stats.scenario_resets == 0 and node.torque_enabled
+    with rig(cfg, "virtual") as (node, client):
+        clock = FakeClock(node)
+        clock.advance(40)
+        q, steps, session = node.world.q.copy(), node.world.step_index, node.session
+        client.send_command(DspCommand.RESET_SCENARIO, repeat=1)
+        wait_for(lambda: node.drive.refused == 1, "the refusal", clock.pump)
+        assert (node.world.step_index, node.session) == (steps, session)
+        assert np.array_equal(node.world.q, q) and node.stats.scenario_resets == 0
+
+
+def test_reset_scenario_times_out_with_a_clear_error_when_no_dsp_confirms(cfg: RigConfig):
+    spec = isolated_spec("virtual")
+    with (
+        JointClient.open(spec, cfg, start=False) as client,
+        pytest.raises(HalTimeoutError, match="did not confirm a scenario reset"),
+    ):
+        client.reset_scenario(0.1)
+
+
 # ----------------------------------------------------------------------------- sensors
 
 
