@@ -5,9 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hal.arguments import add_key_option, duration
 from rt_controller.commands.common import add_config_option, add_law_options, config_from_args
+
+if TYPE_CHECKING:
+    from hal.config import RigConfig
+    from rt_controller.runtime.daemon import DaemonOptions
 
 
 def add_transport_options(p: argparse.ArgumentParser) -> None:
@@ -57,6 +62,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-scene", action="store_true", help="do not draw the arm into the log")
     p.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
+    p.add_argument(
+        "--plan",
+        metavar="FILE.json",
+        help="lockstep: run every run of the plan on these links, resetting the emulated "
+        "DSP's scenario between runs (one summary per run; see rt_controller/runtime/plan.py); "
+        "excludes --law, --duration and --log, which each run gives",
+    )
     p.set_defaults(handler=run)
 
 
@@ -71,23 +83,14 @@ def run(args: argparse.Namespace) -> int:
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import print_summary
-    from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
+    from rt_controller.runtime.daemon import ControllerDaemon
 
+    if args.plan:
+        return run_plan_command(args)
     cfg = configure_key(config_from_args(args), args.key_file, "hil controller")
     if args.clock:
         cfg = cfg.with_overrides({"controller.clock": args.clock})
-    opts = DaemonOptions(
-        can=args.can,
-        lockstep=cfg.controller.clock == "lockstep",
-        duration_s=args.duration,
-        log_path=Path(args.log) if args.log else None,
-        zenoh_endpoint=args.zenoh_endpoint,
-        zenoh_config=args.zenoh_config,
-        realtime_settings=not args.no_rt,
-        record_raw=not args.no_raw,
-        live=not args.no_live,
-        scene=not args.no_scene,
-    )
+    opts = daemon_options(args, cfg)
     with stop_on_signals() as stop:
         daemon = ControllerDaemon(cfg, opts, stop)
         print(
@@ -101,3 +104,67 @@ def run(args: argparse.Namespace) -> int:
         print(f"hil controller: run not clean: {'; '.join(summary['problems'])}", file=sys.stderr)
         return 1
     return 0
+
+
+def daemon_options(args: argparse.Namespace, cfg: RigConfig) -> DaemonOptions:
+    """The daemon's wiring from the command line."""
+    from rt_controller.runtime.daemon import DaemonOptions
+
+    return DaemonOptions(
+        can=args.can,
+        lockstep=cfg.controller.clock == "lockstep",
+        duration_s=args.duration,
+        log_path=Path(args.log) if args.log else None,
+        zenoh_endpoint=args.zenoh_endpoint,
+        zenoh_config=args.zenoh_config,
+        realtime_settings=not args.no_rt,
+        record_raw=not args.no_raw,
+        live=not args.no_live,
+        scene=not args.no_scene,
+    )
+
+
+def run_plan_command(args: argparse.Namespace) -> int:
+    """``--plan``: every run of the plan, one summary each; 1 when any run was not clean."""
+    from hal.secoc import configure_key
+    from hal.signals import stop_on_signals
+    from rt_controller.commands.output import print_summary
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.runtime.plan import load_plan, run_configs, run_plan
+
+    given = [o for o, v in (("--law", args.law), ("--log", args.log)) if v]
+    given += ["--duration"] if args.duration else []
+    if given:
+        raise ControllerConfigError(f"--plan gives each run's law, duration and log: drop {given}")
+    runs = load_plan(args.plan)
+
+    def prepare(cfg: RigConfig) -> RigConfig:
+        cfg = configure_key(cfg, args.key_file, "hil controller")
+        if args.clock:
+            cfg = cfg.with_overrides({"controller.clock": args.clock})
+        if cfg.controller.clock != "lockstep":
+            raise ControllerConfigError(
+                "--plan runs lockstep only (a scenario reset rewinds the emulated arm); "
+                "set controller.clock = lockstep or pass --clock lockstep"
+            )
+        return cfg
+
+    cfgs = run_configs(runs, prepare)
+    opts = daemon_options(args, cfgs[0])
+    unclean: list[str] = []
+
+    def emit(summary: dict) -> None:
+        print_summary(summary, args.json, f"hil controller: run {summary['run']}")
+        sys.stdout.flush()
+        if summary["problems"]:
+            unclean.append(f"{summary['run']}: {'; '.join(summary['problems'])}")
+
+    print(f"hil controller: plan of {len(runs)} lockstep runs", file=sys.stderr)
+    with stop_on_signals() as stop:
+        done = run_plan(runs, cfgs, opts, stop, emit)
+    for line in unclean:
+        print(f"hil controller: run not clean: {line}", file=sys.stderr)
+    if len(done) < len(runs):
+        print(f"hil controller: stopped after {len(done)} of {len(runs)} runs", file=sys.stderr)
+        return 1
+    return 1 if unclean else 0

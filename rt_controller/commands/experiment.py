@@ -18,9 +18,12 @@ if TYPE_CHECKING:
     from rt_controller.rig.experiment import RunResult, Settings
 
 DESCRIPTION = """\
-Reproduces the paper's experiments (Section V) on the emulated rig. Every run starts
-`hil emulator`, `hil vision` and `hil controller` as separate processes (lockstep by default,
---realtime for real-time runs) and logs to MCAP.
+Reproduces the paper's experiments (Section V) on the emulated rig: `hil emulator`,
+`hil vision` and `hil controller` run as separate processes (lockstep by default, --realtime for
+real-time runs) and every run logs to MCAP. Lockstep runs that share the emulator's and vision's
+configuration (all but the controller's sections) run on one set of processes: the controller
+resets the emulated DSP's scenario between them (DspControl RESET_SCENARIO), which starts each
+run exactly as fresh processes would. --fresh-processes starts the rig anew for every run.
 
   fig3    RHC (T = 0.02 s) vs inverse-optimal vs passivity-based control: f, xi, u over time
           (solid RHC, dashed IOC, dash-dot PBC) and J of each law
@@ -90,6 +93,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="rigs run at once (default: one per CPU for lockstep runs on private buses, else "
         "1; lockstep results do not depend on it)",
     )
+    p.add_argument(
+        "--fresh-processes",
+        action="store_true",
+        help="start the rig anew for every lockstep run instead of resetting the emulated "
+        "scenario between runs on one set of processes (slower, same results)",
+    )
     p.add_argument("--json", action="store_true", help="print results.json on stdout")
     p.set_defaults(handler=run)
 
@@ -120,6 +129,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
         parts += ["--can", args.can]
     if args.jobs is not None:
         parts += ["--jobs", str(args.jobs)]
+    if args.fresh_processes:
+        parts.append("--fresh-processes")
     return shlex.join(parts)
 
 
@@ -141,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         config=args.config,
         can=args.can,
         jobs=args.jobs,
+        fresh_processes=args.fresh_processes,
     )
     settings.validate()
     runs_by_exp, runs = prepare(settings)
@@ -190,7 +202,7 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeRemainingColumn,
     )
 
-    from rt_controller.rig.experiment import execute
+    from rt_controller.rig.experiment import batches, execute_batch
 
     columns = (
         TextColumn("{task.description}"),
@@ -200,8 +212,8 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeRemainingColumn(),
     )
     jobs = settings.effective_jobs()
-    queue = list(runs.values())
-    running: dict[Future[RunResult], RunResult] = {}
+    queue = batches(list(runs.values()), settings)
+    running: dict[Future[list[RunResult]], list[RunResult]] = {}
     cancel = threading.Event()
     failed_in_a_row = 0
     with (
@@ -212,18 +224,22 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         try:
             while queue or running:
                 while queue and len(running) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES:
-                    run = queue.pop(0)
-                    running[pool.submit(execute, run, settings, None, cancel)] = run
+                    batch = queue.pop(0)
+                    running[pool.submit(execute_batch, batch, settings, cancel)] = batch
                 if not running:
                     break
-                labels = ", ".join(r.spec.label for r in running.values())
+                labels = ", ".join(
+                    b[0].spec.label + (f" (+{len(b) - 1} on its processes)" if len(b) > 1 else "")
+                    for b in running.values()
+                )
                 progress.update(task, description=labels)
                 done, _ = wait(running, timeout=0.25, return_when=FIRST_COMPLETED)
                 for fut in done:
-                    run = running.pop(fut)
-                    fut.result()  # execute records failures on the run; anything else is a bug
-                    progress.advance(task)
-                    failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
+                    running.pop(fut)
+                    # execute_batch records failures on the runs; anything else is a bug
+                    for run in fut.result():
+                        progress.advance(task)
+                        failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
         finally:
             cancel.set()  # no-op after a full sweep; on a stop request, the workers stop rigs
 
@@ -233,16 +249,20 @@ def _report_run(console: Console, run: RunResult, failed_in_a_row: int) -> int:
     if run.status == "ok":
         console.print(
             f"{run.spec.label}: J = {run.J:.4f}, |f_final| = "
-            f"{run.summary.get('f_final_norm', float('nan')):.3g} px ({run.wall_s:.1f} s)"
+            f"{run.summary.get('f_final_norm', float('nan')):.3g} px ({_took(run)})"
         )
         return 0
     if run.status == "pending":
         return failed_in_a_row
-    console.print(f"[red]{run.spec.label}: FAILED[/] ({run.wall_s:.1f} s)")
+    console.print(f"[red]{run.spec.label}: FAILED[/] ({_took(run)})")
     failed_in_a_row += 1
     if failed_in_a_row == MAX_CONSECUTIVE_FAILURES:
         console.print(f"[red]{failed_in_a_row} failures in a row: giving up on the sweep[/]")
     return failed_in_a_row
+
+
+def _took(run: RunResult) -> str:
+    return "—" if run.wall_s is None else f"{run.wall_s:.1f} s"
 
 
 def print_tables(res: dict[str, Any]) -> None:

@@ -12,6 +12,7 @@ Identical specs are run once (``all`` shares the RHC T = 0.02 s run between Fig.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import threading
@@ -27,7 +28,13 @@ from hal.config import RigConfig, load_config
 from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerError
-from rt_controller.rig.processes import RigCancelled, RigOptions, private_default_bus, run_rig
+from rt_controller.rig.processes import (
+    RigCancelled,
+    RigOptions,
+    private_default_bus,
+    run_rig,
+    run_rig_plan,
+)
 from rt_controller.rig.supervise import RigInterrupted
 
 EXPERIMENTS = ("fig3", "fig4", "table1")
@@ -87,6 +94,9 @@ class Settings:
     can: str | None = None
     jobs: int | None = None
     """Rigs run at once (``--jobs``); None: :func:`default_jobs`."""
+    fresh_processes: bool = False
+    """``--fresh-processes``: start the rig anew for every lockstep run instead of running
+    the runs that share an emulator configuration on one set of processes (:func:`batches`)."""
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
@@ -275,13 +285,7 @@ def execute(
             log=run.log,
             cancel=cancel,
         )
-        run.summary = (runner or run_rig)(opts)
-        problems = run.summary.get("problems") or []
-        if problems:
-            run.status, run.error = "failed", f"run not clean: {'; '.join(problems)}"
-        else:
-            run.status = "ok"
-        run.J_steady = steady_cost(run.log)
+        finish(run, (runner or run_rig)(opts))
     except RigInterrupted:
         raise  # the whole sweep stops; the caller writes up what ran
     except RigCancelled:
@@ -291,6 +295,109 @@ def execute(
     finally:
         run.wall_s = time.monotonic() - t0
     return run
+
+
+def finish(run: RunResult, summary: dict[str, Any]) -> None:
+    """Record a finished run's summary: ``ok``, or ``failed`` when it was not clean."""
+    run.summary = summary
+    problems = summary.get("problems") or []
+    if problems:
+        run.status, run.error = "failed", f"run not clean: {'; '.join(problems)}"
+    else:
+        run.status = "ok"
+    run.J_steady = steady_cost(run.log)
+
+
+def batches(runs: list[RunResult], settings: Settings) -> list[list[RunResult]]:
+    """The runs grouped for one set of rig processes each, in run order.
+
+    Lockstep runs whose configurations agree in all that the emulator and vision processes
+    read (:func:`rt_controller.runtime.plan.world_of`: everything but the controller's own
+    sections) share one set: the controller runs them as a plan, resetting the emulated DSP's
+    scenario between them, which starts each exactly as fresh processes would. While there are
+    fewer batches than rigs may run at once, the largest is split in two. Real-time runs,
+    and all runs with ``fresh_processes``, are batches of one.
+    """
+    if settings.realtime or settings.fresh_processes:
+        return [[r] for r in runs]
+    from rt_controller.runtime.plan import world_of
+
+    groups: dict[str, list[RunResult]] = {}
+    for run in runs:
+        groups.setdefault(json.dumps(world_of(run.config), sort_keys=True), []).append(run)
+    out = list(groups.values())
+    while len(out) < settings.effective_jobs():
+        big = max(out, key=len)
+        if len(big) < 2:
+            break
+        i, half = out.index(big), (len(big) + 1) // 2
+        out[i : i + 1] = [big[:half], big[half:]]
+    return out
+
+
+def execute_batch(
+    batch: list[RunResult], settings: Settings, cancel: threading.Event | None = None
+) -> list[RunResult]:
+    """Run a batch (:func:`batches`): one run through :func:`execute`, more as a plan on one
+    set of processes (:func:`~rt_controller.rig.processes.run_rig_plan`). Failures are
+    recorded on the runs; runs stopped through ``cancel`` stay ``pending``."""
+    if len(batch) == 1:
+        return [execute(batch[0], settings, None, cancel)]
+    t0 = time.monotonic()
+    can = bus_for_run(settings, batch[0])
+    plan_file = settings.out / "plans" / f"{batch[0].spec.name}.json"
+    plan_file.parent.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "runs": [
+            {
+                "name": r.spec.name,
+                "config": str(r.config_file),
+                "law": r.spec.law,
+                "duration_s": settings.duration_s,
+                "log": str(r.log),
+            }
+            for r in batch
+        ]
+    }
+    plan_file.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    opts = RigOptions(
+        config=str(batch[0].config_file),
+        duration_s=settings.duration_s * len(batch),
+        lockstep=True,
+        can=can,
+        plan=plan_file,
+        cancel=cancel,
+    )
+    summaries: list[dict[str, Any]] = []
+    error: str | None = None
+    try:
+        summaries, exc = run_rig_plan(opts, len(batch))
+        error = None if exc is None else f"{type(exc).__name__}: {exc}"
+    except RigInterrupted:
+        raise
+    except RigCancelled:
+        for run in batch:
+            run.status, run.summary = "pending", {}
+        return batch
+    except (ControllerError, HalError, OSError) as exc:
+        error = f"{type(exc).__name__}: {exc}"
+    by_name = {s.get("run"): s for s in summaries}
+    for run in batch:
+        run.can = can
+        summary = by_name.get(run.spec.name)
+        if summary is None:
+            run.status, run.error = "failed", error or "the controller printed no summary"
+            run.wall_s = None
+            continue
+        try:
+            finish(run, summary)
+        except (ControllerError, HalError, OSError) as exc:  # an unreadable log
+            run.status, run.error = "failed", f"{type(exc).__name__}: {exc}"
+        wall = summary.get("wall_s")
+        run.wall_s = float(wall) if isinstance(wall, int | float) else None
+    if batch[0].wall_s is not None:  # the first run carries the processes' start-up
+        batch[0].wall_s += max(0.0, time.monotonic() - t0 - sum(r.wall_s or 0 for r in batch))
+    return batch
 
 
 def bus_for_run(settings: Settings, run: RunResult) -> str:

@@ -95,6 +95,10 @@ class RigOptions:
     monitor_host: str | None = None
     monitor_port: int | None = None
     extra_monitor: list[str] = field(default_factory=list)
+    plan: Path | None = None
+    """A plan of lockstep runs for one controller (``hil controller --plan``, see
+    :mod:`rt_controller.runtime.plan`): ``law`` and ``log`` are then unused and ``duration_s``
+    is the plan's total simulated time (for the wall-clock budget)."""
     cancel: threading.Event | None = None
     """Set from another thread to stop this run (children stopped, :class:`RigCancelled`):
     ``hil experiment --jobs`` runs rigs in worker threads, and only the main thread gets
@@ -190,11 +194,15 @@ class Rig:
             if o.monitor_port is not None:
                 mon += ["--port", str(o.monitor_port)]
             self._start("monitor", mon + o.extra_monitor)
-        ctl = _cli("controller", *can, *self._common(), "--json", "--duration", f"{o.duration_s:g}")
+        ctl = _cli("controller", *can, *self._common(), "--json")
         ctl += ["--clock", "lockstep" if o.lockstep else "realtime"]
-        if o.law:
+        if o.plan is not None:
+            ctl += ["--plan", str(o.plan)]
+        else:
+            ctl += ["--duration", f"{o.duration_s:g}"]
+        if o.law and o.plan is None:
             ctl += ["--law", o.law]
-        if o.log:
+        if o.log and o.plan is None:
             ctl += ["--log", str(o.log)]
         self._start("controller", ctl + o.extra_controller)
 
@@ -207,6 +215,30 @@ class Rig:
 
     def wait_controller(self) -> dict[str, Any]:
         """Wait for the controller's run to end; its JSON summary."""
+        ctl = self.wait_controller_exit()
+        lines = self.summaries()
+        # Status 1 with a summary: the run finished but is not clean (its "problems" say why).
+        if ctl.proc.returncode not in (0, 1) or (ctl.proc.returncode == 1 and not lines):
+            raise RigProcessError(
+                f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
+            )
+        if not lines:
+            raise RigProcessError(f"controller printed no summary:\n{ctl.tail()}")
+        return lines[-1]
+
+    def summaries(self) -> list[dict[str, Any]]:
+        """Every JSON summary the controller printed so far (one per run of a plan)."""
+        ctl = next(c for c in self.children if c.name == "controller")
+        out = []
+        for line in ctl.output().splitlines():
+            if line.startswith("{"):
+                with contextlib.suppress(json.JSONDecodeError):  # a line cut by a kill
+                    out.append(json.loads(line))
+        return out
+
+    def wait_controller_exit(self) -> Child:
+        """Wait until the controller exits (another child's death, the wall-clock budget and
+        ``cancel`` end the wait with an exception); the controller's child."""
         ctl = next(c for c in self.children if c.name == "controller")
         budget = self.opts.wall_budget_s()
         deadline = time.monotonic() + budget
@@ -220,15 +252,7 @@ class Rig:
                     f"(--wall-timeout):\n{ctl.tail()}"
                 )
             time.sleep(0.05)
-        lines = [ln for ln in ctl.output().splitlines() if ln.startswith("{")]
-        # Status 1 with a summary: the run finished but is not clean (its "problems" say why).
-        if ctl.proc.returncode not in (0, 1) or (ctl.proc.returncode == 1 and not lines):
-            raise RigProcessError(
-                f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
-            )
-        if not lines:
-            raise RigProcessError(f"controller printed no summary:\n{ctl.tail()}")
-        return json.loads(lines[-1])
+        return ctl
 
     def stop(self) -> dict[str, int | None]:
         """SIGTERM every child still running (controller first, so torque goes off while the
@@ -267,6 +291,45 @@ class Rig:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def run_rig_plan(
+    opts: RigOptions, runs: int
+) -> tuple[list[dict[str, Any]], RigProcessError | None]:
+    """:func:`run_rig` for a plan of ``runs`` lockstep runs (``opts.plan``): the summaries of
+    the runs that ended, in order, and why the rest did not (None when all did). A run that
+    is not clean has a summary with its problems; it does not stop the plan.
+    """
+    if opts.plan is None or not opts.lockstep:
+        raise ControllerError("run_rig_plan needs RigOptions.plan and lockstep")
+    with Rig(opts) as rig:
+        rig.start()
+        error: RigProcessError | None = None
+        try:
+            ctl = rig.wait_controller_exit()
+            if ctl.proc.returncode not in (0, 1):
+                error = RigProcessError(
+                    f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
+                )
+        except RigProcessError as exc:
+            error = exc
+        summaries = rig.summaries()
+        codes = rig.stop()
+        bad = [c for c in rig.children if c.name in ("emulator", "vision") and codes[c.name]]
+        if bad and error is None:
+            error = RigProcessError(
+                "\n".join(
+                    f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}" for c in bad
+                )
+            )
+        if len(summaries) < runs and error is None:
+            ctl = next(c for c in rig.children if c.name == "controller")
+            error = RigProcessError(
+                f"controller printed {len(summaries)} of {runs} summaries:\n{ctl.tail()}"
+            )
+        for summary in summaries:
+            summary["exit_codes"] = codes
+        return summaries, error
 
 
 def run_rig(opts: RigOptions) -> dict[str, Any]:

@@ -12,10 +12,12 @@ a silent DSP sends zero torque and counts the tick as ``state_stale``.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +37,7 @@ from hal.errors import HalStopped, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder, feature_age_ns
-from hal.zenoh_session import KEY_FEATURES, PayloadRing, open_session
+from hal.zenoh_session import KEY_FEATURES, PayloadRing, ZenohSession, open_session
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
@@ -230,6 +232,29 @@ def _wait_drained(rec: CycleRecorder, timeout_s: float) -> None:
         time.sleep(0.002)
 
 
+@contextlib.contextmanager
+def open_links(
+    cfg: RigConfig, opts: DaemonOptions, stop: threading.Event
+) -> Iterator[tuple[JointClient, ZenohSession]]:
+    """The controller's links: the CAN client in poll mode (the control thread reads the bus
+    itself, no receive thread) and the zenoh session. The bus first: a bad ``--can`` is
+    reported at once, not after waiting for zenoh. :class:`HalStopped` when ``stop`` is set
+    while waiting for zenoh."""
+    with JointClient.open(opts.can, cfg, start=False) as dsp:
+        session = open_session(
+            cfg,
+            listen=False,
+            endpoint=opts.zenoh_endpoint,
+            config_file=opts.zenoh_config,
+            wait_s=STARTUP_TIMEOUT_S,
+            stop_event=stop,
+        )
+        try:
+            yield dsp, session
+        finally:
+            session.close()
+
+
 class ControllerDaemon:
     """Owns the law, the DSP client, the feature subscriber and the recorder for one run."""
 
@@ -265,12 +290,13 @@ class ControllerDaemon:
         self._state_wait_ns = min(round(cfg.controller.state_wait_us * 1e3), self.period_ns // 2)
         self._states_seen = -1
         """Joint states received up to the last tick's read (-1: no tick yet)."""
+        self._can_base: dict[str, Any] = {}
+        """The CAN receive counters when this run began (a plan's links outlive its runs)."""
 
     # --- wiring -----------------------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
-        """Run until stopped; returns the summary. The recorder is finished on every exit."""
+    def _open_recorder(self) -> CycleRecorder:
         cfg, opts = self.cfg, self.opts
-        rec = CycleRecorder(
+        return CycleRecorder(
             self.log_path,
             cfg,
             run_info={
@@ -280,43 +306,58 @@ class ControllerDaemon:
             },
             scene=_scene_builder(cfg) if opts.scene else None,
         )
-        self._rec = rec
+
+    def run(self) -> dict[str, Any]:
+        """Open the links, run until stopped; the summary. The recorder is finished on every
+        exit."""
+        rec = self._open_recorder()
         try:
-            # The bus first: a bad --can is reported at once, not after waiting for zenoh.
-            # Poll mode: the control thread reads the bus itself (no receive thread).
-            with JointClient.open(opts.can, cfg, start=False, **self._raw_hooks(rec)) as dsp:
-                try:
-                    session = open_session(
-                        cfg,
-                        listen=False,
-                        endpoint=opts.zenoh_endpoint,
-                        config_file=opts.zenoh_config,
-                        wait_s=STARTUP_TIMEOUT_S,
-                        stop_event=self.stop,
-                    )
-                except HalStopped:
-                    self.stats.stopped_before_arming = True
-                    return self._summary(rec)
-                live = _live_publisher(session) if opts.live else None
-                rec.set_live(live)
-                try:
-                    if opts.lockstep:  # the tick waits for its pose's answer: a callback feeds
-                        session.subscribe(KEY_FEATURES, self._on_features(rec))
-                    else:  # the tick takes the newest features itself, no callback thread
-                        self._ring = session.subscribe_ring(KEY_FEATURES)
-                    self._loop(dsp, rec)
-                finally:
-                    if live is not None:  # let the last records (final diagnostics) go out
-                        _wait_drained(rec, LIVE_DRAIN_TIMEOUT_S)
-                    rec.set_live(None)
-                    if live is not None:
-                        live.close()
-                    if self._ring is not None:
-                        self._ring.close()
-                    session.close()
+            with open_links(self.cfg, self.opts, self.stop) as (dsp, session):
+                self._run_with(dsp, session, rec)
+        except HalStopped:  # told to stop while waiting for zenoh
+            self.stats.stopped_before_arming = True
         finally:
             rec.close()
         return self._summary(rec)
+
+    def run_on(self, dsp: JointClient, session: ZenohSession) -> dict[str, Any]:
+        """One run on links that outlive it (``hil controller --plan``: a poll-mode client and
+        an open session); the summary. Leaves both as it found them."""
+        rec = self._open_recorder()
+        try:
+            self._run_with(dsp, session, rec)
+        finally:
+            rec.close()
+        return self._summary(rec)
+
+    def _run_with(self, dsp: JointClient, session: ZenohSession, rec: CycleRecorder) -> None:
+        """The run on open links: recorder hooks, the feature subscription, the loop."""
+        self._rec = rec
+        hooks = self._raw_hooks(rec)
+        dsp.frame_hook, dsp.tx_hook = hooks.get("frame_hook"), hooks.get("tx_hook")
+        self._can_base = diagnostics.counters(dsp.stats.e2e)
+        live = _live_publisher(session) if self.opts.live else None
+        rec.set_live(live)
+        subscriber = None
+        try:
+            if self.opts.lockstep:  # the tick waits for its pose's answer: a callback feeds
+                subscriber = session.subscribe(KEY_FEATURES, self._on_features(rec))
+            else:  # the tick takes the newest features itself, no callback thread
+                self._ring = session.subscribe_ring(KEY_FEATURES)
+            self._loop(dsp, rec)
+        finally:
+            if live is not None:  # let the last records (final diagnostics) go out
+                _wait_drained(rec, LIVE_DRAIN_TIMEOUT_S)
+            rec.set_live(None)
+            if live is not None:
+                live.close()
+            if self._ring is not None:
+                self._ring.close()
+                self._ring = None
+            if subscriber is not None:
+                with contextlib.suppress(Exception):  # a closed session undeclared it already
+                    subscriber.undeclare()
+            dsp.frame_hook = dsp.tx_hook = None
 
     def _summary(self, rec: CycleRecorder) -> dict[str, Any]:
         rec.close()
@@ -487,7 +528,7 @@ class ControllerDaemon:
         return diagnostics.build(
             t_ns=self.clock.now_ns(),
             tick=st.ticks,
-            can_rx=diagnostics.counters(dsp.stats.e2e),
+            can_rx=diagnostics.since(self._can_base, diagnostics.counters(dsp.stats.e2e)),
             features=diagnostics.counters(self.features.counts),
             dsp={
                 "status_received": status is not None,

@@ -55,6 +55,11 @@ def counters(obj: Any) -> dict[str, Any]:
     return dict(obj)
 
 
+def since(base: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:
+    """Counters ``now`` minus ``base`` (counters missing from ``base`` count from zero)."""
+    return {k: v - base.get(k, 0) if isinstance(v, int) else v for k, v in now.items()}
+
+
 AUTH_REJECTIONS = ("bad_mac", "stale_freshness", "future_freshness")
 """Receiver counters of frames/messages that failed authentication (hal/secoc.py)."""
 AUTH_FAULT_MIN = 10

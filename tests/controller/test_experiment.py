@@ -123,7 +123,8 @@ def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monke
 
     monkeypatch.setattr(ex, "run_rig", broken)
     out = tmp_path / "exp"
-    assert main(["experiment", "fig3", "--duration", "1", "--out", str(out)]) == 1
+    argv = ["experiment", "fig3", "--duration", "1", "--out", str(out), "--fresh-processes"]
+    assert main(argv) == 1
     err = capsys.readouterr().err
     assert sorted(calls) == ["ioc", "pbc", "rhc"]  # two at a time on a 2-CPU machine
     assert "run pbc (PBC) failed: RigProcessError: controller exited with status 3" in err
@@ -190,7 +191,7 @@ def test_runs_go_jobs_at_a_time_and_a_stop_request_cancels_those_in_flight(
     monkeypatch.setattr(ex, "run_rig", fake)
     out = tmp_path / "exp"
     argv = ["experiment", "all", "--reps", "1", "--duration", "1", "--out", str(out), "--jobs", "2"]
-    assert main(argv) == 128 + signal.SIGTERM
+    assert main([*argv, "--fresh-processes"]) == 128 + signal.SIGTERM
     assert len(started) == 3 and sorted(cancelled) == sorted(started[1:])
     res = json.loads((out / "results.json").read_text())
     status = [r["status"] for r in res["runs"]]
@@ -201,6 +202,51 @@ def test_runs_go_jobs_at_a_time_and_a_stop_request_cancels_those_in_flight(
     assert status == ["pending"] * done + ["failed"] + ["pending"] * (7 - done)
     assert [f["run"] for f in res["failures"]] == [res["runs"][done]["name"]]
     assert "interrupted by SIGTERM" in capsys.readouterr().err
+
+
+def test_runs_sharing_an_emulator_config_share_processes(tmp_path):
+    """table1: one set of processes per noise seed (the vision's configuration), the three
+    horizons (controller sections only) as a plan on it; fig3 + fig4 share one set, split in
+    two while there are fewer sets than jobs; realtime and --fresh-processes: one run each."""
+    _, runs = ex.prepare(settings(tmp_path, ("table1",), reps=2, jobs=2))
+    got = [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), settings(tmp_path))]
+    assert got == [
+        [f"rhc-T{h}-noise0.5-seed{seed}" for h in ("0.02", "0.1", "1.0")] for seed in (0, 1)
+    ]
+    figs = settings(tmp_path / "f", ("fig3", "fig4"), jobs=2)
+    _, runs = ex.prepare(figs)
+    got = [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), figs)]
+    assert got == [["rhc-T0.02", "ioc", "pbc"], ["rhc-T0.1", "rhc-T1.0"]]
+    one = settings(tmp_path / "f", ("fig3", "fig4"), jobs=1)
+    assert len(ex.batches(list(runs.values()), one)) == 1
+    for kw in ({"fresh_processes": True}, {"realtime": True}):
+        flat = ex.batches(list(runs.values()), settings(tmp_path, **kw))
+        assert [len(b) for b in flat] == [1] * 5
+
+
+def test_a_plan_that_breaks_off_fails_its_remaining_runs(tmp_path, monkeypatch):
+    """The controller printed the first run's summary, then died: that run is recorded as it
+    ended (here not clean), the others failed with the controller's error; the plan file
+    names every run with its config and log."""
+    seen = {}
+
+    def broken(opts, n):
+        seen["plan"] = json.loads(opts.plan.read_text())
+        first = seen["plan"]["runs"][0]["name"]
+        summary = {"run": first, "J": 2.0, "wall_s": 0.5, "problems": ["1 DSP watchdog trip(s)"]}
+        return [summary], RigProcessError("controller exited with status 3:\nboom")
+
+    monkeypatch.setattr(ex, "run_rig_plan", broken)
+    monkeypatch.setattr(ex, "steady_cost", lambda log: None)
+    st = settings(tmp_path, ("fig4",), jobs=1)
+    _, runs = ex.prepare(st)
+    batch = ex.execute_batch(list(runs.values()), st)
+    assert [r["name"] for r in seen["plan"]["runs"]] == ["rhc-T0.02", "rhc-T0.1", "rhc-T1.0"]
+    assert all(Path(r["config"]).is_file() for r in seen["plan"]["runs"])
+    assert [r.status for r in batch] == ["failed"] * 3
+    assert batch[0].error == "run not clean: 1 DSP watchdog trip(s)" and batch[0].J == 2.0
+    assert all(r.error.startswith("RigProcessError: controller exited") for r in batch[1:])
+    assert all("boom" in r.error and r.J is None for r in batch[1:])
 
 
 # -------------------------------------------------------------- real daemons (integration)
@@ -290,18 +336,25 @@ def test_a_failing_daemon_fails_the_experiment_without_leftovers(tmp_path, capsy
 
 @pytest.mark.integration
 @pytest.mark.slow
-def test_lockstep_results_do_not_depend_on_jobs(tmp_path, capsys):
-    """Two rigs at a time give the same J, run by run, as one at a time (lockstep runs are
-    deterministic and each rig has its own bus, zenoh port and key)."""
-    got = {}
-    for jobs in (1, 2):
-        out = tmp_path / f"jobs{jobs}"
-        argv = ["experiment", "fig3", "--duration", "1", "--out", str(out), "--jobs", str(jobs)]
-        assert main([*argv, "--json"]) == 0
+def test_lockstep_results_do_not_depend_on_jobs_or_on_sharing_processes(tmp_path, capsys):
+    """Fresh processes per run, one set for all three (a plan with two scenario resets), and
+    two sets at a time give the same runs: J, f_final and every logged state, torque and
+    feature bit for bit (lockstep runs are deterministic; each rig has its own bus, zenoh
+    port and key; a reset starts a run as fresh processes do)."""
+    got, logs = {}, {}
+    for how, extra in (("fresh", ["--fresh-processes"]), ("jobs1", ["--jobs", "1"]), ("jobs2", [])):
+        out = tmp_path / how
+        argv = ["experiment", "fig3", "--duration", "1.5", "--noise", "0.5", "--out", str(out)]
+        assert main([*argv, *extra, "--json"]) == 0
         res = json.loads(capsys.readouterr().out)
-        got[jobs] = {r["name"]: (r["J"], r["f_final"]) for r in res["runs"]}
+        got[how] = {r["name"]: (r["J"], r["f_final"]) for r in res["runs"]}
+        logs[how] = {r["name"]: read_log(out / r["log"], raw=False).cycles for r in res["runs"]}
         assert not live_children()
-    assert got[1] == got[2] and len(got[1]) == 3
+    assert got["fresh"] == got["jobs1"] == got["jobs2"] and len(got["fresh"]) == 3
+    for name, cycles in logs["fresh"].items():
+        for how in ("jobs1", "jobs2"):
+            for col in ("q", "dq", "f", "tau", "cost"):
+                assert cycles[col].tobytes() == logs[how][name][col].tobytes(), (how, name, col)
 
 
 @pytest.mark.integration

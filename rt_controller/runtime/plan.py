@@ -1,0 +1,168 @@
+"""``hil controller --plan FILE``: many lockstep runs on one set of rig processes.
+
+Starting the three processes costs more than a 10 s lockstep run itself (imports, compiled
+kernels, zenoh and the arming handshake), so ``hil experiment`` hands the controller a plan of
+runs instead of restarting the rig per run. Between runs the controller resets the emulated
+DSP's scenario over the existing CAN link (DspControl ``RESET_SCENARIO``: simulation time 0,
+the configured initial state, a new session, and a new pose source so the vision process
+restarts its run and its noise generator); each run then starts as on freshly started
+processes, so its log and summary are those of ``hil up --config RUN.toml`` (tests compare
+them bit for bit).
+
+The plan is JSON::
+
+    {"runs": [{"name": "rhc-T0.1", "config": "configs/rhc-T0.1.toml", "law": "rhc",
+               "duration_s": 10.0, "log": "logs/rhc-T0.1.mcap"}, ...]}
+
+Every run's configuration must agree with the first in all that the emulator and the vision
+process read (everything but the ``controller``, ``rhc`` and ``gains`` sections): they were
+started once, with the first run's file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from hal.config import RigConfig, load_config
+from hal.errors import HalError, HalStopped
+from rt_controller.config_rules import apply_overrides
+from rt_controller.errors import ControllerConfigError, ControllerError
+
+CONTROLLER_SECTIONS = ("controller", "rhc", "gains")
+"""Sections only the controller reads: runs of one plan may differ in these alone."""
+RESET_TIMEOUT_S = 5.0
+"""How long the controller waits for the DSP to confirm a scenario reset."""
+
+
+@dataclass(frozen=True)
+class PlannedRun:
+    """One run of a plan."""
+
+    name: str
+    config: Path
+    log: Path
+    duration_s: float
+    law: str | None = None
+
+
+def load_plan(path: str | Path) -> list[PlannedRun]:
+    """The runs of the plan file; :class:`ControllerConfigError` naming what is wrong."""
+    where = f"plan {path}"
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ControllerConfigError(f"{where}: cannot read: {exc.strerror or exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ControllerConfigError(f"{where}: not JSON: {exc}") from exc
+    runs = doc.get("runs") if isinstance(doc, dict) else None
+    if not isinstance(runs, list) or not runs:
+        raise ControllerConfigError(f'{where}: needs a non-empty list "runs"')
+    out: list[PlannedRun] = []
+    for i, item in enumerate(runs):
+        out.append(_planned_run(item, f"{where}: run {i}"))
+    names = [r.name for r in out]
+    if len(set(names)) != len(names):
+        raise ControllerConfigError(f"{where}: run names must be unique, got {names}")
+    logs = [r.log.resolve() for r in out]
+    if len(set(logs)) != len(logs):
+        raise ControllerConfigError(f"{where}: two runs would write the same log")
+    return out
+
+
+def _planned_run(item: Any, where: str) -> PlannedRun:
+    if not isinstance(item, dict):
+        raise ControllerConfigError(f"{where}: must be an object")
+    unknown = set(item) - {"name", "config", "log", "duration_s", "law"}
+    if unknown:
+        raise ControllerConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
+    for key in ("name", "config", "log"):
+        if not isinstance(item.get(key), str) or not item[key]:
+            raise ControllerConfigError(f"{where}: {key!r} must be a non-empty string")
+    duration = item.get("duration_s")
+    if (
+        isinstance(duration, bool)
+        or not isinstance(duration, int | float)
+        or not (math.isfinite(duration) and duration > 0)
+    ):
+        raise ControllerConfigError(f"{where}: 'duration_s' must be a positive number")
+    law = item.get("law")
+    if law is not None and not isinstance(law, str):
+        raise ControllerConfigError(f"{where}: 'law' must be a string")
+    return PlannedRun(item["name"], Path(item["config"]), Path(item["log"]), float(duration), law)
+
+
+def world_of(cfg: RigConfig) -> dict[str, Any]:
+    """What the emulator and vision processes read of ``cfg``."""
+    return {k: v for k, v in cfg.to_dict().items() if k not in CONTROLLER_SECTIONS}
+
+
+def first_difference(a: dict[str, Any], b: dict[str, Any]) -> str | None:
+    """The first ``section.key`` whose value differs between two config dicts, else None."""
+    for section in sorted(set(a) | set(b)):
+        sa, sb = a.get(section, {}), b.get(section, {})
+        for key in sorted(set(sa) | set(sb)):
+            if sa.get(key) != sb.get(key):
+                return f"{section}.{key}"
+    return None
+
+
+def run_configs(
+    runs: list[PlannedRun], prepare: Callable[[RigConfig], RigConfig]
+) -> list[RigConfig]:
+    """Each run's configuration (its file, its law, then ``prepare``: the command line's key
+    and clock), checked to share the first run's world."""
+    cfgs: list[RigConfig] = []
+    for run in runs:
+        cfg = prepare(apply_overrides(load_config(run.config), law=run.law))
+        if cfgs:
+            diff = first_difference(world_of(cfgs[0]), world_of(cfg))
+            if diff is not None:
+                raise ControllerConfigError(
+                    f"plan run {run.name!r}: {diff} differs from run {runs[0].name!r}; the "
+                    "emulator and vision processes were started with the first run's "
+                    f"configuration (runs of one plan may differ in {CONTROLLER_SECTIONS} only)"
+                )
+        cfgs.append(cfg)
+    return cfgs
+
+
+def run_plan(
+    runs: list[PlannedRun],
+    cfgs: list[RigConfig],
+    opts: Any,
+    stop: threading.Event,
+    emit: Callable[[dict[str, Any]], None],
+) -> list[dict[str, Any]]:
+    """Run the plan; ``emit`` gets each run's summary (with ``run`` and ``wall_s``) as soon as
+    it ends. Stops early on ``stop``; raises :class:`ControllerError` when the DSP does not
+    confirm a scenario reset (the runs so far were emitted)."""
+    from rt_controller.runtime.daemon import ControllerDaemon, open_links
+
+    out: list[dict[str, Any]] = []
+    try:
+        with open_links(cfgs[0], opts, stop) as (dsp, session):
+            for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
+                if stop.is_set():
+                    break
+                t0 = time.monotonic()
+                if i:
+                    try:
+                        dsp.reset_scenario(RESET_TIMEOUT_S)
+                    except HalError as exc:
+                        raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
+                run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)
+                summary = ControllerDaemon(cfg, run_opts, stop).run_on(dsp, session)
+                summary.update(run=run.name, wall_s=time.monotonic() - t0)
+                out.append(summary)
+                emit(summary)
+    except HalStopped:  # told to stop while waiting for zenoh: no run started
+        pass
+    return out
