@@ -257,18 +257,22 @@ class Rig:
     def stop(self) -> dict[str, int | None]:
         """SIGTERM every child still running (controller first, so torque goes off while the
         DSP still listens), SIGKILL after a timeout, then anything left in their group."""
-        order = {"controller": 0, "monitor": 1, "vision": 2, "emulator": 3}
         codes: dict[str, int | None] = {}
         with signals_deferred():
-            for c in sorted(self.children, key=lambda c: order.get(c.name, 9)):
-                if c.proc.poll() is None:
+            # the controller first and on its own; the others together (each stops alone)
+            first = [c for c in self.children if c.name == "controller"]
+            for group in (first, [c for c in self.children if c.name != "controller"]):
+                running = [c for c in group if c.proc.poll() is None]
+                for c in running:
                     c.proc.send_signal(signal.SIGTERM)
-                    try:
-                        c.proc.wait(STOP_TIMEOUT_S)
-                    except subprocess.TimeoutExpired:
-                        c.proc.kill()
-                        c.proc.wait()
-                codes[c.name] = c.proc.returncode
+                for c in group:
+                    if c in running:
+                        try:
+                            c.proc.wait(STOP_TIMEOUT_S)
+                        except subprocess.TimeoutExpired:
+                            c.proc.kill()
+                            c.proc.wait()
+                    codes[c.name] = c.proc.returncode
             if self.children:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.killpg(self.children[0].proc.pid, signal.SIGKILL)

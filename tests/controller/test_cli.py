@@ -112,3 +112,14 @@ def test_up_refuses_a_bad_wall_timeout(capsys):
         main(["up", "--wall-timeout", "-3"])
     assert exc.value.code == 2
     assert "--wall-timeout" in capsys.readouterr().err
+
+
+def test_a_rig_child_exits_at_once_with_its_output_and_status(tmp_path):
+    """``python -m rt_controller.cli`` (how the rig starts its children) skips the
+    interpreter's teardown: the summary printed to a pipe still arrives whole, and the exit
+    status is the command's, for success and for a refused command line."""
+    ok = run("simulate", "--duration", "0.2", "--json")
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(ok.stdout)["ticks"] == 10
+    bad = run("controller", "--plan", str(tmp_path / "none.json"), "--no-rt")
+    assert bad.returncode == 2 and "cannot read" in bad.stderr
