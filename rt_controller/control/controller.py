@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,6 +13,18 @@ from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
 from rt_controller.control.model import NominalModel
 from rt_controller.control.state_predictor import StatePredictor
+
+_isfinite = math.isfinite
+
+
+def finite2(v: np.ndarray) -> bool:
+    """Whether both entries of a 2-vector are finite (a scalar test: no array temporaries)."""
+    return _isfinite(v[0]) and _isfinite(v[1])
+
+
+def _floats(v: np.ndarray) -> np.ndarray:
+    """``v`` as a float64 array, without a copy when it is one already."""
+    return v if type(v) is np.ndarray and v.dtype == np.float64 else np.asarray(v, dtype=float)
 
 
 @dataclass(frozen=True)
@@ -70,7 +83,7 @@ class Controller:
 
         Without valid features (``f`` not finite) the tick holds: u = 0, tau = :meth:`hold_torque`.
         """
-        if not np.all(np.isfinite(f)):
+        if not finite2(f):
             m = Measurement(
                 t=t,
                 q=np.asarray(q, float),
@@ -80,13 +93,13 @@ class Controller:
             )
             tau = self.hold_torque(m.dq)
             return Command(m, LawOutput(u=np.zeros(2)), tau, tau, False)
-        q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
+        q, dq, f = _floats(q), _floats(dq), _floats(f)
         xi, tau_ff = model_kernels.prepare(self._p, q, dq, f)
         m = Measurement(t=t, q=q, dq=dq, f=f, xi=xi)
         out = self.law(m)
-        tau_raw = tau_ff + out.u  # eq. (11)
-        tau = np.clip(tau_raw, -self.tau_max, self.tau_max)
-        return Command(m, out, tau_raw, tau, bool(np.any(tau != tau_raw)))
+        u = out.u if type(out.u) is np.ndarray else np.asarray(out.u, dtype=float)
+        tau, tau_raw, saturated = model_kernels.torque(tau_ff, u, self.tau_max)  # eq. (11)
+        return Command(m, out, tau_raw, tau, saturated)
 
     def costs(self, cmd: Command) -> tuple[float, float]:
         """(l(x_k, u_k) of eq. 25, V(x_k) of eq. 13) for this tick."""
@@ -157,7 +170,7 @@ class Controller:
         if state_stale:
             return Decision(np.zeros(2), "no_state", None)
         state_age, feature_age = ages
-        usable = not f_stale and bool(np.all(np.isfinite(f)))
+        usable = not f_stale and finite2(f)
         if state_age > 0 or (usable and feature_age > 0):
             q, dq, f = self.predictor.compensate(
                 now_s, q, dq, f, state_age, feature_age if usable else 0.0
@@ -170,7 +183,7 @@ class Controller:
             self.law.reset()
             self._holding = False
         cmd = self.step(t, q, dq, f)
-        tau = cmd.tau if np.all(np.isfinite(cmd.tau)) else np.zeros(2)
+        tau = cmd.tau if finite2(cmd.tau) else np.zeros(2)
         m = cmd.measurement
         return Decision(tau, "control", cmd, (m.q, m.dq), m.f)
 

@@ -83,6 +83,24 @@ def prepare(p, q, dq, f):
 
 
 @njit(cache=True, fastmath=False)
+def torque(tau_ff, u, tau_max):
+    """(tau, tau_raw, saturated): tau_raw = tau_ff + u (eq. 11) and tau, tau_raw clipped to
+    +-tau_max per joint (a NaN stays NaN, as with ``np.clip``)."""
+    raw = tau_ff + u
+    tau = np.empty(2)
+    saturated = False
+    for j in range(2):
+        v = raw[j]
+        if v > tau_max[j]:
+            v = tau_max[j]
+        elif v < -tau_max[j]:
+            v = -tau_max[j]
+        tau[j] = v
+        saturated = saturated or v != raw[j]
+    return tau, raw, saturated
+
+
+@njit(cache=True, fastmath=False)
 def costs(p, q, xi, f, u):
     """(l, V): the stage cost of eq. (25) and the energy of eq. (13)."""
     l1, l2, kp, g = p[L1], p[L2], p[KP], p[GAIN]
