@@ -252,6 +252,71 @@ _FROM_SIGNALS: dict[str, Callable[[dict[str, Any]], Frame]] = {
 # ------------------------------------------------------------------------------- database
 
 
+class HeadPacker:
+    """Bytes 0..7 of one message <-> its physical signal values, compiled once from the DBC:
+    every signal is Intel byte order inside one 64-bit little-endian word, so a frame is one
+    integer, shifts and masks. Equal to cantools' ``encode(..., scaling=True)`` and
+    ``decode_simple(..., scaling=True, decode_choices=False)`` on these messages (the test
+    suite compares the two on random values), at a fraction of the cost on the 1 kHz path.
+
+    Encoding: raw = round((value - offset) / scale) for a scaled signal, round(value) for an
+    integer one; a raw value that does not fit its bits raises :class:`HalCodecError`.
+    Decoding: raw * scale + offset (a float) for a scaled signal, the raw int otherwise.
+    """
+
+    def __init__(self, message: DbcMessage) -> None:
+        self.name = message.name
+        enc, dec = [], []
+        for sig in message.signals:
+            kind = type(sig.conversion).__name__
+            if kind == "NamedSignalConversion":
+                kind = type(sig.conversion._conversion).__name__
+            if kind not in ("IdentityConversion", "LinearConversion"):
+                raise HalCodecError(f"{message.name}.{sig.name}: unsupported conversion {kind}")
+            if sig.byte_order != "little_endian" or sig.start + sig.length > 64:
+                raise HalCodecError(f"{message.name}.{sig.name}: not an Intel signal in bytes 0..7")
+            if getattr(sig.conversion, "is_float", False):
+                raise HalCodecError(f"{message.name}.{sig.name}: float signals are not supported")
+            mask = (1 << sig.length) - 1
+            lo, hi = (
+                (-(1 << (sig.length - 1)), (1 << (sig.length - 1)) - 1)
+                if sig.is_signed
+                else (0, mask)
+            )
+            linear = kind == "LinearConversion"
+            scale, offset = float(sig.scale), float(sig.offset)
+            enc.append((sig.name, sig.start, mask, lo, hi, linear, scale, offset))
+            sign = 1 << (sig.length - 1) if sig.is_signed else 0
+            dec.append((sig.name, sig.start, mask, sign, linear, scale, offset))
+        self._enc = tuple(enc)
+        self._dec = tuple(dec)
+
+    def encode(self, signals: dict[str, Any]) -> bytes:
+        """The 8 bytes of ``signals`` (every signal of the message must be given)."""
+        word = 0
+        for name, shift, mask, lo, hi, linear, scale, offset in self._enc:
+            value = signals[name]
+            try:
+                raw = round((value - offset) / scale) if linear else round(value)
+            except (TypeError, ValueError, OverflowError) as exc:
+                raise HalCodecError(f"cannot encode {self.name}.{name} = {value!r}") from exc
+            if not lo <= raw <= hi:
+                raise HalCodecError(f"{self.name}.{name}: raw value {raw} does not fit its bits")
+            word |= (raw & mask) << shift
+        return word.to_bytes(FRAME_LENGTH, "little")
+
+    def decode(self, data: bytes | bytearray) -> dict[str, Any]:
+        """The signals of the first 8 bytes of ``data``."""
+        word = int.from_bytes(data[:FRAME_LENGTH], "little")
+        out: dict[str, Any] = {}
+        for name, shift, mask, sign, linear, scale, offset in self._dec:
+            raw = (word >> shift) & mask
+            if raw & sign:
+                raw -= mask + 1
+            out[name] = raw * scale + offset if linear else raw
+        return out
+
+
 @dataclass(frozen=True)
 class MessageSpec:
     """One DBC message with what the codec needs at run time."""
@@ -274,6 +339,11 @@ class MessageSpec:
             senders=m.senders,
             strict=False,
         )
+
+    @functools.cached_property
+    def packer(self) -> HeadPacker:
+        """:attr:`head` compiled for the run-time path (:class:`HeadPacker`)."""
+        return HeadPacker(self.head)
 
     @property
     def name(self) -> str:
@@ -466,11 +536,7 @@ class CanEndpoint:
                 raise HalCodecError(f"{name}.{sig} = {value!r} is beyond the frame's [{lo}, {hi}]")
             signals[sig] = lo if value < lo else hi if value > hi else value
         signals["CRC"] = signals["Counter"] = 0
-        try:
-            encoded = spec.head.encode(signals, scaling=True, strict=False)
-        except Exception as exc:  # cantools EncodeError, bitstruct errors
-            raise HalCodecError(f"cannot encode {name}: {exc}") from exc
-        head = self._sender.protect(spec.data_id, bytearray(encoded[:FRAME_LENGTH]))
+        head = self._sender.protect(spec.data_id, bytearray(spec.packer.encode(signals)))
         return can.Message(
             arbitration_id=spec.frame_id,
             is_extended_id=False,
@@ -493,10 +559,7 @@ class CanEndpoint:
             if self.receiver.check(msg, now) is not Verdict.OK:
                 return None
             spec = self._rx[msg.arbitration_id]
-            signals = spec.head.decode_simple(
-                bytes(msg.data[:FRAME_LENGTH]), decode_choices=False, scaling=True
-            )
-            frame = _FROM_SIGNALS[spec.name](signals)
+            frame = _FROM_SIGNALS[spec.name](spec.packer.decode(msg.data))
         except Exception:  # a bad frame must never escape the receive path
             stats.record(Verdict.DECODE_ERROR)
             return None

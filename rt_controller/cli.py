@@ -59,13 +59,15 @@ def exit_now(status: int) -> None:
     """End the process with ``status`` without the interpreter's teardown, which costs a rig
     child about 0.2 s (numba's LLVM) after its work is done: stdio is flushed and the atexit
     handlers run first; every file, bus and session was closed by the command itself. With a
-    non-daemon thread still running, the normal exit (which waits for it) is taken instead."""
+    non-daemon thread still running, or under a profiler or tracer (``-m cProfile``, coverage:
+    they write their results at the normal exit), the normal exit is taken instead."""
     import atexit
     import contextlib
     import os
     import threading
 
-    if any(t.is_alive() and not t.daemon for t in threading.enumerate()[1:]):
+    watched = sys.getprofile() is not None or sys.gettrace() is not None
+    if watched or any(t.is_alive() and not t.daemon for t in threading.enumerate()[1:]):
         sys.exit(status)
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
