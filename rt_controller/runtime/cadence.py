@@ -8,8 +8,13 @@ cadence with a fake clock and never sleep.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
+
+Idle = Callable[[int], None]
+"""Work to do while waiting for a release: called with an absolute time (ns) it must return
+by (e.g. block on the input sockets until then and decode what arrives)."""
 
 
 class Clock(Protocol):
@@ -17,7 +22,7 @@ class Clock(Protocol):
 
     def now_ns(self) -> int: ...
 
-    def sleep_until(self, deadline_ns: int) -> None: ...
+    def sleep_until(self, deadline_ns: int, idle: Idle | None = None) -> None: ...
 
 
 class MonotonicClock:
@@ -31,10 +36,17 @@ class MonotonicClock:
     def now_ns(self) -> int:
         return time.monotonic_ns()
 
-    def sleep_until(self, deadline_ns: int) -> None:
-        remaining = deadline_ns - time.monotonic_ns() - self.spin_ns
-        if remaining > 0:
-            time.sleep(remaining / 1e9)
+    def sleep_until(self, deadline_ns: int, idle: Idle | None = None) -> None:
+        """Wait until ``deadline_ns``: sleep (or run ``idle`` repeatedly) until the spin
+        window, then spin."""
+        wake = deadline_ns - self.spin_ns
+        if idle is None:
+            remaining = wake - time.monotonic_ns()
+            if remaining > 0:
+                time.sleep(remaining / 1e9)
+        else:
+            while time.monotonic_ns() < wake:
+                idle(wake)
         t0 = now = time.monotonic_ns()
         while now < deadline_ns:
             now = time.monotonic_ns()
@@ -51,7 +63,8 @@ class FakeClock:
     def now_ns(self) -> int:
         return self.t
 
-    def sleep_until(self, deadline_ns: int) -> None:
+    def sleep_until(self, deadline_ns: int, idle: Idle | None = None) -> None:
+        """Jump to the deadline (``idle`` is not run: nothing arrives in no time)."""
         if deadline_ns > self.t:
             self.t = deadline_ns + self.wake_latency_ns
 
@@ -89,8 +102,9 @@ class Cadence:
         self._next = 0
         self.missed_total = 0
 
-    def wait(self) -> Tick:
-        """Sleep until the next release; skip releases that already lie a period in the past."""
+    def wait(self, idle: Idle | None = None) -> Tick:
+        """Sleep until the next release (running ``idle`` meanwhile, see :data:`Idle`); skip
+        releases that already lie a period in the past."""
         k = self._next
         release = self.start_ns + k * self.period_ns
         now = self.clock.now_ns()
@@ -100,7 +114,10 @@ class Cadence:
             k += missed
             release += missed * self.period_ns
             self.missed_total += missed
-        self.clock.sleep_until(release)
+        if idle is None:
+            self.clock.sleep_until(release)
+        else:
+            self.clock.sleep_until(release, idle)
         self._next = k + 1
         return Tick(k, release, self.clock.now_ns(), missed)
 

@@ -133,3 +133,25 @@ def test_the_loops_switch_interval_is_set_inside_and_restored_even_on_error():
         assert sys.getswitchinterval() == pytest.approx(0.0002)
         raise RuntimeError("the loop failed")
     assert sys.getswitchinterval() == was
+
+
+def test_the_wait_for_a_release_runs_the_idle_work_until_the_spin_window():
+    """MonotonicClock with ``idle``: called (with the spin window's start) until that time has
+    come, then the rest is spun; the release is never before the deadline. Cadence passes it."""
+    import time
+
+    clock = MonotonicClock(spin_ns=200_000)
+    calls: list[int] = []
+
+    def idle(until_ns: int) -> None:
+        calls.append(until_ns)
+        time.sleep(max(0, until_ns - time.monotonic_ns()) / 2e9)  # returns early: called again
+
+    deadline = time.monotonic_ns() + 5_000_000
+    clock.sleep_until(deadline, idle)
+    assert time.monotonic_ns() >= deadline
+    assert calls and set(calls) == {deadline - 200_000}
+    cadence = Cadence(2_000_000, clock)
+    seen: list[int] = []
+    tick = cadence.wait(seen.append)
+    assert seen and set(seen) == {tick.release_ns - 200_000} and tick.wake_ns >= tick.release_ns
