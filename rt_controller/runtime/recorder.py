@@ -47,6 +47,7 @@ import logging
 import math
 import os
 import platform
+import queue
 import socket
 import sys
 import threading
@@ -242,8 +243,9 @@ class CycleRecorder:
     burst_s = 200e-6
     #: Writer's sleep between bursts when more work is waiting.
     yield_s = 100e-6
-    #: Writer's poll period when the queue is empty.
-    poll_s = 2e-3
+    #: Longest idle wait of the writer (it also wakes for each cycle record, for ``close`` and
+    #: for the periodic flush).
+    poll_s = 0.1
 
     def __init__(
         self,
@@ -265,6 +267,10 @@ class CycleRecorder:
         self.flush_interval_s = float(flush_interval_s)
         self.queue_size = int(queue_size)
         self._q: collections.deque[tuple[int, int, Any, Any]] = collections.deque()
+        self._wake: queue.SimpleQueue[None] = queue.SimpleQueue()
+        """Wakes the writer: a token per cycle or diagnostics record (the end of a tick: the
+        writer never wakes in the middle of one to take the GIL from it) and on ``close``
+        (``SimpleQueue.put`` is reentrant, safe from a signal handler)."""
         self._closed = False  # hot path refuses records once set
         self._stop = False  # writer drains, finishes the file and exits once set
         self._dropped = 0
@@ -345,6 +351,7 @@ class CycleRecorder:
             return False
         t_ns = record.get("t_ns")
         q.append((_CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record, None))
+        self._wake.put(None)
         return True
 
     def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
@@ -355,6 +362,7 @@ class CycleRecorder:
             self._dropped += 1
             return False
         q.append((_DIAG, int(record["t_ns"]), record, None))
+        self._wake.put(None)
         return True
 
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
@@ -477,6 +485,16 @@ class CycleRecorder:
                 break
         return n
 
+    def _idle(self, next_flush: float) -> None:
+        """Wait for a wake token (a tick ended, or ``close``), at most until the next flush."""
+        wait = min(max(0.0, next_flush - time.monotonic()), self.poll_s)
+        try:
+            self._wake.get(timeout=wait)
+            while True:  # several ticks may have ended: one pass drains them all
+                self._wake.get_nowait()
+        except queue.Empty:
+            pass
+
     def _run(self) -> None:
         _demote_current_thread()
         next_flush = time.monotonic() + self.flush_interval_s
@@ -498,7 +516,10 @@ class CycleRecorder:
                         reported_drops = self._dropped
                 if stopping and not self._q:
                     break
-                time.sleep(self.yield_s if self._q else self.poll_s)
+                if self._q:
+                    time.sleep(self.yield_s)  # more work: let the control thread run first
+                else:
+                    self._idle(next_flush)
             self._writer.add_metadata(
                 RECORDER_METADATA, {k: str(v) for k, v in self.as_dict().items()}
             )
@@ -528,6 +549,7 @@ class CycleRecorder:
         """
         self._closed = True
         self._stop = True
+        self._wake.put(None)
         thread = self._thread
         if thread is not threading.current_thread() and thread.is_alive():
             thread.join(timeout)
