@@ -56,6 +56,8 @@ LOCKSTEP_SYNC_TIMEOUT_S = 2.0
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
 LIVE_DRAIN_TIMEOUT_S = 1.0
 """After the loop: how long the live stream may wait for the recorder's queue to drain."""
+PREFETCH_GUARD_NS = 1_000_000
+"""Realtime: the read-ahead while waiting for a release stops this long before the spin window."""
 ENABLE_TIMEOUT_S = 5.0
 """How long the daemon waits for the DSP to report *operation enabled* after ENABLE."""
 
@@ -610,16 +612,22 @@ class ControllerDaemon:
         them decoded instead of decoding them after its release, when the interpreter's code
         has gone cold over the period (a two-frame decode takes 15 us warm, about 150 us after
         20 ms of sleep on a 2-core VM). Arrival stamps are unchanged: CAN frames carry the
-        kernel's receive time; features are stamped when taken, now sooner. None with a fake
-        clock (its waits take no time)."""
+        kernel's receive time; features are stamped when taken, now sooner. No decode starts
+        within ``PREFETCH_GUARD_NS`` (at most a quarter period) of the spin window: one that ran
+        cold past it would make the release late. None with a fake clock (its waits take no
+        time)."""
         if not self._real_clock:
             return None
+        guard_ns = min(PREFETCH_GUARD_NS, self.period_ns // 4)
 
         def idle(until_ns: int) -> None:
             now = self.clock.now_ns()
-            if until_ns > now:
-                dsp.wait_readable((until_ns - now) / 1e9)
-            self.read_inputs(dsp, self.clock.now_ns())
+            stop_ns = until_ns - guard_ns
+            if now >= stop_ns:  # too close to the release to start a (cold) decode
+                time.sleep(max(0, until_ns - now) / 1e9)
+                return
+            if dsp.wait_readable((stop_ns - now) / 1e9):
+                self.read_inputs(dsp, self.clock.now_ns())
 
         return idle
 
