@@ -202,15 +202,21 @@ class ControllerConfig:
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
     gil_switch_us: float = 200.0
-    """The interpreter's switch interval inside the loop (``sys.setswitchinterval``). The tick
-    shares the GIL with the MCAP writer thread; every socket call of the tick releases it,
-    and taking it back waits up to this long for the writer to let go (Python's default is
+    """The interpreter's switch interval inside the loop (``sys.setswitchinterval``). With
+    ``recorder = "thread"`` the tick shares the GIL with the MCAP writer thread; every socket
+    call of the tick releases it, and taking it back waits up to this long for the writer to
+    let go (Python's default is
     5000 us: a 500 Hz run's write phase once took 11 ms and tripped the 6 ms watchdog)."""
     rt_priority: int = 80
     """SCHED_FIFO priority (best effort)."""
     cpu: int = -1
     """CPU to pin the loop to; -1 = leave affinity alone."""
     log_dir: str = "logs"
+    recorder: str = "process"
+    """Where the MCAP log is encoded and written: ``process`` (a child process of its own; the
+    control process then runs no other Python thread, and a lockstep tick waits for a busy
+    recorder instead of dropping records) or ``thread`` (a writer thread of the controller
+    process, which shares the interpreter lock with the tick)."""
     max_clock_skew_s: float = 0.005
     """A feature message stamped further than this in the future (receive clock) is rejected
     (``future_stamp``): its age would come out negative and defeat the stale check."""
@@ -548,6 +554,11 @@ def validate(cfg: RigConfig) -> RigConfig:
         ct.clock in ("realtime", "lockstep"),
         "controller.clock",
         f"must be realtime or lockstep, not {ct.clock!r}",
+    )
+    _require(
+        ct.recorder in ("process", "thread"),
+        "controller.recorder",
+        f"must be process or thread, not {ct.recorder!r}",
     )
     _require(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
     _require(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")

@@ -7,6 +7,13 @@ packages meet).
 
 from __future__ import annotations
 
+import os
+
+# One BLAS thread (before numpy is imported): the control law's matrices are tiny, and a
+# process with a single OS thread can fork the MCAP recorder's process at once
+# (runtime/recorder_process.py) instead of spawning an interpreter.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import sys
 from collections.abc import Callable, Sequence

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from hal.config import RigConfig, load_config
+from tests.support.proc import alive, children_of
 
 LEAK_GRACE_S = 3.0
 
@@ -34,21 +35,7 @@ _session_rig_key()
 
 
 def _child_pids() -> set[int]:
-    pids: set[int] = set()
-    for task in Path(f"/proc/{os.getpid()}/task").glob("*/children"):
-        try:
-            pids.update(int(p) for p in task.read_text().split())
-        except OSError:
-            continue
-    return {p for p in pids if _alive(p)}
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state != "Z"
+    return {p for p in children_of(os.getpid()) if alive(p)}
 
 
 def _open_buses() -> list[str]:

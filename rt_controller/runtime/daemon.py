@@ -45,6 +45,7 @@ from rt_controller.runtime.cadence import Cadence, Clock, Idle, MonotonicClock, 
 from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
 from rt_controller.runtime.realtime import GcPaused, GilSwitchInterval, apply_realtime
 from rt_controller.runtime.recorder import CycleRecorder
+from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
 from rt_controller.sample_stats import percentile
 
 STARTUP_TIMEOUT_S = 20.0
@@ -78,7 +79,8 @@ class DaemonOptions:
     """Also record every CAN frame and vision payload as received."""
     live: bool = True
     """Publish every cycle and diagnostics record on zenoh (``hil/controller/cycle``,
-    ``hil/controller/diagnostics``) from the recorder's writer thread, for ``hil monitor``."""
+    ``hil/controller/diagnostics``) from the recorder (its process, or its writer thread), for
+    ``hil monitor``."""
     scene: bool = True
     """Draw the arm into the MCAP (Foxglove scene topics, :mod:`rt_controller.monitor.scene`)."""
     clock: Clock | None = None
@@ -165,6 +167,8 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         out.append(f"{lost} log record(s) lost")
     if rec.get("encode_errors"):
         out.append(f"{rec['encode_errors']} log record(s) could not be encoded")
+    if summary.get("log_error"):
+        out.append(f"the MCAP log is incomplete: {summary['log_error']}")
     if summary.get("watchdog_trips"):
         out.append(f"{summary['watchdog_trips']} DSP watchdog trip(s)")
     faults = {k: v for k, v in (summary.get("dsp_faults") or {}).items() if k != "watchdog"}
@@ -228,7 +232,20 @@ def _live_publisher(session: Any) -> Any:
         return None
 
 
-def _wait_drained(rec: CycleRecorder, timeout_s: float) -> None:
+Recorder = CycleRecorder | RemoteRecorder
+"""Either recorder (``controller.recorder``: a thread of this process, or its own process)."""
+
+
+def recorder_service(cfg: RigConfig, opts: DaemonOptions) -> contextlib.AbstractContextManager:
+    """The recorder's child process for ``controller.recorder = "process"`` (start it before
+    the links: while this process has a single thread the child is forked, which is instant);
+    a context giving None for ``"thread"``."""
+    if cfg.controller.recorder != "process":
+        return contextlib.nullcontext(None)
+    return RecorderService(cfg, zenoh_endpoint=opts.zenoh_endpoint, zenoh_config=opts.zenoh_config)
+
+
+def _wait_drained(rec: Recorder, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while rec.pending and time.monotonic() < deadline:
         time.sleep(0.002)
@@ -269,7 +286,7 @@ class ControllerDaemon:
         )
         self._real_clock = options.clock is None
         self._ring: PayloadRing | None = None
-        self._rec: CycleRecorder | None = None
+        self._rec: Recorder | None = None
         self._diag_every = max(1, round(cfg.rates.control_hz))
         self._final_diagnostics: dict[str, Any] | None = None
         self.controller = Controller(cfg)
@@ -296,50 +313,63 @@ class ControllerDaemon:
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
 
     # --- wiring -----------------------------------------------------------------------------
-    def _open_recorder(self) -> CycleRecorder:
+    def _open_recorder(self, service: RecorderService | None) -> Recorder:
+        """This run's log: in the recorder's process when there is a ``service``, else a
+        writer thread here."""
         cfg, opts = self.cfg, self.opts
-        return CycleRecorder(
-            self.log_path,
-            cfg,
-            run_info={
-                "clock": "lockstep" if opts.lockstep else "realtime",
-                "can": opts.can or cfg.transport.can,
-                "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
-            },
-            scene=_scene_builder(cfg) if opts.scene else None,
-        )
+        run_info = {
+            "clock": "lockstep" if opts.lockstep else "realtime",
+            "can": opts.can or cfg.transport.can,
+            "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
+            "recorder": "thread" if service is None else f"process ({service.start_method})",
+        }
+        if service is not None:  # lockstep has no deadline: the tick waits for a busy recorder
+            return service.open(
+                self.log_path, cfg, run_info=run_info, scene=opts.scene, backpressure=opts.lockstep
+            )
+        scene = _scene_builder(cfg) if opts.scene else None
+        return CycleRecorder(self.log_path, cfg, run_info=run_info, scene=scene)
 
     def run(self) -> dict[str, Any]:
-        """Open the links, run until stopped; the summary. The recorder is finished on every
-        exit."""
-        rec = self._open_recorder()
-        try:
-            with open_links(self.cfg, self.opts, self.stop) as (dsp, session):
-                self._run_with(dsp, session, rec)
-        except HalStopped:  # told to stop while waiting for zenoh
-            self.stats.stopped_before_arming = True
-        finally:
-            rec.close()
+        """Open the recorder and the links, run until stopped; the summary. The recorder is
+        finished on every exit."""
+        with recorder_service(self.cfg, self.opts) as service:
+            rec = self._open_recorder(service)
+            try:
+                with open_links(self.cfg, self.opts, self.stop) as (dsp, session):
+                    self._run_with(dsp, session, rec)
+            except HalStopped:  # told to stop while waiting for zenoh
+                self.stats.stopped_before_arming = True
+            finally:
+                rec.close()
         return self._summary(rec)
 
-    def run_on(self, dsp: JointClient, session: ZenohSession) -> dict[str, Any]:
-        """One run on links that outlive it (``hil controller --plan``: a poll-mode client and
-        an open session); the summary. Leaves both as it found them."""
-        rec = self._open_recorder()
+    def run_on(
+        self, dsp: JointClient, session: ZenohSession, service: RecorderService | None = None
+    ) -> dict[str, Any]:
+        """One run on links that outlive it (``hil controller --plan``: a poll-mode client, an
+        open session and the plan's recorder process, if any); the summary. Leaves them as it
+        found them."""
+        rec = self._open_recorder(service)
         try:
             self._run_with(dsp, session, rec)
         finally:
             rec.close()
         return self._summary(rec)
 
-    def _run_with(self, dsp: JointClient, session: ZenohSession, rec: CycleRecorder) -> None:
+    def _run_with(self, dsp: JointClient, session: ZenohSession, rec: Recorder) -> None:
         """The run on open links: recorder hooks, the feature subscription, the loop."""
         self._rec = rec
         hooks = self._raw_hooks(rec)
         dsp.frame_hook, dsp.tx_hook = hooks.get("frame_hook"), hooks.get("tx_hook")
         self._can_base = diagnostics.counters(dsp.stats.e2e)
-        live = _live_publisher(session) if self.opts.live else None
-        rec.set_live(live)
+        live = None
+        if isinstance(rec, RemoteRecorder):
+            if self.opts.live:  # published by the recorder's process, on its own session
+                rec.stream_live()
+        else:
+            live = _live_publisher(session) if self.opts.live else None
+            rec.set_live(live)
         subscriber = None
         try:
             if self.opts.lockstep:  # the tick waits for its pose's answer: a callback feeds
@@ -350,8 +380,7 @@ class ControllerDaemon:
         finally:
             if live is not None:  # let the last records (final diagnostics) go out
                 _wait_drained(rec, LIVE_DRAIN_TIMEOUT_S)
-            rec.set_live(None)
-            if live is not None:
+                rec.set_live(None)
                 live.close()
             if self._ring is not None:
                 self._ring.close()
@@ -361,10 +390,12 @@ class ControllerDaemon:
                     subscriber.undeclare()
             dsp.frame_hook = dsp.tx_hook = None
 
-    def _summary(self, rec: CycleRecorder) -> dict[str, Any]:
+    def _summary(self, rec: Recorder) -> dict[str, Any]:
         rec.close()
         out = self.stats.as_dict()
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.as_dict())
+        if rec.error is not None:
+            out["log_error"] = str(rec.error)
         final = self._final_diagnostics or {}
         out["rejections"] = {
             "can_rx": diagnostics.values_of(final, "can_rx"),
@@ -376,7 +407,7 @@ class ControllerDaemon:
         out["problems"] = run_problems(out)
         return out
 
-    def _raw_hooks(self, rec: CycleRecorder) -> dict[str, Any]:
+    def _raw_hooks(self, rec: Recorder) -> dict[str, Any]:
         """Record every CAN frame as received and sent (stamped with the loop's clock)."""
         if not self.opts.record_raw:
             return {}
@@ -397,7 +428,7 @@ class ControllerDaemon:
                 if rec is not None:
                     rec.record_vision(payload, now_ns)
 
-    def _on_features(self, rec: CycleRecorder):
+    def _on_features(self, rec: Recorder):
         feed, record, raw = self.features.feed, rec.record_vision, self.opts.record_raw
 
         def on_payload(payload: bytes) -> None:
@@ -482,7 +513,7 @@ class ControllerDaemon:
         return None
 
     # --- the loop ---------------------------------------------------------------------------
-    def _loop(self, dsp: JointClient, rec: CycleRecorder) -> None:
+    def _loop(self, dsp: JointClient, rec: Recorder) -> None:
         cfg = self.cfg
         self._warm_up()
         self._wait_ready(dsp)
@@ -515,12 +546,12 @@ class ControllerDaemon:
             rec.record_diagnostics(self._final_diagnostics, final=True)
 
     # --- diagnostics ------------------------------------------------------------------------
-    def _maybe_diagnostics(self, dsp: JointClient, rec: CycleRecorder) -> None:
+    def _maybe_diagnostics(self, dsp: JointClient, rec: Recorder) -> None:
         """About once a second (every ``control_hz`` ticks), after the tick's write."""
         if self.stats.ticks % self._diag_every == 0:
             rec.record_diagnostics(self.diagnostics(dsp, rec))
 
-    def diagnostics(self, dsp: JointClient, rec: CycleRecorder, final: bool = False) -> dict:
+    def diagnostics(self, dsp: JointClient, rec: Recorder, final: bool = False) -> dict:
         """The ``/diagnostics`` record of this moment (:mod:`rt_controller.runtime.diagnostics`)."""
         st = self.stats
         status = dsp.status
@@ -564,7 +595,7 @@ class ControllerDaemon:
         the loop): see :func:`rt_controller.control.controller.warm_up`."""
         warm_up(self.controller, self.cfg)
 
-    def _run_realtime(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
+    def _run_realtime(self, dsp: JointClient, rec: Recorder, max_ticks: int | None) -> None:
         cadence = Cadence(self.period_ns, self.clock)
         try:
             first = self._arm_on_cadence(dsp, cadence)
@@ -577,7 +608,7 @@ class ControllerDaemon:
     def _cadence_loop(
         self,
         dsp: JointClient,
-        rec: CycleRecorder,
+        rec: Recorder,
         max_ticks: int | None,
         cadence: Cadence,
         first: Tick,
@@ -657,7 +688,7 @@ class ControllerDaemon:
                 self.clock.sleep_until(min(deadline_ns, now + STATE_POLL_NS))
             self.read_inputs(dsp, self.clock.now_ns())
 
-    def _run_lockstep(self, dsp: JointClient, rec: CycleRecorder, max_ticks: int | None) -> None:
+    def _run_lockstep(self, dsp: JointClient, rec: Recorder, max_ticks: int | None) -> None:
         last = None
         while not self.stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
             try:
@@ -677,9 +708,10 @@ class ControllerDaemon:
             self._tick(dsp, k, wake, 0, missed, k * self.period_ns / 1e9, sync=k)
             self._record(dsp, rec)
 
-    def _record(self, dsp: JointClient, rec: CycleRecorder) -> None:
-        """The record phase: hand the finished cycle to the recorder (queued, encoded by its
-        own thread) and, about once a second, the diagnostics."""
+    def _record(self, dsp: JointClient, rec: Recorder) -> None:
+        """The record phase: hand the finished cycle to the recorder (with the tick's raw
+        frames: pickled into its pipe, or queued for its thread) and, about once a second, the
+        diagnostics."""
         rec.record_cycle(self._last_record)
         self._maybe_diagnostics(dsp, rec)
 

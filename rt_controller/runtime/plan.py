@@ -144,11 +144,15 @@ def run_plan(
     """Run the plan; ``emit`` gets each run's summary (with ``run`` and ``wall_s``) as soon as
     it ends. Stops early on ``stop``; raises :class:`ControllerError` when the DSP does not
     confirm a scenario reset (the runs so far were emitted)."""
-    from rt_controller.runtime.daemon import ControllerDaemon, open_links
+    from rt_controller.runtime.daemon import ControllerDaemon, open_links, recorder_service
 
     out: list[dict[str, Any]] = []
     try:
-        with open_links(cfgs[0], opts, stop) as (dsp, session):
+        wants = [c for c in cfgs if c.controller.recorder == "process"]
+        with (
+            recorder_service(wants[0] if wants else cfgs[0], opts) as service,
+            open_links(cfgs[0], opts, stop) as (dsp, session),
+        ):
             for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
                 if stop.is_set():
                     break
@@ -159,7 +163,9 @@ def run_plan(
                     except HalError as exc:
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
                 run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)
-                summary = ControllerDaemon(cfg, run_opts, stop).run_on(dsp, session)
+                daemon = ControllerDaemon(cfg, run_opts, stop)
+                own = service if cfg.controller.recorder == "process" else None
+                summary = daemon.run_on(dsp, session, own)
                 summary.update(run=run.name, wall_s=time.monotonic() - t0)
                 out.append(summary)
                 emit(summary)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import signal
 import time
 from pathlib import Path
@@ -28,6 +29,7 @@ from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.processes import Child, Rig, RigOptions
 from tests.support import cycles_logged, free_endpoint
+from tests.support.proc import children_of
 
 pytestmark = pytest.mark.integration
 
@@ -202,3 +204,26 @@ def _feature(fields: tuple):
     from hal.vision_codec import FeatureMsg
 
     return FeatureMsg(*fields)
+
+
+def test_a_killed_recorder_process_never_stops_the_loop_and_the_run_fails(tmp_path):
+    """The recorder's process dies mid-run: the loop keeps the arm under control (no watchdog
+    trip, no tick without an enabled DSP), the log keeps what was written, and the controller
+    exits 1 saying the log is incomplete."""
+    opts, log = _opts(tmp_path, duration_s=300.0)
+    with Rig(opts) as rig:
+        rig.start()
+        _wait_cycles(log, 50, rig)
+        controller = _child(rig, "controller")
+        recorders = children_of(controller.proc.pid)
+        assert len(recorders) == 1, recorders  # the recorder's own process
+        os.kill(recorders[0], signal.SIGKILL)
+        time.sleep(2.0)  # the loop runs on without its recorder (no verdict depends on this)
+        controller.proc.send_signal(signal.SIGTERM)
+        rc, summary, err = _controller_result(rig)
+    assert rc == 1, err
+    assert "the MCAP log is incomplete" in err.strip().splitlines()[-1], err
+    assert "recorder process" in summary["log_error"], summary
+    assert summary["watchdog_trips"] == 0 and summary["drive_ticks"] == {}, summary
+    kept = read_log(log, raw=False)
+    assert kept.truncated and 50 <= kept.n_cycles < summary["ticks"]

@@ -1,0 +1,202 @@
+"""The MCAP recorder in its own process: the same log as the writer thread, counted drops that
+never block a realtime tick, backpressure for lockstep, and the failures of either process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import can
+import pytest
+
+from rt_controller.errors import LogError
+from rt_controller.logtools.reader import read_log
+from rt_controller.runtime.daemon import run_problems
+from rt_controller.runtime.recorder import CycleRecorder
+from rt_controller.runtime.recorder_process import RecorderService
+from tests.controller.test_recorder import cycle
+from tests.support.proc import alive
+
+FRAME = can.Message(arbitration_id=0x123, data=bytes(range(8)), is_extended_id=False)
+
+
+def _feed(rec, n: int, start: int = 0) -> None:
+    """What a tick records: a received and a sent frame, a vision payload, the cycle."""
+    for i in range(start, start + n):
+        c = cycle(i)
+        rec.record_can(FRAME, c["t_ns"] + 1, "rx")
+        rec.record_can(FRAME, c["t_ns"] + 2, "tx")
+        rec.record_vision(b"\x00payload" + bytes([i % 256]), c["t_ns"] + 3)
+        rec.record_cycle(c)
+    rec.record_diagnostics({"t_ns": 7, "tick": n, "status": []}, final=True)
+
+
+def _contents(path: Path) -> str:
+    """Everything read back, as JSON text (NaN compares equal there)."""
+    log = read_log(path)
+    assert not log.truncated and log.notes == []
+    return json.dumps(
+        {
+            "cycles": {k: v.tolist() for k, v in log.cycles.items()},
+            "can_rx": log.can_rx,
+            "can_tx": log.can_tx,
+            "vision": log.vision,
+            "diagnostics": log.diagnostics,
+            "counts": log.topic_counts,
+        },
+        sort_keys=True,
+    )
+
+
+def test_the_process_writes_the_log_the_thread_writes(tmp_path, cfg):
+    with CycleRecorder(tmp_path / "thread.mcap", cfg) as rec:
+        _feed(rec, 300)
+    with RecorderService(cfg, start="spawn") as service:
+        assert service.start_method == "spawn"
+        remote = service.open(tmp_path / "process.mcap", cfg, run_info={"law": "rhc"})
+        _feed(remote, 300)
+        remote.close()
+    assert remote.finished and remote.error is None
+    assert remote.as_dict() == rec.as_dict()  # every topic, written, dropped, pending
+    assert _contents(tmp_path / "process.mcap") == _contents(tmp_path / "thread.mcap")
+    info = read_log(tmp_path / "process.mcap").run_info
+    assert info["law"] == "rhc" and info["pid"] == str(os.getpid())  # the controller's, not its
+
+
+def test_one_process_serves_the_logs_of_a_plan(tmp_path, cfg):
+    with RecorderService(cfg, start="spawn") as service:
+        for k in range(3):
+            rec = service.open(tmp_path / f"run{k}.mcap", cfg)
+            _feed(rec, 10 * (k + 1))
+            rec.close()
+            assert rec.as_dict()["/controller/cycle"] == 10 * (k + 1)
+        pid = service.pid
+    assert not alive(pid)
+    assert [read_log(tmp_path / f"run{k}.mcap").n_cycles for k in range(3)] == [10, 20, 30]
+
+
+def test_a_bad_log_path_is_a_clear_error_and_the_process_stays_usable(tmp_path, cfg):
+    (tmp_path / "file").write_text("not a folder")
+    with RecorderService(cfg, start="spawn") as service:
+        with pytest.raises(LogError, match="cannot create MCAP log"):
+            service.open(tmp_path / "file" / "run.mcap", cfg)
+        rec = service.open(tmp_path / "ok.mcap", cfg)
+        _feed(rec, 5)
+        rec.close()
+    assert read_log(tmp_path / "ok.mcap").n_cycles == 5
+
+
+def test_a_stalled_recorder_costs_a_realtime_tick_counted_drops_never_a_wait(tmp_path, cfg):
+    with RecorderService(cfg, start="spawn") as service:
+        service.outbox_limit = 4096
+        rec = service.open(tmp_path / "run.mcap", cfg, backpressure=False)
+        os.kill(service.pid, signal.SIGSTOP)  # the recorder gets no CPU
+        try:
+            kept = sum(rec.record_cycle(cycle(i)) for i in range(20_000))
+        finally:
+            os.kill(service.pid, signal.SIGCONT)
+        dropped = 20_000 - kept
+        assert dropped > 0  # the pipe and the outbox filled up: later ticks were dropped
+        rec.close()
+    counts = rec.as_dict()
+    assert counts["dropped"] == dropped and counts["pending"] == 0
+    assert counts["/controller/cycle"] == kept == read_log(tmp_path / "run.mcap").n_cycles
+    assert run_problems({"recorder": counts}) == [f"{dropped} log record(s) lost"]
+
+
+def test_a_stalled_recorder_makes_a_lockstep_tick_wait_and_loses_nothing(tmp_path, cfg):
+    with RecorderService(cfg, start="spawn") as service:
+        service.outbox_limit = 4096
+        rec = service.open(tmp_path / "run.mcap", cfg, backpressure=True)
+        os.kill(service.pid, signal.SIGSTOP)
+        resume = threading.Timer(0.3, os.kill, (service.pid, signal.SIGCONT))
+        resume.start()
+        try:
+            assert all(rec.record_cycle(cycle(i)) for i in range(20_000))
+        finally:
+            resume.join()
+        rec.close()
+    assert rec.as_dict()["dropped"] == 0 and rec.as_dict()["/controller/cycle"] == 20_000
+    assert read_log(tmp_path / "run.mcap").n_cycles == 20_000
+
+
+def test_a_killed_recorder_is_reported_and_never_stops_the_loop(tmp_path, cfg):
+    with RecorderService(cfg, start="spawn") as service:
+        rec = service.open(tmp_path / "run.mcap", cfg)
+        _feed(rec, 50)
+        os.kill(service.pid, signal.SIGKILL)
+        # the loop goes on; a record is refused once the pipe reports the loss (the kernel
+        # closes a killed process's pipes when its last thread has exited)
+        i = 50
+        while rec.record_cycle(cycle(i)) and i < 100_000:
+            i += 1
+            time.sleep(0.001)
+        sent = [rec.record_cycle(cycle(j)) for j in range(i, i + 10)]
+        rec.close(timeout=5)
+    assert not any(sent)  # nothing is queued in vain after that
+    assert rec.dropped == 11  # the refused records are counted
+    assert "recorder process" in rec.error and not rec.finished
+    with pytest.raises(LogError, match="incomplete"), rec:
+        pass
+    summary = {"recorder": rec.as_dict(), "log_error": rec.error}
+    assert any("MCAP log is incomplete" in p for p in run_problems(summary))
+
+
+def test_the_recorder_ignores_ctrl_c_and_the_controller_ends_the_log(tmp_path, cfg):
+    with RecorderService(cfg, start="spawn") as service:
+        rec = service.open(tmp_path / "run.mcap", cfg)
+        _feed(rec, 10)
+        time.sleep(0.2)  # let the child install its handlers (no assertion on timing)
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            os.kill(service.pid, sig)
+        _feed(rec, 10, start=10)
+        rec.close()
+    assert rec.error is None and read_log(tmp_path / "run.mcap").n_cycles == 20
+
+
+_KILLED_CONTROLLER = textwrap.dedent(
+    """
+    import os, signal, sys
+    from hal.config import RigConfig
+    from rt_controller.runtime.recorder_process import RecorderService
+    from tests.controller.test_recorder import cycle
+
+    cfg = RigConfig()
+    service = RecorderService(cfg)  # auto: this process has one thread, so it forks
+    rec = service.open(sys.argv[1], cfg)
+    for i in range(200):
+        rec.record_cycle(cycle(i))
+    print(service.start_method, service.pid, flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+    """
+)
+
+
+def test_a_forked_recorder_finishes_the_log_of_a_sigkilled_controller(tmp_path):
+    path = tmp_path / "run.mcap"
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run(
+        [sys.executable, "-c", _KILLED_CONTROLLER, str(path)],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"},  # as the CLI
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    method, pid = proc.stdout.split()
+    assert method == "fork"
+    deadline = time.monotonic() + 60
+    while alive(int(pid)) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not alive(int(pid))
+    log = read_log(path)
+    assert not log.truncated and log.n_cycles == 200  # a footer: the file was finished
+    assert json.loads(log.recorder_info.get("written", "0")) == 200
