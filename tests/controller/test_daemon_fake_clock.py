@@ -7,6 +7,7 @@ inside a tick.
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from hal.config import RigConfig, load_config
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureMsg, encode_features
 from plant_emulator.dsp_node import DspNode
+from rt_controller.control.controller import Controller, warm_up
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.cadence import FakeClock
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
@@ -75,11 +77,14 @@ def run_daemon(
     slow_ticks: dict[int, int],
     dsp_stalls: frozenset[int] = frozenset(),
     on_tick=None,
+    rehearsed: list | None = None,
 ):
     """Run the daemon's loop for ``duration_s`` of fake time; ``slow_ticks`` maps a tick number
     to extra nanoseconds its decide phase takes; for each tick in ``dsp_stalls`` the DSP gets no
     CPU from 4 ms before the next release to 2 ms after it, so the state it samples 3 ms before
-    that release goes out 2 ms after it. Returns (summary, log, node)."""
+    that release goes out 2 ms after it. With a ``rehearsed`` list, the daemon rehearses before
+    every release (as the real clock's wait does) and the list gets each rehearsal's torque.
+    Returns (summary, log, node)."""
     spec = isolated_spec("virtual")
     log = tmp_path / "fake.mcap"
     opts = DaemonOptions(can=spec, duration_s=duration_s, log_path=log, realtime_settings=False)
@@ -94,8 +99,22 @@ def run_daemon(
         release = [0]
         tick = daemon._tick
 
+        if rehearsed is not None:
+            shadow = daemon._rehearsal = Controller(cfg)
+            warm_up(shadow, cfg)
+            rehearse = shadow.decide
+
+            def rehearsal(*args, **kwargs):
+                d = rehearse(*args, **kwargs)
+                rehearsed.append(d.tau.tolist())
+                return d
+
+            shadow.decide = rehearsal
+
         def timed_tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs):
             release[0] = wake_ns - lateness_ns
+            if rehearsed is not None:
+                daemon._rehearse()
             return tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs)
 
         daemon._tick = timed_tick
@@ -330,3 +349,20 @@ def test_a_loop_whose_states_come_a_period_late_acts_as_if_they_were_fresh(tmp_p
     blind, log, _ = run_daemon(tmp_path / "blind", off, 5.0, {}, BUSY)
     assert np.all(np.asarray(log.cycles["predict_ms"]) == 0.0)
     assert blind["J"] > 1.2 * quiet["J"]
+
+
+def test_the_rehearsal_reruns_each_tick_on_its_own_controller_and_changes_nothing(tmp_path, cfg):
+    """The rehearsal before each release replays the previous tick's call on a second
+    controller: it runs the same code on the same inputs (so its torque equals that tick's, bit
+    for bit) and leaves the run exactly as it is without it."""
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "rehearsed").mkdir()
+    _, plain, _ = run_daemon(tmp_path / "plain", cfg, 3.0, {})
+    taus: list = []
+    summary, log, _ = run_daemon(tmp_path / "rehearsed", cfg, 3.0, {}, rehearsed=taus)
+    assert summary["problems"] == [] and summary["ticks"] == 150
+    same = {k: v.tolist() for k, v in plain.cycles.items()}
+    assert json.dumps(same, sort_keys=True) == json.dumps(
+        {k: v.tolist() for k, v in log.cycles.items()}, sort_keys=True
+    )
+    assert len(taus) == 149 and taus == log.cycles["tau"][:-1].tolist()
