@@ -20,7 +20,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -38,7 +38,7 @@ from hal.joint_client import JointClient
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder, feature_age_ns
 from hal.zenoh_session import KEY_FEATURES, PayloadRing, ZenohSession, open_session
-from rt_controller.control.controller import Controller, warm_up
+from rt_controller.control.controller import Controller, Decision, warm_up
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Cadence, Clock, Idle, MonotonicClock, Tick
@@ -212,6 +212,33 @@ class Inputs:
     """The DSP's drive mode (:data:`hal.drive_state.MODES`); the law runs only in ``enabled``."""
 
 
+class RuleCall(NamedTuple):
+    """What one tick hands the per-tick rule (kept for the rehearsal, :meth:`_rehearse`)."""
+
+    t_s: float
+    inputs: Inputs
+    predict_ms: float
+    f_predict_ms: float
+    now_s: float
+
+
+def apply_rule(ctl: Controller, call: RuleCall) -> Decision:
+    """``ctl.decide`` on one tick's inputs (ages compensated as the record states them)."""
+    inp = call.inputs
+    return ctl.decide(
+        call.t_s,
+        inp.q,
+        inp.dq,
+        inp.f,
+        f_stale=inp.f_stale,
+        state_stale=inp.state_stale,
+        drive_mode=inp.drive_mode,
+        state_age_s=call.predict_ms / 1e3,
+        feature_age_s=call.f_predict_ms / 1e3,
+        now_s=call.now_s,
+    )
+
+
 def default_log_path(cfg: RigConfig, law: str) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
@@ -318,7 +345,7 @@ class ControllerDaemon:
         self._rehearsal: Controller | None = None
         """Realtime: a second controller that reruns the last tick's rule shortly before each
         release (``controller.rehearse``; see :meth:`_rehearse`)."""
-        self._last_call: tuple[float, Inputs, float, float, float] | None = None
+        self._last_call: RuleCall | None = None
         self._rehearsal_due = False
 
     # --- wiring -----------------------------------------------------------------------------
@@ -697,20 +724,7 @@ class ControllerDaemon:
         call, shadow = self._last_call, self._rehearsal
         if call is None or shadow is None:
             return
-        t_s, inp, predict_ms, f_predict_ms, now_s = call
-        d = shadow.decide(
-            t_s,
-            inp.q,
-            inp.dq,
-            inp.f,
-            f_stale=inp.f_stale,
-            state_stale=inp.state_stale,
-            drive_mode=inp.drive_mode,
-            state_age_s=predict_ms / 1e3,
-            feature_age_s=f_predict_ms / 1e3,
-            now_s=now_s,
-        )
-        decision_fields(shadow, d)
+        decision_fields(shadow, apply_rule(shadow, call))
 
     def _since_us(self, release_ns: int) -> int:
         """Microseconds from ``release_ns`` to now on the loop's clock."""
@@ -879,19 +893,9 @@ class ControllerDaemon:
         # --- decide
         predict_ms, f_predict_ms = self._prediction_ms(inp)
         now_s = t_s + lateness_ns / 1e3 / 1e6  # as replay rebuilds it from the record
-        d = self.controller.decide(
-            t_s,
-            inp.q,
-            inp.dq,
-            inp.f,
-            f_stale=inp.f_stale,
-            state_stale=inp.state_stale,
-            drive_mode=inp.drive_mode,
-            state_age_s=predict_ms / 1e3,
-            feature_age_s=f_predict_ms / 1e3,
-            now_s=now_s,
-        )
-        self._last_call = (t_s, inp, predict_ms, f_predict_ms, now_s)
+        call = RuleCall(t_s, inp, predict_ms, f_predict_ms, now_s)
+        d = apply_rule(self.controller, call)
+        self._last_call = call
         fields = decision_fields(self.controller, d)
         # Counted per tick as recorded (f_stale / state_stale), the same way `hil report` does.
         st.stale_states += int(inp.state_stale)
