@@ -2,7 +2,8 @@
 
 :func:`read_footprint` takes one snapshot of a process (``/proc/PID/status``, ``/proc/PID/stat``
 and, per thread, ``/proc/PID/task/TID/stat`` + ``comm``); :class:`FootprintSampler` samples the
-children of ``hil up``/``hil bench loop`` in a background thread and turns the series into the
+children of ``hil up``/``hil bench loop`` (and the controller's recorder process) in a
+background thread and turns the series into the
 figures ``hil bench loop --json`` reports (:meth:`FootprintSampler.summary`): peak RSS (anonymous
 and file-backed), peak locked memory (``VmLck``), peak thread count and CPU % of one core over a
 steady window, per process and, for the CPU, per thread name.
@@ -24,6 +25,9 @@ KIB = 1024
 MIB = 1024 * 1024
 ROLES = ("controller", "emulator", "vision")
 """The rig's processes, recognised by the ``hil`` subcommand in their command line."""
+CHILD_ROLES = {"controller": "recorder"}
+"""Processes of a rig process, by its role: the controller's MCAP recorder
+(``controller.recorder = "process"``)."""
 
 
 @dataclass(frozen=True)
@@ -207,9 +211,16 @@ class FootprintSampler:
             role = self._role(pid)
             if role is None:
                 continue
-            snap = read_footprint(pid)
-            if snap is not None:
-                self.series.setdefault(role, []).append(snap)
+            self._take(role, pid)
+            sub = CHILD_ROLES.get(role)
+            if sub is not None:
+                for child in children_of(pid):
+                    self._take(sub, child)
+
+    def _take(self, role: str, pid: int) -> None:
+        snap = read_footprint(pid)
+        if snap is not None:
+            self.series.setdefault(role, []).append(snap)
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval_s):

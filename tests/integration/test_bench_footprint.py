@@ -38,7 +38,7 @@ def test_bench_loop_json_has_the_footprint_of_each_process(
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     (run,) = result["rates"]
     fp = run["footprint"]
-    assert set(fp) == {"controller", "emulator", "vision"}
+    assert set(fp) == {"controller", "recorder", "emulator", "vision"}
     for role, figures in fp.items():
         assert set(figures) >= PROCESS_KEYS, role
         assert figures["peak_rss_mb"] > 0 and figures["peak_threads"] >= 1
