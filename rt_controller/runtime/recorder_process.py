@@ -359,8 +359,9 @@ class RecorderService:
 
     def _spawn(self, child_in: int, child_out: int) -> None:
         argv = [sys.executable, "-m", __name__, str(child_in), str(child_out)]
+        quiet = subprocess.DEVNULL  # stdout is the controller's (its JSON summary)
         self._popen = subprocess.Popen(
-            argv, pass_fds=(child_in, child_out), stdin=subprocess.DEVNULL
+            argv, pass_fds=(child_in, child_out), stdin=quiet, stdout=quiet
         )
         self._pid = self._popen.pid
 
@@ -725,9 +726,16 @@ class _Child:
 
 
 def serve(fd_in: int, fd_out: int) -> None:
-    """The child's main loop: until end of file on ``fd_in``, then every open log finished."""
+    """The child's main loop: until end of file on ``fd_in``, then every open log finished.
+    Standard input and output become ``/dev/null`` (the controller's stdout carries its JSON
+    summary, and whoever reads it must not wait for this process); warnings go to stderr."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
+    devnull = os.open(os.devnull, os.O_RDWR)
+    for fd in (0, 1):
+        with contextlib.suppress(OSError):
+            os.dup2(devnull, fd)
+    os.close(devnull)
     os.set_blocking(fd_in, True)
     _Child(fd_in, fd_out).run()
 
