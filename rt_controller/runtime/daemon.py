@@ -122,6 +122,9 @@ class RunStats:
     """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
     spin_s: float = 0.0
     """Realtime: seconds spent busy-waiting before deadlines (``controller.spin_us``)."""
+    rehearsals: int = 0
+    """Realtime: releases before which the last tick's rule was rehearsed
+    (``controller.rehearse``)."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
@@ -147,6 +150,7 @@ class RunStats:
             "rearms": self.rearms,
             "arming_ticks": self.arming_ticks,
             "spin_s": self.spin_s,
+            "rehearsals": self.rehearsals,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),
@@ -725,6 +729,7 @@ class ControllerDaemon:
         if call is None or shadow is None:
             return
         decision_fields(shadow, apply_rule(shadow, call))
+        self.stats.rehearsals += 1
 
     def _since_us(self, release_ns: int) -> int:
         """Microseconds from ``release_ns`` to now on the loop's clock."""
