@@ -33,6 +33,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import fcntl
+import logging
 import os
 import pickle
 import select
@@ -60,6 +61,7 @@ REPLY_TIMEOUT_S = 30.0
 COUNTS_EVERY_S = 0.25
 """The child reports a log's counters at most this often (and at its close)."""
 _DIRECTION_OF = {_CAN_RX: "rx", _CAN_TX: "tx"}
+log = logging.getLogger(__name__)
 
 CanFrame = namedtuple(
     "CanFrame",
@@ -85,6 +87,17 @@ def can_frame(msg: Any) -> CanFrame:
         "" if channel is None else str(channel),
         msg.timestamp,
     )
+
+
+_UNPICKLABLE = (pickle.PicklingError, TypeError, AttributeError, ValueError, RecursionError)
+
+
+def _picklable(obj: Any) -> bool:
+    try:
+        pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    except _UNPICKLABLE:
+        return False
+    return True
 
 
 def _frame(message: tuple) -> bytes:
@@ -140,6 +153,8 @@ class RemoteRecorder:
         self._counts: dict[str, Any] = {}
         self._error: str | None = None
         self._final = False
+        self._encode_errors = 0
+        """Records that could not be pickled for the child (counted with its encode errors)."""
 
     # ----------------------------------------------------------------- hot path (loop thread)
 
@@ -184,19 +199,28 @@ class RemoteRecorder:
         return self.send(force=final)
 
     def send(self, *, force: bool = False) -> bool:
-        """Hand the records queued since the last send to the child; False if they were
-        dropped (the outbox was full)."""
+        """Hand the records queued since the last send to the child; False if any was
+        dropped (the outbox was full) or could not be pickled (counted in ``encode_errors``)."""
         queued = self._batch
         if not queued:
             return True
         pop = queued.popleft
         batch = [pop() for _ in range(len(queued))]
-        ok = self._service.send_records(self._rid, batch, self._backpressure or force)
+        wait, lost = self._backpressure or force, 0
+        try:
+            ok = self._service.send_records(self._rid, batch, wait)
+        except _UNPICKLABLE:  # a record of a type that cannot cross: count it, keep the rest
+            good = [item for item in batch if _picklable(item)]
+            lost, batch = len(batch) - len(good), good
+            if not self._encode_errors:
+                log.warning("recorder: a record cannot be sent to the recorder process")
+            self._encode_errors += lost
+            ok = self._service.send_records(self._rid, batch, wait)
         if ok:
             self._sent += len(batch)
         else:
             self._dropped += len(batch)
-        return ok
+        return ok and not lost
 
     # ----------------------------------------------------------------- control
 
@@ -262,7 +286,7 @@ class RemoteRecorder:
         out.update(
             written=self.written,
             dropped=self.dropped,
-            encode_errors=int(counts.get("encode_errors", 0)),
+            encode_errors=self._encode_errors + int(counts.get("encode_errors", 0)),
             pending=self.pending,
         )
         return out

@@ -200,3 +200,18 @@ def test_a_forked_recorder_finishes_the_log_of_a_sigkilled_controller(tmp_path):
     log = read_log(path)
     assert not log.truncated and log.n_cycles == 200  # a footer: the file was finished
     assert json.loads(log.recorder_info.get("written", "0")) == 200
+
+
+def test_a_record_that_cannot_cross_the_pipe_is_counted_and_the_rest_kept(tmp_path, cfg):
+    with RecorderService(cfg, start="spawn") as service:
+        rec = service.open(tmp_path / "run.mcap", cfg)
+        rec.record_vision(b"ok", 1)
+        bad = cycle(0)
+        bad["u"] = lambda: None  # not picklable (and not JSON either)
+        assert rec.record_cycle(bad) is False  # counted, never raised into the tick
+        _feed(rec, 5, start=1)
+        rec.close()
+    counts = rec.as_dict()
+    assert counts["encode_errors"] == 1 and counts["/vision/features"] == 6
+    assert counts["/controller/cycle"] == 5 and rec.error is None
+    assert run_problems({"recorder": counts}) == ["1 log record(s) could not be encoded"]
