@@ -136,8 +136,9 @@ class RemoteRecorder:
     :class:`~rt_controller.runtime.recorder.CycleRecorder` that the daemon uses).
 
     The ``record_*`` methods take ownership of what they are given, as ``CycleRecorder``'s do.
-    Counters come from the child's latest report (at most :data:`COUNTS_EVERY_S` old while the
-    run goes on; exact after :meth:`close`); ``dropped`` adds the batches this process dropped.
+    Counters come from the child's latest report (at most :data:`COUNTS_EVERY_S` old when
+    :meth:`as_dict` reads it while the run goes on; exact after :meth:`close`); ``dropped`` adds
+    the batches this process dropped.
     """
 
     def __init__(self, service: RecorderService, rid: int, path: Path, backpressure: bool):
@@ -280,7 +281,8 @@ class RemoteRecorder:
 
     def as_dict(self) -> dict[str, int]:
         """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and ``pending``
-        (the keys of ``CycleRecorder.as_dict``)."""
+        (the keys of ``CycleRecorder.as_dict``), with the child's latest report."""
+        self._service.poll()
         counts = self._counts
         out = {topic: int(counts.get(topic, 0)) for topic in _TOPICS.values()}
         out.update(
@@ -428,16 +430,20 @@ class RecorderService:
 
     def send_records(self, rid: int, items: list, wait: bool) -> bool:
         """Queue one batch for the child; False (dropped) when the outbox is full and ``wait``
-        is false, or the child is gone."""
+        is false, or the child is gone. The tick's only system call is the pipe write (the
+        child's replies are read by :meth:`poll`, about once a second)."""
         if self._dead is not None or self._closed:
             return False
-        self._pump_in()
         if not wait and len(self._outbox) > self.outbox_limit:
             self._pump_out()
             if len(self._outbox) > self.outbox_limit:
                 return False
-        self._outbox += _frame((RECORDS, rid, items))
-        self._pump_out()
+        frame = _frame((RECORDS, rid, items))
+        if self._outbox:  # keep the order: behind what waits already
+            self._outbox += frame
+            self._pump_out()
+        else:  # the usual case: one write, no copy
+            self._write_now(frame)
         if wait and len(self._outbox) > self.outbox_limit:
             self._drain_out(REPLY_TIMEOUT_S)
         return self._dead is None
@@ -460,6 +466,22 @@ class RecorderService:
         self._recorders.pop(rid, None)
 
     # ----------------------------------------------------------------- pipes
+
+    def poll(self) -> None:
+        """Apply the child's replies that arrived (counters, errors); never blocks."""
+        self._pump_in()
+
+    def _write_now(self, frame: bytes) -> None:
+        """Write ``frame`` with the outbox empty; what the pipe does not take goes there."""
+        try:
+            n = os.write(self._out, frame)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:  # EPIPE: the child is gone
+            self._die(f"the recorder process is gone ({exc.strerror or exc})")
+            return
+        if n < len(frame):
+            self._outbox += memoryview(frame)[n:]
 
     def _pump_out(self) -> None:
         """Write what the pipe takes now (never blocks)."""
