@@ -203,9 +203,10 @@ class ControllerConfig:
     """Busy-wait for the last microseconds before a deadline."""
     rehearse: bool = True
     """Realtime, at 200 Hz and below: shortly before each release (0.2 ms before the spin
-    window) rerun the last tick's rule on a second controller and throw the result away, so
+    window) rehearse the last tick with nothing kept: its read (no drive state followed), its
+    rule on a second controller, its write through a shadow codec to a private socket, so
     that the tick finds its code warm instead of paying for a period of sleep (the run's
-    controller and its log are untouched)."""
+    controller, its log, its counters and the bus are untouched)."""
     gil_switch_us: float = 200.0
     """The interpreter's switch interval inside the loop (``sys.setswitchinterval``). With
     ``recorder = "thread"`` the tick shares the GIL with the MCAP writer thread; every socket

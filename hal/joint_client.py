@@ -120,11 +120,12 @@ class JointClient:
         self.tx_hook = tx_hook
         self._owns_bus = owns_bus
         self._poll_s = poll_s
+        self._key = key if key is not None else rig_key(self.cfg)
         self._codec = ControllerCodec(
-            max_delta=max_delta,
-            reinit_after_s=reinit_after_s,
-            key=key if key is not None else rig_key(self.cfg),
+            max_delta=max_delta, reinit_after_s=reinit_after_s, key=self._key
         )
+        self._shadow: ControllerCodec | None = None
+        """The codec :meth:`rehearse_torque` encodes with (its counters are its own)."""
         self._cond = threading.Condition()
         self._tx_lock = threading.Lock()
         self._stop = threading.Event()
@@ -337,6 +338,37 @@ class JointClient:
     def armed(self) -> bool:
         """Whether :meth:`enable` was called (and not :meth:`disable` since)."""
         return self._armed
+
+    def rehearse_torque(
+        self, tau1: float, tau2: float, *, release_delay_us: int | None = None
+    ) -> None:
+        """Run :meth:`send_torque`'s code for these values without sending anything.
+
+        The frame is encoded, protected and signed by a shadow codec (same database and key,
+        its own rolling counters and freshness values, so the real ones never move), and the
+        bus rehearses its send when it can (:meth:`hal.udp_loopback.LoopbackMulticastBus.
+        rehearse_send`: checked, packed and sent to a private socket, never to the bus). A
+        controller calls it shortly before its release, so that its write phase finds this
+        code warm after a period of sleep. Never raises; a frame the real send would refuse
+        (NaN) is simply not rehearsed.
+        """
+        if self._closed:
+            return
+        tick = 0
+        if release_delay_us is not None:
+            tick = min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
+        try:
+            shadow = self._shadow
+            if shadow is None:
+                shadow = self._shadow = ControllerCodec(
+                    database=self._codec.database, key=self._key
+                )
+            msg = shadow.encode_torque(tau1, tau2, enable=self._armed, tick=tick)
+        except HalError:
+            return
+        rehearse = getattr(self.bus, "rehearse_send", None)
+        if rehearse is not None:
+            rehearse(msg)
 
     # --------------------------------------------------------------------------- receive
 

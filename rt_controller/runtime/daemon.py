@@ -350,6 +350,8 @@ class ControllerDaemon:
         """Realtime: a second controller that reruns the last tick's rule shortly before each
         release (``controller.rehearse``; see :meth:`_rehearse`)."""
         self._last_call: RuleCall | None = None
+        self._last_write_delay_us = 0
+        """Realtime: how long after its release the last torque command left (microseconds)."""
         self._rehearsal_due = False
 
     # --- wiring -----------------------------------------------------------------------------
@@ -709,7 +711,7 @@ class ControllerDaemon:
                     if now < at:
                         time.sleep((at - now) / 1e9)
                     self._rehearsal_due = False
-                    self._rehearse()
+                    self._rehearse(dsp)
                     return
                 time.sleep(max(0, until_ns - now) / 1e9)
                 return
@@ -718,17 +720,28 @@ class ControllerDaemon:
 
         return idle
 
-    def _rehearse(self) -> None:
+    def _rehearse(self, dsp: JointClient) -> None:
         """Realtime, shortly before a release (``controller.rehearse``): run the last tick's
-        rule again, on a second controller whose result is thrown away, so that the code the
-        tick runs (law, eq. 11, the record's fields) is warm when the release comes. After a
-        period of sleep on a shared 2-core VM the first run of that code is several times
-        slower; the rehearsal pays that instead of the tick. The run's controller, its
-        warm-started solver and its log are untouched."""
+        phases again with nothing kept, so that the code the tick runs is warm when the release
+        comes. After a period of sleep on a shared 2-core VM the first run of that code is
+        several times slower; the rehearsal pays that instead of the tick.
+
+        - read: the inputs are judged as the tick judges them, without following the drive
+          state (the DSP's statuses stay for the tick);
+        - decide: the last tick's rule call, on a second controller whose result is thrown
+          away (the run's controller and its warm-started solver are untouched);
+        - write: the last torque through :meth:`JointClient.rehearse_torque` (a shadow codec,
+          nothing reaches the bus, the real counters do not move).
+        """
         call, shadow = self._last_call, self._rehearsal
         if call is None or shadow is None:
             return
-        decision_fields(shadow, apply_rule(shadow, call))
+        self._read(dsp, self.clock.now_ns(), call.t_s, rehearsal=True)
+        d = apply_rule(shadow, call)
+        decision_fields(shadow, d)
+        dsp.rehearse_torque(
+            float(d.tau[0]), float(d.tau[1]), release_delay_us=self._last_write_delay_us
+        )
         self.stats.rehearsals += 1
 
     def _since_us(self, release_ns: int) -> int:
@@ -829,9 +842,12 @@ class ControllerDaemon:
                 dsp.enable(reset_fault=False)
                 self.stats.rearms += 1
 
-    def _read(self, dsp: JointClient, wake_ns: int, t_s: float) -> Inputs:
+    def _read(
+        self, dsp: JointClient, wake_ns: int, t_s: float, *, rehearsal: bool = False
+    ) -> Inputs:
         """The read phase: the newest joint state and features, judged stale or not, and the
-        DSP's drive mode (the inputs themselves were taken off the transports just before)."""
+        DSP's drive mode (the inputs themselves were taken off the transports just before).
+        A ``rehearsal`` reads the drive mode as it stands and changes nothing."""
         cfg = self.cfg
         state_stale = False
         state_ns = None
@@ -861,7 +877,7 @@ class ControllerDaemon:
             f_age_ms=f_age_ms,
             f_stale=not (0.0 <= f_age_ms <= cfg.controller.feature_timeout_s * 1e3),
             f_valid=feat is not None and feat.valid,
-            drive_mode=self._follow_drive(dsp, wake_ns),
+            drive_mode=self.drive.mode if rehearsal else self._follow_drive(dsp, wake_ns),
         )
 
     def _prediction_ms(self, inp: Inputs) -> tuple[float, float]:
@@ -913,7 +929,7 @@ class ControllerDaemon:
         # --- write (realtime: the command says how long after the release it leaves)
         tau = d.tau
         if sync is None:
-            delay = self._since_us(wake_ns - lateness_ns)
+            delay = self._last_write_delay_us = self._since_us(wake_ns - lateness_ns)
             dsp.send_torque(float(tau[0]), float(tau[1]), release_delay_us=delay)
         else:
             dsp.send_torque(float(tau[0]), float(tau[1]), tick=sync)

@@ -78,12 +78,14 @@ def run_daemon(
     dsp_stalls: frozenset[int] = frozenset(),
     on_tick=None,
     rehearsed: list | None = None,
+    raw: bool = False,
 ):
     """Run the daemon's loop for ``duration_s`` of fake time; ``slow_ticks`` maps a tick number
     to extra nanoseconds its decide phase takes; for each tick in ``dsp_stalls`` the DSP gets no
     CPU from 4 ms before the next release to 2 ms after it, so the state it samples 3 ms before
     that release goes out 2 ms after it. With a ``rehearsed`` list, the daemon rehearses before
-    every release (as the real clock's wait does) and the list gets each rehearsal's torque.
+    every release (as the real clock's wait does) and the list gets each rehearsal's torque, as
+    ``("decide", tau)`` and ``("write", tau)``.
     Returns (summary, log, node)."""
     spec = isolated_spec("virtual")
     log = tmp_path / "fake.mcap"
@@ -106,7 +108,7 @@ def run_daemon(
 
             def rehearsal(*args, **kwargs):
                 d = rehearse(*args, **kwargs)
-                rehearsed.append(d.tau.tolist())
+                rehearsed.append(("decide", d.tau.tolist()))
                 return d
 
             shadow.decide = rehearsal
@@ -114,7 +116,15 @@ def run_daemon(
         def timed_tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs):
             release[0] = wake_ns - lateness_ns
             if rehearsed is not None:
-                daemon._rehearse()
+                if "rehearse_torque" not in vars(dsp):  # record each rehearsed write
+                    write = dsp.rehearse_torque
+
+                    def rehearse_write(tau1, tau2, **kw):
+                        rehearsed.append(("write", [tau1, tau2]))
+                        return write(tau1, tau2, **kw)
+
+                    dsp.rehearse_torque = rehearse_write
+                daemon._rehearse(dsp)
             return tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs)
 
         daemon._tick = timed_tick
@@ -141,7 +151,7 @@ def run_daemon(
         finally:
             rec.close()
         summary = daemon._summary(rec)
-    return summary, read_log(log, raw=False), node
+    return summary, read_log(log, raw=rehearsed is not None or raw), node
 
 
 @pytest.fixture(scope="module")
@@ -352,17 +362,33 @@ def test_a_loop_whose_states_come_a_period_late_acts_as_if_they_were_fresh(tmp_p
 
 
 def test_the_rehearsal_reruns_each_tick_on_its_own_controller_and_changes_nothing(tmp_path, cfg):
-    """The rehearsal before each release replays the previous tick's call on a second
-    controller: it runs the same code on the same inputs (so its torque equals that tick's, bit
-    for bit) and leaves the run exactly as it is without it."""
+    """The rehearsal before each release replays the previous tick's read, call and write: the
+    rule on a second controller (the same code on the same inputs, so its torque equals that
+    tick's, bit for bit) and the write through a shadow codec. It leaves the run exactly as it
+    is without it: the same cycles, the same frames on the bus (none of its own, and the
+    torque commands' rolling counters never skip, so the DSP accepts every one), the same drive
+    state followed (the read rehearsal takes no status from the tick), here through a watchdog
+    trip (tick 100 overruns by 60 ms), its fault ticks and the re-arm."""
     (tmp_path / "plain").mkdir()
     (tmp_path / "rehearsed").mkdir()
-    _, plain, _ = run_daemon(tmp_path / "plain", cfg, 3.0, {})
+    slow = {100: 60 * MS}
+    plain_summary, plain, plain_node = run_daemon(tmp_path / "plain", cfg, 3.0, slow, raw=True)
     taus: list = []
-    summary, log, _ = run_daemon(tmp_path / "rehearsed", cfg, 3.0, {}, rehearsed=taus)
-    assert summary["problems"] == [] and summary["ticks"] == 150
+    summary, log, node = run_daemon(tmp_path / "rehearsed", cfg, 3.0, slow, rehearsed=taus)
+    assert summary["watchdog_trips"] == 1 and summary["drive_ticks"]
+    assert summary["problems"] == plain_summary["problems"]
+    assert summary["ticks"] == plain_summary["ticks"] == 148  # the overrun skipped two periods
+    assert summary["rehearsals"] == 147 and plain_summary["rehearsals"] == 0
     same = {k: v.tolist() for k, v in plain.cycles.items()}
     assert json.dumps(same, sort_keys=True) == json.dumps(
         {k: v.tolist() for k, v in log.cycles.items()}, sort_keys=True
     )
-    assert len(taus) == 149 and taus == log.cycles["tau"][:-1].tolist()
+    assert taus[0::2] == [("decide", t) for t in log.cycles["tau"][:-1].tolist()]
+    assert taus[1::2] == [("write", t) for t in log.cycles["tau"][:-1].tolist()]
+    assert len(log.can_tx) == len(plain.can_tx) > 150
+    assert node.stats.commands == plain_node.stats.commands
+    received = node.codec.stats.as_dict()
+    assert received == plain_node.codec.stats.as_dict()
+    assert received["lost"] == 0 and received["accepted"] > 150
+    for key in ("drive_ticks", "dsp_faults", "watchdog_trips", "rearms"):
+        assert summary[key] == plain_summary[key], key
