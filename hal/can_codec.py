@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -86,11 +87,17 @@ class TorqueCommand:
     tick: int = 0
 
 
+SEED_MAX = 0xFFFF_FFFF
+"""The largest camera noise seed a RESET_SCENARIO carries (``DspControl.Seed``, 32 bits)."""
+
+
 @dataclass(frozen=True, slots=True)
 class DspControl:
-    """Controller -> DSP event command."""
+    """Controller -> DSP event command. ``seed``: RESET_SCENARIO only, the new run's camera noise
+    seed (0 .. :data:`SEED_MAX`; None = the seed the processes were started with)."""
 
     command: DspCommand
+    seed: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,6 +198,31 @@ def _sat(value: int, limit: int) -> int:
     return max(0, min(int(value), limit))
 
 
+def _control_signals(f: DspControl) -> dict[str, Any]:
+    if f.seed is None:
+        return {"Command": int(f.command), "SeedGiven": 0, "Seed": 0}
+    if f.command is not DspCommand.RESET_SCENARIO:
+        raise HalCodecError(f"only RESET_SCENARIO carries a seed, not {f.command.name}")
+    if isinstance(f.seed, bool) or not isinstance(f.seed, numbers.Integral):
+        raise HalCodecError(f"DspControl.Seed must be an integer, not {f.seed!r}")
+    if not 0 <= f.seed <= SEED_MAX:
+        raise HalCodecError(
+            f"DspControl.Seed must be an integer in [0, {SEED_MAX}], got {f.seed!r}"
+        )
+    return {"Command": int(f.command), "SeedGiven": 1, "Seed": int(f.seed)}
+
+
+def _control_from(s: dict[str, Any]) -> DspControl:
+    command = DspCommand(s["Command"])
+    if not s["SeedGiven"]:
+        if s["Seed"]:
+            raise HalCodecError("DspControl: Seed without SeedGiven")
+        return DspControl(command)
+    if command is not DspCommand.RESET_SCENARIO:
+        raise HalCodecError(f"DspControl: only RESET_SCENARIO carries a seed, not {command.name}")
+    return DspControl(command, int(s["Seed"]))
+
+
 _TO_SIGNALS: dict[type, tuple[str, Callable[[Any], dict[str, Any]]]] = {
     TorqueCommand: (
         "TorqueCommand",
@@ -201,7 +233,7 @@ _TO_SIGNALS: dict[type, tuple[str, Callable[[Any], dict[str, Any]]]] = {
             "Tick": int(f.tick) & 0xFFFF,
         },
     ),
-    DspControl: ("DspControl", lambda f: {"Command": int(f.command)}),
+    DspControl: ("DspControl", lambda f: _control_signals(f)),
     JointPosition: (
         "JointPosition",
         lambda f: {"Sample": int(f.sample) & 0xF, "Q1": f.q1, "Q2": f.q2},
@@ -230,7 +262,7 @@ _TO_SIGNALS: dict[type, tuple[str, Callable[[Any], dict[str, Any]]]] = {
 
 _FROM_SIGNALS: dict[str, Callable[[dict[str, Any]], Frame]] = {
     "TorqueCommand": lambda s: TorqueCommand(s["Tau1"], s["Tau2"], bool(s["Enable"]), s["Tick"]),
-    "DspControl": lambda s: DspControl(DspCommand(s["Command"])),
+    "DspControl": lambda s: _control_from(s),
     "JointPosition": lambda s: JointPosition(s["Q1"], s["Q2"], s["Sample"]),
     "JointVelocity": lambda s: JointVelocity(s["Dq1"], s["Dq2"], s["Sample"]),
     "DspStatus": lambda s: DspStatus(
@@ -578,8 +610,8 @@ class ControllerCodec(CanEndpoint):
     ) -> can.Message:
         return self.encode(TorqueCommand(tau1, tau2, enable, tick))
 
-    def encode_control(self, command: DspCommand) -> can.Message:
-        return self.encode(DspControl(DspCommand(command)))
+    def encode_control(self, command: DspCommand, seed: int | None = None) -> can.Message:
+        return self.encode(DspControl(DspCommand(command), seed))
 
 
 class DspCodec(CanEndpoint):

@@ -271,11 +271,14 @@ class JointClient:
         """DspControl FAULT_RESET (twice): FAULT -> SWITCH_ON_DISABLED; no torque until ENABLE."""
         self.send_command(DspCommand.FAULT_RESET)
 
-    def send_command(self, command: DspCommand, *, repeat: int = 2) -> None:
-        """Send one DspControl ``command`` ``repeat`` times (consecutive counters)."""
+    def send_command(
+        self, command: DspCommand, *, repeat: int = 2, seed: int | None = None
+    ) -> None:
+        """Send one DspControl ``command`` ``repeat`` times (consecutive counters); ``seed``
+        only with RESET_SCENARIO (:class:`~hal.errors.HalCodecError` otherwise)."""
         cmd = DspCommand(command)
         for _ in range(repeat):
-            self._send(lambda c: c.encode_control(cmd))
+            self._send(lambda c: c.encode_control(cmd, seed))
 
     def disable(self) -> None:
         """Remove torque: DspControl DISABLE (twice) and a zero TorqueCommand with Enable=0."""
@@ -289,11 +292,15 @@ class JointClient:
         tick = self._sync_tick or 0
         self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick), closing=closing)
 
-    def reset_scenario(self, timeout_s: float) -> DspStatus:
+    def reset_scenario(self, timeout_s: float, *, seed: int | None = None) -> DspStatus:
         """Poll mode, against an emulated lockstep DSP that is not armed: DspControl
         RESET_SCENARIO, then read the bus until the DspStatus of the DSP's new session (Tick 0,
         switch-on disabled) arrives; every joint state, Sync and status received before it
         is forgotten, so the next run sees only its own inputs. Returns that status.
+
+        ``seed`` (0 .. :data:`~hal.can_codec.SEED_MAX`) is the new run's camera noise seed:
+        the DSP hands it to the vision process with the run's camera poses. None keeps the
+        seed the processes were started with.
 
         :class:`HalTimeoutError` when no such status comes within ``timeout_s`` (a realtime
         or real DSP refuses the command; so does one in operation enabled).
@@ -301,7 +308,7 @@ class JointClient:
         if self._thread is not None:
             raise HalError("JointClient.reset_scenario() is for poll mode")
         old = None if self._status is None else self._status.session
-        self.send_command(DspCommand.RESET_SCENARIO, repeat=1)
+        self.send_command(DspCommand.RESET_SCENARIO, repeat=1, seed=seed)
         deadline = time.monotonic() + timeout_s
         while (remaining := deadline - time.monotonic()) > 0:
             try:

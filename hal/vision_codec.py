@@ -24,11 +24,12 @@ Features v2 — key ``hil/vision/features``, 72 bytes, little-endian (``<2sBBIQq
      56   16 bytes mac          HMAC-SHA256 of bytes 0..55, truncated to 128 bits, with the
                                 rig key derived for "hil/zenoh/features" (hal/secoc.py)
 
-Camera pose v2 — key ``hil/emulator/camera_pose``, 72 bytes (``<2sBBIQqqddd16s``)::
+Camera pose v3 — key ``hil/emulator/camera_pose``, 80 bytes (``<2sBBIQqqdddQ16s``)::
 
       0    2 bytes magic        b"HP"
-      2    1 u8    version      2
-      3    1 u8    flags        bit0 lockstep (one pose per control period, answer each); others 0
+      2    1 u8    version      3
+      3    1 u8    flags        bit0 lockstep (one pose per control period, answer each);
+                                bit1 seed (the run's camera noise seed is ``seed``); others 0
       4    4 u32   source       random id of the publishing emulator (restart detection)
       8    8 u64   seq          pose sequence number (the control tick in lockstep)
      16    8 i64   sim_time_ns  emulator physics time of the pose
@@ -36,13 +37,15 @@ Camera pose v2 — key ``hil/emulator/camera_pose``, 72 bytes (``<2sBBIQqqddd16s
      32    8 f64   x            camera position, m
      40    8 f64   y            camera position, m
      48    8 f64   phi          camera heading q1 + q2, rad
-     56   16 bytes mac          as for features, key derived for "hil/zenoh/camera_pose"
+     56    8 u64   seed         with flag bit1: the camera noise seed of the emulator's run (a
+                                scenario reset named it); else 0 (the vision process's own)
+     64   16 bytes mac          as for features, key derived for "hil/zenoh/camera_pose"
 
 Authentication: the receivers (:class:`FeatureDecoder`, :class:`PoseDecoder`) verify the MAC
 with the rig key first (``bad_mac``), so only the rig's own vision process (and emulator) can
 speak; their ordering and staleness checks then stop replays of authentic messages.
 :func:`decode_features` / :func:`decode_pose` only unpack (logs stay readable after the run's
-key is gone). v1 (no MAC) is refused as ``bad_version``.
+key is gone). v1 (no MAC) is refused as ``bad_version``, and so is a v2 camera pose (no seed).
 
 Compatibility: a receiver accepts exactly the versions it knows; any change of layout or meaning
 bumps the version byte. Reserved flag bits must be zero.
@@ -65,16 +68,20 @@ from hal.secoc import VISION_MAC_BYTES, Mac, derive, rig_key
 FEATURES_MAGIC = b"HF"
 POSE_MAGIC = b"HP"
 VERSION = 2
+"""Version of the features message."""
+POSE_VERSION = 3
+"""Version of the camera pose message (v3 added the run's noise seed)."""
 MAC_SIZE = VISION_MAC_BYTES
 FEATURES_LABEL = "hil/zenoh/features"
 POSE_LABEL = "hil/zenoh/camera_pose"
 FLAG_VALID = 0x01
 FLAG_LOCKSTEP = 0x02
 POSE_FLAG_LOCKSTEP = 0x01
+POSE_FLAG_SEED = 0x02
 _FEATURE_FLAGS = FLAG_VALID | FLAG_LOCKSTEP
-_POSE_FLAGS = POSE_FLAG_LOCKSTEP
+_POSE_FLAGS = POSE_FLAG_LOCKSTEP | POSE_FLAG_SEED
 _FEAT = struct.Struct("<2sBBIQqqQdd")
-_POSE = struct.Struct("<2sBBIQqqddd")
+_POSE = struct.Struct("<2sBBIQqqdddQ")
 FEATURES_SIZE = _FEAT.size + MAC_SIZE
 POSE_SIZE = _POSE.size + MAC_SIZE
 
@@ -127,6 +134,8 @@ class PoseMsg(NamedTuple):
     phi: float
     lockstep: bool = False
     source: int = 0
+    seed: int | None = None
+    """The camera noise seed of the emulator's run, when a scenario reset named one."""
 
 
 def encode_features(msg: FeatureMsg, key: bytes | None = None) -> bytes:
@@ -155,14 +164,19 @@ def encode_features(msg: FeatureMsg, key: bytes | None = None) -> bytes:
 
 
 def encode_pose(msg: PoseMsg, key: bytes | None = None) -> bytes:
-    """Pack ``msg`` as camera pose v2, authenticated with the rig ``key`` (as features)."""
+    """Pack ``msg`` as camera pose v3, authenticated with the rig ``key`` (as features)."""
     if not (_isfinite(msg.x) and _isfinite(msg.y) and _isfinite(msg.phi)):
         raise HalCodecError(f"camera pose: x, y, phi must be finite, got {msg}")
+    if msg.seed is not None and (isinstance(msg.seed, bool) or not isinstance(msg.seed, int)):
+        raise HalCodecError(f"camera pose: seed must be an integer or None, got {msg.seed!r}")
+    flags = (POSE_FLAG_LOCKSTEP if msg.lockstep else 0) | (
+        0 if msg.seed is None else POSE_FLAG_SEED
+    )
     try:
         body = _POSE.pack(
             POSE_MAGIC,
-            VERSION,
-            POSE_FLAG_LOCKSTEP if msg.lockstep else 0,
+            POSE_VERSION,
+            flags,
             msg.source,
             msg.seq,
             msg.sim_time_ns,
@@ -170,6 +184,7 @@ def encode_pose(msg: PoseMsg, key: bytes | None = None) -> bytes:
             msg.x,
             msg.y,
             msg.phi,
+            0 if msg.seed is None else msg.seed,
         )
     except struct.error as exc:
         raise HalCodecError(f"camera pose: field out of range: {exc}") from exc
@@ -204,16 +219,28 @@ def _parse_features(buf: bytes) -> FeatureMsg | str:
 def _parse_pose(buf: bytes) -> PoseMsg | str:
     if len(buf) != POSE_SIZE:
         return "bad_size"
-    magic, version, flags, source, seq, sim, stamp, x, y, phi = _POSE.unpack_from(buf)
+    magic, version, flags, source, seq, sim, stamp, x, y, phi, seed = _POSE.unpack_from(buf)
     if magic != POSE_MAGIC:
         return "bad_magic"
-    if version != VERSION:
+    if version != POSE_VERSION:
         return "bad_version"
     if flags & ~_POSE_FLAGS:
         return "bad_flags"
     if not (_isfinite(x) and _isfinite(y) and _isfinite(phi)):
         return "bad_value"
-    return PoseMsg(seq, sim, stamp, x, y, phi, bool(flags & POSE_FLAG_LOCKSTEP), source)
+    if seed and not flags & POSE_FLAG_SEED:
+        return "bad_value"
+    return PoseMsg(
+        seq,
+        sim,
+        stamp,
+        x,
+        y,
+        phi,
+        bool(flags & POSE_FLAG_LOCKSTEP),
+        source,
+        seed if flags & POSE_FLAG_SEED else None,
+    )
 
 
 def decode_features(buf: bytes) -> FeatureMsg:
@@ -226,7 +253,7 @@ def decode_features(buf: bytes) -> FeatureMsg:
 
 
 def decode_pose(buf: bytes) -> PoseMsg:
-    """Unpack camera pose v2 (without checking the MAC) or raise :class:`HalCodecError`."""
+    """Unpack camera pose v3 (without checking the MAC) or raise :class:`HalCodecError`."""
     out = _parse_pose(bytes(buf))
     if isinstance(out, str):
         raise HalCodecError(f"camera pose: malformed message ({out}, {len(buf)} bytes)")

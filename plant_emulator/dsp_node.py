@@ -183,15 +183,16 @@ class DspNode:
         wait_for_controller: bool = True,
         session: int | None = None,
         key: bytes | None = None,
-        on_reset: Callable[[], None] | None = None,
+        on_reset: Callable[[int | None], None] | None = None,
     ) -> None:
         """``reply_timeout_s``, ``sync_resend_s``: lockstep waits (real time, see the module
         docstring); ``wait_for_controller``: in lockstep, hold period 0 until the first command
         arrives (``False`` counts it missing after ``reply_timeout_s`` like any other);
         ``session``: the id reported in ``DspStatus.Session`` (default: random, non-zero);
         ``key``: the rig key (default: ``cfg.transport.key_file``, else this process's
-        ephemeral key, see :mod:`hal.secoc`); ``on_reset``: called when a scenario reset
-        (DspControl RESET_SCENARIO) is applied, e.g. to give the pose link a new source id."""
+        ephemeral key, see :mod:`hal.secoc`); ``on_reset``: called with the new run's camera
+        noise seed (None when the reset named none) when a scenario reset (DspControl
+        RESET_SCENARIO) is applied, e.g. to give the pose link a new source id and the seed."""
         self.cfg = cfg
         self.bus = bus
         self.lockstep = lockstep
@@ -199,7 +200,10 @@ class DspNode:
         self.on_reset = on_reset
         self._reset_pending = False
         """A RESET_SCENARIO was accepted; applied between periods (:meth:`reset_scenario`)."""
+        self._reset_seed: int | None = None
+        """The camera noise seed the pending reset named (None: the seed at start)."""
         self.world = world or World(cfg)
+        self._start_seed = self.world.seed
         self.codec = DspCodec(key=key if key is not None else rig_key(cfg))
         self.stats = DspStats()
         rates = cfg.rates
@@ -345,7 +349,8 @@ class DspNode:
                 accepted_cmd = False
             else:
                 accepted_cmd = self.drive.command(frame.command)
-            self._reset_pending |= accepted_cmd and frame.command is DspCommand.RESET_SCENARIO
+            if accepted_cmd and frame.command is DspCommand.RESET_SCENARIO:
+                self._reset_pending, self._reset_seed = True, frame.seed
             self.stats.refused_commands = self.drive.refused
             if accepted_cmd and frame.command is DspCommand.ENABLE:
                 self._command_seen(now_ns)
@@ -631,8 +636,12 @@ class DspNode:
         takes a new session id and holds period 0 until the controller arms it again, as a
         freshly started emulator does; its DspStatus (drive state switch-on disabled, Tick 0,
         the new session) tells the controller that every frame after it is of the new run.
-        Codec counters and the freshness values go on (replay protection spans runs)."""
+        Codec counters and the freshness values go on (replay protection spans runs). The
+        world's camera noise restarts from the seed the reset named (else the one at start),
+        and ``on_reset`` hands that seed on to the vision link."""
         self._reset_pending = False
+        seed, self._reset_seed = self._reset_seed, None
+        self.world.seed = self._start_seed if seed is None else seed
         self.world.reset()
         self.encoder = Encoder(self.world.q, self.world.dq, self.encoder_lsb, self.filter_gain)
         self.tau_cmd = np.zeros(2)
@@ -649,7 +658,7 @@ class DspNode:
         self.stats.session = self.session
         self.stats.scenario_resets += 1
         if self.on_reset is not None:
-            self.on_reset()
+            self.on_reset(seed)
         self.send_status()
 
     def run_lockstep(self, stop: threading.Event, duration_s: float = 0.0) -> DspStats:

@@ -119,14 +119,16 @@ class _PoseLink:
                     f"hil emulator: warning: {exc} (further errors only counted)", file=sys.stderr
                 )
 
-    def new_run(self) -> None:
+    def new_run(self, seed: int | None) -> None:
         """A scenario reset: later poses carry a new source id, so the vision process starts a
-        new run (frame counter, clocks, noise generator from its seed) as for a new emulator."""
+        new run (frame counter, clocks, noise generator) as for a new emulator, and the seed the
+        reset named (None: the vision process's own ``camera.seed``)."""
         import secrets
 
         old = self.publisher.source
         while self.publisher.source == old:
             self.publisher.source = secrets.randbits(32)
+        self.publisher.seed = seed
 
 
 def _config(args: argparse.Namespace) -> Any:

@@ -38,6 +38,9 @@ class PosePublisher:
         self.key = key
         """Rig key the poses are authenticated with (None: this process's ephemeral key)."""
         self.source = secrets.randbits(32) if source is None else source
+        self.seed: int | None = None
+        """The camera noise seed the poses name (set by a scenario reset that named one; None:
+        the vision process uses its own ``camera.seed``)."""
         self.published = 0
         self.errors = 0
         self._pub = session.publisher(KEY_CAMERA_POSE)
@@ -63,6 +66,7 @@ class PosePublisher:
             float(pose.phi),
             lockstep,
             self.source,
+            self.seed,
         )
         payload = encode_pose(msg, self.key)
         try:

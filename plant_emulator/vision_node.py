@@ -20,6 +20,8 @@ Two modes, chosen per pose by its lockstep flag (or forced with ``lockstep=True/
 
 A new emulator run (new pose source id, or lockstep sim time going backwards) restarts the frame
 counter, clocks and noise generator, so repeated runs against one vision process are identical.
+The generator starts from the seed the poses name (a scenario reset that carried one, see
+:meth:`hal.joint_client.JointClient.reset_scenario`), else from ``camera.seed``.
 
 Fault injection: ``--dropout START:DURATION`` (repeatable; :class:`Dropout`) pauses the publisher
 for ``[START, START + DURATION)`` seconds of the run's *simulation* time (the pose's sim time; in
@@ -228,12 +230,15 @@ class VisionCore:
             fps=fps,
             dropouts=[str(d) for d in self.dropouts],
         )
-        self._run_key: tuple[int, bool] | None = None
+        self._run_key: tuple[int, bool, int | None] | None = None
         self._new_run()
 
-    def _new_run(self) -> None:
+    def _new_run(self, seed: int | None = None) -> None:
+        """Start a run: frame counter, clocks, and the noise generator from ``seed`` (the one
+        the emulator's scenario reset named), else from ``camera.seed``."""
         self.frame = 0
-        self.rng = np.random.default_rng(self.camera.seed)
+        self.seed = self.camera.seed if seed is None else seed
+        self.rng = np.random.default_rng(self.seed)
         self.sim_clock = FrameClock(self.fps, origin_ns=0)
         self.rt_clock = FrameClock(self.fps)
         self.pending: deque[tuple[int, FeatureMsg]] = deque()
@@ -292,12 +297,13 @@ class VisionCore:
     def on_pose(self, pose: PoseMsg, now_ns: int) -> list[FeatureMsg]:
         """Take an accepted pose; the messages to publish now (lockstep: exactly one)."""
         lockstep = self.is_lockstep(pose)
-        restart = self._run_key != (pose.source, lockstep) or (
+        key = (pose.source, lockstep, pose.seed)
+        restart = self._run_key != key or (
             lockstep and self.last_sim_ns is not None and pose.sim_time_ns < self.last_sim_ns
         )
         if restart:
-            self._new_run()
-            self._run_key = (pose.source, lockstep)
+            self._new_run(pose.seed)
+            self._run_key = key
             self.stats.runs += 1
         self.stats.poses += 1
         self.pose, self.pose_recv_ns, self.last_sim_ns = pose, now_ns, pose.sim_time_ns

@@ -126,11 +126,12 @@ def daemon_options(args: argparse.Namespace, cfg: RigConfig) -> DaemonOptions:
 
 def run_plan_command(args: argparse.Namespace) -> int:
     """``--plan``: every run of the plan, one summary each; 1 when any run was not clean."""
+    from hal.config import load_config
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import print_summary
     from rt_controller.errors import ControllerConfigError
-    from rt_controller.runtime.plan import load_plan, run_configs, run_plan
+    from rt_controller.runtime.plan import check_started_seed, load_plan, run_configs, run_plan
 
     given = [o for o, v in (("--law", args.law), ("--log", args.log)) if v]
     given += ["--duration"] if args.duration else []
@@ -150,6 +151,7 @@ def run_plan_command(args: argparse.Namespace) -> int:
         return cfg
 
     cfgs = run_configs(runs, prepare)
+    check_started_seed(runs[0], cfgs[0], load_config(args.config))
     opts = daemon_options(args, cfgs[0])
     unclean: list[str] = []
 

@@ -4,10 +4,10 @@ Starting the three processes costs more than a 10 s lockstep run itself (imports
 kernels, zenoh and the arming handshake), so ``hil experiment`` hands the controller a plan of
 runs instead of restarting the rig per run. Between runs the controller resets the emulated
 DSP's scenario over the existing CAN link (DspControl ``RESET_SCENARIO``: simulation time 0,
-the configured initial state, a new session, and a new pose source so the vision process
-restarts its run and its noise generator); each run then starts as on freshly started
-processes, so its log and summary are those of ``hil up --config RUN.toml`` (tests compare
-them bit for bit).
+the configured initial state, a new session, the run's camera noise seed, and a new pose source
+so the vision process restarts its run and its noise generator from that seed); each run then
+starts as on freshly started processes, so its log and summary are those of
+``hil up --config RUN.toml`` (tests compare them bit for bit).
 
 The plan is JSON::
 
@@ -15,8 +15,9 @@ The plan is JSON::
                "duration_s": 10.0, "log": "logs/rhc-T0.1.mcap"}, ...]}
 
 Every run's configuration must agree with the first in all that the emulator and the vision
-process read (everything but the ``controller``, ``rhc`` and ``gains`` sections): they were
-started once, with the first run's file.
+process read (everything but the ``controller``, ``rhc`` and ``gains`` sections, and
+``camera.seed``, which the reset carries when it fits its 32-bit signal): they were started
+once, with the first run's file.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from hal.can_codec import SEED_MAX
 from hal.config import RigConfig, load_config
 from hal.errors import HalError, HalStopped
 from rt_controller.config_rules import apply_overrides
@@ -99,9 +101,21 @@ def _planned_run(item: Any, where: str) -> PlannedRun:
     return PlannedRun(item["name"], Path(item["config"]), Path(item["log"]), float(duration), law)
 
 
+def reset_seed(cfg: RigConfig) -> int | None:
+    """The camera noise seed a scenario reset carries for a run of ``cfg`` (None when it does
+    not fit ``DspControl.Seed``: such a seed is the processes' own, see :func:`world_of`)."""
+    seed = cfg.camera.seed
+    return seed if 0 <= seed <= SEED_MAX else None
+
+
 def world_of(cfg: RigConfig) -> dict[str, Any]:
-    """What the emulator and vision processes read of ``cfg``."""
-    return {k: v for k, v in cfg.to_dict().items() if k not in CONTROLLER_SECTIONS}
+    """What the emulator and vision processes read of ``cfg`` and a plan cannot change from
+    run to run: everything but the controller's sections and a camera seed that a scenario
+    reset carries (:func:`reset_seed`)."""
+    out = {k: v for k, v in cfg.to_dict().items() if k not in CONTROLLER_SECTIONS}
+    if reset_seed(cfg) is not None:
+        out["camera"] = {k: v for k, v in out["camera"].items() if k != "seed"}
+    return out
 
 
 def first_difference(a: dict[str, Any], b: dict[str, Any]) -> str | None:
@@ -128,10 +142,23 @@ def run_configs(
                 raise ControllerConfigError(
                     f"plan run {run.name!r}: {diff} differs from run {runs[0].name!r}; the "
                     "emulator and vision processes were started with the first run's "
-                    f"configuration (runs of one plan may differ in {CONTROLLER_SECTIONS} only)"
+                    f"configuration (runs of one plan may differ in {CONTROLLER_SECTIONS} and "
+                    f"camera.seed up to {SEED_MAX} only)"
                 )
         cfgs.append(cfg)
     return cfgs
+
+
+def check_started_seed(first: PlannedRun, cfg: RigConfig, started: RigConfig) -> None:
+    """The plan's first run runs on the processes as they started (no reset before it): its
+    camera seed must be theirs (``started``: the ``--config`` they were given); a clear
+    :class:`ControllerConfigError` otherwise. Later runs name theirs in the reset."""
+    if cfg.camera.seed != started.camera.seed:
+        raise ControllerConfigError(
+            f"plan run {first.name!r} (the first) has camera.seed {cfg.camera.seed}, but the "
+            f"emulator and vision processes were started with {started.camera.seed}: start "
+            "them with the first run's configuration, or put a run of their seed first"
+        )
 
 
 def run_plan(
@@ -159,7 +186,7 @@ def run_plan(
                 t0 = time.monotonic()
                 if i:
                     try:
-                        dsp.reset_scenario(RESET_TIMEOUT_S)
+                        dsp.reset_scenario(RESET_TIMEOUT_S, seed=reset_seed(cfg))
                     except HalError as exc:
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
                 run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)

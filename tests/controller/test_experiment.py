@@ -205,14 +205,15 @@ def test_runs_go_jobs_at_a_time_and_a_stop_request_cancels_those_in_flight(
 
 
 def test_runs_sharing_an_emulator_config_share_processes(tmp_path):
-    """table1: one set of processes per noise seed (the vision's configuration), the three
-    horizons (controller sections only) as a plan on it; fig3 + fig4 share one set, split in
-    two while there are fewer sets than jobs; realtime and --fresh-processes: one run each."""
+    """table1: the horizons (controller sections) and the noise seeds (each scenario reset
+    names its run's seed) all share one set of processes, split in two while there are fewer
+    sets than jobs; fig3 + fig4 likewise; realtime and --fresh-processes: one run each."""
     _, runs = ex.prepare(settings(tmp_path, ("table1",), reps=2, jobs=2))
     got = [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), settings(tmp_path))]
-    assert got == [
-        [f"rhc-T{h}-noise0.5-seed{seed}" for h in ("0.02", "0.1", "1.0")] for seed in (0, 1)
-    ]
+    names = [f"rhc-T{h}-noise0.5-seed{seed}" for h in ("0.02", "0.1", "1.0") for seed in (0, 1)]
+    assert got == [names[:3], names[3:]]
+    single = settings(tmp_path, ("table1",), reps=2, jobs=1)
+    assert [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), single)] == [names]
     figs = settings(tmp_path / "f", ("fig3", "fig4"), jobs=2)
     _, runs = ex.prepare(figs)
     got = [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), figs)]

@@ -7,11 +7,18 @@ from pathlib import Path
 
 import pytest
 
+from hal.can_codec import SEED_MAX
 from hal.config import RigConfig, load_config
 from rt_controller.cli import main
 from rt_controller.config_rules import config_toml
 from rt_controller.errors import ControllerConfigError
-from rt_controller.runtime.plan import first_difference, load_plan, run_configs, world_of
+from rt_controller.runtime.plan import (
+    first_difference,
+    load_plan,
+    reset_seed,
+    run_configs,
+    world_of,
+)
 
 
 def write(tmp_path: Path, doc: object, name: str = "plan.json") -> Path:
@@ -72,12 +79,21 @@ def test_a_missing_plan_file_is_a_clear_error(tmp_path):
         load_plan(tmp_path / "nope.json")
 
 
-def test_runs_may_differ_in_the_controllers_sections_only(tmp_path):
+def test_runs_may_differ_in_the_controllers_sections_and_a_resettable_seed_only(tmp_path):
+    """The controller's sections and a camera seed that fits DspControl.Seed (the reset
+    carries it) may differ between runs; anything else the emulator or vision reads may not,
+    nor may a seed beyond 32 bits."""
     base = load_config(None)
-    ok = base.with_overrides({"controller.law": "pbc", "rhc.horizon": 1.0, "gains.kp": 0.2})
-    bad = base.with_overrides({"camera.seed": 7})
+    ok = base.with_overrides(
+        {"controller.law": "pbc", "rhc.horizon": 1.0, "gains.kp": 0.2, "camera.seed": SEED_MAX}
+    )
+    bad = base.with_overrides({"camera.noise_px": 0.7})
     assert first_difference(world_of(base), world_of(ok)) is None
-    assert first_difference(world_of(base), world_of(bad)) == "camera.seed"
+    assert first_difference(world_of(base), world_of(bad)) == "camera.noise_px"
+    assert reset_seed(ok) == SEED_MAX and reset_seed(base) == base.camera.seed
+    big = base.with_overrides({"camera.seed": SEED_MAX + 1})
+    assert reset_seed(big) is None
+    assert first_difference(world_of(base), world_of(big)) == "camera.seed"
     runs = load_plan(
         write(
             tmp_path,
@@ -92,7 +108,7 @@ def test_runs_may_differ_in_the_controllers_sections_only(tmp_path):
     )
     cfgs = run_configs(runs[:2], lambda c: c)
     assert [c.controller.law for c in cfgs] == [base.controller.law, "ioc"]
-    with pytest.raises(ControllerConfigError, match=r"run 'c': camera\.seed differs from run 'a'"):
+    with pytest.raises(ControllerConfigError, match=r"run 'c': camera\.noise_px differs from run"):
         run_configs(runs, lambda c: c)
 
 
@@ -105,3 +121,9 @@ def test_the_command_line_refuses_a_plan_with_per_run_options_or_realtime(tmp_pa
     argv = ["controller", "--plan", str(plan), "--clock", "realtime", "--no-rt"]
     assert main(argv) == 2
     assert "lockstep only" in capsys.readouterr().err
+    # the first run runs on the processes as started: its seed must be theirs
+    seeded = load_config(None).with_overrides({"controller.clock": "lockstep", "camera.seed": 3})
+    plan = write(tmp_path, {"runs": [run_entry(tmp_path, "s3", seeded)]}, "seeded.json")
+    assert main(["controller", "--plan", str(plan), "--no-rt"]) == 2
+    err = capsys.readouterr().err
+    assert "'s3' (the first) has camera.seed 3" in err and "started with 0" in err

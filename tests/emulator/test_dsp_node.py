@@ -36,7 +36,7 @@ from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 from plant_emulator.dsp_node import DspNode
-from tests.support import SecocReference, e2e_crc_reference
+from tests.support import SecocReference, command_is_malformed, e2e_crc_reference
 
 RECV_TIMEOUT_S = 10.0
 MS = 1_000_000
@@ -456,11 +456,12 @@ def _answer_periods(client: JointClient, periods: int) -> dict[int, tuple]:
 def test_a_scenario_reset_runs_again_exactly_as_a_fresh_dsp(cfg: RigConfig, transport: str):
     """RESET_SCENARIO between two runs on one running DSP: the second run sees the same
     states as the first and as a freshly started DSP, under a new session; nothing of the
-    first run (states, Syncs) reaches the second."""
+    first run (states, Syncs) reaches the second. The camera noise seed the reset names goes
+    to the world's camera and to ``on_reset`` (the pose link)."""
     periods = 30
     _, fresh = lockstep_run(cfg, transport, periods)
     spec = isolated_spec(transport)
-    resets: list[int] = []
+    resets: list[tuple[int, int | None]] = []
     with open_bus(spec) as bus, JointClient.open(spec, cfg, start=False) as client:
         node = DspNode(
             cfg,
@@ -468,7 +469,7 @@ def test_a_scenario_reset_runs_again_exactly_as_a_fresh_dsp(cfg: RigConfig, tran
             lockstep=True,
             sync_resend_s=0.02,
             reply_timeout_s=5.0,
-            on_reset=lambda: resets.append(node.session),
+            on_reset=lambda seed: resets.append((node.session, seed)),
         )
         stop = threading.Event()
         thread = threading.Thread(target=node.run, args=(stop,), name="dsp")
@@ -476,7 +477,7 @@ def test_a_scenario_reset_runs_again_exactly_as_a_fresh_dsp(cfg: RigConfig, tran
         try:
             first = _answer_periods(client, periods)
             session = node.session
-            status = client.reset_scenario(RECV_TIMEOUT_S)
+            status = client.reset_scenario(RECV_TIMEOUT_S, seed=7)
             assert status.session == node.session != session
             assert client.sync_tick is None and client.take_statuses() == [status]
             second = _answer_periods(client, periods)
@@ -484,7 +485,8 @@ def test_a_scenario_reset_runs_again_exactly_as_a_fresh_dsp(cfg: RigConfig, tran
             stop.set()
             thread.join(RECV_TIMEOUT_S)
     assert first == second == {k: fresh.states[k] for k in range(periods)}
-    assert node.stats.scenario_resets == 1 and resets == [node.session]
+    assert node.stats.scenario_resets == 1 and resets == [(node.session, 7)]
+    assert node.world.seed == 7  # the world's camera noise restarted from the reset's seed
     assert node.stats.missing_periods == 0
 
 
@@ -642,7 +644,7 @@ class DspOracle:
                 return "repeated_counter"
             if delta > DEFAULT_MAX_DELTA:
                 return "counter_jump"
-        if fid == CONTROL_ID and data[2] not in {int(c) for c in DspCommand}:
+        if fid == CONTROL_ID and command_is_malformed(data):
             return "decode_error"
         return "accepted"
 

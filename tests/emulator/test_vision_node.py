@@ -45,9 +45,9 @@ def q0_pose(cfg: RigConfig) -> CameraPose:
     return camera_pose(cfg.robot, np.array(cfg.scenario.q0))
 
 
-def pose_msg(cfg: RigConfig, seq: int, sim_ns: int, *, lockstep: bool, q=None, source=1):
+def pose_msg(cfg: RigConfig, seq: int, sim_ns: int, *, lockstep: bool, q=None, source=1, seed=None):
     p = q0_pose(cfg) if q is None else camera_pose(cfg.robot, np.array(q))
-    return PoseMsg(seq, sim_ns, 0, p.x, p.y, p.phi, lockstep, source)
+    return PoseMsg(seq, sim_ns, 0, p.x, p.y, p.phi, lockstep, source, seed)
 
 
 def camera_cfg(cfg: RigConfig, **kw) -> RigConfig:
@@ -145,6 +145,27 @@ def test_new_emulator_run_restarts_frames_and_noise(cfg):
     assert [m.frame for m in again] == [0, 1, 2]
     assert [m.f for m in again] == [m.f for m in first]
     assert core.stats.runs == 2
+
+
+def test_a_run_whose_poses_name_a_seed_draws_its_noise_from_it(cfg):
+    """A scenario reset that named a seed: the vision process's next run draws the same noise
+    as a vision process started with that ``camera.seed``; a run whose poses name none goes
+    back to the process's own seed."""
+
+    def run(core: VisionCore, source: int, seed: int | None) -> list:
+        poses = [
+            pose_msg(cfg, k, k * PERIOD, lockstep=True, source=source, seed=seed) for k in range(5)
+        ]
+        return [core.on_pose(p, 0)[0].f for p in poses]
+
+    fresh5 = run(VisionCore(camera_cfg(cfg, noise_px=1.0, seed=5), fps=0.0), 1, None)
+    fresh0 = run(VisionCore(camera_cfg(cfg, noise_px=1.0, seed=0), fps=0.0), 1, None)
+    assert fresh5 != fresh0
+    core = VisionCore(camera_cfg(cfg, noise_px=1.0, seed=0), fps=0.0)
+    assert run(core, 1, None) == fresh0
+    assert run(core, 2, 5) == fresh5 and core.seed == 5
+    assert run(core, 3, None) == fresh0 and core.seed == 0
+    assert core.stats.runs == 3
 
 
 def test_realtime_decimates_to_the_frame_rate(cfg):

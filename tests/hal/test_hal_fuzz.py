@@ -34,7 +34,7 @@ from hal.can_codec import (
 from hal.drive_state import DriveState, FaultReason
 from hal.e2e import DEFAULT_MAX_DELTA
 from hal.joint_client import JointClient
-from tests.support import SecocReference, e2e_crc_reference
+from tests.support import SecocReference, command_is_malformed, e2e_crc_reference
 
 N_FRAMES = 10_000
 RAW_DB = cantools.database.load_file(str(DBC_PATH))
@@ -79,7 +79,7 @@ class Oracle:
                 return "repeated_counter"
             if delta > DEFAULT_MAX_DELTA:
                 return "counter_jump"
-        if fid == COMMAND_ID and data[2] not in {int(c) for c in DspCommand}:
+        if fid == COMMAND_ID and command_is_malformed(data):
             return "decode_error"
         # DspStatus: DriveState (bits 24..26) and FaultReason (27..30) outside their enums
         if fid == STATUS_ID and (

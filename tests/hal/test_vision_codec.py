@@ -50,12 +50,27 @@ def test_features_round_trip_is_bit_exact():
     assert msg.as_dict()["f"] == [math.pi, -1e-300]
 
 
-def test_pose_round_trip():
-    msg = PoseMsg(5, 100_000_000, NOW, 0.45, 0.13, 0.0, True, 3)
+@pytest.mark.parametrize(("seed", "flags"), [(None, 0x01), (0, 0x03), (2**64 - 1, 0x03)])
+def test_pose_round_trip(seed, flags):
+    """Camera pose v3: the run's noise seed travels with its flag (None: no seed named)."""
+    msg = PoseMsg(5, 100_000_000, NOW, 0.45, 0.13, 0.0, True, 3, seed)
     buf = encode_pose(msg)
-    assert len(buf) == POSE_SIZE == 72
-    assert buf[:4] == b"HP\x02\x01"
+    assert len(buf) == POSE_SIZE == 80
+    assert buf[:4] == b"HP\x03" + bytes([flags])
+    assert struct.unpack_from("<Q", buf, 56) == (seed or 0,)
     assert decode_pose(buf) == msg
+
+
+def test_a_pose_of_another_version_or_with_a_stray_seed_is_refused():
+    """A v2 pose (no seed field) is a bad version; a seed without its flag a bad value; a seed
+    that is not an integer is refused at encode."""
+    good = encode_pose(PoseMsg(1, 0, 0, 0.1, 0.2, 0.3, True, 9, 4))
+    with pytest.raises(HalCodecError, match="bad_version"):
+        decode_pose(good[:2] + b"\x02" + good[3:])
+    with pytest.raises(HalCodecError, match="bad_value"):
+        decode_pose(good[:3] + b"\x01" + good[4:])
+    with pytest.raises(HalCodecError, match="seed"):
+        encode_pose(PoseMsg(1, 0, 0, 0.1, 0.2, 0.3, True, 9, 1.5))  # type: ignore[arg-type]
 
 
 def test_little_endian_layout_is_documented_one():
@@ -97,8 +112,10 @@ def test_decode_errors_name_the_problem():
         decode_features(b"XX" + good[2:])
     with pytest.raises(HalCodecError, match="bad_version"):
         decode_features(good[:2] + b"\x01" + good[3:])
-    with pytest.raises(HalCodecError, match="bad_magic"):
+    with pytest.raises(HalCodecError, match="bad_size"):
         decode_features(encode_pose(PoseMsg(0, 0, 0, 0.0, 0.0, 0.0)))
+    with pytest.raises(HalCodecError, match="bad_magic"):
+        decode_features(encode_pose(PoseMsg(0, 0, 0, 0.0, 0.0, 0.0))[: len(good)])
 
 
 def test_decoder_keeps_latest_valid_with_receive_time():

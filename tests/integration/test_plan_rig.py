@@ -30,11 +30,12 @@ def _config(tmp_path: Path, name: str, **overrides: object) -> Path:
 
 def test_a_run_after_a_faulted_one_is_the_run_fresh_processes_give(tmp_path):
     """Plan: IOC with a gain that drives the arm past the DSP's velocity limit (the DSP
-    faults), then RHC and IOC with the paper's gains. The faulted run is reported not clean;
-    the reset clears the fault, and the next runs equal fresh runs bit for bit."""
+    faults), then RHC with another camera noise seed and IOC with the first seed again, with
+    the paper's gains. The faulted run is reported not clean; the reset clears the fault and
+    names the next run's seed, and the next runs equal fresh runs bit for bit."""
     runs = [
         ("wild", _config(tmp_path, "wild", **{"gains.kp": 40.0}), "ioc"),
-        ("rhc", _config(tmp_path, "rhc"), "rhc"),
+        ("rhc", _config(tmp_path, "rhc", **{"camera.seed": 3}), "rhc"),
         ("ioc", _config(tmp_path, "ioc"), "ioc"),
     ]
     plan = tmp_path / "plan.json"
@@ -45,7 +46,7 @@ def test_a_run_after_a_faulted_one_is_the_run_fresh_processes_give(tmp_path):
     for entry in doc:
         entry["log"] = str(tmp_path / "plan" / entry["log"])
     plan.write_text(json.dumps({"runs": doc}), encoding="utf-8")
-    opts = RigOptions(config=str(runs[1][1]), duration_s=3 * DURATION_S, lockstep=True, plan=plan)
+    opts = RigOptions(config=str(runs[0][1]), duration_s=3 * DURATION_S, lockstep=True, plan=plan)
     summaries, error = run_rig_plan(opts, len(runs))
     assert error is None
     assert [s["run"] for s in summaries] == ["wild", "rhc", "ioc"]
