@@ -5,11 +5,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from hal.arguments import bounded_int, duration
 from hal.config import LAW_NAMES
 from rt_controller.commands.common import add_config_option, config_from_args
+
+
+def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespace], int]) -> None:
+    """Every bench prints one JSON object; ``--json`` is accepted for symmetry with the rest."""
+    parser.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
+    parser.set_defaults(handler=handler)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,8 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=2000,
         help="updates per configuration",
     )
-    s.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
-    s.set_defaults(handler=run_solver)
+    _finish(s, run_solver)
     lp = bench.add_parser(
         "loop",
         help="the whole rig in real time at several control rates (lateness, misses, latency)",
@@ -54,8 +60,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="DIR",
         help="keep the runs' MCAP logs and configs in DIR (default: a temporary folder)",
     )
-    lp.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
-    lp.set_defaults(handler=run_loop)
+    _finish(lp, run_loop)
+    hp = bench.add_parser(
+        "host",
+        help="how late this host wakes a SCHED_FIFO 99 thread on each CPU (cyclictest's "
+        "measurement; the floor under the loop's lateness), and the hypervisor's steal",
+    )
+    hp.add_argument("--duration", type=duration(), default=10.0, help="seconds (default 10)")
+    hp.add_argument(
+        "--period-us",
+        type=bounded_int(50, 1_000_000, what="--period-us"),
+        default=1000,
+        help="release period of each probe in microseconds (default 1000)",
+    )
+    _finish(hp, run_host)
 
 
 def run_solver(args: argparse.Namespace) -> int:
@@ -63,6 +81,13 @@ def run_solver(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     print(json.dumps(bench_solver(cfg, updates=args.updates)))
+    return 0
+
+
+def run_host(args: argparse.Namespace) -> int:
+    from rt_controller.rig.bench_host import bench_host
+
+    print(json.dumps(bench_host(args.duration, args.period_us)))
     return 0
 
 

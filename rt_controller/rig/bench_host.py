@@ -1,0 +1,155 @@
+"""``hil bench host``: how late this host wakes a real-time thread, with nothing of the rig running.
+
+The measurement of ``cyclictest``: on every CPU a probe process, pinned to it and at SCHED_FIFO
+priority 99 (above the controller's and the DSP's), sleeps until each period's absolute release
+and records how late it woke. Nothing in the guest outranks it, so a wake-up that is late by
+milliseconds means the CPU itself was not there: a virtual machine's vCPU descheduled by its
+hypervisor (steal time), or firmware. It is the floor under ``hil bench loop``'s lateness: a
+controller cannot be released more punctually than the host wakes a thread, and a 1 kHz loop
+cannot have zero misses on a host that pauses a CPU for 10 ms every few seconds.
+
+Each probe reports its wake-ups, lateness (median, p99, max), the wake-ups later than 100 µs
+and 1 ms and its latest ones (``at_ms`` from its start); ``steal_percent`` is the share of the
+CPUs' time the hypervisor took over the run (``/proc/stat``). A probe that may not use
+SCHED_FIFO runs at normal priority and says so.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rt_controller.errors import ControllerError
+from rt_controller.sample_stats import summary_stats
+
+PROBE_PRIORITY = 99
+"""SCHED_FIFO priority of a probe (above every process of the rig)."""
+LATE_US = (100, 1000)
+"""Wake-ups later than these are counted (``late_over_100us``, ``late_over_1000us``)."""
+WORST = 10
+"""The latest wake-ups each probe lists (time from its start, lateness)."""
+PROC_STAT = Path("/proc/stat")
+
+
+def probe(
+    cpu: int,
+    duration_s: float,
+    period_us: int,
+    *,
+    clock: Callable[[], int] = time.monotonic_ns,
+    sleep: Callable[[float], None] = time.sleep,
+    realtime: bool = True,
+) -> dict[str, Any]:
+    """Run one probe in this process: pinned to ``cpu``, SCHED_FIFO if allowed (``realtime``),
+    released every ``period_us`` for ``duration_s`` of ``clock``; its figures. Releases that a
+    pause swallowed whole are skipped, not run back to back (as the controller's cadence)."""
+    from rt_controller.runtime.realtime import RtReport, apply_realtime
+
+    rt = apply_realtime(PROBE_PRIORITY, cpu, lock_memory=False) if realtime else RtReport()
+    period = period_us * 1000
+    now = clock
+    start = now()
+    release = start + period
+    end = start + round(duration_s * 1e9)
+    late = np.zeros(max(1, round(duration_s * 1e6 / period_us) + 1), dtype=np.int64)
+    at = np.zeros_like(late)
+    n = 0
+    while release <= end and n < late.size:
+        wait = release - now()
+        if wait > 0:
+            sleep(wait / 1e9)
+        woke = now()
+        late[n], at[n] = woke - release, release - start
+        n += 1
+        release += period
+        if woke >= release:  # skip releases a long pause swallowed, as the controller does
+            release += ((woke - release) // period + 1) * period
+    late_us, at_ms = late[:n] / 1e3, at[:n] / 1e6
+    worst = np.argsort(late_us)[-WORST:][::-1]
+    fifo = [a for a in rt.applied if a.startswith("SCHED_FIFO")]
+    refused = [w for w in rt.warnings if "SCHED_FIFO" in w]
+    return {
+        "cpu": cpu,
+        "scheduling": fifo[0] if fifo else f"normal ({refused[0] if refused else 'not asked'})",
+        "wakeups": n,
+        "lateness_us": summary_stats(late_us),
+        **{f"late_over_{t}us": int(np.sum(late_us > t)) for t in LATE_US},
+        "worst": [
+            {"at_ms": round(float(at_ms[i]), 3), "late_us": round(float(late_us[i]), 1)}
+            for i in worst
+        ],
+    }
+
+
+def _steal_ticks() -> tuple[int, int] | None:
+    """(steal, total) jiffies of all CPUs from ``/proc/stat``; None where it is not Linux's."""
+    try:
+        fields = PROC_STAT.read_text(encoding="ascii").split("\n", 1)[0].split()
+    except OSError:
+        return None
+    if not fields or fields[0] != "cpu" or len(fields) < 9:
+        return None
+    values = [int(v) for v in fields[1:]]
+    return values[7], sum(values[:8])
+
+
+def bench_host(
+    duration_s: float = 10.0, period_us: int = 1000, cpus: list[int] | None = None
+) -> dict[str, Any]:
+    """One probe per CPU (``cpus``, default every CPU this process may use), all at once, each
+    in its own process; their figures and the steal over the run."""
+    if not (duration_s > 0 and math.isfinite(duration_s)) or period_us < 50:
+        raise ControllerError("bench host: duration must be > 0 and period at least 50 us")
+    cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
+    before = _steal_ticks()
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "rt_controller.rig.bench_host",
+                str(cpu),
+                repr(duration_s),
+                str(period_us),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for cpu in cpus
+    ]
+    probes = []
+    for cpu, p in zip(cpus, procs, strict=True):
+        out, err = p.communicate()
+        if p.returncode != 0 or not out.strip():
+            raise ControllerError(f"bench host: the probe on CPU {cpu} failed: {err.strip()}")
+        probes.append(json.loads(out))
+    after = _steal_ticks()
+    steal = None
+    if before is not None and after is not None and after[1] > before[1]:
+        steal = 100.0 * (after[0] - before[0]) / (after[1] - before[1])
+    return {
+        "duration_s": duration_s,
+        "period_us": period_us,
+        "steal_percent": steal,
+        "probes": probes,
+    }
+
+
+def main(argv: list[str]) -> int:
+    """``python -m rt_controller.rig.bench_host CPU DURATION_S PERIOD_US``: one probe, JSON."""
+    print(json.dumps(probe(int(argv[0]), float(argv[1]), int(argv[2]))))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
