@@ -622,6 +622,21 @@ def _correct(P, N, kmax, c, U, x0, T, F, b, dU, pre, ws, sw):
     return k
 
 
+@njit(inline="always", **JIT)
+def _orthogonalise(v, Vb, nv, coef, col):
+    """Modified Gram-Schmidt: take out of ``v`` its component along each of the first ``nv``
+    (orthonormal) rows of ``Vb`` in turn, storing the ``i``-th in ``coef[i, col]``."""
+    n = v.shape[0]
+    for i in range(nv):
+        vi = Vb[i]
+        sdot = 0.0
+        for p in range(n):
+            sdot += v[p] * vi[p]
+        coef[i, col] = sdot
+        for p in range(n):
+            v[p] -= sdot * vi[p]
+
+
 @njit(**JIT)
 def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
     """Solve F_U d1 = b1 and F_U d2 = b2 together: m forward-difference products in all.
@@ -648,14 +663,7 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
         bn = norm(v)
         if not (bn > 0.0) or not math.isfinite(bn):
             continue
-        for i in range(nv):
-            vi = Vb[i]
-            sdot = 0.0
-            for p in range(n):
-                sdot += v[p] * vi[p]
-            G[i, c] = sdot
-            for p in range(n):
-                v[p] -= sdot * vi[p]
+        _orthogonalise(v, Vb, nv, G, c)
         vn = norm(v)
         if vn > 1e-12 * bn:
             G[nv, c] = vn
@@ -672,14 +680,7 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
         w = Vb[nv]
         _jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
         wn0 = norm(w)
-        for i in range(nv):
-            vi = Vb[i]
-            sdot = 0.0
-            for p in range(n):
-                sdot += w[p] * vi[p]
-            Hs[i, j] = sdot
-            for p in range(n):
-                w[p] -= sdot * vi[p]
+        _orthogonalise(w, Vb, nv, Hs, j)
         hnext = norm(w)
         k = j + 1
         if not math.isfinite(hnext):
