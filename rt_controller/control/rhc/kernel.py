@@ -404,6 +404,21 @@ def _jvp(P, N, U, x0, T, F0, v, scale, out, Ut, sw):
         out[i] = (out[i] - F0[i]) / h
 
 
+@njit(inline="always", **JIT)
+def _orthogonalise(v, Vb, nv, coef, col):
+    """Modified Gram-Schmidt: take out of ``v`` its component along each of the first ``nv``
+    (orthonormal) rows of ``Vb`` in turn, storing the ``i``-th in ``coef[i, col]``."""
+    n = v.shape[0]
+    for i in range(nv):
+        vi = Vb[i]
+        sdot = 0.0
+        for p in range(n):
+            sdot += v[p] * vi[p]
+        coef[i, col] = sdot
+        for p in range(n):
+            v[p] -= sdot * vi[p]
+
+
 @njit(**JIT)
 def fd_gmres(P, N, U, x0, T, F0, b, sol, use_guess, m, tol, pre, ws, sw):
     """Solve F_U(U, x0, T) sol = b by right-preconditioned GMRES(m), forward-difference products.
@@ -445,14 +460,7 @@ def fd_gmres(P, N, U, x0, T, F0, b, sol, use_guess, m, tol, pre, ws, sw):
         if not (zn > 0.0) or not math.isfinite(zn):
             break
         _jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
-        for i in range(j + 1):
-            vi = Vb[i]
-            s = 0.0
-            for p in range(n):
-                s += w[p] * vi[p]
-            Hs[i, j] = s
-            for p in range(n):
-                w[p] -= s * vi[p]
+        _orthogonalise(w, Vb, j + 1, Hs, j)
         hnext = norm(w)
         Hs[j + 1, j] = hnext
         for i in range(j):
@@ -620,21 +628,6 @@ def _correct(P, N, kmax, c, U, x0, T, F, b, dU, pre, ws, sw):
     clip_dummies(P, N, U)
     eval_F(P, N, U, x0, T, sw, F)
     return k
-
-
-@njit(inline="always", **JIT)
-def _orthogonalise(v, Vb, nv, coef, col):
-    """Modified Gram-Schmidt: take out of ``v`` its component along each of the first ``nv``
-    (orthonormal) rows of ``Vb`` in turn, storing the ``i``-th in ``coef[i, col]``."""
-    n = v.shape[0]
-    for i in range(nv):
-        vi = Vb[i]
-        sdot = 0.0
-        for p in range(n):
-            sdot += v[p] * vi[p]
-        coef[i, col] = sdot
-        for p in range(n):
-            v[p] -= sdot * vi[p]
 
 
 @njit(**JIT)
