@@ -44,7 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="delivery delay (camera.latency_s)",
     )
-    p.add_argument("--seed", type=int, help="noise seed (camera.seed)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        help="noise seed (camera.seed); a run after a scenario reset that names a seed uses that",
+    )
     p.add_argument(
         "--clock",
         choices=("auto", "lockstep", "realtime"),

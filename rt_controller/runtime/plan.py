@@ -155,9 +155,10 @@ def check_started_seed(first: PlannedRun, cfg: RigConfig, started: RigConfig) ->
     :class:`ControllerConfigError` otherwise. Later runs name theirs in the reset."""
     if cfg.camera.seed != started.camera.seed:
         raise ControllerConfigError(
-            f"plan run {first.name!r} (the first) has camera.seed {cfg.camera.seed}, but the "
-            f"emulator and vision processes were started with {started.camera.seed}: start "
-            "them with the first run's configuration, or put a run of their seed first"
+            f"plan run {first.name!r} (the first) has camera.seed {cfg.camera.seed}, but "
+            f"--config, which the emulator and vision processes are started with, has "
+            f"{started.camera.seed}: start the rig with the first run's configuration, or put "
+            "a run of that seed first"
         )
 
 

@@ -126,4 +126,4 @@ def test_the_command_line_refuses_a_plan_with_per_run_options_or_realtime(tmp_pa
     plan = write(tmp_path, {"runs": [run_entry(tmp_path, "s3", seeded)]}, "seeded.json")
     assert main(["controller", "--plan", str(plan), "--no-rt"]) == 2
     err = capsys.readouterr().err
-    assert "'s3' (the first) has camera.seed 3" in err and "started with 0" in err
+    assert "'s3' (the first) has camera.seed 3" in err and "has 0" in err
