@@ -56,6 +56,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also run `hil monitor` on this port during the real-time runs (connect a client)",
     )
     lp.add_argument(
+        "--host-probe",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="first measure the host's own wake-up lateness for S seconds, as `hil bench host` "
+        "(reported as `host`; 0 = skip; default 5)",
+    )
+    lp.add_argument(
         "--keep",
         metavar="DIR",
         help="keep the runs' MCAP logs and configs in DIR (default: a temporary folder)",
@@ -103,6 +111,8 @@ def run_loop(args: argparse.Namespace) -> int:
         ) from exc
     if not rates or min(rates) <= 0:
         raise ControllerConfigError(f"--rates must be positive, got {args.rates!r}")
+    if not 0 <= args.host_probe <= 600:
+        raise ControllerConfigError(f"--host-probe must be 0..600 s, got {args.host_probe!r}")
     cfg = config_from_args(args)
     result = bench_loop(
         cfg,
@@ -112,6 +122,7 @@ def run_loop(args: argparse.Namespace) -> int:
         lockstep_duration=args.lockstep_duration,
         monitor_port=args.monitor_port,
         keep=Path(args.keep) if args.keep else None,
+        host_probe_s=args.host_probe,
     )
     print(json.dumps(result))
     unclean = [r for r in result["rates"] if r["problems"]]

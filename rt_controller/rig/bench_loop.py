@@ -198,10 +198,16 @@ def bench_loop(
     lockstep_duration: float = 10.0,
     monitor_port: int | None = None,
     keep: Path | None = None,
+    host_probe_s: float = 5.0,
 ) -> dict[str, Any]:
     """The JSON object ``hil bench loop`` prints. ``keep``: write the runs' logs and configs
-    there (kept) instead of a temporary folder."""
+    there (kept) instead of a temporary folder. ``host_probe_s``: first measure the host's own
+    wake-up lateness that long (``host``, :func:`~rt_controller.rig.bench_host.bench_host`),
+    so the run's figures come with the floor under them; 0 skips it."""
+    from rt_controller.rig.bench_host import bench_host
+
     cfg = cfg or load_config()
+    host = bench_host(host_probe_s) if host_probe_s > 0 else None
     with contextlib.ExitStack() as stack:
         if keep is None:
             work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="hil-bench-")))
@@ -218,6 +224,7 @@ def bench_loop(
         "rates": runs,
         "lockstep": lock,
         "monitor_port": monitor_port,
+        "host": host,
         "can_frame_us": {**bench_mac(), **bench_codec(2000)},
         "machine": {
             "cpus": os.cpu_count(),

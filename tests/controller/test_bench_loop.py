@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -67,7 +69,11 @@ def test_kept_logs_are_the_runs_logs(tmp_path) -> None:
     from rt_controller.logtools.reader import read_log
     from rt_controller.rig.bench_loop import bench_loop
 
-    out = bench_loop(rates=(50.0,), duration=1.0, law="ioc", lockstep_duration=0, keep=tmp_path)
+    out = bench_loop(
+        rates=(50.0,), duration=1.0, law="ioc", lockstep_duration=0, keep=tmp_path, host_probe_s=0.2
+    )
+    probes = out["host"]["probes"]  # the host's floor, measured first
+    assert len(probes) == len(os.sched_getaffinity(0)) and all(p["wakeups"] > 0 for p in probes)
     (run,) = out["rates"]
     log = read_log(run["log"])
     assert run["log"] == str(tmp_path / "loop-50.mcap") and (tmp_path / "rig-50.toml").is_file()
