@@ -21,14 +21,13 @@ import math
 import os
 import subprocess
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rt_controller.errors import ControllerError
+from rt_controller.runtime.cadence import Cadence, Clock, MonotonicClock
 from rt_controller.sample_stats import summary_stats
 
 PROBE_PRIORITY = 99
@@ -41,46 +40,39 @@ PROC_STAT = Path("/proc/stat")
 
 
 def probe(
-    cpu: int,
-    duration_s: float,
-    period_us: int,
-    *,
-    clock: Callable[[], int] = time.monotonic_ns,
-    sleep: Callable[[float], None] = time.sleep,
-    realtime: bool = True,
+    cpu: int, duration_s: float, period_us: int, *, clock: Clock | None = None
 ) -> dict[str, Any]:
-    """Run one probe in this process: pinned to ``cpu``, SCHED_FIFO if allowed (``realtime``),
-    released every ``period_us`` for ``duration_s`` of ``clock``; its figures. Releases that a
-    pause swallowed whole are skipped, not run back to back (as the controller's cadence)."""
+    """Run one probe in this process: pinned to ``cpu`` at SCHED_FIFO (if allowed), released
+    every ``period_us`` for ``duration_s`` by the controller's own :class:`Cadence` (releases a
+    pause swallowed are skipped, never run in a burst), sleeping to each release without the
+    controller's spin window; its figures. ``clock`` (tests) replaces the real clock, and then
+    nothing real-time is applied."""
     from rt_controller.runtime.realtime import RtReport, apply_realtime
 
-    rt = apply_realtime(PROBE_PRIORITY, cpu, lock_memory=False) if realtime else RtReport()
-    period = period_us * 1000
-    now = clock
-    start = now()
-    release = start + period
+    if clock is None:
+        rt = apply_realtime(PROBE_PRIORITY, cpu, lock_memory=False)
+        clock = MonotonicClock(spin_ns=0)
+    else:
+        rt = RtReport()
+    cadence = Cadence(period_us * 1000, clock)
+    start = clock.now_ns()
     end = start + round(duration_s * 1e9)
-    late = np.zeros(max(1, round(duration_s * 1e6 / period_us) + 1), dtype=np.int64)
-    at = np.zeros_like(late)
-    n = 0
-    while release <= end and n < late.size:
-        wait = release - now()
-        if wait > 0:
-            sleep(wait / 1e9)
-        woke = now()
-        late[n], at[n] = woke - release, release - start
-        n += 1
-        release += period
-        if woke >= release:  # skip releases a long pause swallowed, as the controller does
-            release += ((woke - release) // period + 1) * period
-    late_us, at_ms = late[:n] / 1e3, at[:n] / 1e6
+    late: list[int] = []
+    at: list[int] = []
+    while True:
+        tick = cadence.wait()
+        if tick.release_ns > end:
+            break
+        late.append(tick.lateness_ns)
+        at.append(tick.release_ns - start)
+    late_us, at_ms = np.asarray(late) / 1e3, np.asarray(at) / 1e6
     worst = np.argsort(late_us)[-WORST:][::-1]
     fifo = [a for a in rt.applied if a.startswith("SCHED_FIFO")]
     refused = [w for w in rt.warnings if "SCHED_FIFO" in w]
     return {
         "cpu": cpu,
         "scheduling": fifo[0] if fifo else f"normal ({refused[0] if refused else 'not asked'})",
-        "wakeups": n,
+        "wakeups": len(late),
         "lateness_us": summary_stats(late_us),
         **{f"late_over_{t}us": int(np.sum(late_us > t)) for t in LATE_US},
         "worst": [
