@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Create .venv (if missing) and install the project with its test extras from pyproject.toml.
+# Create .venv (if missing) and install the project with its test, analysis, sweep and docs
+# extras from pyproject.toml.
 # Idempotent and quiet when everything is already installed. Needs Python >= 3.11.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,7 +15,7 @@ fi
 stamp=.venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)
 if [ ! -f "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e '.[test]'
+  .venv/bin/python -m pip install -q -e '.[test,analysis,sweep,docs]'
   rm -f .venv/.installed-*
   touch "$stamp"
 fi
