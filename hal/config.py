@@ -292,6 +292,33 @@ class TransportConfig:
 
 
 @dataclass(frozen=True)
+class PlantConfig:
+    """Model mismatch: how the emulated plant differs from the controller's nominal model.
+
+    Factors on the nominal numbers of ``[robot]`` and ``[camera]`` (1 = the plant is the
+    nominal model, the default). Only the emulator's physics, camera and vision apply them
+    (:func:`plant_view`); the controller always works with the nominal sections, so a
+    ``[plant]`` other than 1 is a plant the controller does not know exactly. Each run's config
+    (its log's metadata, a sweep's row) carries the section.
+    """
+
+    theta1: float = 1.0
+    """Factor on theta1 = m1 lc1² + m2 l1² + I1 (eq. 4), realised through the plant's I1."""
+    theta2: float = 1.0
+    """Factor on theta2 = m2 lc2² + I2, realised through the plant's I2."""
+    theta3: float = 1.0
+    """Factor on theta3 = m2 l1 lc2, realised through the plant's lc2 (I2 keeps theta2)."""
+    s_lambda: float = 1.0
+    """Factor on camera.s_lambda (scale factor times focal length)."""
+    z_wo: float = 1.0
+    """Factor on camera.z_wo (depth of the target plane)."""
+
+    @property
+    def nominal(self) -> bool:
+        return all(getattr(self, f.name) == 1.0 for f in dataclasses.fields(self))
+
+
+@dataclass(frozen=True)
 class RigConfig:
     """The whole rig: every section of the TOML file."""
 
@@ -304,6 +331,7 @@ class RigConfig:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     dsp: DspConfig = field(default_factory=DspConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (lists for tuples), the inverse of :func:`config_from_dict`."""
@@ -464,6 +492,11 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "dsp.q_min": (-50, 50, "[]"),
     "dsp.q_max": (-50, 50, "[]"),
     "dsp.dq_max": (0, 83, "(]"),
+    "plant.theta1": (0.1, 10, "[]"),
+    "plant.theta2": (0.1, 10, "[]"),
+    "plant.theta3": (0, 10, "[]"),
+    "plant.s_lambda": (0.1, 10, "[]"),
+    "plant.z_wo": (0.1, 10, "[]"),
 }
 """Sane range of every numeric setting (each element of a vector or matrix): a value outside,
 like ``rhc.steps = 1000000000`` or ``rates.physics_hz = 1e300``, is a one-line
@@ -580,6 +613,7 @@ def validate(cfg: RigConfig) -> RigConfig:
         f"must be command or free, got {d.state_sync!r}",
     )
     _check_ranges(cfg)
+    _check_plant(cfg)
     for j in range(2):
         _require(
             d.q_min[j] < d.q_max[j],
@@ -593,6 +627,45 @@ def validate(cfg: RigConfig) -> RigConfig:
             f"must lie within dsp.q_min {d.q_min} .. dsp.q_max {d.q_max}, got {s.q0}",
         )
     return cfg
+
+
+def _plant_robot(cfg: RigConfig) -> RobotConfig:
+    """The plant's robot: the nominal one with theta1..theta3 scaled by ``[plant]``."""
+    r, p = cfg.robot, cfg.plant
+    if p.theta1 == p.theta2 == p.theta3 == 1.0:
+        return r
+    t1, t2, _ = r.theta
+    lc2 = r.lc2 * p.theta3
+    I2 = p.theta2 * t2 - r.m2 * lc2**2
+    I1 = p.theta1 * t1 - r.m1 * r.lc1**2 - r.m2 * r.l1**2
+    return dataclasses.replace(r, lc2=lc2, I1=I1, I2=I2)
+
+
+def _check_plant(cfg: RigConfig) -> None:
+    r, p = cfg.robot, cfg.plant
+    if p.theta3 != 1.0 and r.lc2 == 0:
+        raise HalConfigError("plant.theta3: robot.lc2 is 0, so theta3 = 0 cannot be scaled")
+    plant = _plant_robot(cfg)
+    for key, inertia in (("theta1", plant.I1), ("theta2", plant.I2)):
+        _require(
+            inertia > 0,
+            f"plant.{key}",
+            f"{getattr(p, key)!r} (with plant.theta3 {p.theta3!r}) leaves the plant's link "
+            f"inertia I{key[-1]} at {inertia:.4g} kg·m², not positive",
+        )
+
+
+def plant_view(cfg: RigConfig) -> RigConfig:
+    """What the emulated plant is: ``cfg`` with ``[robot]`` and ``[camera]`` replaced by the
+    plant's numbers (the nominal ones times the ``[plant]`` factors) and ``[plant]`` back to 1.
+    The emulator's physics, camera and vision are built from this; the controller never is."""
+    p = cfg.plant
+    if p.nominal:
+        return cfg
+    camera = dataclasses.replace(
+        cfg.camera, s_lambda=cfg.camera.s_lambda * p.s_lambda, z_wo=cfg.camera.z_wo * p.z_wo
+    )
+    return dataclasses.replace(cfg, robot=_plant_robot(cfg), camera=camera, plant=PlantConfig())
 
 
 def _one_line(text: str) -> str:

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hal.config import RigConfig
+from hal.config import RigConfig, plant_view
 from hal.errors import HalConfigError, HalError
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features
@@ -217,6 +217,7 @@ class VisionCore:
         pose_timeout_s: float = POSE_TIMEOUT_S,
         dropouts: Sequence[Dropout] = (),
     ) -> None:
+        cfg = plant_view(cfg)  # the plant's camera and target (model mismatch: [plant])
         self.camera = cfg.camera
         self.dropouts = tuple(dropouts)
         self.target = paper_target(cfg)

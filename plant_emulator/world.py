@@ -10,17 +10,20 @@ import math
 
 import numpy as np
 
-from hal.config import RigConfig
+from hal.config import RigConfig, plant_view
 from plant_emulator.arm import ArmPhysics, Encoder
 from plant_emulator.camera import CameraModel, CameraPose, FeatureFrame, camera_pose, project
 from plant_emulator.scenario import TargetMotion, paper_target
 
 
 class World:
-    """Arm + camera + target. Torque is held between calls of :meth:`hold`."""
+    """Arm + camera + target. Torque is held between calls of :meth:`hold`.
+
+    Built from the plant's numbers (:func:`hal.config.plant_view`: ``[robot]`` and ``[camera]``
+    times the ``[plant]`` factors, the model mismatch), which ``cfg`` then holds."""
 
     def __init__(self, cfg: RigConfig, *, seed: int | None = None) -> None:
-        self.cfg = cfg
+        self.cfg = cfg = plant_view(cfg)
         self.arm = ArmPhysics(cfg.robot)
         self.dt = 1.0 / cfg.rates.physics_hz
         self.target: TargetMotion = paper_target(cfg)
