@@ -33,6 +33,8 @@ COMMAND_MODULES = (
     "simulate",
     "replay",
     "report",
+    "info",
+    "export",
     "experiment",
     "bench",
 )

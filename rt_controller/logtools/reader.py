@@ -16,12 +16,12 @@ from typing import Any
 
 import numpy as np
 from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from hal.config import RigConfig, config_from_json
 from hal.errors import HalConfigError
-from rt_controller.errors import LogError
+from rt_controller.errors import LogError, NotAHilLogError
 from rt_controller.runtime.recorder import (
     CAN_RX_TOPIC,
     CAN_TX_TOPIC,
@@ -34,6 +34,8 @@ from rt_controller.runtime.recorder import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
+MAX_CHANNELS_NAMED = 8
+"""How many channels a "not a hil log" message names."""
 
 
 @dataclass
@@ -59,6 +61,11 @@ class LoadedLog:
     """Messages read per topic (also for raw topics that were not kept)."""
     schemas: dict[str, str] = field(default_factory=dict)
     """Schema name per topic."""
+    channels: list[str] = field(default_factory=list)
+    """The topic of every channel found, in file order (with or without messages)."""
+    library: str | None = None
+    """The MCAP header's ``library`` (the writer's name, ``hil-rt_controller/VERSION`` for the
+    controller's logs); None if the header could not be read."""
     truncated: bool = False
     """The file has no footer: the writer did not finish it (killed, crashed, cut)."""
     notes: list[str] = field(default_factory=list)
@@ -190,6 +197,8 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                     _take_metadata(out, rec)
                 elif isinstance(rec, Footer):
                     footer = True
+                elif isinstance(rec, Header):
+                    out.library = rec.library
         except Exception as exc:
             # McapError (EndOfFile...), struct.error, CRC and zstd errors, garbage lengths:
             # whatever a damaged tail raises, keep what was read and say where it stopped.
@@ -205,9 +214,34 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
         out.notes.append("the recorder did not close the file (process killed or crashed?)")
     out.cycles = columns(cycle_records)
     out.topic_counts = dict(counts)
+    out.channels = list(dict.fromkeys(channels.values()))
     if out.config is None and out.config_json is None:
         out.notes.append("no hil.config metadata: the run configuration is unknown")
     return out
+
+
+def read_hil_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
+    """:func:`read_log`, refusing a file that holds no controller run (:func:`require_hil_log`)."""
+    return require_hil_log(read_log(path, raw=raw))
+
+
+def require_hil_log(log: LoadedLog) -> LoadedLog:
+    """``log`` if it is a controller log: it has a ``/controller/cycle`` channel or the run's
+    ``hil.config``/``hil.run`` metadata (a run stopped before its first tick, or killed before
+    its first chunk was written, still has them). Else :class:`NotAHilLogError`, one line
+    naming the channels the file has: an MCAP written by another tool, or a hil log cut before
+    any of its records."""
+    if CYCLE_TOPIC in log.channels or log.config_json is not None or log.run_info:
+        return log
+    shown = ", ".join(log.channels[:MAX_CHANNELS_NAMED]) or "none"
+    if len(log.channels) > MAX_CHANNELS_NAMED:
+        shown += f", ... ({len(log.channels)} in all)"
+    cut = ""
+    if log.truncated:
+        cut = f"; the file is cut short after {log.path.stat().st_size} bytes"
+    raise NotAHilLogError(
+        f"{log.path}: not a hil log: no {CYCLE_TOPIC} records (channels: {shown}{cut})"
+    )
 
 
 def _damage_note(exc: BaseException | None, n_cycles: int) -> str:

@@ -1,0 +1,87 @@
+"""``hil info``: what a controller log holds, like ``mcap info`` or ``ros2 bag info``."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+DESCRIPTION = """\
+One controller log (MCAP) at a glance: the run (clock, law, rate, CAN, zenoh, recorder, start),
+the digest of the recorded configuration, duration, ticks, the laws that ran, deadline misses,
+the problems that make the run not clean (the rule of `hil controller`'s summary, judged on the
+log's final /diagnostics record and recorder counters), and the topics with their message counts.
+A log whose writer was killed is reported as truncated, with what could be read.
+
+--json prints one object: log, library, truncated, run, config_digest, duration_s, time_axis,
+ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, problems, topics
+({TOPIC: {messages, schema}}), messages, run_info (all hil.run metadata), notes.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "info",
+        help="summarise a controller log: run, config digest, ticks, misses, problems, topics",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("log", metavar="LOG.mcap", help="controller log")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from rt_controller.logs import load
+    from rt_controller.logs.info import log_info
+
+    info = log_info(load(args.log, raw=False))
+    if args.json:
+        print(json.dumps(info))
+    else:
+        print(render(info))
+    return 0
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "unknown"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def render(info: dict[str, Any]) -> str:
+    """The text of ``hil info``: aligned ``key: value`` lines, then the topics."""
+    run = info["run"]
+    ticks = info["ticks"]
+    span = f" ({info['first_tick']} .. {info['last_tick']})" if ticks else ""
+    laws = ", ".join(f"{law} {n}" for law, n in info["laws"].items()) or "none"
+    rows = [
+        ("log", info["log"]),
+        ("library", _fmt(info["library"])),
+        ("state", "TRUNCATED (the writer did not finish it)" if info["truncated"] else "complete"),
+        *((key, _fmt(run[key])) for key in run),
+        ("config digest", _fmt(info["config_digest"])),
+        ("duration", f"{info['duration_s']:.3f} s ({info['time_axis']})"),
+        ("ticks", f"{ticks}{span}"),
+        ("laws", laws),
+        ("deadline misses", f"{_fmt(info['deadline_misses'])} "
+         f"({_fmt(info['missed_periods'])} missed periods)"),
+        ("problems", "; ".join(info["problems"]) or "none"),
+        ("messages", str(info["messages"])),
+    ]  # fmt: skip
+    width = max(len(k) for k, _ in rows) + 2
+    lines = [f"{k + ':':<{width}}{v}" for k, v in rows]
+    lines.append("topics:")
+    topics = info["topics"]
+    if topics:
+        name_w = max(len(t) for t in topics)
+        count_w = max(len(str(t["messages"])) for t in topics.values())
+        for topic, t in topics.items():
+            lines.append(
+                f"  {topic:<{name_w}}  {t['messages']:>{count_w}} msgs  {t['schema'] or ''}"
+            )
+    lines += [f"note: {note}" for note in info["notes"]]
+    return "\n".join(lines)

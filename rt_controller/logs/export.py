@@ -1,0 +1,193 @@
+"""``hil export``: a log's tables as CSV (pandas), Parquet (pyarrow) or MATLAB ``.mat`` (scipy).
+
+CSV and Parquet hold one table per file (``STEM.cycle.csv``, ``STEM.diagnostics.csv``,
+``STEM.can.csv``); a ``.mat`` file holds every table, one struct per topic (``cycle``,
+``diagnostics``, ``can``) whose fields are the columns, plus a ``meta`` struct (the log's path,
+the recorded configuration as JSON, its digest and the ``hil.run`` metadata). Column names are
+valid MATLAB identifiers already (``q1``, ``f_x``, ``can_rx_accepted``, ``Tau1``).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rt_controller.errors import ControllerConfigError, LogError
+from rt_controller.logs.run import TOPICS, Run, identifier, require
+
+SUFFIXES = {"csv": ".csv", "parquet": ".parquet", "mat": ".mat"}
+"""File suffix per format."""
+MODULES = {"csv": ("pandas",), "parquet": ("pyarrow", "pyarrow.parquet"), "mat": ("scipy.io",)}
+"""What each format needs from the ``analysis`` extra."""
+MATLAB_NAME_MAX = 63
+"""MATLAB's ``namelengthmax``."""
+
+
+@dataclass(frozen=True)
+class Written:
+    topic: str
+    path: Path
+    rows: int
+
+
+def check_format(fmt: str) -> None:
+    """Raise before any work if ``fmt`` is unknown or its library is not installed."""
+    if fmt not in SUFFIXES:
+        raise ControllerConfigError(f"unknown format {fmt!r}: choose from {', '.join(SUFFIXES)}")
+    for module in MODULES[fmt]:
+        require(module, f"{fmt} export")
+
+
+def plan_outputs(
+    log: str | Path, fmt: str, topics: Sequence[str], out: str | Path | None = None
+) -> dict[str, Path]:
+    """The file each topic goes to, checked before any work (nothing is created yet).
+
+    ``out`` ending in the format's suffix is the file itself (one topic for CSV and Parquet;
+    every topic for ``.mat``); any other ``out`` is a directory (created if missing), default
+    the log's own directory. Raises a one-line error for an output that cannot be written.
+    """
+    check_format(fmt)
+    bad = [t for t in topics if t not in TOPICS]
+    if bad or not topics:
+        raise ControllerConfigError(
+            f"unknown topic(s) {', '.join(bad) or '(none)'}: choose from {', '.join(TOPICS)}"
+        )
+    suffix, log = SUFFIXES[fmt], Path(log)
+    if out is not None and str(out).endswith(suffix):
+        target = Path(out)
+        if fmt != "mat" and len(topics) > 1:
+            raise ControllerConfigError(
+                f"--out {out}: a {suffix} file holds one topic, not {len(topics)} "
+                f"({', '.join(topics)}): give a directory or one --topics"
+            )
+        directory, files = target.parent, dict.fromkeys(topics, target)
+    else:
+        directory = Path(out) if out is not None else log.parent
+        name = {t: f"{log.stem}.{t}{suffix}" for t in topics}
+        files = {t: directory / (f"{log.stem}.mat" if fmt == "mat" else name[t]) for t in topics}
+    _check_writable(directory)
+    for path in set(files.values()):
+        if path.is_dir():
+            raise LogError(f"cannot write {path}: it is a directory")
+    return files
+
+
+def _check_writable(directory: Path) -> None:
+    """``directory`` exists as a writable folder, or can be created in one."""
+    probe = directory
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise LogError(f"cannot write into {directory}: {probe} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as exc:
+        raise LogError(f"cannot write into {directory}: {exc.strerror or exc}") from None
+
+
+def export(run: Run, fmt: str, files: dict[str, Path]) -> list[Written]:
+    """Write ``run``'s tables to ``files`` (from :func:`plan_outputs`)."""
+    check_format(fmt)
+    for path in set(files.values()):
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise LogError(f"cannot create {path.parent}: {exc.strerror or exc}") from None
+    write = {"csv": _write_csv, "parquet": _write_parquet, "mat": _write_mat}[fmt]
+    try:
+        return write(run, files)
+    except OSError as exc:
+        raise LogError(f"cannot write {fmt}: {exc.strerror or exc}") from None
+
+
+def _write_csv(run: Run, files: dict[str, Path]) -> list[Written]:
+    out = []
+    for topic, path in files.items():
+        df = run.frame(topic)
+        df.to_csv(path, index=df.index.name is not None)
+        out.append(Written(topic, path, len(df)))
+    return out
+
+
+def _write_parquet(run: Run, files: dict[str, Path]) -> list[Written]:
+    pa, pq = require("pyarrow", "parquet export"), require("pyarrow.parquet", "parquet export")
+    meta = {"hil.log": str(run.path), "hil.config": run.config_json or ""}
+    out = []
+    for topic, path in files.items():
+        cols = run.arrays(topic)
+        table = pa.table({k: pa.array(_as_list(v)) for k, v in cols.items()})
+        pq.write_table(table.replace_schema_metadata({**meta, "hil.topic": topic}), path)
+        out.append(Written(topic, path, table.num_rows))
+    return out
+
+
+def _as_list(col: np.ndarray) -> Any:
+    """A column pyarrow takes as it is: numbers as arrays, objects (strings, None) as lists."""
+    return col.tolist() if col.dtype == object else col
+
+
+def matlab_names(names: Sequence[str]) -> dict[str, str]:
+    """Each name as a distinct valid MATLAB identifier: letters, digits and ``_``, starting
+    with a letter, at most :data:`MATLAB_NAME_MAX` characters."""
+    out: dict[str, str] = {}
+    taken: set[str] = set()
+    for name in names:
+        base = identifier(name)
+        if not base[0].isalpha():
+            base = "x_" + base
+        candidate, n = base[:MATLAB_NAME_MAX], 1
+        while candidate in taken:
+            n += 1
+            tail = f"_{n}"
+            candidate = base[: MATLAB_NAME_MAX - len(tail)] + tail
+        taken.add(candidate)
+        out[name] = candidate
+    return out
+
+
+def _mat_column(col: np.ndarray) -> np.ndarray:
+    """Strings (and None, as '') become a cell array; numbers and logicals stay arrays."""
+    if col.dtype != object:
+        return col
+    cells = np.empty(len(col), dtype=object)
+    cells[:] = ["" if v is None else str(v) for v in col]
+    return cells
+
+
+def _write_mat(run: Run, files: dict[str, Path]) -> list[Written]:
+    sio = require("scipy.io", "mat export")
+    by_file: dict[Path, dict[str, Any]] = {}
+    out = []
+    for topic, path in files.items():
+        cols = run.arrays(topic)
+        names = matlab_names(list(cols))
+        struct = {names[k]: _mat_column(v) for k, v in cols.items()}
+        by_file.setdefault(path, {})[topic] = struct
+        rows = len(next(iter(cols.values()))) if cols else 0
+        out.append(Written(topic, path, rows))
+    info = run.info
+    meta = {
+        "log": str(run.path),
+        "truncated": run.truncated,
+        "config_json": run.config_json or "",
+        "config_digest": run.config_digest or "",
+        **{v: info[k] for k, v in matlab_names(list(info)).items()},
+    }
+    for path, structs in by_file.items():
+        sio.savemat(
+            path,
+            {**structs, "meta": meta},
+            long_field_names=True,
+            do_compression=True,
+            oned_as="column",
+        )
+    return out
