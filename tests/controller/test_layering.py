@@ -64,6 +64,7 @@ IO_MODULES = (
     "rt_controller.runtime.recorder",
     "rt_controller.runtime.daemon",
     "rt_controller.logtools",
+    "rt_controller.logs",
 )
 """What the pure control layer (``rt_controller/control/``) must not import."""
 
@@ -149,6 +150,71 @@ def test_experiment_runner_does_not_use_cli_modules():
         (m, d) for m in rig for d in import_graph()[m] if d.startswith("rt_controller.commands")
     ]
     assert not offenders, offenders
+
+
+OFFLINE_LAYERS = ("rt_controller.logtools", "rt_controller.logs")
+"""The offline log readers: below the commands, the rig and the CLI."""
+ANALYSIS_EXTRA = ("pandas", "pyarrow", "scipy")
+"""The ``analysis`` extra: the core rig runs without it, so no module imports it at load time."""
+
+
+def test_offline_log_layers_stay_below_the_commands():
+    graph = import_graph()
+    above = ("rt_controller.commands", "rt_controller.rig", "rt_controller.cli")
+    offenders = [
+        (m, d)
+        for m in graph
+        if m.startswith(OFFLINE_LAYERS)
+        for d in graph[m]
+        if d.startswith(above)
+    ]
+    assert not offenders, offenders
+
+
+def top_level_imports(path: Path) -> set[str]:
+    """Modules imported when ``path`` is loaded: its top-level statements (and those nested in
+    top-level ``if``/``try`` blocks), except under ``if TYPE_CHECKING:``."""
+    names: set[str] = set()
+
+    def walk(body: list[ast.stmt]) -> None:
+        for node in body:
+            if isinstance(node, ast.Import):
+                names.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names.add(node.module)
+            elif isinstance(node, ast.If):
+                if not (isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"):
+                    walk(node.body)
+                walk(node.orelse)
+            elif isinstance(node, ast.Try):
+                walk(node.body)
+                for handler in node.handlers:
+                    walk(handler.body)
+                walk(node.orelse)
+                walk(node.finalbody)
+
+    walk(ast.parse(path.read_text(), filename=str(path)).body)
+    return names
+
+
+@pytest.mark.parametrize("package", ["hal", "rt_controller"])
+def test_the_analysis_extra_is_imported_lazily(package: str):
+    offenders = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        for mod in top_level_imports(path):
+            if mod.split(".")[0] in ANALYSIS_EXTRA:
+                offenders.append(f"{path.relative_to(ROOT).as_posix()} imports {mod}")
+    assert not offenders, offenders
+
+
+def test_the_top_level_checker_skips_functions_and_type_checking(tmp_path: Path):
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import pandas\n"
+        "try:\n    import scipy\nexcept ImportError:\n    pass\n"
+        "def f():\n    import pyarrow\n"
+    )
+    assert top_level_imports(probe) == {"typing", "scipy"}
 
 
 def test_law_table_matches_the_config_names():
