@@ -231,6 +231,7 @@ class JointClient:
         *,
         tick: int | None = None,
         release_delay_us: int | None = None,
+        enable: bool | None = None,
     ) -> None:
         """Send a TorqueCommand (counter + CRC); ``tick`` defaults to the latest Sync tick.
 
@@ -239,16 +240,17 @@ class JointClient:
         DSP learns the controller's cycle from the release and not from when commands happen to
         arrive (a tick that waited for its input would otherwise move it).
 
-        The Enable bit follows :meth:`enable`/:meth:`disable`. Raises
-        :class:`~hal.errors.HalCodecError` for NaN/inf and :class:`HalTransportError` when the
-        bus refuses the frame.
+        The Enable bit follows :meth:`enable`/:meth:`disable`; ``enable=False`` sends a frame
+        that keeps the command stream cyclic (the watchdog sees it) without applying torque,
+        as while arming. Raises :class:`~hal.errors.HalCodecError` for NaN/inf and
+        :class:`HalTransportError` when the bus refuses the frame.
         """
         if release_delay_us is not None:
             tick = min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
         elif tick is None:
             tick = self._sync_tick or 0
-        enable = self._armed
-        self._send(lambda c: c.encode_torque(tau1, tau2, enable=enable, tick=tick))
+        on = self._armed if enable is None else enable and self._armed
+        self._send(lambda c: c.encode_torque(tau1, tau2, enable=on, tick=tick))
 
     def enable(self, *, reset_fault: bool = True) -> None:
         """Arm the DSP: DspControl ENABLE (drive state -> OPERATION_ENABLED).

@@ -4,7 +4,12 @@ It applies the latest valid :class:`~hal.can_codec.TorqueCommand` (saturated by 
 publishes quantised joint angles and a filtered velocity estimate, reports :class:`DspStatus`,
 and runs a watchdog that removes torque when commands stop. Two clock modes:
 
-* **realtime**: physics follows ``time.monotonic_ns()`` at ``rates.physics_hz``; the joint
+* **realtime**: the world holds its initial state (simulation time 0, joint state, status and
+  camera pose still published at their rates) until the first TorqueCommand that applies
+  torque (Enable = 1, drive *operation enabled*): the scenario's t = 0 is the controller's
+  first law tick, however long it took to start, as in lockstep. From then on physics follows
+  ``time.monotonic_ns()`` at ``rates.physics_hz`` (a re-arm after a fault continues the run,
+  it never restarts the scenario); the joint
   state goes out once per control period, ``dsp.state_lead_us`` before the
   controller's next tick (:class:`CommandPhase` learns the controller's phase from when its
   torque commands arrive, less the delay after its release each one carries in ``Tick``), as a
@@ -130,6 +135,12 @@ class DspStats:
     more than one due step sends one state)."""
     scenario_resets: int = 0
     """Lockstep: DspControl RESET_SCENARIO applied (the world back to its start, new session)."""
+    held_states: int = 0
+    """Realtime: joint states sent while the world held its initial state (before the
+    scenario started; the initial state of :meth:`DspNode.start_realtime` not included)."""
+    scenario_start_ns: int | None = None
+    """Realtime: the DSP clock at which the scenario's t = 0 fell (the release of the first
+    command that applied torque); None while the world still holds its initial state."""
 
     def as_dict(self) -> dict[str, Any]:
         """Plain counters for ``--json`` (latencies also in ms)."""
@@ -242,6 +253,8 @@ class DspNode:
         self.sync_resend_s = sync_resend_s
         self._awaiting_controller = lockstep and wait_for_controller
         self._t0_ns = 0
+        self._held_steps = 0
+        """Realtime: physics periods passed while the world held its initial state."""
         self.encoder = Encoder(self.world.q, self.world.dq, self.encoder_lsb, self.filter_gain)
 
     # --- sensors ----------------------------------------------------------------------------
@@ -300,7 +313,8 @@ class DspNode:
     @property
     def armed(self) -> bool:
         """Same as :attr:`torque_enabled` (setting it forces the drive state, for tests:
-        True -> OPERATION_ENABLED, False -> READY_TO_SWITCH_ON unless in FAULT)."""
+        True -> OPERATION_ENABLED, and a realtime scenario still held starts now;
+        False -> READY_TO_SWITCH_ON unless in FAULT)."""
         return self.drive.torque_allowed
 
     @armed.setter
@@ -310,6 +324,8 @@ class DspNode:
                 DriveState.OPERATION_ENABLED,
                 FaultReason.NONE,
             )
+            if not self.scenario_started:  # forced on: the held world starts now
+                self.start_scenario(self._t0_ns + self._held_steps * self.physics_period_ns)
         elif self.drive.state is not DriveState.FAULT:
             self.drive.state = DriveState.READY_TO_SWITCH_ON
         if not self.drive.torque_allowed:
@@ -368,6 +384,10 @@ class DspNode:
                     self.phase.observe(now_ns - frame.tick * 1000)
                 self.last_cmd_tick = frame.tick
                 self.tau_cmd = np.array([frame.tau1, frame.tau2]) if frame.enable else np.zeros(2)
+                if frame.enable and self.torque_enabled and not self.scenario_started:
+                    # t = 0 at the command's release (Tick: how long after it the frame left)
+                    delay_ns = frame.tick * 1000 if frame.tick < RELEASE_DELAY_SATURATED else 0
+                    self.start_scenario(max(self._t0_ns, now_ns - delay_ns))
                 accepted = frame
         if self._flags() != before:
             self.send_status()
@@ -462,7 +482,7 @@ class DspNode:
         self.check_limits()
         k = self.world.step_index
         if not self.lockstep:
-            due = self.state_due(k) if self.state_sync else k % self.state_every == 0
+            due = self._state_due_at(k)
             if due and not last:
                 self._states_owed += 1
             elif last and (due or self._states_owed):
@@ -475,6 +495,10 @@ class DspNode:
                 self.publish_pose()
         if k % self.status_every == 0:
             self.send_status()
+
+    def _state_due_at(self, k: int) -> bool:
+        """Realtime: whether the joint state goes out after physics step ``k``."""
+        return self.state_due(k) if self.state_sync else k % self.state_every == 0
 
     def state_due(self, k: int) -> bool:
         """``state_sync = command``: whether the sample after physics step ``k`` goes out.
@@ -499,21 +523,58 @@ class DspNode:
         return (t_k - phase + self.state_lead_ns) % period < step
 
     # --- clock modes ------------------------------------------------------------------------
+    @property
+    def scenario_started(self) -> bool:
+        """Lockstep always; realtime once a command applied torque (the scenario's t = 0)."""
+        return self.lockstep or self.stats.scenario_start_ns is not None
+
+    def start_scenario(self, t0_ns: int) -> None:
+        """Realtime: the scenario's t = 0 falls at ``t0_ns`` (DSP clock): physics step 0
+        begins there, from the initial state the world held until then."""
+        self._t0_ns = t0_ns
+        self.stats.scenario_start_ns = t0_ns
+
     def start_realtime(self, now_ns: int) -> None:
-        """Realtime: physics step 0 begins at ``now_ns``; sends the initial state and status."""
+        """Realtime: the world holds its initial state from ``now_ns`` until the scenario
+        starts (:meth:`start_scenario`); sends the initial state, status and pose."""
         self._t0_ns = now_ns
+        self._held_steps = 0
         self.send_state()
         self.send_status()
         self.publish_pose()
 
+    def _hold(self, now_ns: int) -> int:
+        """Realtime, before the scenario starts: no physics, but the joint state, the camera
+        pose and the status go out at their rates, and the watchdog armed by an ENABLE is
+        evaluated, as after the start. Periods missed by a late process are skipped, not
+        caught up (the samples would all be the same). Returns when the next period is due."""
+        period = self.physics_period_ns
+        due = (now_ns - self._t0_ns) // period
+        if due > self._held_steps:
+            window = max(self.state_every, self.status_every, self.substeps)
+            steps = range(max(self._held_steps, due - window) + 1, due + 1)
+            self._held_steps = due
+            self.check_watchdog(now_ns)
+            if any(self._state_due_at(k) for k in steps):
+                self.send_state()
+                self.stats.held_states += 1
+            if any(k % self.pose_every == 0 for k in steps):
+                self.publish_pose()
+            if any(k % self.status_every == 0 for k in steps):
+                self.send_status()
+        return self._t0_ns + (self._held_steps + 1) * period
+
     def service(self, now_ns: int) -> int:
-        """Realtime: handle the waiting frames, then run every physics step due by ``now_ns``.
+        """Realtime: handle the waiting frames, then run every physics step due by ``now_ns``
+        (before the scenario starts: :meth:`_hold`).
 
         The watchdog is evaluated at each step's scheduled time, so torque goes off at the
         right physics step even when the process was late. Returns when the next step is due.
         The clock is a parameter: tests drive this with a fake clock.
         """
         self.drain(now_ns)
+        if not self.scenario_started:
+            return self._hold(now_ns)
         period = self.physics_period_ns
         due = (now_ns - self._t0_ns) // period
         if self.world.step_index < due:

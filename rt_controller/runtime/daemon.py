@@ -533,7 +533,9 @@ class ControllerDaemon:
         ``None`` when told to stop first.
 
         The command stream is cyclic from ENABLE on, as a CiA 402 master's PDOs are: the DSP
-        arms its watchdog (``dsp.watchdog_periods``, 6 ms at 500 Hz) on ENABLE. Each release
+        arms its watchdog (``dsp.watchdog_periods``, 6 ms at 500 Hz) on ENABLE. The zero
+        torques carry Enable = 0, so the first frame that applies torque is the first law
+        tick's: the emulated DSP starts the scenario's clock there. Each release
         reads the transports first, so ENABLE goes out after the frames that queued up during
         start-up (locking memory takes a while) were drained, never before a drain that the
         watchdog would see as a gap. These releases are counted in ``arming_ticks``, not in
@@ -549,7 +551,8 @@ class ControllerDaemon:
                 dsp.enable()
                 deadline = self.clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
             else:
-                dsp.send_torque(0.0, 0.0, release_delay_us=self._since_us(tick.release_ns))
+                delay = self._since_us(tick.release_ns)  # Enable = 0: the scenario waits
+                dsp.send_torque(0.0, 0.0, release_delay_us=delay, enable=False)
             self._states_seen = dsp.states_received
             self.stats.arming_ticks += 1
         return None

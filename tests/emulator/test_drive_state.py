@@ -295,6 +295,7 @@ def test_encoder_beyond_eight_turns_is_never_pinned(rig):
     node = r.node
     node.world.q[0] = node.encoder.q[0] = hi - 0.05
     node.world.dq[0] = node.encoder.dq[0] = 5.0
+    node.start_scenario(r.now)  # the world moves from now on, with no torque command
     positions: list[float] = []
     for _ in range(20):
         r.run(1, (0.0, 0.0))
@@ -312,3 +313,44 @@ def test_encoder_beyond_eight_turns_is_never_pinned(rig):
     r.send(C.FAULT_RESET)
     r.advance(5)
     assert node.drive.fault_reason is FaultReason.ENCODER and node.drive.faults["encoder"] == 2
+
+
+# ------------------------------------------------------------- realtime scenario clock
+
+
+def test_realtime_world_holds_its_initial_state_until_the_first_torque(rig):
+    """The realtime scenario's t = 0 is the first command that applies torque, however long
+    after the emulator's start it comes: until then the world stays at simulation time 0 (the
+    joint state still goes out at its rate); ENABLE and zero torques with Enable = 0 (arming)
+    do not start it; a command's t = 0 is its release (``Tick``: microseconds after it)."""
+    r = rig()
+    node = r.node
+    r.advance(4000)  # past the scenario's jump time on the emulator's own clock
+    assert node.world.t == 0.0 and node.world.step_index == 0
+    assert node.stats.held_states >= 4000 * node.cfg.rates.control_hz / 1e3 - 1  # one a period
+    r.send(C.ENABLE)
+    for _ in range(3):  # arming: a cyclic stream that applies no torque
+        node.handle(r.ctl.encode_torque(0.0, 0.0, enable=False, tick=150), r.now)
+        r.advance(r.period_ns / MS)
+    assert node.torque_enabled and node.world.t == 0.0 and not node.stats.watchdog_trips
+    release = r.now - 400_000
+    node.handle(r.ctl.encode_torque(1.0, 0.1, tick=400), r.now)  # sent 400 us after release
+    assert node.stats.scenario_start_ns == release
+    r.advance(1000)
+    assert node.world.step_index == (r.now - release) // node.physics_period_ns
+    assert node.world.q[1] != node.cfg.scenario.q0[1]  # the torque moved the arm
+
+
+def test_a_rearm_after_a_watchdog_trip_continues_the_realtime_scenario(rig):
+    r = rig()
+    node = r.node
+    r.send(C.ENABLE)
+    r.run(10, (0.5, 0.05))
+    start, steps = node.stats.scenario_start_ns, node.world.step_index
+    r.advance(200)  # no commands: the watchdog trips, the world goes on
+    assert node.stats.watchdog_trips == 1 and node.world.step_index > steps
+    r.send(C.FAULT_RESET)
+    r.send(C.ENABLE)
+    r.run(10, (0.5, 0.05))
+    assert node.stats.scenario_start_ns == start
+    assert node.world.step_index == (r.now - start) // node.physics_period_ns

@@ -174,6 +174,7 @@ def test_a_dsp_that_ran_late_sends_the_state_of_now_not_of_the_step_that_was_due
     with open_bus(spec) as bus, open_bus(spec) as tap:
         node = _node(cfg, bus, state_lead_us=3000.0)
         node.start_realtime(T0)
+        node.start_scenario(T0)  # the world moves from T0 on, with no torque command
         node.world.dq[:] = (1.0, -2.0)  # moving, so the sample's time shows in its angles
         codec = ControllerCodec()
         while tap.recv(timeout=0) is not None:  # the initial state and status
