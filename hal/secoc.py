@@ -181,10 +181,16 @@ def rig_key(cfg: Any = None) -> bytes:
 
 
 def require_rig_key(cfg: Any, who: str) -> bytes:
-    """The configured rig key of a rig process; :class:`HalKeyError` if none is configured."""
+    """The configured rig key of a rig process; :class:`HalKeyError` if none is configured.
+
+    ``who`` is the command that needs it (``"hil controller"``): the message tells how to give
+    that command a key; it does not start with ``who``, which the error line's prefix names."""
     path = key_path(cfg)
     if not path:
-        raise HalKeyError(f"{who}: no rig key configured; {KEYGEN_HINT}")
+        raise HalKeyError(
+            f"no rig key configured; create one with: hil keygen FILE (then {who} --key-file "
+            f"FILE, ${KEY_ENV} or transport.key_file)"
+        )
     return load_key_file(path)
 
 

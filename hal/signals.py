@@ -40,13 +40,17 @@ def run_standalone(
     prog: str, body: Callable[[], int], errors: tuple[type[BaseException], ...] = ()
 ) -> int:
     """Run ``body``; a :class:`HalError` (or one of ``errors``) is reported as
-    ``"<prog>: error: <message>"`` on stderr with exit status 2, Ctrl-C as 130."""
+    ``"<prog>: error: <message>"`` on stderr with exit status 2, Ctrl-C as 130. ``prog``
+    appears once: a message that starts with ``"<prog>: "`` already is not prefixed again."""
     from hal.errors import HalError
 
     try:
         return body()
     except (HalError, *errors) as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
+        message = str(exc)
+        if message.startswith(f"{prog}: "):
+            message = message[len(prog) + 2 :]
+        print(f"{prog}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -22,6 +22,7 @@ from hal.signals import run_standalone
 from rt_controller.errors import ControllerError
 
 Handler = Callable[[argparse.Namespace], int]
+PACKAGE = "hil-rhc-visual-servo"
 
 COMMAND_MODULES = (
     "up",
@@ -48,10 +49,22 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hil",
         description="Hardware-in-the-loop receding-horizon visual-servo controller.",
     )
+    parser.add_argument("--version", action="version", version=f"hil {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"rt_controller.commands.{name}").register(sub)
     return parser
+
+
+def package_version() -> str:
+    """The installed version of the package (``importlib.metadata``), "unknown" when it runs
+    from a source tree that was never installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(PACKAGE)
+    except PackageNotFoundError:
+        return "unknown"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

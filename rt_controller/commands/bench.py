@@ -6,16 +6,17 @@ import argparse
 import json
 import sys
 from collections.abc import Callable
-from pathlib import Path
 
 from hal.arguments import bounded_int, duration
 from hal.config import LAW_NAMES
 from rt_controller.commands.common import add_config_option, config_from_args
+from rt_controller.commands.progress import Progress, add_quiet_option
 
 
 def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespace], int]) -> None:
     """Every bench prints one JSON object; ``--json`` is accepted for symmetry with the rest."""
     parser.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
+    add_quiet_option(parser)
     parser.set_defaults(handler=handler)
 
 
@@ -88,18 +89,28 @@ def run_solver(args: argparse.Namespace) -> int:
     from rt_controller.rig.bench_solver import bench_solver
 
     cfg = config_from_args(args)
-    print(json.dumps(bench_solver(cfg, updates=args.updates)))
+    progress = Progress.of(args, "hil bench solver")
+    with progress.stage(
+        f"timing {args.updates} C/GMRES updates at N = {cfg.rhc.steps}, then the sweep over N "
+        "(numba compiles the solver on a cold cache)"
+    ):
+        result = bench_solver(cfg, updates=args.updates)
+    print(json.dumps(result))
     return 0
 
 
 def run_host(args: argparse.Namespace) -> int:
     from rt_controller.rig.bench_host import bench_host
 
-    print(json.dumps(bench_host(args.duration, args.period_us)))
+    progress = Progress.of(args, "hil bench host")
+    with progress.stage(f"measuring this host's wake-up lateness for {args.duration:g} s"):
+        result = bench_host(args.duration, args.period_us)
+    print(json.dumps(result))
     return 0
 
 
 def run_loop(args: argparse.Namespace) -> int:
+    from rt_controller.commands.output import output_dir
     from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.bench_loop import bench_loop
 
@@ -114,16 +125,23 @@ def run_loop(args: argparse.Namespace) -> int:
     if not 0 <= args.host_probe <= 600:
         raise ControllerConfigError(f"--host-probe must be 0..600 s, got {args.host_probe!r}")
     cfg = config_from_args(args)
-    result = bench_loop(
-        cfg,
-        rates=rates,
-        duration=args.duration,
-        law=args.law,
-        lockstep_duration=args.lockstep_duration,
-        monitor_port=args.monitor_port,
-        keep=Path(args.keep) if args.keep else None,
-        host_probe_s=args.host_probe,
-    )
+    keep = output_dir(args.keep, "--keep") if args.keep else None
+    measured = args.host_probe + len(rates) * args.duration + max(0.0, args.lockstep_duration)
+    progress = Progress.of(args, "hil bench loop")
+    with progress.stage(
+        f"running the rig with {args.law} at {', '.join(f'{r:g}' for r in rates)} Hz, "
+        f"{args.duration:g} s each (about {measured:.0f} s of measurement, plus start-ups)"
+    ):
+        result = bench_loop(
+            cfg,
+            rates=rates,
+            duration=args.duration,
+            law=args.law,
+            lockstep_duration=args.lockstep_duration,
+            monitor_port=args.monitor_port,
+            keep=keep,
+            host_probe_s=args.host_probe,
+        )
     print(json.dumps(result))
     unclean = [r for r in result["rates"] if r["problems"]]
     for r in unclean:  # the figures are printed either way; the exit status tells the truth

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         lean_process()  # before the first thread starts (small stacks, few malloc arenas)
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
-    from rt_controller.commands.output import print_summary
+    from rt_controller.commands.output import output_file, print_summary
     from rt_controller.runtime.daemon import ControllerDaemon
 
     if args.plan:
@@ -90,6 +90,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = configure_key(config_from_args(args), args.key_file, "hil controller")
     if args.clock:
         cfg = cfg.with_overrides({"controller.clock": args.clock})
+    if args.log:
+        output_file(args.log, "--log")  # before the daemon opens its links
     opts = daemon_options(args, cfg)
     with stop_on_signals() as stop:
         daemon = ControllerDaemon(cfg, opts, stop)

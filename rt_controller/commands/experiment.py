@@ -137,6 +137,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from rt_controller.commands.output import output_dir
+    from rt_controller.commands.progress import Progress
     from rt_controller.rig.experiment import EXPERIMENTS, Settings, prepare
     from rt_controller.rig.experiment_report import write_outputs
     from rt_controller.rig.supervise import RigInterrupted, supervised
@@ -155,8 +157,11 @@ def run(args: argparse.Namespace) -> int:
         fresh_processes=args.fresh_processes,
     )
     settings.validate()
-    runs_by_exp, runs = prepare(settings)
+    output_dir(out, "--out")  # before any run: a file or an unwritable place is one line
     err = Console(stderr=True)
+    progress = Progress("hil experiment", console=err)
+    with progress.stage(f"writing the runs' configurations into {out}"):
+        runs_by_exp, runs = prepare(settings)
     jobs = settings.effective_jobs()
     at_once = f", {jobs} at a time" if jobs > 1 else ""
     err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}{at_once}) -> {out}")
@@ -167,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
     except RigInterrupted as exc:
         interrupted = exc
     finally:  # a partial sweep (failure, signal) is written up as far as it went
-        res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
+        with progress.stage(f"writing report.md, results.json and the figures into {out}"):
+            res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
     if interrupted is not None:
         print(f"hil experiment: {interrupted}: partial results in {out}", file=sys.stderr)
         return interrupted.exit_code

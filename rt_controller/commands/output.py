@@ -1,8 +1,10 @@
-"""How subcommands print their summaries (shared by the command modules, not by ``cli``)."""
+"""How subcommands print their summaries and check where they write (shared by the command
+modules, not by ``cli``)."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 
@@ -35,3 +37,60 @@ def print_summary_with_notes(summary: dict[str, Any], as_json: bool, title: str)
     print_summary(summary, False, title)
     for note in notes:
         print(f"note: {note}")
+
+
+def output_dir(path: str | Path, option: str) -> Path:
+    """The folder ``path`` given with ``option`` (e.g. ``--plot``), created if missing and
+    checked writable, before the command starts its work.
+
+    Raises :class:`~rt_controller.errors.OutputPathError`, one line naming the option, the path
+    and why: a file where a folder is wanted, a folder that cannot be created (under a file,
+    under ``/proc``, no permission) or cannot be written (read-only file system)."""
+    import tempfile
+
+    from rt_controller.errors import OutputPathError
+
+    out = Path(path)
+    where = f"{option} {path}"
+    if out.exists() and not out.is_dir():
+        raise OutputPathError(f"{where}: is a file, not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputPathError(f"{where}: cannot create the directory: {_why(exc, out)}") from None
+    try:
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        raise OutputPathError(f"{where}: cannot write into it: {_why(exc, out)}") from None
+    return out
+
+
+def output_file(path: str | Path, option: str) -> Path:
+    """The file ``path`` given with ``option`` (e.g. ``--out``): not a folder, in a folder that
+    :func:`output_dir` accepts (created if missing). The file itself is not created."""
+    from rt_controller.errors import OutputPathError
+
+    out = Path(path)
+    if out.is_dir():
+        raise OutputPathError(f"{option} {path}: is a directory, not a file")
+    parent = out.parent
+    if parent.exists() and not parent.is_dir():
+        raise OutputPathError(f"{option} {path}: {parent} is not a directory")
+    try:
+        output_dir(parent, option)
+    except OutputPathError as exc:  # name the file, not only its folder
+        raise OutputPathError(f"{option} {path}: {str(exc).split(': ', 1)[1]}") from None
+    return out
+
+
+def _why(exc: OSError, path: Path) -> str:
+    """The OS's reason, and where: the nearest existing one of ``path`` and its ancestors
+    (a file, for ``mkdir -p`` under a file; ``/proc``, which takes no new entries)."""
+    reason = exc.strerror or str(exc)
+    ancestor = next((p for p in (path, *path.parents) if p.exists()), None)
+    if ancestor is not None and not ancestor.is_dir():
+        return f"{ancestor} is not a directory"
+    if ancestor is not None and isinstance(exc, FileNotFoundError | PermissionError):
+        return f"{reason} (in {ancestor})"
+    return reason

@@ -8,6 +8,7 @@ import sys
 from typing import Any
 
 from hal.config import RigConfig
+from rt_controller.commands.progress import Progress, add_quiet_option
 
 DESCRIPTION = """\
 Re-run the controller offline on the inputs recorded in LOG.mcap (per tick: sim_time_s, q, dq,
@@ -61,6 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="override one setting, e.g. gains.kp=0.2 (repeatable; VALUE is JSON)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_quiet_option(p)
     g = p.add_argument_group("republish")
     g.add_argument(
         "--republish", action="store_true", help="play the raw inputs onto CAN and zenoh"
@@ -121,20 +123,23 @@ def run(args: argparse.Namespace) -> int:
 
     if args.republish:
         return _republish(args)
-    from pathlib import Path
-
-    from rt_controller.logtools.reader import read_log
+    from rt_controller.commands.output import output_file
+    from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.replay import replay_loaded
 
-    log = read_log(args.log, raw=args.out is not None)
+    out = output_file(args.out, "--out") if args.out else None
+    progress = Progress.of(args, "hil replay")
+    with progress.stage(f"reading {args.log}"):
+        log = read_hil_log(args.log, raw=out is not None)
     cfg = _config(args, log.config)
-    result = replay_loaded(
-        log,
-        cfg_override=cfg,
-        tol=args.tol,
-        out=Path(args.out) if args.out else None,
-        allow_partial=args.allow_partial,
-    )
+    run_cfg = cfg or log.config
+    law = run_cfg.controller.law if run_cfg is not None else "the law of --config"
+    with progress.stage(
+        f"replaying {log.n_cycles} ticks with {law} (numba compiles on a cold cache)"
+    ):
+        result = replay_loaded(
+            log, cfg_override=cfg, tol=args.tol, out=out, allow_partial=args.allow_partial
+        )
     print_summary_with_notes(result.as_dict(), args.json, f"hil replay {args.log}")
     if not result.ok:
         print(f"hil replay: {result.failure_line()}", file=sys.stderr)
@@ -147,12 +152,11 @@ def _republish(args: argparse.Namespace) -> int:
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import print_summary_with_notes
-    from rt_controller.logtools.reader import read_log
+    from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.republish import republish_log
 
-    cfg = None
-    if args.config or args.sets:
-        cfg = _config(args, read_log(args.log, raw=False).config)
+    log = read_hil_log(args.log, raw=False)
+    cfg = _config(args, log.config) if args.config or args.sets else None
     # the live rig's key, never the recorded run's
     live = load_config(args.config) if args.config else RigConfig()
     key = rig_key(configure_key(live, args.key_file, "hil replay --republish"))

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from rt_controller.commands.progress import Progress, add_quiet_option
+
 DESCRIPTION = """\
 Deadline-miss report of controller logs, cyclictest-style: ticks, deadline misses (count,
 percentage, tick and time of each), wake-up lateness and cycle time min/median/p99/max (µs), a
@@ -44,27 +46,33 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="list at most N deadline misses per log (default 50)",
     )
+    add_quiet_option(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from rt_controller.commands.output import output_dir
     from rt_controller.errors import ControllerConfigError
     from rt_controller.logtools.deadline_report import render_text, summarize, write_plots
-    from rt_controller.logtools.reader import read_log
+    from rt_controller.logtools.reader import read_hil_log
 
     if args.max_list < 0:
         raise ControllerConfigError(f"--max-list must be non-negative, got {args.max_list}")
-    logs = [read_log(path, raw=False) for path in args.logs]
+    plot_dir = output_dir(args.plot, "--plot") if args.plot else None
+    progress = Progress.of(args, "hil report")
+    with progress.stage(f"reading {len(args.logs)} log(s)"):
+        logs = [read_hil_log(path, raw=False) for path in args.logs]
     reports = [summarize(log, max_list=args.max_list) for log in logs]
-    if args.plot:
+    if plot_dir is not None:
         stems: dict[str, int] = {}
-        for log, rep in zip(logs, reports, strict=True):
-            stem = log.path.stem
-            stems[stem] = stems.get(stem, 0) + 1
-            prefix = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
-            rep["plots"] = [str(p) for p in write_plots(log, args.plot, prefix)]
+        with progress.stage(f"drawing the figures into {plot_dir}"):
+            for log, rep in zip(logs, reports, strict=True):
+                stem = log.path.stem
+                stems[stem] = stems.get(stem, 0) + 1
+                prefix = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
+                rep["plots"] = [str(p) for p in write_plots(log, plot_dir, prefix)]
     if args.json:
         payload = reports[0] if len(reports) == 1 else reports
         print(json.dumps(_json_safe(payload)))

@@ -11,6 +11,7 @@ from rt_controller.commands.common import (
     add_scenario_options,
     config_from_args,
 )
+from rt_controller.commands.progress import Progress, add_quiet_option
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,25 +42,36 @@ def register(sub: argparse._SubParsersAction) -> None:
         "predict_features = false)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_quiet_option(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from plant_emulator.world import World
     from rt_controller.commands.output import print_summary
-    from rt_controller.control.controller import Controller
-    from rt_controller.control.simulate import run_closed_loop
 
     cfg = config_from_args(args)
     ctl = cfg.controller
-    result = run_closed_loop(
-        World(cfg),
-        Controller(cfg),
-        cfg,
-        args.duration,
-        args.state_delay,
-        predict=ctl.predict_state and ctl.predict_features and not args.no_predict,
-        feature_delay=args.feature_delay,
-    )
+    progress = Progress.of(args, "hil simulate")
+    with progress.stage(
+        f"preparing the {ctl.law} law and the arm model (numba compiles its kernels on a cold "
+        "cache, up to a minute)"
+    ):
+        from plant_emulator.world import World
+        from rt_controller.control.controller import Controller
+        from rt_controller.control.simulate import run_closed_loop
+
+        world, controller = World(cfg), Controller(cfg)
+    with progress.stage(
+        f"running {args.duration:g} s of closed loop ({ctl.law} at {cfg.rates.control_hz:g} Hz)"
+    ):
+        result = run_closed_loop(
+            world,
+            controller,
+            cfg,
+            args.duration,
+            args.state_delay,
+            predict=ctl.predict_state and ctl.predict_features and not args.no_predict,
+            feature_delay=args.feature_delay,
+        )
     print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
     return 0
