@@ -37,6 +37,7 @@ COMMAND_MODULES = (
     "info",
     "export",
     "experiment",
+    "sweep",
     "bench",
 )
 """Modules of :mod:`rt_controller.commands`, each with ``register(subparsers)``."""

@@ -13,6 +13,7 @@ ROOT = Path(__file__).resolve().parents[2]
 CLI_DISPATCH = {
     "rt_controller/commands/emulator.py",
     "rt_controller/commands/simulate.py",
+    "rt_controller/commands/sweep.py",
     "rt_controller/commands/vision.py",
 }
 FORBIDDEN = {

@@ -1,0 +1,95 @@
+"""``hil sweep SPEC.toml``: a study of many runs on Dask (see :mod:`rt_controller.sweep`).
+
+One of the CLI's dispatch modules: it hands the emulator's plant class
+(:class:`plant_emulator.world.World`) to the ``simulate`` engine, which the sweep package
+itself never imports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from hal.arguments import bounded_int
+
+
+def simulate_plant() -> Any:
+    """The plant class of the ``simulate`` engine (also used by ``hil bench sweep``)."""
+    from plant_emulator.world import World
+
+    return World
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sweep",
+        help="run a study (grid / Monte Carlo over config keys, model mismatch) on Dask",
+        description="Expand SPEC.toml (base config, axes, repetitions) into runs, run them on a "
+        "Dask cluster (a local one by default) with the simulate or rig engine, and keep one "
+        "row per run in DIR/results.parquet and results.csv, plus DIR/report.md. Running the "
+        "same spec into the same DIR again skips the finished runs.",
+    )
+    p.add_argument("spec", metavar="SPEC.toml", help="the study spec")
+    p.add_argument("--out", metavar="DIR", help="results folder (default: sweeps/SPEC-NAME)")
+    p.add_argument(
+        "--engine",
+        choices=("simulate", "rig"),
+        help="simulate: in-process closed loop (fast); rig: the lockstep processes "
+        "(default: study.engine of the spec, else simulate)",
+    )
+    p.add_argument(
+        "--workers",
+        type=bounded_int(1, 256, what="--workers"),
+        metavar="N",
+        help="worker processes of the local cluster (default: one per CPU)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="use this existing Dask cluster instead of a local one (its workers need "
+        "this package installed)",
+    )
+    p.add_argument(
+        "--keep-logs",
+        action="store_true",
+        help="keep each run's log in DIR/logs (rig: MCAP; simulate: the trace as Parquet)",
+    )
+    p.add_argument("--retry-failed", action="store_true", help="run the failed runs of DIR again")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    p.add_argument("--json", action="store_true", help="print the outcome as one JSON object")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rt_controller.commands.output import print_summary
+    from rt_controller.sweep.executor import run_sweep
+    from rt_controller.sweep.report import write_report
+    from rt_controller.sweep.spec import load_spec
+
+    spec = load_spec(args.spec)
+    out = Path(args.out) if args.out else Path("sweeps") / Path(args.spec).stem
+    spec.tasks(args.engine)  # every run's config is valid before the cluster starts
+    outcome = run_sweep(
+        spec,
+        out,
+        engine=args.engine,
+        plant=simulate_plant(),
+        workers=args.workers,
+        scheduler=args.scheduler,
+        keep_logs=args.keep_logs,
+        retry_failed=args.retry_failed,
+        progress=not args.no_progress,
+    )
+    report = write_report(out, spec)
+    summary = {**outcome.as_dict(), "out": str(out), "report": str(report)}
+    print_summary(summary, args.json, f"hil sweep {spec.study.name}")
+    if outcome.interrupted:
+        print(
+            f"hil sweep: interrupted after {outcome.ran} run(s); the finished rows are in "
+            f"{out}; the same command resumes",
+            file=sys.stderr,
+        )
+        return 130
+    return 1 if outcome.failed else 0
