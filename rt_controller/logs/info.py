@@ -27,8 +27,11 @@ def logged_summary(run: Run) -> dict[str, Any]:
     last = final_diagnostics(run) or {}
     ctl, dsp = diagnostics.values_of(last, "controller"), diagnostics.values_of(last, "dsp")
     recorder = {k: _int(v) for k, v in run.recorder.items() if _int(v) is not None}
+    if not recorder:  # not closed cleanly: the counters of the last diagnostics, whose
+        recorder = diagnostics.values_of(last, "recorder")  # queue was still to be written
+        recorder.pop("pending", None)
     out: dict[str, Any] = {
-        "recorder": recorder or diagnostics.values_of(last, "recorder"),
+        "recorder": recorder,
         "watchdog_trips": ctl.get("watchdog_trips", 0),
         "drive_ticks": {k[len("ticks.") :]: v for k, v in dsp.items() if k.startswith("ticks.")},
         "rejections": {
