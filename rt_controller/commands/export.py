@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 TOPIC_NAMES = ("cycle", "diagnostics", "can")
 
@@ -54,10 +55,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from rt_controller.commands.output import output_dir, output_file
     from rt_controller.logs import load
     from rt_controller.logs.export import export, plan_outputs
 
-    files = plan_outputs(args.log, args.format, args.topics, args.out)  # before any work
+    files = plan_outputs(args.log, args.format, args.topics, args.out)  # before any work:
+    if args.out is not None and not set(files.values()) & {Path(args.out)}:
+        output_dir(args.out, "--out")
+    for path in set(files.values()):
+        output_file(path, "--out")
     run_ = load(args.log, raw="can" in args.topics)
     written = export(run_, args.format, files)
     if args.json:

@@ -9,7 +9,6 @@ valid MATLAB identifiers already (``q1``, ``f_x``, ``can_rx_accepted``, ``Tau1``
 
 from __future__ import annotations
 
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,11 +45,11 @@ def check_format(fmt: str) -> None:
 def plan_outputs(
     log: str | Path, fmt: str, topics: Sequence[str], out: str | Path | None = None
 ) -> dict[str, Path]:
-    """The file each topic goes to, checked before any work (nothing is created yet).
+    """The file each topic goes to (``hil export`` checks them with the commands' output-path
+    rule before any work; nothing is created here).
 
     ``out`` ending in the format's suffix is the file itself (one topic for CSV and Parquet;
-    every topic for ``.mat``); any other ``out`` is a directory (created if missing), default
-    the log's own directory. Raises a one-line error for an output that cannot be written.
+    every topic for ``.mat``); any other ``out`` is a directory, default the log's own.
     """
     check_format(fmt)
     bad = [t for t in topics if t not in TOPICS]
@@ -66,32 +65,12 @@ def plan_outputs(
                 f"--out {out}: a {suffix} file holds one topic, not {len(topics)} "
                 f"({', '.join(topics)}): give a directory or one --topics"
             )
-        directory, files = target.parent, dict.fromkeys(topics, target)
+        files = dict.fromkeys(topics, target)
     else:
         directory = Path(out) if out is not None else log.parent
         name = {t: f"{log.stem}.{t}{suffix}" for t in topics}
         files = {t: directory / (f"{log.stem}.mat" if fmt == "mat" else name[t]) for t in topics}
-    _check_writable(directory)
-    for path in set(files.values()):
-        if path.is_dir():
-            raise LogError(f"cannot write {path}: it is a directory")
     return files
-
-
-def _check_writable(directory: Path) -> None:
-    """``directory`` exists as a writable folder, or can be created in one."""
-    probe = directory
-    while not probe.exists():
-        if probe.parent == probe:
-            break
-        probe = probe.parent
-    if not probe.is_dir():
-        raise LogError(f"cannot write into {directory}: {probe} is not a directory")
-    try:
-        with tempfile.TemporaryFile(dir=probe):
-            pass
-    except OSError as exc:
-        raise LogError(f"cannot write into {directory}: {exc.strerror or exc}") from None
 
 
 def export(run: Run, fmt: str, files: dict[str, Path]) -> list[Written]:

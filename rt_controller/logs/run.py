@@ -18,8 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rt_controller.errors import LogError, MissingExtraError
-from rt_controller.logtools.reader import LoadedLog, columns, read_log
-from rt_controller.runtime.recorder import CYCLE_TOPIC
+from rt_controller.logtools.reader import LoadedLog, columns, read_hil_log
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -57,38 +56,16 @@ def identifier(name: str) -> str:
     return re.sub(r"[^0-9A-Za-z_]+", "_", str(name)).strip("_") or "value"
 
 
-def is_hil_log(log: LoadedLog) -> bool:
-    """Whether a read MCAP file was written by the controller's recorder (its metadata, its
-    cycle topic or the header's library say so)."""
-    return bool(
-        log.run_info
-        or log.config_json is not None
-        or CYCLE_TOPIC in log.topic_counts
-        or CYCLE_TOPIC in log.schemas
-        or (log.library or "").startswith("hil-")
-    )
-
-
 def load(path: str | Path, *, raw: bool = True) -> Run:
     """Read the controller log at ``path`` (``raw=False`` skips the CAN frames and vision
     messages: faster when only cycles and diagnostics are wanted).
 
     Raises :class:`~rt_controller.errors.LogError` (one line) for a missing file, a file that
-    is not MCAP, and an MCAP file that hil did not write. A log whose writer was killed loads
+    is not MCAP, and an MCAP file that hil did not write (``NotAHilLogError``, the rule of
+    :func:`~rt_controller.logtools.reader.require_hil_log`). A log whose writer was killed loads
     as far as it goes, with ``truncated`` set and a note.
     """
-    log = read_log(path, raw=raw)
-    if not is_hil_log(log):
-        if log.library is None:
-            raise LogError(
-                f"{log.path}: not a readable hil log: the file ends before its first MCAP "
-                "record (cut, or still being created?)"
-            )
-        raise LogError(
-            f"{log.path}: not a hil log: an MCAP file written by {log.library or 'an unnamed'}"
-            f" library, without hil.run metadata or a {CYCLE_TOPIC} topic"
-        )
-    return Run(log)
+    return Run(read_hil_log(path, raw=raw))
 
 
 class Run:
