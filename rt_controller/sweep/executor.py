@@ -196,6 +196,8 @@ def _collect(
         TimeRemainingColumn,
     )
 
+    from rt_controller.rig.supervise import RigInterrupted
+
     client = cl.client
     by_future = {}
     for task in todo:
@@ -220,6 +222,8 @@ def _collect(
                 task = by_future.pop(fut)
                 try:
                     row = fut.result()
+                except RigInterrupted:  # SIGINT/SIGTERM to this process: stop the sweep
+                    raise
                 except Exception as exc:  # a lost task is a failed run
                     row = failed_row(task, " ".join(f"{type(exc).__name__}: {exc}".split()))
                 fut.release()

@@ -84,6 +84,8 @@ class ResultStore:
         self._check_meta()
         self._load_journal()
         self._journal = (self.out / JOURNAL).open("a", encoding="utf-8")
+        if self._journal.tell() and not (self.out / JOURNAL).read_bytes().endswith(b"\n"):
+            self._journal.write("\n")  # end a line torn by a killed sweep before appending
 
     # -- folder --------------------------------------------------------------------------
     def _check_meta(self) -> None:
