@@ -7,7 +7,17 @@ import sys
 from pathlib import Path
 
 from hal.arguments import duration
-from hal.config import LAW_NAMES
+from rt_controller.commands.common import add_law_options, add_scenario_options
+
+SUMMARY_KEYS = (
+    "clock", "rate_hz", "duration_s", "law", "horizon_s", "steps", "can",
+    "ticks", "planned_ticks", "end_reason", "J", "f_first", "jump_seen_s", "f_final",
+    "f_final_norm", "deadline_misses", "missed_periods", "stale_features", "stale_states",
+    "late_states", "old_states", "fallbacks", "watchdog_trips", "solve_us_median",
+    "solve_us_p99", "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms",
+    "arming_ticks", "log", "rejections", "recorder", "problems", "exit_codes", "monitor_error",
+)  # fmt: skip
+"""What ``hil up`` prints of the controller's summary, in this order."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "processes on the embedded defaults, waits --duration, stops them cleanly and prints "
         "final |f|, J, deadline misses, solve time and the log path.",
     )
-    p.add_argument("--law", choices=LAW_NAMES, help="control law (default: config)")
+    add_law_options(p)
+    add_scenario_options(p)
     p.add_argument("--duration", type=duration(), default=10.0, metavar="S", help="default 10")
     p.add_argument(
         "--lockstep",
@@ -53,43 +64,49 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rt_controller.commands.output import print_summary
-    from rt_controller.rig.processes import RigOptions, run_rig
+    import tempfile
+
+    from rt_controller.commands.output import output_file
+    from rt_controller.rig.processes import RigHung, RigOptions, run_rig
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
-    try:
-        with supervised():
-            summary = run_rig(
-                RigOptions(
-                    config=args.config,
-                    law=args.law,
-                    duration_s=args.duration,
-                    lockstep=args.lockstep,
-                    wall_timeout_s=args.wall_timeout,
-                    can=args.can,
-                    zenoh_endpoint=args.zenoh_endpoint,
-                    log=Path(args.log) if args.log else None,
-                    monitor=args.monitor or args.monitor_port is not None,
-                    monitor_port=args.monitor_port,
-                    key_file=Path(args.key_file) if args.key_file else None,
+    if args.log:
+        output_file(args.log, "--log")
+    config = _effective_config(args)
+    if args.monitor or args.monitor_port is not None:
+        _check_monitor_port(args.monitor_port)
+    with tempfile.TemporaryDirectory(prefix="hil-up-") as tmp:
+        if config is not None:  # the command-line overrides reach all three processes
+            conf = Path(tmp) / "rig.toml"
+            conf.write_text(config, encoding="utf-8")
+        try:
+            with supervised():
+                summary = run_rig(
+                    RigOptions(
+                        config=str(conf) if config is not None else args.config,
+                        law=args.law,
+                        duration_s=args.duration,
+                        lockstep=args.lockstep,
+                        wall_timeout_s=args.wall_timeout,
+                        can=args.can,
+                        zenoh_endpoint=args.zenoh_endpoint,
+                        log=Path(args.log) if args.log else None,
+                        monitor=args.monitor or args.monitor_port is not None,
+                        monitor_port=args.monitor_port,
+                        key_file=Path(args.key_file) if args.key_file else None,
+                    )
                 )
+        except RigInterrupted as exc:
+            _print(exc.summary, args.json)
+            print(
+                f"hil up: {exc}: stopped the rig (controller first), nothing left running",
+                file=sys.stderr,
             )
-    except RigInterrupted as exc:
-        print(
-            f"hil up: {exc}: stopped the rig (controller first), nothing left running",
-            file=sys.stderr,
-        )
-        return exc.exit_code
-    keys = (
-        "law", "ticks", "J", "f_final", "f_final_norm", "deadline_misses", "missed_periods",
-        "stale_features", "stale_states", "late_states", "old_states", "fallbacks",
-        "watchdog_trips", "solve_us_median", "solve_us_p99",
-        "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms", "arming_ticks",
-        "log",
-        "rejections", "recorder", "problems",
-        "exit_codes", "monitor_error",
-    )  # fmt: skip
-    print_summary({k: summary.get(k) for k in keys}, args.json, "hil up")
+            return exc.exit_code
+        except RigHung as exc:
+            summary = dict(exc.summary or {})
+            summary["problems"] = [*summary.get("problems", []), f"hung: {exc}"]
+    _print(summary, args.json)
     if summary.get("monitor_error"):
         print(f"hil up: warning: monitor {summary['monitor_error']}", file=sys.stderr)
     problems = summary.get("problems") or []
@@ -97,3 +114,45 @@ def run(args: argparse.Namespace) -> int:
         print(f"hil up: run not clean: {'; '.join(problems)}", file=sys.stderr)
         return 1
     return 0
+
+
+def _print(summary: dict | None, as_json: bool) -> None:
+    """The summary (what was run first), if the controller gave one."""
+    from rt_controller.commands.output import print_summary
+
+    if summary and "ticks" in summary:
+        print_summary({k: summary.get(k) for k in SUMMARY_KEYS}, as_json, "hil up")
+    elif summary:  # a hang before the controller said anything: only why
+        print_summary(summary, as_json, "hil up")
+
+
+def _effective_config(args: argparse.Namespace) -> str | None:
+    """The config with the command-line overrides (validated now: a bad value is refused
+    before any process starts), as TOML; None when nothing is overridden."""
+    from rt_controller.commands.common import config_from_args
+    from rt_controller.config_rules import config_toml
+
+    cfg = config_from_args(args)
+    names = ("rate", "horizon", "steps", "kmax", "zeta", "seed")
+    if all(getattr(args, n) is None for n in names) and not args.no_disturbance:
+        return None
+    return config_toml(cfg, header="hil up: the config with its command-line overrides")
+
+
+def _check_monitor_port(port: int | None) -> None:
+    """Refuse ``--monitor`` before the rig starts when its port cannot be opened."""
+    import socket
+
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.monitor.bridge import DEFAULT_PORT
+
+    port = DEFAULT_PORT if port is None else port
+    if port == 0:  # any free port
+        return
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise ControllerConfigError(
+                f"--monitor: cannot listen on 127.0.0.1:{port}: {exc.strerror or exc}"
+            ) from None

@@ -34,7 +34,7 @@ from hal.bus import isolated_spec, resolve_spec
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.errors import ControllerError
-from rt_controller.rig.supervise import PARENT_ENV, signals_deferred
+from rt_controller.rig.supervise import PARENT_ENV, RigInterrupted, signals_deferred
 
 STOP_TIMEOUT_S = 10.0
 STARTUP_MARGIN_S = 60.0
@@ -45,6 +45,18 @@ many times slower than real time (user-mode Linux runs about 10x slower than the
 
 class RigProcessError(ControllerError, RuntimeError):
     """A rig process failed; the message carries its exit status and stderr tail."""
+
+
+class RigHung(RigProcessError):
+    """The controller was still running after its wall-clock budget; the rig was stopped.
+    ``summary`` is what the controller reported when stopped (None if it reported nothing)."""
+
+    summary: dict[str, Any] | None = None
+
+
+def with_tail(message: str, tail: str) -> str:
+    """``message``, then a child's stderr tail on the lines below when it has one."""
+    return f"{message}:\n{tail}" if tail else message
 
 
 class RigCancelled(ControllerError):
@@ -220,10 +232,10 @@ class Rig:
         # Status 1 with a summary: the run finished but is not clean (its "problems" say why).
         if ctl.proc.returncode not in (0, 1) or (ctl.proc.returncode == 1 and not lines):
             raise RigProcessError(
-                f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
+                with_tail(f"controller exited with status {ctl.proc.returncode}", ctl.tail())
             )
         if not lines:
-            raise RigProcessError(f"controller printed no summary:\n{ctl.tail()}")
+            raise RigProcessError(with_tail("controller printed no summary", ctl.tail()))
         return lines[-1]
 
     def summaries(self) -> list[dict[str, Any]]:
@@ -247,9 +259,9 @@ class Rig:
                 raise RigCancelled("cancelled")
             self._check_alive(but="controller")
             if time.monotonic() > deadline:
-                raise RigProcessError(
+                raise RigHung(
                     f"controller still running after its wall-clock budget of {budget:g} s "
-                    f"(--wall-timeout):\n{ctl.tail()}"
+                    "(--wall-timeout)"
                 )
             time.sleep(0.05)
         return ctl
@@ -343,8 +355,18 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
     """
     with Rig(opts) as rig:
         rig.start()
-        summary = rig.wait_controller()
-        codes = rig.stop()
+        try:
+            summary = rig.wait_controller()
+        except (RigInterrupted, RigHung) as exc:
+            rig.stop()  # the controller first: it turns torque off and prints its summary
+            lines = rig.summaries()
+            exc.summary = lines[-1] if lines else None
+            raise
+        try:
+            codes = rig.stop()
+        except RigInterrupted as exc:  # a signal deferred while the rig stopped
+            exc.summary = summary
+            raise
         watch = {"controller", "monitor"}  # a failed live view is reported, never fatal
         bad = {n: c for n, c in codes.items() if n not in watch and c not in (0, None)}
         if bad:

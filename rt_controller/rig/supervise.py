@@ -33,6 +33,8 @@ class RigInterrupted(ControllerError):
 
     def __init__(self, signum: int) -> None:
         self.signum = signum
+        self.summary: dict | None = None
+        """The controller's summary of the run so far, when the supervisor got one."""
         super().__init__(f"interrupted by {signal.Signals(signum).name}")
 
     @property

@@ -53,7 +53,13 @@ STARTUP_TIMEOUT_S = 20.0
 STATE_POLL_NS = 100_000
 """Fake clock: the step by which a tick waiting for its joint state advances the clock."""
 LOCKSTEP_SYNC_TIMEOUT_S = 2.0
-"""Lockstep: without a Sync for this long the emulator is taken to have finished."""
+"""Lockstep without a duration: without a Sync for this long the emulator has finished."""
+LOCKSTEP_STALL_TIMEOUT_S = 30.0
+"""Lockstep with a duration not yet reached: how long the DSP may stay silent (a stalled or
+descheduled emulator; user-mode Linux runs about 10x slower) before the run ends short, which
+makes it not clean."""
+SYNC_POLL_S = 0.25
+"""Lockstep: the wait for a Sync looks at the stop request this often."""
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
 LIVE_DRAIN_TIMEOUT_S = 1.0
 """After the loop: how long the live stream may wait for the recorder's queue to drain."""
@@ -126,6 +132,17 @@ class RunStats:
     """Realtime: releases before which the last tick's rule was rehearsed
     (``controller.rehearse``)."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
+    f_first: list[float] = field(default_factory=lambda: [math.nan, math.nan])
+    """The features the first law tick saw (the scenario's f(0))."""
+    jump_seen_s: float | None = None
+    """Run time of the first tick whose features stepped by more than half the scenario's
+    target jump (None: no such step, or the scenario has no disturbance)."""
+    planned_ticks: int | None = None
+    """Ticks the duration asks for (None: no duration, run until stopped)."""
+    end_reason: str = "duration"
+    """Why the loop ended: ``duration``, ``stopped`` (a stop request) or a short phrase (the
+    DSP fell silent, ...); anything else than the first two before ``planned_ticks`` makes
+    the run not clean."""
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
     cycle_us: list[float] = field(default_factory=list)
@@ -137,6 +154,10 @@ class RunStats:
             "J": self.J,
             "f_final": self.f_final,
             "f_final_norm": float(np.hypot(*self.f_final)),
+            "f_first": self.f_first,
+            "jump_seen_s": self.jump_seen_s,
+            "planned_ticks": self.planned_ticks,
+            "end_reason": self.end_reason,
             "deadline_misses": self.deadline_misses,
             "missed_periods": self.missed_periods,
             "stale_features": self.stale_features,
@@ -162,13 +183,18 @@ class RunStats:
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
 
-    A run is not clean when it lost log records, tripped the DSP's watchdog, saw the DSP
+    A run is not clean when it ended before its duration for another reason than a stop
+    request (the DSP fell silent), lost log records, tripped the DSP's watchdog, saw the DSP
     fault, received a stream of frames or messages that failed authentication (another sender
     on the rig's bus or zenoh: :data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without
     an enabled DSP (disarmed, restarted, silent); the commands exit non-zero and print these on
     one line.
     """
     out: list[str] = []
+    planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
+    reason = summary.get("end_reason") or "duration"
+    if planned is not None and ticks < planned and reason not in ("duration", "stopped"):
+        out.append(f"the run ended after {ticks} of {planned} ticks: {reason}")
     rec = summary.get("recorder") or {}
     lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))
     if lost:
@@ -434,7 +460,7 @@ class ControllerDaemon:
 
     def _summary(self, rec: Recorder) -> dict[str, Any]:
         rec.close()
-        out = self.stats.as_dict()
+        out = {**self.what_runs(), **self.stats.as_dict()}
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.as_dict())
         if rec.error is not None:
             out["log_error"] = str(rec.error)
@@ -448,6 +474,20 @@ class ControllerDaemon:
         }
         out["problems"] = run_problems(out)
         return out
+
+    def what_runs(self) -> dict[str, Any]:
+        """What this run is: clock, rate, duration, law (with the horizon for rhc), CAN bus."""
+        cfg, opts = self.cfg, self.opts
+        rhc = cfg.controller.law == "rhc"
+        return {
+            "clock": "lockstep" if opts.lockstep else "realtime",
+            "rate_hz": cfg.rates.control_hz,
+            "duration_s": opts.duration_s or None,
+            "law": cfg.controller.law,
+            "horizon_s": cfg.rhc.horizon if rhc else None,
+            "steps": cfg.rhc.steps if rhc else None,
+            "can": opts.can or cfg.transport.can,
+        }
 
     def _raw_hooks(self, rec: Recorder) -> dict[str, Any]:
         """Record every CAN frame as received and sent (stamped with the loop's clock)."""
@@ -584,19 +624,26 @@ class ControllerDaemon:
             if self.opts.duration_s > 0
             else None
         )
+        self.stats.planned_ticks = max_ticks
         try:
             with GcPaused(), GilSwitchInterval(cfg.controller.gil_switch_us / 1e6):
-                if self.opts.lockstep:
-                    dsp.enable()
-                    self._wait_enabled(dsp)
-                    self._run_lockstep(dsp, rec, max_ticks)
-                else:
-                    self._run_realtime(dsp, rec, max_ticks)
+                self._run_mode(dsp, rec, max_ticks)
         finally:
+            if self.stop.is_set() and self.stats.end_reason == "duration":
+                self.stats.end_reason = "stopped"
             dsp.send_torque(0.0, 0.0)
             dsp.disable()
             self._final_diagnostics = self.diagnostics(dsp, rec, final=True)
             rec.record_diagnostics(self._final_diagnostics, final=True)
+
+    def _run_mode(self, dsp: JointClient, rec: Recorder, max_ticks: int | None) -> None:
+        """Arm the DSP and run the ticks in the configured clock mode."""
+        if self.opts.lockstep:
+            dsp.enable()
+            self._wait_enabled(dsp)
+            self._run_lockstep(dsp, rec, max_ticks)
+        else:
+            self._run_realtime(dsp, rec, max_ticks)
 
     # --- diagnostics ------------------------------------------------------------------------
     def _maybe_diagnostics(self, dsp: JointClient, rec: Recorder) -> None:
@@ -773,13 +820,28 @@ class ControllerDaemon:
                 self.clock.sleep_until(min(deadline_ns, now + STATE_POLL_NS))
             self.read_inputs(dsp, self.clock.now_ns())
 
+    def _next_sync(self, dsp: JointClient, patience_s: float) -> int | None:
+        """Lockstep: the next Sync's tick (the bus is read in this thread); None when told to
+        stop or when the DSP stayed silent for ``patience_s`` (``end_reason`` says which)."""
+        waited = 0.0
+        while not self.stop.is_set():
+            try:
+                return dsp.wait_sync(SYNC_POLL_S)
+            except HalTimeoutError:
+                waited += SYNC_POLL_S
+            if waited >= patience_s:
+                self.stats.end_reason = f"no Sync from the DSP for {patience_s:g} s"
+                return None
+        self.stats.end_reason = "stopped"
+        return None
+
     def _run_lockstep(self, dsp: JointClient, rec: Recorder, max_ticks: int | None) -> None:
         last = None
+        patience = LOCKSTEP_SYNC_TIMEOUT_S if max_ticks is None else LOCKSTEP_STALL_TIMEOUT_S
         while not self.stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
-            try:
-                k = dsp.wait_sync(LOCKSTEP_SYNC_TIMEOUT_S)  # reads the bus in this thread
-            except HalTimeoutError:
-                return  # the emulator finished its run
+            k = self._next_sync(dsp, patience)
+            if k is None:
+                return  # without a duration: the emulator finished its run
             if last is not None and k <= last:
                 if k == last:  # a re-sent Sync: our command was lost, send it again
                     tau = self._last_record["tau"]
@@ -898,6 +960,19 @@ class ControllerDaemon:
             feats if math.isfinite(feats) and feats > 0 else 0.0,
         )
 
+    def _follow_features(self, f: np.ndarray, t_s: float) -> None:
+        """The summary's view of the scenario: f at the first law tick and at the last, and
+        when the target's jump was seen (a step of more than half the configured jump)."""
+        st = self.stats
+        if st.ticks == 0 or not np.isfinite(st.f_first).all():
+            st.f_first = vec2(f)
+        sc = self.cfg.scenario
+        if sc.disturbance and st.jump_seen_s is None and np.isfinite(st.f_final).all():
+            jump = math.hypot(sc.f_jump[0] - sc.f0[0], sc.f_jump[1] - sc.f0[1])
+            if math.hypot(f[0] - st.f_final[0], f[1] - st.f_final[1]) > jump / 2:
+                st.jump_seen_s = t_s
+        st.f_final = vec2(f)
+
     def _tick(
         self,
         dsp: JointClient,
@@ -927,7 +1002,7 @@ class ControllerDaemon:
         if d.command is not None:
             st.J += fields["cost"] / cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])
-            st.f_final = vec2(inp.f)
+            self._follow_features(inp.f, t_s)
         t_solve = now()
         # --- write (realtime: the command says how long after the release it leaves)
         tau = d.tau
