@@ -295,3 +295,13 @@ def test_another_process_runs_the_same_loop_bit_for_bit(cfg):
     child = json.loads(out.splitlines()[-1])
     assert child["J"] == r.J.hex()
     assert child["u"] == [float(v).hex() for v in r.trace.array("u").ravel()]
+
+
+@pytest.mark.parametrize(("law", "name"), [("ioc", "ioc"), ("rhc", "T0.1N10")])
+def test_a_small_change_of_the_model_is_beyond_the_tolerances(cfg, law, name):
+    """The tolerances are loose enough for another CPU, not for a real change: gains.kp moved
+    by 1e-4 relative moves J (by ~4.7e-5) and J before the jump beyond them, 10x over."""
+    g = GOLDEN[name]
+    r = simulate(cfg, law, **{"gains.kp": cfg.gains.kp * (1 + 1e-4)})
+    assert abs(r.J - g.J) > 10 * g.J_rel * g.J
+    assert abs(before_jump(r) - g.J_before_jump) > 10 * g.J_before_jump_rel * g.J_before_jump
