@@ -83,6 +83,31 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="release period of each probe in microseconds (default 1000)",
     )
     _finish(hp, run_host)
+    sw = bench.add_parser(
+        "sweep",
+        help="hil sweep's runs/s: serial, on 1 worker and on all workers (scaling, efficiency)",
+    )
+    sw.add_argument(
+        "--runs",
+        type=bounded_int(1, 100_000, what="--runs"),
+        default=40,
+        help="simulate runs per measurement (default 40)",
+    )
+    sw.add_argument("--duration", type=duration(), default=6.0, help="simulated s per run")
+    sw.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
+    sw.add_argument(
+        "--workers",
+        type=bounded_int(1, 256, what="--workers"),
+        help="the 'all workers' count (default: one per CPU)",
+    )
+    sw.add_argument(
+        "--rig-runs",
+        type=bounded_int(0, 1000, what="--rig-runs"),
+        default=4,
+        help="rig engine runs per measurement (0 = skip the rig; default 4)",
+    )
+    sw.add_argument("--rig-duration", type=duration(), default=2.0, help="simulated s per rig run")
+    _finish(sw, run_sweep)
 
 
 def run_solver(args: argparse.Namespace) -> int:
@@ -95,6 +120,25 @@ def run_solver(args: argparse.Namespace) -> int:
         "(numba compiles the solver on a cold cache)"
     ):
         result = bench_solver(cfg, updates=args.updates)
+    print(json.dumps(result))
+    return 0
+
+
+def run_sweep(args: argparse.Namespace) -> int:
+    from rt_controller.commands.sweep import simulate_plant
+    from rt_controller.sweep.bench import bench_sweep
+
+    progress = Progress.of(args, "hil bench sweep")
+    with progress.stage("timing the sweep engines serially, on 1 worker and on all workers"):
+        result = bench_sweep(
+            simulate_plant(),
+            runs=args.runs,
+            duration_s=args.duration,
+            law=args.law,
+            workers=args.workers,
+            rig_runs=args.rig_runs,
+            rig_duration_s=args.rig_duration,
+        )
     print(json.dumps(result))
     return 0
 
