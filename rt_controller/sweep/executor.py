@@ -33,6 +33,8 @@ from rt_controller.sweep.spec import RunTask, Spec
 WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 """Each worker is one thread; its BLAS too (the control law's matrices are tiny)."""
 MAX_WORKERS = 256
+WORKER_WAIT_S = 60.0
+"""With ``--scheduler``: how long to wait for a first worker before giving up."""
 
 
 def machine_workers() -> int:
@@ -81,6 +83,14 @@ def open_cluster(workers: int | None = None, scheduler: str | None = None) -> Cl
             client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError, ValueError) as exc:
             raise ControllerConfigError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+        try:
+            client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+        except TimeoutError:
+            client.close()
+            raise ControllerConfigError(
+                f"--scheduler {scheduler}: no worker joined within {WORKER_WAIT_S:g} s "
+                f"(start one: dask worker {scheduler} --nthreads 1)"
+            ) from None
         return Cluster(client)
     n = machine_workers() if workers is None else workers
     if not 1 <= n <= MAX_WORKERS:
