@@ -1,6 +1,6 @@
 """Rig configuration: one TOML format for robot, camera, gains, scenario, rates and transports.
 
-Every section is a frozen dataclass whose defaults are the numbers of DESIGN.md (Pelican arm, the
+Every section is a frozen dataclass whose defaults are the paper's numbers (Pelican arm, the
 paper's gains of eq. 34, the "paper" scenario). :func:`load_config` validates a file once at
 start-up and raises :class:`~hal.errors.HalConfigError` naming the offending key. The config lives
 in :mod:`hal` because both sides of the rig (controller and emulator) read the same file.
@@ -105,7 +105,7 @@ class GainsConfig:
 
 @dataclass(frozen=True)
 class ScenarioConfig:
-    """Initial pose, target placement and the target jump (DESIGN.md scenario "paper")."""
+    """Initial pose, target placement and the target jump ("paper": the paper's Section V)."""
 
     name: str = "paper"
     q0: Vec2 = (math.pi / 6, -math.pi / 6)

@@ -21,8 +21,8 @@ work, and nothing outside the process can speak to them. The rig's entry points 
 controller``, ``hil emulator``, ``hil vision``, ``hil replay --republish``) require a configured
 key (:func:`require_rig_key`).
 
-CAN frames (see ``hal/README.md`` for the table)
-------------------------------------------------
+CAN frames (see ``docs/concepts/secoc.md`` for the table)
+---------------------------------------------------------
 Each protected message is a 16-byte CAN FD frame: bytes 0..7 are the E2E-protected payload of
 :mod:`hal.e2e` (CRC, counter, signals), bytes 8..11 the low 32 bits of the freshness value,
 bytes 12..15 the MAC::

@@ -1,4 +1,4 @@
-"""Scenarios: initial pose and target motion. "paper" is the experiment of DESIGN.md/Section V."""
+"""Scenarios: initial pose and target motion. "paper" is the experiment of the paper's Section V."""
 
 from __future__ import annotations
 

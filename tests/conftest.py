@@ -92,5 +92,5 @@ def endpoint() -> str:
 
 @pytest.fixture
 def cfg() -> RigConfig:
-    """The embedded default configuration (DESIGN.md numbers)."""
+    """The embedded default configuration (the paper's numbers)."""
     return load_config()

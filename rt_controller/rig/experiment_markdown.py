@@ -217,8 +217,8 @@ def _comparison(res: dict[str, Any], four_v0: float | None) -> list[str]:
         "## Comparison with the paper",
         "",
         "**Scale.** Our J is the paper's stage cost l(x, u) = 4xᵀQx + uᵀR⁻¹u (eq. 25) summed "
-        "over the logged ticks times the control period (J = Σ_k l(x_k, u_k) / rate, as "
-        "DESIGN.md defines), with f in pixels and the paper's gains (eq. 34)." + ref + " The "
+        "over the logged ticks times the control period (J = Σ_k l(x_k, u_k) / rate, as every "
+        "hil summary reports it), with f in pixels and the paper's gains (eq. 34)." + ref + " The "
         "paper's Table I values (≈ 3300-4300) are on a different absolute scale that the paper "
         "does not define (units, integration window and any weighting of its logged J are not "
         "stated), so only orderings and relative differences are comparable, not the numbers.",

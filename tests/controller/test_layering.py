@@ -1,6 +1,6 @@
-"""DESIGN.md's dependency directions, checked on the source: hal imports neither package above
-it; plant_emulator and rt_controller never import each other, except that the ``hil`` CLI's
-subcommands dispatch to the emulator's entry points."""
+"""The dependency directions of docs/architecture.md, checked on the source: hal imports neither
+package above it; plant_emulator and rt_controller never import each other, except that the
+``hil`` CLI's subcommands dispatch to the emulator's entry points."""
 
 from __future__ import annotations
 

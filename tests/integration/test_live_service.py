@@ -76,7 +76,7 @@ CFG = load_config()
 PERIOD_S = CFG.rates.control_period_ns / 1e9
 RATE_HZ = CFG.rates.control_hz
 JUMP_S = 3.0
-"""The paper scenario's target jump (DESIGN.md)."""
+"""The paper scenario's target jump (3 s, ScenarioConfig.jump_time)."""
 TAU_MAX = np.array(CFG.robot.tau_max, dtype=float)
 FEATURE_TIMEOUT_S = CFG.controller.feature_timeout_s
 

@@ -2,7 +2,7 @@
 controller, CAN on its own loopback) and the camera host (vision) are two Linux network
 namespaces joined by a veth pair (192.0.2.0/24, TEST-NET-1, inside the namespaces only), zenoh
 over TCP and over mutually authenticated TLS with certificates made by the openssl commands of
-README.md ("The rig across hosts"). Every process loads the same rig key. The run must converge
+docs/tutorials/two-hosts.md. Every process loads the same rig key. The run must converge
 (|f| < 1 px) as on one host.
 
 Needs root and ``ip netns``; skips with one line where namespaces cannot be made.
@@ -66,7 +66,8 @@ def namespaces() -> Iterator[tuple[str, str]]:
 
 
 def make_certificates(out: Path) -> None:
-    """CA, a hub certificate for RT_ADDR and a client certificate (README.md's commands)."""
+    """CA, a hub certificate for RT_ADDR and a client certificate (the commands of
+    docs/tutorials/two-hosts.md)."""
     sh = f"""set -e
 cd {out}
 openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes -days 365 \\
@@ -87,7 +88,7 @@ chmod 600 *.key
 
 
 def zenoh_configs(out: Path, proto: str, port: int) -> dict[str, Path]:
-    """The json5 files of README.md's multi-host example: the emulator is the router (hub)."""
+    """The json5 files of docs/tutorials/two-hosts.md: the emulator is the router (hub)."""
     common = {"scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}
     tls = {}
     if proto == "tls":

@@ -57,8 +57,8 @@ def session_key() -> bytes:
 
 
 class SecocReference:
-    """The SecOC verdict a receiver must give (MAC, then freshness; hal/README.md), with its
-    own model of the last accepted freshness per frame id; independent of hal."""
+    """The SecOC verdict a receiver must give (MAC, then freshness; docs/concepts/secoc.md), with
+    its own model of the last accepted freshness per frame id; independent of hal."""
 
     def __init__(self, key: bytes | None = None) -> None:
         self.key = key if key is not None else session_key()
@@ -80,7 +80,7 @@ class SecocReference:
 
 
 def secoc_tag_reference(key: bytes, sender: str, data_id: int, fv: int, head: bytes) -> bytes:
-    """The 32-bit SecOC MAC of a CAN frame (hal/README.md), independent of hal."""
+    """The 32-bit SecOC MAC of a CAN frame (docs/concepts/secoc.md), independent of hal."""
     import hashlib
     import hmac
 
