@@ -223,3 +223,17 @@ def test_law_table_matches_the_config_names():
     from rt_controller.control.law_table import LAWS
 
     assert tuple(LAWS) == LAW_NAMES
+
+
+def test_sweep_package_uses_no_cli_modules():
+    """rt_controller.sweep sits beside rig/ and below commands/: commands/sweep.py hands the
+    simulate engine its plant, so the package imports neither the commands nor the emulator."""
+    graph = import_graph()
+    offenders = [
+        (m, d)
+        for m in graph
+        if m.startswith("rt_controller.sweep")
+        for d in graph[m]
+        if d.startswith("rt_controller.commands") or d == "rt_controller.cli"
+    ]
+    assert not offenders, offenders
