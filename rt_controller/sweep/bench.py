@@ -85,6 +85,7 @@ def bench_engine(
         "serial_runs_per_s": runs / serial_s,
         "serial_run_s_median": _median_wall(serial),
         "failed": sum(r["status"] != "ok" for r in serial),
+        "errors": sorted({r["error"] for r in serial if r["error"]})[:3],
     }
     counts = [1] if workers == 1 else [1, workers]
     identical = True
@@ -93,6 +94,7 @@ def bench_engine(
         out[f"workers_{n}_runs_per_s"] = runs / elapsed
         out[f"workers_{n}_run_s_median"] = _median_wall(rows)
         out["failed"] += sum(r["status"] != "ok" for r in rows)
+        out["errors"] = sorted({*out["errors"], *(r["error"] for r in rows if r["error"])})[:3]
         for a, b in zip(serial, rows, strict=True):
             if engine == "simulate":
                 identical &= a["J"] == b["J"] and a["f_final_norm"] == b["f_final_norm"]
