@@ -17,10 +17,13 @@ every finished row and writes the report of what ran; the same command resumes.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -70,6 +73,21 @@ class Cluster:
                 self.local.close(timeout=10)
 
 
+@contextlib.contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """Start the local workers with SIGINT ignored (a spawned interpreter keeps an ignored
+    SIGINT): Ctrl-C at a terminal signals the whole process group, and the sweep itself stops
+    its workers in order instead of each one dying with a traceback."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def open_cluster(workers: int | None = None, scheduler: str | None = None) -> Cluster:
     """Connect to ``scheduler``, else start a local cluster of ``workers`` processes."""
     from distributed import Client, LocalCluster
@@ -95,16 +113,17 @@ def open_cluster(workers: int | None = None, scheduler: str | None = None) -> Cl
     n = machine_workers() if workers is None else workers
     if not 1 <= n <= MAX_WORKERS:
         raise ControllerConfigError(f"--workers must be 1..{MAX_WORKERS}, got {n}")
-    local = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=None,
-        worker_dashboard_address=None,
-        silence_logs=logging.ERROR,
-        env=WORKER_ENV,
-    )
+    with _workers_ignore_sigint():
+        local = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            worker_dashboard_address=None,
+            silence_logs=logging.ERROR,
+            env=WORKER_ENV,
+        )
     return Cluster(Client(local), local)
 
 
