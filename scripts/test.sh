@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The README's test command: install, lint, run the whole suite, run it again on a clock that
+# The README's test command: install, lint, check the generated reference pages and build the
+# docs strictly (docs/testing.md), run the whole suite, run it again on a clock that
 # reads like a machine booted 30 s ago, then python-can's own back-to-back suite against the
 # loopback CAN bus (peer check; its flaky-test policy: a test that fails is rerun once, alone,
 # and passes only if the rerun passes, named as "flaky: passed on rerun" in the summary line;
@@ -10,6 +11,10 @@ cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+.venv/bin/python scripts/gen_docs.py --check
+site_tmp=$(mktemp -d)
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet --site-dir "$site_tmp"
+rm -rf "$site_tmp"
 .venv/bin/python -m pytest -m "not vcan" "$@"
 bash scripts/fresh_clock_pytest.sh -m "not vcan" "$@"
 .venv/bin/python scripts/can_peer_suite.py
