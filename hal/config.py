@@ -182,12 +182,6 @@ class ControllerConfig:
     """Features older than this are stale."""
     state_timeout_s: float = 0.05
     """Joint states older than this mean the DSP went silent."""
-    state_wait_us: float = 0.0
-    """Realtime: when no joint state arrived since the last tick (a DSP that sampled late), the
-    tick waits up to this long after its release for this period's state instead of using the
-    last period's (compensated by ``predict_state``); capped at half a control period; 0 =
-    never wait (the default). Off by default: a 10-minute soak at 50 Hz with 5000 us on a busy
-    host still ran 36 % of its ticks late and ended in a velocity-limit fault."""
     predict_state: bool = True
     """Realtime: bring the joint state up to the tick before the law sees it (the nominal model
     driven by the torques sent since the state arrived; the cycle record's ``predict_ms``). A
@@ -207,22 +201,11 @@ class ControllerConfig:
     rule on a second controller, its write through a shadow codec to a private socket, so
     that the tick finds its code warm instead of paying for a period of sleep (the run's
     controller, its log, its counters and the bus are untouched)."""
-    gil_switch_us: float = 200.0
-    """The interpreter's switch interval inside the loop (``sys.setswitchinterval``). With
-    ``recorder = "thread"`` the tick shares the GIL with the MCAP writer thread; every socket
-    call of the tick releases it, and taking it back waits up to this long for the writer to
-    let go (Python's default is
-    5000 us: a 500 Hz run's write phase once took 11 ms and tripped the 6 ms watchdog)."""
     rt_priority: int = 80
     """SCHED_FIFO priority (best effort)."""
     cpu: int = -1
     """CPU to pin the loop to; -1 = leave affinity alone."""
     log_dir: str = "logs"
-    recorder: str = "process"
-    """Where the MCAP log is encoded and written: ``process`` (a child process of its own; the
-    control process then runs no other Python thread, and a lockstep tick waits for a busy
-    recorder instead of dropping records) or ``thread`` (a writer thread of the controller
-    process, which shares the interpreter lock with the tick)."""
     max_clock_skew_s: float = 0.005
     """A feature message stamped further than this in the future (receive clock) is rejected
     (``future_stamp``): its age would come out negative and defeat the stale check."""
@@ -477,9 +460,7 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "rhc.init_iterations": (1, 10_000, "[]"),
     "controller.feature_timeout_s": (0, 10, "(]"),
     "controller.state_timeout_s": (0, 10, "(]"),
-    "controller.state_wait_us": (0, 1e6, "[]"),
     "controller.spin_us": (0, 100_000, "[]"),
-    "controller.gil_switch_us": (1, 100_000, "[]"),
     "controller.rt_priority": (1, 99, "[]"),
     "controller.cpu": (-1, 4095, "[]"),
     "controller.max_clock_skew_s": (0, 1, "[]"),
@@ -593,11 +574,6 @@ def validate(cfg: RigConfig) -> RigConfig:
         ct.clock in ("realtime", "lockstep"),
         "controller.clock",
         f"must be realtime or lockstep, not {ct.clock!r}",
-    )
-    _require(
-        ct.recorder in ("process", "thread"),
-        "controller.recorder",
-        f"must be process or thread, not {ct.recorder!r}",
     )
     _require(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
     _require(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")

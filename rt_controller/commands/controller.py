@@ -111,10 +111,11 @@ def run(args: argparse.Namespace) -> int:
 def daemon_options(args: argparse.Namespace, cfg: RigConfig) -> DaemonOptions:
     """The daemon's wiring from the command line."""
     from rt_controller.runtime.daemon import DaemonOptions
+    from rt_controller.runtime.pacers import ClockMode
 
     return DaemonOptions(
         can=args.can,
-        lockstep=cfg.controller.clock == "lockstep",
+        mode=ClockMode(cfg.controller.clock),
         duration_s=args.duration,
         log_path=Path(args.log) if args.log else None,
         zenoh_endpoint=args.zenoh_endpoint,

@@ -13,7 +13,7 @@ SUMMARY_KEYS = (
     "clock", "rate_hz", "duration_s", "law", "horizon_s", "steps", "can",
     "ticks", "planned_ticks", "end_reason", "J", "f_first", "jump_seen_s", "f_final",
     "f_final_norm", "deadline_misses", "missed_periods", "stale_features", "stale_states",
-    "late_states", "old_states", "fallbacks", "watchdog_trips", "solve_us_median",
+    "late_states", "fallbacks", "watchdog_trips", "solve_us_median",
     "solve_us_p99", "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms",
     "arming_ticks", "log", "rejections", "recorder", "problems", "exit_codes", "monitor_error",
 )  # fmt: skip

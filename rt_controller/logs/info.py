@@ -22,7 +22,7 @@ def final_diagnostics(run: Run) -> dict[str, Any] | None:
 
 def logged_summary(run: Run) -> dict[str, Any]:
     """The controller summary's counters as far as the log has them (the final diagnostics and
-    the ``hil.recorder`` metadata): what :func:`rt_controller.runtime.daemon.run_problems`
+    the ``hil.recorder`` metadata): what :func:`rt_controller.runtime.counters.run_problems`
     judges. The DSP fault counts of the summary are not in the log."""
     last = final_diagnostics(run) or {}
     ctl, dsp = diagnostics.values_of(last, "controller"), diagnostics.values_of(last, "dsp")
@@ -55,7 +55,7 @@ def _int(value: Any) -> int | None:
 def log_info(run: Run) -> dict[str, Any]:
     """The ``hil info --json`` object of ``run``."""
     from rt_controller.logtools.deadline_report import summarize
-    from rt_controller.runtime.daemon import run_problems
+    from rt_controller.runtime.counters import run_problems
 
     report = summarize(run.log, max_list=0)
     laws = run.log.column("law")

@@ -227,7 +227,7 @@ def _gap_note(log: LoadedLog) -> str | None:
 
 
 def _warm_up(controller: Controller, cfg: RigConfig) -> None:
-    """What the daemon does before its first tick (``ControllerDaemon._warm_up``)."""
+    """What the daemon does before its first tick (see ``control.controller.warm_up``)."""
     sc = cfg.scenario
     controller.step(0.0, np.array(sc.q0), np.array(sc.dq0), np.array(sc.f0))
     controller.law.reset()

@@ -91,7 +91,6 @@ def bench_rate(
         "f_final_norm": summary.get("f_final_norm"),
         "fallbacks": summary.get("fallbacks"),
         "late_states": summary.get("late_states"),
-        "old_states": summary.get("old_states"),
         "watchdog_trips": summary.get("watchdog_trips"),
         "dsp_faults": summary.get("dsp_faults"),
         "drive_ticks": summary.get("drive_ticks"),

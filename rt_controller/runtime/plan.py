@@ -176,9 +176,8 @@ def run_plan(
 
     out: list[dict[str, Any]] = []
     try:
-        wants = [c for c in cfgs if c.controller.recorder == "process"]
         with (
-            recorder_service(wants[0] if wants else cfgs[0], opts) as service,
+            recorder_service(cfgs[0], opts) as service,
             open_links(cfgs[0], opts, stop) as (dsp, session),
         ):
             for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
@@ -192,8 +191,7 @@ def run_plan(
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
                 run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)
                 daemon = ControllerDaemon(cfg, run_opts, stop)
-                own = service if cfg.controller.recorder == "process" else None
-                summary = daemon.run_on(dsp, session, own)
+                summary = daemon.run_on(dsp, session, service)
                 summary.update(run=run.name, wall_s=time.monotonic() - t0)
                 out.append(summary)
                 emit(summary)

@@ -24,7 +24,6 @@ import gc
 import mmap
 import os
 import struct
-import sys
 import threading
 from dataclasses import dataclass, field
 
@@ -203,20 +202,3 @@ class GcPaused:
     def __exit__(self, *exc: object) -> None:
         if self._was:
             gc.enable()
-
-
-class GilSwitchInterval:
-    """Context manager: the interpreter's switch interval is ``seconds`` inside the loop (how
-    long a thread that wants the GIL back waits before the holder is asked to drop it) and
-    restored afterwards."""
-
-    def __init__(self, seconds: float) -> None:
-        self.seconds = seconds
-
-    def __enter__(self) -> GilSwitchInterval:
-        self._was = sys.getswitchinterval()
-        sys.setswitchinterval(self.seconds)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        sys.setswitchinterval(self._was)

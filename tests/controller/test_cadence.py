@@ -11,7 +11,7 @@ import textwrap
 import pytest
 
 from rt_controller.runtime.cadence import Cadence, FakeClock, MonotonicClock
-from rt_controller.runtime.realtime import GcPaused, GilSwitchInterval
+from rt_controller.runtime.realtime import GcPaused
 from tests.support import REPO
 
 P = 20_000_000  # 50 Hz
@@ -125,14 +125,6 @@ def test_gc_paused_restores_the_collector():
             assert gc.isenabled() == start
     finally:
         (gc.enable if was else gc.disable)()
-
-
-def test_the_loops_switch_interval_is_set_inside_and_restored_even_on_error():
-    was = sys.getswitchinterval()
-    with pytest.raises(RuntimeError), GilSwitchInterval(0.0002):
-        assert sys.getswitchinterval() == pytest.approx(0.0002)
-        raise RuntimeError("the loop failed")
-    assert sys.getswitchinterval() == was
 
 
 def test_the_wait_for_a_release_runs_the_idle_work_until_the_spin_window():

@@ -17,13 +17,13 @@ import pytest
 from hal.bus import isolated_spec, open_bus
 from hal.config import RigConfig, load_config
 from hal.joint_client import JointClient
-from hal.vision_codec import FeatureMsg, encode_features
+from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
 from plant_emulator.dsp_node import DspNode
-from rt_controller.control.controller import Controller, warm_up
+from rt_controller.control.controller import Controller
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.cadence import FakeClock
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
-from rt_controller.runtime.recorder import CycleRecorder
+from rt_controller.runtime.recorder_process import RecorderService
 
 MS = 1_000_000
 T0 = 5_000 * MS
@@ -31,20 +31,27 @@ FRAME_NS = round(1e9 / 60)
 
 
 class RigClock(FakeClock):
-    """Jumps to each deadline, running the DSP's 1 kHz service and a 60 fps camera on the way."""
+    """Jumps to each deadline, running the DSP's 1 kHz service and a 60 fps camera on the way;
+    with ``rehearse`` set, it runs the loop's wait work (the rehearsal) at each release, as the
+    real clock's wait does."""
 
-    def __init__(self, node: DspNode, daemon_features, start_ns: int) -> None:
+    def __init__(self, node: DspNode, start_ns: int) -> None:
         super().__init__(start_ns)
         self.node = node
-        self.features = daemon_features
+        self.features: FeatureDecoder | None = None
         self.frame = 0
         self.next_frame = start_ns
+        self.rehearse = False
         self.stall: tuple[int, int] | None = None
         """[from, to): the DSP process gets no CPU (a busy host); it catches up at ``to``."""
         self.client: JointClient | None = None
         """The controller's CAN client: frames are taken off the bus as they arrive and
         stamped then, as the kernel stamps a socket's frames (the daemon reads them later)."""
         node.start_realtime(start_ns)
+
+    def watch(self, features: FeatureDecoder) -> None:
+        """The camera starts, feeding ``features`` (the daemon's decoder)."""
+        self.features = features
         self._camera()
 
     def _camera(self) -> None:
@@ -59,15 +66,31 @@ class RigClock(FakeClock):
         """The controller works for ``ns``: the DSP and the camera go on meanwhile."""
         self.sleep_until(self.t + ns)
 
-    def sleep_until(self, deadline_ns: int) -> None:
+    def sleep_until(self, deadline_ns: int, idle=None) -> None:
         while self.t < deadline_ns:
             self.t = min(deadline_ns, self.t + MS)
             if self.stall is None or not self.stall[0] <= self.t < self.stall[1]:
                 self.node.service(self.t)
                 if self.client is not None:
                     self.client.drain(self.t)
-            if self.t >= self.next_frame:
+            if self.features is not None and self.t >= self.next_frame:
                 self._camera()
+        if idle is not None and self.rehearse:
+            idle(deadline_ns)
+
+
+class NoZenoh:
+    """A zenoh session stand-in: the fake clock's camera feeds the daemon's decoder itself."""
+
+    class _Ring:
+        def drain(self) -> list[bytes]:
+            return []
+
+        def close(self) -> None:
+            pass
+
+    def subscribe_ring(self, key: str) -> _Ring:
+        return self._Ring()
 
 
 def run_daemon(
@@ -80,78 +103,79 @@ def run_daemon(
     rehearsed: list | None = None,
     raw: bool = False,
 ):
-    """Run the daemon's loop for ``duration_s`` of fake time; ``slow_ticks`` maps a tick number
-    to extra nanoseconds its decide phase takes; for each tick in ``dsp_stalls`` the DSP gets no
-    CPU from 4 ms before the next release to 2 ms after it, so the state it samples 3 ms before
-    that release goes out 2 ms after it. With a ``rehearsed`` list, the daemon rehearses before
-    every release (as the real clock's wait does) and the list gets each rehearsal's torque, as
-    ``("decide", tau)`` and ``("write", tau)``.
-    Returns (summary, log, node)."""
+    """Run the daemon (:meth:`ControllerDaemon.run_on`, its log written by a recorder
+    process) for ``duration_s`` of fake time;
+    ``slow_ticks`` maps a tick number to extra nanoseconds its decide phase takes; for each
+    tick in ``dsp_stalls`` the DSP gets no CPU from 4 ms before the next release to 2 ms after
+    it, so the state it samples 3 ms before that release goes out 2 ms after it. With a
+    ``rehearsed`` list, the daemon rehearses before every release (as the real clock's wait
+    does) and the list gets each rehearsal's torque, as ``("decide", tau)`` and
+    ``("write", tau)``. Returns (summary, log, node)."""
     spec = isolated_spec("virtual")
     log = tmp_path / "fake.mcap"
-    opts = DaemonOptions(can=spec, duration_s=duration_s, log_path=log, realtime_settings=False)
+    period = cfg.rates.control_period_ns
     with open_bus(spec) as dsp_bus:
         node = DspNode(cfg, dsp_bus)
+        clock = RigClock(node, T0)
+        opts = DaemonOptions(
+            can=spec,
+            duration_s=duration_s,
+            log_path=log,
+            realtime_settings=False,
+            live=False,
+            scene=False,
+            clock=clock,
+        )
         daemon = ControllerDaemon(cfg, opts, threading.Event())
-        clock = RigClock(node, daemon.features, T0)
-        daemon.clock = opts.clock = clock
-        daemon._real_clock = False
+        clock.watch(daemon.features)
+        clock.rehearse = rehearsed is not None
         decide = daemon.controller.decide
-
-        release = [0]
-        tick = daemon._tick
-
-        if rehearsed is not None:
-            shadow = daemon._rehearsal = Controller(cfg)
-            warm_up(shadow, cfg)
-            rehearse = shadow.decide
-
-            def rehearsal(*args, **kwargs):
-                d = rehearse(*args, **kwargs)
-                rehearsed.append(("decide", d.tau.tolist()))
-                return d
-
-            shadow.decide = rehearsal
-
-        def timed_tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs):
-            release[0] = wake_ns - lateness_ns
-            if rehearsed is not None:
-                if "rehearse_torque" not in vars(dsp):  # record each rehearsed write
-                    write = dsp.rehearse_torque
-
-                    def rehearse_write(tau1, tau2, **kw):
-                        rehearsed.append(("write", [tau1, tau2]))
-                        return write(tau1, tau2, **kw)
-
-                    dsp.rehearse_torque = rehearse_write
-                daemon._rehearse(dsp)
-            return tick(dsp, index, wake_ns, lateness_ns, *args, **kwargs)
-
-        daemon._tick = timed_tick
 
         def slow_decide(*args, **kwargs):
             if on_tick is not None:
-                on_tick(daemon.stats.ticks, node)
-            if daemon.stats.ticks in dsp_stalls:
-                # the next release (this tick may have waited for its state)
-                nxt = release[0] + cfg.rates.control_period_ns
+                on_tick(daemon.counters.ticks, node)
+            if daemon.counters.ticks in dsp_stalls:  # the fake clock wakes on the release
+                nxt = clock.t + period
                 clock.stall = (nxt - 4 * MS, nxt + 2 * MS)
-            extra = slow_ticks.get(daemon.stats.ticks)
+            extra = slow_ticks.get(daemon.counters.ticks)
             if extra:
                 clock.advance(extra)  # this tick's work overruns
             return decide(*args, **kwargs)
 
         daemon.controller.decide = slow_decide
-        rec = CycleRecorder(log, cfg)
-        daemon._rec = rec
+        spies = None if rehearsed is None else _rehearsal_spies(daemon, rehearsed)
         try:
-            with JointClient.open(spec, cfg, start=False, **daemon._raw_hooks(rec)) as dsp:
+            with RecorderService(cfg) as service, JointClient.open(spec, cfg, start=False) as dsp:
                 clock.client = dsp
-                daemon._loop(dsp, rec)
+                summary = daemon.run_on(dsp, NoZenoh(), service)
         finally:
-            rec.close()
-        summary = daemon._summary(rec)
+            if spies is not None:
+                spies()
     return summary, read_log(log, raw=rehearsed is not None or raw), node
+
+
+def _rehearsal_spies(daemon: ControllerDaemon, rehearsed: list):
+    """Record every rehearsed decision (a controller other than the run's, once ticks run:
+    not the warm-up) and write; returns the function that takes the spies away."""
+    run_controller = daemon.controller
+    decide, write = Controller.decide, JointClient.rehearse_torque
+
+    def spy_decide(self, *args, **kwargs):
+        d = decide(self, *args, **kwargs)
+        if self is not run_controller and daemon.counters.ticks:
+            rehearsed.append(("decide", d.tau.tolist()))
+        return d
+
+    def spy_write(self, tau1, tau2, **kw):
+        rehearsed.append(("write", [tau1, tau2]))
+        return write(self, tau1, tau2, **kw)
+
+    Controller.decide, JointClient.rehearse_torque = spy_decide, spy_write
+
+    def remove() -> None:
+        Controller.decide, JointClient.rehearse_torque = decide, write
+
+    return remove
 
 
 @pytest.fixture(scope="module")
@@ -218,40 +242,11 @@ def _reused(c) -> np.ndarray:
     return np.r_[False, np.all(x[1:] == x[:-1], axis=1)]
 
 
-def test_a_state_that_comes_after_the_release_is_waited_for_not_replaced_by_the_last_one(
-    tmp_path, cfg
-):
-    """A DSP process that got no CPU when it should have sampled (3 ms before the release)
-    sends that sample 2 ms after the release: the tick waits for it (up to
-    ``controller.state_wait_us``, off by default) instead of using the previous period's.
-    A period-old state is a whole period of delay, which destabilises IOC and RHC."""
-    waiting = cfg.with_overrides({"controller.state_wait_us": 5000.0})
-    summary, log, _ = run_daemon(tmp_path, waiting, 2.0, {}, STALLS)
-    c = log.cycles
-    assert not _reused(c).any()  # every tick used its own period's sample
-    assert summary["late_states"] == len(STALLS) and summary["old_states"] == 0
-    read = np.asarray(c["read_us"])
-    assert sorted(np.flatnonzero(read > 0)) == sorted(np.flatnonzero(read == 2000.0))
-    assert np.count_nonzero(read == 2000.0) == len(STALLS)  # each waited exactly 2 ms
-    assert summary["problems"] == []
-
-
-def test_a_state_that_does_not_come_within_the_wait_is_counted_and_the_last_one_used(tmp_path, cfg):
-    """The same stalls with a wait budget of 0.1 ms: those ticks use the previous period's state
-    and count it (``old_states``); no tick waits longer than the budget."""
-    short = cfg.with_overrides({"controller.state_wait_us": 100.0})
-    summary, log, _ = run_daemon(tmp_path, short, 2.0, {}, STALLS)
-    c = log.cycles
-    assert summary["late_states"] == summary["old_states"] == len(STALLS)
-    assert np.count_nonzero(_reused(c)) == len(STALLS)
-    assert np.asarray(c["read_us"]).max() == 100.0  # the budget, on the fake clock
-
-
-def test_by_default_a_late_state_is_counted_and_the_last_one_used(tmp_path, cfg):
-    """``controller.state_wait_us = 0`` (the default): no waiting; every stalled period's tick
-    reuses the previous state and is counted, so a run shows how often the loop ran late data."""
+def test_a_late_state_is_counted_and_the_last_one_used(tmp_path, cfg):
+    """A tick never waits for its input: every stalled period's tick reuses the previous state
+    (its age compensated) and is counted, so a run shows how often the loop ran late data."""
     summary, log, _ = run_daemon(tmp_path, cfg, 2.0, {}, STALLS)
-    assert summary["late_states"] == summary["old_states"] == len(STALLS)
+    assert summary["late_states"] == len(STALLS)
     assert np.count_nonzero(_reused(log.cycles)) == len(STALLS)
     assert np.asarray(log.cycles["read_us"]).max() == 0.0  # nothing waited
 
@@ -299,28 +294,6 @@ def test_the_laws_own_solve_time_is_recorded_apart_from_the_decide_phase(tmp_pat
     _, log_ioc, _ = run_daemon(tmp_path / "ioc", cfg, 0.5, {})
     assert set(log_ioc.cycles["law"]) == {"ioc"}
     assert np.all(np.asarray(log_ioc.cycles["law_us"]) == 0.0)
-
-
-def test_ticks_that_wait_for_a_late_state_do_not_move_the_phase_the_dsp_learns(tmp_path, cfg):
-    """30 ticks in a row wait 2 ms for a DSP that sampled late, so their commands leave 2 ms
-    after the release. Each command tells the DSP how long after its release it was sent
-    (``TorqueCommand.Tick`` in realtime), so the DSP still places the controller's release
-    where it is: at most one physics step (its service granularity) after it. Learning the
-    phase from arrivals alone moved it 2 ms later, the DSP sampled later still, and a
-    10-minute soak ratcheted into waiting every tick."""
-    waiting = cfg.with_overrides({"controller.state_wait_us": 5000.0})
-    period = cfg.rates.control_period_ns
-    learnt: dict[int, int | None] = {}
-
-    def watch(tick, node):
-        learnt[tick] = node.phase.residue_ns
-
-    stalls = frozenset(range(40, 70))
-    summary, log, _ = run_daemon(tmp_path, waiting, 2.0, {}, stalls, on_tick=watch)
-    release = int(log.cycles["t_ns"][0]) % period  # the fake clock wakes on the release
-    offsets = {tick: (learnt[tick] - release) % period for tick in (39, 55, 70, 90)}
-    assert all(offset <= MS for offset in offsets.values()), offsets
-    assert summary["late_states"] == len(stalls) and summary["old_states"] == 0
 
 
 def test_a_second_trip_whose_statuses_arrive_in_one_read_is_still_re_armed(tmp_path, cfg):

@@ -64,6 +64,9 @@ IO_MODULES = (
     "hal.udp_loopback",
     "rt_controller.runtime.recorder",
     "rt_controller.runtime.daemon",
+    "rt_controller.runtime.hardware",
+    "rt_controller.runtime.loop",
+    "rt_controller.runtime.pacers",
     "rt_controller.logtools",
     "rt_controller.logs",
 )

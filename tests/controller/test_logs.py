@@ -381,7 +381,7 @@ def test_info_on_a_clean_log(log_path, capsys):
 
 
 def test_info_problems_use_the_run_rule(tmp_path, capsys):
-    from rt_controller.runtime.daemon import run_problems
+    from rt_controller.runtime.counters import run_problems
 
     path = record(tmp_path / "bad.mcap", 30, watchdog_trips=2, disarmed=3)
     assert main(["info", str(path), "--json"]) == 0

@@ -18,7 +18,7 @@ import pytest
 
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import read_log
-from rt_controller.runtime.daemon import run_problems
+from rt_controller.runtime.counters import run_problems
 from rt_controller.runtime.recorder import CycleRecorder
 from rt_controller.runtime.recorder_process import RecorderService
 from tests.controller.test_recorder import cycle

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from hal.zenoh_session import free_loopback_port
-from rt_controller.runtime.daemon import run_problems
+from rt_controller.runtime.counters import run_problems
 from tests.support import cycles_logged, start_hil_up
 from tests.support.proc import processes_mentioning
 

@@ -18,7 +18,7 @@ import time
 import pytest
 
 from rt_controller.rig.processes import Rig, RigOptions
-from rt_controller.runtime.daemon import run_problems
+from rt_controller.runtime.counters import run_problems
 from tests.support import cycles_logged, free_endpoint, run_hil, start_hil_up, wait_until
 
 pytestmark = pytest.mark.integration
