@@ -385,7 +385,17 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
     raise HalConfigError(f"{key}: unsupported type {hint!r}")  # pragma: no cover
 
 
-def _build_section(name: str, data: Any) -> Any:
+RETIRED_KEYS = {
+    "controller.state_wait_us": "a tick never waits for its joint state (a late one is counted "
+    "in late_states and its age compensated)",
+    "controller.gil_switch_us": "the control process runs no other Python thread",
+    "controller.recorder": "the MCAP log is always written by the recorder's own process",
+}
+"""Keys older versions had, with why they went: refused in a config file (with the reason),
+ignored in a log's embedded config (they never changed what the per-tick rule computes)."""
+
+
+def _build_section(name: str, data: Any, *, retired_ok: bool = False) -> Any:
     cls = _SECTION_TYPES[name]
     if not isinstance(data, dict):
         raise HalConfigError(f"[{name}]: expected a table, got {data!r}")
@@ -393,6 +403,11 @@ def _build_section(name: str, data: Any) -> Any:
     known = [f.name for f in dataclasses.fields(cls)]
     kwargs = {}
     for key, value in data.items():
+        why = RETIRED_KEYS.get(f"{name}.{key}")
+        if why is not None:
+            if retired_ok:
+                continue
+            raise HalConfigError(f"{name}.{key} was removed: {why}; delete it from the file")
         if key not in hints:
             raise HalConfigError(f"unknown key {name}.{key} (known keys: {', '.join(known)})")
         kwargs[key] = _coerce(value, hints[key], f"{name}.{key}")
@@ -648,11 +663,14 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def config_from_dict(data: dict[str, Any], *, source: str | None = None) -> RigConfig:
+def config_from_dict(
+    data: dict[str, Any], *, source: str | None = None, retired_ok: bool = False
+) -> RigConfig:
     """Build and validate a :class:`RigConfig` from a nested dict (parsed TOML or JSON).
 
     Exactly the checks of a file (types, ranges, cross-field constraints); ``source`` (e.g.
-    ``"log metadata"``) prefixes the one-line error, as the path does for a file.
+    ``"log metadata"``) prefixes the one-line error, as the path does for a file;
+    ``retired_ok`` skips :data:`RETIRED_KEYS` (a log written by an older version).
     """
     try:
         if not isinstance(data, dict):
@@ -663,7 +681,7 @@ def config_from_dict(data: dict[str, Any], *, source: str | None = None) -> RigC
                 raise HalConfigError(
                     f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
                 )
-            sections[name] = _build_section(name, body)
+            sections[name] = _build_section(name, body, retired_ok=retired_ok)
         return validate(RigConfig(**sections))
     except HalConfigError as exc:
         msg = _one_line(str(exc))
@@ -696,9 +714,10 @@ def load_config(path: str | Path | None = None) -> RigConfig:
 
 def config_from_json(text: str | bytes, *, source: str = "embedded config") -> RigConfig:
     """Inverse of :meth:`RigConfig.to_json` (used to replay a log's embedded configuration);
-    validated exactly like a file, errors prefixed with ``source``."""
+    validated exactly like a file, errors prefixed with ``source``; keys older versions wrote
+    and this one retired (:data:`RETIRED_KEYS`) are skipped."""
     try:
         data = json.loads(text)
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise HalConfigError(f"{source}: not valid JSON: {_one_line(str(exc))}") from None
-    return config_from_dict(data, source=source)
+    return config_from_dict(data, source=source, retired_ok=True)

@@ -95,3 +95,24 @@ def test_overrides_are_validated(cfg: RigConfig):
         cfg.with_overrides({"rates.speed": 1})
     with pytest.raises(HalConfigError, match="unknown config key"):
         cfg.with_overrides({"nothing": 1})
+
+
+def test_a_retired_key_is_refused_in_a_file_with_its_reason_and_skipped_in_a_log(tmp_path):
+    """Keys an older version had (hal.config.RETIRED_KEYS): a config file that still sets
+    one gets one line saying why it went; a log written by that version still replays (its
+    embedded config is read with them skipped)."""
+    import json
+
+    from hal.config import RETIRED_KEYS, RigConfig, config_from_json, load_config
+    from hal.errors import HalConfigError
+
+    for dotted, why in RETIRED_KEYS.items():
+        section, key = dotted.split(".")
+        path = tmp_path / f"{key}.toml"
+        path.write_text(f"[{section}]\n{key} = 0\n")
+        with pytest.raises(HalConfigError) as err:
+            load_config(path)
+        assert f"{dotted} was removed: {why}" in str(err.value)
+    old = json.loads(RigConfig().to_json())
+    old["controller"].update(state_wait_us=0.0, gil_switch_us=200.0, recorder="process")
+    assert config_from_json(json.dumps(old)) == RigConfig()
