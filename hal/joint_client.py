@@ -1,21 +1,31 @@
 """Controller-side joint I/O client: the rt_controller's only door to the DSP.
 
-A background thread receives every frame, runs it through :class:`~hal.can_codec.ControllerCodec`
-(E2E check + DBC decode) and keeps the latest joint state (a JointPosition/JointVelocity pair of
-one DSP sample, stamped with ``time.monotonic_ns()`` on arrival), the latest :class:`DspStatus`
-and the latest :class:`Sync` tick. The control loop reads them without blocking
-(:meth:`JointClient.latest_state`) or waits for the lockstep clock (:meth:`JointClient.wait_sync`).
+The client has no thread of its own: the caller's thread reads the bus. The controller's control
+thread reads its inputs itself as part of the tick, so no other Python thread runs in the control
+process (none to take the GIL from it, none whose wake-up lands in the tick). Three calls read:
+
+* :meth:`JointClient.drain` takes every frame waiting on the bus, without blocking;
+* :meth:`JointClient.wait_sync` reads until the DSP's next lockstep Sync;
+* :meth:`JointClient.reset_scenario` reads until the DSP confirms a new scenario;
+
+and :meth:`JointClient.wait_readable` blocks until a frame waits, without reading it. Each frame
+goes through :class:`~hal.can_codec.ControllerCodec` (E2E and SecOC check, DBC decode) and updates
+the latest joint state (a JointPosition/JointVelocity pair of one DSP sample, stamped on
+arrival), the latest :class:`DspStatus` (and the backlog :meth:`JointClient.take_statuses` hands
+over) and the latest :class:`Sync` tick, which the other methods read without blocking. One
+thread uses a client at a time.
 
 Typical use::
 
     with JointClient.open("auto", cfg) as dsp:
         dsp.enable()                               # FAULT_RESET + ENABLE
-        tick = dsp.wait_sync(timeout=1.0)          # lockstep mode only
+        tick = dsp.wait_sync(timeout=1.0)          # lockstep: reads the bus up to the Sync
+        # realtime instead: dsp.wait_readable(...) until the release, then dsp.drain()
         state = dsp.latest_state()                 # HalTimeoutError when the DSP went silent
         dsp.send_torque(tau[0], tau[1], tick=tick)
 
-``close()`` (idempotent) disarms the DSP if this client armed it, stops the thread and, for a
-client made by :meth:`JointClient.open`, shuts the bus down.
+``close()`` (idempotent) disarms the DSP if this client armed it and, for a client made by
+:meth:`JointClient.open`, shuts the bus down.
 """
 
 from __future__ import annotations
@@ -23,7 +33,6 @@ from __future__ import annotations
 import collections
 import logging
 import select
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -70,7 +79,7 @@ class ClientStats:
     syncs: int
     statuses: int
     transport_errors: int
-    """Receive calls that raised (a driver error); the thread keeps going."""
+    """Receive calls that raised (a driver error), counted and read as "no frame"."""
     hook_errors: int
     """Exceptions raised by ``frame_hook`` (logged once, swallowed)."""
 
@@ -91,11 +100,10 @@ class JointClient:
 
     :param bus: an open python-can bus (see :func:`hal.bus.open_bus`).
     :param cfg: rig configuration (``controller.state_timeout_s`` is the default staleness limit).
-    :param frame_hook: called with every raw frame as received, in the receive thread, before
-        validation (e.g. to log it to MCAP); it must be quick; its exceptions are swallowed.
-    :param tx_hook: called with every frame after it was sent, in the sender's thread (quick).
+    :param frame_hook: called with every raw frame as it is read, before validation (e.g. to
+        log it to MCAP); it must be quick; its exceptions are swallowed.
+    :param tx_hook: called with every frame after it was sent (quick).
     :param owns_bus: shut ``bus`` down on :meth:`close`.
-    :param start: start the receive thread now (tests may feed :meth:`process_frame` instead).
     :param key: the rig key (default: ``cfg.transport.key_file``, loaded and checked, else this
         process's ephemeral key; see :mod:`hal.secoc`).
     """
@@ -110,8 +118,6 @@ class JointClient:
         owns_bus: bool = False,
         max_delta: int = DEFAULT_MAX_DELTA,
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
-        poll_s: float = 0.05,
-        start: bool = True,
         key: bytes | None = None,
     ) -> None:
         self.cfg = cfg if cfg is not None else RigConfig()
@@ -119,20 +125,15 @@ class JointClient:
         self.frame_hook = frame_hook
         self.tx_hook = tx_hook
         self._owns_bus = owns_bus
-        self._poll_s = poll_s
         self._key = key if key is not None else rig_key(self.cfg)
         self._codec = ControllerCodec(
             max_delta=max_delta, reinit_after_s=reinit_after_s, key=self._key
         )
         self._shadow: ControllerCodec | None = None
         """The codec :meth:`rehearse_torque` encodes with (its counters are its own)."""
-        self._cond = threading.Condition()
-        self._tx_lock = threading.Lock()
-        self._stop = threading.Event()
         self._closed = False
-        self._thread: threading.Thread | None = None
         self._armed = False
-        # receive-side state, guarded by _cond
+        # receive-side state, written by process_frame
         self._pos: JointPosition | None = None
         self._vel: JointVelocity | None = None
         self._state: JointState | None = None
@@ -140,14 +141,11 @@ class JointClient:
         self._status_t_ns = 0
         self._new_statuses: collections.deque[DspStatus] = collections.deque(maxlen=STATUS_BACKLOG)
         self._sync_tick: int | None = None
-        self._sync_t_ns = 0
         self._sync_seq = 0
         self._sync_seen = 0
         self._frames = self._states = self._syncs = self._statuses = 0
         self._transport_errors = self._hook_errors = 0
         track(self, f"JointClient({bus.channel_info})")
-        if start:
-            self.start()
 
     @classmethod
     def open(
@@ -166,18 +164,8 @@ class JointClient:
 
     # ------------------------------------------------------------------------- lifecycle
 
-    def start(self) -> None:
-        """Start the receive thread (done by the constructor unless ``start=False``)."""
-        if self._closed:
-            raise HalError("JointClient is closed")
-        if self._thread is None:
-            self._thread = threading.Thread(
-                target=self._run, name=f"hal-joint-rx[{self.bus.channel_info}]", daemon=True
-            )
-            self._thread.start()
-
     def close(self) -> None:
-        """Disarm the DSP if this client armed it, stop receiving, release an owned bus."""
+        """Disarm the DSP if this client armed it, release an owned bus."""
         if self._closed:
             return
         self._closed = True
@@ -186,13 +174,6 @@ class JointClient:
                 self._send_disable(closing=True)
             except HalError as exc:
                 log.warning("could not disarm the DSP on close: %s", exc)
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=max(2.0, 4 * self._poll_s))
-            if self._thread.is_alive():  # pragma: no cover - a driver stuck in recv()
-                log.warning("JointClient receive thread did not stop")
-        with self._cond:
-            self._cond.notify_all()
         if self._owns_bus:
             self.bus.shutdown()
         release(self)
@@ -214,13 +195,12 @@ class JointClient:
     ) -> None:
         if self._closed and not closing:
             raise HalError("JointClient is closed")
-        with self._tx_lock:
-            msg = make(self._codec)
-            try:
-                self.bus.send(msg, timeout=0.05)
-            except (can.CanError, OSError) as exc:
-                where = self.bus.channel_info
-                raise HalTransportError(f"CAN send on {where} failed: {exc}") from exc
+        msg = make(self._codec)
+        try:
+            self.bus.send(msg, timeout=0.05)
+        except (can.CanError, OSError) as exc:
+            where = self.bus.channel_info
+            raise HalTransportError(f"CAN send on {where} failed: {exc}") from exc
         if self.tx_hook is not None:
             self.tx_hook(msg)
 
@@ -295,10 +275,10 @@ class JointClient:
         self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick), closing=closing)
 
     def reset_scenario(self, timeout_s: float, *, seed: int | None = None) -> DspStatus:
-        """Poll mode, against an emulated lockstep DSP that is not armed: DspControl
-        RESET_SCENARIO, then read the bus until the DspStatus of the DSP's new session (Tick 0,
-        switch-on disabled) arrives; every joint state, Sync and status received before it
-        is forgotten, so the next run sees only its own inputs. Returns that status.
+        """Against an emulated lockstep DSP that is not armed: DspControl RESET_SCENARIO, then
+        read the bus until the DspStatus of the DSP's new session (Tick 0, switch-on disabled)
+        arrives; every joint state, Sync and status received before it is forgotten, so the
+        next run sees only its own inputs. Returns that status.
 
         ``seed`` (0 .. :data:`~hal.can_codec.SEED_MAX`) is the new run's camera noise seed:
         the DSP hands it to the vision process with the run's camera poses. None keeps the
@@ -307,18 +287,11 @@ class JointClient:
         :class:`HalTimeoutError` when no such status comes within ``timeout_s`` (a realtime
         or real DSP refuses the command; so does one in operation enabled).
         """
-        if self._thread is not None:
-            raise HalError("JointClient.reset_scenario() is for poll mode")
         old = None if self._status is None else self._status.session
         self.send_command(DspCommand.RESET_SCENARIO, repeat=1, seed=seed)
         deadline = time.monotonic() + timeout_s
         while (remaining := deadline - time.monotonic()) > 0:
-            try:
-                msg = self.bus.recv(timeout=min(remaining, 0.05))
-            except Exception as exc:  # counted like the receive thread does
-                self._transport_errors += 1
-                log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
-                continue
+            msg = self._receive(min(remaining, 0.05))
             if msg is None:
                 continue
             before = self._statuses
@@ -331,12 +304,11 @@ class JointClient:
                 and st.tick == 0
                 and st.drive_state is DriveState.SWITCH_ON_DISABLED
             ):
-                with self._cond:
-                    self._pos = self._vel = self._state = None
-                    self._sync_tick = None
-                    self._sync_seen = self._sync_seq
-                    self._new_statuses.clear()
-                    self._new_statuses.append(st)
+                self._pos = self._vel = self._state = None
+                self._sync_tick = None
+                self._sync_seen = self._sync_seq
+                self._new_statuses.clear()
+                self._new_statuses.append(st)
                 return st
         raise HalTimeoutError(
             f"the DSP on {self.bus.channel_info} did not confirm a scenario reset within "
@@ -381,55 +353,44 @@ class JointClient:
 
     # --------------------------------------------------------------------------- receive
 
-    def _run(self) -> None:
-        bus, stop, poll = self.bus, self._stop, self._poll_s
-        while not stop.is_set():
-            try:
-                msg = bus.recv(timeout=poll)
-            except Exception as exc:  # driver errors must not kill the receiver
-                if stop.is_set():
-                    break
-                self._transport_errors += 1
-                if self._transport_errors == 1 or self._transport_errors % 1000 == 0:
-                    log.warning("CAN receive error on %s: %s", bus.channel_info, exc)
-                stop.wait(poll)
-                continue
-            if msg is not None:
-                self.process_frame(msg)
+    def _receive(self, timeout_s: float) -> can.Message | None:
+        """The next frame off the bus within ``timeout_s`` (0: only one already waiting), else
+        None. A driver error reads as None: it is counted (``transport_errors``) and logged on
+        the first and every 1000th, and never reaches the caller."""
+        try:
+            return self.bus.recv(timeout=timeout_s)
+        except Exception as exc:  # driver errors must not reach the tick
+            self._transport_errors += 1
+            if self._transport_errors == 1 or self._transport_errors % 1000 == 0:
+                log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
+            return None
 
     def drain(self, now_ns: int | None = None, *, timestamps: bool = False) -> int:
-        """Poll mode (``start=False``): read every frame waiting on the bus without blocking,
-        in the caller's thread, and decode it; the number of frames read.
+        """Read every frame waiting on the bus without blocking and decode it; the number of
+        frames read.
 
-        Used by the controller's tick, so that no other Python thread runs on its path. Each
-        frame's receive time is ``now_ns`` (default ``time.monotonic_ns()``), or, with
-        ``timestamps``, the bus's receive stamp (``Message.timestamp``, wall clock) moved to
-        the monotonic clock and capped at ``now_ns``. Never raises for a bad frame or a driver
-        error (both counted).
+        The controller's tick calls it to take its inputs. Each frame's receive time is
+        ``now_ns`` (default ``time.monotonic_ns()``), or, with ``timestamps``, the bus's receive
+        stamp (``Message.timestamp``, wall clock) moved to the monotonic clock and capped at
+        ``now_ns``. Never raises for a bad frame or a driver error (both counted; a driver
+        error ends the drain).
         """
-        if self._thread is not None:
-            raise HalError("JointClient.drain() is for poll mode; the receive thread is running")
         now = time.monotonic_ns() if now_ns is None else now_ns
         wall_minus_mono = time.time_ns() - time.monotonic_ns() if timestamps else 0
         n = 0
-        while True:
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except Exception as exc:  # driver errors must not reach the tick
-                self._transport_errors += 1
-                if self._transport_errors == 1 or self._transport_errors % 1000 == 0:
-                    log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
-                return n
-            if msg is None:
-                return n
+        while (msg := self._receive(0.0)) is not None:
             t = now
             if timestamps and msg.timestamp:
                 t = min(now, round(msg.timestamp * 1e9) - wall_minus_mono)
             self.process_frame(msg, t)
             n += 1
+        return n
 
     def process_frame(self, msg: can.Message, t_ns: int | None = None) -> None:
-        """The receive path for one frame: hook, E2E check, decode, update. Never raises."""
+        """The receive path for one frame: hook, E2E check, decode, update. Never raises.
+
+        :meth:`drain`, :meth:`wait_sync` and :meth:`reset_scenario` call it for every frame
+        they read; a test may feed frames to it directly."""
         now = time.monotonic_ns() if t_ns is None else t_ns
         self._frames += 1
         hook = self.frame_hook
@@ -443,22 +404,20 @@ class JointClient:
         frame = self._codec.decode(msg, now)
         if frame is None:
             return
-        with self._cond:
-            if isinstance(frame, JointPosition):
-                self._pos = frame
-                self._pair(now)
-            elif isinstance(frame, JointVelocity):
-                self._vel = frame
-                self._pair(now)
-            elif isinstance(frame, DspStatus):
-                self._status, self._status_t_ns = frame, now
-                self._new_statuses.append(frame)
-                self._statuses += 1
-            elif isinstance(frame, Sync):
-                self._sync_tick, self._sync_t_ns = frame.tick, now
-                self._sync_seq += 1
-                self._syncs += 1
-            self._cond.notify_all()
+        if isinstance(frame, JointPosition):
+            self._pos = frame
+            self._pair(now)
+        elif isinstance(frame, JointVelocity):
+            self._vel = frame
+            self._pair(now)
+        elif isinstance(frame, DspStatus):
+            self._status, self._status_t_ns = frame, now
+            self._new_statuses.append(frame)
+            self._statuses += 1
+        elif isinstance(frame, Sync):
+            self._sync_tick = frame.tick
+            self._sync_seq += 1
+            self._syncs += 1
 
     def _pair(self, now: int) -> None:
         pos, vel = self._pos, self._vel
@@ -501,9 +460,10 @@ class JointClient:
         return self._states
 
     def wait_readable(self, timeout_s: float) -> bool:
-        """Poll mode: block until a frame is waiting on the bus (not read) or ``timeout_s``
-        passed; whether one is waiting. A bus without a file descriptor is polled every
-        0.2 ms."""
+        """Block until a frame is waiting on the bus or ``timeout_s`` passed; whether one is
+        waiting. Reads nothing (:meth:`drain` does), so a caller can decide when to decode it.
+        A bus without a file descriptor is polled every 0.2 ms (this call returns False after
+        one such pause)."""
         if timeout_s <= 0:
             return False
         try:
@@ -524,20 +484,6 @@ class JointClient:
         state = self._state
         return None if state is None else state.age_s()
 
-    def wait_state_after(self, t_ns: int, timeout: float) -> JointState:
-        """Block until a joint state received after ``t_ns`` exists; return it."""
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._state is None or self._state.t_ns <= t_ns:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._closed:
-                    raise HalTimeoutError(
-                        f"no joint state from the DSP within {timeout * 1e3:.1f} ms "
-                        f"on {self.bus.channel_info}"
-                    )
-                self._cond.wait(remaining)
-            return self._state
-
     @property
     def status(self) -> DspStatus | None:
         """The latest DspStatus (``None`` before the first one); never raises.
@@ -551,15 +497,9 @@ class JointClient:
     def take_statuses(self) -> list[DspStatus]:
         """Every DspStatus received since the last call, oldest first (at most
         ``STATUS_BACKLOG``: older ones are dropped, the newest always kept)."""
-        with self._cond:
-            out = list(self._new_statuses)
-            self._new_statuses.clear()
+        out = list(self._new_statuses)
+        self._new_statuses.clear()
         return out
-
-    @property
-    def status_age_s(self) -> float | None:
-        """Seconds since the latest DspStatus arrived; ``None`` before the first one."""
-        return self.status_age_s_at(time.monotonic_ns())
 
     def status_age_s_at(self, now_ns: int) -> float | None:
         """Seconds from the latest DspStatus's arrival to ``now_ns``; ``None`` before one."""
@@ -573,22 +513,6 @@ class JointClient:
         status = self._status
         return None if status is None else status.drive_state
 
-    def latest_status(self, max_age_s: float | None = None) -> DspStatus:
-        """The newest DspStatus; :class:`HalTimeoutError` when none or older than ``max_age_s``.
-
-        ``max_age_s`` defaults to three status periods (``3 / cfg.rates.status_hz``).
-        """
-        limit = 3.0 / self.cfg.rates.status_hz if max_age_s is None else max_age_s
-        status, t_ns = self._status, self._status_t_ns
-        if status is None:
-            raise HalTimeoutError(f"no DspStatus received on {self.bus.channel_info} yet")
-        age = (time.monotonic_ns() - t_ns) * 1e-9
-        if age > limit:
-            raise HalTimeoutError(
-                f"DSP silent: last DspStatus is {age * 1e3:.1f} ms old (limit {limit * 1e3:.1f} ms)"
-            )
-        return status
-
     @property
     def sync_tick(self) -> int | None:
         """The latest Sync tick (``None`` before the first one)."""
@@ -601,35 +525,22 @@ class JointClient:
         )
 
     def wait_sync(self, timeout: float) -> int:
-        """Block until a Sync arrives that no earlier call returned; its tick.
+        """Read the bus until a Sync arrives that no earlier call returned; its tick.
 
-        If several arrived since the previous call, the latest wins. Raises
+        Every frame read on the way is decoded (the DSP sends a period's joint state before
+        its Sync). If several Syncs arrived since the previous call, the latest wins. Raises
         :class:`HalTimeoutError` after ``timeout`` seconds.
         """
         deadline = time.monotonic() + timeout
-        if self._thread is None:  # poll mode: block on the bus in the caller's thread
-            while self._sync_seq == self._sync_seen:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._closed:
-                    raise self._no_sync(timeout)
-                try:
-                    msg = self.bus.recv(timeout=remaining)
-                except Exception as exc:  # counted like the receive thread does
-                    self._transport_errors += 1
-                    log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
-                    continue
-                if msg is not None:
-                    self.process_frame(msg)
-            self._sync_seen = self._sync_seq
-            return int(self._sync_tick or 0)
-        with self._cond:
-            while self._sync_seq == self._sync_seen:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._closed:
-                    raise self._no_sync(timeout)
-                self._cond.wait(remaining)
-            self._sync_seen = self._sync_seq
-            return int(self._sync_tick or 0)
+        while self._sync_seq == self._sync_seen:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self._closed:
+                raise self._no_sync(timeout)
+            msg = self._receive(remaining)
+            if msg is not None:
+                self.process_frame(msg)
+        self._sync_seen = self._sync_seq
+        return int(self._sync_tick or 0)
 
     @property
     def stats(self) -> ClientStats:

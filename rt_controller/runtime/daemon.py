@@ -82,7 +82,7 @@ def open_links(
     itself, no receive thread) and the zenoh session. The bus first: a bad ``--can`` is
     reported at once, not after waiting for zenoh. :class:`HalStopped` when ``stop`` is set
     while waiting for zenoh."""
-    with JointClient.open(opts.can, cfg, start=False) as dsp:
+    with JointClient.open(opts.can, cfg) as dsp:
         session = open_session(
             cfg,
             listen=False,

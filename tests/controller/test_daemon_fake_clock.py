@@ -145,7 +145,7 @@ def run_daemon(
         daemon.controller.decide = slow_decide
         spies = None if rehearsed is None else _rehearsal_spies(daemon, rehearsed)
         try:
-            with RecorderService(cfg) as service, JointClient.open(spec, cfg, start=False) as dsp:
+            with RecorderService(cfg) as service, JointClient.open(spec, cfg) as dsp:
                 clock.client = dsp
                 summary = daemon.run_on(dsp, NoZenoh(), service)
         finally:

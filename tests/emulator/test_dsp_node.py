@@ -37,6 +37,7 @@ from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 from plant_emulator.dsp_node import DspNode
 from tests.support import SecocReference, command_is_malformed, e2e_crc_reference
+from tests.support.joint import read_for
 
 RECV_TIMEOUT_S = 10.0
 MS = 1_000_000
@@ -54,7 +55,7 @@ def cfg(cfg: RigConfig) -> RigConfig:
 
 
 def wait_for(cond: Callable[[], bool], what: str, poll: Callable[[], object] | None = None) -> None:
-    """Spin until ``cond()``; ``poll()`` in between (e.g. let the node drain its bus)."""
+    """Spin until ``cond()``; ``poll()`` in between (e.g. the node or the client reads its bus)."""
     deadline = time.monotonic() + RECV_TIMEOUT_S
     while not cond():
         if poll is not None:
@@ -130,14 +131,22 @@ def test_enable_applies_torque_and_disable_removes_it(cfg: RigConfig, transport:
         assert np.array_equal(node.world.q, q0)
 
         enable(clock, client)
-        wait_for(lambda: client.status is not None and client.status.torque_enabled, "status")
+        wait_for(
+            lambda: client.status is not None and client.status.torque_enabled,
+            "status",
+            client.drain,
+        )
         for _ in range(10):  # 10 control periods with torque
             clock.command(client, (5.0, 0.5))
             clock.advance(20)
         assert np.allclose(node.world.tau_applied, (5.0, 0.5))
         assert node.world.q[0] > q0[0] + 1e-3, "joint 1 did not move under +5 N·m"
         assert node.world.dq[0] > 0
-        wait_for(lambda: client.latest_state(max_age_s=1e9).q[0] > q0[0] + 1e-3, "moved state")
+        wait_for(
+            lambda: client.latest_state(max_age_s=1e9).q[0] > q0[0] + 1e-3,
+            "moved state",
+            client.drain,
+        )
 
         client.disable()
         wait_for(lambda: not node.armed, "DISABLE", clock.pump)
@@ -147,7 +156,7 @@ def test_enable_applies_torque_and_disable_removes_it(cfg: RigConfig, transport:
         assert np.array_equal(node.world.tau_applied, np.zeros(2))
         # No friction by default: without torque the arm coasts.
         assert node.world.dq[0] == pytest.approx(dq_before[0], rel=0.05)
-        wait_for(lambda: not client.status.torque_enabled, "disabled status")  # type: ignore[union-attr]
+        wait_for(lambda: not client.status.torque_enabled, "disabled status", client.drain)  # type: ignore[union-attr]
         assert not client.status.watchdog_tripped  # type: ignore[union-attr]
 
 
@@ -158,7 +167,11 @@ def test_torque_is_saturated_to_the_amplifier_limits(cfg: RigConfig) -> None:
         clock.command(client, (160.0, -16.0))  # inside the frame range, beyond tau_max
         clock.advance(5)
         assert np.array_equal(node.world.tau_applied, (150.0, -15.0))
-        wait_for(lambda: client.status is not None and client.status.torque_saturated, "sat")
+        wait_for(
+            lambda: client.status is not None and client.status.torque_saturated,
+            "sat",
+            client.drain,
+        )
 
 
 # -------------------------------------------------------------------------------- watchdog
@@ -194,6 +207,7 @@ def test_watchdog_trips_within_three_periods_and_latches(cfg: RigConfig, transpo
         wait_for(
             lambda: client.status is not None and client.status.watchdog_tripped,
             "WatchdogTripped",
+            client.drain,
         )
         status = first_status(raw, lambda s: s.watchdog_tripped)
         assert not status.torque_enabled
@@ -217,7 +231,7 @@ def test_watchdog_trips_within_three_periods_and_latches(cfg: RigConfig, transpo
         clock.command(client, (3.0, 0.3))
         clock.advance(period_ms)
         assert np.allclose(node.world.tau_applied, (3.0, 0.3))
-        wait_for(lambda: not client.status.watchdog_tripped, "re-enabled status")  # type: ignore[union-attr]
+        wait_for(lambda: not client.status.watchdog_tripped, "re-enabled status", client.drain)  # type: ignore[union-attr]
         assert client.status.torque_enabled  # type: ignore[union-attr]
 
 
@@ -231,11 +245,12 @@ def test_watchdog_on_the_real_clock(cfg: RigConfig) -> None:
             client.enable()
             for _ in range(15):
                 client.send_torque(2.0, 0.2)
-                time.sleep(0.02)
+                read_for(client, 0.02)  # reads the bus meanwhile, like a controller
             stopped = time.monotonic()
             wait_for(
                 lambda: client.status is not None and client.status.watchdog_tripped,
                 "WatchdogTripped",
+                client.drain,
             )
             seen_after_s = time.monotonic() - stopped
         finally:
@@ -403,6 +418,7 @@ def test_lockstep_watchdog_counts_periods(cfg: RigConfig, transport: str) -> Non
         wait_for(
             lambda: client.status is not None and client.status.watchdog_tripped,
             "WatchdogTripped",
+            client.drain,
         )
         assert client.status.lockstep  # type: ignore[union-attr]
 
@@ -462,7 +478,7 @@ def test_a_scenario_reset_runs_again_exactly_as_a_fresh_dsp(cfg: RigConfig, tran
     _, fresh = lockstep_run(cfg, transport, periods)
     spec = isolated_spec(transport)
     resets: list[tuple[int, int | None]] = []
-    with open_bus(spec) as bus, JointClient.open(spec, cfg, start=False) as client:
+    with open_bus(spec) as bus, JointClient.open(spec, cfg) as client:
         node = DspNode(
             cfg,
             bus,
@@ -517,7 +533,7 @@ def test_a_scenario_reset_is_refused_while_enabled_and_by_a_realtime_dsp(cfg: Ri
 def test_reset_scenario_times_out_with_a_clear_error_when_no_dsp_confirms(cfg: RigConfig):
     spec = isolated_spec("virtual")
     with (
-        JointClient.open(spec, cfg, start=False) as client,
+        JointClient.open(spec, cfg) as client,
         pytest.raises(HalTimeoutError, match="did not confirm a scenario reset"),
     ):
         client.reset_scenario(0.1)

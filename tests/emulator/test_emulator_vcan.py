@@ -43,6 +43,7 @@ from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 from tests import support
 from tests.support import e2e_crc_reference
+from tests.support.joint import next_state, next_status, read_for, read_until
 from tests.support.vcan import VCAN_CHANNEL, candump_available, requires_vcan, vcan_required
 
 REPO = Path(__file__).resolve().parents[2]
@@ -187,15 +188,26 @@ def stop_emulator(proc: Proc, sig: int = signal.SIGTERM) -> dict[str, Any]:
     return summary
 
 
-def wait_until(cond: Callable[[], bool], what: str, timeout: float = RECV_TIMEOUT_S) -> float:
-    """Poll ``cond`` every millisecond; the monotonic time at which it became true."""
-    if not support.wait_until(cond, timeout, poll_s=0.001):
+def wait_until(
+    cond: Callable[[], bool],
+    what: str,
+    timeout: float = RECV_TIMEOUT_S,
+    reading: JointClient | None = None,
+) -> float:
+    """Poll ``cond`` every millisecond, reading the bus of the client ``reading`` meanwhile (a
+    client has no thread of its own; the one :func:`streaming` runs reads it while it runs);
+    the monotonic time at which ``cond`` became true."""
+    if reading is not None:
+        ok = read_until(reading, cond, timeout)
+    else:
+        ok = support.wait_until(cond, timeout, poll_s=0.001)
+    if not ok:
         pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
     return time.monotonic()
 
 
 def first_state(client: JointClient) -> tuple[float, float]:
-    return client.wait_state_after(0, timeout=START_TIMEOUT_S).q
+    return next_state(client, START_TIMEOUT_S).q
 
 
 Law = Callable[[tuple[float, float], tuple[float, float]], tuple[float, float]]
@@ -208,7 +220,8 @@ def constant(tau: tuple[float, float]) -> Law:
 @contextlib.contextmanager
 def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[list[int]]:
     """Enable the DSP and send ``law(q, dq)`` of the latest state at ``hz`` from a thread, like
-    a controller; on exit the same thread disables the DSP right after its last command.
+    a controller: the thread reads the client's bus between its commands (the test's thread
+    must not, meanwhile); on exit it disables the DSP right after its last command.
 
     A busy host may stall this thread past the DSP's watchdog (3 periods of 20 ms): the DSP then
     trips, as it must, and the thread re-arms it (``enable`` resets the fault) so the test goes
@@ -226,7 +239,7 @@ def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[list[
             state = client.latest_state(max_age_s=1e9)
             client.send_torque(*law(state.q, state.dq))
             sent[0] += 1
-            stop.wait(1.0 / hz)
+            read_until(client, stop.is_set, 1.0 / hz)
         client.disable()
 
     thread = threading.Thread(target=run, name="torque-stream")
@@ -290,7 +303,7 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
             # The state rate is a DSP-clock property, checked on the summary below; the wall
             # clock rate is only reported.
             n0, t0 = client.stats.states, time.monotonic()
-            time.sleep(1.0)
+            read_for(client, 1.0)
             rate = (client.stats.states - n0) / (time.monotonic() - t0)
             print(f"joint state received at {rate:.0f} Hz (rates.state_hz {cfg.rates.state_hz:g})")
             assert client.stats.states > n0
@@ -308,7 +321,7 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
                 q1 = client.latest_state(max_age_s=RECV_TIMEOUT_S).q
             print(f"q: {q0} -> {q1} after {sent[0]} torque commands (3, 0.3) N·m")
             assert q1[1] > q0[1], "joint 2 did not move under +0.3 N·m"
-            wait_until(lambda: not client.status.torque_enabled, "disarmed")  # type: ignore[union-attr]
+            wait_until(lambda: not client.status.torque_enabled, "disarmed", reading=client)  # type: ignore[union-attr]
         summary = stop_emulator(emu)
     print(f"emulator summary: {json.dumps(summary)}")
     assert summary["commands"] >= sent[0]
@@ -332,6 +345,7 @@ with JointClient.open(sys.argv[1]) as dsp:
     print("armed", flush=True)
     seen = 0
     while True:  # 50 Hz until killed; zero torque keeps the arm at rest inside its limits
+        dsp.drain()
         st = dsp.status
         if st is not None and st.watchdog_tripped and st.watchdog_trips != seen:
             seen = st.watchdog_trips  # once per trip, however long the status says tripped
@@ -357,12 +371,14 @@ def test_watchdog_trips_when_the_client_is_killed(cfg: RigConfig, can_spec: str)
             wait_until(
                 lambda: observer.status is not None and observer.status.torque_enabled,
                 "torque enabled by the client process",
+                reading=observer,
             )
-            time.sleep(0.5 * SLOW)  # the client streams torque at 50 Hz
+            read_for(observer, 0.5 * SLOW)  # the client streams torque at 50 Hz
             # armed by the live client (re-armed by it if a stall tripped the watchdog)
             wait_until(
                 lambda: observer.status is not None and observer.status.torque_enabled,
                 "torque enabled while the client streams",
+                reading=observer,
             )
             os.kill(client.pid, signal.SIGKILL)
             killed = time.monotonic()
@@ -371,10 +387,11 @@ def test_watchdog_trips_when_the_client_is_killed(cfg: RigConfig, can_spec: str)
                 lambda: observer.status is not None and observer.status.watchdog_tripped,
                 "WatchdogTripped after SIGKILL of the client",
                 EVENT_TIMEOUT_S,
+                reading=observer,
             )
             # nobody is left to re-arm it: the trip latches, torque stays off
-            time.sleep(0.2 * SLOW)
-            status = observer.latest_status(max_age_s=RECV_TIMEOUT_S)
+            read_for(observer, 0.2 * SLOW)
+            status = next_status(observer, RECV_TIMEOUT_S)
             assert status.watchdog_tripped and not status.torque_enabled
         finally:
             client.close()
@@ -387,6 +404,7 @@ def test_watchdog_trips_when_the_client_is_killed(cfg: RigConfig, can_spec: str)
             lambda: observer.status is not None and observer.status.watchdog_trips == final_trips,
             "the DSP's last status",
             EVENT_TIMEOUT_S,
+            reading=observer,
         )
     rearms = client.out.count("re-armed")
     dsp_ms = summary["last_trip_latency_ms"]

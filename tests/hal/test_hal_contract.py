@@ -3,6 +3,7 @@
 Every ``transport`` test runs on ``virtual`` (in-process), ``udp_multicast`` (host-local,
 loopback only) and ``socketcan`` (a real vcan0; marked ``vcan``, run by scripts/vcan_pytest.py).
 Receive timeouts are generous because user-mode Linux is slow; nothing asserts on timings.
+The client reads the bus in the test's thread, as in the controller (it has no thread of its own).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from hal.config import RigConfig
 from hal.errors import HalConfigError, HalError, HalTimeoutError, HalTransportError
 from hal.joint_client import JointClient
 from hal.udp_loopback import DEFAULT_GROUP, LoopbackMulticastBus
+from tests.support.joint import next_state, read_until
 from tests.support.vcan import VCAN_CHANNEL, requires_vcan
 
 RECV_TIMEOUT_S = 5.0
@@ -124,7 +126,7 @@ def test_client_assembles_state_status_and_sync(dsp_bus: can.BusABC, client: Joi
     dsp = DspCodec()
     t0 = time.monotonic_ns()
     send_state(dsp_bus, dsp, (1000 * RAD_PER_COUNT, -0.5), 3)
-    state = client.wait_state_after(t0, RECV_TIMEOUT_S)
+    state = next_state(client, RECV_TIMEOUT_S)
     assert isinstance(state, JointState)
     assert state.q == (1000 * RAD_PER_COUNT, pytest.approx(-0.5, abs=RAD_PER_COUNT))
     assert state.dq == (pytest.approx(0.5), pytest.approx(-0.25))
@@ -136,7 +138,8 @@ def test_client_assembles_state_status_and_sync(dsp_bus: can.BusABC, client: Joi
     dsp_bus.send(dsp.encode_sync(42))
     assert client.wait_sync(RECV_TIMEOUT_S) == 42
     assert client.sync_tick == 42
-    assert client.latest_status(max_age_s=60.0) == DspStatus(True, False, lockstep=True, tick=77)
+    assert client.status == DspStatus(True, False, lockstep=True, tick=77)
+    assert 0 <= client.status_age_s_at(time.monotonic_ns()) < 60.0
     stats = client.stats
     assert (stats.states, stats.syncs, stats.statuses, stats.e2e.rejected) == (1, 1, 1, 0)
 
@@ -215,12 +218,10 @@ def test_every_status_since_the_last_take_comes_in_order(
         DspStatus(False, False, drive_state=DriveState.SWITCH_ON_DISABLED),
         DspStatus(True, False, drive_state=DriveState.OPERATION_ENABLED),
     ]
-    with JointClient.open(spec, cfg, start=False) as client:
+    with JointClient.open(spec, cfg) as client:
         for st in seq:
             dsp_bus.send(dsp.encode_status(st))
-        deadline = time.monotonic() + RECV_TIMEOUT_S
-        while client.stats.statuses < len(seq) and time.monotonic() < deadline:
-            client.drain()
+        read_until(client, lambda: client.stats.statuses >= len(seq), RECV_TIMEOUT_S)
         got = client.take_statuses()
         assert [(g.drive_state, g.fault_reason) for g in got] == [
             (st.drive_state, st.fault_reason) for st in seq
@@ -228,9 +229,8 @@ def test_every_status_since_the_last_take_comes_in_order(
         assert client.take_statuses() == [] and client.status == got[-1]
         for _ in range(STATUS_BACKLOG + 5):  # a backlog keeps the newest
             dsp_bus.send(dsp.encode_status(seq[0]))
-        while client.stats.statuses < len(seq) + STATUS_BACKLOG + 5:
-            assert time.monotonic() < deadline + RECV_TIMEOUT_S
-            client.drain()
+        total = len(seq) + STATUS_BACKLOG + 5
+        assert read_until(client, lambda: client.stats.statuses == total, RECV_TIMEOUT_S)
         assert len(client.take_statuses()) == STATUS_BACKLOG
 
 
@@ -250,20 +250,64 @@ def test_lockstep_exchange(dsp_bus: can.BusABC, client: JointClient) -> None:
 
 
 def test_silent_dsp_raises_timeouts(client: JointClient) -> None:
+    assert not client.wait_readable(0.05)
+    assert client.drain() == 0
     with pytest.raises(HalTimeoutError, match="no joint state"):
         client.latest_state()
-    with pytest.raises(HalTimeoutError):
-        client.latest_status()
     with pytest.raises(HalTimeoutError, match="Sync"):
         client.wait_sync(0.05)
-    with pytest.raises(HalTimeoutError):
-        client.wait_state_after(0, 0.05)
     assert client.status is None and client.sync_tick is None and client.state_age_s() is None
+    assert client.status_age_s_at(time.monotonic_ns()) is None and client.take_statuses() == []
+    assert client.stats.frames == client.stats.transport_errors == 0
+
+
+def test_a_frame_waiting_is_readable_and_drain_takes_it(
+    dsp_bus: can.BusABC, client: JointClient
+) -> None:
+    """``wait_readable`` reports a waiting frame without reading it (a bus without a file
+    descriptor, ``virtual``, only pauses briefly and says no); ``drain`` reads all that wait and
+    returns at once when none does."""
+    send_state(dsp_bus, DspCodec(), (0.25, -0.25), 1)
+    try:
+        client.bus.fileno()
+    except NotImplementedError:
+        t0 = time.monotonic()
+        assert not client.wait_readable(RECV_TIMEOUT_S)
+        assert time.monotonic() - t0 < RECV_TIMEOUT_S / 2
+    else:
+        assert client.wait_readable(RECV_TIMEOUT_S)
+    assert client.stats.frames == 0  # nothing read yet
+    assert read_until(client, lambda: client.stats.frames == 2, RECV_TIMEOUT_S)
+    assert client.states_received == 1 and client.drain() == 0
+    assert client.latest_state(max_age_s=60.0).q[0] == pytest.approx(0.25, abs=RAD_PER_COUNT)
+
+
+def test_receive_errors_are_counted_and_read_as_no_frame(
+    dsp_bus: can.BusABC, client: JointClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A driver error in ``bus.recv`` never reaches the caller of ``drain``, ``wait_sync`` or
+    ``reset_scenario``: each one is counted, and the client reads on afterwards."""
+
+    def broken(timeout: float | None = None) -> can.Message | None:
+        raise can.CanOperationError("driver says no")
+
+    monkeypatch.setattr(client.bus, "recv", broken)
+    assert client.drain() == 0
+    with pytest.raises(HalTimeoutError, match="Sync"):
+        client.wait_sync(0.01)
+    with pytest.raises(HalTimeoutError, match="scenario reset"):
+        client.reset_scenario(0.01)
+    errors = client.stats.transport_errors
+    assert errors >= 3 and client.stats.frames == 0
+    monkeypatch.undo()
+    dsp_bus.send(DspCodec().encode_sync(5))
+    assert client.wait_sync(RECV_TIMEOUT_S) == 5
+    assert client.stats.transport_errors == errors
 
 
 def test_stale_state_raises_timeout(dsp_bus: can.BusABC, client: JointClient) -> None:
     send_state(dsp_bus, DspCodec(), (0.0, 0.0), 0)
-    client.wait_state_after(0, RECV_TIMEOUT_S)
+    next_state(client, RECV_TIMEOUT_S)
     time.sleep(0.02)
     with pytest.raises(HalTimeoutError, match="DSP silent"):
         client.latest_state(max_age_s=0.001)

@@ -8,7 +8,6 @@ receivers must never raise and must count every frame exactly as the oracle says
 from __future__ import annotations
 
 import random
-import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 
@@ -35,6 +34,7 @@ from hal.drive_state import DriveState, FaultReason
 from hal.e2e import DEFAULT_MAX_DELTA
 from hal.joint_client import JointClient
 from tests.support import SecocReference, command_is_malformed, e2e_crc_reference
+from tests.support.joint import read_until
 
 N_FRAMES = 10_000
 RAW_DB = cantools.database.load_file(str(DBC_PATH))
@@ -232,7 +232,7 @@ def test_client_receive_path_counts_every_frame(seed: int) -> None:
     hooked: list[can.Message] = []
     with (
         open_bus(isolated_spec("virtual")) as bus,
-        JointClient(bus, start=False, frame_hook=hooked.append) as client,
+        JointClient(bus, frame_hook=hooked.append) as client,
     ):
         for i, msg in enumerate(FrameSource(rng, DspCodec(), dsp_frames(rng))):
             before = client.stats.e2e.as_dict()
@@ -262,7 +262,7 @@ def test_dsp_receive_path_counts_every_frame(seed: int) -> None:
 
 
 def test_fuzz_through_a_bus_into_the_running_client() -> None:
-    """The same mix through a real (virtual) bus and the client's receive thread."""
+    """The same mix through a real (virtual) bus, read by the client's ``drain``."""
     rng = random.Random(5)
     oracle = Oracle("Controller")
     frames = list(FrameSource(rng, DspCodec(), dsp_frames(rng)))[:2000]
@@ -271,9 +271,7 @@ def test_fuzz_through_a_bus_into_the_running_client() -> None:
         for msg in frames:
             oracle.expect(msg)
             tx.send(msg)
-        deadline = time.monotonic() + 30.0
-        while client.stats.frames < len(frames) and time.monotonic() < deadline:
-            time.sleep(0.01)
+        read_until(client, lambda: client.stats.frames >= len(frames), 30.0)
         stats = client.stats
     assert stats.frames == len(frames)
     for kind, expected in oracle.tally.items():
