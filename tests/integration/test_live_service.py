@@ -66,6 +66,7 @@ from rt_controller.runtime.recorder import (
     cycle_schema,
 )
 from tests.support import free_endpoint, run_hil, wait_until
+from tests.support.joint import next_status, read_until
 from tests.support.proc import alive, children_of, processes_mentioning
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
@@ -410,7 +411,7 @@ def test_sigkilled_controller_log_keeps_every_flushed_cycle(tmp_path, recorder):
         on_disk = wait_for_cycles(log, round(4.0 * RATE_HZ), rig)
         ctl = next(c for c in rig.children if c.name == "controller")
         assert ctl.proc.poll() is None, ctl.tail()
-        before = observer.latest_status(max_age_s=60.0)
+        before = next_status(observer, 60.0)
         writers = children_of(ctl.proc.pid)
         assert len(writers) == (recorder == "process"), writers
         kill_ns = time.monotonic_ns()
@@ -420,9 +421,13 @@ def test_sigkilled_controller_log_keeps_every_flushed_cycle(tmp_path, recorder):
             assert wait_until(lambda pid=pid: not alive(pid), 60.0), "recorder still running"
         # Stop the emulator only once the torque is off: a busy host may run it behind real
         # time, and a SIGTERM before it reached the watchdog's physics step would end it untripped.
-        assert wait_until(
-            lambda: observer.status is not None and not observer.status.torque_enabled, 60.0
-        ), "the DSP kept the torque on after the controller was killed"
+
+        def torque_off() -> bool:
+            return observer.status is not None and not observer.status.torque_enabled
+
+        assert read_until(observer, torque_off, 60.0), (
+            "the DSP kept the torque on after the controller was killed"
+        )
         codes = rig.stop()
         emu = next(c for c in rig.children if c.name == "emulator")
         emulator = json.loads(next(ln for ln in emu.output().splitlines() if ln.startswith("{")))
