@@ -486,7 +486,7 @@ class CanEndpoint:
     always signs.
 
     Not thread-safe per direction: call :meth:`encode` from one thread (or under a lock) and
-    :meth:`decode` from one thread (the receive thread); the two directions are independent.
+    :meth:`decode` from one thread (the one that reads the bus); the two directions are independent.
     """
 
     def __init__(
