@@ -32,7 +32,6 @@ with them, so the new log can itself be replayed or republished.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -252,7 +251,7 @@ def _cycle_record(log: LoadedLog, i: int) -> dict[str, Any]:
 
 
 class _OutLog:
-    """The ``--out`` writer: replayed cycles plus the recorded raw inputs, with back-pressure."""
+    """The ``--out`` writer: replayed cycles plus the recorded raw inputs."""
 
     def __init__(self, path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> None:
         info: dict[str, Any] = {f"source.{k}": v for k, v in log.run_info.items()}
@@ -265,16 +264,14 @@ class _OutLog:
         )
         self.rec = CycleRecorder(path, cfg, run_info=info)
 
-    def _room(self) -> None:
+    def _check(self) -> None:
         rec = self.rec
-        while rec.pending >= rec.queue_size - 1:
-            if rec.error is not None:
-                raise LogError(f"cannot write {rec.path}: {rec.error}") from rec.error
-            time.sleep(0.001)
+        if rec.error is not None:
+            raise LogError(f"cannot write {rec.path}: {rec.error}") from rec.error
 
     def cycle(self, record: dict[str, Any]) -> None:
-        self._room()
         self.rec.record_cycle(record)
+        self._check()
 
     def raw_inputs(self, log: LoadedLog) -> None:
         import base64
@@ -290,11 +287,11 @@ class _OutLog:
                 timestamp=float(r.get("timestamp", 0.0) or 0.0),
                 check=False,
             )
-            self._room()
             self.rec.record_can(msg, int(r["t_ns"]), "rx")
+            self._check()
         for r in log.vision:
-            self._room()
             self.rec.record_vision(base64.b64decode(r.get("data", "")), int(r["t_ns"]))
+            self._check()
 
     def close(self) -> None:
         self.rec.close()

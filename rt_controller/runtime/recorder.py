@@ -1,56 +1,47 @@
-"""MCAP recording of every controller cycle, plus the raw CAN frames and vision messages.
+"""The MCAP log of a run: every controller cycle, the raw CAN frames and vision messages.
 
-:class:`CycleRecorder` is built for a hard-cadence loop: the hot-path methods (:meth:`record_cycle`,
-:meth:`record_can`, :meth:`record_vision`) only append a tuple to a bounded deque (O(1), no lock,
-no I/O, never blocking). A background thread encodes the records as JSON and writes them into an
-MCAP file in small zstd chunks; when the queue is full the record is dropped and counted.
-
-Topics (all JSON with a JSON Schema, so Foxglove / Lichtblick plot them as they are):
+:class:`CycleRecorder` encodes each record as JSON and writes it at once with mcap's synchronous
+:class:`~mcap.writer.Writer` (zstd chunks); no thread, no queue. In a run it lives in the
+recorder's own process (:mod:`rt_controller.runtime.recorder_child`, fed by
+:mod:`rt_controller.runtime.recorder_process`); ``hil replay --out`` and tests use it directly.
 
 ==================== ======================== ================================================
-topic                schema                   one message per
+topic (JSON)         JSON Schema              one message per
 ==================== ======================== ================================================
 ``/controller/cycle`` ``hil.ControllerCycle``  tick (fields: ``runtime/cycle_schema.json``)
 ``/hal/can/rx``       ``hil.CanFrame``         CAN frame received by the controller
 ``/hal/can/tx``       ``hil.CanFrame``         CAN frame sent by the controller
 ``/vision/features``  ``hil.VisionPayload``    vision message as received (raw bytes, base64)
+``/diagnostics``      ``hil.Diagnostics``      about a second of the run, and its end
 ==================== ======================== ================================================
 
-Message ``log_time`` is the record's monotonic time shifted to the Unix epoch (the offset is
-stored in the ``hil.run`` metadata), so viewers show wall-clock dates while ``t_ns`` inside the
-messages stays the loop's monotonic clock.
-
-Optional extras, both fed by the writer thread (never by the tick): ``live``, a callable given
-the topic and the already-encoded JSON bytes of every ``/controller/cycle`` and ``/diagnostics``
-record (the daemon publishes them on zenoh, ``hil/controller/cycle`` and
-``hil/controller/diagnostics``); and ``scene``, a builder whose ``messages(record, log_time)``
-turns a cycle record into Foxglove scene messages (:mod:`rt_controller.monitor.scene`), written on
-their own protobuf channels (``/tf``, ``/scene/arm``, ``/camera/...``) for the ticks whose
-number is a multiple of ``scene.every``.
+``log_time`` is the record's monotonic time shifted to the Unix epoch (the offset is in the
+``hil.run`` metadata); ``t_ns`` inside the messages stays the loop's monotonic clock. Extras:
+``live`` gets the topic and JSON bytes of each cycle and diagnostics record (published on zenoh
+as ``hil/controller/cycle`` and ``.../diagnostics``); ``scene``
+(:mod:`rt_controller.monitor.scene`) draws every ``scene.every``-th cycle on protobuf channels
+(``/tf``, ``/scene/arm``, ``/camera/...``).
 
 Metadata: ``hil.config`` (key ``json``: :meth:`hal.config.RigConfig.to_json`), ``hil.run`` (law,
-rate, clock, start time, host, versions, and the caller's ``run_info``), and at a clean close
-``hil.recorder`` (written/dropped counters). Durability: the chunk in progress is closed and
-flushed to the OS at least every ``flush_interval_s``, so a SIGKILLed process loses at most the
-last ``flush_interval_s`` plus the queue; the finished chunks stay readable
+rate, clock, start time, host, versions, the caller's ``run_info``) and, at a clean close,
+``hil.recorder`` (counters). Durability: the first record ``flush_interval_s`` after the last
+flush closes the chunk in progress and flushes the file to the OS (the recorder process also
+calls :meth:`CycleRecorder.flush_if_due` while it waits), so a SIGKILLed writer loses about
+``flush_interval_s`` at most; finished chunks stay readable
 (:func:`rt_controller.logtools.reader.read_log`).
 """
 
 from __future__ import annotations
 
-import atexit
 import base64
-import collections
 import datetime as _dt
 import json
 import logging
 import math
 import os
 import platform
-import queue
 import socket
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -75,15 +66,19 @@ RUN_METADATA = "hil.run"
 RECORDER_METADATA = "hil.recorder"
 SCHEMA_VERSION = "1"
 
-_CYCLE, _CAN_RX, _CAN_TX, _VISION, _DIAG = 0, 1, 2, 3, 4
-_TOPICS = {
-    _CYCLE: CYCLE_TOPIC,
-    _CAN_RX: CAN_RX_TOPIC,
-    _CAN_TX: CAN_TX_TOPIC,
-    _VISION: VISION_TOPIC,
-    _DIAG: DIAGNOSTICS_TOPIC,
+CYCLE, CAN_RX, CAN_TX, VISION, DIAG = 0, 1, 2, 3, 4
+"""Record kinds: the first element of a record item ``(kind, t_ns, obj)``
+(:meth:`CycleRecorder.write`; small ints, cheap to pickle for the recorder process)."""
+TOPICS = {
+    CYCLE: CYCLE_TOPIC,
+    CAN_RX: CAN_RX_TOPIC,
+    CAN_TX: CAN_TX_TOPIC,
+    VISION: VISION_TOPIC,
+    DIAG: DIAGNOSTICS_TOPIC,
 }
-_DIRECTIONS = {"rx": _CAN_RX, "tx": _CAN_TX}
+"""The topic of each record kind."""
+DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
+"""The record kind of a CAN frame by its direction (``record_can``)."""
 _SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
 
 
@@ -160,7 +155,8 @@ def encode_json(obj: Any) -> bytes:
     return text.encode()
 
 
-def _can_dict(t_ns: int, msg: Any, data: bytes) -> dict[str, Any]:
+def _can_dict(t_ns: int, msg: Any) -> dict[str, Any]:
+    data = bytes(msg.data)
     channel = getattr(msg, "channel", None)
     return {
         "t_ns": t_ns,
@@ -177,6 +173,19 @@ def _can_dict(t_ns: int, msg: Any, data: bytes) -> dict[str, Any]:
     }
 
 
+def encode_record(kind: int, t_ns: int, obj: Any) -> bytes:
+    """The JSON message of one record item (a cycle without ``t_ns`` gets the item's)."""
+    if kind == VISION:
+        data = bytes(obj)
+        b64 = base64.b64encode(data).decode("ascii")
+        return encode_json({"t_ns": t_ns, "size": len(data), "data": b64})
+    if kind in (CAN_RX, CAN_TX):
+        return encode_json(_can_dict(t_ns, obj))
+    if kind == CYCLE and "t_ns" not in obj:
+        obj = {**obj, "t_ns": t_ns}
+    return encode_json(obj)
+
+
 def _version(dist: str) -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -186,7 +195,9 @@ def _version(dist: str) -> str:
         return "unknown"
 
 
-def _default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, str]:
+def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, str]:
+    """The ``hil.run`` metadata of a run of ``cfg`` started at these clock readings, in this
+    process (pid, argv, host, versions)."""
     start = _dt.datetime.fromtimestamp(unix_ns / 1e9, tz=_dt.UTC)
     return {
         "law": cfg.controller.law,
@@ -208,44 +219,22 @@ def _default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, s
     }
 
 
-def _demote_current_thread() -> None:
-    """Best effort: the writer must not compete with a SCHED_FIFO loop it was spawned from."""
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        cpus = os.sched_getaffinity(0)
-        everything = set(range(os.cpu_count() or 1))
-        if len(cpus) == 1 and len(everything) > 1:
-            os.sched_setaffinity(0, everything - cpus)
-    except (AttributeError, OSError):
-        pass
-
-
 class CycleRecorder:
-    """Context manager that records controller cycles and raw inputs into an MCAP file.
+    """Context manager that writes controller cycles and raw inputs into an MCAP file.
 
     Args:
         path: the ``.mcap`` file to create (parent folders are created).
         cfg: the run's configuration, stored as ``hil.config`` metadata.
-        run_info: extra ``hil.run`` metadata (values are turned into strings); overrides the
-            defaults taken from ``cfg`` (``law``, ``rate_hz``, ``clock``) and the environment.
-        flush_interval_s: longest time a recorded message stays in memory before its chunk is
-            written to the file (bounds what a SIGKILL loses).
-        queue_size: records that may wait for the writer thread; more are dropped and counted.
+        run_info: extra ``hil.run`` metadata (values become strings); overrides the defaults.
+        flush_interval_s: how often records flush the file to the OS (bounds a SIGKILL's loss).
         chunk_size: a chunk is also closed when it grows past this many bytes.
+        live, scene: see the module docstring.
 
-    The hot-path methods take ownership of what they are given: do not mutate a cycle dict (or
-    the arrays in it) after passing it. ``close()`` is idempotent and safe to call from a
-    signal handler: the writer thread drains the queue and finishes the file by itself.
+    ``record_*`` write before they return (True) and never raise for a record: one that cannot
+    be encoded counts in ``encode_errors``, one after :meth:`close` or a write failure in
+    ``dropped`` (False). A write failure (disk full...) ends the log and stays in :attr:`error`
+    (``__exit__`` raises it as :class:`LogError`). Not thread-safe: one thread records and closes.
     """
-
-    #: How long the writer may hold the GIL in one go before it sleeps briefly.
-    burst_s = 200e-6
-    #: Writer's sleep between bursts when more work is waiting.
-    yield_s = 100e-6
-    #: Longest idle wait of the writer (it also wakes for each cycle record, for ``close`` and
-    #: for the periodic flush).
-    poll_s = 0.1
 
     def __init__(
         self,
@@ -254,51 +243,38 @@ class CycleRecorder:
         *,
         run_info: dict[str, Any] | None = None,
         flush_interval_s: float = 0.5,
-        queue_size: int = 16384,
         chunk_size: int = 64 * 1024,
         live: Callable[[str, bytes], Any] | None = None,
         scene: Any | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
-        if queue_size < 1:
-            raise LogError(f"queue_size must be at least 1, got {queue_size}")
         self.path = Path(path)
         self.flush_interval_s = float(flush_interval_s)
-        self.queue_size = int(queue_size)
-        self._q: collections.deque[tuple[int, int, Any, Any]] = collections.deque()
-        self._wake: queue.SimpleQueue[None] = queue.SimpleQueue()
-        """Wakes the writer: a token per cycle or diagnostics record (the end of a tick: the
-        writer never wakes in the middle of one to take the GIL from it) and on ``close``
-        (``SimpleQueue.put`` is reentrant, safe from a signal handler)."""
-        self._closed = False  # hot path refuses records once set
-        self._stop = False  # writer drains, finishes the file and exits once set
+        self._closed = False  # records are refused once set
+        self._finished = False
+        self._dirty = False  # messages since the last flush
         self._dropped = 0
-        self._written = dict.fromkeys(_TOPICS, 0)
+        self._written = dict.fromkeys(TOPICS, 0)
         self._encode_errors = 0
+        self._error: BaseException | None = None
         self._live = live
-        self.live_sent = 0
-        """Records handed to the ``live`` sink."""
-        self.live_errors = 0
-        """Exceptions raised by the ``live`` sink (counted, never propagated)."""
+        self.live_sent = 0  # records handed to the live sink
+        self.live_errors = 0  # exceptions the live sink raised (counted, never propagated)
         self._scene = scene
         self._scene_every = max(1, int(getattr(scene, "every", 1)))
         self._scene_channels: dict[str, int] = {}
-        self.scene_written = 0
-        """Scene messages written (not part of :meth:`as_dict`)."""
+        self.scene_written = 0  # scene messages written (not part of as_dict)
         self.scene_errors = 0
-        self._error: BaseException | None = None
-        self._finished = False
-        self._released = False
         mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
         self._mono_to_unix = unix_ns - mono_ns
-        info = _default_run_info(cfg, mono_ns, unix_ns)
+        info = default_run_info(cfg, mono_ns, unix_ns)
         info.update({str(k): str(v) for k, v in (run_info or {}).items()})
         self.run_info = info
         self._stream: BinaryIO | None = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._stream = open(self.path, "wb")  # noqa: SIM115 - closed by the writer thread
+            self._stream = open(self.path, "wb")  # noqa: SIM115 - closed by close()
             self._writer = Writer(
                 self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD
             )
@@ -310,15 +286,12 @@ class CycleRecorder:
             self._writer.add_metadata(RUN_METADATA, info)
             self._stream.flush()
         except BaseException as exc:
-            if self._stream is not None:
-                self._stream.close()
+            self._close_stream()
             if isinstance(exc, OSError):
                 reason = exc.strerror or exc
                 raise LogError(f"cannot create MCAP log {self.path}: {reason}") from exc
             raise
-        self._thread = threading.Thread(target=self._run, name="hil-mcap-writer", daemon=True)
-        atexit.register(self._atexit_close)
-        self._thread.start()
+        self._next_flush = time.monotonic() + self.flush_interval_s
 
     def _register_channels(self) -> dict[int, int]:
         w = self._writer
@@ -326,8 +299,8 @@ class CycleRecorder:
         can = w.register_schema("hil.CanFrame", "jsonschema", encode_json(CAN_SCHEMA))
         vision = w.register_schema("hil.VisionPayload", "jsonschema", encode_json(VISION_SCHEMA))
         diag = w.register_schema("hil.Diagnostics", "jsonschema", encode_json(DIAGNOSTICS_SCHEMA))
-        schema_of = {_CYCLE: cycle, _CAN_RX: can, _CAN_TX: can, _VISION: vision, _DIAG: diag}
-        return {k: w.register_channel(_TOPICS[k], "json", schema_of[k]) for k in _TOPICS}
+        schema_of = {CYCLE: cycle, CAN_RX: can, CAN_TX: can, VISION: vision, DIAG: diag}
+        return {k: w.register_channel(TOPICS[k], "json", schema_of[k]) for k in TOPICS}
 
     def _register_scene_channels(self, scene: Any) -> dict[str, int]:
         w, out = self._writer, {}
@@ -338,127 +311,68 @@ class CycleRecorder:
         return out
 
     def set_live(self, sink: Callable[[str, bytes], Any] | None) -> None:
-        """Attach (or detach with None) the ``live`` sink; safe while the writer runs."""
+        """Attach (or detach with None) the ``live`` sink."""
         self._live = sink
 
-    # ----------------------------------------------------------------- hot path (loop thread)
+    # ----------------------------------------------------------------- records
 
     def record_cycle(self, record: dict[str, Any]) -> bool:
-        """Queue one tick (a dict with the fields of ``cycle_schema.json``). False if dropped."""
-        q = self._q
-        if self._closed or len(q) >= self.queue_size:
-            self._dropped += 1
-            return False
+        """Write one tick (a dict with the fields of ``cycle_schema.json``)."""
         t_ns = record.get("t_ns")
-        q.append((_CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record, None))
-        self._wake.put(None)
-        return True
+        return self.write(CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record)
 
     def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
-        """Queue one ``/diagnostics`` record (see :mod:`rt_controller.runtime.diagnostics`). A final
-        record is queued even when the queue is full (it carries the run's totals)."""
-        q = self._q
-        if self._closed or (len(q) >= self.queue_size and not final):
-            self._dropped += 1
-            return False
-        q.append((_DIAG, int(record["t_ns"]), record, None))
-        self._wake.put(None)
-        return True
+        """Write one ``/diagnostics`` record (``final``, for the interface, changes nothing)."""
+        return self.write(DIAG, int(record["t_ns"]), record)
 
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
-        """Queue a python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
-        kind = _DIRECTIONS.get(direction)
+        """Write a python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
+        kind = DIRECTIONS.get(direction)
         if kind is None:
             raise LogError(f"CAN direction must be 'rx' or 'tx', got {direction!r}")
-        q = self._q
-        if self._closed or len(q) >= self.queue_size:
-            self._dropped += 1
-            return False
-        q.append((kind, t_ns, msg, bytes(msg.data)))
-        return True
+        return self.write(kind, t_ns, msg)
 
     def record_vision(self, payload: bytes, t_ns: int) -> bool:
-        """Queue a raw vision payload received at ``t_ns``. False if dropped."""
-        q = self._q
-        if self._closed or len(q) >= self.queue_size:
+        """Write a raw vision payload received at ``t_ns``."""
+        return self.write(VISION, t_ns, payload)
+
+    def write(self, kind: int, t_ns: int, obj: Any) -> bool:
+        """Encode and write one record item (``kind`` one of :data:`TOPICS`; the recorder
+        process writes the batches it receives this way). False if it was not written."""
+        if self._closed:
             self._dropped += 1
             return False
-        q.append((_VISION, t_ns, bytes(payload), None))
-        return True
-
-    # ----------------------------------------------------------------- counters
-
-    @property
-    def written(self) -> int:
-        """Messages written into the MCAP writer so far (all topics)."""
-        return sum(self._written.values())
-
-    @property
-    def dropped(self) -> int:
-        """Records refused because the queue was full or the recorder closed."""
-        return self._dropped
-
-    @property
-    def pending(self) -> int:
-        """Records waiting for the writer thread."""
-        return len(self._q)
-
-    @property
-    def error(self) -> BaseException | None:
-        """The exception that stopped the writer thread, if any."""
-        return self._error
-
-    def as_dict(self) -> dict[str, int]:
-        """Counters per topic plus ``dropped``, ``encode_errors`` and ``pending``."""
-        out = {_TOPICS[k]: v for k, v in self._written.items()}
-        out.update(
-            written=self.written,
-            dropped=self._dropped,
-            encode_errors=self._encode_errors,
-            pending=len(self._q),
-        )
-        return out
-
-    # ----------------------------------------------------------------- writer thread
-
-    def _encode(self, item: tuple[int, int, Any, Any]) -> tuple[int, bytes]:
-        kind, t_ns, obj, extra = item
-        if kind == _DIAG:
-            return t_ns, encode_json(obj)
-        if kind == _CYCLE:
-            if "t_ns" not in obj:
-                obj = {**obj, "t_ns": t_ns}
-            return t_ns, encode_json(obj)
-        if kind == _VISION:
-            b64 = base64.b64encode(obj).decode("ascii")
-            return t_ns, encode_json({"t_ns": t_ns, "size": len(obj), "data": b64})
-        return t_ns, encode_json(_can_dict(t_ns, obj, extra))
-
-    def _write_one(self, item: tuple[int, int, Any, Any]) -> None:
         try:
-            t_ns, data = self._encode(item)
             t_ns = int(t_ns)
-        except (TypeError, ValueError) as exc:
+            data = encode_record(kind, t_ns, obj)
+        except (TypeError, ValueError, AttributeError) as exc:
             self._encode_errors += 1
             if self._encode_errors == 1:
-                log.warning("recorder: cannot encode a %s record: %s", _TOPICS[item[0]], exc)
-            return
+                log.warning("recorder: cannot encode a %s record: %s", TOPICS[kind], exc)
+            return False
         log_time = max(0, t_ns + self._mono_to_unix)
-        kind = item[0]
-        self._writer.add_message(self._channels[kind], log_time, data, log_time)
-        self._written[kind] += 1
-        if kind in (_CYCLE, _DIAG):
-            live = self._live
-            if live is not None:
-                try:
-                    live(_TOPICS[kind], data)
-                    self.live_sent += 1
-                except Exception as exc:  # a monitor never stops the log
-                    self.live_errors += 1
-                    if self.live_errors == 1:
-                        log.warning("recorder: live sink failed: %s", exc)
-            if kind == _CYCLE and self._scene is not None:
-                self._write_scene(item[2], log_time)
+        try:
+            self._writer.add_message(self._channels[kind], log_time, data, log_time)
+            self._written[kind] += 1
+            self._dirty = True
+            if kind == CYCLE and self._scene is not None:
+                self._write_scene(obj, log_time)
+            self.flush_if_due()
+        except Exception as exc:  # disk full, I/O error...: the log ends, the caller goes on
+            self._fail(exc)
+            return False
+        if kind in (CYCLE, DIAG) and self._live is not None:
+            self._send_live(TOPICS[kind], data)
+        return True
+
+    def _send_live(self, topic: str, data: bytes) -> None:
+        try:
+            self._live(topic, data)
+            self.live_sent += 1
+        except Exception as exc:  # a monitor never stops the log
+            self.live_errors += 1
+            if self.live_errors == 1:
+                log.warning("recorder: live sink failed: %s", exc)
 
     def _write_scene(self, record: dict[str, Any], log_time: int) -> None:
         tick = record.get("tick")
@@ -475,90 +389,94 @@ class CycleRecorder:
             self._writer.add_message(self._scene_channels[topic], log_time, data, log_time)
             self.scene_written += 1
 
-    def _drain_burst(self) -> int:
-        q, n = self._q, 0
-        end = time.perf_counter() + self.burst_s
-        while q:
-            self._write_one(q.popleft())
-            n += 1
-            if time.perf_counter() >= end:
-                break
-        return n
+    # ----------------------------------------------------------------- durability
 
-    def _idle(self, next_flush: float) -> None:
-        """Wait for a wake token (a tick ended, or ``close``), at most until the next flush."""
-        wait = min(max(0.0, next_flush - time.monotonic()), self.poll_s)
+    def flush(self) -> None:
+        """Close the chunk in progress and flush the file to the OS: what is written so far
+        survives a SIGKILL of this process (no ``fsync``: not a power loss)."""
+        if self._closed or not self._dirty:
+            return
         try:
-            self._wake.get(timeout=wait)
-            while True:  # several ticks may have ended: one pass drains them all
-                self._wake.get_nowait()
-        except queue.Empty:
-            pass
+            self._writer.flush()
+        except Exception as exc:
+            self._fail(exc)
+            return
+        self._dirty = False
 
-    def _run(self) -> None:
-        _demote_current_thread()
-        next_flush = time.monotonic() + self.flush_interval_s
-        dirty = False
-        reported_drops = 0
+    def flush_if_due(self) -> None:
+        """:meth:`flush` if ``flush_interval_s`` has passed since the last due flush."""
+        now = time.monotonic()
+        if now >= self._next_flush:
+            self._next_flush = now + self.flush_interval_s
+            self.flush()
+
+    def _fail(self, exc: Exception) -> None:
+        self._error = exc
+        self._closed = True
+        self._dropped += 1
+        log.error("recorder: writing %s failed: %s", self.path, exc)
+        self._close_stream()
+
+    def _close_stream(self) -> None:
+        stream, self._stream = self._stream, None
+        if stream is not None:
+            try:
+                stream.close()
+            except OSError as exc:
+                self._error = self._error or exc
+
+    # ----------------------------------------------------------------- counters
+
+    @property
+    def written(self) -> int:
+        """Messages written into the MCAP writer so far (all topics)."""
+        return sum(self._written.values())
+
+    @property
+    def dropped(self) -> int:
+        """Records refused because the recorder was closed or its writing had failed."""
+        return self._dropped
+
+    @property
+    def pending(self) -> int:
+        """Records not written yet: always 0 (the recorder interface's counter)."""
+        return 0
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception that ended the log early, if any."""
+        return self._error
+
+    def as_dict(self) -> dict[str, int]:
+        """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and ``pending``."""
+        out = {TOPICS[k]: v for k, v in self._written.items()}
+        out.update(
+            written=self.written,
+            dropped=self._dropped,
+            encode_errors=self._encode_errors,
+            pending=0,
+        )
+        return out
+
+    # ----------------------------------------------------------------- closing
+
+    def close(self) -> None:
+        """Finish the file (``hil.recorder`` counters, summary, footer); later records are
+        refused. Idempotent. A failure is kept in :attr:`error`."""
+        if self._closed:
+            return
+        self._closed = True
         try:
-            while True:
-                stopping = self._stop
-                n = self._drain_burst()
-                dirty = dirty or n > 0
-                now = time.monotonic()
-                if now >= next_flush:
-                    next_flush = now + self.flush_interval_s
-                    if dirty:
-                        self._writer.flush()  # closes the chunk in progress, flushes to the OS
-                        dirty = False
-                    if self._dropped != reported_drops and not self._stop:
-                        log.warning("recorder: %d records dropped so far", self._dropped)
-                        reported_drops = self._dropped
-                if stopping and not self._q:
-                    break
-                if self._q:
-                    time.sleep(self.yield_s)  # more work: let the control thread run first
-                else:
-                    self._idle(next_flush)
             self._writer.add_metadata(
                 RECORDER_METADATA, {k: str(v) for k, v in self.as_dict().items()}
             )
             self._writer.finish()
             self._finished = True
-        except BaseException as exc:  # disk full, I/O error...: keep the loop running
+        except Exception as exc:
             self._error = exc
-            self._closed = True
-            log.error("recorder: writer thread failed: %s", exc)
+            log.error("recorder: finishing %s failed: %s", self.path, exc)
         finally:
-            if self._stream is not None:
-                try:
-                    self._stream.close()
-                except OSError as exc:
-                    self._error = self._error or exc
-
-    # ----------------------------------------------------------------- closing
-
-    def close(self, timeout: float | None = 30.0) -> None:
-        """Stop accepting records, let the writer drain the queue and finish the file.
-
-        Idempotent and safe from a signal handler: it only sets two flags and joins the writer
-        thread (no lock shared with the loop or the writer). Returns when the writer thread has
-        ended or after ``timeout`` seconds; the writer finishes the file by itself even if this
-        call is interrupted, and an ``atexit`` hook closes a recorder nobody closed. A writer
-        failure is kept in :attr:`error` (``__exit__`` raises it as :class:`LogError`).
-        """
-        self._closed = True
-        self._stop = True
-        self._wake.put(None)
-        thread = self._thread
-        if thread is not threading.current_thread() and thread.is_alive():
-            thread.join(timeout)
-        if not thread.is_alive() and not self._released:
-            self._released = True
-            atexit.unregister(self._atexit_close)
-
-    def _atexit_close(self) -> None:
-        self.close()
+            self._close_stream()
 
     @property
     def closed(self) -> bool:

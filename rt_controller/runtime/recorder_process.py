@@ -1,12 +1,12 @@
 """The MCAP recorder in a process of its own, so the control process runs no other Python thread.
 
 :class:`RecorderService` starts one child process for a controller process (the runs of a plan
-share it); :meth:`RecorderService.open` gives a :class:`RemoteRecorder`, which the daemon uses
-like a :class:`~rt_controller.runtime.recorder.CycleRecorder`. In the control thread a record
-costs a list append; once per tick, with the cycle record, the tick's batch is pickled and
-written to a pipe. The child owns a ``CycleRecorder`` (JSON encoding, MCAP writer, zstd chunks,
-the Foxglove scene) and the live zenoh stream (``hil/controller/cycle``, ``.../diagnostics``) on
-a session of its own. Nothing in the control process takes the GIL from a tick.
+share it); :meth:`RecorderService.open` gives a :class:`RemoteRecorder`, the daemon's recorder.
+In the control thread a record costs a list append; once per tick, with the cycle record, the
+tick's batch is pickled and written to a pipe. The child
+(:mod:`rt_controller.runtime.recorder_child`, which also defines the wire format) writes the logs
+with :class:`~rt_controller.runtime.recorder.CycleRecorder` and streams them live. Nothing in the
+control process takes the GIL from a tick.
 
 A realtime tick never blocks on the child: the pipe is non-blocking (1 MiB where the kernel
 allows it), what it cannot take waits in an outbox, and a batch that would grow the outbox past
@@ -16,78 +16,42 @@ the loss and exits non-zero). Lockstep has no deadline: there the tick waits for
 
 The child is forked while the controller process still has a single OS thread (no zenoh or CAN
 threads yet; the start costs a millisecond and the imported modules are shared); otherwise it is
-spawned with ``python -m rt_controller.runtime.recorder_process``. It ignores SIGINT, SIGTERM and
-SIGHUP (a Ctrl-C reaches the whole process group; the controller decides when its logs end) and
-finishes every open log when its pipe reaches end of file, so the logs of a controller that was
-SIGKILLed are still complete.
-
-Wire format, both directions: a 4-byte little-endian length, then a pickled tuple. Parent to
-child: ``(LINK, cfg_json, zenoh_endpoint, zenoh_config)`` first, then ``(OPEN, rid, path,
-cfg_json, run_info, scene, flush_interval_s)``, ``(RECORDS, rid, items)``, ``(LIVE, rid)`` and
-``(CLOSE, rid)``. Child to parent: ``(OPENED, rid, error)`` and ``(COUNTS, rid, counts, error,
-final)``.
+spawned with ``python -m rt_controller.runtime.recorder_child``.
 """
 
 from __future__ import annotations
 
 import collections
 import contextlib
-import fcntl
 import logging
 import os
 import pickle
 import select
-import signal
-import struct
-import subprocess
-import sys
 import time
-from collections import namedtuple
 from pathlib import Path
 from typing import Any
 
 from hal.config import RigConfig
 from rt_controller.errors import LogError
-from rt_controller.runtime.recorder import _CAN_RX, _CAN_TX, _CYCLE, _DIAG, _TOPICS, _VISION
+from rt_controller.runtime.recorder import CYCLE, DIAG, DIRECTIONS, TOPICS, VISION, default_run_info
+from rt_controller.runtime.recorder_child import (
+    CLOSE,
+    COUNTS,
+    LINK,
+    LIVE,
+    OPEN,
+    OPENED,
+    READ_SIZE,
+    RECORDS,
+    ChildProcess,
+    can_frame,
+    encode_frame,
+    split_frames,
+)
 
-LINK, OPEN, RECORDS, LIVE, CLOSE = "link", "open", "records", "live", "close"
-OPENED, COUNTS = "opened", "counts"
-_HEADER = struct.Struct("<I")
-_PIPE_SIZE = 1 << 20
-"""Requested pipe capacity (``F_SETPIPE_SZ``; Linux's default unprivileged maximum)."""
-_READ_SIZE = 1 << 20
 REPLY_TIMEOUT_S = 30.0
 """How long opening or closing a log waits for the child's answer."""
-COUNTS_EVERY_S = 0.25
-"""The child reports a log's counters at most this often (and at its close)."""
-_DIRECTION_OF = {_CAN_RX: "rx", _CAN_TX: "tx"}
 log = logging.getLogger(__name__)
-
-CanFrame = namedtuple(
-    "CanFrame",
-    "arbitration_id is_extended_id dlc data is_fd bitrate_switch is_error_frame "
-    "is_remote_frame channel timestamp",
-)
-"""A received or sent CAN frame as it crosses the pipe (the attributes of a python-can
-``Message`` that the ``/hal/can/*`` records keep)."""
-
-
-def can_frame(msg: Any) -> CanFrame:
-    """The picklable :class:`CanFrame` of a python-can ``Message``."""
-    channel = msg.channel
-    return CanFrame(
-        msg.arbitration_id,
-        msg.is_extended_id,
-        msg.dlc,
-        bytes(msg.data),
-        msg.is_fd,
-        msg.bitrate_switch,
-        msg.is_error_frame,
-        msg.is_remote_frame,
-        "" if channel is None else str(channel),
-        msg.timestamp,
-    )
-
 
 _UNPICKLABLE = (pickle.PicklingError, TypeError, AttributeError, ValueError, RecursionError)
 
@@ -100,43 +64,13 @@ def _picklable(obj: Any) -> bool:
     return True
 
 
-def _frame(message: tuple) -> bytes:
-    body = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    return _HEADER.pack(len(body)) + body
-
-
-def _split_frames(buf: bytearray) -> list[tuple]:
-    """Remove and unpickle every whole frame at the start of ``buf``."""
-    out, pos, size = [], 0, len(buf)
-    while size - pos >= _HEADER.size:
-        (n,) = _HEADER.unpack_from(buf, pos)
-        if size - pos - _HEADER.size < n:
-            break
-        start = pos + _HEADER.size
-        out.append(pickle.loads(buf[start : start + n]))
-        pos = start + n
-    del buf[:pos]
-    return out
-
-
-def _grow_pipe(fd: int) -> None:
-    with contextlib.suppress(OSError, AttributeError):
-        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, _PIPE_SIZE)
-
-
-def _os_threads() -> int:
-    try:
-        return len(os.listdir("/proc/self/task"))
-    except OSError:
-        return 2  # unknown: do not fork
-
-
 class RemoteRecorder:
-    """One run's log, recorded by the service's child process (the interface of
-    :class:`~rt_controller.runtime.recorder.CycleRecorder` that the daemon uses).
+    """One run's log, recorded by the service's child process (the ``record_*``, counters and
+    ``close`` of :class:`~rt_controller.runtime.recorder.CycleRecorder`).
 
-    The ``record_*`` methods take ownership of what they are given, as ``CycleRecorder``'s do.
-    Counters come from the child's latest report (at most :data:`COUNTS_EVERY_S` old when
+    The ``record_*`` methods take ownership of what they are given: do not mutate a cycle dict
+    (or its arrays) after passing it; it is pickled at the end of the tick. Counters come from
+    the child's latest report (at most ``recorder_child.COUNTS_EVERY_S`` old when
     :meth:`as_dict` reads it while the run goes on; exact after :meth:`close`); ``dropped`` adds
     the batches this process dropped.
     """
@@ -146,7 +80,7 @@ class RemoteRecorder:
         self._service = service
         self._rid = rid
         self._backpressure = backpressure
-        self._batch: collections.deque[tuple[int, int, Any, Any]] = collections.deque()
+        self._batch: collections.deque[tuple[int, int, Any]] = collections.deque()
         """Records since the last send (a deque: lockstep feeds vision from zenoh's thread)."""
         self._closed = False
         self._sent = 0
@@ -161,16 +95,13 @@ class RemoteRecorder:
 
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
         """Queue a python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
-        if direction == "rx":
-            kind = _CAN_RX
-        elif direction == "tx":
-            kind = _CAN_TX
-        else:
+        kind = DIRECTIONS.get(direction)
+        if kind is None:
             raise LogError(f"CAN direction must be 'rx' or 'tx', got {direction!r}")
         if self._closed:
             self._dropped += 1
             return False
-        self._batch.append((kind, t_ns, can_frame(msg), None))
+        self._batch.append((kind, t_ns, can_frame(msg)))
         return True
 
     def record_vision(self, payload: bytes, t_ns: int) -> bool:
@@ -178,7 +109,7 @@ class RemoteRecorder:
         if self._closed:
             self._dropped += 1
             return False
-        self._batch.append((_VISION, t_ns, bytes(payload), None))
+        self._batch.append((VISION, t_ns, bytes(payload)))
         return True
 
     def record_cycle(self, record: dict[str, Any]) -> bool:
@@ -187,7 +118,7 @@ class RemoteRecorder:
             self._dropped += 1
             return False
         t_ns = record.get("t_ns")
-        self._batch.append((_CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record, None))
+        self._batch.append((CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record))
         return self.send()
 
     def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
@@ -196,7 +127,7 @@ class RemoteRecorder:
         if self._closed:
             self._dropped += 1
             return False
-        self._batch.append((_DIAG, int(record["t_ns"]), record, None))
+        self._batch.append((DIAG, int(record["t_ns"]), record))
         return self.send(force=final)
 
     def send(self, *, force: bool = False) -> bool:
@@ -284,7 +215,7 @@ class RemoteRecorder:
         (the keys of ``CycleRecorder.as_dict``), with the child's latest report."""
         self._service.poll()
         counts = self._counts
-        out = {topic: int(counts.get(topic, 0)) for topic in _TOPICS.values()}
+        out = {topic: int(counts.get(topic, 0)) for topic in TOPICS.values()}
         out.update(
             written=self.written,
             dropped=self.dropped,
@@ -329,71 +260,22 @@ class RecorderService:
         zenoh_config: str | None = None,
         start: str = "auto",
     ) -> None:
-        if start not in ("auto", "fork", "spawn"):
-            raise LogError(f"recorder start must be auto, fork or spawn, not {start!r}")
         self._next_rid = 0
         self._recorders: dict[int, RemoteRecorder] = {}
         self._outbox = bytearray()
         self._inbox = bytearray()
         self._dead: str | None = None
         self._closed = False
-        self._pid = 0
-        self._status: int | None = None
-        self._popen: subprocess.Popen[bytes] | None = None
         self._opened: dict[int, str | None] = {}
-        child_in, self._out = os.pipe()
-        self._in, child_out = os.pipe()
-        _grow_pipe(self._out)
-        fork = start == "fork" or (start == "auto" and _os_threads() == 1)
-        self.start_method = "fork" if fork else "spawn"
+        self._child = ChildProcess(start)
+        self._out, self._in = self._child.fd_out, self._child.fd_in
+        self.start_method = self._child.start_method
         """How the child was started (``fork`` or ``spawn``)."""
-        try:
-            if self.start_method == "fork":
-                self._fork(child_in, child_out)
-            else:
-                self._spawn(child_in, child_out)
-        except BaseException:
-            for fd in (self._out, self._in):
-                os.close(fd)
-            raise
-        finally:
-            os.close(child_in)
-            os.close(child_out)
-        os.set_blocking(self._out, False)
-        os.set_blocking(self._in, False)
         self.send_control((LINK, cfg.to_json(), zenoh_endpoint, zenoh_config))
-
-    def _fork(self, child_in: int, child_out: int) -> None:
-        sys.stdout.flush()  # or the child would write the parent's buffered output again
-        sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:  # the child: never returns into the caller's code
-            status = 1
-            try:
-                os.close(self._out)
-                os.close(self._in)
-                serve(child_in, child_out)
-                status = 0
-            except BaseException as exc:  # report, then leave without the parent's cleanup
-                with contextlib.suppress(Exception):
-                    print(f"hil controller: recorder process failed: {exc}", file=sys.stderr)
-            finally:
-                with contextlib.suppress(Exception):
-                    sys.stderr.flush()
-                os._exit(status)
-        self._pid = pid
-
-    def _spawn(self, child_in: int, child_out: int) -> None:
-        argv = [sys.executable, "-m", __name__, str(child_in), str(child_out)]
-        quiet = subprocess.DEVNULL  # stdout is the controller's (its JSON summary)
-        self._popen = subprocess.Popen(
-            argv, pass_fds=(child_in, child_out), stdin=quiet, stdout=quiet
-        )
-        self._pid = self._popen.pid
 
     @property
     def pid(self) -> int:
-        return self._pid
+        return self._child.pid
 
     # ----------------------------------------------------------------- logs
 
@@ -409,12 +291,10 @@ class RecorderService:
     ) -> RemoteRecorder:
         """Create the log ``path`` in the child (as ``CycleRecorder(path, cfg, ...)`` would,
         ``scene`` drawing the arm from ``cfg``); :class:`LogError` if it cannot."""
-        from rt_controller.runtime.recorder import _default_run_info
-
         if not flush_interval_s > 0:
             raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
         mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
-        info = _default_run_info(cfg, mono_ns, unix_ns)  # this process's pid, argv, ...
+        info = default_run_info(cfg, mono_ns, unix_ns)  # this process's pid, argv, ...
         info.update({str(k): str(v) for k, v in (run_info or {}).items()})
         self._next_rid += 1
         rid = self._next_rid
@@ -438,7 +318,7 @@ class RecorderService:
             self._pump_out()
             if len(self._outbox) > self.outbox_limit:
                 return False
-        frame = _frame((RECORDS, rid, items))
+        frame = encode_frame((RECORDS, rid, items))
         if self._outbox:  # keep the order: behind what waits already
             self._outbox += frame
             self._pump_out()
@@ -452,7 +332,7 @@ class RecorderService:
         """Queue a control message and wait until the pipe took it."""
         if self._dead is not None or self._closed:
             return
-        self._outbox += _frame(message)
+        self._outbox += encode_frame(message)
         self._drain_out(REPLY_TIMEOUT_S)
 
     def finish(self, rid: int, timeout: float) -> None:
@@ -515,17 +395,17 @@ class RecorderService:
         """Read and apply the child's replies that arrived (never blocks)."""
         while True:
             try:
-                data = os.read(self._in, _READ_SIZE)
+                data = os.read(self._in, READ_SIZE)
             except BlockingIOError:
                 break
             except OSError as exc:
                 self._die(f"the recorder process is gone ({exc.strerror or exc})")
                 return
             if not data:
-                self._die(f"the recorder process exited{self._exit_status()}")
+                self._die(f"the recorder process exited{self._child.exit_note()}")
                 break
             self._inbox += data
-        for message in _split_frames(self._inbox):
+        for message in split_frames(self._inbox):
             self._apply(message)
 
     def _apply(self, message: tuple) -> None:
@@ -548,36 +428,6 @@ class RecorderService:
             if self._dead is not None or left <= 0:
                 return False
             select.select([self._in], [], [], min(left, 0.1))
-
-    def _exit_status(self) -> str:
-        status = self._reap(0.2)
-        if status is None:
-            return ""
-        if status < 0:
-            return f" (killed by signal {-status})"
-        return f" (status {status})"
-
-    def _reap(self, timeout: float) -> int | None:
-        """The child's exit status (negative: killed by that signal), None while it runs."""
-        if self._status is not None:
-            return self._status
-        if self._popen is not None:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._status = self._popen.wait(timeout)
-            return self._status
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                pid, status = os.waitpid(self._pid, os.WNOHANG)
-            except ChildProcessError:  # reaped by someone else
-                self._status = 0
-                return 0
-            if pid:
-                self._status = os.waitstatus_to_exitcode(status)
-                return self._status
-            if time.monotonic() >= deadline:
-                return None
-            time.sleep(0.005)
 
     def _die(self, reason: str) -> None:
         if self._dead is not None:
@@ -602,198 +452,10 @@ class RecorderService:
         with contextlib.suppress(OSError):  # read to the end: the child exits after replying
             self._await(lambda: False, timeout) if self._dead is None else None
         os.close(self._in)
-        if self._reap(timeout) is None and self._pid > 0:
-            with contextlib.suppress(OSError):
-                os.kill(self._pid, signal.SIGKILL)
-            self._reap(timeout)
+        self._child.end(timeout)
 
     def __enter__(self) -> RecorderService:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-# --------------------------------------------------------------------------- the child
-
-
-class _Child:
-    """The child's side: one ``CycleRecorder`` per open log, the live zenoh session."""
-
-    def __init__(self, fd_in: int, fd_out: int) -> None:
-        self.fd_in, self.fd_out = fd_in, fd_out
-        self.cfg_json: str | None = None
-        self.endpoint: str | None = None
-        self.config_file: str | None = None
-        self.logs: dict[int, Any] = {}
-        self.reported: dict[int, tuple] = {}
-        self.received: dict[int, int] = {}
-        self.session: Any = None
-        self.live: Any = None
-        self.live_failed = False
-
-    def reply(self, message: tuple) -> None:
-        with contextlib.suppress(OSError):  # the parent is gone: the logs still get finished
-            os.write(self.fd_out, _frame(message))
-
-    def handle(self, message: tuple) -> None:
-        kind, rid = message[0], message[1]
-        if kind == LINK:
-            self.cfg_json, self.endpoint, self.config_file = message[1:]
-            return
-        if kind == RECORDS:
-            rec = self.logs.get(rid)
-            if rec is not None:
-                self.record(rec, message[2])
-                self.received[rid] += len(message[2])
-        elif kind == OPEN:
-            self.open(rid, *message[2:])
-        elif kind == LIVE:
-            rec = self.logs.get(rid)
-            if rec is not None:
-                rec.set_live(self.live_sink())
-        elif kind == CLOSE:
-            self.close(rid)
-
-    @staticmethod
-    def record(rec: Any, items: list) -> None:
-        for kind, t_ns, obj, _ in items:
-            if kind == _CYCLE:
-                rec.record_cycle(obj)
-            elif kind == _DIAG:
-                rec.record_diagnostics(obj, final=True)  # never refused here
-            elif kind == _VISION:
-                rec.record_vision(obj, t_ns)
-            else:
-                rec.record_can(obj, t_ns, _DIRECTION_OF[kind])
-
-    def open(
-        self, rid: int, path: str, cfg_json: str, info: dict, scene: bool, flush_s: float
-    ) -> None:
-        from hal.config import config_from_json
-        from rt_controller.runtime.recorder import CycleRecorder
-
-        try:
-            cfg = config_from_json(cfg_json)
-            builder = None
-            if scene:
-                from rt_controller.monitor.scene import SceneBuilder
-
-                builder = SceneBuilder(cfg)
-            rec = CycleRecorder(
-                path,
-                cfg,
-                run_info=info,
-                flush_interval_s=flush_s,
-                queue_size=1 << 22,
-                scene=builder,
-            )
-        except Exception as exc:
-            self.reply((OPENED, rid, str(exc) or type(exc).__name__))
-            return
-        rec.burst_s, rec.yield_s = 0.01, 0.0  # no control loop shares this interpreter
-        self.received[rid] = 0
-        self.logs[rid] = rec
-        self.reply((OPENED, rid, None))
-
-    def counts(self, rid: int, rec: Any) -> dict[str, Any]:
-        out: dict[str, Any] = rec.as_dict()
-        out.update(received=self.received.get(rid, 0), finished=rec.finished)
-        return out
-
-    def report(self, force: bool = False) -> None:
-        for rid, rec in self.logs.items():
-            counts = self.counts(rid, rec)
-            key = tuple(counts.values())
-            if force or self.reported.get(rid) != key:
-                self.reported[rid] = key
-                error = None if rec.error is None else str(rec.error)
-                self.reply((COUNTS, rid, counts, error, False))
-
-    def close(self, rid: int) -> None:
-        rec = self.logs.pop(rid, None)
-        self.reported.pop(rid, None)
-        if rec is None:
-            return
-        rec.close(None)
-        rec.set_live(None)
-        error = None if rec.error is None else str(rec.error)
-        if rec.error is None and not rec.finished:
-            error = "the writer did not finish the file"
-        counts = self.counts(rid, rec)
-        self.received.pop(rid, None)
-        self.reply((COUNTS, rid, counts, error, True))
-
-    def live_sink(self) -> Any:
-        """The zenoh publisher of the live stream (the session opens on first use), or None."""
-        if self.live is not None or self.live_failed or self.cfg_json is None:
-            return self.live
-        from hal.config import config_from_json
-        from hal.errors import HalError
-        from hal.zenoh_session import open_session
-        from rt_controller.monitor.live import LivePublisher
-
-        try:
-            self.session = open_session(
-                config_from_json(self.cfg_json),
-                listen=False,
-                endpoint=self.endpoint,
-                config_file=self.config_file,
-                wait_s=5.0,
-            )
-            self.live = LivePublisher(self.session)
-        except HalError as exc:
-            self.live_failed = True
-            print(f"hil controller: warning: no live stream: {exc}", file=sys.stderr)
-        return self.live
-
-    def run(self) -> None:
-        buf = bytearray()
-        last_report = time.monotonic()
-        while True:
-            readable, _, _ = select.select([self.fd_in], [], [], COUNTS_EVERY_S)
-            if readable:
-                data = os.read(self.fd_in, _READ_SIZE)
-                if not data:
-                    break  # the controller closed its end (or died)
-                buf += data
-                for message in _split_frames(buf):
-                    self.handle(message)
-            now = time.monotonic()
-            if now - last_report >= COUNTS_EVERY_S:
-                last_report = now
-                self.report()
-        for rid in list(self.logs):
-            self.close(rid)
-        if self.live is not None:
-            self.live.close()
-        if self.session is not None:
-            self.session.close()
-
-
-def serve(fd_in: int, fd_out: int) -> None:
-    """The child's main loop: until end of file on ``fd_in``, then every open log finished.
-    Standard input and output become ``/dev/null`` (the controller's stdout carries its JSON
-    summary, and whoever reads it must not wait for this process); warnings go to stderr."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    devnull = os.open(os.devnull, os.O_RDWR)
-    for fd in (0, 1):
-        with contextlib.suppress(OSError):
-            os.dup2(devnull, fd)
-    os.close(devnull)
-    os.set_blocking(fd_in, True)
-    _Child(fd_in, fd_out).run()
-
-
-def main(argv: list[str]) -> int:
-    """``python -m rt_controller.runtime.recorder_process FD_IN FD_OUT`` (spawned child)."""
-    serve(int(argv[0]), int(argv[1]))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.stdout.flush()
-    code = main(sys.argv[1:])
-    sys.stderr.flush()
-    os._exit(code)

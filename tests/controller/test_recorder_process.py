@@ -1,5 +1,6 @@
-"""The MCAP recorder in its own process: the same log as the writer thread, counted drops that
-never block a realtime tick, backpressure for lockstep, and the failures of either process."""
+"""The MCAP recorder in its own process: the same log as a ``CycleRecorder`` in this process,
+flushed while it waits, counted drops that never block a realtime tick, backpressure for
+lockstep, and the failures of either process."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.counters import run_problems
 from rt_controller.runtime.recorder import CycleRecorder
 from rt_controller.runtime.recorder_process import RecorderService
-from tests.controller.test_recorder import cycle
+from tests.controller.test_recorder import cycle, flushed_ticks
+from tests.support import wait_until
 from tests.support.proc import alive
 
 FRAME = can.Message(arbitration_id=0x123, data=bytes(range(8)), is_extended_id=False)
@@ -55,8 +57,8 @@ def _contents(path: Path) -> str:
     )
 
 
-def test_the_process_writes_the_log_the_thread_writes(tmp_path, cfg):
-    with CycleRecorder(tmp_path / "thread.mcap", cfg) as rec:
+def test_the_process_writes_the_log_a_recorder_here_writes(tmp_path, cfg):
+    with CycleRecorder(tmp_path / "here.mcap", cfg) as rec:
         _feed(rec, 300)
     with RecorderService(cfg, start="spawn") as service:
         assert service.start_method == "spawn"
@@ -65,9 +67,24 @@ def test_the_process_writes_the_log_the_thread_writes(tmp_path, cfg):
         remote.close()
     assert remote.finished and remote.error is None
     assert remote.as_dict() == rec.as_dict()  # every topic, written, dropped, pending
-    assert _contents(tmp_path / "process.mcap") == _contents(tmp_path / "thread.mcap")
+    assert _contents(tmp_path / "process.mcap") == _contents(tmp_path / "here.mcap")
     info = read_log(tmp_path / "process.mcap").run_info
     assert info["law"] == "rhc" and info["pid"] == str(os.getpid())  # the controller's, not its
+
+
+def test_a_quiet_log_reaches_the_disk_and_survives_a_killed_recorder(tmp_path, cfg):
+    """The child flushes a log that is due while it waits for more (no record arrives after
+    the first 20); SIGKILLed then, it leaves those 20 readable."""
+    path = tmp_path / "quiet.mcap"
+    with RecorderService(cfg, start="spawn") as service:
+        rec = service.open(path, cfg, flush_interval_s=0.05)
+        _feed(rec, 20)
+        assert wait_until(lambda: flushed_ticks(path) == 20, timeout_s=60.0, poll_s=0.05)
+        os.kill(service.pid, signal.SIGKILL)
+        rec.close(timeout=5)
+    assert "recorder process" in rec.error
+    log = read_log(path)
+    assert log.truncated and list(log.cycles["tick"]) == list(range(20))
 
 
 def test_one_process_serves_the_logs_of_a_plan(tmp_path, cfg):
