@@ -27,7 +27,7 @@ ROLES = ("controller", "emulator", "vision")
 """The rig's processes, recognised by the ``hil`` subcommand in their command line."""
 CHILD_ROLES = {"controller": "recorder"}
 """Processes of a rig process, by its role: the controller's MCAP recorder
-(``controller.recorder = "process"``)."""
+(the recorder process)."""
 
 
 @dataclass(frozen=True)

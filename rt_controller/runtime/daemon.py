@@ -32,7 +32,7 @@ from rt_controller.runtime.counters import RunCounters, run_problems
 from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
 from rt_controller.runtime.loop import ControlLoop
-from rt_controller.runtime.pacers import ClockMode, pacer_for
+from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
 from rt_controller.runtime.rehearsal import Rehearsal
@@ -184,24 +184,18 @@ class ControllerDaemon:
             kernel_stamps=real_clock,
         )
         drive = DrivePolicy(cfg, self.counters)
-        rehearsal: list[Rehearsal] = []
-        pacer = pacer_for(
-            opts.mode,
-            cfg=cfg,
-            clock=self.clock,
-            hw=hw,
-            drive=drive,
-            counters=self.counters,
-            stop=self.stop,
-            pause=self._pause,
-            real_clock=real_clock,
-            rehearse=(lambda: rehearsal[0]()) if Rehearsal.wanted(cfg) else None,
-        )
+        pacer: Pacer
+        if opts.mode is ClockMode.LOCKSTEP:
+            pacer = LockstepPacer(cfg, self.clock, hw, drive, self.counters, self.stop, self._pause)
+        else:
+            pacer = RealtimePacer(
+                cfg, self.clock, hw, drive, self.counters, self.stop, real_clock=real_clock
+            )
         loop = self.loop = ControlLoop(
             cfg, self.controller, hw, pacer, drive, rec, self.counters, self.clock
         )
-        if Rehearsal.wanted(cfg) and opts.mode is ClockMode.REALTIME:
-            rehearsal.append(Rehearsal(cfg, loop))
+        if isinstance(pacer, RealtimePacer) and Rehearsal.wanted(cfg):
+            pacer.rehearse = Rehearsal(cfg, loop)
         if opts.live:  # published by the recorder's process, on its own session
             rec.stream_live()
         hw.attach(session, callback=pacer.features_by_callback)

@@ -29,7 +29,7 @@ STARTUP_TIMEOUT_S = 20.0
 
 FeatureAge = Callable[[FeatureMsg, int, int], float]
 """How old a feature message is at a tick, in ms: ``(message, receive ns, wake ns)``; the
-pacer knows how (real time in realtime, simulation time in lockstep)."""
+pacer knows how (in real time, or in the simulation time of a Sync-paced run)."""
 
 
 @dataclass(frozen=True)
@@ -166,7 +166,7 @@ class RigHardware:
         )
 
     def write(self, tau: np.ndarray, *, sync: int | None, release_ns: int) -> int:
-        """Send the tick's torque: answering Sync ``sync`` (lockstep), else carrying how long
+        """Send the tick's torque: answering Sync ``sync`` when given, else carrying how long
         after its release it left (realtime, ``TorqueCommand.Tick``); returns that delay in
         microseconds (0 for a Sync answer)."""
         t1, t2 = float(tau[0]), float(tau[1])

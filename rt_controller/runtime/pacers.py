@@ -88,10 +88,8 @@ class RealtimePacer:
         stop: Any,
         *,
         real_clock: bool,
-        rehearse: Callable[[], None] | None,
     ) -> None:
-        """``real_clock``: the wait reads the inputs ahead (a fake clock's waits take no time);
-        ``rehearse``: rerun the last tick just before each release (None: never)."""
+        """``real_clock``: the wait reads the inputs ahead (a fake clock's waits take no time)."""
         self.cfg, self.clock, self.hw, self.drive = cfg, clock, hw, drive
         self.counters, self.stop = counters, stop
         self.period_ns = cfg.rates.control_period_ns
@@ -100,7 +98,9 @@ class RealtimePacer:
         """A DspStatus older than three status periods means the DSP went silent."""
         self.cadence = Cadence(self.period_ns, clock)
         self._real_clock = real_clock
-        self._rehearse = rehearse
+        self.rehearse: Callable[[], None] | None = None
+        """Rerun the last tick just before each release (None: never; see
+        :mod:`rt_controller.runtime.rehearsal`)."""
         self._rehearsal_due = False
         self._states_seen = -1
 
@@ -144,7 +144,7 @@ class RealtimePacer:
                 )
                 if max_ticks is not None and index + 1 >= max_ticks:
                     return  # the last tick ran: no release to wait for
-                self._rehearsal_due = self._rehearse is not None
+                self._rehearsal_due = self.rehearse is not None
                 tick = self.cadence.wait(self._idle)
         finally:
             self.counters.spin_s = getattr(self.clock, "spun_ns", 0) / 1e9
@@ -207,9 +207,9 @@ class RealtimePacer:
         time.sleep(max(0, until_ns - now) / 1e9)
 
     def _rehearse_if_due(self) -> None:
-        if self._rehearsal_due and self._rehearse is not None:
+        if self._rehearsal_due and self.rehearse is not None:
             self._rehearsal_due = False
-            self._rehearse()
+            self.rehearse()
 
 
 Wait = Callable[[int], None]
@@ -311,14 +311,4 @@ class LockstepPacer:
 
 Pacer = RealtimePacer | LockstepPacer
 
-
-def pacer_for(mode: ClockMode, **kw: Any) -> Pacer:
-    """The pacer of ``mode`` (keyword arguments as the pacers take them)."""
-    if mode is ClockMode.LOCKSTEP:
-        kw.pop("real_clock", None), kw.pop("rehearse", None)
-        return LockstepPacer(**kw)
-    kw.pop("pause", None)
-    return RealtimePacer(**kw)
-
-
-__all__ = ["ClockMode", "LockstepPacer", "Pacer", "RealtimePacer", "Release", "pacer_for"]
+__all__ = ["ClockMode", "LockstepPacer", "Pacer", "RealtimePacer", "Release"]

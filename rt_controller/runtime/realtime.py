@@ -1,19 +1,12 @@
 """Best-effort real-time process settings; each refusal becomes a warning, never an error.
 
-Memory locking (``lock``), measured on the paper rig at 50 Hz (issue 16):
-
-* ``"touched"`` (default): after warm-up, lock the pages this process has touched so far (the
-  *present* bit of ``/proc/self/pagemap``), leaving out mappings the loop never runs
-  (:data:`COLD_MAPPINGS`: the LLVM compiler behind numba; the compiled code itself lives in
-  anonymous memory and is locked). Nothing is locked in advance: thread stacks, malloc arena
-  reserves and the untouched parts of libraries stay unlocked and non-resident. Pages the loop
-  first touches later are ordinary (minor) faults, which is why the warm-up runs every branch.
-* ``"all"``: ``mlockall(MCL_CURRENT | MCL_FUTURE)``: every mapping, every future one, all
-  populated at once (about 1.1 GB locked and 550 MB resident for a 12-thread daemon that needs
-  about 100 MB).
-* ``"onfault"``: ``mlockall(... | MCL_ONFAULT)``: pages are locked as they are touched; the
-  kernel still accounts the whole address space in ``VmLck``.
-* ``"none"``: no locking.
+Memory locking: after warm-up, lock the pages this process has touched so far (the *present*
+bit of ``/proc/self/pagemap``), leaving out mappings the loop never runs (:data:`COLD_MAPPINGS`:
+the LLVM compiler behind numba; the compiled code itself lives in anonymous memory and is
+locked). Nothing is locked in advance: thread stacks, malloc arena reserves and the untouched
+parts of libraries stay unlocked and non-resident; pages the loop first touches later are
+ordinary (minor) faults, which is why the warm-up runs every branch. ``mlockall(MCL_FUTURE)``
+would instead lock about 1.1 GB for a daemon that needs about 100 MB.
 """
 
 from __future__ import annotations
@@ -27,15 +20,14 @@ import struct
 import threading
 from dataclasses import dataclass, field
 
-MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
 PR_SET_TIMERSLACK = 29
 M_ARENA_MAX = -8
-LOCK_MODES = ("touched", "all", "onfault", "none")
 COLD_MAPPINGS = ("libllvmlite",)
 """Mappings (by file name part) never locked: code the loop does not run after warm-up."""
 THREAD_STACK_BYTES = 512 * 1024
-"""Stack of the daemon's Python threads (receive, recorder): they recurse a few frames deep;
-the 8 MB default only grows the address space."""
+"""Stack of the Python threads of the rig's processes (zenoh callbacks, the vision and
+emulator loops): they recurse a few frames deep; the 8 MB default only grows the address
+space."""
 _PAGEMAP_PRESENT = 1 << 63
 
 
@@ -130,38 +122,23 @@ def lock_touched(libc: ctypes.CDLL) -> tuple[int, int]:
     return locked, refused
 
 
-def _lock(libc: ctypes.CDLL, mode: str, rep: RtReport) -> None:
-    if mode == "touched":
-        try:
-            locked, refused = lock_touched(libc)
-        except OSError as exc:
-            rep.warnings.append(f"locking touched pages failed ({exc})")
-            return
-        if locked:
-            rep.applied.append(f"mlock {locked / 2**20:.0f} MB touched")
-        if refused:
-            err = os.strerror(ctypes.get_errno())
-            rep.warnings.append(f"mlock refused for {refused / 2**20:.0f} MB ({err})")
+def _lock(libc: ctypes.CDLL, rep: RtReport) -> None:
+    try:
+        locked, refused = lock_touched(libc)
+    except OSError as exc:
+        rep.warnings.append(f"locking touched pages failed ({exc})")
         return
-    flags = {"all": MCL_CURRENT | MCL_FUTURE, "onfault": MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT}
-    if libc.mlockall(flags[mode]) == 0:
-        rep.applied.append(f"mlockall ({mode})")
-    else:
-        rep.warnings.append(f"mlockall refused ({os.strerror(ctypes.get_errno())})")
+    if locked:
+        rep.applied.append(f"mlock {locked / 2**20:.0f} MB touched")
+    if refused:
+        err = os.strerror(ctypes.get_errno())
+        rep.warnings.append(f"mlock refused for {refused / 2**20:.0f} MB ({err})")
 
 
-def lock_mode_from_env(default: str = "touched") -> str:
-    """``HIL_MLOCK`` (one of :data:`LOCK_MODES`) picks the locking for measurements."""
-    mode = os.environ.get("HIL_MLOCK", default).strip().lower()
-    return mode if mode in LOCK_MODES else default
-
-
-def apply_realtime(
-    priority: int = 80, cpu: int = -1, lock_memory: bool = True, lock: str | None = None
-) -> RtReport:
-    """SCHED_FIFO, CPU affinity, memory locking (``lock``, see the module docstring; default
-    ``HIL_MLOCK`` or ``"touched"``), 1 ns timer slack and a frozen GC heap. Call it after
-    warm-up: ``"touched"`` locks what has been touched by then."""
+def apply_realtime(priority: int = 80, cpu: int = -1, lock_memory: bool = True) -> RtReport:
+    """SCHED_FIFO, CPU affinity, locking the touched pages (see the module docstring), 1 ns
+    timer slack and a frozen GC heap. Call it after warm-up: what has been touched by then is
+    what gets locked."""
     rep = RtReport()
     gc.collect()
     gc.freeze()
@@ -179,11 +156,10 @@ def apply_realtime(
             rep.warnings.append(f"CPU affinity {cpu} refused ({exc})")
     libc = _libc()
     if libc is None:
-        rep.warnings.append("libc not found: no mlockall, no timer slack")
+        rep.warnings.append("libc not found: no memory locking, no timer slack")
     else:
-        mode = lock or lock_mode_from_env()
-        if lock_memory and mode != "none":
-            _lock(libc, mode, rep)
+        if lock_memory:
+            _lock(libc, rep)
         if libc.prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0) == 0:
             rep.applied.append("timer slack 1 ns")
         else:

@@ -12,7 +12,7 @@ A realtime tick never blocks on the child: the pipe is non-blocking (1 MiB where
 allows it), what it cannot take waits in an outbox, and a batch that would grow the outbox past
 :attr:`RecorderService.outbox_limit` bytes is dropped and counted (``dropped``: the run reports
 the loss and exits non-zero). Lockstep has no deadline: there the tick waits for the child
-(``backpressure``), so a lockstep log is never short because the host was busy.
+(``backpressure``), so a Sync-paced log is never short because the host was busy.
 
 The child is forked while the controller process still has a single OS thread (no zenoh or CAN
 threads yet; the start costs a millisecond and the imported modules are shared); otherwise it is
@@ -81,7 +81,7 @@ class RemoteRecorder:
         self._rid = rid
         self._backpressure = backpressure
         self._batch: collections.deque[tuple[int, int, Any]] = collections.deque()
-        """Records since the last send (a deque: lockstep feeds vision from zenoh's thread)."""
+        """Records since the last send (a deque: Sync-paced runs feed it from zenoh's thread)."""
         self._closed = False
         self._sent = 0
         self._dropped = 0

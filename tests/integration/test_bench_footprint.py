@@ -28,9 +28,8 @@ PROCESS_KEYS = {
 
 
 def test_bench_loop_json_has_the_footprint_of_each_process(
-    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
-    monkeypatch.setenv("HIL_MLOCK", "touched")  # the children inherit it
     code = main(
         ["bench", "loop", "--rates", "50", "--duration", "3", "--lockstep-duration", "0", "--json"]
     )
