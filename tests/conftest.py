@@ -53,6 +53,11 @@ def _open_buses() -> list[str]:
     return found
 
 
+PROCESS_POOLS = ("Dask-Offload",)
+"""Threads of library pools that start on first use and live as long as the process (Dask's
+offload pool, used by an in-process cluster such as ``hil experiment``'s): not leaks."""
+
+
 def _leaks(threads_before: set[threading.Thread], children_before: set[int]) -> list[str]:
     from hal.resources import open_resources
 
@@ -61,7 +66,7 @@ def _leaks(threads_before: set[threading.Thread], children_before: set[int]) -> 
     out += [
         f"thread still running: {t.name}"
         for t in threading.enumerate()
-        if t not in threads_before and t.is_alive()
+        if t not in threads_before and t.is_alive() and not t.name.startswith(PROCESS_POOLS)
     ]
     out += [f"child process still running: pid {p}" for p in _child_pids() - children_before]
     return out

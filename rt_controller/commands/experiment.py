@@ -44,9 +44,13 @@ J tables, figures, the paper's Table I for comparison) and results.json (also pr
 A failed run is reported with the error of its process; the experiment then exits with status 1
 after the remaining runs (it gives up after three failures in a row).
 
-Lockstep runs on private buses (the default host-local bus) run --jobs at a time, one per CPU
-by default: each lockstep run is deterministic, so the results are the same as one at a time.
-Real-time runs, and runs on one shared bus (--can, SocketCAN), run one at a time.
+The runs go as Dask tasks (one per set of processes) on the executor of `hil sweep`: a local
+cluster of --jobs workers by default, or an existing cluster with --scheduler, whose workers
+must have this package installed and see the --out folder at the same path; the batch of a
+worker that dies is run again on another. Lockstep runs on private buses (the default
+host-local bus) run --jobs at a time (or one per worker of the --scheduler cluster), one per
+CPU by default: each lockstep run is deterministic, so the results are the same as one at a
+time. Real-time runs, and runs on one shared bus (--can, SocketCAN), run one at a time.
 """
 
 MAX_CONSECUTIVE_FAILURES = 3
@@ -90,8 +94,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--jobs",
         type=bounded_int(1, 16, what="jobs"),
         metavar="N",
-        help="rigs run at once (default: one per CPU for lockstep runs on private buses, else "
-        "1; lockstep results do not depend on it)",
+        help="rigs run at once, the workers of the local Dask cluster (default: one per CPU "
+        "for lockstep runs on private buses, else 1; lockstep results do not depend on it)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="run on this existing Dask cluster instead of a local one (its workers need this "
+        "package installed and the --out folder at the same path)",
     )
     p.add_argument(
         "--fresh-processes",
@@ -129,6 +139,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
         parts += ["--can", args.can]
     if args.jobs is not None:
         parts += ["--jobs", str(args.jobs)]
+    if args.scheduler:
+        parts += ["--scheduler", args.scheduler]
     if args.fresh_processes:
         parts.append("--fresh-processes")
     return shlex.join(parts)
@@ -144,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
     out = Path(args.out) if args.out else default_out()
+    if args.scheduler:  # the workers read and write the runs' files by these paths
+        out = out.absolute()
     settings = Settings(
         experiments=EXPERIMENTS if args.which == "all" else (args.which,),
         out=out,
@@ -154,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
         config=args.config,
         can=args.can,
         jobs=args.jobs,
+        scheduler=args.scheduler,
         fresh_processes=args.fresh_processes,
     )
     settings.validate()
@@ -164,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
         runs_by_exp, runs = prepare(settings)
     jobs = settings.effective_jobs()
     at_once = f", {jobs} at a time" if jobs > 1 else ""
+    if settings.scheduler:
+        at_once = f", on {settings.scheduler}" if settings.parallel() else ", one at a time"
     err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}{at_once}) -> {out}")
     interrupted: RigInterrupted | None = None
     try:
@@ -192,12 +209,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> None:
-    """Run every pending run, ``settings.effective_jobs()`` at a time, in worker threads, with
-    a progress bar on stderr. Signals reach the main thread only: a stop request
-    (:class:`~rt_controller.rig.supervise.RigInterrupted`) cancels the runs in flight, whose
-    workers stop their processes before this returns; those runs stay pending."""
-    import threading
-    from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+    """Run every pending run as Dask tasks on the executor of ``hil sweep``
+    (:mod:`rt_controller.sweep.executor`), one task per batch
+    (:func:`~rt_controller.rig.experiment.batches`), at most as many at a time as the cluster
+    has workers (one for runs that may not run at once), with a progress bar on stderr.
+
+    The local cluster's workers are threads of this process (``--jobs`` of them): a task only
+    supervises its rig's processes, which stay children of ``hil experiment``. A stop request
+    (:class:`~rt_controller.rig.supervise.RigInterrupted`, main thread only) asks the running
+    tasks to stop their rigs (their runs stay pending) and waits for them before this returns.
+    """
+    import uuid
 
     from rich.progress import (
         BarColumn,
@@ -208,7 +230,8 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeRemainingColumn,
     )
 
-    from rt_controller.rig.experiment import batches, execute_batch
+    from rt_controller.rig.experiment import batches, run_batch
+    from rt_controller.sweep.executor import Tasks, open_cluster, request_stop, stop_name
 
     columns = (
         TextColumn("{task.description}"),
@@ -217,37 +240,67 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeElapsedColumn(),
         TimeRemainingColumn(),
     )
-    jobs = settings.effective_jobs()
-    queue = batches(list(runs.values()), settings)
-    running: dict[Future[list[RunResult]], list[RunResult]] = {}
-    cancel = threading.Event()
-    failed_in_a_row = 0
-    with (
-        Progress(*columns, console=console, transient=False) as progress,
-        ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="hil-rig") as pool,
-    ):
-        task = progress.add_task("runs", total=len(runs))
-        try:
-            while queue or running:
-                while queue and len(running) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES:
-                    batch = queue.pop(0)
-                    running[pool.submit(execute_batch, batch, settings, cancel)] = batch
-                if not running:
-                    break
-                labels = ", ".join(
-                    b[0].spec.label + (f" (+{len(b) - 1} on its processes)" if len(b) > 1 else "")
-                    for b in running.values()
-                )
-                progress.update(task, description=labels)
-                done, _ = wait(running, timeout=0.25, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    running.pop(fut)
-                    # execute_batch records failures on the runs; anything else is a bug
-                    for run in fut.result():
+    local = settings.scheduler is None
+    cl = open_cluster(
+        settings.effective_jobs() if local else None,
+        settings.scheduler,
+        processes=False,
+        workers_option="--jobs",
+    )
+    prefix = f"hil-experiment-{uuid.uuid4().hex[:12]}"  # unique on a shared cluster
+    stop = stop_name(prefix)
+    try:
+        jobs = settings.effective_jobs() if local else cl.workers if settings.parallel() else 1
+        queue = batches(list(runs.values()), settings, jobs)
+        failed_in_a_row = 0
+        with (
+            Progress(*columns, console=console, transient=False) as progress,
+            Tasks(cl, prefix) as tasks,
+        ):
+            task = progress.add_task("runs", total=len(runs))
+            try:
+                while queue or len(tasks):
+                    while (
+                        queue and len(tasks) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES
+                    ):
+                        batch = queue.pop(0)
+                        tasks.submit(
+                            batch, run_batch, batch, settings, stop, key=batch[0].spec.name
+                        )
+                    if not len(tasks):
+                        break
+                    labels = ", ".join(
+                        b[0].spec.label
+                        + (f" (+{len(b) - 1} on its processes)" if len(b) > 1 else "")
+                        for b in tasks.in_flight()
+                    )
+                    progress.update(task, description=labels)
+                    for run in _take(tasks, runs):
                         progress.advance(task)
                         failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
-        finally:
-            cancel.set()  # no-op after a full sweep; on a stop request, the workers stop rigs
+            finally:
+                if len(tasks):  # stopped: the running tasks stop their rigs; wait for them
+                    request_stop(cl, stop)
+                    while len(tasks):
+                        _take(tasks, runs)
+    finally:
+        cl.close()
+
+
+def _take(tasks: Any, runs: dict[str, RunResult]) -> list[RunResult]:
+    """The runs of the next batch to finish, recorded in ``runs``; a batch whose task never
+    came back (it raised, or its worker died too often) has failed runs."""
+    batch, done, exc = tasks.next()
+    if exc is not None:
+        error = " ".join(f"{type(exc).__name__}: {exc}".split())
+        for run in batch:
+            run.status, run.error = "failed", error
+        done = batch
+    for run in done:  # a worker's copy of the run: its outcome goes into the planned one
+        planned = runs[run.spec.name]
+        if planned is not run:
+            vars(planned).update(vars(run))
+    return [runs[r.spec.name] for r in done]
 
 
 def _report_run(console: Console, run: RunResult, failed_in_a_row: int) -> int:

@@ -8,6 +8,8 @@ runs them; :mod:`rt_controller.rig.experiment_report` turns the results into one
 PNG figures and a ``report.md`` (:func:`rt_controller.rig.experiment_report.write_outputs`).
 
 Identical specs are run once (``all`` shares the RHC T = 0.02 s run between Fig. 3 and Fig. 4).
+The runs go in batches (:func:`batches`); each batch is one task (:func:`run_batch`) on the
+Dask executor of ``hil sweep`` (:mod:`rt_controller.sweep.executor`).
 """
 
 from __future__ import annotations
@@ -93,7 +95,11 @@ class Settings:
     config: str | None = None
     can: str | None = None
     jobs: int | None = None
-    """Rigs run at once (``--jobs``); None: :func:`default_jobs`."""
+    """Rigs run at once (``--jobs``, the workers of the local Dask cluster); None:
+    :func:`default_jobs`."""
+    scheduler: str | None = None
+    """``--scheduler``: run the batches on this existing Dask cluster (its workers decide how
+    many run at once) instead of a local one."""
     fresh_processes: bool = False
     """``--fresh-processes``: start the rig anew for every lockstep run instead of running
     the runs that share an emulator configuration on one set of processes (:func:`batches`)."""
@@ -126,6 +132,10 @@ class Settings:
                 )
         elif self.jobs is not None and self.jobs < 1:
             raise ControllerConfigError(f"--jobs must be at least 1, got {self.jobs}")
+        if self.scheduler is not None and self.jobs is not None:
+            raise ControllerConfigError(
+                "--jobs sizes the local cluster; with --scheduler the cluster has its own"
+            )
 
     def shared_bus(self) -> str:
         """The bus every run would use when runs cannot get private ones."""
@@ -140,6 +150,10 @@ class Settings:
         """Whether each run gets a bus of its own (the automatic host-local ``udp_multicast``
         bus, see :func:`bus_for_run`); ``--can`` or a SocketCAN interface is one shared bus."""
         return self.can is None and private_default_bus(self.config) is not None
+
+    def parallel(self) -> bool:
+        """Whether runs may run at once: lockstep runs, each on a private bus."""
+        return not self.realtime and self.private_buses()
 
     def effective_jobs(self) -> int:
         """``jobs``, else :func:`default_jobs`."""
@@ -181,7 +195,7 @@ def default_jobs(settings: Settings) -> int:
     """Lockstep runs on private buses: one rig per CPU (a lockstep period passes from process
     to process, so one rig keeps about one core busy; results do not depend on it, a lockstep
     run is deterministic); otherwise 1."""
-    if settings.realtime or not settings.private_buses():
+    if not settings.parallel():
         return 1
     return max(1, min(os.cpu_count() or 1, MAX_JOBS))
 
@@ -308,14 +322,17 @@ def finish(run: RunResult, summary: dict[str, Any]) -> None:
     run.J_steady = steady_cost(run.log)
 
 
-def batches(runs: list[RunResult], settings: Settings) -> list[list[RunResult]]:
+def batches(
+    runs: list[RunResult], settings: Settings, jobs: int | None = None
+) -> list[list[RunResult]]:
     """The runs grouped for one set of rig processes each, in run order.
 
     Lockstep runs whose configurations agree in all that the emulator and vision processes
     read (:func:`rt_controller.runtime.plan.world_of`: everything but the controller's own
     sections) share one set: the controller runs them as a plan, resetting the emulated DSP's
     scenario between them, which starts each exactly as fresh processes would. While there are
-    fewer batches than rigs may run at once, the largest is split in two. Real-time runs,
+    fewer batches than rigs may run at once (``jobs``, default ``settings.effective_jobs()``),
+    the largest is split in two. Real-time runs,
     and all runs with ``fresh_processes``, are batches of one.
     """
     if settings.realtime or settings.fresh_processes:
@@ -326,7 +343,7 @@ def batches(runs: list[RunResult], settings: Settings) -> list[list[RunResult]]:
     for run in runs:
         groups.setdefault(json.dumps(world_of(run.config), sort_keys=True), []).append(run)
     out = list(groups.values())
-    while len(out) < settings.effective_jobs():
+    while len(out) < (settings.effective_jobs() if jobs is None else jobs):
         big = max(out, key=len)
         if len(big) < 2:
             break
@@ -398,6 +415,30 @@ def execute_batch(
     if batch[0].wall_s is not None:  # the first run carries the processes' start-up
         batch[0].wall_s += max(0.0, time.monotonic() - t0 - sum(r.wall_s or 0 for r in batch))
     return batch
+
+
+def run_batch(batch: list[RunResult], settings: Settings, stop: str | None) -> list[RunResult]:
+    """A batch as one task on the sweep's Dask executor: :func:`execute_batch`, stopped (its
+    runs left pending) when the experiment requests ``stop``
+    (:func:`rt_controller.sweep.executor.request_stop`). The runs' config files and logs are
+    under ``settings.out``, which the worker must see at the same path."""
+    from rt_controller.sweep.executor import watch_stop
+
+    missing = [r.config_file for r in batch if not r.config_file.is_file()]
+    if missing:
+        import socket
+
+        error = (
+            f"the worker on {socket.gethostname()} cannot read {missing[0]}: the experiment's "
+            "--out must be a folder the workers share"
+        )
+        for run in batch:
+            run.status, run.error = "failed", error
+        return batch
+    with watch_stop(stop) as cancel:
+        if cancel.is_set():  # the experiment stopped before this batch started: not run
+            return batch
+        return execute_batch(batch, settings, cancel)
 
 
 def bus_for_run(settings: Settings, run: RunResult) -> str:

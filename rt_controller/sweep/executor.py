@@ -8,8 +8,11 @@ package installed::
     dask scheduler --host 10.0.0.1 --port 8786
     dask worker tcp://10.0.0.1:8786 --nthreads 1 --nworkers 4   # on every machine
 
-A task is one run (:class:`rt_controller.sweep.spec.RunTask`, keyed by its run key); its row
-never depends on the worker that runs it. Dask itself moves the tasks of a worker that dies to
+The one mechanism of ``hil sweep`` and ``hil experiment``: :func:`open_cluster` makes the
+cluster, :class:`Tasks` puts tasks on it and takes each back as it finishes, and a stop request
+(:func:`request_stop`) reaches the tasks that are running (:func:`watch_stop`). A sweep task is
+one run (:class:`rt_controller.sweep.spec.RunTask`, keyed by its run key); its row never depends
+on the worker that runs it. Dask itself moves the tasks of a worker that dies to
 the others (``distributed.scheduler.allowed-failures`` times, then the run is recorded as
 failed); the store keeps one row per run key. Ctrl-C or SIGTERM cancels what is left, keeps
 every finished row and writes the report of what ran; the same command resumes.
@@ -23,6 +26,7 @@ import os
 import signal
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,8 +68,6 @@ class Cluster:
         return len(self.client.scheduler_info().get("workers", {}))
 
     def close(self) -> None:
-        import contextlib
-
         with contextlib.suppress(Exception):  # a cluster already going down on Ctrl-C
             self.client.close(timeout=10)
         if self.local is not None:
@@ -88,14 +90,24 @@ def _workers_ignore_sigint() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def open_cluster(workers: int | None = None, scheduler: str | None = None) -> Cluster:
-    """Connect to ``scheduler``, else start a local cluster of ``workers`` processes."""
+def open_cluster(
+    workers: int | None = None,
+    scheduler: str | None = None,
+    *,
+    processes: bool = True,
+    workers_option: str = "--workers",
+) -> Cluster:
+    """Connect to ``scheduler``, else start a local cluster of ``workers`` workers of one
+    thread each on 127.0.0.1: processes, or with ``processes=False`` threads of this process
+    (for tasks that only supervise processes of their own, such as a rig's).
+    ``workers_option`` names the option that sizes the local cluster in errors."""
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
         if workers is not None:
             raise ControllerConfigError(
-                "--workers sizes the local cluster; with --scheduler the cluster has its own"
+                f"{workers_option} sizes the local cluster; with --scheduler the cluster has "
+                "its own"
             )
         try:
             client = Client(scheduler, timeout="20s")
@@ -112,19 +124,130 @@ def open_cluster(workers: int | None = None, scheduler: str | None = None) -> Cl
         return Cluster(client)
     n = machine_workers() if workers is None else workers
     if not 1 <= n <= MAX_WORKERS:
-        raise ControllerConfigError(f"--workers must be 1..{MAX_WORKERS}, got {n}")
+        raise ControllerConfigError(f"{workers_option} must be 1..{MAX_WORKERS}, got {n}")
+    env = {"env": WORKER_ENV} if processes else {}  # threads share this process's
     with _workers_ignore_sigint():
         local = LocalCluster(
             n_workers=n,
             threads_per_worker=1,
-            processes=True,
+            processes=processes,
+            protocol="tcp://",
             host="127.0.0.1",
             dashboard_address=None,
             worker_dashboard_address=None,
             silence_logs=logging.ERROR,
-            env=WORKER_ENV,
+            **env,
         )
     return Cluster(Client(local), local)
+
+
+class Tasks:
+    """Tasks on a cluster's workers, taken back one by one as they finish.
+
+    A task whose worker dies is run again elsewhere by Dask itself
+    (``distributed.scheduler.allowed-failures`` times); after that, or when the task raised,
+    its exception is what :meth:`next` hands back. Leaving the ``with`` block cancels the
+    tasks still queued (a running task stops only if it watches a stop request, see
+    :func:`watch_stop`).
+    """
+
+    def __init__(self, cluster: Cluster, prefix: str) -> None:
+        from distributed import as_completed
+
+        self.client, self.prefix = cluster.client, prefix
+        self._items: dict[Any, Any] = {}
+        self._done = as_completed()
+
+    def submit(self, item: Any, fn: Callable[..., Any], *args: Any, key: str) -> None:
+        """Run ``fn(*args)`` as the task ``PREFIX-KEY``; ``item`` comes back with its result."""
+        fut = self.client.submit(fn, *args, key=f"{self.prefix}-{key}", pure=False)
+        self._items[fut] = item
+        self._done.add(fut)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def in_flight(self) -> list[Any]:
+        """The items of the tasks submitted and not yet taken back, in submission order."""
+        return list(self._items.values())
+
+    def next(self) -> tuple[Any, Any, Exception | None]:
+        """The next task to finish: (item, result, None), or (item, None, its exception)."""
+        from rt_controller.rig.supervise import RigInterrupted
+
+        fut = next(self._done)
+        item = self._items.pop(fut)
+        try:
+            result, error = fut.result(), None
+        except RigInterrupted:  # SIGINT/SIGTERM to this process while it waited
+            self._items[fut] = item
+            raise
+        except Exception as exc:  # the task raised, or its worker died too often
+            result, error = None, exc
+        fut.release()
+        return item, result, error
+
+    def cancel(self) -> None:
+        """Cancel the tasks not taken back yet."""
+        if self._items:
+            with contextlib.suppress(Exception):  # a cluster already going down on Ctrl-C
+                self.client.cancel(list(self._items), force=True)
+
+    def __enter__(self) -> Tasks:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.cancel()
+
+
+def stop_name(prefix: str) -> str:
+    """A fresh name for a stop request (:func:`request_stop`, :func:`watch_stop`)."""
+    return f"{prefix}-stop-{uuid.uuid4().hex}"
+
+
+def request_stop(cluster: Cluster, name: str) -> None:
+    """Tell the running tasks that watch ``name`` to stop (Dask never interrupts a task)."""
+    from distributed import Event
+
+    with contextlib.suppress(Exception):  # a cluster already going down
+        Event(name, client=cluster.client).set()
+
+
+@contextlib.contextmanager
+def watch_stop(name: str | None, poll_s: float = 0.25) -> Iterator[threading.Event]:
+    """Inside a task: a :class:`threading.Event` that is set once the client has called
+    :func:`request_stop` with ``name`` (None: one that is never set)."""
+    stop = threading.Event()
+    if name is None:
+        yield stop
+        return
+    from distributed import Event
+
+    event = Event(name)
+    if event.client is None:  # not in a task: nobody can ask
+        yield stop
+        return
+    with contextlib.suppress(Exception):  # asked already (a task that starts after the stop)
+        if event.is_set():
+            stop.set()
+    ended = threading.Event()
+
+    def watch() -> None:
+        while not ended.is_set():
+            try:
+                if event.wait(timeout=poll_s):
+                    stop.set()
+                    return
+            except Exception:  # the scheduler went away: nobody can ask any more
+                return
+
+    watcher = threading.Thread(target=watch, name="hil-stop-watch", daemon=True)
+    watcher.start()
+    try:
+        yield stop
+    finally:
+        ended.set()
+        watcher.join(timeout=5 * poll_s)
 
 
 @dataclass
@@ -214,7 +337,6 @@ def _collect(
     progress: bool,
     on_row: Callable[[dict[str, Any], Cluster], None] | None,
 ) -> None:
-    from distributed import as_completed
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -225,13 +347,6 @@ def _collect(
         TimeRemainingColumn,
     )
 
-    from rt_controller.rig.supervise import RigInterrupted
-
-    client = cl.client
-    by_future = {}
-    for task in todo:
-        fut = client.submit(engine, task, key=f"hil-sweep-{task.key}", pure=False)
-        by_future[fut] = task
     bar = Progress(
         TextColumn("[bold]sweep[/]"),
         BarColumn(),
@@ -244,27 +359,17 @@ def _collect(
         disable=not progress,
         transient=False,
     )
-    try:
-        with bar:
-            bar_task = bar.add_task("runs", total=len(todo), failed=0)
-            for fut in as_completed(list(by_future)):
-                task = by_future.pop(fut)
-                try:
-                    row = fut.result()
-                except RigInterrupted:  # SIGINT/SIGTERM to this process: stop the sweep
-                    raise
-                except Exception as exc:  # a lost task is a failed run
-                    row = failed_row(task, " ".join(f"{type(exc).__name__}: {exc}".split()))
-                fut.release()
-                store.add(row)
-                result.ran += 1
-                result.failed += row.get("status") != "ok"
-                bar.update(bar_task, advance=1, failed=result.failed)
-                if on_row is not None:
-                    on_row(row, cl)
-    finally:
-        if by_future:  # interrupted: nothing left may keep running for us
-            import contextlib
-
-            with contextlib.suppress(Exception):
-                client.cancel(list(by_future), force=True)
+    with Tasks(cl, "hil-sweep") as tasks, bar:  # interrupted: nothing left keeps running for us
+        for task in todo:
+            tasks.submit(task, engine, task, key=task.key)
+        bar_task = bar.add_task("runs", total=len(todo), failed=0)
+        while tasks:
+            task, row, exc = tasks.next()
+            if exc is not None:  # a lost task is a failed run
+                row = failed_row(task, " ".join(f"{type(exc).__name__}: {exc}".split()))
+            store.add(row)
+            result.ran += 1
+            result.failed += row.get("status") != "ok"
+            bar.update(bar_task, advance=1, failed=result.failed)
+            if on_row is not None:
+                on_row(row, cl)

@@ -386,3 +386,37 @@ def test_a_stop_request_during_a_parallel_sweep_stops_every_rig(tmp_path, capsys
     res = json.loads((out / "results.json").read_text())
     assert [r["status"] for r in res["runs"]] == ["pending"] * 3
     assert "interrupted by SIGTERM" in capsys.readouterr().err
+
+
+def test_the_runs_go_as_tasks_to_an_existing_cluster_with_scheduler(tmp_path, monkeypatch, capsys):
+    """``--scheduler``: each batch is a task on that cluster (here one in this process, so the
+    fake rig applies); the output folder becomes absolute for the workers; ``--jobs`` is
+    refused with it, before anything is written."""
+    from distributed import LocalCluster
+
+    seen = []
+
+    def fake(opts):
+        seen.append((opts.law, Path(opts.config).is_absolute()))
+        return {"J": {"rhc": 1.0, "ioc": 2.0, "pbc": 3.0}[opts.law], "problems": []}
+
+    got = {}
+
+    def outputs(settings, runs_by_exp, runs, command):  # a fake run writes no log to report
+        got.update({name: (r.status, r.J) for name, r in runs.items()})
+        return {"failures": []}
+
+    monkeypatch.setattr(ex, "run_rig", fake)
+    monkeypatch.setattr(ex, "steady_cost", lambda log: None)
+    monkeypatch.setattr("rt_controller.rig.experiment_report.write_outputs", outputs)
+    monkeypatch.chdir(tmp_path)
+    kw = {"processes": False, "protocol": "tcp://", "host": "127.0.0.1", "dashboard_address": None}
+    with LocalCluster(n_workers=2, threads_per_worker=1, **kw) as lc:
+        at = ["--scheduler", lc.scheduler_address]
+        assert main(["experiment", "fig3", "--out", "x", *at, "--jobs", "1"]) == 2
+        assert "--jobs sizes the local cluster" in capsys.readouterr().err
+        assert not (tmp_path / "x").exists()
+        argv = ["experiment", "fig3", "--duration", "1", "--out", "exp", "--fresh-processes"]
+        assert main([*argv, *at, "--json"]) == 0
+    assert got == {"rhc-T0.02": ("ok", 1.0), "ioc": ("ok", 2.0), "pbc": ("ok", 3.0)}
+    assert sorted(seen) == [("ioc", True), ("pbc", True), ("rhc", True)]
