@@ -69,6 +69,22 @@ class Controller:
         c = cfg.controller
         self.predictor = StatePredictor(self._p, max(c.state_timeout_s, c.feature_timeout_s))
 
+    def reconfigure(self, cfg: RigConfig, *, law_changed: bool = True) -> None:
+        """Run from now on with ``cfg``, which differs from the current configuration only in
+        online-tunable keys (:data:`rt_controller.runtime.parameters.TUNABLE`); called between
+        two ticks, by the loop and by ``hil replay`` at the same tick.
+
+        The model's gains and the law are rebuilt when ``law_changed`` (a new law starts as at
+        the run's start: C/GMRES solves its first tick from scratch, and falls back to eq. 27
+        when that solve diverges); the state predictor keeps the torques it sent."""
+        self.cfg = cfg
+        c = cfg.controller
+        if law_changed:
+            self.model = NominalModel.from_config(cfg)
+            self._p = model_kernels.pack(self.model)
+            self.law = make_law(c.law, self.model, cfg)
+        self.predictor.retarget(self._p, max(c.state_timeout_s, c.feature_timeout_s))
+
     def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
         return Measurement(t=t, q=q, dq=dq, f=f, xi=model_kernels.prepare(self._p, q, dq, f)[0])

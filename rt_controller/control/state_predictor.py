@@ -46,6 +46,12 @@ class StatePredictor:
         """Torques held in the history."""
         return self._n
 
+    def retarget(self, params: np.ndarray, horizon_s: float) -> None:
+        """Predict with new model parameters and horizon from now on (the torques sent so far
+        are kept)."""
+        self._p = params
+        self.horizon_s = float(horizon_s)
+
     def reset(self) -> None:
         """Forget the torques sent (a new run)."""
         self._n = 0

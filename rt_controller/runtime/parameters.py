@@ -1,0 +1,304 @@
+"""Online parameters: which configuration keys may change while the rig runs, how a change set
+is judged, and the hand-over from any thread to the control thread at a tick boundary.
+
+The interface every calibration front-end uses (``hil param`` over zenoh today; a Foxglove
+server or an XCP slave tomorrow) is small:
+
+- :data:`TUNABLE` names the online-tunable keys; :func:`refusal` says why any other key is not;
+- :func:`judge` applies a change set to a :class:`~hal.config.RigConfig` by the TOML's own rules
+  (``cfg.with_overrides``: types, ranges, alpha and K positive definite) or refuses it whole;
+- :class:`ParameterService` takes :class:`Request` objects from any thread (:meth:`submit`) and,
+  in the control thread, hands the loop at each tick boundary the configuration to run with
+  (:meth:`due`). Each request gives one :class:`Outcome` (the ``/controller/parameters``
+  record): accepted with the tick at which it took effect, or refused with the reason.
+
+Pure apart from the thread-safe queue: no I/O, no clocks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import queue
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from hal.config import RigConfig
+from hal.errors import HalConfigError
+
+TUNABLE: dict[str, str] = {
+    "gains.kp": "kp of eq. (34)",
+    "gains.alpha": "alpha of eq. (34), positive definite",
+    "gains.K": "K of eq. (34), positive definite",
+    "controller.law": "the law (pbc, ioc, rhc); a switch re-initialises it",
+    "controller.feature_timeout_s": "features older than this mean hold",
+    "controller.state_timeout_s": "a joint state older than this means no state (realtime)",
+    "controller.predict_state": "compensate the joint state's age",
+    "controller.predict_features": "compensate the features' age",
+    "rhc.horizon": "the horizon T_f (re-initialises C/GMRES)",
+    "rhc.steps": "the steps N (re-initialises C/GMRES)",
+    "rhc.kmax": "GMRES iterations per update",
+    "rhc.zeta": "continuation stabilisation gain",
+    "rhc.horizon_growth": "a in T(t) = T_f (1 - exp(-a t))",
+    "rhc.u_max": "the input bounds of the horizon problem",
+}
+"""The keys a running controller accepts, with what each is. They change only what the per-tick
+rule computes (``Controller.reconfigure``), so ``hil replay`` repeats a tuned run exactly."""
+
+LAW_KEYS = frozenset(k for k in TUNABLE if k.startswith(("gains.", "rhc.")) or k.endswith(".law"))
+"""Keys whose change rebuilds the law (the others leave its state alone)."""
+
+SECTION_REASONS: dict[str, str] = {
+    "robot": "the robot's geometry and inertia are the rig's, not a gain",
+    "camera": "the camera belongs to the vision process",
+    "scenario": "the scenario is fixed for a run (the emulator and vision process run it)",
+    "rates": "rates fix the cadence, the DSP's watchdog and the physics step: restart to change",
+    "transport": "transports and keys are opened at start: restart to change",
+    "dsp": "the DSP's settings belong to the DSP",
+    "plant": "the emulated plant belongs to the emulator",
+    "controller": "fixed for the run (the loop's wiring and real-time settings): restart",
+    "rhc": "a solver internal, fixed for the run: restart",
+}
+"""Why the keys of a section outside :data:`TUNABLE` are refused."""
+
+
+def refusal(key: str) -> str | None:
+    """Why ``key`` may not change online (None when it may)."""
+    if key in TUNABLE:
+        return None
+    section, _, name = key.partition(".")
+    known = RigConfig().to_dict()
+    if section not in known or name not in known[section]:
+        return f"unknown config key {key!r}"
+    return f"{key} is not online-tunable: {SECTION_REASONS[section]}"
+
+
+class ParameterRefused(ValueError):
+    """A change set that may not be applied; ``str()`` is the reason."""
+
+
+def _plain(value: Any) -> Any:
+    return [_plain(v) for v in value] if isinstance(value, list | tuple) else value
+
+
+def value_of(cfg: RigConfig, key: str) -> Any:
+    """The current value of ``key`` (lists for tuples, as in the TOML)."""
+    section, _, name = key.partition(".")
+    return _plain(getattr(getattr(cfg, section), name))
+
+
+def judge(cfg: RigConfig, changes: Mapping[str, Any]) -> RigConfig:
+    """``cfg`` with every change of ``changes`` applied and validated like a TOML file; raises
+    :class:`ParameterRefused` (nothing applied) when any key may not change online or the
+    result breaks a rule."""
+    if not changes:
+        raise ParameterRefused("no keys given")
+    for key in changes:
+        why = refusal(key)
+        if why is not None:
+            raise ParameterRefused(why)
+    try:
+        return cfg.with_overrides(dict(changes))
+    except HalConfigError as exc:
+        raise ParameterRefused(str(exc)) from None
+
+
+def tunable_values(cfg: RigConfig) -> dict[str, Any]:
+    """Every tunable key with its value in ``cfg``."""
+    return {key: value_of(cfg, key) for key in TUNABLE}
+
+
+def diff(a: RigConfig, b: RigConfig) -> dict[str, tuple[Any, Any]]:
+    """The keys (any key, dotted) whose values differ from ``a`` to ``b``: ``(old, new)``."""
+    da, db = a.to_dict(), b.to_dict()
+    return {
+        f"{s}.{k}": (v, db[s][k])
+        for s, body in da.items()
+        for k, v in body.items()
+        if db[s][k] != v
+    }
+
+
+@dataclass
+class Request:
+    """One change set from a front-end. ``at_tick``: take effect at the first tick >= it
+    (None: the next tick boundary). ``reply`` is called once with the :class:`Outcome`, in the
+    control thread."""
+
+    changes: dict[str, Any]
+    source: str = "unknown"
+    at_tick: int | None = None
+    request_id: str = ""
+    reply: Callable[[Outcome], Any] | None = None
+
+
+@dataclass
+class Outcome:
+    """What became of one request: the ``/controller/parameters`` record (:meth:`record`)."""
+
+    tick: int
+    accepted: bool
+    changes: list[dict[str, Any]]
+    """``{"key", "old", "new"}`` for each key named."""
+    source: str
+    param_set: int
+    """The parameter set in force from ``tick`` on (unchanged when refused)."""
+    reason: str | None = None
+    request_id: str = ""
+    at_tick: int | None = None
+    t_ns: int = 0
+
+    def record(self) -> dict[str, Any]:
+        """The ``/controller/parameters`` message (:data:`PARAMETERS_SCHEMA`)."""
+        return dataclasses.asdict(self)
+
+
+PARAMETERS_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "hil.ParameterChange",
+    "description": "One online parameter change set, accepted or refused (one per request).",
+    "type": "object",
+    "properties": {
+        "t_ns": {"type": "integer", "description": "loop clock at the tick boundary, ns"},
+        "tick": {
+            "type": "integer",
+            "description": "the tick at which it took effect (or was refused)",
+        },
+        "accepted": {"type": "boolean"},
+        "param_set": {
+            "type": "integer",
+            "description": "the cycle records' param_set from tick on",
+        },
+        "source": {"type": "string", "description": "who asked (front-end and peer)"},
+        "request_id": {"type": "string"},
+        "at_tick": {"type": ["integer", "null"], "description": "the tick asked for"},
+        "reason": {"type": ["string", "null"], "description": "why it was refused"},
+        "changes": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {"key": {"type": "string"}, "old": {}, "new": {}},
+                "required": ["key", "old", "new"],
+            },
+        },
+    },
+    "required": ["tick", "accepted", "param_set", "source", "changes"],
+}
+
+
+@dataclass
+class ParameterCounters:
+    accepted: int = 0
+    refused: int = 0
+    unauthenticated: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class ParameterService:
+    """The hand-over: :meth:`submit` from any thread, :meth:`due` in the control thread at each
+    tick boundary. ``cfg`` is the configuration in force, ``param_set`` its number (0 at start,
+    +1 per accepted change set)."""
+
+    cfg: RigConfig
+    param_set: int = 0
+    counters: ParameterCounters = field(default_factory=ParameterCounters)
+    _inbox: queue.SimpleQueue = field(default_factory=queue.SimpleQueue, repr=False)
+    _waiting: list[Request] = field(default_factory=list, repr=False)
+
+    def submit(self, request: Request) -> None:
+        """Queue ``request`` (thread-safe; never blocks)."""
+        self._inbox.put(request)
+
+    def unauthenticated(self) -> None:
+        """Count a request that failed authentication (it never reaches the queue)."""
+        self.counters.unauthenticated += 1
+
+    def due(self, tick: int, t_ns: int = 0) -> tuple[RigConfig | None, list[Outcome]]:
+        """Judge the requests due at ``tick`` in arrival order: the new configuration (None when
+        nothing was accepted) and one outcome per request judged. Control thread only."""
+        while True:
+            try:
+                self._waiting.append(self._inbox.get_nowait())
+            except queue.Empty:
+                break
+        if not self._waiting:
+            return None, []
+        now = [r for r in self._waiting if r.at_tick is None or r.at_tick <= tick]
+        if not now:
+            return None, []
+        self._waiting = [r for r in self._waiting if r not in now]
+        changed, outcomes = None, []
+        for r in now:
+            out = self._judge(r, tick, t_ns)
+            if out.accepted:
+                changed = self.cfg
+            outcomes.append(out)
+            if r.reply is not None:
+                r.reply(out)
+        return changed, outcomes
+
+    def _judge(self, r: Request, tick: int, t_ns: int) -> Outcome:
+        old = self.cfg
+        items = []
+        for key, new in r.changes.items():
+            try:
+                before = value_of(old, key)
+            except AttributeError:
+                before = None
+            items.append({"key": key, "old": before, "new": _plain(new)})
+        reason = None
+        try:
+            cfg = judge(old, r.changes)
+        except ParameterRefused as exc:
+            reason = str(exc)
+            self.counters.refused += 1
+        else:
+            for item in items:  # as validated (an int reads back as a float, a diagonal as 2x2)
+                item["new"] = value_of(cfg, item["key"])
+            self.cfg = cfg
+            self.param_set += 1
+            self.counters.accepted += 1
+        ok = reason is None
+        return Outcome(
+            tick, ok, items, r.source, self.param_set, reason, r.request_id, r.at_tick, t_ns
+        )
+
+
+def accepted_changes(records: list[dict[str, Any]]) -> list[tuple[int, dict[str, Any]]]:
+    """``(tick, changes)`` of the accepted records of a log's ``/controller/parameters``, in
+    order (what ``hil replay`` applies)."""
+    out = []
+    for rec in records:
+        if rec.get("accepted"):
+            out.append((int(rec["tick"]), {c["key"]: c["new"] for c in rec.get("changes", [])}))
+    return out
+
+
+def finite_tick(value: Any) -> int | None:
+    """``at_tick`` as an int (None for absent or not finite)."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return None
+    return int(value)
+
+
+__all__ = [
+    "LAW_KEYS",
+    "PARAMETERS_SCHEMA",
+    "SECTION_REASONS",
+    "TUNABLE",
+    "Outcome",
+    "ParameterCounters",
+    "ParameterRefused",
+    "ParameterService",
+    "Request",
+    "accepted_changes",
+    "diff",
+    "judge",
+    "refusal",
+    "tunable_values",
+    "value_of",
+]
