@@ -28,6 +28,7 @@ from rt_controller.runtime.recorder import (
     CONFIG_METADATA,
     CYCLE_TOPIC,
     DIAGNOSTICS_TOPIC,
+    PARAMETERS_TOPIC,
     RECORDER_METADATA,
     RUN_METADATA,
     VISION_TOPIC,
@@ -57,6 +58,8 @@ class LoadedLog:
     vision: list[dict[str, Any]] = field(default_factory=list)
     diagnostics: list[dict[str, Any]] = field(default_factory=list)
     """``/diagnostics`` records (always kept: about one a second)."""
+    parameters: list[dict[str, Any]] = field(default_factory=list)
+    """``/controller/parameters`` records: online changes, accepted or refused (always kept)."""
     topic_counts: dict[str, int] = field(default_factory=dict)
     """Messages read per topic (also for raw topics that were not kept)."""
     schemas: dict[str, str] = field(default_factory=dict)
@@ -171,7 +174,7 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                 if isinstance(rec, Message):
                     topic = channels.get(rec.channel_id, f"#{rec.channel_id}")
                     counts[topic] += 1
-                    keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC)
+                    keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC, PARAMETERS_TOPIC)
                     if not keep and not (raw and topic in raw_lists):
                         continue
                     try:
@@ -185,6 +188,8 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                         cycle_records.append(obj)
                     elif topic == DIAGNOSTICS_TOPIC:
                         out.diagnostics.append(obj)
+                    elif topic == PARAMETERS_TOPIC:
+                        out.parameters.append(obj)
                     else:
                         raw_lists[topic].append(obj)
                 elif isinstance(rec, Channel):

@@ -44,6 +44,7 @@ from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log
 from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
+from rt_controller.runtime.parameters import LAW_KEYS, accepted_changes, judge
 from rt_controller.runtime.recorder import CycleRecorder
 
 
@@ -299,6 +300,23 @@ class _OutLog:
             raise LogError(f"cannot write {self.rec.path}: {self.rec.error}") from self.rec.error
 
 
+class _ParameterChanges:
+    """The log's accepted online changes (``/controller/parameters``), applied at their ticks
+    as the loop applied them: before the tick's rule (:meth:`Controller.reconfigure`)."""
+
+    def __init__(self, log: LoadedLog, cfg: RigConfig) -> None:
+        self.pending = accepted_changes(log.parameters)
+        self.ticks = log.column("tick")
+        self.cfg = cfg
+
+    def apply(self, ctl: Controller, i: int) -> None:
+        tick = i if self.ticks is None else int(self.ticks[i])
+        while self.pending and self.pending[0][0] <= tick:
+            _, changes = self.pending.pop(0)
+            self.cfg = judge(self.cfg, changes)
+            ctl.reconfigure(self.cfg, law_changed=bool(set(changes) & LAW_KEYS))
+
+
 DISABLED_MODES = frozenset(MODES) - {MODE_ENABLED}
 """Modes in which the daemon does not run the law (recorded as the tick's ``law``)."""
 
@@ -343,6 +361,7 @@ def replay_loaded(
         notes.append(gap)
     ctl = Controller(cfg)
     _warm_up(ctl, cfg)
+    changes = _ParameterChanges(log, cfg)
     recorded_law = log.column("law")
     u = np.zeros((n, 2))
     tau = np.zeros((n, 2))
@@ -350,6 +369,7 @@ def replay_loaded(
     writer = _OutLog(Path(out), cfg, log, tol) if out is not None else None
     try:
         for i in range(n):
+            changes.apply(ctl, i)
             d = ctl.decide(
                 float(inputs["t"][i]),
                 inputs["q"][i],

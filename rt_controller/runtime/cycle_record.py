@@ -104,10 +104,12 @@ def cycle_record(
     decision: dict[str, Any],
     predict_ms: float = 0.0,
     f_predict_ms: float = 0.0,
+    param_set: int = 0,
 ) -> dict[str, Any]:
     """One cycle record, fields in the order of ``cycle_schema.json``; ``decision`` comes from
     :func:`decision_fields`; ``predict_ms`` and ``f_predict_ms`` are the ages of the state and
-    of the features the tick compensated."""
+    of the features the tick compensated; ``param_set`` the online parameter set in force
+    (:mod:`rt_controller.runtime.parameters`)."""
     return {
         "tick": tick,
         "t_ns": t_ns,
@@ -132,4 +134,5 @@ def cycle_record(
         "f_stale": f_stale,
         "state_stale": state_stale,
         **decision,
+        "param_set": param_set,
     }

@@ -33,6 +33,7 @@ from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
+from rt_controller.runtime.parameters import ParameterService
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
 from rt_controller.runtime.rehearsal import Rehearsal
@@ -112,6 +113,9 @@ class ControllerDaemon:
         self.features = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
         """The decoder every feature message of the run goes through."""
         self.counters = RunCounters()
+        self.params = ParameterService(cfg)
+        """Online parameter changes: any thread submits, the loop takes them at a tick
+        boundary (:mod:`rt_controller.runtime.parameters`)."""
         self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
         self.loop: ControlLoop | None = None
         self._final_diagnostics: dict[str, Any] | None = None
@@ -192,7 +196,7 @@ class ControllerDaemon:
                 cfg, self.clock, hw, drive, self.counters, self.stop, real_clock=real_clock
             )
         loop = self.loop = ControlLoop(
-            cfg, self.controller, hw, pacer, drive, rec, self.counters, self.clock
+            cfg, self.controller, hw, pacer, drive, rec, self.counters, self.clock, self.params
         )
         if isinstance(pacer, RealtimePacer) and Rehearsal.wanted(cfg):
             pacer.rehearse = Rehearsal(cfg, loop)

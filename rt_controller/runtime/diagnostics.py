@@ -103,8 +103,10 @@ def build(
     controller: dict[str, Any],
     recorder: dict[str, Any],
     final: bool = False,
+    parameters: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """One ``/diagnostics`` record from the components' counters."""
+    """One ``/diagnostics`` record from the components' counters (``parameters``: the online
+    parameter service's accepted/refused/unauthenticated counts, when it runs)."""
     lost = int(recorder.get("dropped", 0)) + int(recorder.get("encode_errors", 0))
     dsp_bad = bool(dsp.get("watchdog_tripped")) or int(controller.get("watchdog_trips", 0)) > 0
     misses = int(controller.get("deadline_misses", 0))
@@ -130,6 +132,10 @@ def build(
             recorder,
         ),
     ]
+    if parameters is not None:
+        rogue = int(parameters.get("unauthenticated", 0))
+        why = f"{rogue} unauthenticated request(s)" if rogue else "no unauthenticated request"
+        status.append(_status("parameters", WARN if rogue else OK, why, parameters))
     return {
         "t_ns": int(t_ns),
         "tick": int(tick),

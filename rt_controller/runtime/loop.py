@@ -28,6 +28,7 @@ from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fi
 from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import Observation, RigHardware
 from rt_controller.runtime.pacers import Pacer, Release
+from rt_controller.runtime.parameters import LAW_KEYS, ParameterService
 
 
 class RuleCall(NamedTuple):
@@ -70,9 +71,12 @@ class ControlLoop:
         recorder: Any,
         counters: RunCounters,
         clock: Clock,
+        params: ParameterService | None = None,
     ) -> None:
         self.cfg, self.controller, self.hw, self.pacer = cfg, controller, hw, pacer
         self.drive, self.recorder, self.counters, self.clock = drive, recorder, counters, clock
+        self.params = params
+        """Online parameter changes, taken at each tick boundary (None: none)."""
         self.last_call: RuleCall | None = None
         """The last tick's rule call (the rehearsal replays it)."""
         self.last_write_delay_us = 0
@@ -80,11 +84,26 @@ class ControlLoop:
 
     def run(self, max_ticks: int | None) -> None:
         for release in self.pacer.releases(max_ticks):
+            if self.params is not None:
+                self.take_parameters(release)
             cycle = self.tick(release)
             if self.pacer.overran(release):
                 self.counters.deadline_misses += 1
                 cycle["deadline_miss"] = True
             self.record(cycle)
+
+    def take_parameters(self, release: Release) -> None:
+        """At the tick boundary, before the tick: the change sets due, judged; an accepted one
+        is in force for the whole of this tick. Each outcome goes to the log."""
+        assert self.params is not None
+        cfg, outcomes = self.params.due(release.index, release.wake_ns)
+        if cfg is not None:
+            keys = {c["key"] for o in outcomes if o.accepted for c in o.changes}
+            self.controller.reconfigure(cfg, law_changed=bool(keys & LAW_KEYS))
+            self.cfg = self.hw.cfg = cfg
+            self.pacer.retune(cfg)
+        for o in outcomes:
+            self.recorder.record_parameters(o.record())
 
     def read(self, release: Release) -> Observation:
         """The read phase: the observation, with the drive state followed to this tick."""
@@ -155,6 +174,7 @@ class ControlLoop:
             decision=fields,
             predict_ms=predict_ms,
             f_predict_ms=f_predict_ms,
+            param_set=0 if self.params is None else self.params.param_set,
         )
 
     def record(self, cycle: dict[str, Any]) -> None:
@@ -177,6 +197,7 @@ class ControlLoop:
             controller=self.counters.controller_block(),
             recorder=recorder,
             final=final,
+            parameters=None if self.params is None else self.params.counters.as_dict(),
         )
 
     def _follow_features(self, f: np.ndarray, t_s: float) -> None:

@@ -104,6 +104,11 @@ class RealtimePacer:
         self._rehearsal_due = False
         self._states_seen = -1
 
+    def retune(self, cfg: RigConfig) -> None:
+        """Run with ``cfg`` (online parameters: the state timeout, the predictions) from the
+        next release on."""
+        self.cfg, self.state_limit_s = cfg, cfg.controller.state_timeout_s
+
     def feature_age_ms(self, feat: FeatureMsg, recv_ns: int, wake_ns: int) -> float:
         """By stamp and by arrival: a future stamp cannot make old data look fresh."""
         return feature_age_ns(wake_ns, feat.stamp_ns, recv_ns) / 1e6
@@ -246,6 +251,11 @@ class LockstepPacer:
         # in integer ns: t_s * 1e9 rounds below k * period_ns at some ticks (4.02 s, ...), and
         # a frame captured at the tick itself came out 5e-13 ms "in the future": stale
         return (self._now_sim_ns - feat.sim_time_ns) / 1e6
+
+    def retune(self, cfg: RigConfig) -> None:
+        """Run with ``cfg`` (online parameters) from the next release on; lockstep's limits
+        are its own."""
+        self.cfg = cfg
 
     def prediction_ms(self, obs: Observation) -> tuple[float, float]:
         """Nothing to bring forward: state and features are sampled at the tick."""

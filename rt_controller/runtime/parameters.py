@@ -172,8 +172,8 @@ PARAMETERS_SCHEMA: dict[str, Any] = {
         },
         "source": {"type": "string", "description": "who asked (front-end and peer)"},
         "request_id": {"type": "string"},
-        "at_tick": {"type": ["integer", "null"], "description": "the tick asked for"},
-        "reason": {"type": ["string", "null"], "description": "why it was refused"},
+        "at_tick": {"type": "integer", "description": "the tick asked for (null: the next)"},
+        "reason": {"type": "string", "description": "why it was refused (null if accepted)"},
         "changes": {
             "type": "array",
             "items": {

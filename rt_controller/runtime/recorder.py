@@ -53,6 +53,7 @@ from mcap.writer import CompressionType, Writer
 from hal.config import RigConfig
 from rt_controller.errors import LogError
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
+from rt_controller.runtime.parameters import PARAMETERS_SCHEMA
 
 log = logging.getLogger(__name__)
 
@@ -61,12 +62,13 @@ CAN_RX_TOPIC = "/hal/can/rx"
 CAN_TX_TOPIC = "/hal/can/tx"
 VISION_TOPIC = "/vision/features"
 DIAGNOSTICS_TOPIC = "/diagnostics"
+PARAMETERS_TOPIC = "/controller/parameters"
 CONFIG_METADATA = "hil.config"
 RUN_METADATA = "hil.run"
 RECORDER_METADATA = "hil.recorder"
 SCHEMA_VERSION = "1"
 
-CYCLE, CAN_RX, CAN_TX, VISION, DIAG = 0, 1, 2, 3, 4
+CYCLE, CAN_RX, CAN_TX, VISION, DIAG, PARAMS = 0, 1, 2, 3, 4, 5
 """Record kinds: the first element of a record item ``(kind, t_ns, obj)``
 (:meth:`CycleRecorder.write`; small ints, cheap to pickle for the recorder process)."""
 TOPICS = {
@@ -75,6 +77,7 @@ TOPICS = {
     CAN_TX: CAN_TX_TOPIC,
     VISION: VISION_TOPIC,
     DIAG: DIAGNOSTICS_TOPIC,
+    PARAMS: PARAMETERS_TOPIC,
 }
 """The topic of each record kind."""
 DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
@@ -299,7 +302,11 @@ class CycleRecorder:
         can = w.register_schema("hil.CanFrame", "jsonschema", encode_json(CAN_SCHEMA))
         vision = w.register_schema("hil.VisionPayload", "jsonschema", encode_json(VISION_SCHEMA))
         diag = w.register_schema("hil.Diagnostics", "jsonschema", encode_json(DIAGNOSTICS_SCHEMA))
+        params = w.register_schema(
+            "hil.ParameterChange", "jsonschema", encode_json(PARAMETERS_SCHEMA)
+        )
         schema_of = {CYCLE: cycle, CAN_RX: can, CAN_TX: can, VISION: vision, DIAG: diag}
+        schema_of[PARAMS] = params
         return {k: w.register_channel(TOPICS[k], "json", schema_of[k]) for k in TOPICS}
 
     def _register_scene_channels(self, scene: Any) -> dict[str, int]:
@@ -324,6 +331,10 @@ class CycleRecorder:
     def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
         """Write one ``/diagnostics`` record (``final``, for the interface, changes nothing)."""
         return self.write(DIAG, int(record["t_ns"]), record)
+
+    def record_parameters(self, record: dict[str, Any]) -> bool:
+        """Write one online parameter change (``/controller/parameters``)."""
+        return self.write(PARAMS, int(record["t_ns"]), record)
 
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
         """Write a python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""

@@ -33,7 +33,15 @@ from typing import Any
 
 from hal.config import RigConfig
 from rt_controller.errors import LogError
-from rt_controller.runtime.recorder import CYCLE, DIAG, DIRECTIONS, TOPICS, VISION, default_run_info
+from rt_controller.runtime.recorder import (
+    CYCLE,
+    DIAG,
+    DIRECTIONS,
+    PARAMS,
+    TOPICS,
+    VISION,
+    default_run_info,
+)
 from rt_controller.runtime.recorder_child import (
     CLOSE,
     COUNTS,
@@ -129,6 +137,14 @@ class RemoteRecorder:
             return False
         self._batch.append((DIAG, int(record["t_ns"]), record))
         return self.send(force=final)
+
+    def record_parameters(self, record: dict[str, Any]) -> bool:
+        """Queue one ``/controller/parameters`` record (sent with the tick's cycle)."""
+        if self._closed:
+            self._dropped += 1
+            return False
+        self._batch.append((PARAMS, int(record["t_ns"]), record))
+        return True
 
     def send(self, *, force: bool = False) -> bool:
         """Hand the records queued since the last send to the child; False if any was
