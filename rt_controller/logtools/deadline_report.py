@@ -207,11 +207,25 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     out["messages"] = dict(log.topic_counts)
     out["recorder_dropped"] = _int_or_none(log.recorder_info.get("dropped"))
     out["diagnostics"] = _final_diagnostics(log)
+    out["parameter_changes"] = [_change(r) for r in log.parameters]
     if out["recorder_dropped"]:
         out["notes"].append(f"the recorder dropped {out['recorder_dropped']} records")
     if n == 0:
         out["notes"].append(f"no {CYCLE_TOPIC} messages in the log")
     return out
+
+
+def _change(rec: dict[str, Any]) -> dict[str, Any]:
+    """One ``/controller/parameters`` record as the report lists it."""
+    items = ", ".join(f"{c['key']} {c['old']} -> {c['new']}" for c in rec.get("changes", []))
+    return {
+        "tick": rec.get("tick"),
+        "accepted": bool(rec.get("accepted")),
+        "param_set": rec.get("param_set"),
+        "source": rec.get("source"),
+        "changes": items,
+        "reason": rec.get("reason"),
+    }
 
 
 def _final_diagnostics(log: LoadedLog) -> dict[str, Any] | None:
@@ -349,6 +363,16 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
                 _fmt(m["missed_periods"]),
             )
         con.print(mt)
+
+    changes = report.get("parameter_changes") or []
+    if changes:
+        pt = Table(title="Parameter changes", title_justify="left")
+        for col in ("tick", "set", "", "changes", "source"):
+            pt.add_column(col)
+        for c in changes:
+            verdict = "accepted" if c["accepted"] else f"refused: {c['reason']}"
+            pt.add_row(str(c["tick"]), str(c["param_set"]), verdict, c["changes"], c["source"])
+        con.print(pt)
 
     hist = report["lateness_histogram"]
     if hist:

@@ -9,6 +9,7 @@ import pytest
 
 import rt_controller.runtime.daemon as daemon_mod
 from hal.config import load_config
+from rt_controller.logtools.deadline_report import summarize
 from rt_controller.logtools.replay import replay_loaded
 from rt_controller.runtime.parameters import Request
 from tests.controller.test_daemon_fake_clock import run_daemon
@@ -64,6 +65,8 @@ def test_kp_change_takes_effect_at_its_tick_is_logged_and_replays(tmp_path, cfg)
     assert summary["J"] != base["J"]
     result = replay_loaded(log, tol=1e-9)
     assert result.ok, result.failure_line()
+    (listed,) = summarize(log)["parameter_changes"]
+    assert listed["tick"] == t0 + 100 and listed["changes"] == "gains.kp 0.13 -> 0.3"
     final = log.diagnostics[-1]
     params = next(s for s in final["status"] if s["name"] == "parameters")
     assert params["values"] == {"accepted": 1, "refused": 0, "unauthenticated": 0}
