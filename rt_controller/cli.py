@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "vision",
     "controller",
     "monitor",
+    "param",
     "simulate",
     "replay",
     "report",

@@ -33,6 +33,7 @@ from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
+from rt_controller.runtime.param_link import ParameterServer
 from rt_controller.runtime.parameters import ParameterService
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
@@ -203,10 +204,20 @@ class ControllerDaemon:
         if opts.live:  # published by the recorder's process, on its own session
             rec.stream_live()
         hw.attach(session, callback=pacer.features_by_callback)
+        tuning = self._serve_parameters(session)
         try:
             self._start_and_loop(hw, loop, needs_features=not pacer.features_by_callback)
         finally:
+            if tuning is not None:
+                tuning.undeclare()
             hw.detach()
+
+    def _serve_parameters(self, session: Any) -> Any:
+        """The ``hil param`` queryable on the run's zenoh session (None on a stand-in
+        session without zenoh, as in the fake-clock tests)."""
+        if not hasattr(session, "session"):
+            return None
+        return ParameterServer(self.params, rig_key(self.cfg)).attach(session)
 
     def _start_and_loop(self, hw: RigHardware, loop: ControlLoop, *, needs_features: bool) -> None:
         """Warm up, wait for the inputs, lock memory, then the loop; torque off at the end."""

@@ -1,0 +1,122 @@
+"""``hil param``: the running controller's online parameters over zenoh (get, set, dump, load,
+diff), every request signed with the rig key (:mod:`rt_controller.runtime.param_link`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from hal.arguments import add_key_option
+from rt_controller.commands.common import add_config_option
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "param",
+        help="get, set, dump, load or diff the running controller's online parameters",
+        description="Tune the running controller (gains, law, RHC horizon, timeouts: the keys "
+        "of `hil param get`). A change set takes effect at one tick boundary or not at all; "
+        "the answer names the tick. Every change, accepted or refused, is in the run's log "
+        "(/controller/parameters). dump/load use the config's TOML, so a tuned set is the "
+        "next run's --config.",
+    )
+    p.add_argument("action", choices=("get", "set", "dump", "load", "diff"))
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="ARG",
+        help="get: keys (default all); set: KEY=VALUE (JSON values, else strings); "
+        "load/diff: a TOML file (diff: compared with the running set)",
+    )
+    p.add_argument(
+        "--at-tick", type=int, metavar="K", help="set/load: take effect at the first tick >= K"
+    )
+    p.add_argument("--timeout", type=float, default=10.0, metavar="S", help="answer wait")
+    p.add_argument("-o", "--out", metavar="FILE", help="dump: write the TOML here")
+    p.add_argument("--json", action="store_true", help="print the answer as JSON")
+    add_config_option(p)
+    p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
+    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (multi-host)")
+    add_key_option(p)
+    p.set_defaults(handler=run)
+
+
+def _changes_of_file(path: str, running: dict[str, Any]) -> dict[str, Any]:
+    """The tunable keys whose values in the TOML file ``path`` differ from ``running``."""
+    from hal.config import load_config
+    from rt_controller.runtime.parameters import tunable_values
+
+    wanted = tunable_values(load_config(path))
+    return {k: v for k, v in wanted.items() if running.get(k) != v}
+
+
+def run(args: argparse.Namespace) -> int:
+    from hal.config import load_config
+    from hal.secoc import configure_key, rig_key
+    from hal.signals import stop_on_signals
+    from hal.zenoh_session import open_session
+    from rt_controller.commands.replay import parse_sets
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.runtime.param_link import outcome_line, request
+
+    cfg = configure_key(load_config(args.config), args.key_file, "hil param")
+    if args.action in ("load", "diff") and len(args.items) != 1:
+        raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
+    if args.action == "set" and not args.items:
+        raise ControllerConfigError("hil param set expects KEY=VALUE ...")
+    key = rig_key(cfg)
+    with stop_on_signals() as stop:
+        session = open_session(
+            cfg,
+            listen=False,
+            endpoint=args.zenoh_endpoint,
+            config_file=args.zenoh_config,
+            stop_event=stop,
+        )
+        try:
+
+            def ask(op: str, **kw: Any) -> dict[str, Any]:
+                return request(session, key, op, timeout_s=args.timeout, **kw)
+
+            if args.action == "dump":
+                out = ask("dump")
+                if args.out:
+                    with open(args.out, "w", encoding="utf-8") as fh:
+                        fh.write(out["toml"])
+                else:
+                    sys.stdout.write(out["toml"])
+                return 0
+            got = ask("get")
+            if args.action == "get":
+                values = got["values"]
+                shown = {k: values[k] for k in args.items if k in values} if args.items else values
+                if args.json:
+                    print(json.dumps({"param_set": got["param_set"], "values": shown}))
+                else:
+                    for k, v in shown.items():
+                        print(f"{k} = {json.dumps(v)}")
+                return 0
+            if args.action == "diff":
+                changes = _changes_of_file(args.items[0], got["values"])
+                for k, v in changes.items():
+                    print(f"{k}: running {json.dumps(got['values'][k])}, file {json.dumps(v)}")
+                return 0
+            if args.action == "load":
+                changes = _changes_of_file(args.items[0], got["values"])
+                if not changes:
+                    print("hil param: nothing to change", file=sys.stderr)
+                    return 0
+            else:
+                changes = parse_sets(args.items)
+            out = ask(
+                "set", changes=changes, at_tick=args.at_tick, source=f"hil param {args.action}"
+            )
+        finally:
+            session.close()
+    if args.json:
+        print(json.dumps(out["outcome"]))
+    else:
+        print(f"hil param: {outcome_line(out)}", file=sys.stderr)
+    return 0 if out["outcome"]["accepted"] else 1

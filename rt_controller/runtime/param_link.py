@@ -1,0 +1,194 @@
+"""The online parameters over zenoh: a queryable on ``hil/controller/parameters`` in the
+controller process and the client of ``hil param``, both authenticated with the rig key.
+
+Wire format: a request or a reply is a JSON object followed by a 32-byte HMAC-SHA256 tag with a
+key derived from the rig key (:func:`hal.secoc.derive`; one label per direction). A request
+carries ``op`` (``get``, ``dump`` or ``set``), for ``set`` the ``changes`` and ``at_tick``, a
+``source``, a random ``nonce`` and its wall-clock time ``t_unix_ns``: the controller refuses a
+request whose tag does not verify, whose time is more than :data:`FRESHNESS_S` away from its
+own, or whose nonce it has seen (a replayed request). Such attempts change nothing and are
+counted (``unauthenticated`` in the ``parameters`` component of ``/diagnostics``). A reply
+repeats the request's nonce under the reply tag, so the client knows the rig answered *its*
+request.
+
+``get`` and ``dump`` are answered on zenoh's thread from the configuration in force (an
+immutable snapshot); ``set`` is queued (:class:`~rt_controller.runtime.parameters.ParameterService`)
+and answered by the control thread at the tick it was judged.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
+
+from hal.secoc import Mac, derive
+from hal.zenoh_session import KEY_CONTROLLER_PARAMETERS
+from rt_controller.config_rules import config_toml
+from rt_controller.errors import ControllerError
+from rt_controller.runtime.parameters import (
+    Outcome,
+    ParameterService,
+    Request,
+    finite_tick,
+    tunable_values,
+)
+
+TAG_SIZE = 32
+FRESHNESS_S = 30.0
+"""How far a request's time may be from the controller's (both on this host's wall clock)."""
+REQUEST_LABEL, REPLY_LABEL = "hil-param-request", "hil-param-reply"
+OPS = ("get", "dump", "set")
+
+
+class ParameterLinkError(ControllerError):
+    """No answer, a refused request or an answer that does not verify."""
+
+
+def seal(body: dict[str, Any], key: bytes, label: str) -> bytes:
+    data = json.dumps(body, sort_keys=True).encode()
+    return data + Mac(derive(key, label), TAG_SIZE).tag1(data)
+
+
+def unseal(payload: bytes, key: bytes, label: str) -> dict[str, Any] | None:
+    """The body of a sealed message; None when its tag does not verify or it is no object."""
+    data, tag = payload[:-TAG_SIZE], payload[-TAG_SIZE:]
+    if len(payload) <= TAG_SIZE or not Mac(derive(key, label), TAG_SIZE).verify(tag, data):
+        return None
+    try:
+        body = json.loads(data)
+    except ValueError:
+        return None
+    return body if isinstance(body, dict) else None
+
+
+class ParameterServer:
+    """The controller's side: :meth:`handle` one request (zenoh's thread)."""
+
+    def __init__(
+        self,
+        service: ParameterService,
+        key: bytes,
+        *,
+        wall_ns: Callable[[], int] = time.time_ns,
+        seen_max: int = 4096,
+    ) -> None:
+        self.service, self.key, self.wall_ns = service, key, wall_ns
+        self._seen: OrderedDict[str, int] = OrderedDict()
+        self._seen_max = seen_max
+
+    def _fresh(self, body: dict[str, Any]) -> bool:
+        nonce, t = body.get("nonce"), body.get("t_unix_ns")
+        if not isinstance(nonce, str) or not isinstance(t, int) or nonce in self._seen:
+            return False
+        if abs(self.wall_ns() - t) > FRESHNESS_S * 1e9:
+            return False
+        self._seen[nonce] = t
+        while len(self._seen) > self._seen_max:
+            self._seen.popitem(last=False)
+        return True
+
+    def handle(self, payload: bytes, reply: Callable[[bytes | None], None]) -> None:
+        """Judge one request; ``reply(bytes)`` is called once (``reply(None)`` for a request
+        that is not the rig's: it gets no answer it could learn from)."""
+        body = unseal(payload, self.key, REQUEST_LABEL)
+        if body is None or not self._fresh(body) or body.get("op") not in OPS:
+            self.service.unauthenticated()
+            reply(None)
+            return
+        nonce, op = body["nonce"], body["op"]
+
+        def answer(out: dict[str, Any]) -> None:
+            reply(seal({"nonce": nonce, "op": op, **out}, self.key, REPLY_LABEL))
+
+        svc = self.service
+        if op == "get":
+            answer({"param_set": svc.param_set, "values": tunable_values(svc.cfg)})
+        elif op == "dump":
+            header = f"hil param dump: parameter set {svc.param_set}"
+            answer({"param_set": svc.param_set, "toml": config_toml(svc.cfg, header=header)})
+        else:
+            changes = body.get("changes")
+            if not isinstance(changes, dict):
+                changes = {}
+            source = str(body.get("source", "hil param"))[:200]
+            svc.submit(
+                Request(
+                    changes,
+                    source=source,
+                    at_tick=finite_tick(body.get("at_tick")),
+                    request_id=nonce,
+                    reply=lambda o: answer({"outcome": o.record()}),
+                )
+            )
+
+    def attach(self, session: Any) -> Any:
+        """Declare the queryable on an open :class:`~hal.zenoh_session.ZenohSession`."""
+
+        def on_query(query: Any) -> None:
+            def reply(data: bytes | None) -> None:
+                try:
+                    if data is not None:
+                        query.reply(query.key_expr, data)
+                finally:
+                    query.drop()
+
+            try:
+                self.handle(query.payload.to_bytes() if query.payload else b"", reply)
+            except Exception:  # never raise into zenoh
+                query.drop()
+
+        return session.session.declare_queryable(KEY_CONTROLLER_PARAMETERS, on_query)
+
+
+def request(
+    session: Any,
+    key: bytes,
+    op: str,
+    *,
+    changes: dict[str, Any] | None = None,
+    at_tick: int | None = None,
+    source: str = "hil param",
+    timeout_s: float = 10.0,
+) -> dict[str, Any]:
+    """One request to the controller (``op`` in :data:`OPS`); its verified answer.
+    :class:`ParameterLinkError` when none comes within ``timeout_s``."""
+    nonce = secrets.token_hex(16)
+    body: dict[str, Any] = {"op": op, "nonce": nonce, "t_unix_ns": time.time_ns(), "source": source}
+    if op == "set":
+        body.update(changes=changes or {}, at_tick=at_tick)
+    payload = seal(body, key, REQUEST_LABEL)
+    for r in session.session.get(KEY_CONTROLLER_PARAMETERS, payload=payload, timeout=timeout_s):
+        if r.ok is None:
+            continue
+        out = unseal(r.ok.payload.to_bytes(), key, REPLY_LABEL)
+        if out is not None and out.get("nonce") == nonce:
+            return out
+    raise ParameterLinkError(
+        f"no answer from the controller on {KEY_CONTROLLER_PARAMETERS} within {timeout_s:g} s "
+        "(is it running, on this zenoh endpoint, with the same rig key?)"
+    )
+
+
+def outcome_line(out: dict[str, Any]) -> str:
+    """One line for an outcome record."""
+    o = out["outcome"]
+    items = ", ".join(f"{c['key']} {c['old']} -> {c['new']}" for c in o["changes"])
+    if o["accepted"]:
+        return f"accepted at tick {o['tick']} (parameter set {o['param_set']}): {items}"
+    return f"refused at tick {o['tick']}: {o['reason']}"
+
+
+__all__ = [
+    "FRESHNESS_S",
+    "Outcome",
+    "ParameterLinkError",
+    "ParameterServer",
+    "outcome_line",
+    "request",
+    "seal",
+    "unseal",
+]

@@ -1,0 +1,65 @@
+"""The online parameters' wire (rt_controller/runtime/param_link.py): only the rig's key tunes
+the rig, a replayed request is refused, and both are counted."""
+
+from __future__ import annotations
+
+import secrets
+import time
+
+from hal.config import RigConfig
+from rt_controller.runtime.param_link import (
+    REPLY_LABEL,
+    REQUEST_LABEL,
+    ParameterServer,
+    seal,
+    unseal,
+)
+from rt_controller.runtime.parameters import ParameterService
+
+KEY = bytes(range(32))
+
+
+def _request(op, key=KEY, **kw):
+    body = {"op": op, "nonce": secrets.token_hex(16), "t_unix_ns": time.time_ns(), **kw}
+    return seal(body, key, REQUEST_LABEL)
+
+
+def _serve(server, payload):
+    got = []
+    server.handle(payload, got.append)
+    return got
+
+
+def test_get_and_set_with_the_rig_key():
+    svc = ParameterService(RigConfig())
+    server = ParameterServer(svc, KEY)
+    (reply,) = _serve(server, _request("get"))
+    out = unseal(reply, KEY, REPLY_LABEL)
+    assert out["values"]["gains.kp"] == 0.13 and out["param_set"] == 0
+    (dump,) = _serve(server, _request("dump"))
+    assert "[gains]" in unseal(dump, KEY, REPLY_LABEL)["toml"]
+    replies = _serve(server, _request("set", changes={"gains.kp": 0.2}, at_tick=3))
+    assert replies == []  # answered by the control thread at the tick
+    cfg, (outcome,) = svc.due(3)
+    assert cfg.gains.kp == 0.2 and outcome.tick == 3 and outcome.accepted
+    (reply,) = replies
+    assert unseal(reply, KEY, REPLY_LABEL)["outcome"]["tick"] == 3
+
+
+def test_another_key_a_replay_or_an_old_request_changes_nothing_and_is_counted():
+    svc = ParameterService(RigConfig())
+    server = ParameterServer(svc, KEY)
+    assert _serve(server, _request("set", key=bytes(32), changes={"gains.kp": 0.2})) == [None]
+    ok = _request("set", changes={"gains.kp": 0.3})
+    _serve(server, ok)
+    assert _serve(server, ok) == [None]  # the same nonce again
+    old = seal(
+        {"op": "set", "nonce": "ab", "t_unix_ns": time.time_ns() - 10**12, "changes": {}},
+        KEY,
+        REQUEST_LABEL,
+    )
+    assert _serve(server, old) == [None]
+    assert _serve(server, b"garbage") == [None]
+    cfg, outs = svc.due(0)
+    assert len(outs) == 1 and cfg.gains.kp == 0.3
+    assert svc.counters.as_dict() == {"accepted": 1, "refused": 0, "unauthenticated": 4}
