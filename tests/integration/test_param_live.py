@@ -20,11 +20,13 @@ from rt_controller.logtools.reader import read_log
 from rt_controller.logtools.replay import replay_loaded
 from tests.support import free_endpoint, hil_command, run_hil, start_hil_up, wait_until
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-RUN = ("--lockstep", "--law", "ioc", "--duration", "30", "--json")
-REFUSED_AT, CHANGED_AT = 1200, 1300
-"""Late enough that the requests (three ``hil param`` processes) arrive before."""
+RUN = ("--lockstep", "--law", "ioc", "--duration", "60", "--json")
+REFUSED_AT, CHANGED_AT = 2400, 2500
+"""Late enough that the requests (three ``hil param`` processes, started once the controller
+answers) arrive before, with seconds to spare on a loaded host: lockstep runs as fast as the
+processes allow, about 130-500 ticks/s here."""
 
 
 def _answers(ep: str) -> bool:
