@@ -130,12 +130,16 @@ class ResultStore:
 
     # -- rows ----------------------------------------------------------------------------
     def add(self, row: dict[str, Any]) -> None:
-        """Record a finished run (a repeated key replaces the earlier row)."""
-        self._journal.write(json.dumps(row, allow_nan=True) + "\n")
-        self._journal.flush()
-        os.fsync(self._journal.fileno())
-        self.rows[row["run_key"]] = row
-        self._dirty = True
+        """Record a finished run (a repeated key replaces the earlier row). A Ctrl-C waits
+        until the row is in both the journal and the table's rows, so the two never differ."""
+        from rt_controller.rig.supervise import signals_deferred
+
+        with signals_deferred():
+            self._journal.write(json.dumps(row, allow_nan=True) + "\n")
+            self._journal.flush()
+            os.fsync(self._journal.fileno())
+            self.rows[row["run_key"]] = row
+            self._dirty = True
         if time.monotonic() - self._last_flush >= FLUSH_S:
             self.flush()
 
