@@ -220,7 +220,7 @@ class ParameterService:
     def due(self, tick: int, t_ns: int = 0) -> tuple[RigConfig | None, list[Outcome]]:
         """Judge the requests due at ``tick`` in arrival order: the new configuration (None when
         nothing was accepted) and one outcome per request judged. Control thread only."""
-        while True:
+        while not self._inbox.empty():  # no exception raised on the usual empty tick
             try:
                 self._waiting.append(self._inbox.get_nowait())
             except queue.Empty:
