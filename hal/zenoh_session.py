@@ -57,7 +57,7 @@ KEY_CONTROLLER_DIAGNOSTICS = "hil/controller/diagnostics"
 """The controller's ``/diagnostics`` JSON records (about 1 Hz and a final one)."""
 KEY_CONTROLLER_PARAMETERS = "hil/controller/parameters"
 """Online parameters, ``hil param`` -> controller: a queryable (get, dump, set), every request
-and reply signed with the rig key (:mod:`rt_controller.runtime.param_link`)."""
+and reply signed with the rig key (:mod:`rt_controller.calibration.link`)."""
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_WAIT_S = 10.0

@@ -1,5 +1,5 @@
 """``hil param``: the running controller's online parameters over zenoh (get, set, dump, load,
-diff), every request signed with the rig key (:mod:`rt_controller.runtime.param_link`)."""
+diff), every request signed with the rig key (:mod:`rt_controller.calibration.link`)."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _changes_of_file(path: str, running: dict[str, Any]) -> dict[str, Any]:
     """The tunable keys whose values in the TOML file ``path`` differ from ``running``."""
     from hal.config import load_config
-    from rt_controller.runtime.parameters import tunable_values
+    from rt_controller.calibration.parameters import tunable_values
 
     wanted = tunable_values(load_config(path))
     return {k: v for k, v in wanted.items() if running.get(k) != v}
@@ -57,9 +57,9 @@ def run(args: argparse.Namespace) -> int:
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
+    from rt_controller.calibration.link import outcome_line, request
     from rt_controller.commands.replay import parse_sets
     from rt_controller.errors import ControllerConfigError
-    from rt_controller.runtime.param_link import outcome_line, request
 
     cfg = configure_key(load_config(args.config), args.key_file, "hil param")
     if args.action in ("load", "diff") and len(args.items) != 1:

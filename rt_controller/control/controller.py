@@ -71,7 +71,7 @@ class Controller:
 
     def reconfigure(self, cfg: RigConfig, *, law_changed: bool = True) -> None:
         """Run from now on with ``cfg``, which differs from the current configuration only in
-        online-tunable keys (:data:`rt_controller.runtime.parameters.TUNABLE`); called between
+        online-tunable keys (:data:`rt_controller.calibration.parameters.TUNABLE`); called between
         two ticks, by the loop and by ``hil replay`` at the same tick.
 
         The model's gains and the law are rebuilt when ``law_changed`` (a new law starts as at

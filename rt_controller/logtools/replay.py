@@ -40,11 +40,11 @@ import numpy as np
 
 from hal.config import RigConfig
 from hal.drive_state import MODE_ENABLED, MODES
+from rt_controller.calibration.parameters import LAW_KEYS, accepted_changes, judge
 from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log
 from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
-from rt_controller.runtime.parameters import LAW_KEYS, accepted_changes, judge
 from rt_controller.runtime.recorder import CycleRecorder
 
 

@@ -109,7 +109,7 @@ def cycle_record(
     """One cycle record, fields in the order of ``cycle_schema.json``; ``decision`` comes from
     :func:`decision_fields`; ``predict_ms`` and ``f_predict_ms`` are the ages of the state and
     of the features the tick compensated; ``param_set`` the online parameter set in force
-    (:mod:`rt_controller.runtime.parameters`)."""
+    (:mod:`rt_controller.calibration.parameters`)."""
     return {
         "tick": tick,
         "t_ns": t_ns,

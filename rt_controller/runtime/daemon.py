@@ -25,6 +25,8 @@ from hal.joint_client import JointClient
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder
 from hal.zenoh_session import ZenohSession, open_session
+from rt_controller.calibration.link import ParameterServer
+from rt_controller.calibration.parameters import ParameterService
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
@@ -33,8 +35,6 @@ from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
-from rt_controller.runtime.param_link import ParameterServer
-from rt_controller.runtime.parameters import ParameterService
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
 from rt_controller.runtime.rehearsal import Rehearsal
@@ -116,7 +116,7 @@ class ControllerDaemon:
         self.counters = RunCounters()
         self.params = ParameterService(cfg)
         """Online parameter changes: any thread submits, the loop takes them at a tick
-        boundary (:mod:`rt_controller.runtime.parameters`)."""
+        boundary (:mod:`rt_controller.calibration.parameters`)."""
         self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
         self.loop: ControlLoop | None = None
         self._final_diagnostics: dict[str, Any] | None = None

@@ -20,6 +20,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hal.config import RigConfig
+from rt_controller.calibration.parameters import LAW_KEYS, ParameterService
 from rt_controller.control.controller import Controller, Decision
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock
@@ -28,7 +29,6 @@ from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fi
 from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import Observation, RigHardware
 from rt_controller.runtime.pacers import Pacer, Release
-from rt_controller.runtime.parameters import LAW_KEYS, ParameterService
 
 
 class RuleCall(NamedTuple):

@@ -51,9 +51,9 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from hal.config import RigConfig
+from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
 from rt_controller.errors import LogError
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
-from rt_controller.runtime.parameters import PARAMETERS_SCHEMA
 
 log = logging.getLogger(__name__)
 

@@ -175,6 +175,21 @@ def test_offline_log_layers_stay_below_the_commands():
     assert not offenders, offenders
 
 
+def test_calibration_stays_below_the_loop_and_the_log_tools():
+    graph = import_graph()
+    above = (
+        "rt_controller.runtime",
+        "rt_controller.logtools",
+        "rt_controller.commands",
+        "rt_controller.rig",
+        "rt_controller.cli",
+    )
+    calibration = [m for m in graph if m.startswith("rt_controller.calibration")]
+    assert calibration, "the calibration package moved: update this test"
+    offenders = [(m, d) for m in calibration for d in graph[m] if d.startswith(above)]
+    assert not offenders, offenders
+
+
 def top_level_imports(path: Path) -> set[str]:
     """Modules imported when ``path`` is loaded: its top-level statements (and those nested in
     top-level ``if``/``try`` blocks), except under ``if TYPE_CHECKING:``."""

@@ -1,4 +1,4 @@
-"""The online parameters' wire (rt_controller/runtime/param_link.py): only the rig's key tunes
+"""The online parameters' wire (rt_controller/calibration/link.py): only the rig's key tunes
 the rig, a replayed request is refused, and both are counted."""
 
 from __future__ import annotations
@@ -7,14 +7,14 @@ import secrets
 import time
 
 from hal.config import RigConfig
-from rt_controller.runtime.param_link import (
+from rt_controller.calibration.link import (
     REPLY_LABEL,
     REQUEST_LABEL,
     ParameterServer,
     seal,
     unseal,
 )
-from rt_controller.runtime.parameters import ParameterService
+from rt_controller.calibration.parameters import ParameterService
 
 KEY = bytes(range(32))
 

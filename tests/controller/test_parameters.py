@@ -1,4 +1,4 @@
-"""The parameter layer's judging rules and hand-over (rt_controller/runtime/parameters.py)."""
+"""The parameter layer's judging rules and hand-over (rt_controller/calibration/parameters.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from hal.config import RigConfig
-from rt_controller.control.controller import Controller
-from rt_controller.runtime.parameters import (
+from rt_controller.calibration.parameters import (
     TUNABLE,
     ParameterRefused,
     ParameterService,
@@ -18,6 +17,7 @@ from rt_controller.runtime.parameters import (
     judge,
     refusal,
 )
+from rt_controller.control.controller import Controller
 
 
 def test_tunable_keys_are_config_keys_and_others_are_refused_with_reason():

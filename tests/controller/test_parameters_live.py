@@ -9,9 +9,9 @@ import pytest
 
 import rt_controller.runtime.daemon as daemon_mod
 from hal.config import load_config
+from rt_controller.calibration.parameters import Request
 from rt_controller.logtools.deadline_report import summarize
 from rt_controller.logtools.replay import replay_loaded
-from rt_controller.runtime.parameters import Request
 from tests.controller.test_daemon_fake_clock import run_daemon
 
 

@@ -12,7 +12,8 @@ repeats the request's nonce under the reply tag, so the client knows the rig ans
 request.
 
 ``get`` and ``dump`` are answered on zenoh's thread from the configuration in force (an
-immutable snapshot); ``set`` is queued (:class:`~rt_controller.runtime.parameters.ParameterService`)
+immutable snapshot); ``set`` is queued
+(:class:`~rt_controller.calibration.parameters.ParameterService`)
 and answered by the control thread at the tick it was judged.
 """
 
@@ -27,15 +28,15 @@ from typing import Any
 
 from hal.secoc import Mac, derive
 from hal.zenoh_session import KEY_CONTROLLER_PARAMETERS
-from rt_controller.config_rules import config_toml
-from rt_controller.errors import ControllerError
-from rt_controller.runtime.parameters import (
+from rt_controller.calibration.parameters import (
     Outcome,
     ParameterService,
     Request,
     finite_tick,
     tunable_values,
 )
+from rt_controller.config_rules import config_toml
+from rt_controller.errors import ControllerError
 
 TAG_SIZE = 32
 FRESHNESS_S = 30.0
