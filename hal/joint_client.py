@@ -1,19 +1,13 @@
 """Controller-side joint I/O client: the rt_controller's only door to the DSP.
 
-The client has no thread of its own: the caller's thread reads the bus. The controller's control
-thread reads its inputs itself as part of the tick, so no other Python thread runs in the control
-process (none to take the GIL from it, none whose wake-up lands in the tick). Three calls read:
-
-* :meth:`JointClient.drain` takes every frame waiting on the bus, without blocking;
-* :meth:`JointClient.wait_sync` reads until the DSP's next lockstep Sync;
-* :meth:`JointClient.reset_scenario` reads until the DSP confirms a new scenario;
-
-and :meth:`JointClient.wait_readable` blocks until a frame waits, without reading it. Each frame
-goes through :class:`~hal.can_codec.ControllerCodec` (E2E and SecOC check, DBC decode) and updates
-the latest joint state (a JointPosition/JointVelocity pair of one DSP sample, stamped on
-arrival), the latest :class:`DspStatus` (and the backlog :meth:`JointClient.take_statuses` hands
-over) and the latest :class:`Sync` tick, which the other methods read without blocking. One
-thread uses a client at a time.
+The client has no thread of its own: the caller's thread reads the bus (the controller's control
+thread, as part of the tick, so no other Python thread runs in the control process).
+:meth:`JointClient.drain` takes every frame waiting without blocking, :meth:`JointClient.wait_sync`
+reads until the DSP's next lockstep Sync, :meth:`JointClient.reset_scenario` until the DSP
+confirms a new scenario; :meth:`JointClient.wait_readable` blocks until a frame waits. Each frame
+goes through :class:`~hal.can_codec.ControllerCodec` (E2E and SecOC check, DBC decode) and
+updates the latest joint state, DspStatus (and the backlog of :meth:`JointClient.take_statuses`)
+and Sync tick. One thread uses a client at a time.
 
 Typical use::
 
@@ -24,8 +18,7 @@ Typical use::
         state = dsp.latest_state()                 # HalTimeoutError when the DSP went silent
         dsp.send_torque(tau[0], tau[1], tick=tick)
 
-``close()`` (idempotent) disarms the DSP if this client armed it and, for a client made by
-:meth:`JointClient.open`, shuts the bus down.
+``close()`` (idempotent) disarms the DSP if this client armed it and shuts down a bus it owns.
 """
 
 from __future__ import annotations
@@ -52,7 +45,7 @@ from hal.can_codec import (
 )
 from hal.config import RigConfig
 from hal.drive_state import DriveState
-from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS, E2EStats
+from hal.e2e import DEFAULT_REINIT_AFTER_NS, E2EStats
 from hal.errors import HalError, HalTimeoutError, HalTransportError
 from hal.resources import release, track
 from hal.secoc import rig_key
@@ -83,17 +76,6 @@ class ClientStats:
     hook_errors: int
     """Exceptions raised by ``frame_hook`` (logged once, swallowed)."""
 
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "e2e": self.e2e.as_dict(),
-            "frames": self.frames,
-            "states": self.states,
-            "syncs": self.syncs,
-            "statuses": self.statuses,
-            "transport_errors": self.transport_errors,
-            "hook_errors": self.hook_errors,
-        }
-
 
 class JointClient:
     """Latest joint state, DSP status and Sync tick; torque and enable/disable commands.
@@ -116,7 +98,6 @@ class JointClient:
         frame_hook: FrameHook | None = None,
         tx_hook: FrameHook | None = None,
         owns_bus: bool = False,
-        max_delta: int = DEFAULT_MAX_DELTA,
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
         key: bytes | None = None,
     ) -> None:
@@ -126,9 +107,7 @@ class JointClient:
         self.tx_hook = tx_hook
         self._owns_bus = owns_bus
         self._key = key if key is not None else rig_key(self.cfg)
-        self._codec = ControllerCodec(
-            max_delta=max_delta, reinit_after_s=reinit_after_s, key=self._key
-        )
+        self._codec = ControllerCodec(reinit_after_s=reinit_after_s, key=self._key)
         self._shadow: ControllerCodec | None = None
         """The codec :meth:`rehearse_torque` encodes with (its counters are its own)."""
         self._closed = False
@@ -168,12 +147,12 @@ class JointClient:
         """Disarm the DSP if this client armed it, release an owned bus."""
         if self._closed:
             return
-        self._closed = True
         if self._armed:
             try:
-                self._send_disable(closing=True)
+                self.disable()
             except HalError as exc:
                 log.warning("could not disarm the DSP on close: %s", exc)
+        self._closed = True
         if self._owns_bus:
             self.bus.shutdown()
         release(self)
@@ -190,10 +169,8 @@ class JointClient:
 
     # ------------------------------------------------------------------------------ send
 
-    def _send(
-        self, make: Callable[[ControllerCodec], can.Message], *, closing: bool = False
-    ) -> None:
-        if self._closed and not closing:
+    def _send(self, make: Callable[[ControllerCodec], can.Message]) -> None:
+        if self._closed:
             raise HalError("JointClient is closed")
         msg = make(self._codec)
         try:
@@ -216,13 +193,10 @@ class JointClient:
         """Send a TorqueCommand (counter + CRC); ``tick`` defaults to the latest Sync tick.
 
         Realtime callers pass ``release_delay_us`` instead: how long after the controller's
-        release (its tick) this command leaves, carried in ``Tick`` (saturated at 65535), so the
-        DSP learns the controller's cycle from the release and not from when commands happen to
-        arrive (a tick that waited for its input would otherwise move it).
-
-        The Enable bit follows :meth:`enable`/:meth:`disable`; ``enable=False`` sends a frame
-        that keeps the command stream cyclic (the watchdog sees it) without applying torque,
-        as while arming. Raises :class:`~hal.errors.HalCodecError` for NaN/inf and
+        release this command leaves, carried in ``Tick`` (saturated at 65535), so the DSP learns
+        the controller's cycle from its releases, not from when commands arrive. The Enable bit
+        follows :meth:`enable`/:meth:`disable`; ``enable=False`` keeps the command stream cyclic
+        without applying torque (arming). :class:`~hal.errors.HalCodecError` for NaN/inf,
         :class:`HalTransportError` when the bus refuses the frame.
         """
         if release_delay_us is not None:
@@ -233,25 +207,14 @@ class JointClient:
         self._send(lambda c: c.encode_torque(tau1, tau2, enable=on, tick=tick))
 
     def enable(self, *, reset_fault: bool = True) -> None:
-        """Arm the DSP: DspControl ENABLE (drive state -> OPERATION_ENABLED).
-
-        With ``reset_fault`` (the default, the behaviour the controller had before the drive
-        state machine: "arm and clear a watchdog trip") a FAULT_RESET goes first, so a DSP in
-        FAULT is armed too; ``reset_fault=False`` leaves a faulted DSP in FAULT (ENABLE is
-        refused there), for callers that decide about faults themselves.
-
-        Each command is sent twice with consecutive counters so that a receiver that has to
-        resynchronise on the first one (e.g. after a controller restart) still accepts the
-        second.
-        """
+        """Arm the DSP: DspControl ENABLE (drive state -> OPERATION_ENABLED), after a
+        FAULT_RESET with ``reset_fault`` (so a DSP in FAULT is armed too; without, ENABLE is
+        refused there). Each command goes twice with consecutive counters, so a receiver that
+        resynchronises on the first still accepts the second."""
         self._armed = True
         if reset_fault:
             self.send_command(DspCommand.FAULT_RESET)
         self.send_command(DspCommand.ENABLE)
-
-    def fault_reset(self) -> None:
-        """DspControl FAULT_RESET (twice): FAULT -> SWITCH_ON_DISABLED; no torque until ENABLE."""
-        self.send_command(DspCommand.FAULT_RESET)
 
     def send_command(
         self, command: DspCommand, *, repeat: int = 2, seed: int | None = None
@@ -265,27 +228,17 @@ class JointClient:
     def disable(self) -> None:
         """Remove torque: DspControl DISABLE (twice) and a zero TorqueCommand with Enable=0."""
         self._armed = False
-        self._send_disable()
-
-    def _send_disable(self, *, closing: bool = False) -> None:
-        self._armed = False
-        for _ in range(2):
-            self._send(lambda c: c.encode_control(DspCommand.DISABLE), closing=closing)
+        self.send_command(DspCommand.DISABLE)
         tick = self._sync_tick or 0
-        self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick), closing=closing)
+        self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick))
 
     def reset_scenario(self, timeout_s: float, *, seed: int | None = None) -> DspStatus:
         """Against an emulated lockstep DSP that is not armed: DspControl RESET_SCENARIO, then
         read the bus until the DspStatus of the DSP's new session (Tick 0, switch-on disabled)
-        arrives; every joint state, Sync and status received before it is forgotten, so the
-        next run sees only its own inputs. Returns that status.
-
-        ``seed`` (0 .. :data:`~hal.can_codec.SEED_MAX`) is the new run's camera noise seed:
-        the DSP hands it to the vision process with the run's camera poses. None keeps the
-        seed the processes were started with.
-
-        :class:`HalTimeoutError` when no such status comes within ``timeout_s`` (a realtime
-        or real DSP refuses the command; so does one in operation enabled).
+        arrives, and return it; every input received before it is forgotten. ``seed`` (0 ..
+        :data:`~hal.can_codec.SEED_MAX`, None: unchanged) is the new run's camera noise seed.
+        :class:`HalTimeoutError` when no such status comes within ``timeout_s`` (a realtime,
+        real or armed DSP refuses the command).
         """
         old = None if self._status is None else self._status.session
         self.send_command(DspCommand.RESET_SCENARIO, repeat=1, seed=seed)
@@ -315,24 +268,13 @@ class JointClient:
             f"{timeout_s:g} s (only an emulated DSP in lockstep that is not armed resets)"
         )
 
-    @property
-    def armed(self) -> bool:
-        """Whether :meth:`enable` was called (and not :meth:`disable` since)."""
-        return self._armed
-
     def rehearse_torque(
         self, tau1: float, tau2: float, *, release_delay_us: int | None = None
     ) -> None:
-        """Run :meth:`send_torque`'s code for these values without sending anything.
-
-        The frame is encoded, protected and signed by a shadow codec (same database and key,
-        its own rolling counters and freshness values, so the real ones never move), and the
-        bus rehearses its send when it can (:meth:`hal.udp_loopback.LoopbackMulticastBus.
-        rehearse_send`: checked, packed and sent to a private socket, never to the bus). A
-        controller calls it shortly before its release, so that its write phase finds this
-        code warm after a period of sleep. Never raises; a frame the real send would refuse
-        (NaN) is simply not rehearsed.
-        """
+        """Run :meth:`send_torque`'s code for these values without sending anything (to warm
+        it up before a release): a shadow codec (same database and key, its own counters and
+        freshness values) encodes the frame and the bus rehearses its send when it can
+        (:meth:`hal.udp_loopback.LoopbackMulticastBus.rehearse_send`). Never raises."""
         if self._closed:
             return
         tick = 0
@@ -429,16 +371,13 @@ class JointClient:
 
     # ----------------------------------------------------------------------------- read
 
-    def _limit_s(self, max_age_s: float | None) -> float:
-        return self.cfg.controller.state_timeout_s if max_age_s is None else max_age_s
-
     def latest_state(self, max_age_s: float | None = None, now_ns: int | None = None) -> JointState:
         """The newest joint state; :class:`HalTimeoutError` when none is newer than the limit.
 
         ``max_age_s`` defaults to ``cfg.controller.state_timeout_s``; ``now_ns`` (default
         ``time.monotonic_ns()``) is the caller's clock.
         """
-        limit = self._limit_s(max_age_s)
+        limit = self.cfg.controller.state_timeout_s if max_age_s is None else max_age_s
         state = self._state
         now = time.monotonic_ns() if now_ns is None else now_ns
         if state is None:
@@ -508,21 +447,9 @@ class JointClient:
         return (now_ns - self._status_t_ns) * 1e-9
 
     @property
-    def drive_state(self) -> DriveState | None:
-        """DriveState of the latest DspStatus (``None`` before the first one)."""
-        status = self._status
-        return None if status is None else status.drive_state
-
-    @property
     def sync_tick(self) -> int | None:
         """The latest Sync tick (``None`` before the first one)."""
         return self._sync_tick
-
-    def _no_sync(self, timeout: float) -> HalTimeoutError:
-        return HalTimeoutError(
-            f"no Sync from the DSP within {timeout * 1e3:.1f} ms on "
-            f"{self.bus.channel_info} (is the emulator in lockstep mode?)"
-        )
 
     def wait_sync(self, timeout: float) -> int:
         """Read the bus until a Sync arrives that no earlier call returned; its tick.
@@ -535,7 +462,10 @@ class JointClient:
         while self._sync_seq == self._sync_seen:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or self._closed:
-                raise self._no_sync(timeout)
+                raise HalTimeoutError(
+                    f"no Sync from the DSP within {timeout * 1e3:.1f} ms on "
+                    f"{self.bus.channel_info} (is the emulator in lockstep mode?)"
+                )
             msg = self._receive(remaining)
             if msg is not None:
                 self.process_frame(msg)

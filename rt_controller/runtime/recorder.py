@@ -1,9 +1,8 @@
 """The MCAP log of a run: every controller cycle, the raw CAN frames and vision messages.
 
 :class:`CycleRecorder` encodes each record as JSON and writes it at once with mcap's synchronous
-:class:`~mcap.writer.Writer` (zstd chunks); no thread, no queue. In a run it lives in the
-recorder's own process (:mod:`rt_controller.runtime.recorder_child`, fed by
-:mod:`rt_controller.runtime.recorder_process`); ``hil replay --out`` and tests use it directly.
+:class:`~mcap.writer.Writer` (zstd chunks). In a run it lives in the recorder's own process
+(:mod:`rt_controller.runtime.recorder_process`); ``hil replay --out`` and tests use it directly.
 
 ==================== ======================== ================================================
 topic (JSON)         JSON Schema              one message per
@@ -16,19 +15,12 @@ topic (JSON)         JSON Schema              one message per
 ==================== ======================== ================================================
 
 ``log_time`` is the record's monotonic time shifted to the Unix epoch (the offset is in the
-``hil.run`` metadata); ``t_ns`` inside the messages stays the loop's monotonic clock. Extras:
-``live`` gets the topic and JSON bytes of each cycle and diagnostics record (published on zenoh
-as ``hil/controller/cycle`` and ``.../diagnostics``); ``scene``
-(:mod:`rt_controller.monitor.scene`) draws every ``scene.every``-th cycle on protobuf channels
-(``/tf``, ``/scene/arm``, ``/camera/...``).
-
-Metadata: ``hil.config`` (key ``json``: :meth:`hal.config.RigConfig.to_json`), ``hil.run`` (law,
-rate, clock, start time, host, versions, the caller's ``run_info``) and, at a clean close,
-``hil.recorder`` (counters). Durability: the first record ``flush_interval_s`` after the last
-flush closes the chunk in progress and flushes the file to the OS (the recorder process also
-calls :meth:`CycleRecorder.flush_if_due` while it waits), so a SIGKILLed writer loses about
-``flush_interval_s`` at most; finished chunks stay readable
-(:func:`rt_controller.logtools.reader.read_log`).
+``hil.run`` metadata). ``live`` gets the topic and JSON bytes of each cycle and diagnostics
+record (for zenoh); ``scene`` (:mod:`rt_controller.monitor.scene`) draws every
+``scene.every``-th cycle on protobuf channels. Metadata: ``hil.config``, ``hil.run`` and, at a
+clean close, ``hil.recorder`` (counters). The first record ``flush_interval_s`` after the last
+flush closes the chunk and flushes the file to the OS, so a SIGKILLed writer loses about that
+much at most.
 """
 
 from __future__ import annotations
@@ -45,7 +37,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Self
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
@@ -222,8 +214,62 @@ def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, st
     }
 
 
-class CycleRecorder:
-    """Context manager that writes controller cycles and raw inputs into an MCAP file.
+class Recorder:
+    """What both recorders share: the ``record_*`` calls of the loop, each one record item
+    ``(kind, t_ns, obj)`` for :meth:`write`, and the context manager (``__exit__`` raises a log
+    that ended early as :class:`LogError`)."""
+
+    path: Path
+    closed = False
+    error: Any = None
+
+    written: int
+    write: Callable[..., bool]
+    """``write(kind, t_ns, obj, final=False)``: record one item; False if it was not (counted;
+    ``final``: the run's last)."""
+    close: Callable[[], None]
+
+    def record_cycle(self, record: dict[str, Any]) -> bool:
+        """One tick (a dict with the fields of ``cycle_schema.json``)."""
+        t_ns = record.get("t_ns")
+        return self.write(CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record)
+
+    def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
+        """One ``/diagnostics`` record (``final``: the run's last, with its totals)."""
+        return self.write(DIAG, int(record["t_ns"]), record, final)
+
+    def record_parameters(self, record: dict[str, Any]) -> bool:
+        """One online parameter change (``/controller/parameters``)."""
+        return self.write(PARAMS, int(record["t_ns"]), record)
+
+    def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
+        """A python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
+        kind = DIRECTIONS.get(direction)
+        if kind is None:
+            raise LogError(f"CAN direction must be 'rx' or 'tx', got {direction!r}")
+        return self.write(kind, t_ns, msg)
+
+    def record_vision(self, payload: bytes, t_ns: int) -> bool:
+        """A raw vision payload received at ``t_ns``."""
+        return self.write(VISION, t_ns, payload)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close()
+        err = self.error
+        if err is not None and exc_type is None:
+            cause = err if isinstance(err, BaseException) else None
+            raise LogError(f"MCAP log {self.path} is incomplete: {err}") from cause
+
+    def __repr__(self) -> str:
+        state = "closed" if self.closed else "open"
+        return f"{type(self).__name__}({str(self.path)!r}, {state}, written={self.written})"
+
+
+class CycleRecorder(Recorder):
+    """Writes controller cycles and raw inputs into an MCAP file.
 
     Args:
         path: the ``.mcap`` file to create (parent folders are created).
@@ -233,11 +279,14 @@ class CycleRecorder:
         chunk_size: a chunk is also closed when it grows past this many bytes.
         live, scene: see the module docstring.
 
-    ``record_*`` write before they return (True) and never raise for a record: one that cannot
-    be encoded counts in ``encode_errors``, one after :meth:`close` or a write failure in
-    ``dropped`` (False). A write failure (disk full...) ends the log and stays in :attr:`error`
-    (``__exit__`` raises it as :class:`LogError`). Not thread-safe: one thread records and closes.
+    Records are written before ``record_*`` returns (True) and never raise: one that cannot be
+    encoded counts in ``encode_errors``, one after :meth:`close` or a write failure in
+    ``dropped``. A write failure (disk full...) ends the log and stays in :attr:`error`. Not
+    thread-safe: one thread records and closes.
     """
+
+    pending = 0
+    """Records not written yet: always 0 (written at once)."""
 
     def __init__(
         self,
@@ -254,21 +303,20 @@ class CycleRecorder:
             raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
         self.path = Path(path)
         self.flush_interval_s = float(flush_interval_s)
-        self._closed = False  # records are refused once set
-        self._finished = False
+        self.closed = False  # records are refused once set
+        self.finished = False
+        """The file has its summary and footer (a clean close)."""
+        self.dropped = 0
+        self.encode_errors = 0
+        self.error: BaseException | None = None
         self._dirty = False  # messages since the last flush
-        self._dropped = 0
         self._written = dict.fromkeys(TOPICS, 0)
-        self._encode_errors = 0
-        self._error: BaseException | None = None
-        self._live = live
-        self.live_sent = 0  # records handed to the live sink
-        self.live_errors = 0  # exceptions the live sink raised (counted, never propagated)
+        self.live = live
+        """The live sink (None: none); its exceptions are counted, never propagated."""
+        self.live_sent = self.live_errors = 0
         self._scene = scene
         self._scene_every = max(1, int(getattr(scene, "every", 1)))
-        self._scene_channels: dict[str, int] = {}
-        self.scene_written = 0  # scene messages written (not part of as_dict)
-        self.scene_errors = 0
+        self.scene_written = self.scene_errors = 0
         mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
         self._mono_to_unix = unix_ns - mono_ns
         info = default_run_info(cfg, mono_ns, unix_ns)
@@ -278,15 +326,18 @@ class CycleRecorder:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._stream = open(self.path, "wb")  # noqa: SIM115 - closed by close()
-            self._writer = Writer(
+            w = self._writer = Writer(
                 self._stream, chunk_size=chunk_size, compression=CompressionType.ZSTD
             )
-            self._writer.start(profile="", library=f"hil-rt_controller/{info['hil_version']}")
+            w.start(profile="", library=f"hil-rt_controller/{info['hil_version']}")
             self._channels = self._register_channels()
-            if scene is not None:
-                self._scene_channels = self._register_scene_channels(scene)
-            self._writer.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
-            self._writer.add_metadata(RUN_METADATA, info)
+            self._scene_channels: dict[str, int] = {}
+            for topic, cls in scene.schemas().items() if scene is not None else ():
+                schema = cls.get_schema()
+                sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data))
+                self._scene_channels[topic] = w.register_channel(topic, "protobuf", sid)
+            w.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
+            w.add_metadata(RUN_METADATA, info)
             self._stream.flush()
         except BaseException as exc:
             self._close_stream()
@@ -298,67 +349,39 @@ class CycleRecorder:
 
     def _register_channels(self) -> dict[int, int]:
         w = self._writer
-        cycle = w.register_schema("hil.ControllerCycle", "jsonschema", encode_json(cycle_schema()))
-        can = w.register_schema("hil.CanFrame", "jsonschema", encode_json(CAN_SCHEMA))
-        vision = w.register_schema("hil.VisionPayload", "jsonschema", encode_json(VISION_SCHEMA))
-        diag = w.register_schema("hil.Diagnostics", "jsonschema", encode_json(DIAGNOSTICS_SCHEMA))
-        params = w.register_schema(
-            "hil.ParameterChange", "jsonschema", encode_json(PARAMETERS_SCHEMA)
-        )
-        schema_of = {CYCLE: cycle, CAN_RX: can, CAN_TX: can, VISION: vision, DIAG: diag}
-        schema_of[PARAMS] = params
-        return {k: w.register_channel(TOPICS[k], "json", schema_of[k]) for k in TOPICS}
 
-    def _register_scene_channels(self, scene: Any) -> dict[str, int]:
-        w, out = self._writer, {}
-        for topic, cls in scene.schemas().items():
-            schema = cls.get_schema()
-            sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data))
-            out[topic] = w.register_channel(topic, "protobuf", sid)
-        return out
+        def schema(name: str, body: dict[str, Any]) -> int:
+            return w.register_schema(name, "jsonschema", encode_json(body))
+
+        cycle, can = (
+            schema("hil.ControllerCycle", cycle_schema()),
+            schema("hil.CanFrame", CAN_SCHEMA),
+        )
+        schema_of = {
+            CYCLE: cycle,
+            CAN_RX: can,
+            CAN_TX: can,
+            VISION: schema("hil.VisionPayload", VISION_SCHEMA),
+            DIAG: schema("hil.Diagnostics", DIAGNOSTICS_SCHEMA),
+            PARAMS: schema("hil.ParameterChange", PARAMETERS_SCHEMA),
+        }
+        return {k: w.register_channel(TOPICS[k], "json", schema_of[k]) for k in TOPICS}
 
     def set_live(self, sink: Callable[[str, bytes], Any] | None) -> None:
         """Attach (or detach with None) the ``live`` sink."""
-        self._live = sink
+        self.live = sink
 
-    # ----------------------------------------------------------------- records
-
-    def record_cycle(self, record: dict[str, Any]) -> bool:
-        """Write one tick (a dict with the fields of ``cycle_schema.json``)."""
-        t_ns = record.get("t_ns")
-        return self.write(CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record)
-
-    def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
-        """Write one ``/diagnostics`` record (``final``, for the interface, changes nothing)."""
-        return self.write(DIAG, int(record["t_ns"]), record)
-
-    def record_parameters(self, record: dict[str, Any]) -> bool:
-        """Write one online parameter change (``/controller/parameters``)."""
-        return self.write(PARAMS, int(record["t_ns"]), record)
-
-    def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
-        """Write a python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
-        kind = DIRECTIONS.get(direction)
-        if kind is None:
-            raise LogError(f"CAN direction must be 'rx' or 'tx', got {direction!r}")
-        return self.write(kind, t_ns, msg)
-
-    def record_vision(self, payload: bytes, t_ns: int) -> bool:
-        """Write a raw vision payload received at ``t_ns``."""
-        return self.write(VISION, t_ns, payload)
-
-    def write(self, kind: int, t_ns: int, obj: Any) -> bool:
-        """Encode and write one record item (``kind`` one of :data:`TOPICS`; the recorder
-        process writes the batches it receives this way). False if it was not written."""
-        if self._closed:
-            self._dropped += 1
+    def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
+        """Encode and write one record item (``kind`` one of :data:`TOPICS`)."""
+        if self.closed:
+            self.dropped += 1
             return False
         try:
             t_ns = int(t_ns)
             data = encode_record(kind, t_ns, obj)
         except (TypeError, ValueError, AttributeError) as exc:
-            self._encode_errors += 1
-            if self._encode_errors == 1:
+            self.encode_errors += 1
+            if self.encode_errors == 1:
                 log.warning("recorder: cannot encode a %s record: %s", TOPICS[kind], exc)
             return False
         log_time = max(0, t_ns + self._mono_to_unix)
@@ -372,18 +395,15 @@ class CycleRecorder:
         except Exception as exc:  # disk full, I/O error...: the log ends, the caller goes on
             self._fail(exc)
             return False
-        if kind in (CYCLE, DIAG) and self._live is not None:
-            self._send_live(TOPICS[kind], data)
+        if kind in (CYCLE, DIAG) and self.live is not None:
+            try:
+                self.live(TOPICS[kind], data)
+                self.live_sent += 1
+            except Exception as exc:  # a monitor never stops the log
+                self.live_errors += 1
+                if self.live_errors == 1:
+                    log.warning("recorder: live sink failed: %s", exc)
         return True
-
-    def _send_live(self, topic: str, data: bytes) -> None:
-        try:
-            self._live(topic, data)
-            self.live_sent += 1
-        except Exception as exc:  # a monitor never stops the log
-            self.live_errors += 1
-            if self.live_errors == 1:
-                log.warning("recorder: live sink failed: %s", exc)
 
     def _write_scene(self, record: dict[str, Any], log_time: int) -> None:
         tick = record.get("tick")
@@ -400,12 +420,10 @@ class CycleRecorder:
             self._writer.add_message(self._scene_channels[topic], log_time, data, log_time)
             self.scene_written += 1
 
-    # ----------------------------------------------------------------- durability
-
     def flush(self) -> None:
         """Close the chunk in progress and flush the file to the OS: what is written so far
         survives a SIGKILL of this process (no ``fsync``: not a power loss)."""
-        if self._closed or not self._dirty:
+        if self.closed or not self._dirty:
             return
         try:
             self._writer.flush()
@@ -422,9 +440,9 @@ class CycleRecorder:
             self.flush()
 
     def _fail(self, exc: Exception) -> None:
-        self._error = exc
-        self._closed = True
-        self._dropped += 1
+        self.error = exc
+        self.closed = True
+        self.dropped += 1
         log.error("recorder: writing %s failed: %s", self.path, exc)
         self._close_stream()
 
@@ -434,78 +452,35 @@ class CycleRecorder:
             try:
                 stream.close()
             except OSError as exc:
-                self._error = self._error or exc
-
-    # ----------------------------------------------------------------- counters
+                self.error = self.error or exc
 
     @property
     def written(self) -> int:
-        """Messages written into the MCAP writer so far (all topics)."""
+        """Messages written so far (all topics)."""
         return sum(self._written.values())
-
-    @property
-    def dropped(self) -> int:
-        """Records refused because the recorder was closed or its writing had failed."""
-        return self._dropped
-
-    @property
-    def pending(self) -> int:
-        """Records not written yet: always 0 (the recorder interface's counter)."""
-        return 0
-
-    @property
-    def error(self) -> BaseException | None:
-        """The exception that ended the log early, if any."""
-        return self._error
 
     def as_dict(self) -> dict[str, int]:
         """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and ``pending``."""
         out = {TOPICS[k]: v for k, v in self._written.items()}
         out.update(
-            written=self.written,
-            dropped=self._dropped,
-            encode_errors=self._encode_errors,
-            pending=0,
+            written=self.written, dropped=self.dropped, encode_errors=self.encode_errors, pending=0
         )
         return out
-
-    # ----------------------------------------------------------------- closing
 
     def close(self) -> None:
         """Finish the file (``hil.recorder`` counters, summary, footer); later records are
         refused. Idempotent. A failure is kept in :attr:`error`."""
-        if self._closed:
+        if self.closed:
             return
-        self._closed = True
+        self.closed = True
         try:
             self._writer.add_metadata(
                 RECORDER_METADATA, {k: str(v) for k, v in self.as_dict().items()}
             )
             self._writer.finish()
-            self._finished = True
+            self.finished = True
         except Exception as exc:
-            self._error = exc
+            self.error = exc
             log.error("recorder: finishing %s failed: %s", self.path, exc)
         finally:
             self._close_stream()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    @property
-    def finished(self) -> bool:
-        """The file has its summary and footer (a clean close)."""
-        return self._finished
-
-    def __enter__(self) -> CycleRecorder:
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        self.close()
-        if self._error is not None and exc_type is None:
-            raise LogError(f"MCAP log {self.path} is incomplete: {self._error}") from self._error
-
-    def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
-        return f"CycleRecorder({str(self.path)!r}, {state}, written={self.written})"

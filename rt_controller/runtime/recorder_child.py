@@ -1,21 +1,19 @@
 """The recorder's child process, and the pipe protocol it speaks with the controller process.
 
-:class:`RecorderChild` reads the control process's batches from one pipe and writes each log
-with a :class:`~rt_controller.runtime.recorder.CycleRecorder` (mcap's synchronous writer); it
-answers on the other pipe with each log's counters. It owns the live zenoh stream
-(``hil/controller/cycle``, ``.../diagnostics``) on a session of its own, opened on first use.
-The control side is :mod:`rt_controller.runtime.recorder_process`.
+:class:`RecorderChild` reads the control process's batches from one pipe, writes each log with a
+:class:`~rt_controller.runtime.recorder.CycleRecorder` and answers on the other pipe with each
+log's counters. It owns the live zenoh stream (``hil/controller/cycle``, ``.../diagnostics``) on
+a session of its own, opened on first use. The control side is
+:mod:`rt_controller.runtime.recorder_process`.
 
-The child ignores SIGINT, SIGTERM and SIGHUP (a Ctrl-C reaches the whole process group; the
-controller decides when its logs end) and finishes every open log when its pipe reaches end of
-file, so the logs of a controller that was SIGKILLed are still complete. While it waits it
-flushes the logs that are due (``flush_interval_s``), so a SIGKILL of the child itself loses
-about that much.
+The child ignores SIGINT, SIGTERM and SIGHUP (the controller decides when its logs end) and
+finishes every open log at end of file on its pipe, so the logs of a SIGKILLed controller are
+still complete. While it waits it flushes the logs that are due (``flush_interval_s``).
 
 Wire format, both directions: a 4-byte little-endian length, then a pickled tuple. Parent to
 child: ``(LINK, cfg_json, zenoh_endpoint, zenoh_config)`` first, then ``(OPEN, rid, path,
 cfg_json, run_info, scene, flush_interval_s)``, ``(RECORDS, rid, items)`` (each item
-``(kind, t_ns, obj)``, :meth:`CycleRecorder.write`; a CAN frame as a :class:`CanFrame`),
+``(kind, t_ns, obj)`` of :meth:`CycleRecorder.write`, a CAN frame as a :class:`CanFrame`),
 ``(LIVE, rid)`` and ``(CLOSE, rid)``. Child to parent: ``(OPENED, rid, error)`` and ``(COUNTS,
 rid, counts, error, final)``.
 """
@@ -29,7 +27,6 @@ import pickle
 import select
 import signal
 import struct
-import subprocess
 import sys
 import time
 from collections import namedtuple
@@ -233,14 +230,13 @@ class RecorderChild:
 
 class ChildProcess:
     """The recorder's child as its parent sees it: ``start`` ``"auto"`` forks while the parent
-    has one OS thread (else spawns), or ``"fork"`` / ``"spawn"``; :attr:`fd_out` (to the child,
-    grown) and :attr:`fd_in` (from it) are the parent's non-blocking ends of the two pipes."""
+    has one OS thread (else spawns ``python -m rt_controller.runtime.recorder_child``), or
+    ``"fork"`` / ``"spawn"``; :attr:`fd_out` (to the child, grown) and :attr:`fd_in` (from it)
+    are the parent's non-blocking ends of the two pipes."""
 
     def __init__(self, start: str = "auto") -> None:
         if start not in ("auto", "fork", "spawn"):
             raise LogError(f"recorder start must be auto, fork or spawn, not {start!r}")
-        self.pid = 0
-        self._popen: subprocess.Popen[bytes] | None = None
         self._status: int | None = None
         child_in, self.fd_out = os.pipe()
         self.fd_in, child_out = os.pipe()
@@ -249,7 +245,7 @@ class ChildProcess:
         fork = start == "fork" or (start == "auto" and _os_threads() == 1)
         self.start_method = "fork" if fork else "spawn"
         try:
-            (self._fork if fork else self._spawn)(child_in, child_out)
+            self.pid = (self._fork if fork else self._spawn)(child_in, child_out)
         except BaseException:
             os.close(self.fd_out)
             os.close(self.fd_in)
@@ -260,7 +256,7 @@ class ChildProcess:
         os.set_blocking(self.fd_out, False)
         os.set_blocking(self.fd_in, False)
 
-    def _fork(self, child_in: int, child_out: int) -> None:
+    def _fork(self, child_in: int, child_out: int) -> int:
         sys.stdout.flush()  # or the child would write the parent's buffered output again
         sys.stderr.flush()
         pid = os.fork()
@@ -278,46 +274,38 @@ class ChildProcess:
                 with contextlib.suppress(Exception):
                     sys.stderr.flush()
                 os._exit(status)
-        self.pid = pid
+        return pid
 
-    def _spawn(self, child_in: int, child_out: int) -> None:
+    @staticmethod
+    def _spawn(child_in: int, child_out: int) -> int:
+        os.set_inheritable(child_in, True)
+        os.set_inheritable(child_out, True)
         argv = [sys.executable, "-m", __name__, str(child_in), str(child_out)]
-        quiet = subprocess.DEVNULL  # stdout is the controller's (its JSON summary)
-        self._popen = subprocess.Popen(
-            argv, pass_fds=(child_in, child_out), stdin=quiet, stdout=quiet
-        )
-        self.pid = self._popen.pid
+        quiet = [(os.POSIX_SPAWN_OPEN, fd, os.devnull, os.O_RDWR, 0) for fd in (0, 1)]
+        return os.posix_spawn(sys.executable, argv, os.environ, file_actions=quiet)
 
     def reap(self, timeout: float) -> int | None:
         """The child's exit status (negative: killed by that signal), None while it runs."""
-        if self._status is not None:
-            return self._status
-        if self._popen is not None:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._status = self._popen.wait(timeout)
-            return self._status
         deadline = time.monotonic() + timeout
-        while True:
+        while self._status is None:
             try:
                 pid, status = os.waitpid(self.pid, os.WNOHANG)
             except ChildProcessError:  # reaped by someone else
-                self._status = 0
-                return 0
+                pid, status = self.pid, 0
             if pid:
                 self._status = os.waitstatus_to_exitcode(status)
-                return self._status
-            if time.monotonic() >= deadline:
+            elif time.monotonic() >= deadline:
                 return None
-            time.sleep(0.005)
+            else:
+                time.sleep(0.005)
+        return self._status
 
     def exit_note(self) -> str:
         """`` (status N)`` or `` (killed by signal N)`` once the child has exited, else ``""``."""
         status = self.reap(0.2)
         if status is None:
             return ""
-        if status < 0:
-            return f" (killed by signal {-status})"
-        return f" (status {status})"
+        return f" (killed by signal {-status})" if status < 0 else f" (status {status})"
 
     def end(self, timeout: float) -> None:
         """Reap the child (its input pipe closed, it exits by itself); SIGKILL it after
@@ -364,14 +352,7 @@ def serve(fd_in: int, fd_out: int) -> None:
     RecorderChild(fd_in, fd_out).run()
 
 
-def main(argv: list[str]) -> int:
-    """``python -m rt_controller.runtime.recorder_child FD_IN FD_OUT`` (spawned child)."""
-    serve(int(argv[0]), int(argv[1]))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.stdout.flush()
-    code = main(sys.argv[1:])
+if __name__ == "__main__":  # the spawned child: python -m ... FD_IN FD_OUT
+    serve(int(sys.argv[1]), int(sys.argv[2]))
     sys.stderr.flush()
-    os._exit(code)
+    os._exit(0)

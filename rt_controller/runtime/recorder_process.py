@@ -2,21 +2,16 @@
 
 :class:`RecorderService` starts one child process for a controller process (the runs of a plan
 share it); :meth:`RecorderService.open` gives a :class:`RemoteRecorder`, the daemon's recorder.
-In the control thread a record costs a list append; once per tick, with the cycle record, the
-tick's batch is pickled and written to a pipe. The child
-(:mod:`rt_controller.runtime.recorder_child`, which also defines the wire format) writes the logs
-with :class:`~rt_controller.runtime.recorder.CycleRecorder` and streams them live. Nothing in the
-control process takes the GIL from a tick.
+A record costs the control thread a list append; once per tick, with the cycle record, the
+tick's batch is pickled and written to a pipe. The child (:mod:`rt_controller.runtime.
+recorder_child`, which also defines the wire format) writes the logs with
+:class:`~rt_controller.runtime.recorder.CycleRecorder` and streams them live.
 
 A realtime tick never blocks on the child: the pipe is non-blocking (1 MiB where the kernel
 allows it), what it cannot take waits in an outbox, and a batch that would grow the outbox past
-:attr:`RecorderService.outbox_limit` bytes is dropped and counted (``dropped``: the run reports
-the loss and exits non-zero). Lockstep has no deadline: there the tick waits for the child
-(``backpressure``), so a Sync-paced log is never short because the host was busy.
-
-The child is forked while the controller process still has a single OS thread (no zenoh or CAN
-threads yet; the start costs a millisecond and the imported modules are shared); otherwise it is
-spawned with ``python -m rt_controller.runtime.recorder_child``.
+:attr:`RecorderService.outbox_limit` bytes is dropped and counted (the run is then not clean).
+Lockstep has no deadline: there the tick waits for the child (``backpressure``), so a
+Sync-paced log is never short because the host was busy.
 """
 
 from __future__ import annotations
@@ -34,12 +29,13 @@ from typing import Any
 from hal.config import RigConfig
 from rt_controller.errors import LogError
 from rt_controller.runtime.recorder import (
+    CAN_RX,
+    CAN_TX,
     CYCLE,
     DIAG,
-    DIRECTIONS,
-    PARAMS,
     TOPICS,
     VISION,
+    Recorder,
     default_run_info,
 )
 from rt_controller.runtime.recorder_child import (
@@ -72,15 +68,14 @@ def _picklable(obj: Any) -> bool:
     return True
 
 
-class RemoteRecorder:
-    """One run's log, recorded by the service's child process (the ``record_*``, counters and
-    ``close`` of :class:`~rt_controller.runtime.recorder.CycleRecorder`).
+class RemoteRecorder(Recorder):
+    """One run's log, recorded by the service's child process (the interface and counters of
+    :class:`~rt_controller.runtime.recorder.CycleRecorder`).
 
     The ``record_*`` methods take ownership of what they are given: do not mutate a cycle dict
     (or its arrays) after passing it; it is pickled at the end of the tick. Counters come from
-    the child's latest report (at most ``recorder_child.COUNTS_EVERY_S`` old when
-    :meth:`as_dict` reads it while the run goes on; exact after :meth:`close`); ``dropped`` adds
-    the batches this process dropped.
+    the child's latest report (at most ``recorder_child.COUNTS_EVERY_S`` old while the run goes
+    on; exact after :meth:`close`); ``dropped`` adds the batches this process dropped.
     """
 
     def __init__(self, service: RecorderService, rid: int, path: Path, backpressure: bool):
@@ -90,61 +85,28 @@ class RemoteRecorder:
         self._backpressure = backpressure
         self._batch: collections.deque[tuple[int, int, Any]] = collections.deque()
         """Records since the last send (a deque: Sync-paced runs feed it from zenoh's thread)."""
-        self._closed = False
-        self._sent = 0
-        self._dropped = 0
+        self.closed = False
+        self.error: str | None = None
+        """Why the log is incomplete (the child's writer failed, or the child died)."""
+        self._sent = self._dropped = 0
         self._counts: dict[str, Any] = {}
-        self._error: str | None = None
-        self._final = False
+        self.final_report = False
+        """The child's final counters for this log arrived."""
         self._encode_errors = 0
         """Records that could not be pickled for the child (counted with its encode errors)."""
 
-    # ----------------------------------------------------------------- hot path (loop thread)
-
-    def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
-        """Queue a python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
-        kind = DIRECTIONS.get(direction)
-        if kind is None:
-            raise LogError(f"CAN direction must be 'rx' or 'tx', got {direction!r}")
-        if self._closed:
+    def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
+        """Queue one record item; a cycle or diagnostics record sends the tick's batch (a final
+        one even when the outbox is full: it carries the run's totals)."""
+        if self.closed:
             self._dropped += 1
             return False
-        self._batch.append((kind, t_ns, can_frame(msg)))
-        return True
-
-    def record_vision(self, payload: bytes, t_ns: int) -> bool:
-        """Queue a raw vision payload received at ``t_ns``."""
-        if self._closed:
-            self._dropped += 1
-            return False
-        self._batch.append((VISION, t_ns, bytes(payload)))
-        return True
-
-    def record_cycle(self, record: dict[str, Any]) -> bool:
-        """Queue one tick and send the tick's batch to the child. False if it was dropped."""
-        if self._closed:
-            self._dropped += 1
-            return False
-        t_ns = record.get("t_ns")
-        self._batch.append((CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record))
-        return self.send()
-
-    def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
-        """Queue one ``/diagnostics`` record and send the batch (a final record is sent even
-        when the outbox is full: it carries the run's totals)."""
-        if self._closed:
-            self._dropped += 1
-            return False
-        self._batch.append((DIAG, int(record["t_ns"]), record))
-        return self.send(force=final)
-
-    def record_parameters(self, record: dict[str, Any]) -> bool:
-        """Queue one ``/controller/parameters`` record (sent with the tick's cycle)."""
-        if self._closed:
-            self._dropped += 1
-            return False
-        self._batch.append((PARAMS, int(record["t_ns"]), record))
-        return True
+        if kind in (CAN_RX, CAN_TX):
+            obj = can_frame(obj)
+        elif kind == VISION:
+            obj = bytes(obj)
+        self._batch.append((kind, t_ns, obj))
+        return self.send(force=final) if kind in (CYCLE, DIAG) else True
 
     def send(self, *, force: bool = False) -> bool:
         """Hand the records queued since the last send to the child; False if any was
@@ -170,45 +132,29 @@ class RemoteRecorder:
             self._dropped += len(batch)
         return ok and not lost
 
-    # ----------------------------------------------------------------- control
-
     def stream_live(self) -> None:
         """Ask the child to publish this log's cycle and diagnostics records on zenoh."""
         self._service.send_control((LIVE, self._rid))
 
-    def _update(self, counts: dict[str, Any], error: str | None, final: bool) -> None:
+    def update(self, counts: dict[str, Any], error: str | None, final: bool) -> None:
+        """The child's report on this log (the service applies it)."""
         self._counts = counts
-        if error and not self._error:
-            self._error = error
-        self._final = self._final or final
-
-    def _lost(self, reason: str) -> None:
-        self._error = self._error or reason
+        self.error = self.error or error
+        self.final_report = self.final_report or final
 
     def close(self, timeout: float | None = REPLY_TIMEOUT_S) -> None:
         """Send what is queued, ask the child to finish the file and wait for its final
         counters. Idempotent."""
-        if self._closed:
+        if self.closed:
             return
         self.send(force=True)
-        self._closed = True
+        self.closed = True
         self._service.finish(self._rid, REPLY_TIMEOUT_S if timeout is None else timeout)
-
-    # ----------------------------------------------------------------- counters
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
 
     @property
     def finished(self) -> bool:
         """The child finished the file cleanly (summary and footer written)."""
-        return self._final and bool(self._counts.get("finished"))
-
-    @property
-    def error(self) -> str | None:
-        """Why the log is incomplete (the child's writer failed, or the child died)."""
-        return self._error
+        return self.final_report and bool(self._counts.get("finished"))
 
     @property
     def written(self) -> int:
@@ -227,8 +173,7 @@ class RemoteRecorder:
         return len(self._batch) + in_child
 
     def as_dict(self) -> dict[str, int]:
-        """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and ``pending``
-        (the keys of ``CycleRecorder.as_dict``), with the child's latest report."""
+        """The keys of ``CycleRecorder.as_dict``, with the child's latest report."""
         self._service.poll()
         counts = self._counts
         out = {topic: int(counts.get(topic, 0)) for topic in TOPICS.values()}
@@ -239,18 +184,6 @@ class RemoteRecorder:
             pending=self.pending,
         )
         return out
-
-    def __enter__(self) -> RemoteRecorder:
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        self.close()
-        if self._error is not None and exc_type is None:
-            raise LogError(f"MCAP log {self.path} is incomplete: {self._error}")
-
-    def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
-        return f"RemoteRecorder({str(self.path)!r}, {state}, written={self.written})"
 
 
 class RecorderService:
@@ -307,8 +240,6 @@ class RecorderService:
     ) -> RemoteRecorder:
         """Create the log ``path`` in the child (as ``CycleRecorder(path, cfg, ...)`` would,
         ``scene`` drawing the arm from ``cfg``); :class:`LogError` if it cannot."""
-        if not flush_interval_s > 0:
-            raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
         mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
         info = default_run_info(cfg, mono_ns, unix_ns)  # this process's pid, argv, ...
         info.update({str(k): str(v) for k, v in (run_info or {}).items()})
@@ -334,12 +265,8 @@ class RecorderService:
             self._pump_out()
             if len(self._outbox) > self.outbox_limit:
                 return False
-        frame = encode_frame((RECORDS, rid, items))
-        if self._outbox:  # keep the order: behind what waits already
-            self._outbox += frame
-            self._pump_out()
-        else:  # the usual case: one write, no copy
-            self._write_now(frame)
+        self._outbox += encode_frame((RECORDS, rid, items))
+        self._pump_out()
         if wait and len(self._outbox) > self.outbox_limit:
             self._drain_out(REPLY_TIMEOUT_S)
         return self._dead is None
@@ -357,8 +284,9 @@ class RecorderService:
         if rec is None:
             return
         self.send_control((CLOSE, rid))
-        if not self._await(lambda: rec._final, timeout):
-            rec._lost(self._dead or f"the recorder process did not finish the log in {timeout:g} s")
+        if not self._await(lambda: rec.final_report, timeout):
+            why = self._dead or f"the recorder process did not finish the log in {timeout:g} s"
+            rec.error = rec.error or why
         self._recorders.pop(rid, None)
 
     # ----------------------------------------------------------------- pipes
@@ -366,18 +294,6 @@ class RecorderService:
     def poll(self) -> None:
         """Apply the child's replies that arrived (counters, errors); never blocks."""
         self._pump_in()
-
-    def _write_now(self, frame: bytes) -> None:
-        """Write ``frame`` with the outbox empty; what the pipe does not take goes there."""
-        try:
-            n = os.write(self._out, frame)
-        except BlockingIOError:
-            n = 0
-        except OSError as exc:  # EPIPE: the child is gone
-            self._die(f"the recorder process is gone ({exc.strerror or exc})")
-            return
-        if n < len(frame):
-            self._outbox += memoryview(frame)[n:]
 
     def _pump_out(self) -> None:
         """Write what the pipe takes now (never blocks)."""
@@ -394,18 +310,8 @@ class RecorderService:
 
     def _drain_out(self, timeout: float) -> None:
         """Block until the outbox is empty, the child died or ``timeout`` ran out."""
-        deadline = time.monotonic() + timeout
-        while self._outbox and self._dead is None:
-            self._pump_out()
-            if not self._outbox:
-                return
-            left = deadline - time.monotonic()
-            if left <= 0:
-                self._die(f"the recorder process took nothing for {timeout:g} s")
-                return
-            readable, _, _ = select.select([self._in], [self._out], [], min(left, 0.1))
-            if readable:
-                self._pump_in()
+        if not self._await(lambda: not self._outbox, timeout, writing=True) and not self._dead:
+            self._die(f"the recorder process took nothing for {timeout:g} s")
 
     def _pump_in(self) -> None:
         """Read and apply the child's replies that arrived (never blocks)."""
@@ -431,26 +337,29 @@ class RecorderService:
         elif kind == COUNTS:
             rec = self._recorders.get(rid)
             if rec is not None:
-                rec._update(message[2], message[3], message[4])
+                rec.update(*message[2:])
 
-    def _await(self, done: Any, timeout: float) -> bool:
-        """Read replies until ``done()`` holds (True), the child died or ``timeout`` ran out."""
+    def _await(self, done: Any, timeout: float, *, writing: bool = False) -> bool:
+        """Read replies (and, ``writing``, write the outbox) until ``done()`` holds (True), the
+        child died or ``timeout`` ran out."""
         deadline = time.monotonic() + timeout
         while True:
+            if writing:
+                self._pump_out()
             self._pump_in()
             if done():
                 return True
             left = deadline - time.monotonic()
             if self._dead is not None or left <= 0:
                 return False
-            select.select([self._in], [], [], min(left, 0.1))
+            select.select([self._in], [self._out] if writing else [], [], min(left, 0.1))
 
     def _die(self, reason: str) -> None:
         if self._dead is not None:
             return
         self._dead = reason
         for rec in self._recorders.values():
-            rec._lost(reason)
+            rec.error = rec.error or reason
 
     # ----------------------------------------------------------------- closing
 
@@ -465,8 +374,9 @@ class RecorderService:
         if self._dead is None:
             self._drain_out(timeout)
         os.close(self._out)
-        with contextlib.suppress(OSError):  # read to the end: the child exits after replying
-            self._await(lambda: False, timeout) if self._dead is None else None
+        if self._dead is None:  # read to the end: the child exits after replying
+            with contextlib.suppress(OSError):
+                self._await(lambda: False, timeout)
         os.close(self._in)
         self._child.end(timeout)
 
