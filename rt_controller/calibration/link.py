@@ -3,7 +3,9 @@ controller process and the client of ``hil param``, both authenticated with the 
 
 Wire format: a request or a reply is a JSON object followed by a 32-byte HMAC-SHA256 tag with a
 key derived from the rig key (:func:`hal.secoc.derive`; one label per direction). A request
-carries ``op`` (``get``, ``dump`` or ``set``), for ``set`` the ``changes`` and ``at_tick``, a
+carries ``op`` (``get``, ``dump``, ``set`` or ``action``), for ``set`` the ``changes`` and
+``at_tick``, for ``action`` the ``action`` (:data:`~rt_controller.calibration.operator.ACTIONS`),
+a ``note`` and ``at_tick``, a
 ``source``, a random ``nonce`` and its wall-clock time ``t_unix_ns``: the controller refuses a
 request whose tag does not verify, whose time is more than :data:`FRESHNESS_S` away from its
 own, or whose nonce it has seen (a replayed request). Such attempts change nothing and are
@@ -14,7 +16,8 @@ request.
 ``get`` and ``dump`` are answered on zenoh's thread from the configuration in force (an
 immutable snapshot); ``set`` is queued
 (:class:`~rt_controller.calibration.parameters.ParameterService`)
-and answered by the control thread at the tick it was judged.
+and answered by the control thread at the tick it was judged; so is ``action`` (its answer's
+``event`` is the ``/controller/events`` record).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from typing import Any
 
 from hal.secoc import Mac, derive
 from hal.zenoh_session import KEY_CONTROLLER_PARAMETERS
+from rt_controller.calibration.operator import Action
 from rt_controller.calibration.parameters import (
     Outcome,
     ParameterService,
@@ -42,7 +46,7 @@ TAG_SIZE = 32
 FRESHNESS_S = 30.0
 """How far a request's time may be from the controller's (both on this host's wall clock)."""
 REQUEST_LABEL, REPLY_LABEL = "hil-param-request", "hil-param-reply"
-OPS = ("get", "dump", "set")
+OPS = ("get", "dump", "set", "action")
 
 
 class ParameterLinkError(ControllerError):
@@ -111,6 +115,17 @@ class ParameterServer:
         elif op == "dump":
             header = f"hil param dump: parameter set {svc.param_set}"
             answer({"param_set": svc.param_set, "toml": config_toml(svc.cfg, header=header)})
+        elif op == "action":
+            svc.actions.submit(
+                Action(
+                    str(body.get("action", "")),
+                    note=str(body.get("note", ""))[:1000],
+                    source=str(body.get("source", "hil param"))[:200],
+                    at_tick=finite_tick(body.get("at_tick")),
+                    request_id=nonce,
+                    reply=lambda event: answer({"event": event}),
+                )
+            )
         else:
             changes = body.get("changes")
             if not isinstance(changes, dict):
@@ -152,15 +167,20 @@ def request(
     *,
     changes: dict[str, Any] | None = None,
     at_tick: int | None = None,
+    action: str = "",
+    note: str = "",
     source: str = "hil param",
     timeout_s: float = 10.0,
 ) -> dict[str, Any]:
-    """One request to the controller (``op`` in :data:`OPS`); its verified answer.
+    """One request to the controller (``op`` in :data:`OPS`; ``changes`` for ``set``,
+    ``action`` and ``note`` for ``action``); its verified answer.
     :class:`ParameterLinkError` when none comes within ``timeout_s``."""
     nonce = secrets.token_hex(16)
     body: dict[str, Any] = {"op": op, "nonce": nonce, "t_unix_ns": time.time_ns(), "source": source}
     if op == "set":
         body.update(changes=changes or {}, at_tick=at_tick)
+    elif op == "action":
+        body.update(action=action, note=note, at_tick=at_tick)
     payload = seal(body, key, REQUEST_LABEL)
     for r in session.session.get(KEY_CONTROLLER_PARAMETERS, payload=payload, timeout=timeout_s):
         if r.ok is None:
@@ -183,11 +203,21 @@ def outcome_line(out: dict[str, Any]) -> str:
     return f"refused at tick {o['tick']}: {o['reason']}"
 
 
+def event_line(out: dict[str, Any]) -> str:
+    """One line for an action's event record."""
+    e = out["event"]
+    what = e["action"] + (f" ({e['note']})" if e.get("note") else "")
+    if e["accepted"]:
+        return f"{what} done at tick {e['tick']}"
+    return f"{what} refused at tick {e['tick']}: {e['reason']}"
+
+
 __all__ = [
     "FRESHNESS_S",
     "Outcome",
     "ParameterLinkError",
     "ParameterServer",
+    "event_line",
     "outcome_line",
     "request",
     "seal",

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import queue
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from hal.config import RigConfig
 from hal.errors import HalConfigError
+from rt_controller.calibration.handover import DueQueue
+from rt_controller.calibration.operator import ActionQueue
 
 TUNABLE: dict[str, str] = {
     "gains.kp": "kp of eq. (34)",
@@ -206,12 +207,14 @@ class ParameterService:
     cfg: RigConfig
     param_set: int = 0
     counters: ParameterCounters = field(default_factory=ParameterCounters)
-    _inbox: queue.SimpleQueue = field(default_factory=queue.SimpleQueue, repr=False)
-    _waiting: list[Request] = field(default_factory=list, repr=False)
+    actions: ActionQueue = field(default_factory=ActionQueue)
+    """Operator actions (:mod:`rt_controller.calibration.operator`), taken at the same tick
+    boundaries."""
+    _queue: DueQueue[Request] = field(default_factory=DueQueue, repr=False)
 
     def submit(self, request: Request) -> None:
         """Queue ``request`` (thread-safe; never blocks)."""
-        self._inbox.put(request)
+        self._queue.submit(request)
 
     def unauthenticated(self) -> None:
         """Count a request that failed authentication (it never reaches the queue)."""
@@ -220,17 +223,9 @@ class ParameterService:
     def due(self, tick: int, t_ns: int = 0) -> tuple[RigConfig | None, list[Outcome]]:
         """Judge the requests due at ``tick`` in arrival order: the new configuration (None when
         nothing was accepted) and one outcome per request judged. Control thread only."""
-        while not self._inbox.empty():  # no exception raised on the usual empty tick
-            try:
-                self._waiting.append(self._inbox.get_nowait())
-            except queue.Empty:
-                break
-        if not self._waiting:
-            return None, []
-        now = [r for r in self._waiting if r.at_tick is None or r.at_tick <= tick]
+        now = self._queue.due(tick)
         if not now:
             return None, []
-        self._waiting = [r for r in self._waiting if r not in now]
         changed, outcomes = None, []
         for r in now:
             out = self._judge(r, tick, t_ns)
