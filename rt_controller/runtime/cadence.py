@@ -77,13 +77,13 @@ class Tick:
     """One release of the loop."""
 
     index: int
-    """Tick number k (counts skipped periods too: k = periods since start)."""
+    """Tick number k (here: periods since start, skipped ones included)."""
     release_ns: int
-    """Scheduled start: start + k * period."""
+    """When it was due (start + k * period)."""
     wake_ns: int
     """When the loop actually woke."""
     missed: int
-    """Periods skipped just before this tick because the previous one overran."""
+    """Periods skipped just before it (an overrun, or Sync frames never seen)."""
 
     @property
     def lateness_ns(self) -> int:
@@ -100,7 +100,6 @@ class Cadence:
         self.clock = clock
         self.start_ns = clock.now_ns() + period_ns if start_ns is None else start_ns
         self._next = 0
-        self.missed_total = 0
 
     def wait(self, idle: Idle | None = None) -> Tick:
         """Sleep until the next release (running ``idle`` meanwhile, see :data:`Idle`); skip
@@ -113,14 +112,6 @@ class Cadence:
             missed = (now - release) // self.period_ns
             k += missed
             release += missed * self.period_ns
-            self.missed_total += missed
-        if idle is None:
-            self.clock.sleep_until(release)
-        else:
-            self.clock.sleep_until(release, idle)
+        self.clock.sleep_until(release, idle)
         self._next = k + 1
         return Tick(k, release, self.clock.now_ns(), missed)
-
-    def deadline_of(self, tick: Tick) -> int:
-        """A tick's work must finish before the next release."""
-        return tick.release_ns + self.period_ns

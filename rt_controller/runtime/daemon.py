@@ -189,13 +189,12 @@ class ControllerDaemon:
             kernel_stamps=real_clock,
         )
         drive = DrivePolicy(cfg, self.counters)
-        pacer: Pacer
-        if opts.mode is ClockMode.LOCKSTEP:
-            pacer = LockstepPacer(cfg, self.clock, hw, drive, self.counters, self.stop, self._pause)
-        else:
-            pacer = RealtimePacer(
-                cfg, self.clock, hw, drive, self.counters, self.stop, real_clock=real_clock
-            )
+        parts = (cfg, self.clock, hw, drive, self.counters, self.stop)
+        pacer: Pacer = (
+            LockstepPacer(*parts, pause=self._pause)
+            if opts.mode is ClockMode.LOCKSTEP
+            else RealtimePacer(*parts, real_clock=real_clock)
+        )
         loop = self.loop = ControlLoop(
             cfg, self.controller, hw, pacer, drive, rec, self.counters, self.clock, self.params
         )

@@ -21,7 +21,7 @@ from typing import Any
 from hal.config import RigConfig
 from hal.errors import HalTimeoutError
 from hal.vision_codec import FeatureMsg, feature_age_ns
-from rt_controller.runtime.cadence import Cadence, Clock
+from rt_controller.runtime.cadence import Cadence, Clock, Tick
 from rt_controller.runtime.counters import RunCounters
 from rt_controller.runtime.drive_policy import ENABLE_TIMEOUT_S, DrivePolicy
 from rt_controller.runtime.hardware import Observation, RigHardware
@@ -50,33 +50,18 @@ class ClockMode(enum.Enum):
 
 
 @dataclass(frozen=True)
-class Release:
-    """One tick's start, as its pacer gives it."""
+class Release(Tick):
+    """One tick's start, as its pacer gives it (``index``: realtime, periods since the first
+    law tick; lockstep, Sync k; times on the loop's clock)."""
 
-    index: int
-    """The tick's number (realtime: periods since the first law tick; lockstep: Sync k)."""
-    t_s: float
+    t_s: float = 0.0
     """Run time of the tick (s): 0 at the first law tick, k periods later at tick k."""
-    release_ns: int
-    """When it was due (loop clock)."""
-    wake_ns: int
-    """When the loop woke for it (loop clock)."""
-    missed: int
-    """Periods skipped just before it (an overrun, or Sync frames never seen)."""
     sync: int | None = None
     """The Sync it answers (lockstep), None in realtime."""
 
-    @property
-    def lateness_ns(self) -> int:
-        return self.wake_ns - self.release_ns
 
-
-class RealtimePacer:
-    """Hard cadence on the loop's clock (see the module docstring)."""
-
-    mode = ClockMode.REALTIME
-    features_by_callback = False
-    """The tick takes the newest features off a ring itself (no callback thread)."""
+class _Pacer:
+    """What both pacers hold: the run's parts they drive."""
 
     def __init__(
         self,
@@ -86,17 +71,32 @@ class RealtimePacer:
         drive: DrivePolicy,
         counters: RunCounters,
         stop: Any,
-        *,
-        real_clock: bool,
     ) -> None:
-        """``real_clock``: the wait reads the inputs ahead (a fake clock's waits take no time)."""
         self.cfg, self.clock, self.hw, self.drive = cfg, clock, hw, drive
         self.counters, self.stop = counters, stop
         self.period_ns = cfg.rates.control_period_ns
+
+    def retune(self, cfg: RigConfig) -> None:
+        """Run with ``cfg`` (online parameters) from the next release on."""
+        self.cfg = cfg
+
+
+class RealtimePacer(_Pacer):
+    """Hard cadence on the loop's clock (see the module docstring)."""
+
+    mode = ClockMode.REALTIME
+    features_by_callback = False
+    """The tick takes the newest features off a ring itself (no callback thread)."""
+
+    def __init__(self, *parts: Any, real_clock: bool) -> None:
+        """``parts``: those of every pacer; ``real_clock``: the wait reads the inputs ahead (a
+        fake clock's waits take no time)."""
+        super().__init__(*parts)
+        cfg = self.cfg
         self.state_limit_s = cfg.controller.state_timeout_s
         self.status_limit_s: float | None = 3.0 / cfg.rates.status_hz
         """A DspStatus older than three status periods means the DSP went silent."""
-        self.cadence = Cadence(self.period_ns, clock)
+        self.cadence = Cadence(self.period_ns, self.clock)
         self._real_clock = real_clock
         self.rehearse: Callable[[], None] | None = None
         """Rerun the last tick just before each release (None: never; see
@@ -105,8 +105,7 @@ class RealtimePacer:
         self._states_seen = -1
 
     def retune(self, cfg: RigConfig) -> None:
-        """Run with ``cfg`` (online parameters: the state timeout, the predictions) from the
-        next release on."""
+        """From the next release on, ``cfg``'s state timeout and predictions too."""
         self.cfg, self.state_limit_s = cfg, cfg.controller.state_timeout_s
 
     def feature_age_ms(self, feat: FeatureMsg, recv_ns: int, wake_ns: int) -> float:
@@ -217,10 +216,7 @@ class RealtimePacer:
             self.rehearse()
 
 
-Wait = Callable[[int], None]
-
-
-class LockstepPacer:
+class LockstepPacer(_Pacer):
     """One tick per DSP Sync (see the module docstring)."""
 
     mode = ClockMode.LOCKSTEP
@@ -232,30 +228,16 @@ class LockstepPacer:
     status_limit_s = None
     """Without a live DSP there is no Sync and no tick: no status age limit."""
 
-    def __init__(
-        self,
-        cfg: RigConfig,
-        clock: Clock,
-        hw: RigHardware,
-        drive: DrivePolicy,
-        counters: RunCounters,
-        stop: Any,
-        pause: Wait,
-    ) -> None:
-        self.cfg, self.clock, self.hw, self.drive = cfg, clock, hw, drive
-        self.counters, self.stop, self.pause = counters, stop, pause
-        self.period_ns = cfg.rates.control_period_ns
+    def __init__(self, *parts: Any, pause: Callable[[int], None]) -> None:
+        """``parts``: those of every pacer; ``pause(ns)`` waits during arming."""
+        super().__init__(*parts)
+        self.pause = pause
 
     def feature_age_ms(self, feat: FeatureMsg, recv_ns: int, wake_ns: int) -> float:
         """In simulation time, at the tick's own time (set by :meth:`releases`)."""
         # in integer ns: t_s * 1e9 rounds below k * period_ns at some ticks (4.02 s, ...), and
         # a frame captured at the tick itself came out 5e-13 ms "in the future": stale
         return (self._now_sim_ns - feat.sim_time_ns) / 1e6
-
-    def retune(self, cfg: RigConfig) -> None:
-        """Run with ``cfg`` (online parameters) from the next release on; lockstep's limits
-        are its own."""
-        self.cfg = cfg
 
     def prediction_ms(self, obs: Observation) -> tuple[float, float]:
         """Nothing to bring forward: state and features are sampled at the tick."""

@@ -22,11 +22,10 @@ def test_releases_are_absolute_and_do_not_drift():
     cad = Cadence(P, clock, start_ns=P)
     for k in range(100):
         tick = cad.wait()
-        assert tick.index == k
+        assert tick.index == k and tick.missed == 0
         assert tick.release_ns == P + k * P
         assert tick.lateness_ns == 7_000
         clock.advance(3_000_000)  # work shorter than a period
-    assert cad.missed_total == 0
 
 
 def test_overrun_skips_missed_periods_instead_of_bursting():
@@ -41,8 +40,6 @@ def test_overrun_skips_missed_periods_instead_of_bursting():
     t2 = cad.wait()
     assert t2.missed == 2 and t2.index == 4
     assert t2.release_ns == t0.release_ns + 4 * P
-    assert cad.missed_total == 2
-    assert cad.deadline_of(t2) == t2.release_ns + P
     # After a skip the cadence is back on its grid.
     t3 = cad.wait()
     assert (t3.index, t3.missed, t3.lateness_ns) == (5, 0, 0)
