@@ -14,9 +14,13 @@ Two modes, chosen per pose by its lockstep flag (or forced with ``lockstep=True/
   The answer carries the newest deliverable frame — a frame not yet due re-sends the previous one
   with its old frame counter and capture times — or ``valid = 0`` before the first delivery. The
   controller waits for ``pose_seq >= k``, so a lockstep run is deterministic.
-* **realtime** — frames are captured on a monotonic-clock frame clock from the newest pose (none
-  while the newest pose is older than ``pose_timeout_s``: the emulator went silent) and published
-  ``latency_s`` of real time later; ``fps = 0`` captures at every pose.
+* **realtime** — once the world runs (pose sim time > 0), a frame is captured at the first pose
+  whose sim time reached the next slot, slots at k / fps of scenario time as in lockstep, so the
+  frames' phase against the control ticks is the same in every run, whenever the controller
+  started. While the world holds its initial state (sim time 0), frames come from a
+  monotonic-clock frame clock and the newest pose (none while that pose is older than
+  ``pose_timeout_s``: the emulator went silent). Frames are published ``latency_s`` of real time
+  after capture; ``fps = 0`` captures at every pose.
 
 A new emulator run (new pose source id, or lockstep sim time going backwards) restarts the frame
 counter, clocks and noise generator, so repeated runs against one vision process are identical.
@@ -311,7 +315,13 @@ class VisionCore:
         paused = self._paused(pose.sim_time_ns)
         if not lockstep:
             if self.fps > 0:
-                return []
+                # sim time 0 is the held world: its frames take slot 0 (see poll)
+                if self.sim_clock.due(pose.sim_time_ns) and pose.sim_time_ns > 0:
+                    if paused:
+                        self.stats.dropout_frames += 1
+                    else:
+                        self._capture(pose, now_ns, now_ns, False)
+                return self._deliver(now_ns, pose.sim_time_ns)
             if paused:
                 self.stats.dropout_frames += 1
             else:
@@ -346,7 +356,7 @@ class VisionCore:
         if pose is None or self.is_lockstep(pose):
             return []
         sim_ns = self._rt_sim_ns(now_ns)
-        if self.fps > 0 and self.rt_clock.due(now_ns):
+        if self.fps > 0 and pose.sim_time_ns == 0 and self.rt_clock.due(now_ns):
             if now_ns - self.pose_recv_ns > self.pose_timeout_ns:
                 self.stats.skipped_no_pose += 1
             elif self._paused(sim_ns):
@@ -361,7 +371,7 @@ class VisionCore:
         if pose is None or self.is_lockstep(pose):
             return None
         times = [self.pending[0][0]] if self.pending else []
-        nxt = self.rt_clock.next_ns
+        nxt = self.rt_clock.next_ns if pose.sim_time_ns == 0 else None
         if nxt is not None:
             times.append(nxt)
         return min(times) if times else None

@@ -180,7 +180,34 @@ def test_realtime_decimates_to_the_frame_rate(cfg):
     assert [m.frame for m in published] == list(range(60))
     assert all(not m.lockstep and m.valid for m in published)
     assert np.allclose(published[0].f, (-120.0, -160.0))
-    assert core.next_wakeup_ns() == t0 + round(60 * 1e9 / 60)
+    assert core.next_wakeup_ns() is None  # once the world runs, frames wait for poses
+
+
+def frames_after_a_hold(cfg: RigConfig, hold_ns: int) -> list[int]:
+    """Sim times of the realtime frames when the world holds (sim time 0) for ``hold_ns``, then
+    runs for half a second with poses at 1 kHz, each pose 0.3 ms in transit."""
+    core = VisionCore(cfg, fps=60.0, lockstep=False)
+    out: list[FeatureMsg] = []
+    t0 = 5 * 10**9
+    for now in range(t0, t0 + hold_ns, MS):
+        out += core.on_pose(pose_msg(cfg, 0, 0, lockstep=False), now) + core.poll(now)
+    start = t0 + hold_ns
+    for k in range(1, 500):
+        now = start + k * MS + 300_000
+        out += core.on_pose(pose_msg(cfg, k, k * MS, lockstep=False), now)
+        for tick in range(now, now + MS, MS // 4):
+            out += core.poll(tick)
+    return [m.sim_time_ns for m in out if m.sim_time_ns > 0]
+
+
+def test_realtime_frames_keep_the_scenario_clock_whatever_the_hold(cfg):
+    """The frame slots are k / fps of scenario time once the world runs, so the frames' phase
+    against the control ticks (and so the run) does not depend on how long the world held."""
+    a, b = frames_after_a_hold(cfg, 7 * MS + 300_000), frames_after_a_hold(cfg, 12 * MS)
+    assert a == b and len(a) == 29
+    # slot 0 is the held world; each later slot is taken by the first pose at or after it
+    slots = [round(k * 1e9 / 60) for k in range(1, 30)]
+    assert all(0 <= t - s < MS for t, s in zip(a, slots, strict=True))
 
 
 def test_realtime_latency_and_silent_emulator(cfg):
@@ -466,15 +493,16 @@ def test_realtime_dropout_publishes_nothing_inside_the_window(cfg):
     assert all(m.valid for m in published)
 
 
-def test_realtime_dropout_extrapolates_sim_time_between_poses(cfg):
-    """The emulator's poses may be sparse: the window is judged on sim time advanced by the real
-    time since the newest pose, so a pose just before the window does not keep frames going."""
+def test_realtime_frames_follow_sparse_poses_and_skip_the_window(cfg):
+    """Once the world runs, frames are taken at poses: a pose just before the window does not
+    keep frames going, and a pose inside it is counted and not captured."""
     core = VisionCore(cfg, fps=100.0, lockstep=False, dropouts=[Dropout(1.0, 0.5)])
     t0 = 3 * S
-    core.on_pose(pose_msg(cfg, 0, 990 * MS, lockstep=False), t0)
-    out = [m for i in range(0, 400, 5) for m in core.poll(t0 + i * MS)]  # 0 .. 395 ms later
-    assert {m.sim_time_ns for m in out} == {990 * MS}  # frames only before 1.0 s sim time
-    assert len(out) == 1 and core.stats.dropout_frames >= 1
+    out = core.on_pose(pose_msg(cfg, 0, 990 * MS, lockstep=False), t0)
+    out += [m for i in range(0, 400, 5) for m in core.poll(t0 + i * MS)]  # 0 .. 395 ms later
+    assert [m.sim_time_ns for m in out] == [990 * MS]
+    assert core.on_pose(pose_msg(cfg, 1, 1200 * MS, lockstep=False), t0 + 400 * MS) == []
+    assert core.stats.dropout_frames == 1
 
 
 def test_realtime_fps_zero_drops_poses_inside_the_window(cfg):
