@@ -28,7 +28,7 @@ import logging
 import select
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import can
@@ -59,21 +59,21 @@ STATUS_BACKLOG = 64
 FrameHook = Callable[[can.Message], None]
 
 
-@dataclass(frozen=True)
+@dataclass
 class ClientStats:
     """Receive-side counters of a :class:`JointClient`."""
 
-    e2e: E2EStats
+    e2e: E2EStats = field(default_factory=E2EStats)
     """Verdict of every frame received (accepted, ignored and each kind of rejection)."""
-    frames: int
+    frames: int = 0
     """Frames taken off the bus."""
-    states: int
+    states: int = 0
     """Complete joint states assembled (JointPosition + JointVelocity of one sample)."""
-    syncs: int
-    statuses: int
-    transport_errors: int
+    syncs: int = 0
+    statuses: int = 0
+    transport_errors: int = 0
     """Receive calls that raised (a driver error), counted and read as "no frame"."""
-    hook_errors: int
+    hook_errors: int = 0
     """Exceptions raised by ``frame_hook`` (logged once, swallowed)."""
 
 
@@ -122,8 +122,8 @@ class JointClient:
         self._sync_tick: int | None = None
         self._sync_seq = 0
         self._sync_seen = 0
-        self._frames = self._states = self._syncs = self._statuses = 0
-        self._transport_errors = self._hook_errors = 0
+        self._n = ClientStats()
+        """The receive counters (``e2e`` aside: the codec keeps those)."""
         track(self, f"JointClient({bus.channel_info})")
 
     @classmethod
@@ -247,11 +247,11 @@ class JointClient:
             msg = self._receive(min(remaining, 0.05))
             if msg is None:
                 continue
-            before = self._statuses
+            before = self._n.statuses
             self.process_frame(msg)
             st = self._status
             if (
-                self._statuses != before
+                self._n.statuses != before
                 and st is not None
                 and st.session != old
                 and st.tick == 0
@@ -302,8 +302,8 @@ class JointClient:
         try:
             return self.bus.recv(timeout=timeout_s)
         except Exception as exc:  # driver errors must not reach the tick
-            self._transport_errors += 1
-            if self._transport_errors == 1 or self._transport_errors % 1000 == 0:
+            self._n.transport_errors += 1
+            if self._n.transport_errors == 1 or self._n.transport_errors % 1000 == 0:
                 log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
             return None
 
@@ -334,14 +334,14 @@ class JointClient:
         :meth:`drain`, :meth:`wait_sync` and :meth:`reset_scenario` call it for every frame
         they read; a test may feed frames to it directly."""
         now = time.monotonic_ns() if t_ns is None else t_ns
-        self._frames += 1
+        self._n.frames += 1
         hook = self.frame_hook
         if hook is not None:
             try:
                 hook(msg)
             except Exception as exc:
-                self._hook_errors += 1
-                if self._hook_errors == 1:
+                self._n.hook_errors += 1
+                if self._n.hook_errors == 1:
                     log.warning("frame_hook raised (further errors are only counted): %r", exc)
         frame = self._codec.decode(msg, now)
         if frame is None:
@@ -355,11 +355,11 @@ class JointClient:
         elif isinstance(frame, DspStatus):
             self._status, self._status_t_ns = frame, now
             self._new_statuses.append(frame)
-            self._statuses += 1
+            self._n.statuses += 1
         elif isinstance(frame, Sync):
             self._sync_tick = frame.tick
             self._sync_seq += 1
-            self._syncs += 1
+            self._n.syncs += 1
 
     def _pair(self, now: int) -> None:
         pos, vel = self._pos, self._vel
@@ -367,7 +367,7 @@ class JointClient:
             return
         self._state = JointState((pos.q1, pos.q2), (vel.dq1, vel.dq2), pos.sample, now)
         self._pos = self._vel = None
-        self._states += 1
+        self._n.states += 1
 
     # ----------------------------------------------------------------------------- read
 
@@ -396,7 +396,7 @@ class JointClient:
     @property
     def states_received(self) -> int:
         """Joint states (position + velocity pairs) received so far."""
-        return self._states
+        return self._n.states
 
     def wait_readable(self, timeout_s: float) -> bool:
         """Block until a frame is waiting on the bus or ``timeout_s`` passed; whether one is
@@ -475,12 +475,4 @@ class JointClient:
     @property
     def stats(self) -> ClientStats:
         """A snapshot of the receive counters."""
-        return ClientStats(
-            e2e=self._codec.stats,
-            frames=self._frames,
-            states=self._states,
-            syncs=self._syncs,
-            statuses=self._statuses,
-            transport_errors=self._transport_errors,
-            hook_errors=self._hook_errors,
-        )
+        return replace(self._n, e2e=self._codec.stats)

@@ -10,11 +10,9 @@ and ``hil report`` take their counters from the same place, so they agree.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 OK, WARN, ERROR = 0, 1, 2
-LEVEL_NAMES = {OK: "ok", WARN: "warn", ERROR: "error"}
 
 DIAGNOSTICS_SCHEMA: dict[str, Any] = {
     "title": "hil.Diagnostics",
@@ -42,17 +40,6 @@ DIAGNOSTICS_SCHEMA: dict[str, Any] = {
     },
     "required": ["t_ns", "tick", "level", "status"],
 }
-
-
-def counters(obj: Any) -> dict[str, Any]:
-    """A counters object as a flat dict: its ``as_dict()``, else its dataclass fields."""
-    if obj is None:
-        return {}
-    if hasattr(obj, "as_dict"):
-        return dict(obj.as_dict())
-    if dataclasses.is_dataclass(obj):
-        return dataclasses.asdict(obj)
-    return dict(obj)
 
 
 def since(base: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:

@@ -73,7 +73,7 @@ class RigHardware:
         self.recorder = recorder
         self.record_raw = record_raw
         self.kernel_stamps = kernel_stamps
-        self.can_base = diagnostics.counters(dsp.stats.e2e)
+        self.can_base = dsp.stats.e2e.as_dict()
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
         self._ring: PayloadRing | None = None
         self._subscriber: Any = None
@@ -190,6 +190,6 @@ class RigHardware:
     def counters(self) -> dict[str, dict[str, Any]]:
         """The receive verdicts of this run (``can_rx``, ``features``) for ``/diagnostics``."""
         return {
-            "can_rx": diagnostics.since(self.can_base, diagnostics.counters(self.dsp.stats.e2e)),
-            "features": diagnostics.counters(self.features.counts),
+            "can_rx": diagnostics.since(self.can_base, self.dsp.stats.e2e.as_dict()),
+            "features": self.features.counts.as_dict(),
         }
