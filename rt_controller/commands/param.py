@@ -11,6 +11,9 @@ from typing import Any
 from hal.arguments import add_key_option
 from rt_controller.commands.common import add_config_option
 
+ACTION_NAMES = ("arm", "disarm", "mark", "reset_scenario")
+"""The operator actions (:data:`rt_controller.calibration.operator.ACTIONS`)."""
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -20,18 +23,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         "of `hil param get`). A change set takes effect at one tick boundary or not at all; "
         "the answer names the tick. Every change, accepted or refused, is in the run's log "
         "(/controller/parameters). dump/load use the config's TOML, so a tuned set is the "
-        "next run's --config.",
+        "next run's --config. arm, disarm and mark (a note in the log's /controller/events) are "
+        "operator actions, done at a tick boundary like a change.",
     )
-    p.add_argument("action", choices=("get", "set", "dump", "load", "diff"))
+    p.add_argument("action", choices=("get", "set", "dump", "load", "diff", *ACTION_NAMES))
     p.add_argument(
         "items",
         nargs="*",
         metavar="ARG",
         help="get: keys (default all); set: KEY=VALUE (JSON values, else strings); "
-        "load/diff: a TOML file (diff: compared with the running set)",
+        "load/diff: a TOML file (diff: compared with the running set); mark: the note",
     )
     p.add_argument(
-        "--at-tick", type=int, metavar="K", help="set/load: take effect at the first tick >= K"
+        "--at-tick",
+        type=int,
+        metavar="K",
+        help="set/load and the actions: take effect at the first tick >= K",
     )
     p.add_argument("--timeout", type=float, default=10.0, metavar="S", help="answer wait")
     p.add_argument("-o", "--out", metavar="FILE", help="dump: write the TOML here")
@@ -57,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
-    from rt_controller.calibration.link import outcome_line, request
+    from rt_controller.calibration.link import event_line, outcome_line, request
     from rt_controller.commands.replay import parse_sets
     from rt_controller.errors import ControllerConfigError
 
@@ -80,6 +87,16 @@ def run(args: argparse.Namespace) -> int:
             def ask(op: str, **kw: Any) -> dict[str, Any]:
                 return request(session, key, op, timeout_s=args.timeout, **kw)
 
+            if args.action in ACTION_NAMES:
+                out = ask(
+                    "action",
+                    action=args.action,
+                    note=" ".join(args.items),
+                    at_tick=args.at_tick,
+                    source="hil param",
+                )
+                print(json.dumps(out["event"]) if args.json else f"hil param: {event_line(out)}")
+                return 0 if out["event"]["accepted"] else 1
             if args.action == "dump":
                 out = ask("dump")
                 if args.out:

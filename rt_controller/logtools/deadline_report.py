@@ -208,6 +208,7 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     out["recorder_dropped"] = _int_or_none(log.recorder_info.get("dropped"))
     out["diagnostics"] = _final_diagnostics(log)
     out["parameter_changes"] = [_change(r) for r in log.parameters]
+    out["events"] = [_event(r) for r in log.events]
     if out["recorder_dropped"]:
         out["notes"].append(f"the recorder dropped {out['recorder_dropped']} records")
     if n == 0:
@@ -226,6 +227,12 @@ def _change(rec: dict[str, Any]) -> dict[str, Any]:
         "changes": items,
         "reason": rec.get("reason"),
     }
+
+
+def _event(rec: dict[str, Any]) -> dict[str, Any]:
+    """One ``/controller/events`` record (a mark, arm, disarm) as the report lists it."""
+    keys = ("tick", "action", "accepted", "note", "source", "reason")
+    return {k: rec.get(k) for k in keys}
 
 
 def _final_diagnostics(log: LoadedLog) -> dict[str, Any] | None:
@@ -364,15 +371,34 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
             )
         con.print(mt)
 
-    changes = report.get("parameter_changes") or []
-    if changes:
-        pt = Table(title="Parameter changes", title_justify="left")
-        for col in ("tick", "set", "", "changes", "source"):
-            pt.add_column(col)
-        for c in changes:
-            verdict = "accepted" if c["accepted"] else f"refused: {c['reason']}"
-            pt.add_row(str(c["tick"]), str(c["param_set"]), verdict, c["changes"], c["source"])
-        con.print(pt)
+    def listing(title: str, columns: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
+        if rows:
+            t = Table(title=title, title_justify="left")
+            for col in columns:
+                t.add_column(col)
+            for row in rows:
+                t.add_row(*row)
+            con.print(t)
+
+    def verdict(item: dict[str, Any], ok: str) -> str:
+        return ok if item["accepted"] else f"refused: {item['reason']}"
+
+    listing(
+        "Parameter changes",
+        ("tick", "set", "", "changes", "source"),
+        [
+            (str(c["tick"]), str(c["param_set"]), verdict(c, "accepted"), c["changes"], c["source"])
+            for c in report.get("parameter_changes") or []
+        ],
+    )
+    listing(
+        "Operator events (marks, arm, disarm)",
+        ("tick", "action", "", "note", "source"),
+        [
+            (str(e["tick"]), e["action"], verdict(e, "done"), e["note"] or "", e["source"])
+            for e in report.get("events") or []
+        ],
+    )
 
     hist = report["lateness_histogram"]
     if hist:

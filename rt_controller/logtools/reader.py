@@ -28,6 +28,7 @@ from rt_controller.runtime.recorder import (
     CONFIG_METADATA,
     CYCLE_TOPIC,
     DIAGNOSTICS_TOPIC,
+    EVENTS_TOPIC,
     PARAMETERS_TOPIC,
     RECORDER_METADATA,
     RUN_METADATA,
@@ -60,6 +61,8 @@ class LoadedLog:
     """``/diagnostics`` records (always kept: about one a second)."""
     parameters: list[dict[str, Any]] = field(default_factory=list)
     """``/controller/parameters`` records: online changes, accepted or refused (always kept)."""
+    events: list[dict[str, Any]] = field(default_factory=list)
+    """``/controller/events`` records: operator actions (marks, arm, disarm), done or refused."""
     topic_counts: dict[str, int] = field(default_factory=dict)
     """Messages read per topic (also for raw topics that were not kept)."""
     schemas: dict[str, str] = field(default_factory=dict)
@@ -174,7 +177,7 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                 if isinstance(rec, Message):
                     topic = channels.get(rec.channel_id, f"#{rec.channel_id}")
                     counts[topic] += 1
-                    keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC, PARAMETERS_TOPIC)
+                    keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC, PARAMETERS_TOPIC, EVENTS_TOPIC)
                     if not keep and not (raw and topic in raw_lists):
                         continue
                     try:
@@ -190,6 +193,8 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                         out.diagnostics.append(obj)
                     elif topic == PARAMETERS_TOPIC:
                         out.parameters.append(obj)
+                    elif topic == EVENTS_TOPIC:
+                        out.events.append(obj)
                     else:
                         raw_lists[topic].append(obj)
                 elif isinstance(rec, Channel):

@@ -34,6 +34,23 @@ class DrivePolicy:
         self.cfg = cfg
         self.counters = counters
         self.monitor = DriveMonitor()
+        self.held_off = False
+        """The operator disarmed the DSP: no policy re-arm until the operator arms it."""
+
+    def operate(self, dsp: JointClient, action: str) -> str | None:
+        """Do an operator's ``arm``, ``disarm`` or ``mark`` (nothing to do); None when done,
+        else why not."""
+        if action == "disarm":
+            if self.held_off:
+                return "already disarmed by the operator"
+            self.held_off = True
+            dsp.disable()
+        elif action == "arm":
+            if not self.held_off and self.monitor.mode == MODE_ENABLED:
+                return "already armed"
+            self.held_off = False
+            dsp.enable(reset_fault=True)
+        return None
 
     @property
     def mode(self) -> str:
@@ -75,6 +92,11 @@ class DrivePolicy:
 
     def _on_events(self, dsp: JointClient, upd: DriveUpdate) -> None:
         ctl = self.cfg.controller
+        if self.held_off:  # the operator's disarm stands: count, never re-arm
+            for ev in upd.events:
+                if ev is DriveEvent.FAULT:
+                    self.counters.count_fault(upd.fault.label)
+            return
         for ev in upd.events:
             if ev is DriveEvent.FAULT:
                 self.counters.count_fault(upd.fault.label)

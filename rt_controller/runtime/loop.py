@@ -86,6 +86,7 @@ class ControlLoop:
         for release in self.pacer.releases(max_ticks):
             if self.params is not None:
                 self.take_parameters(release)
+                self.take_actions(release)
             cycle = self.tick(release)
             if self.pacer.overran(release):
                 self.counters.deadline_misses += 1
@@ -104,6 +105,17 @@ class ControlLoop:
             self.pacer.retune(cfg)
         for o in outcomes:
             self.recorder.record_parameters(o.record())
+
+    def take_actions(self, release: Release) -> None:
+        """At the tick boundary, after the parameters: the operator actions due
+        (:mod:`rt_controller.calibration.operator`), done or refused; each to the log."""
+        assert self.params is not None
+        for act in self.params.actions.due(release.index):
+            reason = act.refusal or self.drive.operate(self.hw.dsp, act.action)
+            out = act.finish(
+                release.index, accepted=reason is None, reason=reason, t_ns=release.wake_ns
+            )
+            self.recorder.record_event(out.record())
 
     def read(self, release: Release) -> Observation:
         """The read phase: the observation, with the drive state followed to this tick."""

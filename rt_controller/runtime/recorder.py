@@ -12,6 +12,8 @@ topic (JSON)         JSON Schema              one message per
 ``/hal/can/tx``       ``hil.CanFrame``         CAN frame sent by the controller
 ``/vision/features``  ``hil.VisionPayload``    vision message as received (raw bytes, base64)
 ``/diagnostics``      ``hil.Diagnostics``      about a second of the run, and its end
+``/controller/parameters`` ``hil.ParameterChange`` online parameter change set (per request)
+``/controller/events`` ``hil.OperatorEvent``   operator action: arm, disarm, mark (per request)
 ==================== ======================== ================================================
 
 ``log_time`` is the record's monotonic time shifted to the Unix epoch (the offset is in the
@@ -43,6 +45,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from hal.config import RigConfig
+from rt_controller.calibration.operator import EVENT_SCHEMA
 from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
 from rt_controller.errors import LogError
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
@@ -55,12 +58,13 @@ CAN_TX_TOPIC = "/hal/can/tx"
 VISION_TOPIC = "/vision/features"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 PARAMETERS_TOPIC = "/controller/parameters"
+EVENTS_TOPIC = "/controller/events"
 CONFIG_METADATA = "hil.config"
 RUN_METADATA = "hil.run"
 RECORDER_METADATA = "hil.recorder"
 SCHEMA_VERSION = "1"
 
-CYCLE, CAN_RX, CAN_TX, VISION, DIAG, PARAMS = 0, 1, 2, 3, 4, 5
+CYCLE, CAN_RX, CAN_TX, VISION, DIAG, PARAMS, EVENTS = 0, 1, 2, 3, 4, 5, 6
 """Record kinds: the first element of a record item ``(kind, t_ns, obj)``
 (:meth:`CycleRecorder.write`; small ints, cheap to pickle for the recorder process)."""
 TOPICS = {
@@ -70,6 +74,7 @@ TOPICS = {
     VISION: VISION_TOPIC,
     DIAG: DIAGNOSTICS_TOPIC,
     PARAMS: PARAMETERS_TOPIC,
+    EVENTS: EVENTS_TOPIC,
 }
 """The topic of each record kind."""
 DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
@@ -242,6 +247,10 @@ class Recorder:
         """One online parameter change (``/controller/parameters``)."""
         return self.write(PARAMS, int(record["t_ns"]), record)
 
+    def record_event(self, record: dict[str, Any]) -> bool:
+        """One operator action, done or refused (``/controller/events``)."""
+        return self.write(EVENTS, int(record["t_ns"]), record)
+
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
         """A python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
         kind = DIRECTIONS.get(direction)
@@ -364,6 +373,7 @@ class CycleRecorder(Recorder):
             VISION: schema("hil.VisionPayload", VISION_SCHEMA),
             DIAG: schema("hil.Diagnostics", DIAGNOSTICS_SCHEMA),
             PARAMS: schema("hil.ParameterChange", PARAMETERS_SCHEMA),
+            EVENTS: schema("hil.OperatorEvent", EVENT_SCHEMA),
         }
         return {k: w.register_channel(TOPICS[k], "json", schema_of[k]) for k in TOPICS}
 

@@ -71,3 +71,9 @@ def test_arm_and_disarm_wait_for_their_tick():
     act.finish(10, accepted=False, reason="already disarmed")
     event = unseal(got[0], KEY, REPLY_LABEL)["event"]
     assert event["reason"] == "already disarmed" and event["at_tick"] == 10
+
+
+def test_hil_param_names_every_action():
+    from rt_controller.commands.param import ACTION_NAMES
+
+    assert set(ACTION_NAMES) == set(ACTIONS)

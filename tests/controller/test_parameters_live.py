@@ -15,9 +15,10 @@ from rt_controller.logtools.replay import replay_loaded
 from tests.controller.test_daemon_fake_clock import run_daemon
 
 
-def _run(tmp_path, cfg, requests, duration_s=3.0):
-    """A fake-clock run; the requests are submitted to the daemon's parameter service during
-    its first tick (as another thread would: they wait in its queue for their ``at_tick``)."""
+def run_submitting(tmp_path, cfg, submit, duration_s=3.0):
+    """A fake-clock run; ``submit(service)`` is called with the daemon's parameter service
+    during its first tick (as another thread would: what it queues waits for its
+    ``at_tick``)."""
     seen: dict = {}
     init = daemon_mod.ControllerDaemon.__init__
 
@@ -28,14 +29,21 @@ def _run(tmp_path, cfg, requests, duration_s=3.0):
     def on_tick(ticks, node):
         if ticks == 0 and not seen.get("sent"):
             seen["sent"] = True
-            for r in requests:
-                seen["params"].submit(r)
+            submit(seen["params"])
 
     daemon_mod.ControllerDaemon.__init__ = spy_init
     try:
         return run_daemon(tmp_path, cfg, duration_s, {}, on_tick=on_tick)
     finally:
         daemon_mod.ControllerDaemon.__init__ = init
+
+
+def _run(tmp_path, cfg, requests, duration_s=3.0):
+    def submit(service):
+        for r in requests:
+            service.submit(r)
+
+    return run_submitting(tmp_path, cfg, submit, duration_s)
 
 
 def _at(log, tick):

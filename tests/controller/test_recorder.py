@@ -26,6 +26,7 @@ from rt_controller.runtime.recorder import (
     CAN_TX_TOPIC,
     CYCLE_TOPIC,
     DIAGNOSTICS_TOPIC,
+    EVENTS_TOPIC,
     PARAMETERS_TOPIC,
     VISION_TOPIC,
     CycleRecorder,
@@ -94,6 +95,7 @@ def test_read_back_with_mcap_library(tmp_path, cfg):
             VISION_TOPIC,
             DIAGNOSTICS_TOPIC,
             PARAMETERS_TOPIC,
+            EVENTS_TOPIC,
         }
         for ch in topics.values():
             assert ch.message_encoding == "json"
@@ -153,6 +155,7 @@ def test_each_record_is_written_before_its_call_returns(tmp_path, cfg):
         VISION_TOPIC: 1,
         DIAGNOSTICS_TOPIC: 0,
         PARAMETERS_TOPIC: 0,
+        EVENTS_TOPIC: 0,
         "written": 6,
         "dropped": 0,
         "encode_errors": 0,
