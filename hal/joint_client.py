@@ -59,6 +59,11 @@ STATUS_BACKLOG = 64
 FrameHook = Callable[[can.Message], None]
 
 
+def _delay_tick(release_delay_us: int) -> int:
+    """A TorqueCommand's ``Tick`` carrying a release delay (saturated)."""
+    return min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
+
+
 @dataclass
 class ClientStats:
     """Receive-side counters of a :class:`JointClient`."""
@@ -108,7 +113,7 @@ class JointClient:
         self._owns_bus = owns_bus
         self._key = key if key is not None else rig_key(self.cfg)
         self._codec = ControllerCodec(reinit_after_s=reinit_after_s, key=self._key)
-        self._shadow: ControllerCodec | None = None
+        self._shadow = ControllerCodec(database=self._codec.database, key=self._key)
         """The codec :meth:`rehearse_torque` encodes with (its counters are its own)."""
         self._closed = False
         self._armed = False
@@ -200,7 +205,7 @@ class JointClient:
         :class:`HalTransportError` when the bus refuses the frame.
         """
         if release_delay_us is not None:
-            tick = min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
+            tick = _delay_tick(release_delay_us)
         elif tick is None:
             tick = self._sync_tick or 0
         on = self._armed if enable is None else enable and self._armed
@@ -277,16 +282,9 @@ class JointClient:
         (:meth:`hal.udp_loopback.LoopbackMulticastBus.rehearse_send`). Never raises."""
         if self._closed:
             return
-        tick = 0
-        if release_delay_us is not None:
-            tick = min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
+        tick = 0 if release_delay_us is None else _delay_tick(release_delay_us)
         try:
-            shadow = self._shadow
-            if shadow is None:
-                shadow = self._shadow = ControllerCodec(
-                    database=self._codec.database, key=self._key
-                )
-            msg = shadow.encode_torque(tau1, tau2, enable=self._armed, tick=tick)
+            msg = self._shadow.encode_torque(tau1, tau2, enable=self._armed, tick=tick)
         except HalError:
             return
         rehearse = getattr(self.bus, "rehearse_send", None)
@@ -308,15 +306,10 @@ class JointClient:
             return None
 
     def drain(self, now_ns: int | None = None, *, timestamps: bool = False) -> int:
-        """Read every frame waiting on the bus without blocking and decode it; the number of
-        frames read.
-
-        The controller's tick calls it to take its inputs. Each frame's receive time is
-        ``now_ns`` (default ``time.monotonic_ns()``), or, with ``timestamps``, the bus's receive
-        stamp (``Message.timestamp``, wall clock) moved to the monotonic clock and capped at
-        ``now_ns``. Never raises for a bad frame or a driver error (both counted; a driver
-        error ends the drain).
-        """
+        """Read and decode every frame waiting on the bus, without blocking; how many. A frame's
+        receive time is ``now_ns`` (default: now) or, with ``timestamps``, the bus's receive
+        stamp moved to the monotonic clock and capped at ``now_ns``. Never raises for a bad
+        frame or a driver error (both counted; a driver error ends the drain)."""
         now = time.monotonic_ns() if now_ns is None else now_ns
         wall_minus_mono = time.time_ns() - time.monotonic_ns() if timestamps else 0
         n = 0
@@ -329,10 +322,8 @@ class JointClient:
         return n
 
     def process_frame(self, msg: can.Message, t_ns: int | None = None) -> None:
-        """The receive path for one frame: hook, E2E check, decode, update. Never raises.
-
-        :meth:`drain`, :meth:`wait_sync` and :meth:`reset_scenario` call it for every frame
-        they read; a test may feed frames to it directly."""
+        """The receive path of every frame read: hook, E2E check, decode, update. Never
+        raises."""
         now = time.monotonic_ns() if t_ns is None else t_ns
         self._n.frames += 1
         hook = self.frame_hook
@@ -372,10 +363,8 @@ class JointClient:
     # ----------------------------------------------------------------------------- read
 
     def latest_state(self, max_age_s: float | None = None, now_ns: int | None = None) -> JointState:
-        """The newest joint state; :class:`HalTimeoutError` when none is newer than the limit.
-
-        ``max_age_s`` defaults to ``cfg.controller.state_timeout_s``; ``now_ns`` (default
-        ``time.monotonic_ns()``) is the caller's clock.
+        """The newest joint state; :class:`HalTimeoutError` when none is newer than
+        ``max_age_s`` (default ``cfg.controller.state_timeout_s``) at ``now_ns`` (default: now).
         """
         limit = self.cfg.controller.state_timeout_s if max_age_s is None else max_age_s
         state = self._state
@@ -399,10 +388,8 @@ class JointClient:
         return self._n.states
 
     def wait_readable(self, timeout_s: float) -> bool:
-        """Block until a frame is waiting on the bus or ``timeout_s`` passed; whether one is
-        waiting. Reads nothing (:meth:`drain` does), so a caller can decide when to decode it.
-        A bus without a file descriptor is polled every 0.2 ms (this call returns False after
-        one such pause)."""
+        """Block until a frame is waiting on the bus (True, nothing read) or ``timeout_s``
+        passed. A bus without a file descriptor: one pause of 0.2 ms, then False."""
         if timeout_s <= 0:
             return False
         try:
@@ -425,12 +412,8 @@ class JointClient:
 
     @property
     def status(self) -> DspStatus | None:
-        """The latest DspStatus (``None`` before the first one); never raises.
-
-        To follow the DSP's drive state, faults and restarts, feed a
-        :class:`hal.drive_state.DriveMonitor` every status in order (:meth:`take_statuses`):
-        the newest alone misses a fault, reset and enable that arrive between two reads.
-        """
+        """The latest DspStatus (``None`` before the first one). To follow the drive state,
+        feed a :class:`hal.drive_state.DriveMonitor` every status (:meth:`take_statuses`)."""
         return self._status
 
     def take_statuses(self) -> list[DspStatus]:
@@ -452,12 +435,8 @@ class JointClient:
         return self._sync_tick
 
     def wait_sync(self, timeout: float) -> int:
-        """Read the bus until a Sync arrives that no earlier call returned; its tick.
-
-        Every frame read on the way is decoded (the DSP sends a period's joint state before
-        its Sync). If several Syncs arrived since the previous call, the latest wins. Raises
-        :class:`HalTimeoutError` after ``timeout`` seconds.
-        """
+        """Read (and decode) the bus until a Sync arrives that no earlier call returned; its
+        tick (the latest of several). :class:`HalTimeoutError` after ``timeout`` seconds."""
         deadline = time.monotonic() + timeout
         while self._sync_seq == self._sync_seen:
             remaining = deadline - time.monotonic()

@@ -155,14 +155,13 @@ class RecorderChild:
         out.update(received=self.received.get(rid, 0), finished=rec.finished)
         return out
 
-    def report(self, force: bool = False) -> None:
+    def report(self) -> None:
+        """Each open log's counters, when they changed since the last report."""
         for rid, rec in self.logs.items():
             counts = self.counts(rid, rec)
-            key = tuple(counts.values())
-            if force or self.reported.get(rid) != key:
+            if self.reported.get(rid) != (key := tuple(counts.values())):
                 self.reported[rid] = key
-                error = None if rec.error is None else str(rec.error)
-                self.reply((COUNTS, rid, counts, error, False))
+                self.reply((COUNTS, rid, counts, rec.error and str(rec.error), False))
 
     def close(self, rid: int) -> None:
         rec = self.logs.pop(rid, None)
@@ -171,8 +170,8 @@ class RecorderChild:
             return
         rec.close()
         rec.set_live(None)
-        error = None if rec.error is None else str(rec.error)
-        if rec.error is None and not rec.finished:
+        error = str(rec.error) if rec.error else None
+        if not (error or rec.finished):
             error = "the writer did not finish the file"
         counts = self.counts(rid, rec)
         self.received.pop(rid, None)

@@ -291,10 +291,6 @@ class RecorderService:
 
     # ----------------------------------------------------------------- pipes
 
-    def poll(self) -> None:
-        """Apply the child's replies that arrived (counters, errors); never blocks."""
-        self._pump_in()
-
     def _pump_out(self) -> None:
         """Write what the pipe takes now (never blocks)."""
         out = self._outbox
@@ -313,8 +309,8 @@ class RecorderService:
         if not self._await(lambda: not self._outbox, timeout, writing=True) and not self._dead:
             self._die(f"the recorder process took nothing for {timeout:g} s")
 
-    def _pump_in(self) -> None:
-        """Read and apply the child's replies that arrived (never blocks)."""
+    def poll(self) -> None:
+        """Read and apply the child's replies that arrived (counters, errors); never blocks."""
         while True:
             try:
                 data = os.read(self._in, READ_SIZE)
@@ -346,7 +342,7 @@ class RecorderService:
         while True:
             if writing:
                 self._pump_out()
-            self._pump_in()
+            self.poll()
             if done():
                 return True
             left = deadline - time.monotonic()
