@@ -109,15 +109,11 @@ class RunCounters:
 
 
 def run_problems(summary: dict[str, Any]) -> list[str]:
-    """Why a finished run cannot be trusted, one short phrase each (empty: a clean run).
-
-    A run is not clean when it ended before its duration for another reason than a stop
-    request (the DSP fell silent), lost log records, tripped the DSP's watchdog, saw the DSP
-    fault, received a stream of frames or messages that failed authentication (another sender
-    on the rig's bus or zenoh: :data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without
-    an enabled DSP (disarmed, restarted, silent); the commands exit non-zero and print these on
-    one line. ``summary`` is a run's summary (:meth:`RunCounters.as_dict` and the recorder's
-    and rejections' counters), also as rebuilt from a log.
+    """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
+    ended short for another reason than a stop request, lost or could not encode log records,
+    tripped the DSP's watchdog, saw a DSP fault, received a stream of frames or messages that
+    failed authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without
+    an enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
     planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)

@@ -52,36 +52,22 @@ def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
     """The output fields of one tick (the state acted on, u, xi, tau, law, solver report, cost,
     V) from the per-tick rule's :class:`Decision`; zeros / NaN when the law did not run."""
     cmd = d.command
-    acted = {
+    if cmd is None:
+        law, (cost, V) = None, (math.nan, math.nan)
+    else:
+        law, (cost, V) = cmd.law, ctl.costs(cmd)
+    return {
         "q_pred": vec2(d.state[0]) if d.state is not None else [math.nan, math.nan],
         "dq_pred": vec2(d.state[1]) if d.state is not None else [math.nan, math.nan],
         "f_pred": vec2(d.features) if d.features is not None else [math.nan, math.nan],
-    }
-    if cmd is None:
-        return {
-            **acted,
-            "xi": [0.0, 0.0],
-            "u": [0.0, 0.0],
-            "tau": vec2(d.tau),
-            "tau_saturated": False,
-            "law": d.mode,
-            "residual": 0.0,
-            "iterations": 0,
-            "fallback": False,
-            "cost": math.nan,
-            "V": math.nan,
-        }
-    cost, V = ctl.costs(cmd)
-    return {
-        **acted,
-        "xi": vec2(cmd.measurement.xi),
-        "u": vec2(cmd.law.u),
+        "xi": [0.0, 0.0] if cmd is None else vec2(cmd.measurement.xi),
+        "u": [0.0, 0.0] if law is None else vec2(law.u),
         "tau": vec2(d.tau),
-        "tau_saturated": bool(cmd.saturated),
-        "law": ctl.law.name,
-        "residual": float(cmd.law.residual),
-        "iterations": int(cmd.law.iterations),
-        "fallback": bool(cmd.law.fallback),
+        "tau_saturated": False if cmd is None else bool(cmd.saturated),
+        "law": d.mode if cmd is None else ctl.law.name,
+        "residual": 0.0 if law is None else float(law.residual),
+        "iterations": 0 if law is None else int(law.iterations),
+        "fallback": False if law is None else bool(law.fallback),
         "cost": float(cost),
         "V": float(V),
     }

@@ -64,11 +64,6 @@ class DaemonOptions:
     ``controller.spin_us`` before each release); tests pass a fake one."""
 
 
-def default_log_path(cfg: RigConfig, law: str) -> Path:
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path(cfg.controller.log_dir) / f"run-{stamp}-{law}.mcap"
-
-
 def recorder_service(cfg: RigConfig, opts: DaemonOptions) -> RecorderService:
     """The recorder's child process (start it before the links: while this process has a
     single thread the child is forked, which is instant). The control process then runs no
@@ -117,7 +112,9 @@ class ControllerDaemon:
         self.params = ParameterService(cfg)
         """Online parameter changes: any thread submits, the loop takes them at a tick
         boundary (:mod:`rt_controller.calibration.parameters`)."""
-        self.log_path = options.log_path or default_log_path(cfg, cfg.controller.law)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        default_log = Path(cfg.controller.log_dir) / f"run-{stamp}-{cfg.controller.law}.mcap"
+        self.log_path = options.log_path or default_log
         self.loop: ControlLoop | None = None
         self._final_diagnostics: dict[str, Any] | None = None
 
@@ -203,20 +200,15 @@ class ControllerDaemon:
         if opts.live:  # published by the recorder's process, on its own session
             rec.stream_live()
         hw.attach(session, callback=pacer.features_by_callback)
-        tuning = self._serve_parameters(session)
+        tuning = None  # the `hil param` queryable; none on a stand-in session without zenoh
+        if hasattr(session, "session"):
+            tuning = ParameterServer(self.params, rig_key(cfg)).attach(session)
         try:
             self._start_and_loop(hw, loop, needs_features=not pacer.features_by_callback)
         finally:
             if tuning is not None:
                 tuning.undeclare()
             hw.detach()
-
-    def _serve_parameters(self, session: Any) -> Any:
-        """The ``hil param`` queryable on the run's zenoh session (None on a stand-in
-        session without zenoh, as in the fake-clock tests)."""
-        if not hasattr(session, "session"):
-            return None
-        return ParameterServer(self.params, rig_key(self.cfg)).attach(session)
 
     def _start_and_loop(self, hw: RigHardware, loop: ControlLoop, *, needs_features: bool) -> None:
         """Warm up, wait for the inputs, lock memory, then the loop; torque off at the end."""

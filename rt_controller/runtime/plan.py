@@ -1,23 +1,18 @@
 """``hil controller --plan FILE``: many lockstep runs on one set of rig processes.
 
-Starting the three processes costs more than a 10 s lockstep run itself (imports, compiled
-kernels, zenoh and the arming handshake), so ``hil experiment`` hands the controller a plan of
-runs instead of restarting the rig per run. Between runs the controller resets the emulated
-DSP's scenario over the existing CAN link (DspControl ``RESET_SCENARIO``: simulation time 0,
-the configured initial state, a new session, the run's camera noise seed, and a new pose source
-so the vision process restarts its run and its noise generator from that seed); each run then
-starts as on freshly started processes, so its log and summary are those of
-``hil up --config RUN.toml`` (tests compare them bit for bit).
+Starting the three processes costs more than a 10 s lockstep run, so ``hil experiment`` hands
+the controller a plan of runs. Between runs the controller resets the emulated DSP's scenario
+over the CAN link (DspControl ``RESET_SCENARIO``: simulation time 0, the initial state, a new
+session and camera noise seed, the vision process restarting from that seed); each run's log
+and summary are then those of ``hil up --config RUN.toml`` (tests compare them bit for bit).
 
 The plan is JSON::
 
     {"runs": [{"name": "rhc-T0.1", "config": "configs/rhc-T0.1.toml", "law": "rhc",
                "duration_s": 10.0, "log": "logs/rhc-T0.1.mcap"}, ...]}
 
-Every run's configuration must agree with the first in all that the emulator and the vision
-process read (everything but the ``controller``, ``rhc`` and ``gains`` sections, and
-``camera.seed``, which the reset carries when it fits its 32-bit signal): they were started
-once, with the first run's file.
+The runs may differ only in what the emulator and vision processes do not read (the
+``controller``, ``rhc`` and ``gains`` sections, and a ``camera.seed`` the reset can carry).
 """
 
 from __future__ import annotations
