@@ -65,18 +65,6 @@ def lean_process(arena_max: int = 2, stack_bytes: int = THREAD_STACK_BYTES) -> R
     return rep
 
 
-def _mappings(maps_text: str) -> list[tuple[int, int, str, str]]:
-    """``/proc/self/maps`` → (start, end, perms, path) per mapping."""
-    out = []
-    for line in maps_text.splitlines():
-        parts = line.split(maxsplit=5)
-        if len(parts) < 5:
-            continue
-        lo, hi = (int(x, 16) for x in parts[0].split("-"))
-        out.append((lo, hi, parts[1], parts[5].strip() if len(parts) == 6 else ""))
-    return out
-
-
 def lockable(perms: str, path: str) -> bool:
     """Whether a mapping may be locked by ``"touched"``: accessible, not a kernel page, not cold."""
     if perms.startswith("---") or path in ("[vsyscall]", "[vvar]", "[vdso]"):
@@ -88,43 +76,36 @@ def present_runs(pagemap: bytes, start: int, page: int) -> list[tuple[int, int]]
     """Contiguous runs (address, length) of pages whose pagemap entry has the present bit."""
     runs: list[tuple[int, int]] = []
     n = len(pagemap) // 8
-    entries = struct.unpack(f"<{n}Q", pagemap[: n * 8])
     run_start = None
-    for i, e in enumerate(entries):
+    for i, e in enumerate((*struct.unpack(f"<{n}Q", pagemap[: n * 8]), 0)):  # 0: the end
         if e & _PAGEMAP_PRESENT:
             if run_start is None:
                 run_start = i
         elif run_start is not None:
             runs.append((start + run_start * page, (i - run_start) * page))
             run_start = None
-    if run_start is not None:
-        runs.append((start + run_start * page, (n - run_start) * page))
     return runs
 
 
-def lock_touched(libc: ctypes.CDLL) -> tuple[int, int]:
-    """mlock every present page of every lockable mapping; (bytes locked, bytes refused)."""
-    page = mmap.PAGESIZE
-    locked = refused = 0
-    libc.mlock.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
-    with open("/proc/self/maps") as f:
-        maps = _mappings(f.read())
-    with open("/proc/self/pagemap", "rb", buffering=0) as pm:
-        for lo, hi, perms, path in maps:
-            if not lockable(perms, path):
-                continue
-            pm.seek(lo // page * 8)
-            for addr, size in present_runs(pm.read((hi - lo) // page * 8), lo, page):
-                if libc.mlock(addr, size) == 0:
-                    locked += size
-                else:
-                    refused += size
-    return locked, refused
-
-
 def _lock(libc: ctypes.CDLL, rep: RtReport) -> None:
+    """mlock the present pages of every lockable mapping (see the module docstring)."""
+    page, locked, refused = mmap.PAGESIZE, 0, 0
+    libc.mlock.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
     try:
-        locked, refused = lock_touched(libc)
+        with open("/proc/self/maps") as f:
+            maps = [line.split(maxsplit=5) for line in f.read().splitlines()]
+        with open("/proc/self/pagemap", "rb", buffering=0) as pm:
+            for parts in maps:  # start-end perms offset dev inode [path]
+                path = parts[5].strip() if len(parts) == 6 else ""
+                if len(parts) < 5 or not lockable(parts[1], path):
+                    continue
+                lo, hi = (int(x, 16) for x in parts[0].split("-"))
+                pm.seek(lo // page * 8)
+                for addr, size in present_runs(pm.read((hi - lo) // page * 8), lo, page):
+                    if libc.mlock(addr, size) == 0:
+                        locked += size
+                    else:
+                        refused += size
     except OSError as exc:
         rep.warnings.append(f"locking touched pages failed ({exc})")
         return
