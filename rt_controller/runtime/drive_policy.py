@@ -91,27 +91,22 @@ class DrivePolicy:
         return mode
 
     def _on_events(self, dsp: JointClient, upd: DriveUpdate) -> None:
-        ctl = self.cfg.controller
-        if self.held_off:  # the operator's disarm stands: count, never re-arm
-            for ev in upd.events:
-                if ev is DriveEvent.FAULT:
-                    self.counters.count_fault(upd.fault.label)
-            return
+        ctl, n = self.cfg.controller, self.counters
         for ev in upd.events:
             if ev is DriveEvent.FAULT:
-                self.counters.count_fault(upd.fault.label)
-                if upd.fault is FaultReason.WATCHDOG:
-                    self.counters.watchdog_trips += 1
-                    if ctl.rearm_after_trip:
-                        dsp.enable(reset_fault=True)
-                        self.counters.rearms += 1
-            elif ev is DriveEvent.DSP_RESTARTED and ctl.rearm_after_restart:
-                self.monitor.acknowledge_restart()
+                n.count_fault(upd.fault.label)
+            if self.held_off:  # the operator's disarm stands: count, never re-arm
+                continue
+            if ev is DriveEvent.FAULT and upd.fault is FaultReason.WATCHDOG:
+                n.watchdog_trips += 1
+                if ctl.rearm_after_trip:
+                    dsp.enable(reset_fault=True)
+                    n.rearms += 1
+            elif ev in (DriveEvent.DSP_RESTARTED, DriveEvent.DISARMED) and ctl.rearm_after_restart:
+                if ev is DriveEvent.DSP_RESTARTED:
+                    self.monitor.acknowledge_restart()
                 dsp.enable(reset_fault=False)
-                self.counters.rearms += 1
-            elif ev is DriveEvent.DISARMED and ctl.rearm_after_restart:
-                dsp.enable(reset_fault=False)
-                self.counters.rearms += 1
+                n.rearms += 1
 
     def block(self, dsp: JointClient) -> dict:
         """The ``dsp`` component of the ``/diagnostics`` record."""

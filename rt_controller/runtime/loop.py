@@ -71,12 +71,12 @@ class ControlLoop:
         recorder: Any,
         counters: RunCounters,
         clock: Clock,
-        params: ParameterService | None = None,
+        params: ParameterService,
     ) -> None:
         self.cfg, self.controller, self.hw, self.pacer = cfg, controller, hw, pacer
         self.drive, self.recorder, self.counters, self.clock = drive, recorder, counters, clock
         self.params = params
-        """Online parameter changes, taken at each tick boundary (None: none)."""
+        """Online parameter changes and operator actions, taken at each tick boundary."""
         self.last_call: RuleCall | None = None
         """The last tick's rule call (the rehearsal replays it)."""
         self.last_write_delay_us = 0
@@ -84,9 +84,8 @@ class ControlLoop:
 
     def run(self, max_ticks: int | None) -> None:
         for release in self.pacer.releases(max_ticks):
-            if self.params is not None:
-                self.take_parameters(release)
-                self.take_actions(release)
+            self.take_parameters(release)
+            self.take_actions(release)
             cycle = self.tick(release)
             if self.pacer.overran(release):
                 self.counters.deadline_misses += 1
@@ -96,7 +95,6 @@ class ControlLoop:
     def take_parameters(self, release: Release) -> None:
         """At the tick boundary, before the tick: the change sets due, judged; an accepted one
         is in force for the whole of this tick. Each outcome goes to the log."""
-        assert self.params is not None
         cfg, outcomes = self.params.due(release.index, release.wake_ns)
         if cfg is not None:
             keys = {c["key"] for o in outcomes if o.accepted for c in o.changes}
@@ -109,7 +107,6 @@ class ControlLoop:
     def take_actions(self, release: Release) -> None:
         """At the tick boundary, after the parameters: the operator actions due
         (:mod:`rt_controller.calibration.operator`), done or refused; each to the log."""
-        assert self.params is not None
         for act in self.params.actions.due(release.index):
             reason = act.refusal or self.drive.operate(self.hw.dsp, act.action)
             out = act.finish(
@@ -186,7 +183,7 @@ class ControlLoop:
             decision=fields,
             predict_ms=predict_ms,
             f_predict_ms=f_predict_ms,
-            param_set=0 if self.params is None else self.params.param_set,
+            param_set=self.params.param_set,
         )
 
     def record(self, cycle: dict[str, Any]) -> None:
@@ -209,7 +206,7 @@ class ControlLoop:
             controller=self.counters.controller_block(),
             recorder=recorder,
             final=final,
-            parameters=None if self.params is None else self.params.counters.as_dict(),
+            parameters=self.params.counters.as_dict(),
         )
 
     def _follow_features(self, f: np.ndarray, t_s: float) -> None:
