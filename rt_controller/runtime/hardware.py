@@ -102,8 +102,8 @@ class RigHardware:
             self._subscriber = None
         self.dsp.frame_hook = self.dsp.tx_hook = None
 
-    def _on_features(self, payload: bytes) -> None:
-        now = self.clock.now_ns()
+    def _on_features(self, payload: bytes, now_ns: int | None = None) -> None:
+        now = self.clock.now_ns() if now_ns is None else now_ns
         self.features.feed(payload, now)
         if self.record_raw:
             self.recorder.record_vision(payload, now)
@@ -114,9 +114,7 @@ class RigHardware:
         self.dsp.drain(now_ns, timestamps=self.kernel_stamps)
         if self._ring is not None:
             for payload in self._ring.drain():
-                self.features.feed(payload, now_ns)
-                if self.record_raw:
-                    self.recorder.record_vision(payload, now_ns)
+                self._on_features(payload, now_ns)
 
     def wait_ready(self, stop: Any, *, features: bool, pause: Callable[[int], None]) -> None:
         """Start-up: until the first joint state (and, with ``features``, image features)."""

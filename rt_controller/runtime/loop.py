@@ -116,13 +116,17 @@ class ControlLoop:
 
     def read(self, release: Release) -> Observation:
         """The read phase: the observation, with the drive state followed to this tick."""
+        mode = self.drive.follow(self.hw.dsp, release.wake_ns, self.pacer.status_limit_s)
+        return self.observe(release.wake_ns, mode)
+
+    def observe(self, wake_ns: int, drive_mode: str) -> Observation:
+        """The inputs at ``wake_ns``, judged by the pacer's limits and ages."""
         p = self.pacer
-        mode = self.drive.follow(self.hw.dsp, release.wake_ns, p.status_limit_s)
         return self.hw.read(
-            release.wake_ns,
+            wake_ns,
             state_limit_s=p.state_limit_s,
             feature_age=p.feature_age_ms,
-            drive_mode=mode,
+            drive_mode=drive_mode,
         )
 
     def tick(self, release: Release) -> dict[str, Any]:

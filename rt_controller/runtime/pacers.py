@@ -29,9 +29,8 @@ from rt_controller.runtime.hardware import Observation, RigHardware
 LOCKSTEP_SYNC_TIMEOUT_S = 2.0
 """Lockstep without a duration: without a Sync for this long the emulator has finished."""
 LOCKSTEP_STALL_TIMEOUT_S = 30.0
-"""Lockstep with a duration not yet reached: how long the DSP may stay silent (a stalled or
-descheduled emulator; user-mode Linux runs about 10x slower) before the run ends short, which
-makes it not clean."""
+"""Lockstep with a duration not yet reached: how long the DSP may stay silent (a stalled
+emulator; user-mode Linux runs about 10x slower) before the run ends short (not clean)."""
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
 """Lockstep: how long a tick waits for the features answering its period's pose."""
 SYNC_POLL_S = 0.25
@@ -157,18 +156,12 @@ class RealtimePacer(_Pacer):
         """Whether the tick's work ran past the next release (its deadline)."""
         return self.clock.now_ns() > release.release_ns + self.period_ns
 
-    def _arm(self) -> Any:
-        """ENABLE at the first release, then a zero torque at every release until the DSP
-        reports *operation enabled*; that release (its tick runs the law), or None when told
-        to stop first.
-
-        The command stream is cyclic from ENABLE on, as a CiA 402 master's PDOs are: the DSP
-        arms its watchdog (``dsp.watchdog_periods``) on ENABLE. The zero torques carry
-        Enable = 0, so the first frame that applies torque is the first law tick's: the
-        emulated DSP starts the scenario's clock there. Each release reads the transports
-        first, so ENABLE goes out after the frames that queued up during start-up. These
-        releases are counted in ``arming_ticks``, not in ``ticks``.
-        """
+    def _arm(self) -> Tick | None:
+        """ENABLE at the first release, then a zero torque (Enable = 0) at every release until
+        the DSP reports *operation enabled*; that release (its tick runs the law), or None when
+        told to stop first. The command stream is cyclic from ENABLE on (the DSP arms its
+        watchdog there), and the first frame that applies torque is the first law tick's (the
+        emulated DSP starts the scenario's clock there). Counted in ``arming_ticks``."""
         deadline: int | None = None
         dsp = self.hw.dsp
         while not self.stop.is_set():

@@ -40,16 +40,10 @@ class Rehearsal:
         call = loop.last_call
         if call is None:
             return
-        p, hw = loop.pacer, loop.hw
-        hw.read(
-            loop.clock.now_ns(),
-            state_limit_s=p.state_limit_s,
-            feature_age=p.feature_age_ms,
-            drive_mode=loop.drive.mode,
-        )
+        loop.observe(loop.clock.now_ns(), loop.drive.mode)
         d = apply_rule(self.controller, call)
         decision_fields(self.controller, d)
-        hw.dsp.rehearse_torque(
+        loop.hw.dsp.rehearse_torque(
             float(d.tau[0]), float(d.tau[1]), release_delay_us=loop.last_write_delay_us
         )
         loop.counters.rehearsals += 1
