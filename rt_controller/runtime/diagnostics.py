@@ -1,11 +1,7 @@
-"""The ``/diagnostics`` record: every counter a supervisor needs, about once a second, in the
-spirit of ROS ``diagnostic_msgs/DiagnosticArray`` (one status per component, a level, a message
-and key/values).
-
-Components: ``can_rx`` (the controller's receive verdicts by reason), ``features`` (vision
-messages by reason), ``dsp`` (the drive's last reported state), ``controller`` (ticks, misses,
-stale inputs, fallbacks) and ``recorder`` (records written, dropped). The controller's summary
-and ``hil report`` take their counters from the same place, so they agree.
+"""The ``/diagnostics`` record: every counter a supervisor needs, about once a second, like ROS
+``diagnostic_msgs/DiagnosticArray`` (per component ``can_rx``, ``features``, ``dsp``,
+``controller``, ``recorder``: a level, a message and key/values). The controller's summary and
+``hil report`` take their counters from it, so they agree.
 """
 
 from __future__ import annotations

@@ -5,10 +5,8 @@
     hardware.write(decision, release)
     record(cycle)
 
-The pacer (:mod:`rt_controller.runtime.pacers`) owns everything that depends on the clock
-mode; the hardware (:mod:`rt_controller.runtime.hardware`) owns the transports; the drive
-policy (:mod:`rt_controller.runtime.drive_policy`) the DSP's drive state; the counters
-(:mod:`rt_controller.runtime.counters`) every total. ``decide`` is the pure per-tick rule
+The pacer owns what depends on the clock mode, the hardware the transports, the drive policy
+the DSP's drive state, the counters every total; ``decide`` is the pure per-tick rule
 :meth:`rt_controller.control.controller.Controller.decide`, shared with replay and simulation.
 """
 

@@ -288,10 +288,9 @@ class CycleRecorder(Recorder):
         chunk_size: a chunk is also closed when it grows past this many bytes.
         live, scene: see the module docstring.
 
-    Records are written before ``record_*`` returns (True) and never raise: one that cannot be
-    encoded counts in ``encode_errors``, one after :meth:`close` or a write failure in
-    ``dropped``. A write failure (disk full...) ends the log and stays in :attr:`error`. Not
-    thread-safe: one thread records and closes.
+    ``record_*`` write at once (True) and never raise: a record that cannot be encoded counts
+    in ``encode_errors``, one after :meth:`close` or a write failure (which ends the log and
+    stays in :attr:`error`) in ``dropped``. One thread records and closes.
     """
 
     pending = 0

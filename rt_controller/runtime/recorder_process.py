@@ -70,13 +70,9 @@ def _picklable(obj: Any) -> bool:
 
 class RemoteRecorder(Recorder):
     """One run's log, recorded by the service's child process (the interface and counters of
-    :class:`~rt_controller.runtime.recorder.CycleRecorder`).
-
-    The ``record_*`` methods take ownership of what they are given: do not mutate a cycle dict
-    (or its arrays) after passing it; it is pickled at the end of the tick. Counters come from
-    the child's latest report (at most ``recorder_child.COUNTS_EVERY_S`` old while the run goes
-    on; exact after :meth:`close`); ``dropped`` adds the batches this process dropped.
-    """
+    :class:`~rt_controller.runtime.recorder.CycleRecorder`). ``record_*`` take ownership of
+    what they are given (pickled at the end of the tick). Counters are the child's latest report
+    (exact after :meth:`close`) plus the batches this process dropped."""
 
     def __init__(self, service: RecorderService, rid: int, path: Path, backpressure: bool):
         self.path = path
@@ -187,16 +183,9 @@ class RemoteRecorder(Recorder):
 
 
 class RecorderService:
-    """The recorder's child process and the two pipes to it (see the module docstring).
-
-    Args:
-        cfg: the rig configuration (the child's zenoh session for the live stream uses its
-            transport section, with ``zenoh_endpoint`` / ``zenoh_config`` overriding it).
-        start: ``"auto"`` (fork while this process has one OS thread, else spawn), ``"fork"``
-            or ``"spawn"``.
-
-    A context manager; :meth:`close` ends the child (it finishes any log still open).
-    """
+    """The recorder's child process and the two pipes to it (see the module docstring): ``cfg``
+    (and ``zenoh_endpoint`` / ``zenoh_config``) for the live stream's session, ``start`` as
+    :class:`~rt_controller.runtime.recorder_child.ChildProcess`. :meth:`close` ends the child."""
 
     outbox_limit = 8 << 20
     """Bytes that may wait for the pipe; a realtime batch beyond them is dropped and counted."""

@@ -1,14 +1,8 @@
 """Realtime: rehearse the last tick shortly before each release (``controller.rehearse``), so
-the code the tick runs is warm in the caches when the release comes. After a period of sleep
-on a shared VM the first run of that code is several times slower; the rehearsal pays that
-instead of the tick. Nothing of it is kept:
-
-- read: the observation is judged as the tick judges it, without following the drive state
-  (the DSP's statuses stay for the tick);
-- decide: the last tick's rule call on a second controller whose result is thrown away (the
-  run's controller and its warm-started solver are untouched);
-- write: the last torque through :meth:`hal.joint_client.JointClient.rehearse_torque` (a shadow
-  codec; nothing reaches the bus, the real counters do not move).
+its code is warm when the release comes (after a sleep on a shared VM its first run is several
+times slower). Nothing of it is kept: the inputs are judged without following the drive state,
+the last rule call runs on a second controller, and the last torque goes through
+:meth:`hal.joint_client.JointClient.rehearse_torque` (nothing reaches the bus).
 """
 
 from __future__ import annotations
