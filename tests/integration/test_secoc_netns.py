@@ -22,47 +22,18 @@ import pytest
 
 from hal.bus import isolated_spec
 from hal.secoc import write_key_file
+from tests.support.netns import ADDRS, veth_namespaces
 
 pytestmark = pytest.mark.integration
 
-RT_ADDR, CAM_ADDR = "192.0.2.1", "192.0.2.2"
+RT_ADDR, CAM_ADDR = ADDRS
 WAIT_S = 120.0
-
-
-def _ip(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
 
 
 @pytest.fixture
 def namespaces() -> Iterator[tuple[str, str]]:
-    tag = f"{os.getpid() % 100000}"
-    rt, cam = f"hilrt{tag}", f"hilcam{tag}"
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
-    made = _ip("netns", "add", rt)
-    if made.returncode != 0:
-        pytest.skip(f"cannot make a network namespace: {made.stderr.strip()}")
-    try:
-        steps = [
-            ("netns", "add", cam),
-            ("link", "add", f"hv{tag}r", "type", "veth", "peer", "name", f"hv{tag}c"),
-            ("link", "set", f"hv{tag}r", "netns", rt),
-            ("link", "set", f"hv{tag}c", "netns", cam),
-            ("-n", rt, "addr", "add", f"{RT_ADDR}/24", "dev", f"hv{tag}r"),
-            ("-n", cam, "addr", "add", f"{CAM_ADDR}/24", "dev", f"hv{tag}c"),
-            ("-n", rt, "link", "set", f"hv{tag}r", "up"),
-            ("-n", cam, "link", "set", f"hv{tag}c", "up"),
-            ("-n", rt, "link", "set", "lo", "up"),
-            ("-n", cam, "link", "set", "lo", "up"),
-        ]
-        for step in steps:
-            done = _ip(*step)
-            if done.returncode != 0:
-                pytest.skip(f"cannot set up the namespaces ({' '.join(step)}): {done.stderr}")
-        yield rt, cam
-    finally:
-        _ip("netns", "del", cam)
-        _ip("netns", "del", rt)
+    with veth_namespaces("hilrt", "hilcam", "hv") as pair:
+        yield pair
 
 
 def make_certificates(out: Path) -> None:

@@ -22,10 +22,11 @@ import pytest
 from plant_emulator.world import World
 from rt_controller.sweep.engines import run_task
 from rt_controller.sweep.spec import load_spec
+from tests.support.netns import ADDRS, veth_namespaces
 
 pytestmark = pytest.mark.integration
 
-SCHED_ADDR, WORKER_ADDR = "192.0.2.1", "192.0.2.2"
+SCHED_ADDR, WORKER_ADDR = ADDRS
 PORT = 8786
 SPEC = """
 [study]
@@ -39,40 +40,10 @@ values = [0.9, 1.1]
 """
 
 
-def _ip(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
-
-
 @pytest.fixture
 def namespaces() -> Iterator[tuple[str, str]]:
-    tag = f"{os.getpid() % 100000}"
-    a, b = f"hilsch{tag}", f"hilwrk{tag}"
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
-    made = _ip("netns", "add", a)
-    if made.returncode != 0:
-        pytest.skip(f"cannot make a network namespace: {made.stderr.strip()}")
-    try:
-        steps = [
-            ("netns", "add", b),
-            ("link", "add", f"hs{tag}a", "type", "veth", "peer", "name", f"hs{tag}b"),
-            ("link", "set", f"hs{tag}a", "netns", a),
-            ("link", "set", f"hs{tag}b", "netns", b),
-            ("-n", a, "addr", "add", f"{SCHED_ADDR}/24", "dev", f"hs{tag}a"),
-            ("-n", b, "addr", "add", f"{WORKER_ADDR}/24", "dev", f"hs{tag}b"),
-            ("-n", a, "link", "set", f"hs{tag}a", "up"),
-            ("-n", b, "link", "set", f"hs{tag}b", "up"),
-            ("-n", a, "link", "set", "lo", "up"),
-            ("-n", b, "link", "set", "lo", "up"),
-        ]
-        for step in steps:
-            done = _ip(*step)
-            if done.returncode != 0:
-                pytest.skip(f"cannot set up the namespaces ({' '.join(step)}): {done.stderr}")
-        yield a, b
-    finally:
-        _ip("netns", "del", b)
-        _ip("netns", "del", a)
+    with veth_namespaces("hilsch", "hilwrk", "hs") as pair:
+        yield pair
 
 
 def _dask(ns: str, *args: str, log: Path) -> subprocess.Popen:
