@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,9 +32,9 @@ class RunCounters:
     late_states: int = 0
     """Realtime ticks whose period's joint state had not arrived at the release: they used the
     previous period's state (its age is compensated, ``controller.predict_state``)."""
-    drive_ticks: dict[str, int] = field(default_factory=dict)
+    drive_ticks: Counter[str] = field(default_factory=Counter)
     """Ticks run while the DSP was not in *operation enabled*, by mode (no law ran in them)."""
-    dsp_faults: dict[str, int] = field(default_factory=dict)
+    dsp_faults: Counter[str] = field(default_factory=Counter)
     """Faults the DSP reported, by reason (``watchdog``, ``position_limit``, ...)."""
     rearms: int = 0
     """Times the controller re-armed the DSP by its re-arm policy."""
@@ -100,12 +101,6 @@ class RunCounters:
             "lateness_us_p99": pct(self.lateness_us, 99),
             "cycle_us_p99": pct(self.cycle_us, 99),
         }
-
-    def count_drive_tick(self, mode: str) -> None:
-        self.drive_ticks[mode] = self.drive_ticks.get(mode, 0) + 1
-
-    def count_fault(self, reason: str) -> None:
-        self.dsp_faults[reason] = self.dsp_faults.get(reason, 0) + 1
 
 
 def run_problems(summary: dict[str, Any]) -> list[str]:

@@ -87,14 +87,14 @@ class DrivePolicy:
             if age is None or age > status_limit_s:
                 mode = MODE_NO_STATUS  # a silent DSP: its last word no longer counts
         if mode != MODE_ENABLED:
-            self.counters.count_drive_tick(mode)
+            self.counters.drive_ticks[mode] += 1
         return mode
 
     def _on_events(self, dsp: JointClient, upd: DriveUpdate) -> None:
         ctl, n = self.cfg.controller, self.counters
         for ev in upd.events:
             if ev is DriveEvent.FAULT:
-                n.count_fault(upd.fault.label)
+                n.dsp_faults[upd.fault.label] += 1
             if self.held_off:  # the operator's disarm stands: count, never re-arm
                 continue
             if ev is DriveEvent.FAULT and upd.fault is FaultReason.WATCHDOG:

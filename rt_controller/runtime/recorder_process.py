@@ -207,13 +207,9 @@ class RecorderService:
         self._opened: dict[int, str | None] = {}
         self._child = ChildProcess(start)
         self._out, self._in = self._child.fd_out, self._child.fd_in
-        self.start_method = self._child.start_method
-        """How the child was started (``fork`` or ``spawn``)."""
+        self.start_method, self.pid = self._child.start_method, self._child.pid
+        """How the child was started (``fork`` or ``spawn``), and its pid."""
         self.send_control((LINK, cfg.to_json(), zenoh_endpoint, zenoh_config))
-
-    @property
-    def pid(self) -> int:
-        return self._child.pid
 
     # ----------------------------------------------------------------- logs
 
