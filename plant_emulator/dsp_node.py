@@ -173,6 +173,15 @@ class CommandPhase:
         ref, half = self._recent[-1], p // 2
         self.residue_ns = (ref + min((r - ref + half) % p - half for r in self._recent)) % p
 
+    def snap(self, t_ns: int) -> int:
+        """The tick nearest ``t_ns`` on the learnt phase (``t_ns`` itself while unknown): one
+        command's release estimate is late by its own transport and send time, the phase by
+        the least of the window's."""
+        if self.residue_ns is None:
+            return t_ns
+        p = self.period_ns
+        return t_ns - ((t_ns - self.residue_ns + p // 2) % p - p // 2)
+
     def reset(self) -> None:
         self._recent.clear()
         self.residue_ns = None
@@ -387,7 +396,7 @@ class DspNode:
                 if frame.enable and self.torque_enabled and not self.scenario_started:
                     # t = 0 at the command's release (Tick: how long after it the frame left)
                     delay_ns = frame.tick * 1000 if frame.tick < RELEASE_DELAY_SATURATED else 0
-                    self.start_scenario(max(self._t0_ns, now_ns - delay_ns))
+                    self.start_scenario(max(self._t0_ns, self.phase.snap(now_ns - delay_ns)))
                 accepted = frame
         if self._flags() != before:
             self.send_status()
@@ -591,6 +600,18 @@ class DspNode:
         world = World(self.cfg)
         world.hold(np.zeros(2), 1, Encoder(world.q, world.dq, self.encoder_lsb, self.filter_gain))
 
+    def idle(self, until_ns: int, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        """Realtime, between physics steps: handle each frame when it arrives, as a CAN receive
+        interrupt would, until ``until_ns``. A frame's arrival time is what dates it: the
+        scenario's t = 0 (a command's release) and the controller's phase are taken from it, so
+        they are not a step late, which would shift every torque by up to a step against the
+        ticks and change the run."""
+        while (left_ns := until_ns - clock()) > 0:
+            msg = self.bus.recv(timeout=left_ns / 1e9)
+            if msg is None:
+                return
+            self.handle(msg, clock())
+
     def run_realtime(self, stop: threading.Event, duration_s: float = 0.0) -> DspStats:
         """Physics on the monotonic clock; behind schedule it catches up, never drifts."""
         self.warm_up()
@@ -601,10 +622,7 @@ class DspNode:
             now = time.monotonic_ns()
             if end is not None and now >= end:
                 break
-            next_ns = self.service(now)
-            delay = (next_ns - time.monotonic_ns()) / 1e9
-            if delay > 0:
-                time.sleep(delay)
+            self.idle(self.service(now))
         # Frames that arrived before the stop are handled (and counted), never silently lost.
         self.drain(time.monotonic_ns())
         self._finish()

@@ -37,6 +37,10 @@ SYNC_POLL_S = 0.25
 """Lockstep: the wait for a Sync looks at the stop request this often."""
 PREFETCH_GUARD_NS = 1_000_000
 """Realtime: the read-ahead while waiting for a release stops this long before the spin window."""
+ARMING_COMMANDS = 8
+"""Realtime: zero torques sent while arming, at least: the DSP learns the cycle's phase from the
+earliest of its recent commands, so a slow first law frame does not place the scenario's t = 0
+late (which would delay every torque of the run by as much)."""
 REHEARSAL_LEAD_NS = 200_000
 """Realtime: the rehearsal of the last tick starts this long before the spin window."""
 
@@ -158,24 +162,26 @@ class RealtimePacer(_Pacer):
 
     def _arm(self) -> Tick | None:
         """ENABLE at the first release, then a zero torque (Enable = 0) at every release until
-        the DSP reports *operation enabled*; that release (its tick runs the law), or None when
-        told to stop first. The command stream is cyclic from ENABLE on (the DSP arms its
-        watchdog there), and the first frame that applies torque is the first law tick's (the
-        emulated DSP starts the scenario's clock there). Counted in ``arming_ticks``."""
+        the DSP reports *operation enabled* and has had ``ARMING_COMMANDS`` of them; that
+        release (its tick runs the law), or None when told to stop first. The command stream
+        is cyclic from ENABLE on (the DSP arms its watchdog there); the zeros teach the DSP the
+        cycle's phase, on which the emulated DSP places the scenario's t = 0 when the first law
+        tick's frame applies torque. Counted in ``arming_ticks``."""
         deadline: int | None = None
         dsp = self.hw.dsp
+        sent = 0
         while not self.stop.is_set():
             tick = self.cadence.wait()
             expired = deadline is not None and self.clock.now_ns() > deadline
             self.hw.poll(self.clock.now_ns())
-            if self.drive.enabled_now(dsp, expired):
+            if self.drive.enabled_now(dsp, expired) and sent >= ARMING_COMMANDS:
                 return tick
             if deadline is None:
                 dsp.enable()
                 deadline = self.clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
-            else:
-                delay = (self.clock.now_ns() - tick.release_ns) // 1000
-                dsp.send_torque(0.0, 0.0, release_delay_us=delay, enable=False)
+            delay = (self.clock.now_ns() - tick.release_ns) // 1000
+            dsp.send_torque(0.0, 0.0, release_delay_us=delay, enable=False)
+            sent += 1
             self._states_seen = dsp.states_received
             self.counters.arming_ticks += 1
         return None

@@ -341,6 +341,35 @@ def test_realtime_world_holds_its_initial_state_until_the_first_torque(rig):
     assert node.world.q[1] != node.cfg.scenario.q0[1]  # the torque moved the arm
 
 
+def test_realtime_frames_are_dated_by_their_arrival_not_the_next_step(rig):
+    """Between physics steps the DSP takes frames as they arrive: a command that arrives
+    0.3 ms into a step and left 0.1 ms after its release starts the scenario 0.2 ms into that
+    step, not when the next step is due (which shifted every torque of the run)."""
+    r = rig()
+    node = r.node
+    r.send(C.ENABLE)
+    r.advance(1)
+    arrival = r.now + 300_000
+    r.tap.send(r.ctl.encode_torque(1.0, 0.1, tick=100))
+    node.idle(r.now + node.physics_period_ns, clock=lambda: arrival)
+    assert node.stats.scenario_start_ns == arrival - 100_000
+
+
+def test_the_realtime_scenario_starts_on_the_controllers_release_grid(rig):
+    """t = 0 is the first torque's release on the phase the arming commands taught: a first
+    command whose send took 0.45 ms longer than its reported delay says (a cold send path)
+    does not start the world late, which would delay every torque of the run by as much."""
+    r = rig()
+    node = r.node
+    r.send(C.ENABLE)
+    for _ in range(5):  # arming: each arrives 150 us after its release and says so
+        node.handle(r.ctl.encode_torque(0.0, 0.0, enable=False, tick=150), r.now)
+        r.advance(r.period_ns / MS)
+    release = r.now - 150_000
+    node.handle(r.ctl.encode_torque(1.0, 0.1, tick=150), r.now + 450_000)
+    assert node.stats.scenario_start_ns == release
+
+
 def test_a_rearm_after_a_watchdog_trip_continues_the_realtime_scenario(rig):
     r = rig()
     node = r.node
