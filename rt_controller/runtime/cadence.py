@@ -53,25 +53,6 @@ class MonotonicClock:
         self.spun_ns += now - t0
 
 
-class FakeClock:
-    """A clock that jumps to each deadline instantly; ``advance`` simulates work."""
-
-    def __init__(self, start_ns: int = 0, wake_latency_ns: int = 0) -> None:
-        self.t = start_ns
-        self.wake_latency_ns = wake_latency_ns
-
-    def now_ns(self) -> int:
-        return self.t
-
-    def sleep_until(self, deadline_ns: int, idle: Idle | None = None) -> None:
-        """Jump to the deadline (``idle`` is not run: nothing arrives in no time)."""
-        if deadline_ns > self.t:
-            self.t = deadline_ns + self.wake_latency_ns
-
-    def advance(self, ns: int) -> None:
-        self.t += ns
-
-
 @dataclass(frozen=True)
 class Tick:
     """One release of the loop."""

@@ -10,9 +10,10 @@ import textwrap
 
 import pytest
 
-from rt_controller.runtime.cadence import Cadence, FakeClock, MonotonicClock
+from rt_controller.runtime.cadence import Cadence, MonotonicClock
 from rt_controller.runtime.realtime import GcPaused
 from tests.support import REPO
+from tests.support.fake_clock import FakeClock
 
 P = 20_000_000  # 50 Hz
 

@@ -21,9 +21,9 @@ from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
 from plant_emulator.dsp_node import DspNode
 from rt_controller.control.controller import Controller
 from rt_controller.logtools.reader import read_log
-from rt_controller.runtime.cadence import FakeClock
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
 from rt_controller.runtime.recorder_process import RecorderService
+from tests.support.fake_clock import FakeClock
 
 MS = 1_000_000
 T0 = 5_000 * MS
