@@ -4,17 +4,8 @@
 :class:`~mcap.writer.Writer` (zstd chunks). In a run it lives in the recorder's own process
 (:mod:`rt_controller.runtime.recorder_process`); ``hil replay --out`` and tests use it directly.
 
-==================== ======================== ================================================
-topic (JSON)         JSON Schema              one message per
-==================== ======================== ================================================
-``/controller/cycle`` ``hil.ControllerCycle``  tick (fields: ``runtime/cycle_schema.json``)
-``/hal/can/rx``       ``hil.CanFrame``         CAN frame received by the controller
-``/hal/can/tx``       ``hil.CanFrame``         CAN frame sent by the controller
-``/vision/features``  ``hil.VisionPayload``    vision message as received (raw bytes, base64)
-``/diagnostics``      ``hil.Diagnostics``      about a second of the run, and its end
-``/controller/parameters`` ``hil.ParameterChange`` online parameter change set (per request)
-``/controller/events`` ``hil.OperatorEvent``   operator action: arm, disarm, mark (per request)
-==================== ======================== ================================================
+One JSON topic per record kind (:data:`TOPICS`, each with its JSON Schema; the table is in
+``docs/concepts/logs.md``).
 
 ``log_time`` is the record's monotonic time shifted to the Unix epoch (the offset is in the
 ``hil.run`` metadata). ``live`` gets the topic and JSON bytes of each cycle and diagnostics
