@@ -20,8 +20,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "features and the emulator's camera pose, and serves them with foxglove-sdk: the cycle "
         "topic with its JSON Schema (the plots of foxglove/layout.json work live) and the arm, "
         "camera, target and image features drawn with Foxglove's schemas. Open Foxglove -> "
-        "Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765. Runs until SIGTERM/SIGINT "
-        "or --duration.",
+        "Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765. The tunable parameters "
+        "are advertised (Parameters capability) and reach the controller over the rig-key-signed "
+        "link of hil param; setting them needs --allow-tuning. Runs until SIGTERM/SIGINT or "
+        "--duration.",
     )
     add_config_option(p)
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
@@ -32,6 +34,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--allow-remote",
         action="store_true",
         help="allow a --host that is not a loopback address (the view is unauthenticated)",
+    )
+    p.add_argument(
+        "--allow-tuning",
+        action="store_true",
+        help="let Foxglove set the tunable parameters (Parameters panel) and call the operator "
+        "services (arm, disarm, switch law); without it the parameters are read-only and only "
+        "the mark service is offered",
     )
     p.add_argument(
         "--duration",
@@ -65,11 +74,12 @@ def run(args: argparse.Namespace) -> int:
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
     from rt_controller.monitor.bridge import MonitorBridge
+    from rt_controller.monitor.tuning import TuningFrontEnd
 
     _check_host(args.host, args.allow_remote)
     if not 0 <= args.port <= 65535:
         raise HalConfigError(f"--port must be in 0..65535, got {args.port}")
-    from hal.secoc import configure_key
+    from hal.secoc import configure_key, rig_key
 
     cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
     with stop_on_signals() as stop:
@@ -81,10 +91,13 @@ def run(args: argparse.Namespace) -> int:
             stop_event=stop,
         )
         try:
-            bridge = MonitorBridge(cfg, session, host=args.host, port=args.port)
+            tuning = TuningFrontEnd(session, rig_key(cfg), allow_tuning=args.allow_tuning)
+            bridge = MonitorBridge(cfg, session, host=args.host, port=args.port, tuning=tuning)
             try:
                 bridge.start()
                 print(f"hil monitor: Foxglove WebSocket on {bridge.url}", file=sys.stderr)
+                mode = "tunable" if args.allow_tuning else "read-only (no --allow-tuning)"
+                print(f"hil monitor:   parameters {mode}", file=sys.stderr)
                 for topic, schema in bridge.channels().items():
                     print(f"hil monitor:   {topic}  [{schema}]", file=sys.stderr)
                 stop.wait(args.duration or None)

@@ -59,6 +59,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also start `hil monitor`: a Foxglove WebSocket live view (ws://127.0.0.1:8765)",
     )
     p.add_argument("--monitor-port", type=int, metavar="PORT", help="live view port (8765)")
+    p.add_argument(
+        "--allow-tuning",
+        action="store_true",
+        help="with --monitor: Foxglove may set the tunable parameters and call the operator "
+        "services (hil monitor --allow-tuning); off: read-only",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
 
@@ -93,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
                         log=Path(args.log) if args.log else None,
                         monitor=args.monitor or args.monitor_port is not None,
                         monitor_port=args.monitor_port,
+                        extra_monitor=["--allow-tuning"] if args.allow_tuning else [],
                         key_file=Path(args.key_file) if args.key_file else None,
                     )
                 )

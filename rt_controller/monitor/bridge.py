@@ -48,6 +48,7 @@ from hal.zenoh_session import (
 )
 from rt_controller.errors import ControllerError
 from rt_controller.monitor.scene import SceneBuilder
+from rt_controller.monitor.tuning import TuningFrontEnd
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
 from rt_controller.runtime.recorder import (
     CYCLE_TOPIC,
@@ -141,6 +142,7 @@ class MonitorBridge:
         host: str = DEFAULT_HOST,
         port: int = DEFAULT_PORT,
         clock: Callable[[], int] = time.time_ns,
+        tuning: TuningFrontEnd | None = None,
     ) -> None:
         self.cfg = cfg
         self.session = session
@@ -165,14 +167,26 @@ class MonitorBridge:
         for topic, cls in self.builder.schemas().items():
             self._channels[topic] = _proto_channel(topic, cls)
         self._channels[EMULATOR_SCENE_TOPIC] = _proto_channel(EMULATOR_SCENE_TOPIC, SceneUpdate)
+        self.tuning = tuning
+        """The calibration front-end (Parameters and Services), None: a view only."""
+        extra: dict[str, Any] = {}
+        if tuning is not None:
+            extra = {
+                "capabilities": list(tuning.capabilities),
+                "server_listener": tuning,
+                "services": tuning.services(),
+                "supported_encodings": ["json"],
+            }
         try:
             self.server = foxglove.start_server(
-                name="hil monitor", host=host, port=port, message_backlog_size=BACKLOG
+                name="hil monitor", host=host, port=port, message_backlog_size=BACKLOG, **extra
             )
         except Exception as exc:  # the SDK's own error types (port in use, bad address)
             for ch in self._channels.values():
                 ch.close()
             raise MonitorError(f"cannot serve Foxglove WebSocket on {host}:{port}: {exc}") from exc
+        if tuning is not None:
+            tuning.server = self.server
         self.port = int(self.server.port)
         self.host = host
         self._rings: dict[str, PayloadRing] = {}
@@ -224,6 +238,8 @@ class MonitorBridge:
         if KEY_CAMERA_POSE not in self._rings:  # the rig is running: vision is subscribed
             self._rings[KEY_CAMERA_POSE] = self.session.subscribe_ring(KEY_CAMERA_POSE, 64)
         record = json.loads(payload)
+        if self.tuning is not None and isinstance(record.get("param_set"), int):
+            self.tuning.param_set_seen(record["param_set"])
         tick = record.get("tick")
         if not isinstance(tick, int) or tick % self.builder.every:
             return

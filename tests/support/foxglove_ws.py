@@ -6,6 +6,10 @@ foxglove-sdk servers speak the same protocol under the subprotocol name ``foxglo
 Written from the protocol specification, not from foxglove-sdk: text frames are JSON
 (``serverInfo``, ``advertise``, ...); the client sends ``subscribe``; binary frames with opcode 1
 are ``messageData``: ``u8 op | u32 subscription id | u64 log time ns | payload`` (little-endian).
+Parameters are JSON ops (``getParameters``, ``setParameters``, ``subscribeParameterUpdates``; the
+server answers ``parameterValues``); a service call is the client's binary opcode 2,
+``u8 op | u32 service id | u32 call id | u32 encoding length | encoding | payload``, answered by
+the server's opcode 3 of the same layout or a JSON ``serviceCallFailure``.
 Protobuf channels carry a base64 ``FileDescriptorSet`` as their schema; :func:`decoder_for`
 builds the message class from it with ``google.protobuf``.
 """
@@ -23,7 +27,9 @@ from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
 _MESSAGE_DATA = 0x01
+_SERVICE_REQUEST, _SERVICE_RESPONSE = 0x02, 0x03
 _HEAD = struct.Struct("<BIQ")
+_CALL = struct.Struct("<BIII")
 
 
 @dataclass
@@ -41,7 +47,13 @@ class FoxgloveClient:
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
     """topic -> the advertised channel (id, encoding, schemaName, schema, schemaEncoding)."""
     server_info: dict[str, Any] | None = None
+    services: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """name -> the advertised service (id, name, type, request, response)."""
+    parameter_updates: list[dict[str, Any]] = field(default_factory=list)
+    """``parameterValues`` messages without an id (subscribed updates), in arrival order."""
     _subs: dict[int, str] = field(default_factory=dict)
+    _answers: dict[str, dict[str, Any]] = field(default_factory=dict)
+    _calls: dict[int, Any] = field(default_factory=dict)
 
     @classmethod
     def open(cls, url: str, attempts: int = 300, **kwargs: Any) -> FoxgloveClient:
@@ -68,6 +80,16 @@ class FoxgloveClient:
         elif op == "advertise":
             for ch in msg["channels"]:
                 self.channels[ch["topic"]] = ch
+        elif op == "advertiseServices":
+            for svc in msg["services"]:
+                self.services[svc["name"]] = svc
+        elif op == "parameterValues":
+            if msg.get("id") is None:
+                self.parameter_updates.append(msg)
+            else:
+                self._answers[msg["id"]] = msg
+        elif op == "serviceCallFailure":
+            self._calls[msg["callId"]] = AssertionError(msg["message"])
         elif op == "unadvertise":
             gone = set(msg["channelIds"])
             self.channels = {t: c for t, c in self.channels.items() if c["id"] not in gone}
@@ -80,6 +102,57 @@ class FoxgloveClient:
             if isinstance(frame, str):
                 self._handle_text(frame)
         raise AssertionError(f"not advertised: {topics - set(self.channels)}")
+
+    def _pump(self, done: Any, timeout: float = 60.0) -> None:
+        """Read frames until ``done()`` (messages on subscriptions are dropped meanwhile)."""
+        deadline = time.monotonic() + timeout
+        while not done():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise AssertionError("no answer from the Foxglove server")
+            frame = self.ws.recv(timeout=remaining)
+            if isinstance(frame, str):
+                self._handle_text(frame)
+            elif frame and frame[0] == _SERVICE_RESPONSE:
+                _op, _sid, call_id, n = _CALL.unpack_from(frame)
+                self._calls[call_id] = bytes(frame[_CALL.size + n :])
+
+    def _ask(self, msg: dict[str, Any], timeout: float) -> dict[str, Any]:
+        rid = f"r{len(self._answers) + 1}-{time.monotonic_ns()}"
+        self.ws.send(json.dumps({**msg, "id": rid}))
+        self._pump(lambda: rid in self._answers, timeout)
+        return {p["name"]: p.get("value") for p in self._answers.pop(rid)["parameters"]}
+
+    def get_parameters(self, names: list[str], timeout: float = 60.0) -> dict[str, Any]:
+        """``getParameters``: name -> value of the answer (all parameters for ``[]``)."""
+        return self._ask({"op": "getParameters", "parameterNames": names}, timeout)
+
+    def set_parameters(self, values: dict[str, Any], timeout: float = 60.0) -> dict[str, Any]:
+        """``setParameters`` with an id: name -> value of the server's answer."""
+        params = [{"name": k, "value": v} for k, v in values.items()]
+        return self._ask({"op": "setParameters", "parameters": params}, timeout)
+
+    def subscribe_parameters(self, names: list[str]) -> None:
+        self.ws.send(json.dumps({"op": "subscribeParameterUpdates", "parameterNames": names}))
+
+    def wait_services(self, names: set[str], timeout: float = 30.0) -> None:
+        self._pump(lambda: names <= set(self.services), timeout)
+
+    def call_service(self, name: str, request: Any, timeout: float = 60.0) -> Any:
+        """Call a JSON service; its decoded JSON response (AssertionError on a failure)."""
+        svc = self.services[name]
+        call_id = len(self._calls) + 1
+        while call_id in self._calls:
+            call_id += 1
+        enc, payload = b"json", json.dumps(request).encode()
+        head = _CALL.pack(_SERVICE_REQUEST, svc["id"], call_id, len(enc))
+        self.ws.send(head + enc + payload)
+        self._calls[call_id] = None
+        self._pump(lambda: self._calls[call_id] is not None, timeout)
+        out = self._calls[call_id]
+        if isinstance(out, Exception):
+            raise out
+        return json.loads(out)
 
     def subscribe(self, topics: list[str]) -> None:
         subs = []

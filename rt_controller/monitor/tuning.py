@@ -1,0 +1,238 @@
+"""``hil monitor`` as a calibration front-end: Foxglove's Parameters and Services over the same
+rig-key-signed zenoh link ``hil param`` uses (:mod:`rt_controller.calibration.link`).
+
+Parameters (capability ``parameters``: get, set, subscribe):
+
+- every key of :data:`~rt_controller.calibration.parameters.TUNABLE` by its own name (matrices
+  as nested lists), and the diagonal entries of alpha and K as scalars (``gains.alpha_1``,
+  ``gains.alpha_2``, ``gains.K_1``, ``gains.K_2``) for sliders;
+- ``hil.at_tick``: the tick at which the next set takes effect (-1: the next tick boundary);
+  sent with the change, or just before it (a set consumes it);
+- ``hil.last_outcome`` (read-only): the last set's answer, "accepted at tick N ..." or
+  "refused at tick N: reason"; ``hil.tuning`` (read-only): whether sets are allowed.
+
+A set is one change set (all or none) and its reply carries the values in force afterwards: the
+new ones when accepted, the unchanged ones when refused. Without ``allow_tuning`` every set is
+refused here, before the controller, and the operator services that change things are not
+advertised. Subscribers get fresh values whenever the cycle records' ``param_set`` moves
+(:meth:`TuningFrontEnd.param_set_seen`), whoever changed it.
+
+Services (JSON): ``/hil/mark`` (always; a note in ``/controller/events``), and with
+``allow_tuning`` ``/hil/arm``, ``/hil/disarm``, ``/hil/switch_law`` (``{"law": ...}``, a set of
+``controller.law``) and ``/hil/reset_scenario`` (refused by the controller with its reason).
+Each takes an optional ``at_tick`` and answers ``{"accepted", "tick", "reason", ...}``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from foxglove.websocket import (
+    Capability,
+    Client,
+    MessageSchema,
+    Parameter,
+    Service,
+    ServiceRequest,
+    ServiceSchema,
+    StatusLevel,
+)
+
+from foxglove import Schema
+from rt_controller.calibration.link import event_line, outcome_line, request
+from rt_controller.calibration.parameters import TUNABLE
+
+log = logging.getLogger(__name__)
+
+DIAGONALS = {
+    "gains.alpha_1": ("gains.alpha", 0),
+    "gains.alpha_2": ("gains.alpha", 1),
+    "gains.K_1": ("gains.K", 0),
+    "gains.K_2": ("gains.K", 1),
+}
+"""Scalar parameter -> (matrix key, diagonal index)."""
+AT_TICK, LAST_OUTCOME, TUNING = "hil.at_tick", "hil.last_outcome", "hil.tuning"
+ADVERTISED = (*TUNABLE, *DIAGONALS, AT_TICK, LAST_OUTCOME, TUNING)
+"""Every parameter the monitor advertises."""
+READ_ONLY_REASON = "tuning from Foxglove is off: start hil monitor (or hil up) with --allow-tuning"
+ACTION_SERVICES = {
+    "/hil/arm": "arm",
+    "/hil/disarm": "disarm",
+    "/hil/reset_scenario": "reset_scenario",
+}
+MARK_SERVICE, LAW_SERVICE = "/hil/mark", "/hil/switch_law"
+
+_SCHEMAS = Path(__file__).parent
+"""``service_request_schema.json`` and ``service_response_schema.json``: the services' JSON."""
+
+
+def _schema(file: str) -> MessageSchema:
+    data = (_SCHEMAS / file).read_bytes()
+    title = json.loads(data)["title"]
+    return MessageSchema(
+        encoding="json", schema=Schema(name=title, encoding="jsonschema", data=data)
+    )
+
+
+def _like(new: Any, old: Any) -> Any:
+    """``new`` (as Foxglove sent it) in the type of ``old``: a float that is an int for an int
+    key (JSON has one number type)."""
+    if isinstance(old, int) and not isinstance(old, bool) and isinstance(new, float):
+        return int(new) if new.is_integer() else new
+    return new
+
+
+class TuningFrontEnd:
+    """The Parameters listener and the services of one monitor. ``session`` is an open
+    :class:`~hal.zenoh_session.ZenohSession` (anything with ``session.get`` as zenoh's), ``key``
+    the rig key."""
+
+    def __init__(
+        self, session: Any, key: bytes, *, allow_tuning: bool = False, timeout_s: float = 10.0
+    ) -> None:
+        self.session, self.key = session, key
+        self.allow_tuning = allow_tuning
+        self.timeout_s = timeout_s
+        self.server: Any = None
+        """The Foxglove server (set by the bridge) for status messages and updates."""
+        self.last_outcome = "no set yet" if allow_tuning else READ_ONLY_REASON
+        self._at_tick = -1
+        self._subscribed: set[str] = set()
+        self._param_set: int | None = None
+        self._lock = threading.Lock()
+
+    # --- the link ---------------------------------------------------------------------------
+    def ask(self, op: str, **kw: Any) -> dict[str, Any]:
+        """One signed request to the controller (:func:`rt_controller.calibration.link.request`)."""
+        return request(
+            self.session, self.key, op, source="hil monitor (Foxglove)", timeout_s=self.timeout_s,
+            **kw,
+        )  # fmt: skip
+
+    def values(self) -> dict[str, Any]:
+        """Every advertised parameter's value, from the controller."""
+        got = self.ask("get")["values"]
+        for name, (key, i) in DIAGONALS.items():
+            got[name] = got[key][i][i]
+        got.update({AT_TICK: self._at_tick, LAST_OUTCOME: self.last_outcome})
+        got[TUNING] = self.allow_tuning
+        return got
+
+    def _parameters(self, names: list[str]) -> list[Parameter]:
+        values = self.values()
+        return [Parameter(n, value=values[n]) for n in (names or ADVERTISED) if n in values]
+
+    # --- foxglove ServerListener --------------------------------------------------------------
+    capabilities = (Capability.Parameters, Capability.Services)
+
+    def on_get_parameters(
+        self, client: Client, param_names: list[str], request_id: str | None = None
+    ) -> list[Parameter]:
+        return self._parameters(param_names)
+
+    def on_set_parameters(
+        self, client: Client, parameters: list[Parameter], request_id: str | None = None
+    ) -> list[Parameter]:
+        names = [p.name for p in parameters]
+        names += [DIAGONALS[n][0] for n in names if n in DIAGONALS]  # the whole matrix too
+        with self._lock:
+            asked = {p.name: p.get_value() for p in parameters}
+            if not self.allow_tuning:
+                self._status(READ_ONLY_REASON, ok=False)
+                self.last_outcome = READ_ONLY_REASON
+            else:
+                self._set(asked)
+            return self._parameters([*names, LAST_OUTCOME])
+
+    def _set(self, asked: dict[str, Any]) -> None:
+        if AT_TICK in asked:
+            self._at_tick = int(asked.pop(AT_TICK) or -1)
+        for name in (LAST_OUTCOME, TUNING):
+            asked.pop(name, None)
+        if not asked:
+            return
+        current = self.ask("get")["values"]
+        changes: dict[str, Any] = {}
+        for name, value in asked.items():
+            if name in DIAGONALS:
+                key, i = DIAGONALS[name]
+                m = [list(r) for r in changes.get(key, current[key])]
+                m[i][i] = float(value)
+                changes[key] = m
+            else:
+                changes[name] = _like(value, current.get(name))
+        at_tick, self._at_tick = (None if self._at_tick < 0 else self._at_tick), -1
+        out = self.ask("set", changes=changes, at_tick=at_tick)
+        self.last_outcome = outcome_line(out)
+        self._status(self.last_outcome, ok=out["outcome"]["accepted"])
+
+    def on_parameters_subscribe(self, param_names: list[str]) -> None:
+        self._subscribed.update(param_names)
+
+    def on_parameters_unsubscribe(self, param_names: list[str]) -> None:
+        self._subscribed.difference_update(param_names)
+
+    def param_set_seen(self, param_set: int) -> None:
+        """A cycle record's ``param_set``: when it moved, subscribers get the new values."""
+        if param_set == self._param_set:
+            return
+        self._param_set = param_set
+        if self._subscribed and self.server is not None:
+            try:
+                self.server.publish_parameter_values(self._parameters(sorted(self._subscribed)))
+            except Exception as exc:  # the controller may be gone; the view goes on
+                log.warning("hil monitor: cannot refresh the parameters: %s", exc)
+
+    def _status(self, line: str, *, ok: bool) -> None:
+        if self.server is not None:
+            level = StatusLevel.Info if ok else StatusLevel.Warning
+            self.server.publish_status(line, level, id="hil.parameters")
+
+    # --- services -------------------------------------------------------------------------
+    def services(self) -> list[Service]:
+        """The operator services to advertise (only the mark without ``allow_tuning``)."""
+        handlers: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
+            MARK_SERVICE: lambda body: self._action("mark", body)
+        }
+        if self.allow_tuning:
+            handlers[LAW_SERVICE] = self._switch_law
+            for name, action in ACTION_SERVICES.items():
+                handlers[name] = lambda body, a=action: self._action(a, body)
+        schema = ServiceSchema(
+            "hil.OperatorService",
+            request=_schema("service_request_schema.json"),
+            response=_schema("service_response_schema.json"),
+        )
+
+        def wrap(fn: Callable[[dict[str, Any]], dict[str, Any]]) -> Callable[..., bytes]:
+            def handler(req: ServiceRequest) -> bytes:
+                body = json.loads(req.payload or b"{}") if req.payload else {}
+                return json.dumps(fn(body if isinstance(body, dict) else {})).encode()
+
+            return handler
+
+        return [Service(n, schema=schema, handler=wrap(fn)) for n, fn in handlers.items()]
+
+    def _action(self, action: str, body: dict[str, Any]) -> dict[str, Any]:
+        out = self.ask(
+            "action", action=action, note=str(body.get("note", "")), at_tick=body.get("at_tick")
+        )
+        line = event_line(out)
+        self._status(line, ok=out["event"]["accepted"])
+        return {**out["event"], "line": line}
+
+    def _switch_law(self, body: dict[str, Any]) -> dict[str, Any]:
+        out = self.ask(
+            "set", changes={"controller.law": body.get("law")}, at_tick=body.get("at_tick")
+        )
+        self.last_outcome = line = outcome_line(out)
+        self._status(line, ok=out["outcome"]["accepted"])
+        return {**out["outcome"], "line": line}
+
+
+__all__ = ["ADVERTISED", "DIAGONALS", "READ_ONLY_REASON", "TuningFrontEnd"]

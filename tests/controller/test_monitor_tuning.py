@@ -1,0 +1,112 @@
+"""The monitor as a calibration front-end (rt_controller/monitor/tuning.py): Foxglove's
+Parameters (get, set, subscribe) and the operator services over a real foxglove-sdk server and
+an independent WebSocket client, the link to the controller played in-process by the real
+ParameterServer (requests signed and verified as on zenoh; the "loop" takes them at tick 10)."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+import pytest
+
+from hal.config import RigConfig
+from hal.zenoh_session import free_loopback_port
+from rt_controller.calibration.link import ParameterServer
+from rt_controller.calibration.parameters import ParameterService
+from rt_controller.monitor.bridge import MonitorBridge
+from rt_controller.monitor.tuning import ADVERTISED, TuningFrontEnd
+from tests.support.foxglove_ws import FoxgloveClient
+
+KEY = bytes(range(32))
+TICK = 10
+
+
+class LoopbackLink:
+    """``session.session.get`` of zenoh, answered by a ParameterServer whose queue is taken at
+    tick :data:`TICK` (actions are done there, as the loop does)."""
+
+    def __init__(self) -> None:
+        self.service = ParameterService(RigConfig())
+        self.server = ParameterServer(self.service, KEY)
+        self.session = self
+        self.lock = threading.Lock()
+
+    def get(self, _key, payload, timeout):
+        got: list = []
+        with self.lock:
+            self.server.handle(payload, got.append)
+            if not got:
+                self.service.due(TICK)
+                for act in self.service.actions.due(TICK):
+                    act.finish(TICK, accepted=act.refusal is None, reason=act.refusal)
+        ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: got[0]))
+        return [SimpleNamespace(ok=ok)] if got and got[0] is not None else []
+
+
+@pytest.fixture
+def serve():
+    bridges = []
+
+    def start(allow_tuning: bool):
+        link = LoopbackLink()
+        tuning = TuningFrontEnd(link, KEY, allow_tuning=allow_tuning)
+        port = free_loopback_port()
+        bridge = MonitorBridge(RigConfig(), link, port=port, tuning=tuning)
+        bridges.append(bridge)
+        client = FoxgloveClient.open(f"ws://127.0.0.1:{port}")
+        return link, client, tuning
+
+    yield start
+    for b in bridges:
+        b.close()
+
+
+def test_parameters_are_advertised_and_a_set_lands_at_its_tick(serve):
+    link, client, tuning = serve(allow_tuning=True)
+    values = client.get_parameters([])
+    assert set(ADVERTISED) <= set(values)
+    assert values["gains.kp"] == 0.13 and values["gains.K_1"] == 0.01
+    assert values["hil.tuning"] is True
+    client.subscribe_parameters(["gains.kp"])
+    out = client.set_parameters({"gains.kp": 0.3, "hil.at_tick": TICK})
+    assert out["gains.kp"] == 0.3
+    assert "accepted at tick 10" in out["hil.last_outcome"]
+    assert link.service.cfg.gains.kp == 0.3 and link.service.param_set == 1
+    out = client.set_parameters({"gains.K_2": 0.02})  # one diagonal entry of K
+    assert link.service.cfg.gains.K == ((0.01, 0.0), (0.0, 0.02))
+    assert out["gains.K"] == [[0.01, 0.0], [0.0, 0.02]]
+    refused = client.set_parameters({"gains.alpha": [[1.0, 2.0], [2.0, 1.0]]})
+    assert refused["gains.alpha"] == [[0.05, 0.0], [0.0, 0.15]]  # the unchanged value
+    assert "refused at tick 10" in refused["hil.last_outcome"]
+    assert link.service.param_set == 2
+    tuning.param_set_seen(2)  # as a cycle record with param_set 2 does
+    client.get_parameters(["hil.tuning"])  # the update comes before this answer
+    update = client.parameter_updates[-1]  # the sets' answers were published to it as well
+    assert {p["name"]: p["value"] for p in update["parameters"]} == {"gains.kp": 0.3}
+
+
+def test_services_arm_disarm_law_mark_and_a_refused_reset(serve):
+    link, client, _ = serve(allow_tuning=True)
+    names = {"/hil/arm", "/hil/disarm", "/hil/mark", "/hil/switch_law", "/hil/reset_scenario"}
+    client.wait_services(names)
+    mark = client.call_service("/hil/mark", {"note": "look here"})
+    assert mark["accepted"] and mark["tick"] == TICK and mark["note"] == "look here"
+    law = client.call_service("/hil/switch_law", {"law": "rhc"})
+    assert law["accepted"] and link.service.cfg.controller.law == "rhc"
+    bad = client.call_service("/hil/switch_law", {"law": "pid"})
+    assert not bad["accepted"] and "law" in bad["reason"]
+    reset = client.call_service("/hil/reset_scenario", {})
+    assert not reset["accepted"] and "reset" in reset["reason"]
+    assert client.call_service("/hil/disarm", {})["accepted"]
+
+
+def test_without_allow_tuning_parameters_are_read_only(serve):
+    link, client, _ = serve(allow_tuning=False)
+    values = client.get_parameters(["gains.kp", "hil.tuning"])
+    assert values == {"gains.kp": 0.13, "hil.tuning": False}
+    out = client.set_parameters({"gains.kp": 0.3})
+    assert out["gains.kp"] == 0.13 and "allow-tuning" in out["hil.last_outcome"]
+    assert link.service.param_set == 0 and link.service.counters.refused == 0
+    client.wait_services({"/hil/mark"})
+    assert "/hil/arm" not in client.services and "/hil/switch_law" not in client.services
