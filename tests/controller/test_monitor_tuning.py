@@ -110,3 +110,19 @@ def test_without_allow_tuning_parameters_are_read_only(serve):
     assert link.service.param_set == 0 and link.service.counters.refused == 0
     client.wait_services({"/hil/mark"})
     assert "/hil/arm" not in client.services and "/hil/switch_law" not in client.services
+
+
+def test_layout_calibration_panels_name_advertised_parameters():
+    import json
+    from pathlib import Path
+
+    layout = json.loads((Path(__file__).parents[2] / "foxglove" / "layout.json").read_text())
+    panels = layout["configById"]
+    sliders = {k: v for k, v in panels.items() if k.startswith("VariableSlider!")}
+    names = {v["globalVariableName"] for v in sliders.values()}
+    assert {"gains.kp", "gains.alpha_1", "gains.alpha_2", "gains.K_1", "gains.K_2"} <= names
+    assert names <= set(ADVERTISED)
+    (params,) = [k for k in panels if k.startswith("Parameters!")]
+    tab = next(t for t in panels["Tab!main"]["tabs"] if t["title"].startswith("Calibration"))
+    text = json.dumps(tab["layout"])
+    assert params in text and all(k in text for k in sliders)
