@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -438,11 +439,60 @@ def _vec(v: list[float] | None) -> str:
 # ---------------------------------------------------------------------------- figures
 
 
+@dataclass(frozen=True)
+class ChangeLine:
+    """A vertical line of the report's time plots: an online change or an operator event."""
+
+    t: float
+    kind: str
+    """``accepted``, ``refused`` (parameter change sets) or ``event`` (a mark, arm, disarm)."""
+    label: str
+
+
+LINE_STYLES = {
+    "accepted": {"color": "tab:green", "ls": "-", "lw": 1.2},
+    "refused": {"color": "tab:red", "ls": ":", "lw": 1.2},
+    "event": {"color": "tab:gray", "ls": "-.", "lw": 1.0},
+}
+
+
+def change_lines(log: LoadedLog) -> list[ChangeLine]:
+    """Where the log's parameter changes and operator events fall on :func:`time_axis`, in
+    log order (changes, then events); a record whose tick has no cycle is left out."""
+    tick = log.column("tick")
+    if tick is None or log.n_cycles == 0:
+        return []
+    t, _ = time_axis(log)
+    at = {int(k): float(t[i]) for i, k in enumerate(np.asarray(tick))}
+    out = []
+    for rec in log.parameters:
+        if int(rec.get("tick", -1)) in at:
+            kind = "accepted" if rec.get("accepted") else "refused"
+            out.append(ChangeLine(at[int(rec["tick"])], kind, _change(rec)["changes"]))
+    for rec in log.events:
+        if int(rec.get("tick", -1)) in at:
+            label = rec.get("action", "") + (f": {rec['note']}" if rec.get("note") else "")
+            out.append(ChangeLine(at[int(rec["tick"])], "event", label))
+    return out
+
+
+def _draw_lines(ax: Any, lines: list[ChangeLine]) -> None:
+    """The change lines on ``ax``, one legend entry per kind."""
+    named: set[str] = set()
+    for ln in lines:
+        name = "operator event" if ln.kind == "event" else f"parameters {ln.kind}"
+        label = None if ln.kind in named else name
+        named.add(ln.kind)
+        ax.axvline(ln.t, label=label, **LINE_STYLES[ln.kind])
+
+
 def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -> list[Path]:
     """Write the report's PNG figures into ``outdir`` (created); returns the files written.
 
     Figures: lateness histogram, cycle time with the deadline, solve time (and residual),
-    f(t), xi(t), u(t), tau(t). Uses matplotlib's object API (Agg), never pyplot.
+    f(t), xi(t), u(t), tau(t). Uses matplotlib's object API (Agg), never pyplot. The time plots
+    mark the online parameter changes (:func:`change_lines`: green accepted, red dotted
+    refused, grey dash-dot operator events).
     """
     from matplotlib.figure import Figure
 
@@ -452,6 +502,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
     if log.n_cycles == 0:
         return []
     t, t_label = time_axis(log)
+    lines = change_lines(log)
     written: list[Path] = []
 
     def save(fig: Figure, name: str) -> None:
@@ -492,6 +543,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
         c = c[np.isfinite(c) & (c > 0)]
         if c.size and max(float(c.max()), per or 0.0) > 50 * float(c.min()):
             ax.set_yscale("log")  # µs-scale cycles under a ms-scale deadline
+        _draw_lines(ax, lines)
         ax.set_xlabel(t_label)
         ax.set_ylabel("µs")
         ax.set_title("Cycle time (wake-up to end of tick)")
@@ -516,6 +568,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
             ax2.plot(t, r, lw=0.8, color="tab:orange")
             if np.any(r > 0):
                 ax2.set_yscale("log")
+        _draw_lines(ax2, lines)
         ax2.set_ylabel("residual")
         ax2.set_xlabel(t_label)
         save(fig, "solve_time")
@@ -529,6 +582,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
         ax = fig.add_subplot()
         for j in range(col.shape[1]):
             ax.plot(t, col[:, j], lw=1.0, label=f"{name}{j + 1}")
+        _draw_lines(ax, lines)
         ax.set_xlabel(t_label)
         ax.set_ylabel(f"{name} ({unit})" if unit else name)
         ax.set_title(f"{name}(t)")

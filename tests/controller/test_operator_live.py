@@ -66,3 +66,25 @@ def test_mark_disarm_arm_and_a_refused_reset(tmp_path, cfg):
     render_text(summarize(log), con)
     text = con.export_text()
     assert "Operator events" in text and "step" in text
+
+
+def test_report_plots_mark_the_changes_accepted_refused_and_events(tmp_path, cfg):
+    from rt_controller.calibration.parameters import Request
+    from rt_controller.logtools.deadline_report import change_lines, time_axis, write_plots
+
+    def submit(service):
+        service.submit(Request({"gains.kp": 0.3}, "test", at_tick=30))
+        service.submit(Request({"gains.kp": -1.0}, "test", at_tick=40))
+        service.actions.submit(Action("mark", note="here", source="test", at_tick=50))
+
+    _, log, _ = run_submitting(tmp_path, cfg, submit, 2.0)
+    t, _ = time_axis(log)
+    ticks = list(np.asarray(log.cycles["tick"]))
+    lines = change_lines(log)
+    assert [(ln.kind, ln.t) for ln in lines] == [
+        ("accepted", t[ticks.index(30)]),
+        ("refused", t[ticks.index(40)]),
+        ("event", t[ticks.index(50)]),
+    ]
+    assert "gains.kp" in lines[0].label and "here" in lines[2].label
+    assert len(write_plots(log, tmp_path / "figs")) >= 5
