@@ -108,6 +108,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     sw.add_argument("--rig-duration", type=duration(), default=2.0, help="simulated s per rig run")
     _finish(sw, run_sweep)
+    tp = bench.add_parser(
+        "tuning",
+        help="in a realtime run: request-to-effect latency of hil param sets (ms, periods) "
+        "and the decide-phase cost of a law switch rhc -> ioc -> rhc",
+    )
+    tp.add_argument(
+        "--requests",
+        type=bounded_int(1, 10_000, what="--requests"),
+        default=50,
+        help="parameter sets to time (default 50)",
+    )
+    tp.add_argument("--workdir", default="logs/bench-tuning", help="the run's log and key here")
+    _finish(tp, run_tuning)
 
 
 def run_solver(args: argparse.Namespace) -> int:
@@ -141,6 +154,18 @@ def run_sweep(args: argparse.Namespace) -> int:
         )
     print(json.dumps(result))
     return 0
+
+
+def run_tuning(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from rt_controller.rig.bench_tuning import bench_tuning
+
+    progress = Progress.of(args, "hil bench tuning")
+    with progress.stage(f"a realtime run with {args.requests} parameter sets"):
+        result = bench_tuning(Path(args.workdir), requests=args.requests)
+    print(json.dumps(result))
+    return 0 if result["rig_exit"] == 0 else 1
 
 
 def run_host(args: argparse.Namespace) -> int:
