@@ -62,7 +62,13 @@ def _foxglove_run(tmp_path, name: str, *flags: str) -> tuple[dict, dict]:
     client = None
     try:
         client = FoxgloveClient.open(f"ws://127.0.0.1:{port}", attempts=1200)
-        assert client.get_parameters(["gains.kp"]) == {"gains.kp": 0.13}
+        # the monitor answers with what the controller says: nothing until it is up (a cold
+        # numba cache takes its time)
+        assert wait_until(
+            lambda: client.get_parameters(["gains.kp"]) == {"gains.kp": 0.13},
+            timeout_s=240,
+            poll_s=0.5,
+        )
         reply = client.set_parameters({"gains.kp": 0.3, "hil.at_tick": AT}, timeout=240)
     except BaseException:
         os.killpg(proc.pid, signal.SIGKILL)
