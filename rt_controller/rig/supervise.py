@@ -79,13 +79,28 @@ def supervised() -> Iterator[None]:
 
 @contextlib.contextmanager
 def signals_deferred() -> Iterator[None]:
-    """Block the supervised signals while the children are being stopped (a second SIGTERM
-    must not cut the orderly stop short); they are delivered afterwards."""
+    """Hold the supervised signals until the block ends, then deliver them to the handlers in
+    force (a second SIGTERM must not cut an orderly stop short; a Ctrl-C must not split a
+    journal write from its table row).
+
+    The hold is at the Python level: a process-directed signal reaches whichever thread does
+    not block it, and CPython runs the handler in the main thread anyway, so a signal mask
+    defers nothing once a library has started a thread. Outside the main thread it does
+    nothing (handlers can only be changed there).
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, SUPERVISED_SIGNALS)
+    held: list[int] = []
+
+    def hold(signum: int, _frame: object) -> None:
+        held.append(signum)
+
+    previous = {sig: signal.signal(sig, hold) for sig in SUPERVISED_SIGNALS}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)
