@@ -53,6 +53,10 @@ from hal.secoc import rig_key
 log = logging.getLogger(__name__)
 
 STATUS_BACKLOG = 64
+DRAIN_MAX_FRAMES = 1024
+"""Most frames one :meth:`JointClient.drain` takes (half a second of free-running state at
+1 kHz): a bus that never runs dry (a flood, or a reader slower than the sender) ends the drain
+here instead of never, and the rest waits for the next one."""
 """DspStatus frames kept for :meth:`JointClient.take_statuses` between two calls (the DSP sends
 10 a second plus one per change)."""
 
@@ -80,6 +84,8 @@ class ClientStats:
     """Receive calls that raised (a driver error), counted and read as "no frame"."""
     hook_errors: int = 0
     """Exceptions raised by ``frame_hook`` (logged once, swallowed)."""
+    drains_cut: int = 0
+    """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (the bus had not run dry)."""
 
 
 class JointClient:
@@ -309,17 +315,20 @@ class JointClient:
         """Read and decode every frame waiting on the bus, without blocking; how many. A frame's
         receive time is ``now_ns`` (default: now) or, with ``timestamps``, the bus's receive
         stamp moved to the monotonic clock and capped at ``now_ns``. Never raises for a bad
-        frame or a driver error (both counted; a driver error ends the drain)."""
+        frame or a driver error (both counted; a driver error ends the drain). At most
+        ``DRAIN_MAX_FRAMES`` frames: a bus that never runs dry cannot hold the caller."""
         now = time.monotonic_ns() if now_ns is None else now_ns
         wall_minus_mono = time.time_ns() - time.monotonic_ns() if timestamps else 0
-        n = 0
-        while (msg := self._receive(0.0)) is not None:
+        for n in range(DRAIN_MAX_FRAMES):
+            msg = self._receive(0.0)
+            if msg is None:
+                return n
             t = now
             if timestamps and msg.timestamp:
                 t = min(now, round(msg.timestamp * 1e9) - wall_minus_mono)
             self.process_frame(msg, t)
-            n += 1
-        return n
+        self._n.drains_cut += 1
+        return DRAIN_MAX_FRAMES
 
     def process_frame(self, msg: can.Message, t_ns: int | None = None) -> None:
         """The receive path of every frame read: hook, E2E check, decode, update. Never

@@ -70,6 +70,7 @@ from hal.can_codec import (
 )
 from hal.config import RigConfig
 from hal.drive_state import Drive, DriveState, DspCommand, FaultReason
+from hal.joint_client import DRAIN_MAX_FRAMES
 from hal.secoc import rig_key
 from plant_emulator.arm import Encoder
 from plant_emulator.camera import CameraPose
@@ -101,6 +102,9 @@ class DspStats:
     missing_periods: int = 0
     """Lockstep: periods with no command before the reply timeout."""
     send_errors: int = 0
+    drains_cut: int = 0
+    """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (a bus that had not run dry: a
+    flood cannot hold the physics)."""
     last_command_ns: int | None = None
     """DSP clock (monotonic ns in realtime, simulation ns in lockstep) of the last valid command."""
     last_trip_ns: int | None = None
@@ -407,12 +411,13 @@ class DspNode:
         self.stats.last_command_ns = now_ns
 
     def drain(self, now_ns: int) -> None:
-        """Handle every frame already waiting on the bus."""
-        while True:
+        """Handle every frame already waiting on the bus, at most ``DRAIN_MAX_FRAMES``."""
+        for _ in range(DRAIN_MAX_FRAMES):
             msg = self.bus.recv(timeout=0)
             if msg is None:
                 return
             self.handle(msg, now_ns)
+        self.stats.drains_cut += 1
 
     def check_watchdog(self, now_ns: int) -> bool:
         """Trip when ``dsp.watchdog_periods`` control periods passed without a valid command.

@@ -34,10 +34,10 @@ from hal.can_codec import (
 from hal.config import RigConfig
 from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS
 from hal.errors import HalTimeoutError
-from hal.joint_client import JointClient
+from hal.joint_client import DRAIN_MAX_FRAMES, JointClient
 from plant_emulator.dsp_node import DspNode
 from tests.support import SecocReference, command_is_malformed, e2e_crc_reference
-from tests.support.joint import read_for
+from tests.support.joint import TripRearm, read_for
 
 RECV_TIMEOUT_S = 10.0
 MS = 1_000_000
@@ -233,6 +233,37 @@ def test_watchdog_trips_within_three_periods_and_latches(cfg: RigConfig, transpo
         assert np.allclose(node.world.tau_applied, (3.0, 0.3))
         wait_for(lambda: not client.status.watchdog_tripped, "re-enabled status", client.drain)  # type: ignore[union-attr]
         assert client.status.torque_enabled  # type: ignore[union-attr]
+
+
+def test_trip_rearm_re_arms_each_trip_once_also_past_the_saturated_trip_count(
+    cfg: RigConfig,
+) -> None:
+    """:class:`~tests.support.joint.TripRearm` (the re-arm rule of the vcan tests' streaming
+    clients) against the DSP: one re-arm per watchdog trip, none for a status still saying
+    tripped before the DSP handled the re-arm, and the same past 15 trips, where
+    ``DspStatus.WatchdogTrips`` stays at 15 (a client comparing trip counts stopped there)."""
+    stall_ms = 2 * cfg.dsp.watchdog_periods * 1e3 / cfg.rates.control_hz
+    rearm = TripRearm()
+    with rig(cfg, "virtual") as (node, client):
+        clock = FakeClock(node)
+        enable(clock, client)
+        for trip in range(1, 21):
+            clock.command(client, (0.0, 0.0))
+            clock.advance(stall_ms)  # the client stalls past the watchdog
+            assert node.stats.watchdog_trips == trip
+            client.drain()
+            statuses = client.take_statuses()
+            assert statuses[-1].watchdog_tripped
+            assert statuses[-1].watchdog_trips == min(trip, 15)
+            assert rearm.new_trip(statuses), f"trip {trip} not re-armed"
+            client.enable()  # the re-arm, not handled by the DSP yet ...
+            node.send_status()  # ... which meanwhile still says tripped: the same trip
+            client.drain()
+            assert not rearm.new_trip(client.take_statuses()), f"trip {trip} re-armed twice"
+            wait_for(lambda: node.torque_enabled, "the re-arm", clock.pump)
+            client.drain()
+            assert not rearm.new_trip(client.take_statuses())
+        assert node.stats.watchdog_trips == 20
 
 
 def test_watchdog_on_the_real_clock(cfg: RigConfig) -> None:
@@ -815,3 +846,23 @@ def test_frames_waiting_when_the_node_stops_are_handled_and_counted(
         stop.set()  # the node is told to stop before its loop ever drains
         stats = node.run(stop)
         assert stats.commands == 5
+
+
+def test_a_bus_that_never_runs_dry_cannot_hold_the_dsp(
+    cfg: RigConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A flood always has a frame waiting: the DSP's drain stops after ``DRAIN_MAX_FRAMES``
+    (its physics steps go on) and counts the cut; each frame is handled, none is lost."""
+    sender = ControllerCodec()
+    served = [0]
+
+    with rig(cfg, "virtual") as (node, _client):
+
+        def always(timeout: float | None = None) -> can.Message | None:
+            served[0] += 1
+            return None if served[0] > 10 * DRAIN_MAX_FRAMES else sender.encode_torque(0.0, 0.0)
+
+        monkeypatch.setattr(node.bus, "recv", always)
+        node.drain(T0)
+        assert node.stats.drains_cut == 1 and served[0] == DRAIN_MAX_FRAMES
+        assert node.stats.commands == DRAIN_MAX_FRAMES  # every frame taken was handled

@@ -43,7 +43,7 @@ from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 from tests import support
 from tests.support import e2e_crc_reference
-from tests.support.joint import next_state, read_for, read_until
+from tests.support.joint import TripRearm, next_state, read_for, read_until
 from tests.support.vcan import VCAN_CHANNEL, candump_available, requires_vcan, vcan_required
 
 REPO = Path(__file__).resolve().parents[2]
@@ -223,38 +223,75 @@ def constant(tau: tuple[float, float]) -> Law:
     return lambda _q, _dq: tau
 
 
+class Stream:
+    """What :func:`streaming` did: commands sent, re-arms, and every DspStatus its thread read."""
+
+    def __init__(self) -> None:
+        self.commands = 0
+        self.rearms = 0
+        """Re-arms after watchdog trips, one per trip (:class:`~tests.support.joint.TripRearm`)."""
+        self.statuses: queue.Queue[DspStatus] = queue.Queue()
+        """Every DspStatus the thread read, in order (the test's thread must not take them from
+        the client: the thread does)."""
+        self.error: BaseException | None = None
+
+    def any_status(self, pred: Callable[[DspStatus], bool]) -> Callable[[], bool]:
+        """A condition for :func:`wait_until`: some DspStatus the thread read since the last
+        check (every one, in order, not only the newest) satisfies ``pred``; the thread's
+        exception, if it died (nobody reads the bus then)."""
+
+        def cond() -> bool:
+            if self.error is not None:
+                raise self.error
+            seen = False
+            while not self.statuses.empty():
+                seen = pred(self.statuses.get_nowait()) or seen
+            return seen
+
+        return cond
+
+
 @contextlib.contextmanager
-def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[list[int]]:
+def streaming(client: JointClient, law: Law, hz: float = 50.0) -> Iterator[Stream]:
     """Enable the DSP and send ``law(q, dq)`` of the latest state at ``hz`` from a thread, like
     a controller: the thread reads the client's bus between its commands (the test's thread
-    must not, meanwhile); on exit it disables the DSP right after its last command.
+    must not, meanwhile, nor take its statuses: :meth:`Stream.any_status` looks at them); on
+    exit it disables the DSP right after its last command.
 
     A busy host may stall this thread past the DSP's watchdog (3 periods of 20 ms): the DSP then
-    trips, as it must, and the thread re-arms it (``enable`` resets the fault) so the test goes
-    on; ``sent[1]`` counts the re-arms."""
+    trips, as it must, and the thread re-arms it once per trip (``enable`` resets the fault) so
+    the test goes on; ``Stream.rearms`` counts the re-arms."""
     stop = threading.Event()
-    sent = [0, 0]
+    stream = Stream()
+    rearm = TripRearm()
 
     def run() -> None:
-        client.enable()
-        while not stop.is_set():
-            status = client.status
-            if status is not None and status.watchdog_tripped:
-                client.enable()
-                sent[1] += 1
-            state = client.latest_state(max_age_s=1e9)
-            client.send_torque(*law(state.q, state.dq))
-            sent[0] += 1
-            read_until(client, stop.is_set, 1.0 / hz)
-        client.disable()
+        try:
+            client.enable()
+            while not stop.is_set():
+                statuses = client.take_statuses()
+                for st in statuses:
+                    stream.statuses.put(st)
+                if rearm.new_trip(statuses):
+                    client.enable()
+                    stream.rearms += 1
+                state = client.latest_state(max_age_s=1e9)
+                client.send_torque(*law(state.q, state.dq))
+                stream.commands += 1
+                read_until(client, stop.is_set, 1.0 / hz)
+            client.disable()
+        except BaseException as exc:  # raised in the test's thread (nobody reads the bus now)
+            stream.error = exc
 
     thread = threading.Thread(target=run, name="torque-stream")
     thread.start()
     try:
-        yield sent
+        yield stream
     finally:
         stop.set()
         thread.join(timeout=STOP_TIMEOUT_S)
+    if stream.error is not None:
+        raise stream.error
 
 
 def assert_dsp_clock_invariants(cfg: RigConfig, summary: dict[str, Any]) -> None:
@@ -316,21 +353,19 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
 
             # A constant torque until joint 1 moved, then torque off (state in UML may lag by
             # seconds, so no feedback law here: it would go unstable on stale states).
-            with streaming(client, constant((3.0, 0.3))) as sent:
-                wait_until(
-                    lambda: client.status is not None and client.status.torque_enabled, "armed"
-                )
+            with streaming(client, constant((3.0, 0.3))) as stream:
+                wait_until(stream.any_status(lambda st: st.torque_enabled), "armed")
                 wait_until(
                     lambda: client.latest_state(max_age_s=1e9).q[0] > q0[0] + 0.05,
                     "joint 1 moving under +3 N·m",
                 )
                 q1 = client.latest_state(max_age_s=RECV_TIMEOUT_S).q
-            print(f"q: {q0} -> {q1} after {sent[0]} torque commands (3, 0.3) N·m")
+            print(f"q: {q0} -> {q1} after {stream.commands} torque commands (3, 0.3) N·m")
             assert q1[1] > q0[1], "joint 2 did not move under +0.3 N·m"
             wait_until(lambda: not client.status.torque_enabled, "disarmed", reading=client)  # type: ignore[union-attr]
         summary = stop_emulator(emu)
     print(f"emulator summary: {json.dumps(summary)}")
-    assert summary["commands"] >= sent[0]
+    assert summary["commands"] >= stream.commands
     assert summary["rejected"]["rejected"] == 0
     assert_dsp_clock_invariants(cfg, summary)
     assert summary["drive_state"] != "operation_enabled"  # disarmed at the end
@@ -346,15 +381,14 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
 CLIENT_SCRIPT = """
 import sys, time
 from hal.joint_client import JointClient
+from tests.support.joint import TripRearm
 with JointClient.open(sys.argv[1]) as dsp:
     dsp.enable()
     print("armed", flush=True)
-    seen = 0
+    rearm = TripRearm()
     while True:  # 50 Hz until killed; zero torque keeps the arm at rest inside its limits
         dsp.drain()
-        st = dsp.status
-        if st is not None and st.watchdog_tripped and st.watchdog_trips != seen:
-            seen = st.watchdog_trips  # once per trip, however long the status says tripped
+        if rearm.new_trip(dsp.take_statuses()):  # once per trip, however long it says tripped
             dsp.enable()  # stalled past the watchdog by a busy host: re-arm (resets the fault)
             print("re-armed", flush=True)
         dsp.send_torque(0.0, 0.0)
@@ -461,16 +495,16 @@ def test_signal_turns_torque_off_and_exits_zero(
         JointClient.open(can_spec, cfg) as client,
     ):
         first_state(client)
-        with streaming(client, constant((0.5, 0.05))) as sent:
-            wait_until(lambda: client.status is not None and client.status.torque_enabled, "armed")
-            wait_until(lambda: sent[0] >= 5, "torque commands on the bus")
+        with streaming(client, constant((0.5, 0.05))) as stream:
+            wait_until(stream.any_status(lambda st: st.torque_enabled), "armed")
+            wait_until(lambda: stream.commands >= 5, "torque commands on the bus")
             summary = stop_emulator(emu, sig)
             # The last frame of the DSP: a DspStatus with the torque off.
             wait_until(lambda: not client.status.torque_enabled, "final status, torque off")  # type: ignore[union-attr]
     assert summary["commands"] >= 1
     # torque off at the end whatever happened before (a stall's trip was re-armed)
     assert summary["drive_state"] != "operation_enabled"
-    assert summary["watchdog_trips"] <= sent[1] + 1
+    assert summary["watchdog_trips"] <= stream.rearms + 1
     assert_dsp_clock_invariants(cfg, summary)
 
 

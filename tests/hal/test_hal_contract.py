@@ -33,7 +33,7 @@ from hal.can_codec import (
 )
 from hal.config import RigConfig
 from hal.errors import HalConfigError, HalError, HalTimeoutError, HalTransportError
-from hal.joint_client import JointClient
+from hal.joint_client import DRAIN_MAX_FRAMES, JointClient
 from hal.udp_loopback import DEFAULT_GROUP, LoopbackMulticastBus
 from tests.support.joint import next_state, read_until
 from tests.support.vcan import VCAN_CHANNEL, requires_vcan
@@ -303,6 +303,26 @@ def test_receive_errors_are_counted_and_read_as_no_frame(
     dsp_bus.send(DspCodec().encode_sync(5))
     assert client.wait_sync(RECV_TIMEOUT_S) == 5
     assert client.stats.transport_errors == errors
+
+
+def test_a_bus_that_never_runs_dry_cannot_hold_drain(
+    client: JointClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A flood (or a reader slower than the sender, as under user-mode Linux) always has a
+    frame waiting: ``drain`` stops after ``DRAIN_MAX_FRAMES`` and counts the cut; the next
+    drain goes on where it stopped."""
+    flood = DspCodec()
+    served = [0]
+
+    def always(timeout: float | None = None) -> can.Message | None:
+        served[0] += 1
+        return None if served[0] > 10 * DRAIN_MAX_FRAMES else flood.encode_sync(served[0])
+
+    monkeypatch.setattr(client.bus, "recv", always)
+    assert client.drain() == DRAIN_MAX_FRAMES
+    assert client.stats.drains_cut == 1 and client.stats.frames == DRAIN_MAX_FRAMES
+    assert client.drain() == DRAIN_MAX_FRAMES and client.stats.drains_cut == 2
+    assert client.stats.syncs == 2 * DRAIN_MAX_FRAMES  # every frame taken was decoded
 
 
 def test_stale_state_raises_timeout(dsp_bus: can.BusABC, client: JointClient) -> None:

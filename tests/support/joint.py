@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 from hal.can_codec import DspStatus, JointState
 from hal.errors import HalTimeoutError
@@ -53,3 +53,36 @@ def next_status(client: JointClient, timeout_s: float) -> DspStatus:
     status = client.status
     assert status is not None
     return status
+
+
+class TripRearm:
+    """When a client that keeps the DSP armed must re-arm it: once per watchdog trip.
+
+    Feed it every DspStatus in order (:meth:`~hal.joint_client.JointClient.take_statuses`, not
+    only the newest: a batch read may end on a later status). After a re-arm the DSP may go on
+    saying tripped for a while (seconds under user-mode Linux, until it handles the re-arm);
+    those statuses are the same trip. A tripped status is a new trip when a status without the
+    trip came since the last re-arm (the DSP left the fault, so it handled the re-arm: nothing
+    else resets a fault) or when it counts more trips than the one re-armed. The trip count
+    alone does not do: ``DspStatus.WatchdogTrips`` is 4 bits and stays at 15, so a client that
+    compared counts never re-armed a 16th trip and the DSP stayed off under a live client."""
+
+    def __init__(self) -> None:
+        self._pending = False
+        """A re-arm went out that no status without the trip has answered yet."""
+        self._rearmed_at = 0
+        """``WatchdogTrips`` of the trip the last re-arm was for."""
+
+    def new_trip(self, statuses: Iterable[DspStatus]) -> bool:
+        """Whether ``statuses`` (every one since the last call, oldest first) show a trip not
+        re-armed yet; True means the caller re-arms now (``enable()``)."""
+        trips = None
+        for st in statuses:
+            if not st.watchdog_tripped:
+                self._pending = False
+            elif not self._pending or st.watchdog_trips > self._rearmed_at:
+                trips = st.watchdog_trips
+        if trips is None:
+            return False
+        self._pending, self._rearmed_at = True, trips
+        return True
