@@ -44,7 +44,7 @@ from foxglove.websocket import (
 )
 
 from foxglove import Schema
-from rt_controller.calibration.link import event_line, outcome_line, request
+from rt_controller.calibration.link import ParameterLinkError, event_line, outcome_line, request
 from rt_controller.calibration.parameters import TUNABLE
 
 log = logging.getLogger(__name__)
@@ -90,14 +90,23 @@ def _like(new: Any, old: Any) -> Any:
 class TuningFrontEnd:
     """The Parameters listener and the services of one monitor. ``session`` is an open
     :class:`~hal.zenoh_session.ZenohSession` (anything with ``session.get`` as zenoh's), ``key``
-    the rig key."""
+    the rig key. ``timeout_s`` bounds the wait for an answer the controller gives at once;
+    ``scheduled_timeout_s`` that for a set or an action with an ``at_tick``, which the controller
+    answers when that tick comes."""
 
     def __init__(
-        self, session: Any, key: bytes, *, allow_tuning: bool = False, timeout_s: float = 10.0
+        self,
+        session: Any,
+        key: bytes,
+        *,
+        allow_tuning: bool = False,
+        timeout_s: float = 10.0,
+        scheduled_timeout_s: float = 600.0,
     ) -> None:
         self.session, self.key = session, key
         self.allow_tuning = allow_tuning
         self.timeout_s = timeout_s
+        self.scheduled_timeout_s = scheduled_timeout_s
         self.server: Any = None
         """The Foxglove server (set by the bridge) for status messages and updates."""
         self.last_outcome = "no set yet" if allow_tuning else READ_ONLY_REASON
@@ -109,10 +118,10 @@ class TuningFrontEnd:
     # --- the link ---------------------------------------------------------------------------
     def ask(self, op: str, **kw: Any) -> dict[str, Any]:
         """One signed request to the controller (:func:`rt_controller.calibration.link.request`)."""
+        wait = self.timeout_s if kw.get("at_tick") is None else self.scheduled_timeout_s
         return request(
-            self.session, self.key, op, source="hil monitor (Foxglove)", timeout_s=self.timeout_s,
-            **kw,
-        )  # fmt: skip
+            self.session, self.key, op, source="hil monitor (Foxglove)", timeout_s=wait, **kw
+        )
 
     def values(self) -> dict[str, Any]:
         """Every advertised parameter's value, from the controller."""
@@ -146,7 +155,11 @@ class TuningFrontEnd:
                 self._status(READ_ONLY_REASON, ok=False)
                 self.last_outcome = READ_ONLY_REASON
             else:
-                self._set(asked)
+                try:
+                    self._set(asked)
+                except ParameterLinkError as exc:  # the answer says so; the values are the truth
+                    self.last_outcome = str(exc)
+                    self._status(self.last_outcome, ok=False)
             return self._parameters([*names, LAST_OUTCOME])
 
     def _set(self, asked: dict[str, Any]) -> None:

@@ -6,6 +6,7 @@ ParameterServer (requests signed and verified as on zenoh; the "loop" takes them
 from __future__ import annotations
 
 import threading
+import time
 from types import SimpleNamespace
 
 import pytest
@@ -44,13 +45,33 @@ class LoopbackLink:
         return [SimpleNamespace(ok=ok)] if got and got[0] is not None else []
 
 
+class SlowTickLink(LoopbackLink):
+    """The loop reaches tick :data:`TICK` ``delay_s`` after a request (None: never), and zenoh's
+    ``get`` waits for the answer up to its ``timeout``, as a lockstep run with ticks to go."""
+
+    def __init__(self, delay_s: float | None) -> None:
+        super().__init__()
+        self.delay_s = delay_s
+
+    def get(self, _key, payload, timeout):
+        got: list = []
+        self.server.handle(payload, got.append)
+        start = time.monotonic()
+        while not got and time.monotonic() - start < timeout:
+            if self.delay_s is not None and time.monotonic() - start >= self.delay_s:
+                self.service.due(TICK)
+            time.sleep(0.01)
+        ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: got[0]))
+        return [SimpleNamespace(ok=ok)] if got and got[0] is not None else []
+
+
 @pytest.fixture
 def serve():
     bridges = []
 
-    def start(allow_tuning: bool):
-        link = LoopbackLink()
-        tuning = TuningFrontEnd(link, KEY, allow_tuning=allow_tuning)
+    def start(allow_tuning: bool, link: LoopbackLink | None = None, **kw):
+        link = link or LoopbackLink()
+        tuning = TuningFrontEnd(link, KEY, allow_tuning=allow_tuning, **kw)
         port = free_loopback_port()
         bridge = MonitorBridge(RigConfig(), link, port=port, tuning=tuning)
         bridges.append(bridge)
@@ -84,6 +105,23 @@ def test_parameters_are_advertised_and_a_set_lands_at_its_tick(serve):
     client.get_parameters(["hil.tuning"])  # the update comes before this answer
     update = client.parameter_updates[-1]  # the sets' answers were published to it as well
     assert {p["name"]: p["value"] for p in update["parameters"]} == {"gains.kp": 0.3}
+
+
+def test_a_set_for_a_later_tick_waits_for_that_tick_past_the_answer_timeout(serve):
+    # the loop takes the set at tick 10 only after 1 s; a "get" is answered within 0.2 s
+    link, client, _ = serve(allow_tuning=True, link=SlowTickLink(1.0), timeout_s=0.2)
+    out = client.set_parameters({"gains.kp": 0.3, "hil.at_tick": TICK})
+    assert out["gains.kp"] == 0.3 and "accepted at tick 10" in out["hil.last_outcome"]
+    assert link.service.param_set == 1
+
+
+def test_a_set_the_controller_never_answers_replies_with_the_values_and_why(serve):
+    link, client, _ = serve(
+        allow_tuning=True, link=SlowTickLink(None), timeout_s=0.2, scheduled_timeout_s=0.5
+    )
+    out = client.set_parameters({"gains.kp": 0.3, "hil.at_tick": TICK})
+    assert out["gains.kp"] == 0.13 and "no answer from the controller" in out["hil.last_outcome"]
+    assert link.service.param_set == 0
 
 
 def test_services_arm_disarm_law_mark_and_a_refused_reset(serve):
