@@ -40,7 +40,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="K",
         help="set/load and the actions: take effect at the first tick >= K",
     )
-    p.add_argument("--timeout", type=float, default=10.0, metavar="S", help="answer wait")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="answer wait; with --at-tick the answer comes when that tick does, so allow for it",
+    )
     p.add_argument("-o", "--out", metavar="FILE", help="dump: write the TOML here")
     p.add_argument("--json", action="store_true", help="print the answer as JSON")
     add_config_option(p)
