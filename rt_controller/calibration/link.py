@@ -47,6 +47,11 @@ FRESHNESS_S = 30.0
 """How far a request's time may be from the controller's (both on this host's wall clock)."""
 REQUEST_LABEL, REPLY_LABEL = "hil-param-request", "hil-param-reply"
 OPS = ("get", "dump", "set", "action")
+ANSWER_TIMEOUT_S = 10.0
+"""How long a client waits for an answer the controller gives at once (get, dump, a set now)."""
+SCHEDULED_TIMEOUT_S = 600.0
+"""How long a client waits for a set or an action with an ``at_tick``: the controller answers
+when that tick comes, which a lockstep run on a loaded host may reach minutes later."""
 
 
 class ParameterLinkError(ControllerError):
@@ -170,11 +175,14 @@ def request(
     action: str = "",
     note: str = "",
     source: str = "hil param",
-    timeout_s: float = 10.0,
+    timeout_s: float | None = None,
 ) -> dict[str, Any]:
     """One request to the controller (``op`` in :data:`OPS`; ``changes`` for ``set``,
     ``action`` and ``note`` for ``action``); its verified answer.
-    :class:`ParameterLinkError` when none comes within ``timeout_s``."""
+    :class:`ParameterLinkError` when none comes within ``timeout_s`` (default
+    :data:`SCHEDULED_TIMEOUT_S` with an ``at_tick``, else :data:`ANSWER_TIMEOUT_S`)."""
+    if timeout_s is None:
+        timeout_s = ANSWER_TIMEOUT_S if at_tick is None else SCHEDULED_TIMEOUT_S
     nonce = secrets.token_hex(16)
     body: dict[str, Any] = {"op": op, "nonce": nonce, "t_unix_ns": time.time_ns(), "source": source}
     if op == "set":

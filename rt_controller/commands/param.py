@@ -43,9 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--timeout",
         type=float,
-        default=10.0,
         metavar="S",
-        help="answer wait; with --at-tick the answer comes when that tick does, so allow for it",
+        help="answer wait (default 10 s; with --at-tick 600 s, as the answer comes when that "
+        "tick does)",
     )
     p.add_argument("-o", "--out", metavar="FILE", help="dump: write the TOML here")
     p.add_argument("--json", action="store_true", help="print the answer as JSON")

@@ -44,7 +44,14 @@ from foxglove.websocket import (
 )
 
 from foxglove import Schema
-from rt_controller.calibration.link import ParameterLinkError, event_line, outcome_line, request
+from rt_controller.calibration.link import (
+    ANSWER_TIMEOUT_S,
+    SCHEDULED_TIMEOUT_S,
+    ParameterLinkError,
+    event_line,
+    outcome_line,
+    request,
+)
 from rt_controller.calibration.parameters import TUNABLE
 
 log = logging.getLogger(__name__)
@@ -92,7 +99,7 @@ class TuningFrontEnd:
     :class:`~hal.zenoh_session.ZenohSession` (anything with ``session.get`` as zenoh's), ``key``
     the rig key. ``timeout_s`` bounds the wait for an answer the controller gives at once;
     ``scheduled_timeout_s`` that for a set or an action with an ``at_tick``, which the controller
-    answers when that tick comes."""
+    answers when that tick comes (defaults: :func:`~rt_controller.calibration.link.request`'s)."""
 
     def __init__(
         self,
@@ -100,8 +107,8 @@ class TuningFrontEnd:
         key: bytes,
         *,
         allow_tuning: bool = False,
-        timeout_s: float = 10.0,
-        scheduled_timeout_s: float = 600.0,
+        timeout_s: float = ANSWER_TIMEOUT_S,
+        scheduled_timeout_s: float = SCHEDULED_TIMEOUT_S,
     ) -> None:
         self.session, self.key = session, key
         self.allow_tuning = allow_tuning

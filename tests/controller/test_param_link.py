@@ -6,11 +6,17 @@ from __future__ import annotations
 import secrets
 import time
 
+import pytest
+
 from hal.config import RigConfig
 from rt_controller.calibration.link import (
+    ANSWER_TIMEOUT_S,
     REPLY_LABEL,
     REQUEST_LABEL,
+    SCHEDULED_TIMEOUT_S,
+    ParameterLinkError,
     ParameterServer,
+    request,
     seal,
     unseal,
 )
@@ -63,3 +69,37 @@ def test_another_key_a_replay_or_an_old_request_changes_nothing_and_is_counted()
     cfg, outs = svc.due(0)
     assert len(outs) == 1 and cfg.gains.kp == 0.3
     assert svc.counters.as_dict() == {"accepted": 1, "refused": 0, "unauthenticated": 4}
+
+
+class RecordingSession:
+    """zenoh's ``session.get`` that never answers and records how long it was asked to wait."""
+
+    def __init__(self) -> None:
+        self.session = self
+        self.waits: list[float] = []
+
+    def get(self, _key, payload, timeout):
+        self.waits.append(timeout)
+        return []
+
+
+def test_a_request_for_a_later_tick_waits_for_that_tick_not_for_an_immediate_answer():
+    s = RecordingSession()
+    for kw in ({}, {"at_tick": 2400}):
+        with pytest.raises(ParameterLinkError, match="within"):
+            request(s, KEY, "set", changes={"gains.kp": 0.3}, **kw)
+    with pytest.raises(ParameterLinkError):
+        request(s, KEY, "action", action="mark", at_tick=7)
+    with pytest.raises(ParameterLinkError):
+        request(s, KEY, "set", changes={}, at_tick=7, timeout_s=2.5)
+    assert s.waits == [ANSWER_TIMEOUT_S, SCHEDULED_TIMEOUT_S, SCHEDULED_TIMEOUT_S, 2.5]
+    assert SCHEDULED_TIMEOUT_S > 10 * ANSWER_TIMEOUT_S
+
+
+def test_hil_param_help_names_the_waits_request_uses(capsys):
+    from rt_controller.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["param", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"default {ANSWER_TIMEOUT_S:g} s; with --at-tick {SCHEDULED_TIMEOUT_S:g} s" in text

@@ -39,7 +39,7 @@ def _param(args: list[str]) -> subprocess.Popen:
 
 
 def _done(proc: subprocess.Popen) -> subprocess.CompletedProcess:
-    out, err = proc.communicate(timeout=120)
+    out, err = proc.communicate(timeout=300)
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
