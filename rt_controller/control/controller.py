@@ -1,13 +1,23 @@
-"""One control step: measurement -> law -> torque (eq. 11), independent of any I/O."""
+"""One control step: measurement -> law -> torque (eq. 11), independent of any I/O.
+
+:meth:`Controller.decide` (the per-tick rule of the daemon, replay and simulation) runs as one
+compiled call (:mod:`~rt_controller.control.decide_kernel`) for the configured law;
+:meth:`Controller.step` is the same rule spelt out in Python on the law object, the readable
+reference the tests hold the compiled call to, and the path for a law given as an object (the
+NumPy reference solver, a test double).
+"""
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from hal.config import RigConfig
+from rt_controller.control import decide_kernel as dk
 from rt_controller.control import model_kernels
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
@@ -38,21 +48,144 @@ class Command:
     saturated: bool
 
 
-@dataclass(frozen=True)
 class Decision:
-    """One tick of the daemon: the torque to send and how it was obtained."""
+    """One tick of the daemon: the torque to send and how it was obtained.
 
-    tau: np.ndarray
-    mode: str
-    """``control`` (the law ran), ``hold`` (stale features: joint damper) or ``no_state``."""
-    command: Command | None
-    """The law's step when ``mode == "control"``."""
-    state: tuple[np.ndarray, np.ndarray] | None = None
-    """(q, dq) the hold or the law acted on: the joint state brought up to the tick (as
-    measured when its age was not given); ``None`` when neither ran."""
-    features: np.ndarray | None = None
-    """f the law acted on: the features brought up to the tick (as measured when their age was
-    not given); ``None`` when the law did not run."""
+    Built from the compiled rule's outputs (:meth:`from_outputs`), the fields beyond ``tau``
+    and ``mode`` are made when first read: the loop reads only the record's numbers
+    (:meth:`record_fields`).
+    """
+
+    __slots__ = ("_V", "_command", "_cost", "_features", "_out", "_state", "mode", "tau")
+
+    def __init__(
+        self,
+        tau: np.ndarray,
+        mode: str,
+        command: Command | None = None,
+        state: tuple[np.ndarray, np.ndarray] | None = None,
+        features: np.ndarray | None = None,
+        cost: float = math.nan,
+        V: float = math.nan,
+    ) -> None:
+        self.tau = tau
+        self.mode = mode
+        """``control`` (the law ran), ``hold`` (stale features: joint damper), ``no_state``, or
+        the drive's mode when it is not enabled (``disarmed``, ``fault``, ...)."""
+        self._command, self._state, self._features = command, state, features
+        self._cost, self._V = cost, V
+        self._out: tuple[list[float], float, int] | None = None
+
+    @classmethod
+    def from_outputs(cls, io: np.ndarray, drive_mode: str, t: float, solve_ns: int) -> Decision:
+        """The decision in the outputs of the compiled rule's io vector
+        (:mod:`~rt_controller.control.decide_kernel`); ``solve_ns`` is the call's duration."""
+        v = io.tolist()
+        mode = v[dk.OUT_MODE]
+        name = (
+            "control" if mode == dk.MODE_CONTROL
+            else "hold" if mode == dk.MODE_HOLD
+            else "no_state" if mode == dk.MODE_NO_STATE
+            else drive_mode
+        )  # fmt: skip
+        d = cls(np.array(v[dk.OUT_TAU : dk.OUT_TAU + 2]), name)
+        d._out = (v, t, solve_ns)
+        d._cost, d._V = v[dk.OUT_COST], v[dk.OUT_V]
+        return d
+
+    def _vec(self, k: int) -> np.ndarray:
+        assert self._out is not None
+        return np.array(self._out[0][k : k + 2])
+
+    @property
+    def command(self) -> Command | None:
+        """The law's step when ``mode == "control"``."""
+        if self._command is None and self._out is not None and self.mode == "control":
+            v, t, solve_ns = self._out
+            q, dq = self.state  # type: ignore[misc]
+            m = Measurement(t=t, q=q, dq=dq, f=self.features, xi=self._vec(dk.OUT_XI))
+            law = LawOutput(
+                u=self._vec(dk.OUT_U),
+                residual=v[dk.OUT_RES],
+                iterations=int(v[dk.OUT_ITERS]),
+                fallback=bool(v[dk.OUT_FALLBACK]),
+                solve_ns=solve_ns,
+            )
+            self._command = Command(m, law, self._vec(dk.OUT_RAW), self.tau, bool(v[dk.OUT_SAT]))
+        return self._command
+
+    @property
+    def state(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(q, dq) the hold or the law acted on: the joint state brought up to the tick (as
+        measured when its age was not given); ``None`` when neither ran."""
+        if self._state is None and self._out is not None and self.mode in ("control", "hold"):
+            self._state = (self._vec(dk.OUT_Q), self._vec(dk.OUT_DQ))
+        return self._state
+
+    @property
+    def features(self) -> np.ndarray | None:
+        """f the law acted on: the features brought up to the tick (as measured when their age
+        was not given); ``None`` when the law did not run."""
+        if self._features is None and self._out is not None and self.mode == "control":
+            self._features = self._vec(dk.OUT_F)
+        return self._features
+
+    @property
+    def cost(self) -> float:
+        """l(x_k, u_k) of eq. (25) for this tick; NaN when the law did not run."""
+        return self._cost
+
+    @property
+    def V(self) -> float:
+        """V(x_k) of eq. (13) for this tick; NaN when the law did not run."""
+        return self._V
+
+    @property
+    def solve_ns(self) -> int:
+        """The law's (or the compiled rule's) own time, ns; 0 when no law ran."""
+        if self._out is not None:
+            return self._out[2] if self.mode == "control" else 0
+        return 0 if self._command is None else self._command.law.solve_ns
+
+    def record_fields(self, law_name: str) -> dict[str, Any]:
+        """The cycle record's output fields (see :func:`rt_controller.runtime.cycle_record.
+        decision_fields`)."""
+        nan2 = [math.nan, math.nan]
+        if self._out is not None:
+            v = self._out[0]
+            ran, acted = self.mode == "control", self.mode in ("control", "hold")
+            return {
+                "q_pred": v[dk.OUT_Q : dk.OUT_Q + 2] if acted else nan2,
+                "dq_pred": v[dk.OUT_DQ : dk.OUT_DQ + 2] if acted else nan2,
+                "f_pred": v[dk.OUT_F : dk.OUT_F + 2] if ran else nan2,
+                "xi": v[dk.OUT_XI : dk.OUT_XI + 2],
+                "u": v[dk.OUT_U : dk.OUT_U + 2],
+                "tau": v[dk.OUT_TAU : dk.OUT_TAU + 2],
+                "tau_saturated": v[dk.OUT_SAT] != 0.0,
+                "law": law_name if ran else self.mode,
+                "residual": v[dk.OUT_RES],
+                "iterations": int(v[dk.OUT_ITERS]),
+                "fallback": v[dk.OUT_FALLBACK] != 0.0,
+                "cost": v[dk.OUT_COST],
+                "V": v[dk.OUT_V],
+            }
+        cmd, state = self._command, self._state
+        law = None if cmd is None else cmd.law
+        return {
+            "q_pred": nan2 if state is None else [float(state[0][0]), float(state[0][1])],
+            "dq_pred": nan2 if state is None else [float(state[1][0]), float(state[1][1])],
+            "f_pred": nan2 if self._features is None else [float(x) for x in self._features],
+            "xi": [0.0, 0.0] if cmd is None else [float(x) for x in cmd.measurement.xi],
+            "u": [0.0, 0.0] if law is None else [float(x) for x in law.u],
+            "tau": [float(self.tau[0]), float(self.tau[1])],
+            "tau_saturated": False if cmd is None else bool(cmd.saturated),
+            "law": self.mode if cmd is None else law_name,
+            "residual": 0.0 if law is None else float(law.residual),
+            "iterations": 0 if law is None else int(law.iterations),
+            "fallback": False if law is None else bool(law.fallback),
+            "cost": float(self._cost),
+            "V": float(self._V),
+        }
 
 
 class Controller:
@@ -67,7 +200,20 @@ class Controller:
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
         self._holding = False
         c = cfg.controller
-        self.predictor = StatePredictor(self._p, max(c.state_timeout_s, c.feature_timeout_s))
+        self._predictor = StatePredictor(self._p, max(c.state_timeout_s, c.feature_timeout_s))
+        self.rule: dk.CompiledRule | None = None
+        """The compiled per-tick rule of a built-in law (``None`` for a law given as object)."""
+        if isinstance(name, str):
+            self.rule = dk.CompiledRule(cfg, name, self._p, getattr(self.law, "solver", None))
+
+    @property
+    def predictor(self) -> StatePredictor:
+        """The torques sent and the motion of the nominal arm under them (for the compiled
+        rule: a view of its history as of now)."""
+        if self.rule is None:
+            return self._predictor
+        r = self.rule
+        return StatePredictor(self._p, r.horizon_s, history=(r.hist_t, r.hist_tau, len(r)))
 
     def reconfigure(self, cfg: RigConfig, *, law_changed: bool = True) -> None:
         """Run from now on with ``cfg``, which differs from the current configuration only in
@@ -83,7 +229,19 @@ class Controller:
             self.model = NominalModel.from_config(cfg)
             self._p = model_kernels.pack(self.model)
             self.law = make_law(c.law, self.model, cfg)
-        self.predictor.retarget(self._p, max(c.state_timeout_s, c.feature_timeout_s))
+            if self.rule is not None:
+                self.rule.retarget(cfg, c.law, self._p, getattr(self.law, "solver", None))
+        if self.rule is not None:
+            self.rule.limits(cfg)
+        self._predictor.retarget(self._p, max(c.state_timeout_s, c.feature_timeout_s))
+
+    def reset(self) -> None:
+        """As new: the law starts again, no torque sent, not holding."""
+        self.law.reset()
+        self._predictor.reset()
+        self._holding = False
+        if self.rule is not None:
+            self.rule.reset()
 
     def measurement(self, t: float, q: np.ndarray, dq: np.ndarray, f: np.ndarray) -> Measurement:
         q, dq, f = (np.asarray(v, dtype=float) for v in (q, dq, f))
@@ -163,10 +321,40 @@ class Controller:
         ``t``); every returned torque is taken as sent then.
         """
         now = t if now_s is None else now_s
-        ages = (state_age_s, feature_age_s)
-        d = self._decide(t, q, dq, f, f_stale, state_stale, drive_mode, ages, now)
-        self.predictor.sent(now, d.tau)
-        return d
+        flags, ages = (f_stale, state_stale, drive_mode), (state_age_s, feature_age_s)
+        if self.rule is not None:
+            return self._decide_compiled(t, (q, dq, f), flags, ages, now)
+        d = self._decide(t, q, dq, f, flags, ages, now)
+        self._predictor.sent(now, d.tau)
+        if d.command is None:
+            return d
+        cost, V = self.costs(d.command)
+        return Decision(d.tau, d.mode, d.command, d.state, d.features, cost, V)
+
+    def _decide_compiled(
+        self,
+        t: float,
+        x: tuple[np.ndarray, np.ndarray, np.ndarray],
+        flags: tuple[bool, bool, str],
+        ages: tuple[float, float],
+        now_s: float,
+    ) -> Decision:
+        rule = self.rule
+        assert rule is not None
+        (q, dq, f), (f_stale, state_stale, drive_mode) = x, flags
+        state_age_s, feature_age_s = ages
+        io = rule.io
+        io[dk.IN_T], io[dk.IN_NOW] = t, now_s
+        io[dk.IN_Q : dk.IN_Q + 2] = q
+        io[dk.IN_DQ : dk.IN_DQ + 2] = dq
+        io[dk.IN_F : dk.IN_F + 2] = f
+        io[dk.IN_STATE_AGE], io[dk.IN_F_AGE] = state_age_s, feature_age_s
+        io[dk.IN_F_STALE], io[dk.IN_STATE_STALE] = f_stale, state_stale
+        io[dk.IN_ENABLED] = drive_mode == "enabled"
+        start = time.perf_counter_ns()
+        rule()
+        solve_ns = time.perf_counter_ns() - start
+        return Decision.from_outputs(io, drive_mode, t, solve_ns)
 
     def _decide(
         self,
@@ -174,12 +362,11 @@ class Controller:
         q: np.ndarray,
         dq: np.ndarray,
         f: np.ndarray,
-        f_stale: bool,
-        state_stale: bool,
-        drive_mode: str,
+        flags: tuple[bool, bool, str],
         ages: tuple[float, float],
         now_s: float,
     ) -> Decision:
+        f_stale, state_stale, drive_mode = flags
         if drive_mode != "enabled":
             self._holding = True
             return Decision(np.zeros(2), drive_mode, None)
@@ -188,7 +375,7 @@ class Controller:
         state_age, feature_age = ages
         usable = not f_stale and finite2(f)
         if state_age > 0 or (usable and feature_age > 0):
-            q, dq, f = self.predictor.compensate(
+            q, dq, f = self._predictor.compensate(
                 now_s, q, dq, f, state_age, feature_age if usable else 0.0
             )
         if not usable:
@@ -230,6 +417,4 @@ def warm_up(ctl: Controller, cfg: RigConfig) -> None:
         if d.command is not None:
             ctl.costs(d.command)
     ctl.step(0.0, q, dq, np.full(2, np.nan))  # the no-features branch of step
-    ctl.law.reset()
-    ctl.predictor.reset()
-    ctl._holding = False
+    ctl.reset()

@@ -144,36 +144,39 @@ def _accel(p, q0, q1, dq0, dq1, tau0, tau1):
     return (m11 * r0 - m01 * r1) / det, (m00 * r1 - m01 * r0) / det
 
 
-@njit(cache=True, fastmath=False)
-def _rhs(p, x, tau):
-    """d/dt (q, dq) of the nominal arm under the torque ``tau``."""
-    a0, a1 = _accel(p, x[0], x[1], x[2], x[3], tau[0], tau[1])
-    out = np.empty(4)
-    out[0], out[1], out[2], out[3] = x[2], x[3], a0, a1
-    return out
+@njit(cache=True, fastmath=False, inline="always")
+def _rhs(p, x0, x1, x2, x3, tau0, tau1):
+    """d/dt (q, dq) of the nominal arm under the torque (tau0, tau1), as four scalars."""
+    a0, a1 = _accel(p, x0, x1, x2, x3, tau0, tau1)
+    return x2, x3, a0, a1
 
 
 @njit(cache=True, fastmath=False)
 def predict(p, q, dq, taus, durations, h_max):
     """(q, dq) after holding ``taus[i]`` for ``durations[i]`` seconds in turn, from (q, dq):
     the nominal dynamics of eq. (1) integrated by classical Runge-Kutta, steps <= ``h_max``;
-    a negative duration integrates backwards in time."""
-    x = np.empty(4)
-    x[0], x[1], x[2], x[3] = q[0], q[1], dq[0], dq[1]
+    a negative duration integrates backwards in time. In scalars: no temporaries per step."""
+    x0, x1, x2, x3 = q[0], q[1], dq[0], dq[1]
     for i in range(durations.shape[0]):
         dur = durations[i]
         if dur == 0.0:
             continue
         n = int(np.ceil(abs(dur) / h_max))
         h = dur / n
-        tau = taus[i]
+        hh, h6 = 0.5 * h, h / 6.0
+        t0, t1 = taus[i, 0], taus[i, 1]
         for _ in range(n):
-            k1 = _rhs(p, x, tau)
-            k2 = _rhs(p, x + 0.5 * h * k1, tau)
-            k3 = _rhs(p, x + 0.5 * h * k2, tau)
-            k4 = _rhs(p, x + h * k3, tau)
-            x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-    return x[:2].copy(), x[2:].copy()
+            a0, a1, a2, a3 = _rhs(p, x0, x1, x2, x3, t0, t1)
+            b0, b1, b2, b3 = _rhs(p, x0 + hh * a0, x1 + hh * a1, x2 + hh * a2, x3 + hh * a3, t0, t1)
+            c0, c1, c2, c3 = _rhs(p, x0 + hh * b0, x1 + hh * b1, x2 + hh * b2, x3 + hh * b3, t0, t1)
+            d0, d1, d2, d3 = _rhs(p, x0 + h * c0, x1 + h * c1, x2 + h * c2, x3 + h * c3, t0, t1)
+            x0 = x0 + h6 * (((a0 + 2.0 * b0) + 2.0 * c0) + d0)
+            x1 = x1 + h6 * (((a1 + 2.0 * b1) + 2.0 * c1) + d1)
+            x2 = x2 + h6 * (((a2 + 2.0 * b2) + 2.0 * c2) + d2)
+            x3 = x3 + h6 * (((a3 + 2.0 * b3) + 2.0 * c3) + d3)
+    q_out, dq_out = np.empty(2), np.empty(2)
+    q_out[0], q_out[1], dq_out[0], dq_out[1] = x0, x1, x2, x3
+    return q_out, dq_out
 
 
 @njit(cache=True, fastmath=False)

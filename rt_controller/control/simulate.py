@@ -140,7 +140,7 @@ def run_closed_loop(
             feature_age_s=f_age,
         )
         rec = decision_fields(controller, d)
-        held = d.command is None
+        held = d.mode != "control"
         tr.t.append(t)
         tr.q.append(q)
         tr.dq.append(dq)
@@ -153,6 +153,6 @@ def run_closed_loop(
         tr.residual.append(rec["residual"])
         tr.iterations.append(rec["iterations"])
         tr.fallback.append(rec["fallback"])
-        tr.solve_ns.append(0 if held else d.command.law.solve_ns)
+        tr.solve_ns.append(d.solve_ns)
         plant.hold(d.tau, substeps)
     return SimResult(controller.law.name, rate, duration, tr)

@@ -17,12 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from rt_controller.control import model_kernels
-
-STEP_S = 1e-3
-"""Longest Runge-Kutta step of the prediction, s."""
-
-CAPACITY = 1024
-"""Torques the history holds before it drops those older than the horizon (amortised)."""
+from rt_controller.control.decide_kernel import CAPACITY, STEP_S
 
 
 class StatePredictor:
@@ -33,14 +28,21 @@ class StatePredictor:
     compiled kernels (:mod:`~rt_controller.control.model_kernels`) on the history's arrays.
     """
 
-    def __init__(self, params: np.ndarray, horizon_s: float) -> None:
+    def __init__(
+        self,
+        params: np.ndarray,
+        horizon_s: float,
+        history: tuple[np.ndarray, np.ndarray, int] | None = None,
+    ) -> None:
+        """``history``: (times, torques, count) arrays to work on (the compiled per-tick
+        rule's, :mod:`~rt_controller.control.decide_kernel`) instead of empty ones."""
         if not horizon_s > 0:
             raise ValueError(f"prediction horizon must be positive, got {horizon_s}")
         self._p = params
         self.horizon_s = float(horizon_s)
-        self._times = np.zeros(CAPACITY)
-        self._taus = np.zeros((CAPACITY, 2))
-        self._n = 0
+        if history is None:
+            history = (np.zeros(CAPACITY), np.zeros((CAPACITY, 2)), 0)
+        self._times, self._taus, self._n = history
 
     def __len__(self) -> int:
         """Torques held in the history."""

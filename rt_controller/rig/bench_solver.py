@@ -18,7 +18,12 @@ ticks back to back (warm caches), so they add up to less than ``solve_us`` of th
 ``paced`` replays :data:`PACED_TICKS` recorded ticks once per control period, the core left
 idle (sleeping) in between as the live daemon leaves it: caches, TLB and branch predictors go
 cold, and the same update takes several times its back-to-back time. It is the isolated figure
-to hold the live daemon's ``law_us`` against (``hil bench loop``).
+to hold against the live daemon.
+
+``decide`` (:mod:`rt_controller.rig.bench_decide`) times the whole per-tick rule as the daemon
+runs it, one compiled call, for rhc and ioc: closed loop, warm and paced, with its code size
+and working set; it is the figure to hold the live daemon's ``law_us`` against (``hil bench
+loop``).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ from rt_controller.control.rhc.kernel import (
 )
 from rt_controller.control.rhc.reference import ReferenceSolver
 from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
+from rt_controller.rig.bench_decide import bench_decide
 from rt_controller.sample_stats import summary_stats
 
 PlantStep = Callable[
@@ -266,6 +272,10 @@ def bench_one(
     out["profile"] = _profile(solver, run)
     if paced:
         out["paced"] = _paced(solver, run, 1.0 / cfg.rates.control_hz)
+        out["decide"] = {
+            law: bench_decide(cfg.with_overrides({"controller.law": law}), updates, step, EPISODE_S)
+            for law in ("rhc", "ioc")
+        }
     if reference_updates > 0:
         ref = _summary(cfg, _run(ReferenceSolver(model, cfg), model, cfg, step, reference_updates))
         median = ref["solve_us"]["median"]

@@ -7,7 +7,6 @@ Pure: no I/O, so the control layer (``simulate``) may use it.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -51,26 +50,7 @@ class Timing:
 def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
     """The output fields of one tick (the state acted on, u, xi, tau, law, solver report, cost,
     V) from the per-tick rule's :class:`Decision`; zeros / NaN when the law did not run."""
-    cmd = d.command
-    if cmd is None:
-        law, (cost, V) = None, (math.nan, math.nan)
-    else:
-        law, (cost, V) = cmd.law, ctl.costs(cmd)
-    return {
-        "q_pred": vec2(d.state[0]) if d.state is not None else [math.nan, math.nan],
-        "dq_pred": vec2(d.state[1]) if d.state is not None else [math.nan, math.nan],
-        "f_pred": vec2(d.features) if d.features is not None else [math.nan, math.nan],
-        "xi": [0.0, 0.0] if cmd is None else vec2(cmd.measurement.xi),
-        "u": [0.0, 0.0] if law is None else vec2(law.u),
-        "tau": vec2(d.tau),
-        "tau_saturated": False if cmd is None else bool(cmd.saturated),
-        "law": d.mode if cmd is None else ctl.law.name,
-        "residual": 0.0 if law is None else float(law.residual),
-        "iterations": 0 if law is None else int(law.iterations),
-        "fallback": False if law is None else bool(law.fallback),
-        "cost": float(cost),
-        "V": float(V),
-    }
+    return d.record_fields(ctl.law.name)
 
 
 def cycle_record(

@@ -143,7 +143,7 @@ class ControlLoop:
         fields = decision_fields(self.controller, d)
         st.stale_states += int(obs.state_stale)  # per tick as recorded, as `hil report` counts
         st.stale_features += int(obs.f_stale)
-        if d.command is not None:
+        if d.mode == "control":
             st.J += fields["cost"] / self.cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])
             self._follow_features(obs.f, release.t_s)
@@ -168,7 +168,7 @@ class ControlLoop:
                 lateness_us=lateness_ns / 1e3,
                 read_us=(t_read - wake_ns) / 1e3,
                 solve_us=solve_us,
-                law_us=0.0 if d.command is None else d.command.law.solve_ns / 1e3,
+                law_us=d.solve_ns / 1e3,
                 write_us=(t_write - t_solve) / 1e3,
                 cycle_us=cycle_us,
                 e2e_us=math.nan if obs.state_ns is None else (t_write - obs.state_ns) / 1e3,

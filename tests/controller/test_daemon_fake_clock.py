@@ -283,17 +283,15 @@ def test_commands_flow_once_per_period_from_enable_on(tmp_path, cfg, rate):
     assert node.stats.watchdog_trips == 0
 
 
-def test_the_laws_own_solve_time_is_recorded_apart_from_the_decide_phase(tmp_path, cfg):
-    """``law_us``: the C/GMRES update alone (the law's own stopwatch, what ``hil bench solver``
-    times), so the live figure compares with the isolated one; 0 for a closed-form law."""
-    rhc = cfg.with_overrides({"controller.law": "rhc"})
-    summary, log, _ = run_daemon(tmp_path / "rhc", rhc, 0.5, {})
-    c = log.cycles
-    assert set(c["law"]) == {"rhc"} and summary["problems"] == []
-    assert np.all(np.asarray(c["law_us"]) > 0.0)
-    _, log_ioc, _ = run_daemon(tmp_path / "ioc", cfg, 0.5, {})
-    assert set(log_ioc.cycles["law"]) == {"ioc"}
-    assert np.all(np.asarray(log_ioc.cycles["law_us"]) == 0.0)
+def test_the_compiled_rules_time_is_recorded_apart_from_the_decide_phase(tmp_path, cfg):
+    """``law_us``: the compiled per-tick rule alone (what ``hil bench solver``'s decide figures
+    time), for every law; its own stopwatch (``solve_us`` is on the loop's clock, here fake)."""
+    for law in ("rhc", "ioc"):
+        run = cfg.with_overrides({"controller.law": law})
+        summary, log, _ = run_daemon(tmp_path / law, run, 0.5, {})
+        c = log.cycles
+        assert set(c["law"]) == {law} and summary["problems"] == []
+        assert np.all(np.asarray(c["law_us"]) > 0.0)
 
 
 def test_a_second_trip_whose_statuses_arrive_in_one_read_is_still_re_armed(tmp_path, cfg):
@@ -352,9 +350,10 @@ def test_the_rehearsal_reruns_each_tick_on_its_own_controller_and_changes_nothin
     assert summary["problems"] == plain_summary["problems"]
     assert summary["ticks"] == plain_summary["ticks"] == 148  # the overrun skipped two periods
     assert summary["rehearsals"] == 147 and plain_summary["rehearsals"] == 0
-    same = {k: v.tolist() for k, v in plain.cycles.items()}
+    # law_us is the compiled call's own stopwatch (perf_counter, not the fake clock)
+    same = {k: v.tolist() for k, v in plain.cycles.items() if k != "law_us"}
     assert json.dumps(same, sort_keys=True) == json.dumps(
-        {k: v.tolist() for k, v in log.cycles.items()}, sort_keys=True
+        {k: v.tolist() for k, v in log.cycles.items() if k != "law_us"}, sort_keys=True
     )
     assert taus[0::2] == [("decide", t) for t in log.cycles["tau"][:-1].tolist()]
     assert taus[1::2] == [("write", t) for t in log.cycles["tau"][:-1].tolist()]

@@ -92,8 +92,18 @@ class CGMRESSolver:
         self.work = new_workspace(
             self.N, self.kmax, int(self.iP[I_INIT_KRYLOV]), int(self.iP[I_SUB])
         )
-        self.needs_init = True
+        self.st[ST_INIT] = 1.0
         self._tick: Callable = rhc_tick
+
+    @property
+    def needs_init(self) -> bool:
+        """The next update solves from scratch (kept in the state vector, so the compiled
+        per-tick rule that advances this solver's arrays shares it)."""
+        return self.st[ST_INIT] != 0.0
+
+    @needs_init.setter
+    def needs_init(self, value: bool) -> None:
+        self.st[ST_INIT] = float(value)
 
     def reset(self) -> None:
         """Forget the warm start: the next update solves from scratch."""
@@ -121,7 +131,6 @@ class CGMRESSolver:
         self._x[:] = x
         init = self.needs_init
         st[ST_T] = t
-        st[ST_INIT] = init
         if xdot is None:
             st[ST_MODEL_XDOT] = 1.0
         else:
@@ -130,7 +139,7 @@ class CGMRESSolver:
         self._tick(self.P, self.iP, st, self.work)
         residual = float(st[ST_RES])
         ok = st[ST_STATUS] == OK and residual <= self.residual_bound
-        self.needs_init = not ok
+        st[ST_INIT] = 0.0 if ok else 1.0
         return SolveReport(st[ST_U : ST_U + 2].copy(), residual, int(st[ST_ITERS]), ok, init)
 
     def warm_up(self) -> None:
