@@ -25,6 +25,9 @@ from rt_controller.control.model import NominalModel
 from rt_controller.control.state_predictor import StatePredictor
 
 _isfinite = math.isfinite
+_MODE_NAMES = ("control", "hold", "no_state")
+"""The names of the compiled rule's modes ``MODE_CONTROL``, ``MODE_HOLD``, ``MODE_NO_STATE``
+(``MODE_DRIVE`` is named by the drive's mode)."""
 
 
 def finite2(v: np.ndarray) -> bool:
@@ -56,7 +59,7 @@ class Decision:
     (:meth:`record_fields`).
     """
 
-    __slots__ = ("_V", "_command", "_cost", "_features", "_out", "_state", "mode", "tau")
+    __slots__ = ("_V", "_command", "_cost", "_features", "_out", "_state", "_tau", "mode", "torque")
 
     def __init__(
         self,
@@ -68,7 +71,9 @@ class Decision:
         cost: float = math.nan,
         V: float = math.nan,
     ) -> None:
-        self.tau = tau
+        self._tau = tau
+        self.torque = (float(tau[0]), float(tau[1]))
+        """The torque to send, as the pair of floats the write takes."""
         self.mode = mode
         """``control`` (the law ran), ``hold`` (stale features: joint damper), ``no_state``, or
         the drive's mode when it is not enabled (``disarmed``, ``fault``, ...)."""
@@ -79,19 +84,24 @@ class Decision:
     @classmethod
     def from_outputs(cls, io: np.ndarray, drive_mode: str, t: float, solve_ns: int) -> Decision:
         """The decision in the outputs of the compiled rule's io vector
-        (:mod:`~rt_controller.control.decide_kernel`); ``solve_ns`` is the call's duration."""
+        (:mod:`~rt_controller.control.decide_kernel`), copied; ``solve_ns`` is the call's
+        duration. Only the torque pair and the mode are made now (the write needs them)."""
         v = io.tolist()
-        mode = v[dk.OUT_MODE]
-        name = (
-            "control" if mode == dk.MODE_CONTROL
-            else "hold" if mode == dk.MODE_HOLD
-            else "no_state" if mode == dk.MODE_NO_STATE
-            else drive_mode
-        )  # fmt: skip
-        d = cls(np.array(v[dk.OUT_TAU : dk.OUT_TAU + 2]), name)
+        d = cls.__new__(cls)
+        d._tau, d.torque = None, (v[dk.OUT_TAU], v[dk.OUT_TAU + 1])
+        mode = int(v[dk.OUT_MODE])
+        d.mode = _MODE_NAMES[mode] if mode < len(_MODE_NAMES) else drive_mode
+        d._command = d._state = d._features = None
         d._out = (v, t, solve_ns)
         d._cost, d._V = v[dk.OUT_COST], v[dk.OUT_V]
         return d
+
+    @property
+    def tau(self) -> np.ndarray:
+        """The torque to send (2,), as an array (:attr:`torque` is the same pair of floats)."""
+        if self._tau is None:
+            self._tau = np.array(self.torque)
+        return self._tau
 
     def _vec(self, k: int) -> np.ndarray:
         assert self._out is not None
@@ -321,40 +331,24 @@ class Controller:
         ``t``); every returned torque is taken as sent then.
         """
         now = t if now_s is None else now_s
+        rule = self.rule
+        if rule is not None:  # one compiled call; the inputs in one slice assignment
+            io = rule.io
+            io[dk.IN_T : dk.IN_ENABLED + 1] = (
+                t, now, q[0], q[1], dq[0], dq[1], f[0], f[1], state_age_s, feature_age_s,
+                f_stale, state_stale, drive_mode == "enabled",
+            )  # fmt: skip
+            start = time.perf_counter_ns()
+            rule.call()
+            solve_ns = time.perf_counter_ns() - start
+            return Decision.from_outputs(io, drive_mode, t, solve_ns)
         flags, ages = (f_stale, state_stale, drive_mode), (state_age_s, feature_age_s)
-        if self.rule is not None:
-            return self._decide_compiled(t, (q, dq, f), flags, ages, now)
         d = self._decide(t, q, dq, f, flags, ages, now)
         self._predictor.sent(now, d.tau)
         if d.command is None:
             return d
         cost, V = self.costs(d.command)
         return Decision(d.tau, d.mode, d.command, d.state, d.features, cost, V)
-
-    def _decide_compiled(
-        self,
-        t: float,
-        x: tuple[np.ndarray, np.ndarray, np.ndarray],
-        flags: tuple[bool, bool, str],
-        ages: tuple[float, float],
-        now_s: float,
-    ) -> Decision:
-        rule = self.rule
-        assert rule is not None
-        (q, dq, f), (f_stale, state_stale, drive_mode) = x, flags
-        state_age_s, feature_age_s = ages
-        io = rule.io
-        io[dk.IN_T], io[dk.IN_NOW] = t, now_s
-        io[dk.IN_Q : dk.IN_Q + 2] = q
-        io[dk.IN_DQ : dk.IN_DQ + 2] = dq
-        io[dk.IN_F : dk.IN_F + 2] = f
-        io[dk.IN_STATE_AGE], io[dk.IN_F_AGE] = state_age_s, feature_age_s
-        io[dk.IN_F_STALE], io[dk.IN_STATE_STALE] = f_stale, state_stale
-        io[dk.IN_ENABLED] = drive_mode == "enabled"
-        start = time.perf_counter_ns()
-        rule()
-        solve_ns = time.perf_counter_ns() - start
-        return Decision.from_outputs(io, drive_mode, t, solve_ns)
 
     def _decide(
         self,

@@ -16,6 +16,7 @@ compiled_entry`), past numba's dispatcher.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -31,6 +32,7 @@ IN_T, IN_NOW = 0, 1  # tick time and when the torque is sent (the time axis of t
 IN_Q, IN_DQ, IN_F = 2, 4, 6  # measured state and features (2 each)
 IN_STATE_AGE, IN_F_AGE = 8, 9  # s before IN_NOW; 0 or less: as measured
 IN_F_STALE, IN_STATE_STALE, IN_ENABLED = 10, 11, 12  # flags, 0.0 / 1.0
+# (the inputs are 0 .. IN_ENABLED in this order: Controller.decide fills them in one assignment)
 # --- io vector: outputs
 OUT_TAU = 13  # torque to send (2)
 OUT_MODE = 15  # MODE_*
@@ -230,7 +232,9 @@ class CompiledRule:
             s = solver
             self.P, self.iP, self.st, self.work = s.P, s.iP, s.st, s.work  # type: ignore[attr-defined]
             self.n_u = 2 * s.U.size  # type: ignore[attr-defined]
-        self._call: Callable = decide_tick
+        self.call: Callable[[], None] = self._first_call
+        """Decide on the inputs in :attr:`io` (filling its outputs): after the first call, the
+        compiled overload itself with the arrays bound (:meth:`bind`)."""
         reset_law(self.ks, self.st, self.n_u)  # a new law starts; holding stays as it was
 
     @property
@@ -264,20 +268,23 @@ class CompiledRule:
 
     def __call__(self) -> np.ndarray:
         """Decide on the inputs in :attr:`io`; the same vector, outputs filled in."""
-        self._call(
+        self.call()
+        return self.io
+
+    def _first_call(self) -> None:
+        decide_tick(
             self.io, self.p, self.lim, self.hist_t, self.hist_tau, self.ks,
             self.P, self.iP, self.st, self.work, self.n_u,
         )  # fmt: skip
-        if self._call is decide_tick:  # compiled (or loaded) now: skip the dispatcher
-            self.bind()
-        return self.io
+        self.bind()  # compiled (or loaded from numba's cache) now
 
     def bind(self) -> None:
-        """Call the compiled overload directly from now on (after a first call compiled or
-        loaded it from numba's cache)."""
+        """From now on, :attr:`call` is the compiled overload with this rule's arrays bound:
+        one C-level call, past the dispatcher and the attribute loads."""
         from rt_controller.control.rhc.solver import compiled_entry
 
-        self._call = compiled_entry(
-            decide_tick, self.io, self.p, self.lim, self.hist_t, self.hist_tau, self.ks,
+        args = (
+            self.io, self.p, self.lim, self.hist_t, self.hist_tau, self.ks,
             self.P, self.iP, self.st, self.work, self.n_u,
         )  # fmt: skip
+        self.call = functools.partial(compiled_entry(decide_tick, *args), *args)

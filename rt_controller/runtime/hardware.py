@@ -163,12 +163,11 @@ class RigHardware:
             drive_mode=drive_mode,
         )
 
-    def write(self, tau: np.ndarray, *, sync: int | None, release_ns: int) -> int:
+    def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> int:
         """Send the tick's torque: answering Sync ``sync`` when given, else carrying how long
         after its release it left (realtime, ``TorqueCommand.Tick``); returns that delay in
         microseconds (0 for a Sync answer)."""
-        t1, t2 = float(tau[0]), float(tau[1])
-        self.last_tau = (t1, t2)
+        t1, t2 = self.last_tau = tau
         if sync is not None:
             self.dsp.send_torque(t1, t2, tick=sync)
             return 0

@@ -140,6 +140,13 @@ class ControlLoop:
         call = RuleCall(release.t_s, obs, predict_ms, f_predict_ms, now_s)
         d = apply_rule(self.controller, call)
         self.last_call = call
+        t_solve = now()
+        # --- write
+        self.last_write_delay_us = self.hw.write(
+            d.torque, sync=release.sync, release_ns=release.release_ns
+        )
+        t_write = now()
+        # --- record (from here on nothing delays the torque)
         fields = decision_fields(self.controller, d)
         st.stale_states += int(obs.state_stale)  # per tick as recorded, as `hil report` counts
         st.stale_features += int(obs.f_stale)
@@ -147,12 +154,6 @@ class ControlLoop:
             st.J += fields["cost"] / self.cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])
             self._follow_features(obs.f, release.t_s)
-        t_solve = now()
-        # --- write
-        self.last_write_delay_us = self.hw.write(
-            d.tau, sync=release.sync, release_ns=release.release_ns
-        )
-        t_write = now()
         st.ticks += 1
         st.missed_periods += release.missed
         solve_us = (t_solve - t_read) / 1e3

@@ -36,8 +36,6 @@ class Rehearsal:
             return
         loop.observe(loop.clock.now_ns(), loop.drive.mode)
         d = apply_rule(self.controller, call)
+        loop.hw.dsp.rehearse_torque(*d.torque, release_delay_us=loop.last_write_delay_us)
         decision_fields(self.controller, d)
-        loop.hw.dsp.rehearse_torque(
-            float(d.tau[0]), float(d.tau[1]), release_delay_us=loop.last_write_delay_us
-        )
         loop.counters.rehearsals += 1
