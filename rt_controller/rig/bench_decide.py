@@ -12,18 +12,26 @@ call alone (what the cycle record's ``law_us`` holds), in three ways:
 * ``paced``: recorded ticks replayed once per control period, the core asleep in between,
   as the live daemon leaves it.
 
+``paced_floor`` is what a call costs on this core before it computes anything, timed the same
+way once per period: an empty Python call between the two clock reads (``python_call``) and a
+compiled function that does nothing, entered with the rule's arguments bound as the rule's own
+call is (``compiled_entry``). On a core that has idled a period, these take tens of
+microseconds where they take one or two when warm: the part of ``paced`` no kernel work removes.
+
 It also reports what the call touches: the executable bytes of its compiled object (numba's
 cache entry for this CPU) and the bytes of the arrays it reads and writes (``working_set``).
 """
 
 from __future__ import annotations
 
+import functools
 import gc
 import struct
 import time
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from hal.config import RigConfig
 from rt_controller.control import decide_kernel as dk
@@ -104,9 +112,44 @@ def _restore(rule: dk.CompiledRule, snap: tuple[np.ndarray, ...]) -> None:
         dst[...] = src
 
 
+@njit(cache=True)
+def _noop(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
+    """The rule's signature, no work: the entry cost alone."""
+
+
+def _nothing() -> None:
+    """An empty Python call."""
+
+
+def paced_floor(rule: dk.CompiledRule, period_s: float, calls: int) -> dict[str, Any]:
+    """Median and p99 (µs) of an empty Python call and of a no-op compiled call with the rule's
+    arguments bound, each timed once per ``period_s`` (see the module docstring)."""
+    from rt_controller.control.rhc.solver import compiled_entry
+
+    args = (rule.io, rule.p, rule.lim, rule.hist_t, rule.hist_tau, rule.ks, rule.P, rule.iP,
+            rule.st, rule.work, rule.n_u)  # fmt: skip
+    _noop(*args)
+    cases = {
+        "python_call": _nothing,
+        "compiled_entry": functools.partial(compiled_entry(_noop, *args), *args),
+    }
+    out: dict[str, Any] = {"period_s": period_s}
+    for name, fn in cases.items():
+        fn()
+        ns = np.zeros(calls, dtype=np.int64)
+        for i in range(calls):
+            time.sleep(period_s)
+            start = time.perf_counter_ns()
+            fn()
+            ns[i] = time.perf_counter_ns() - start
+        out[name] = summary_stats(ns / 1e3)
+    return out
+
+
 def _timed(rule: dk.CompiledRule) -> int:
+    call = rule.call  # as Controller.decide makes it
     start = time.perf_counter_ns()
-    rule()
+    call()
     return time.perf_counter_ns() - start
 
 
@@ -154,6 +197,7 @@ def bench_decide(cfg: RigConfig, updates: int, plant_step: Any, episode_s: float
             _restore(rule, snap)
             time.sleep(period)
             paced[i] = _timed(rule)
+        floor = paced_floor(rule, period, len(snaps))
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -164,6 +208,7 @@ def bench_decide(cfg: RigConfig, updates: int, plant_step: Any, episode_s: float
         "first_tick_us": summary_stats(ns[first] / 1e3),
         "warm_us": summary_stats(warm / 1e3),
         "paced_us": {**summary_stats(paced / 1e3), "period_s": period},
+        "paced_floor_us": floor,
         "code": code_size(dk.decide_tick),
         "working_set_bytes": working_set(rule),
     }

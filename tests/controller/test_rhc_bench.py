@@ -45,3 +45,20 @@ def test_bench_paced_replays_recorded_ticks_one_per_control_period(cfg):
     assert set(paced["solve_us"]) == {"median", "p99", "max"}
     assert all(math.isfinite(v) and v > 0 for v in paced["solve_us"].values())
     assert "paced" not in out["sweep"][0]
+
+
+def test_bench_decide_reports_the_compiled_call_and_its_entry_floor(cfg):
+    """``decide``: the compiled per-tick rule of each law timed closed loop, warm and paced,
+    with the entry floor (an empty Python call, a no-op compiled call with the rule's arguments)
+    paced the same way, its code size and its working set."""
+    out = bench_solver(cfg, updates=24, reference_updates=0, sweep=())
+    for law in ("rhc", "ioc"):
+        d = out["decide"][law]
+        for key in ("closed_loop_us", "warm_us", "paced_us"):
+            assert all(math.isfinite(v) and v > 0 for v in d[key].values())
+        floor = d["paced_floor_us"]
+        assert floor["period_s"] == d["paced_us"]["period_s"] == 1.0 / cfg.rates.control_hz
+        for key in ("python_call", "compiled_entry"):
+            assert set(floor[key]) == {"median", "p99", "max"} and floor[key]["median"] > 0
+        ws = d["working_set_bytes"]
+        assert ws["total"] == sum(v for k, v in ws.items() if k != "total") > 0
