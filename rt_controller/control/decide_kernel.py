@@ -271,11 +271,16 @@ class CompiledRule:
         self.call()
         return self.io
 
-    def _first_call(self) -> None:
-        decide_tick(
+    @property
+    def arguments(self) -> tuple:
+        """What :func:`decide_tick` is called with: this rule's arrays and ``n_u``."""
+        return (
             self.io, self.p, self.lim, self.hist_t, self.hist_tau, self.ks,
             self.P, self.iP, self.st, self.work, self.n_u,
         )  # fmt: skip
+
+    def _first_call(self) -> None:
+        decide_tick(*self.arguments)
         self.bind()  # compiled (or loaded from numba's cache) now
 
     def bind(self) -> None:
@@ -283,8 +288,5 @@ class CompiledRule:
         one C-level call, past the dispatcher and the attribute loads."""
         from rt_controller.control.rhc.solver import compiled_entry
 
-        args = (
-            self.io, self.p, self.lim, self.hist_t, self.hist_tau, self.ks,
-            self.P, self.iP, self.st, self.work, self.n_u,
-        )  # fmt: skip
+        args = self.arguments
         self.call = functools.partial(compiled_entry(decide_tick, *args), *args)

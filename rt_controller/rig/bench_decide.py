@@ -126,8 +126,7 @@ def paced_floor(rule: dk.CompiledRule, period_s: float, calls: int) -> dict[str,
     arguments bound, each timed once per ``period_s`` (see the module docstring)."""
     from rt_controller.control.rhc.solver import compiled_entry
 
-    args = (rule.io, rule.p, rule.lim, rule.hist_t, rule.hist_tau, rule.ks, rule.P, rule.iP,
-            rule.st, rule.work, rule.n_u)  # fmt: skip
+    args = rule.arguments
     _noop(*args)
     cases = {
         "python_call": _nothing,
