@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         lean_process()  # before the first thread starts (small stacks, few malloc arenas)
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
-    from rt_controller.commands.output import output_file, print_summary
+    from rt_controller.commands.output import output_file, print_summary, verdict
     from rt_controller.runtime.daemon import ControllerDaemon
 
     if args.plan:
@@ -102,10 +102,7 @@ def run(args: argparse.Namespace) -> int:
         )
         summary = daemon.run()
     print_summary(summary, args.json, "hil controller")
-    if summary["problems"]:
-        print(f"hil controller: run not clean: {'; '.join(summary['problems'])}", file=sys.stderr)
-        return 1
-    return 0
+    return verdict(summary, "hil controller")
 
 
 def daemon_options(args: argparse.Namespace, cfg: RigConfig) -> DaemonOptions:

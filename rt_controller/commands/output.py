@@ -39,6 +39,19 @@ def print_summary_with_notes(summary: dict[str, Any], as_json: bool, title: str)
         print(f"note: {note}")
 
 
+def verdict(summary: dict[str, Any], title: str) -> int:
+    """A finished run's warnings and problems on stderr; its exit status (1: not clean)."""
+    import sys
+
+    for warning in summary.get("warnings") or []:
+        print(f"{title}: warning: {warning}", file=sys.stderr)
+    problems = summary.get("problems") or []
+    if problems:
+        print(f"{title}: run not clean: {'; '.join(problems)}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def output_dir(path: str | Path, option: str) -> Path:
     """The folder ``path`` given with ``option`` (e.g. ``--plot``), created if missing and
     checked writable, before the command starts its work.

@@ -14,8 +14,9 @@ SUMMARY_KEYS = (
     "ticks", "planned_ticks", "end_reason", "J", "f_first", "jump_seen_s", "f_final",
     "f_final_norm", "deadline_misses", "missed_periods", "stale_features", "stale_states",
     "late_states", "fallbacks", "watchdog_trips", "solve_us_median",
-    "solve_us_p99", "lateness_us_p99", "cycle_us_p99", "drive_ticks", "dsp_faults", "rearms",
-    "arming_ticks", "log", "rejections", "recorder", "problems", "exit_codes", "monitor_error",
+    "solve_us_p99", "lateness_us_p99", "cycle_us_p99", "host_steal_percent", "drive_ticks",
+    "dsp_faults", "rearms", "arming_ticks", "log", "rejections", "recorder", "problems",
+    "warnings", "exit_codes", "monitor_error",
 )  # fmt: skip
 """What ``hil up`` prints of the controller's summary, in this order."""
 
@@ -72,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import tempfile
 
-    from rt_controller.commands.output import output_file
+    from rt_controller.commands.output import output_file, verdict
     from rt_controller.rig.processes import RigHung, RigOptions, run_rig
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
@@ -116,11 +117,7 @@ def run(args: argparse.Namespace) -> int:
     _print(summary, args.json)
     if summary.get("monitor_error"):
         print(f"hil up: warning: monitor {summary['monitor_error']}", file=sys.stderr)
-    problems = summary.get("problems") or []
-    if problems:
-        print(f"hil up: run not clean: {'; '.join(problems)}", file=sys.stderr)
-        return 1
-    return 0
+    return verdict(summary, "hil up")
 
 
 def _print(summary: dict | None, as_json: bool) -> None:

@@ -21,13 +21,13 @@ import math
 import os
 import subprocess
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rt_controller.errors import ControllerError
 from rt_controller.runtime.cadence import Cadence, Clock, MonotonicClock
+from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
 from rt_controller.sample_stats import summary_stats
 
 PROBE_PRIORITY = 99
@@ -36,7 +36,6 @@ LATE_US = (100, 1000)
 """Wake-ups later than these are counted (``late_over_100us``, ``late_over_1000us``)."""
 WORST = 10
 """The latest wake-ups each probe lists (time from its start, lateness)."""
-PROC_STAT = Path("/proc/stat")
 
 
 def probe(
@@ -82,18 +81,6 @@ def probe(
     }
 
 
-def _steal_ticks() -> tuple[int, int] | None:
-    """(steal, total) jiffies of all CPUs from ``/proc/stat``; None where it is not Linux's."""
-    try:
-        fields = PROC_STAT.read_text(encoding="ascii").split("\n", 1)[0].split()
-    except OSError:
-        return None
-    if not fields or fields[0] != "cpu" or len(fields) < 9:
-        return None
-    values = [int(v) for v in fields[1:]]
-    return values[7], sum(values[:8])
-
-
 def bench_host(
     duration_s: float = 10.0, period_us: int = 1000, cpus: list[int] | None = None
 ) -> dict[str, Any]:
@@ -102,7 +89,7 @@ def bench_host(
     if not (duration_s > 0 and math.isfinite(duration_s)) or period_us < 50:
         raise ControllerError("bench host: duration must be > 0 and period at least 50 us")
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
-    before = _steal_ticks()
+    before = cpu_ticks()
     procs = [
         subprocess.Popen(
             [
@@ -125,10 +112,7 @@ def bench_host(
         if p.returncode != 0 or not out.strip():
             raise ControllerError(f"bench host: the probe on CPU {cpu} failed: {err.strip()}")
         probes.append(json.loads(out))
-    after = _steal_ticks()
-    steal = None
-    if before is not None and after is not None and after[1] > before[1]:
-        steal = 100.0 * (after[0] - before[0]) / (after[1] - before[1])
+    steal = steal_percent(before, cpu_ticks())
     return {
         "duration_s": duration_s,
         "period_us": period_us,

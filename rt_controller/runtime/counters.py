@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from rt_controller.runtime import diagnostics
+from rt_controller.runtime.host_steal import DISTURBED_STEAL_PERCENT
 from rt_controller.sample_stats import percentile
 
 ENDED_FULL = ("duration", "stopped")
@@ -43,6 +44,9 @@ class RunCounters:
     (the command stream is cyclic from ENABLE on); no law ran, they are not in ``ticks``."""
     stopped_before_arming: bool = False
     """A stop request arrived during start-up: the DSP was never armed, no tick ran."""
+    host_steal_percent: float | None = None
+    """Realtime: the hypervisor's steal over the law ticks, in percent of the CPUs' time
+    (None in lockstep, or where ``/proc/stat`` has no steal)."""
     spin_s: float = 0.0
     """Realtime: seconds spent busy-waiting before deadlines (``controller.spin_us``)."""
     rehearsals: int = 0
@@ -94,6 +98,7 @@ class RunCounters:
             "rearms": self.rearms,
             "arming_ticks": self.arming_ticks,
             "spin_s": self.spin_s,
+            "host_steal_percent": self.host_steal_percent,
             "rehearsals": self.rehearsals,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
@@ -142,3 +147,20 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         what = ", ".join(f"{k} {v}" for k, v in drive.items())
         out.append(f"{sum(drive.values())} tick(s) without an enabled DSP ({what})")
     return out
+
+
+def run_warnings(summary: dict[str, Any]) -> list[str]:
+    """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
+    nothing): a realtime run during which the hypervisor took
+    :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT` or more of the CPUs'
+    time. The run is still clean (its exit status says so); its J is not the lockstep one's.
+    """
+    steal = summary.get("host_steal_percent")
+    if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
+        return []
+    late = summary.get("late_states")
+    return [
+        f"the hypervisor took {steal:.0f} % of the CPUs' time during the run ({late} tick(s) "
+        f"on a late joint state): the realtime J can differ from the lockstep experiment's "
+        f"by more than 1 %; `hil up --lockstep` runs it deterministically"
+    ]

@@ -30,9 +30,10 @@ from rt_controller.calibration.parameters import ParameterService
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
-from rt_controller.runtime.counters import RunCounters, run_problems
+from rt_controller.runtime.counters import RunCounters, run_problems, run_warnings
 from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
+from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
@@ -227,10 +228,12 @@ class ControllerDaemon:
         d = self.opts.duration_s
         max_ticks = math.floor(d * cfg.rates.control_hz + 1e-9) if d > 0 else None
         self.counters.planned_ticks = max_ticks
+        before = cpu_ticks() if self.opts.mode is ClockMode.REALTIME else None
         try:
             with GcPaused():
                 loop.run(max_ticks)
         finally:
+            self.counters.host_steal_percent = steal_percent(before, cpu_ticks())
             if self.stop.is_set() and self.counters.end_reason == "duration":
                 self.counters.end_reason = "stopped"
             hw.stop_torque()
@@ -256,6 +259,7 @@ class ControllerDaemon:
             ),
         }
         out["problems"] = run_problems(out)
+        out["warnings"] = run_warnings(out)
         return out
 
 

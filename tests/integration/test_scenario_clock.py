@@ -21,6 +21,7 @@ import pytest
 from hal.bus import isolated_spec
 from hal.config import load_config
 from rt_controller.logtools.reader import read_log
+from rt_controller.runtime.host_steal import DISTURBED_STEAL_PERCENT
 from tests.support import REPO, free_endpoint, hil_command
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
@@ -96,3 +97,7 @@ def test_a_late_controller_still_runs_the_paper_scenario(tmp_path):
         <= (CFG.scenario.jump_time + latency + 2 * PERIOD_S)
     ), t_jump
     assert summary["ticks"] == len(cycles["sim_time_s"])
+    # a realtime run measures the hypervisor's steal over its ticks and warns when it is high
+    steal = summary["host_steal_percent"]
+    assert summary["clock"] == "realtime" and (steal is None or 0.0 <= steal <= 100.0)
+    assert bool(summary["warnings"]) == (steal is not None and steal >= DISTURBED_STEAL_PERCENT)
