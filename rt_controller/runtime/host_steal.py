@@ -18,8 +18,8 @@ DISTURBED_STEAL_PERCENT = 10.0
 """Steal over a realtime run from which its J is not comparable with the lockstep run's.
 
 Measured on a 2-vCPU VM, ``hil up --json`` (ioc and rhc, 10 s) against ``hil up --lockstep``:
-at 1-3 % steal J was within 0.6 % of lockstep; at 10-23 % within -0.03...+2.9 %; at 30-34 %
--4.6 % and +53 % (the camera starved, feature ages of 200 ms)."""
+at 1-4 % steal J was within 0.6 % of lockstep; at 10-23 % from -0.03 to +2.9 %; at 29-39 %
+from -4.6 % to +53 % (the camera starved: feature ages of 200 ms)."""
 
 
 def cpu_ticks(stat: Path = PROC_STAT) -> tuple[int, int] | None:
