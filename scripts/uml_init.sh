@@ -35,7 +35,7 @@ mount -t devpts -o gid=5,mode=620,ptmxmode=666 devpts /dev/pts || true
 hostname vcan-uml 2>/dev/null || true
 ip link set lo up || fail_setup "ip link set lo up"
 KVER=$(uname -r)
-MODDIR=/usr/lib/uml/modules/$KVER
+MODDIR=@MODROOT@/$KVER
 [ -d "$MODDIR" ] || fail_setup "no module directory $MODDIR for UML kernel $KVER"
 for m in @MODULES@; do
     # Known locations first (shell builtins only: every process spawn costs ~0.1 s in UML).
