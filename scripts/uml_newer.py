@@ -34,6 +34,10 @@ INDEX_PATH = "main/binary-amd64/Packages.xz"
 INDEX = MIRROR + "dists/sid/" + INDEX_PATH
 KEYRING = Path("/usr/share/keyrings/debian-archive-keyring.gpg")
 PACKAGES = ("user-mode-linux", "libc6")
+LIBRARIES = ("ld-linux-x86-64.so.2", "libc.so.6")
+"""What of ``libc6`` the UML binary needs (its only NEEDED entry is libc.so.6)."""
+CAN_MODULE_DIRS = ("kernel/net/can", "kernel/drivers/net/can")
+"""The parts of the UML module tree kept: the CAN core, raw sockets, can-dev and vcan."""
 CACHE = Path(__file__).resolve().parent.parent / ".uml"
 TIMEOUT_S = 300.0
 
@@ -163,8 +167,13 @@ def fetch(cache: Path = CACHE) -> NewerUml:
         shutil.rmtree(target, ignore_errors=True)
         target.mkdir(parents=True)
         libdir = target / "lib"
-        shutil.copytree(root / "usr/lib/x86_64-linux-gnu", libdir, symlinks=True)
-        shutil.copytree(root / "usr/lib/uml/modules", target / "modules", symlinks=True)
+        libdir.mkdir()
+        for name in LIBRARIES:
+            shutil.copy2(root / "usr/lib/x86_64-linux-gnu" / name, libdir / name)
+        for tree in (root / "usr/lib/uml/modules").iterdir():  # one per kernel version
+            for sub in CAN_MODULE_DIRS:
+                if (tree / sub).is_dir():
+                    shutil.copytree(tree / sub, target / "modules" / tree.name / sub)
         binary = target / "linux.uml"
         shutil.copy2(root / "usr/bin/linux.uml", binary)
     loader = libdir / "ld-linux-x86-64.so.2"
