@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -77,12 +78,16 @@ class RigHardware:
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
         self._ring: PayloadRing | None = None
         self._subscriber: Any = None
+        self._feeding = threading.Lock()
+        """Held while a callback feeds a message; :meth:`detach` takes it to end the feed."""
+        self._attached = False
         self.last_tau = (0.0, 0.0)
 
     # --- links ------------------------------------------------------------------------------
     def attach(self, session: Any, *, callback: bool) -> None:
         """Subscribe to the features: into a ring this thread drains (``callback=False``), or
         fed as they arrive (a tick that waits for its pose's answer)."""
+        self._attached = True
         if callback:
             self._subscriber = session.subscribe(KEY_FEATURES, self._on_features)
         else:
@@ -100,13 +105,20 @@ class RigHardware:
             with contextlib.suppress(Exception):  # a closed session undeclared it already
                 self._subscriber.undeclare()
             self._subscriber = None
+        with self._feeding:  # a callback still running on zenoh's thread finishes first
+            self._attached = False
         self.dsp.frame_hook = self.dsp.tx_hook = None
 
     def _on_features(self, payload: bytes, now_ns: int | None = None) -> None:
-        now = self.clock.now_ns() if now_ns is None else now_ns
-        self.features.feed(payload, now)
-        if self.record_raw:
-            self.recorder.record_vision(payload, now)
+        """One feature message into the decoder and the log; none once detached (zenoh may
+        still deliver a sample after the undeclare returns, and the run's log is closed next)."""
+        with self._feeding:
+            if not self._attached:
+                return
+            now = self.clock.now_ns() if now_ns is None else now_ns
+            self.features.feed(payload, now)
+            if self.record_raw:
+                self.recorder.record_vision(payload, now)
 
     def poll(self, now_ns: int) -> None:
         """Take every CAN frame waiting on the bus and the newest feature messages off the

@@ -1,0 +1,74 @@
+"""The hardware interface's feature subscription ends at ``detach``: zenoh may still run a
+subscriber's callback after the undeclare returns (its thread had the sample already), and the
+run's log is closed right after the detach. A message delivered then must reach neither the
+decoder nor the log; in a plan that shares its processes it showed up as "1 log record(s)
+lost" on a clean lockstep run."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hal.bus import isolated_spec
+from hal.config import RigConfig
+from hal.joint_client import JointClient
+from hal.secoc import rig_key
+from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
+from rt_controller.runtime.hardware import RigHardware
+from tests.support.fake_clock import FakeClock
+
+
+class LateSession:
+    """A session whose subscriber keeps the callback after its undeclare, as zenoh's callback
+    thread does with a sample it already took."""
+
+    def __init__(self) -> None:
+        self.callback: Any = None
+        self.undeclared = False
+
+    def subscribe(self, key: str, on_payload: Any) -> Any:
+        self.callback = on_payload
+        session = self
+
+        class Subscriber:
+            def undeclare(self) -> None:
+                session.undeclared = True
+
+        return Subscriber()
+
+
+class ListRecorder:
+    def __init__(self) -> None:
+        self.vision: list[bytes] = []
+
+    def record_vision(self, payload: bytes, t_ns: int) -> bool:
+        self.vision.append(payload)
+        return True
+
+
+def _payload(cfg: RigConfig, seq: int, stamp_ns: int) -> bytes:
+    msg = FeatureMsg(seq, stamp_ns, 0, seq, (-120.0, -160.0), True, True, 7)
+    return encode_features(msg, key=rig_key(cfg))
+
+
+def test_a_feature_message_delivered_after_detach_reaches_neither_decoder_nor_log() -> None:
+    cfg = RigConfig()
+    clock = FakeClock(1_000_000_000)
+    decoder = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
+    rec = ListRecorder()
+    session = LateSession()
+    with JointClient.open(isolated_spec("virtual"), cfg) as dsp:
+        hw = RigHardware(
+            cfg, dsp, decoder, clock, recorder=rec, record_raw=True, kernel_stamps=False
+        )
+        hw.attach(session, callback=True)
+        session.callback(_payload(cfg, 1, clock.now_ns()))
+        assert len(rec.vision) == 1 and decoder.latest is not None
+        first = decoder.latest
+
+        hw.detach()
+        assert session.undeclared
+        # zenoh's thread, after the undeclare returned:
+        session.callback(_payload(cfg, 2, clock.now_ns()))
+
+    assert len(rec.vision) == 1
+    assert decoder.latest == first
