@@ -305,6 +305,10 @@ class RxCounts:
     takeover time); ordering restarts."""
     resyncs: int = 0
     """Ordering restarted after too many consecutive ``stale_order`` rejections."""
+    resent: int = 0
+    """Lockstep: authenticated re-sends of the last accepted message (the DSP publishes a
+    period's pose again while it waits for the command, and the vision process answers it
+    again); neither news nor a rejection."""
 
     @property
     def malformed(self) -> int:
@@ -511,6 +515,9 @@ class FeatureDecoder(_Receiver):
             if not self._count(out, payload, FEATURES_LABEL):
                 return None
             msg = out
+            if _resend_of(msg, self.last):
+                c.resent += 1
+                return None
             if not msg.lockstep:
                 if msg.stamp_ns - now > self.max_clock_skew_ns:
                     c.future_stamp += 1
@@ -596,6 +603,14 @@ class FeatureDecoder(_Receiver):
             self.pose_seq = -1
 
 
+def _resend_of(msg: FeatureMsg | PoseMsg, last: FeatureMsg | PoseMsg | None) -> bool:
+    """``msg`` is a lockstep re-send of ``last``: the same run, period and content (the
+    stamps and the authentication may differ)."""
+    if last is None or type(msg) is not type(last) or not (msg.lockstep and last.lockstep):
+        return False
+    return msg._replace(stamp_ns=0) == last._replace(stamp_ns=0)
+
+
 class PoseDecoder(_Receiver):
     """Receiver side of ``hil/emulator/camera_pose`` (the vision process): :meth:`feed` never
     raises; rejects malformed poses and poses not newer (by ``seq``) than the last one."""
@@ -612,13 +627,18 @@ class PoseDecoder(_Receiver):
         self.latest_recv_ns: int | None = None
 
     def feed(self, payload: bytes, recv_ns: int | None = None) -> PoseMsg | None:
-        """Decode one payload; the accepted pose, or None when it was rejected (counted)."""
+        """Decode one payload; the accepted pose, or None when it was rejected (counted). A
+        lockstep re-send of the latest pose is returned too (counted ``resent``): the DSP
+        waits for its command, and the answer is to be sent again."""
         now = self._clock() if recv_ns is None else recv_ns
         out = _parse_guarded(_parse_pose, payload)
         with self._cond:
             c = self.counts
             if not self._count(out, payload, POSE_LABEL):
                 return None
+            if _resend_of(out, self.latest):
+                c.resent += 1
+                return out
             if not self._order(out.source, (out.seq, 0)):
                 return None
             self._accepted_ns = now

@@ -97,6 +97,9 @@ class DspStats:
     watchdog_trips: int = 0
     sync_resends: int = 0
     """Lockstep: Sync frames sent again because the period's command had not arrived."""
+    pose_resends: int = 0
+    """Lockstep: camera poses published again with their Sync (the vision process answers
+    each again)."""
     late_commands: int = 0
     """Lockstep: commands answering another Sync than the current one (ignored)."""
     missing_periods: int = 0
@@ -262,6 +265,8 @@ class DspNode:
         self.last_cmd_tick = -1
         self.sync_tick = 0
         self.pose_seq = 0
+        self._last_pose: tuple[int, int, CameraPose, bool] | None = None
+        """The last pose published (:meth:`republish_pose` sends it again)."""
         self.reply_timeout_s = reply_timeout_s
         self.sync_resend_s = sync_resend_s
         self._awaiting_controller = lockstep and wait_for_controller
@@ -315,8 +320,17 @@ class DspNode:
     def publish_pose(self) -> None:
         if self.pose_sink is not None:
             sim_ns = round(self.world.t * 1e9)
-            self.pose_sink(self.pose_seq, sim_ns, self.world.pose(), self.lockstep)
+            self._last_pose = (self.pose_seq, sim_ns, self.world.pose(), self.lockstep)
+            self.pose_sink(*self._last_pose)
             self.pose_seq += 1
+
+    def republish_pose(self) -> None:
+        """Lockstep: the period's pose again (same ``seq``), so the vision process answers it
+        again: an answer lost on its way (published before the controller's subscription
+        reached the hub, say) costs a re-send, not the period's features."""
+        if self.pose_sink is not None and self._last_pose is not None:
+            self.pose_sink(*self._last_pose)
+            self.stats.pose_resends += 1
 
     @property
     def torque_enabled(self) -> bool:
@@ -648,6 +662,7 @@ class DspNode:
             if deadline is not None and now >= deadline:
                 return False
             if now >= resend_at:
+                self.republish_pose()
                 self._announce()
                 self.stats.sync_resends += 1
                 if self._awaiting_controller:
@@ -733,6 +748,7 @@ class DspNode:
         self.last_cmd_tick = -1
         self.sync_tick = 0
         self.pose_seq = 0
+        self._last_pose = None
         self._states_owed = 0
         self.phase.reset()
         self._awaiting_controller = True

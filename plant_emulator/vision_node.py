@@ -13,7 +13,9 @@ Two modes, chosen per pose by its lockstep flag (or forced with ``lockstep=True/
   0; ``fps = 0`` captures at every pose) and becomes deliverable ``latency_s`` of sim time later.
   The answer carries the newest deliverable frame — a frame not yet due re-sends the previous one
   with its old frame counter and capture times — or ``valid = 0`` before the first delivery. The
-  controller waits for ``pose_seq >= k``, so a lockstep run is deterministic.
+  controller waits for ``pose_seq >= k``, so a lockstep run is deterministic. A pose the DSP
+  sends again (it re-announces a period while it waits for the command) gets the same answer
+  again, so an answer lost on its way costs a re-send, not the period's features.
 * **realtime** — once the world runs (pose sim time > 0), a frame is captured at the first pose
   whose sim time reached the next slot, slots at k / fps of scenario time as in lockstep, so the
   frames' phase against the control ticks is the same in every run, whenever the controller
@@ -203,6 +205,9 @@ class VisionStats:
     """Captured frames discarded because their delivery fell into a dropout."""
     dropout_answers: int = 0
     """Lockstep answers sent with valid = 0 during a dropout (also counted in ``invalid``)."""
+    reanswers: int = 0
+    """Lockstep: answers sent again, unchanged, to a pose the DSP sent again (it was waiting
+    for the period's command; the first answer may have been lost)."""
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -251,6 +256,8 @@ class VisionCore:
         self.pose: PoseMsg | None = None
         self.pose_recv_ns = 0
         self.last_sim_ns: int | None = None
+        self.answer: FeatureMsg | None = None
+        """Lockstep: the answer to :attr:`pose` (sent again when the pose is)."""
 
     def is_lockstep(self, pose: PoseMsg) -> bool:
         return pose.lockstep if self.lockstep is None else self.lockstep
@@ -300,8 +307,12 @@ class VisionCore:
         return out
 
     def on_pose(self, pose: PoseMsg, now_ns: int) -> list[FeatureMsg]:
-        """Take an accepted pose; the messages to publish now (lockstep: exactly one)."""
+        """Take an accepted pose; the messages to publish now (lockstep: exactly one; a
+        re-sent pose gets its answer again, unchanged)."""
         lockstep = self.is_lockstep(pose)
+        if lockstep and self.answer is not None and self._resent(pose):
+            self.stats.reanswers += 1
+            return [self.answer]
         key = (pose.source, lockstep, pose.seed)
         restart = self._run_key != key or (
             lockstep and self.last_sim_ns is not None and pose.sim_time_ns < self.last_sim_ns
@@ -342,13 +353,26 @@ class VisionCore:
             self.stats.invalid += 1
             self.stats.dropout_answers += 1
             frame = 0 if d is None else d.frame
-            return [FeatureMsg(frame, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)]
+            return self._answer(
+                FeatureMsg(frame, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)
+            )
         if d is None:
             self.stats.invalid += 1
-            return [FeatureMsg(0, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)]
+            return self._answer(
+                FeatureMsg(0, now_ns, t, pose.seq, (0.0, 0.0), False, True, self.source)
+            )
         if d.pose_seq != pose.seq:
             self.stats.resends += 1
-        return [d._replace(pose_seq=pose.seq)]
+        return self._answer(d._replace(pose_seq=pose.seq))
+
+    def _answer(self, msg: FeatureMsg) -> list[FeatureMsg]:
+        self.answer = msg
+        return [msg]
+
+    def _resent(self, pose: PoseMsg) -> bool:
+        """``pose`` is the current one again (same run, period and camera pose)."""
+        p = self.pose
+        return p is not None and pose._replace(stamp_ns=0) == p._replace(stamp_ns=0)
 
     def poll(self, now_ns: int) -> list[FeatureMsg]:
         """Realtime frame clock and delay line at monotonic time ``now_ns``."""

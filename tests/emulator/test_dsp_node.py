@@ -15,6 +15,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import can
 import cantools
@@ -358,11 +359,17 @@ class Responder:
 
 
 def lockstep_run(
-    cfg: RigConfig, transport: str, periods: int, spoil: frozenset[int] = frozenset()
+    cfg: RigConfig,
+    transport: str,
+    periods: int,
+    spoil: frozenset[int] = frozenset(),
+    pose_sink: Any = None,
 ) -> tuple[DspNode, Responder]:
     spec = isolated_spec(transport)
     with open_bus(spec) as bus, JointClient.open(spec, cfg) as client:
-        node = DspNode(cfg, bus, lockstep=True, sync_resend_s=0.02, reply_timeout_s=5.0)
+        node = DspNode(
+            cfg, bus, lockstep=True, sync_resend_s=0.02, reply_timeout_s=5.0, pose_sink=pose_sink
+        )
         with Responder(client, spoil) as responder:
             node.run(threading.Event(), duration_s=periods / cfg.rates.control_hz)
     return node, responder
@@ -397,6 +404,22 @@ def test_lockstep_resends_sync_when_the_answer_is_lost(cfg: RigConfig) -> None:
     # The re-sends changed nothing in the physics.
     assert spoiled.world.q.tobytes() == clean.world.q.tobytes()
     assert spoiled.world.dq.tobytes() == clean.world.dq.tobytes()
+
+
+def test_lockstep_resends_the_period_s_pose_with_its_sync(cfg: RigConfig) -> None:
+    """While the DSP waits for a command it publishes the period's camera pose again, the same
+    one, so the vision process answers again (an answer lost on its way, say)."""
+    poses: list[tuple[int, int, tuple[float, float, float], bool]] = []
+
+    def sink(seq: int, sim_ns: int, pose: Any, lockstep: bool) -> None:
+        poses.append((seq, sim_ns, (pose.x, pose.y, pose.phi), lockstep))
+
+    node, responder = lockstep_run(cfg, "virtual", 8, spoil=frozenset({3}), pose_sink=sink)
+    assert responder.answers[3] >= 2 and node.stats.pose_resends >= 1
+    seqs = [p[0] for p in poses]
+    assert sorted(set(seqs)) == list(range(8))  # one pose per period
+    assert seqs.count(3) == 1 + node.stats.pose_resends
+    assert len({p for p in poses if p[0] == 3}) == 1  # sent again unchanged
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
