@@ -515,7 +515,7 @@ class FeatureDecoder(_Receiver):
             if not self._count(out, payload, FEATURES_LABEL):
                 return None
             msg = out
-            if _resend_of(msg, self.last):
+            if is_resend(msg, self.last):
                 c.resent += 1
                 return None
             if not msg.lockstep:
@@ -603,7 +603,7 @@ class FeatureDecoder(_Receiver):
             self.pose_seq = -1
 
 
-def _resend_of(msg: FeatureMsg | PoseMsg, last: FeatureMsg | PoseMsg | None) -> bool:
+def is_resend(msg: FeatureMsg | PoseMsg, last: FeatureMsg | PoseMsg | None) -> bool:
     """``msg`` is a lockstep re-send of ``last``: the same run, period and content (the
     stamps and the authentication may differ)."""
     if last is None or type(msg) is not type(last) or not (msg.lockstep and last.lockstep):
@@ -636,7 +636,7 @@ class PoseDecoder(_Receiver):
             c = self.counts
             if not self._count(out, payload, POSE_LABEL):
                 return None
-            if _resend_of(out, self.latest):
+            if is_resend(out, self.latest):
                 c.resent += 1
                 return out
             if not self._order(out.source, (out.seq, 0)):

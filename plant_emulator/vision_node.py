@@ -56,7 +56,7 @@ import zenoh
 from hal.config import RigConfig, plant_view
 from hal.errors import HalConfigError, HalError
 from hal.secoc import rig_key
-from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features
+from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features, is_resend
 from hal.zenoh_session import (
     DEFAULT_WAIT_S,
     KEY_CAMERA_POSE,
@@ -310,7 +310,7 @@ class VisionCore:
         """Take an accepted pose; the messages to publish now (lockstep: exactly one; a
         re-sent pose gets its answer again, unchanged)."""
         lockstep = self.is_lockstep(pose)
-        if lockstep and self.answer is not None and self._resent(pose):
+        if lockstep and self.answer is not None and is_resend(pose, self.pose):
             self.stats.reanswers += 1
             return [self.answer]
         key = (pose.source, lockstep, pose.seed)
@@ -368,11 +368,6 @@ class VisionCore:
     def _answer(self, msg: FeatureMsg) -> list[FeatureMsg]:
         self.answer = msg
         return [msg]
-
-    def _resent(self, pose: PoseMsg) -> bool:
-        """``pose`` is the current one again (same run, period and camera pose)."""
-        p = self.pose
-        return p is not None and pose._replace(stamp_ns=0) == p._replace(stamp_ns=0)
 
     def poll(self, now_ns: int) -> list[FeatureMsg]:
         """Realtime frame clock and delay line at monotonic time ``now_ns``."""
