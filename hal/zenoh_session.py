@@ -50,6 +50,9 @@ KEY_FEATURES = "hil/vision/features"
 """Image features, vision -> controller (payload: :mod:`hal.vision_codec` features v1)."""
 KEY_CAMERA_POSE = "hil/emulator/camera_pose"
 """Camera pose, emulator -> vision (payload: :mod:`hal.vision_codec` pose v1)."""
+KEY_CAMERA_FRAME = "hil/camera/frame"
+"""Camera frames, camera -> vision's frame grabber (payload: :mod:`hal.camera_frame` v1, raw
+mono8 pixels with the capture stamp)."""
 KEY_CONTROLLER_CYCLE = "hil/controller/cycle"
 """Every controller tick, controller -> anyone (payload: the ``/controller/cycle`` JSON record of
 the MCAP, schema ``rt_controller/runtime/cycle_schema.json``), sent off the tick's path."""

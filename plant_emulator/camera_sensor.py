@@ -1,0 +1,395 @@
+"""The emulated camera sensor: renders 8-bit grey frames of the plane z = z_wo from the camera pose.
+
+Geometry (the paper's camera, eq. 6, is the special case of no distortion and fx = fy = s·λ):
+the camera looks along Z_w at the plane z = z_wo; its frame is OpenCV's (X_c right, Y_c down
+the image, Z_c forward) turned by the heading phi about Z_w, so a plane point p seen from a
+camera at p_c has normalised coordinates ``x_n = R(phi)^T (p - p_c) / z_wo`` and, through a
+true lens on OpenCV's distortion model (k1, k2, p1, p2, k3), lands at pixel
+``(u, v) = (cx + fx x_d, cy + fy y_d)`` with ``x_d = distort(x_n)``. The ideal features of
+eq. (6) are ``f = s·λ · x_n``: pixels about the principal point, undistorted, on the image axes.
+
+Rendering is by inverse mapping: every pixel centre is undistorted once per lens (the rays are
+precomputed), and per frame only the ray-plane intersection (a similarity transform, since the
+plane is parallel to the image) and the texture lookup remain. Sub-pixel accuracy comes from area
+averaging: a texture integrates itself over each pixel's footprint on the plane (a box filter,
+analytic for the disc and for cell grids), which is what supersampling approximates, at one
+sample per pixel. Only the part of the frame the texture's support covers is computed; the rest
+is the plain background.
+
+Motion blur: the frame is the mean of sub-exposure renders spread over the exposure; their number
+follows the image motion over the exposure (a sub-exposure per 0.25 px of motion, 1 when still,
+at most :data:`MAX_SUBEXPOSURES`). Sensor: grey level = reflectance x 255 DN, Gaussian shot noise
+of variance ``DN / electrons_per_dn`` plus read noise, rounded and clipped to uint8. The noise of
+frame ``k`` is drawn from ``(seed, k)`` alone, so a frame is the same whatever came before it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from hal.target_marker import TARGET_MARKER, TargetMarker
+from plant_emulator.camera import CameraPose
+from plant_emulator.errors import EmulatorError
+
+FULL_SCALE_DN = 255.0
+MAX_SUBEXPOSURES = 32
+SUBEXPOSURE_PX = 0.25
+"""Image motion per sub-exposure, px (a blur sampled finer than a quarter pixel)."""
+_UNDISTORT_TOL = 1e-13
+_UNDISTORT_MAX_ITER = 200
+_ROI_PAD_PX = 3
+_NOISE_LEVELS = 1 << 16
+
+
+class CameraSensorError(EmulatorError, ValueError):
+    """The camera's settings cannot make an image (e.g. a lens that cannot be inverted)."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in px (OpenCV's camera matrix)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class LensDistortion:
+    """OpenCV's distortion model, coefficients in OpenCV's order (k1, k2, p1, p2, k3)."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+
+    def coefficients(self) -> np.ndarray:
+        return np.array([self.k1, self.k2, self.p1, self.p2, self.k3])
+
+    @property
+    def none(self) -> bool:
+        return not np.any(self.coefficients())
+
+
+@dataclass(frozen=True)
+class Resolution:
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Shot noise (variance DN / electrons_per_dn; 0 = off) and read noise (std, DN; 0 = off)."""
+
+    electrons_per_dn: float = 0.0
+    read_noise_dn: float = 0.0
+
+    @property
+    def off(self) -> bool:
+        return self.electrons_per_dn <= 0.0 and self.read_noise_dn <= 0.0
+
+
+def distort(xn: np.ndarray, yn: np.ndarray, d: LensDistortion) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's forward lens model: ideal normalised coordinates -> distorted ones."""
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * d.k3))
+    xy = xn * yn
+    xd = xn * radial + 2.0 * d.p1 * xy + d.p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + d.p1 * (r2 + 2.0 * yn * yn) + 2.0 * d.p2 * xy
+    return xd, yd
+
+
+def undistort(
+    xd: np.ndarray, yd: np.ndarray, d: LensDistortion
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Invert :func:`distort` by fixed-point iteration to ~1e-13: ``(xn, yn, converged)``; a
+    point the lens cannot reach (a strong lens far off axis) is NaN and not converged."""
+    xd = np.asarray(xd, dtype=float)
+    yd = np.asarray(yd, dtype=float)
+    if d.none:
+        return xd.copy(), yd.copy(), np.ones(xd.shape, dtype=bool)
+    xn, yn = xd.copy(), yd.copy()
+    for _ in range(_UNDISTORT_MAX_ITER):
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (d.k1 + r2 * (d.k2 + r2 * d.k3))
+        xy = xn * yn
+        dx = 2.0 * d.p1 * xy + d.p2 * (r2 + 2.0 * xn * xn)
+        dy = d.p1 * (r2 + 2.0 * yn * yn) + 2.0 * d.p2 * xy
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn, yn = (xd - dx) / radial, (yd - dy) / radial
+        fx, fy = distort(xn, yn, d)
+        err = np.hypot(fx - xd, fy - yd)
+        if np.all(err[np.isfinite(err)] < _UNDISTORT_TOL) and np.all(np.isfinite(err)):
+            break
+    fx, fy = distort(xn, yn, d)
+    ok = np.isfinite(xn) & np.isfinite(yn) & (np.hypot(fx - xd, fy - yd) < 1e-9)
+    return np.where(ok, xn, np.nan), np.where(ok, yn, np.nan), ok
+
+
+@runtime_checkable
+class PlaneTexture(Protocol):
+    """What is printed on the plane z = z_wo, in world coordinates (m)."""
+
+    background: float
+    """Reflectance (0..1) everywhere outside :meth:`support`."""
+
+    def support(self) -> tuple[float, float, float, float] | None:
+        """World box ``(x0, y0, x1, y1)`` outside which the texture is ``background``; None:
+        anywhere."""
+        ...
+
+    def sample(self, x: np.ndarray, y: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+        """Reflectance at world points ``(x, y)`` averaged over a pixel's footprint (side
+        ``footprint``, m), 0..1."""
+        ...
+
+
+@dataclass(frozen=True)
+class DiscTexture:
+    """A disc of reflectance ``ink`` on ``background``; area-averaged by the signed distance to
+    its rim (a pixel half inside is half ink), which keeps the centroid unbiased."""
+
+    cx: float
+    cy: float
+    radius: float
+    ink: float
+    background: float
+
+    def support(self) -> tuple[float, float, float, float]:
+        r = self.radius
+        return (self.cx - r, self.cy - r, self.cx + r, self.cy + r)
+
+    def sample(self, x: np.ndarray, y: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+        inside = np.clip(0.5 - (np.hypot(x - self.cx, y - self.cy) - self.radius) / footprint, 0, 1)
+        return self.background + (self.ink - self.background) * inside
+
+
+def marker_texture(center: np.ndarray, marker: TargetMarker = TARGET_MARKER) -> DiscTexture:
+    """The rig's target marker (:mod:`hal.target_marker`) centred at ``center`` (m)."""
+    if marker.shape != "disc":
+        raise CameraSensorError(f"target marker shape {marker.shape!r} cannot be drawn")
+    return DiscTexture(
+        float(center[0]), float(center[1]), marker.diameter_m / 2, marker.ink, marker.paper
+    )
+
+
+@dataclass(frozen=True)
+class GridTexture:
+    """A grid of cells of reflectance ``cells[i, j]`` (row i along +y, column j along +x) of
+    side ``cell_m`` from ``origin``: a checkerboard, an ArUco marker or a ChArUco board. Box
+    filtered exactly (the footprint as an axis-aligned square no larger than a cell)."""
+
+    cells: np.ndarray
+    origin: tuple[float, float]
+    cell_m: float
+    background: float
+
+    def support(self) -> tuple[float, float, float, float]:
+        rows, cols = self.cells.shape
+        x0, y0 = self.origin
+        return (x0, y0, x0 + cols * self.cell_m, y0 + rows * self.cell_m)
+
+    def sample(self, x: np.ndarray, y: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+        rows, cols = self.cells.shape
+        padded = np.pad(np.asarray(self.cells, dtype=float), 1, constant_values=self.background)
+        w = np.minimum(footprint / self.cell_m, 1.0)
+        out = np.zeros(np.broadcast(x, y).shape)
+        u = (x - self.origin[0]) / self.cell_m
+        v = (y - self.origin[1]) / self.cell_m
+        j0, wx0 = _box_split(u, w)
+        i0, wy0 = _box_split(v, w)
+        for di, wy in ((0, wy0), (1, 1.0 - wy0)):
+            ii = np.clip(i0 + di + 1, 0, rows + 1)
+            for dj, wx in ((0, wx0), (1, 1.0 - wx0)):
+                jj = np.clip(j0 + dj + 1, 0, cols + 1)
+                out += wy * wx * padded[ii, jj]
+        return out
+
+
+def _box_split(u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cell index of a box [u - w/2, u + w/2)'s left end and the fraction of the box in it."""
+    left = u - w / 2
+    i0 = np.floor(left)
+    frac = np.clip((i0 + 1.0 - left) / w, 0.0, 1.0)
+    return i0.astype(np.intp), frac
+
+
+Scene = Callable[[float], PlaneTexture]
+"""The plane's texture at a time (s): the target jump moves the marker in the world."""
+
+
+class CameraSensor:
+    """Renders what the camera sees: :meth:`render` a frame, :meth:`project` a world point."""
+
+    def __init__(
+        self,
+        intrinsics: Intrinsics,
+        distortion: LensDistortion,
+        resolution: Resolution,
+        noise: SensorNoise,
+        exposure_s: float,
+        seed: int,
+        *,
+        z_wo: float,
+        scene: Scene,
+    ) -> None:
+        if resolution.width <= 0 or resolution.height <= 0:
+            raise CameraSensorError(f"resolution must be positive, got {resolution}")
+        if not exposure_s >= 0:
+            raise CameraSensorError(f"exposure must be non-negative, got {exposure_s}")
+        if not z_wo > 0:
+            raise CameraSensorError(f"the plane's depth z_wo must be positive, got {z_wo}")
+        self.intrinsics = intrinsics
+        self.distortion = distortion
+        self.resolution = resolution
+        self.noise = noise
+        self.exposure_s = float(exposure_s)
+        self.seed = int(seed)
+        self.z_wo = float(z_wo)
+        self.scene = scene
+        self._rays_x, self._rays_y, self._footprint = _pixel_rays(
+            intrinsics, distortion, resolution
+        )
+        k = intrinsics
+        corners = np.array([[0, 0], [resolution.width, resolution.height]], dtype=float)
+        self._max_radius_px = float(np.max(np.hypot(corners[:, 0] - k.cx, corners[:, 1] - k.cy)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.resolution.height, self.resolution.width)
+
+    def project(self, pose: CameraPose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Pixel coordinates ``(..., 2)`` (u, v) of world points on the plane, through the lens."""
+        c, s = math.cos(pose.phi), math.sin(pose.phi)
+        dx, dy = np.asarray(x, dtype=float) - pose.x, np.asarray(y, dtype=float) - pose.y
+        xn, yn = (c * dx + s * dy) / self.z_wo, (-s * dx + c * dy) / self.z_wo
+        xd, yd = distort(xn, yn, self.distortion)
+        k = self.intrinsics
+        return np.stack([k.cx + k.fx * xd, k.cy + k.fy * yd], axis=-1)
+
+    def subexposures(self, pose_at: Callable[[float], CameraPose], t_mid: float) -> np.ndarray:
+        """Times (s) of the sub-exposures of a frame exposed around ``t_mid``."""
+        e = self.exposure_s
+        if e <= 0:
+            return np.array([t_mid])
+        a, b = pose_at(t_mid - e / 2), pose_at(t_mid + e / 2)
+        gain = max(self.intrinsics.fx, self.intrinsics.fy) / self.z_wo
+        dphi = abs(math.remainder(b.phi - a.phi, 2 * math.pi))
+        motion = gain * math.hypot(b.x - a.x, b.y - a.y) + dphi * self._max_radius_px
+        n = min(MAX_SUBEXPOSURES, max(1, math.ceil(motion / SUBEXPOSURE_PX)))
+        return t_mid + e * ((np.arange(n) + 0.5) / n - 0.5)
+
+    def irradiance(self, pose_at: Callable[[float], CameraPose], t_mid: float) -> np.ndarray:
+        """Noise-free reflectance image (float, 0..1) averaged over the exposure."""
+        times = self.subexposures(pose_at, t_mid)
+        acc: np.ndarray | None = None
+        background = None
+        for t in times:
+            texture = self.scene(float(t))
+            if background is None:
+                background = float(texture.background)
+                acc = np.zeros(self.shape)
+            assert acc is not None
+            roi = self._roi(pose_at(float(t)), texture)
+            if roi is None:
+                continue
+            acc[roi] += self._sample(pose_at(float(t)), texture, roi) - background
+        assert acc is not None and background is not None
+        return background + acc / len(times)
+
+    def render(
+        self, pose_at: Callable[[float], CameraPose], t_mid: float, *, frame: int = 0
+    ) -> np.ndarray:
+        """One 8-bit grey frame exposed around ``t_mid`` (s); ``frame`` keys its noise."""
+        dn = self.irradiance(pose_at, t_mid).astype(np.float32)
+        dn *= FULL_SCALE_DN
+        n = self.noise
+        if not n.off:
+            std = np.maximum(dn, 0.0)
+            std *= 1.0 / n.electrons_per_dn if n.electrons_per_dn > 0 else 0.0
+            std += n.read_noise_dn**2
+            np.sqrt(std, out=std)
+            std *= gaussian_noise(np.random.default_rng([self.seed, int(frame)]), dn.shape)
+            dn += std
+        np.rint(dn, out=dn)
+        return np.clip(dn, 0, 255, out=dn).astype(np.uint8)
+
+    def _roi(self, pose: CameraPose, texture: PlaneTexture) -> tuple[slice, slice] | None:
+        box = texture.support()
+        h, w = self.shape
+        if box is None:
+            return (slice(0, h), slice(0, w))
+        x0, y0, x1, y1 = box
+        s = np.linspace(0.0, 1.0, 9)
+        bx = np.concatenate(
+            [x0 + (x1 - x0) * s, np.full(9, x1), x1 - (x1 - x0) * s, np.full(9, x0)]
+        )
+        by = np.concatenate(
+            [np.full(9, y0), y0 + (y1 - y0) * s, np.full(9, y1), y1 - (y1 - y0) * s]
+        )
+        uv = self.project(pose, bx, by)
+        lo = np.floor(uv.min(axis=0)) - _ROI_PAD_PX
+        hi = np.ceil(uv.max(axis=0)) + _ROI_PAD_PX + 1
+        u0, v0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        u1, v1 = min(int(hi[0]), w), min(int(hi[1]), h)
+        if u0 >= u1 or v0 >= v1:
+            return None
+        return (slice(v0, v1), slice(u0, u1))
+
+    def _sample(
+        self, pose: CameraPose, texture: PlaneTexture, roi: tuple[slice, slice]
+    ) -> np.ndarray:
+        c, s = math.cos(pose.phi), math.sin(pose.phi)
+        rx, ry = self._rays_x[roi] * self.z_wo, self._rays_y[roi] * self.z_wo
+        x = pose.x + c * rx - s * ry
+        y = pose.y + s * rx + c * ry
+        out = texture.sample(x, y, self._footprint[roi] * self.z_wo)
+        return np.where(np.isfinite(out), out, 0.0)
+
+
+@functools.cache
+def _normal_quantiles() -> np.ndarray:
+    p = (np.arange(_NOISE_LEVELS) + 0.5) / _NOISE_LEVELS
+    inv = statistics.NormalDist().inv_cdf
+    return np.array([inv(float(x)) for x in p], dtype=np.float32)
+
+
+def gaussian_noise(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Standard normal float32 samples by inverse-CDF lookup of 16-bit uniform integers (tails
+    cut at 4.3 sigma): 5-8x faster than ``Generator.standard_normal`` for a frame's worth."""
+    return _normal_quantiles()[rng.integers(0, _NOISE_LEVELS, shape, dtype=np.uint16)]
+
+
+def _pixel_rays(
+    k: Intrinsics, d: LensDistortion, res: Resolution
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undistorted normalised coordinates of every pixel centre and each pixel's footprint side
+    (sqrt of its area on the z = 1 plane)."""
+    u = np.arange(res.width, dtype=float)
+    v = np.arange(res.height, dtype=float)
+    uu, vv = np.meshgrid(u, v)
+    xn, yn, ok = undistort((uu - k.cx) / k.fx, (vv - k.cy) / k.fy, d)
+    if not np.all(ok):
+        raise CameraSensorError(
+            f"the lens {d} cannot be inverted at {np.count_nonzero(~ok)} pixel(s) of "
+            f"{res.width}x{res.height}: reduce the distortion"
+        )
+    if d.none:
+        side = np.full(xn.shape, math.sqrt(1.0 / (k.fx * k.fy)))
+    else:
+        dxu, dxv = np.gradient(xn, axis=1), np.gradient(xn, axis=0)
+        dyu, dyv = np.gradient(yn, axis=1), np.gradient(yn, axis=0)
+        side = np.sqrt(np.abs(dxu * dyv - dxv * dyu))
+    return xn, yn, side
