@@ -80,11 +80,61 @@ class CameraConfig:
     """Delay between capture and delivery of a feature vector; 0 = off."""
     seed: int = 0
     """Seed of the pixel-noise generator (repetitions of an experiment differ by it)."""
+    model: str = "image"
+    """image: the emulated camera renders frames and the vision process measures f from the
+    pixels (``hil up``, ``hil experiment``); analytic: f from eq. (6) plus ``noise_px`` (fast
+    sweeps, ``hil simulate``)."""
+    width_px: int = 640
+    """Image width of the emulated camera, px."""
+    height_px: int = 480
+    """Image height of the emulated camera, px."""
+    principal_point_px: Vec2 = (0.0, 0.0)
+    """True principal point (cx, cy), px; (0, 0): the image centre ((w - 1) / 2, (h - 1) / 2)."""
+    focal_px: Vec2 = (0.0, 0.0)
+    """True focal lengths (fx, fy), px; (0, 0): s·lambda on both axes (square pixels, eq. 6)."""
+    lens_k1: float = -0.1
+    """True lens of the emulated camera, OpenCV's model: radial k1."""
+    lens_k2: float = 0.05
+    """True lens: radial k2."""
+    lens_p1: float = 0.0
+    """True lens: tangential p1."""
+    lens_p2: float = 0.0
+    """True lens: tangential p2."""
+    lens_k3: float = 0.0
+    """True lens: radial k3."""
+    exposure_s: float = 0.004
+    """Exposure time; the frame is stamped at its middle and blurred by the motion during it
+    (0: an instant, no blur)."""
+    electrons_per_dn: float = 40.0
+    """Shot noise: photo-electrons per grey level (variance DN / this); 0 = off."""
+    read_noise_dn: float = 0.5
+    """Read noise, standard deviation in grey levels; 0 = off."""
+    image_log_fps: float = 10.0
+    """Rate of the decimated image stream in the log and on ``hil monitor``; 0 = none."""
 
     @property
     def gain(self) -> float:
         """s·lambda / z_wo in px/m (1367 for the paper's camera)."""
         return self.s_lambda / self.z_wo
+
+    @property
+    def true_focal_px(self) -> tuple[float, float]:
+        """The emulated camera's (fx, fy), px (``focal_px``, or s·lambda)."""
+        fx, fy = self.focal_px
+        return (fx, fy) if (fx, fy) != (0.0, 0.0) else (self.s_lambda, self.s_lambda)
+
+    @property
+    def true_principal_point_px(self) -> tuple[float, float]:
+        """The emulated camera's (cx, cy), px (``principal_point_px``, or the image centre)."""
+        cx, cy = self.principal_point_px
+        if (cx, cy) != (0.0, 0.0):
+            return (cx, cy)
+        return ((self.width_px - 1) / 2, (self.height_px - 1) / 2)
+
+    @property
+    def true_lens(self) -> tuple[float, float, float, float, float]:
+        """The emulated camera's distortion coefficients in OpenCV's order."""
+        return (self.lens_k1, self.lens_k2, self.lens_p1, self.lens_p2, self.lens_k3)
 
 
 @dataclass(frozen=True)
@@ -450,6 +500,19 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "camera.frame_rate_hz": (0, 1e4, "[]"),
     "camera.latency_s": (0, 10, "[]"),
     "camera.seed": (0, _INT_MAX, "[]"),
+    "camera.width_px": (16, 8192, "[]"),
+    "camera.height_px": (16, 8192, "[]"),
+    "camera.principal_point_px": (0, 8192, "[]"),
+    "camera.focal_px": (0, 1e6, "[]"),
+    "camera.lens_k1": (-10, 10, "[]"),
+    "camera.lens_k2": (-100, 100, "[]"),
+    "camera.lens_p1": (-1, 1, "[]"),
+    "camera.lens_p2": (-1, 1, "[]"),
+    "camera.lens_k3": (-1000, 1000, "[]"),
+    "camera.exposure_s": (0, 1, "[]"),
+    "camera.electrons_per_dn": (0, 1e6, "[]"),
+    "camera.read_noise_dn": (0, 255, "[]"),
+    "camera.image_log_fps": (0, 1000, "[]"),
     "gains.kp": (0, 1e6, "(]"),
     "gains.alpha": (-1e6, 1e6, "[]"),
     "gains.K": (-1e6, 1e6, "[]"),
@@ -541,6 +604,24 @@ def validate(cfg: RigConfig) -> RigConfig:
     _require(c.noise_px >= 0, "camera.noise_px", "must be non-negative")
     _require(c.frame_rate_hz >= 0, "camera.frame_rate_hz", "must be non-negative (0 = off)")
     _require(c.latency_s >= 0, "camera.latency_s", "must be non-negative")
+    _require(
+        c.model in ("image", "analytic"),
+        "camera.model",
+        f"must be image or analytic, not {c.model!r}",
+    )
+    for key in ("focal_px", "principal_point_px"):
+        pair = getattr(c, key)
+        _require(
+            pair == (0.0, 0.0) or min(pair) > 0,
+            f"camera.{key}",
+            f"must be (0, 0) (derived) or positive on both axes, got {list(pair)}",
+        )
+    cx, cy = c.true_principal_point_px
+    _require(
+        cx < c.width_px and cy < c.height_px,
+        "camera.principal_point_px",
+        f"must lie inside the {c.width_px}x{c.height_px} image, got ({cx:g}, {cy:g})",
+    )
     g = cfg.gains
     _require(g.kp > 0, "gains.kp", "must be positive")
     _check_spd(g.alpha, "gains.alpha")
