@@ -352,6 +352,36 @@ class PlantConfig:
 
 
 @dataclass(frozen=True)
+class VisionConfig:
+    """The vision pipeline's calibrated camera (``hil vision`` on frames; ``vision/``).
+
+    Until ``vision.calibrated`` is true the detector uses the camera section's nominal values
+    (the emulated camera's true lens); ``hil camera calibrate`` writes the keys below and sets it.
+    """
+
+    calibrated: bool = False
+    """Whether the keys below hold a calibration (else the camera's nominal intrinsics)."""
+    fx: float = 1230.0
+    """Calibrated focal length along u, px."""
+    fy: float = 1230.0
+    """Calibrated focal length along v, px."""
+    cx: float = 319.5
+    """Calibrated principal point u, px."""
+    cy: float = 239.5
+    """Calibrated principal point v, px."""
+    k1: float = 0.0
+    """Radial distortion k1 (OpenCV's model)."""
+    k2: float = 0.0
+    """Radial distortion k2."""
+    p1: float = 0.0
+    """Tangential distortion p1."""
+    p2: float = 0.0
+    """Tangential distortion p2."""
+    k3: float = 0.0
+    """Radial distortion k3."""
+
+
+@dataclass(frozen=True)
 class RigConfig:
     """The whole rig: every section of the TOML file."""
 
@@ -365,6 +395,7 @@ class RigConfig:
     dsp: DspConfig = field(default_factory=DspConfig)
     transport: TransportConfig = field(default_factory=TransportConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)
+    vision: VisionConfig = field(default_factory=VisionConfig)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (lists for tuples), the inverse of :func:`config_from_dict`."""
@@ -556,6 +587,15 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "plant.theta3": (0, 10, "[]"),
     "plant.s_lambda": (0.1, 10, "[]"),
     "plant.z_wo": (0.1, 10, "[]"),
+    "vision.fx": (0, 1e6, "(]"),
+    "vision.fy": (0, 1e6, "(]"),
+    "vision.cx": (-1e5, 1e5, "[]"),
+    "vision.cy": (-1e5, 1e5, "[]"),
+    "vision.k1": (-100, 100, "[]"),
+    "vision.k2": (-100, 100, "[]"),
+    "vision.p1": (-1, 1, "[]"),
+    "vision.p2": (-1, 1, "[]"),
+    "vision.k3": (-1000, 1000, "[]"),
 }
 """Sane range of every numeric setting (each element of a vector or matrix): a value outside,
 like ``rhc.steps = 1000000000`` or ``rates.physics_hz = 1e300``, is a one-line

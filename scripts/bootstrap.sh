@@ -22,7 +22,7 @@ fi
 # Byte-compile the project's own modules (quietly, only what changed): with
 # PYTHONDONTWRITEBYTECODE set, as on some CI images, every process of the rig would otherwise
 # compile its sources again at each start (about 60 ms of CPU per process).
-.venv/bin/python -m compileall -q hal rt_controller plant_emulator >/dev/null
+.venv/bin/python -m compileall -q hal rt_controller plant_emulator vision >/dev/null
 # Fill numba's on-disk cache (compiled for this machine's CPU; a no-op when it is current):
 # otherwise the first daemon to start compiles every kernel inside its start-up, most of a
 # minute on a cold 2-core host, and a rig or test with a wall-clock budget pays for it.

@@ -1,4 +1,6 @@
-"""``hil vision``: dispatches to the emulator's vision process (plant_emulator.vision_cli)."""
+"""``hil vision``: the vision process. With ``--source`` (or ``camera.model = "image"``) the
+image pipeline of ``vision/`` on frames; otherwise the emulator's analytic camera model
+(plant_emulator.vision_cli)."""
 
 from __future__ import annotations
 
@@ -7,12 +9,38 @@ import argparse
 
 def register(sub: argparse._SubParsersAction) -> None:
     from plant_emulator import vision_cli
+    from vision.cli import add_source_option
 
     p = sub.add_parser(
         "vision",
-        help="run the vision process: camera model -> features on zenoh hil/vision/features",
-        description="Computes the image features f of the scenario's target from the camera "
-        "pose the emulator publishes, adds noise/frame rate/latency, publishes on zenoh.",
+        help="run the vision process: frames (or the camera model) -> features on zenoh "
+        "hil/vision/features",
+        description="Measures the image features f of the target and publishes them on zenoh. "
+        "On frames (--source, or camera.model = image): OpenCV detection, sub-pixel centre, "
+        "undistortion with the calibrated intrinsics ([vision]). Analytic: computes f from the "
+        "camera pose the emulator publishes, with noise/frame rate/latency.",
     )
     vision_cli.add_arguments(p)
-    p.set_defaults(handler=vision_cli.run_from_args)
+    add_source_option(p)
+    p.add_argument(
+        "--frames",
+        action="store_true",
+        help="with --source log:...: print each frame's measurement as a JSON line",
+    )
+    p.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from hal.config import load_config
+
+    source = args.source
+    if source is None and getattr(load_config(args.config).camera, "model", "") == "image":
+        source = "emulated"
+    if source is None:
+        from plant_emulator import vision_cli
+
+        return vision_cli.run_from_args(args)
+    from vision.cli import run_from_args
+
+    args.source = source
+    return run_from_args(args)

@@ -20,6 +20,7 @@ FORBIDDEN = {
     "hal": {"rt_controller", "plant_emulator"},
     "plant_emulator": {"rt_controller"},
     "rt_controller": {"plant_emulator"},
+    "vision": {"rt_controller", "plant_emulator"},
 }
 
 
@@ -255,3 +256,52 @@ def test_sweep_package_uses_no_cli_modules():
         if d.startswith("rt_controller.commands") or d == "rt_controller.cli"
     ]
     assert not offenders, offenders
+
+
+# ------------------------------------------------------------ the vision pipeline sees pixels
+
+POSE_OR_TRUTH = {
+    "PoseMsg",
+    "PoseDecoder",
+    "decode_pose",
+    "encode_pose",
+    "KEY_CAMERA_POSE",
+    "camera_pose",
+    "scenario",
+    "f0",
+    "f_jump",
+    "paper_target",
+    "plant",
+    "plant_view",
+}
+"""Names through which code could learn the camera's pose or the target's true position."""
+
+
+def pose_or_truth_names(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.Attribute):
+            names.add(node.attr)
+        elif isinstance(node, ast.Name):
+            names.add(node.id)
+    return names & POSE_OR_TRUTH
+
+
+def test_the_vision_pipeline_sees_only_pixels():
+    """vision/ measures f from frames: it imports neither the emulator nor the controller
+    (test_dependency_directions), and never touches the camera pose or the scenario's target."""
+    offenders = {
+        path.relative_to(ROOT).as_posix(): sorted(bad)
+        for path in sorted((ROOT / "vision").rglob("*.py"))
+        if (bad := pose_or_truth_names(path))
+    }
+    assert not offenders, offenders
+
+
+def test_the_pose_checker_sees_a_pose(tmp_path: Path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from hal.vision_codec import PoseMsg\nx = cfg.scenario.f0\n")
+    assert pose_or_truth_names(probe) == {"PoseMsg", "scenario", "f0"}

@@ -1,0 +1,166 @@
+"""Frame sources behind one interface: a video file through cv2.VideoCapture (written here with
+cv2.VideoWriter), a log's recorded frames, the emulated camera's zenoh payloads (good, corrupted,
+mis-sized), and the grabber's answer to each frame."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from hal.camera_frame import CameraFrame, encode_frame
+from hal.errors import HalConfigError
+from hal.vision_codec import FeatureMsg
+from tests.support.synthetic_frames import frame
+from vision.grabber import Grabber
+from vision.intrinsics import Intrinsics
+from vision.pipeline import Pipeline
+from vision.sources import EmulatedSource, open_source, parse_source
+
+K = Intrinsics(640, 480, 1230.0, 1230.0, 320.0, 240.0)
+PATH_F = [(-120.0 + 10 * i, -160.0 + 8 * i) for i in range(8)]
+KEY = b"k" * 32
+
+
+def grabber(sent: list[FeatureMsg]) -> Grabber:
+    return Grabber(Pipeline(K), sent.append, source_id=7)
+
+
+def test_video_file_through_videocapture(tmp_path: Path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (640, 480))
+    assert writer.isOpened()
+    for f in PATH_F:
+        writer.write(cv2.cvtColor(frame(K, f, radius_px=14.0), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    sent: list[FeatureMsg] = []
+    g = grabber(sent)
+    open_source(f"file:{path}").run(g.on_frame, g.on_reject, threading.Event())
+    assert len(sent) == len(PATH_F)
+    assert [m.frame for m in sent] == list(range(len(PATH_F)))
+    assert all(m.valid and not m.lockstep for m in sent)
+    err = np.array([np.subtract(m.f, f) for m, f in zip(sent, PATH_F, strict=True)])
+    assert np.abs(err).max() < 0.3  # MJPEG's compression, measured 0.05 px
+
+
+def test_a_missing_file_is_a_one_line_error(tmp_path: Path):
+    with pytest.raises(HalConfigError, match="no such file"):
+        open_source(f"file:{tmp_path / 'nope.mp4'}").run(
+            lambda fr: None, lambda r: None, threading.Event()
+        )
+
+
+@pytest.mark.parametrize("spec", ["usb0", "file:", "emulated:x", "log"])
+def test_bad_source_specs(spec: str):
+    with pytest.raises(HalConfigError, match="--source"):
+        parse_source(spec)
+
+
+def test_log_frames_are_re_run(tmp_path: Path):
+    from foxglove.messages import CompressedImage, Timestamp
+    from mcap.writer import Writer
+
+    path = tmp_path / "run.mcap"
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema(
+            "foxglove.CompressedImage", "protobuf", CompressedImage.get_schema().data
+        )
+        ch = w.register_channel("/camera/image", "protobuf", sid)
+        for i, f in enumerate(PATH_F):
+            ok, png = cv2.imencode(".png", frame(K, f))
+            assert ok
+            msg = CompressedImage(
+                timestamp=Timestamp(sec=i, nsec=0),
+                frame_id="camera",
+                data=png.tobytes(),
+                format="png",
+            )
+            w.add_message(ch, i * 10**8, msg.encode(), i * 10**8)
+        w.add_message(ch, 10**9, b"\x00garbage", 10**9)
+        w.finish()
+    sent: list[FeatureMsg] = []
+    g = grabber(sent)
+    open_source(f"log:{path}").run(g.on_frame, g.on_reject, threading.Event())
+    assert len(sent) == len(PATH_F)
+    err = np.array([np.subtract(m.f, f) for m, f in zip(sent, PATH_F, strict=True)])
+    assert np.abs(err).max() < 0.02  # PNG is lossless
+    assert g.snapshot().pipeline["rejected"]["malformed"] == 1
+
+
+class FakeSession:
+    """Delivers payloads to the subscriber the way ZenohSession.subscribe does."""
+
+    def __init__(self) -> None:
+        self.callback = None
+
+    def subscribe(self, key, cb):
+        self.callback = cb
+        return self
+
+    def undeclare(self) -> None:
+        pass
+
+
+def test_emulated_frames_good_corrupted_and_mis_sized():
+    session = FakeSession()
+    source = EmulatedSource(session, KEY)
+    sent: list[FeatureMsg] = []
+    g = grabber(sent)
+    stop = threading.Event()
+    t = threading.Thread(target=source.run, args=(g.on_frame, g.on_reject, stop))
+    t.start()
+    while session.callback is None:
+        pass
+
+    def payload(pixels, seq, period, lockstep=True):
+        return encode_frame(
+            pixels,
+            seq=seq,
+            stamp_ns=1000 + seq,
+            sim_time_ns=20_000_000 * seq,
+            exposure_ns=2_000_000,
+            period=period,
+            lockstep=lockstep,
+            key=KEY,
+        )
+
+    good = payload(frame(K, (-120.0, -160.0)), 0, 0)
+    session.callback(good)
+    session.callback(good)  # the period re-sent: answered again, not detected again
+    corrupted = bytearray(payload(frame(K, (-110.0, -150.0)), 1, 1))
+    corrupted[5000] ^= 0xFF
+    session.callback(bytes(corrupted))
+    session.callback(b"HC\x01")
+    session.callback(payload(np.zeros((240, 320), np.uint8), 2, 2))
+    session.callback(payload(frame(K, (-100.0, -140.0)), 3, 3))
+    stop.set()
+    t.join()
+    assert [(m.frame, m.pose_seq, m.valid) for m in sent] == [
+        (0, 0, True),
+        (0, 0, True),
+        (2, 2, False),
+        (3, 3, True),
+    ]
+    assert sent[0] == sent[1] and sent[0].lockstep and sent[0].source == 7
+    assert sent[0].sim_time_ns == 0 and sent[3].sim_time_ns == 60_000_000
+    assert np.allclose(sent[3].f, (-100.0, -140.0), atol=0.02)
+    s = g.snapshot()
+    assert s.reanswers == 1 and s.frames == 3 and s.invalid == 1
+    assert s.pipeline["rejected"]["malformed"] == 2
+    assert s.pipeline["rejected"]["wrong_size"] == 1
+    rx = source.decoder.counters()
+    assert rx["bad_mac"] == 1 and rx["bad_size"] == 1 and rx["resent"] == 1
+
+
+def test_an_invalid_frame_is_answered_invalid():
+    sent: list[FeatureMsg] = []
+    g = grabber(sent)
+    fr = CameraFrame(5, 123, 456, 1, 9, np.full((480, 640), 200, np.uint8), lockstep=True)
+    msg = g.on_frame(fr)
+    assert msg == FeatureMsg(5, 123, 456, 9, (0.0, 0.0), False, True, 7)
+    assert sent == [msg]

@@ -1,0 +1,98 @@
+"""``hil vision`` on frames (``--source``, or ``camera.model = "image"``): the process body.
+
+The options are the analytic vision process's (``plant_emulator.vision_cli``) plus
+``--source``; the ones that shape the analytic camera (``--fps``, ``--noise``, ``--latency``,
+``--seed``, ``--dropout``) belong to the camera, not to the frame grabber, and are refused here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from hal.errors import HalConfigError, HalError
+from hal.signals import stop_on_signals
+
+CAMERA_ONLY = ("fps", "noise", "latency", "seed")
+
+
+def add_source_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--source",
+        metavar="SPEC",
+        default=None,
+        help="run the image pipeline on frames from SPEC: emulated (the emulated camera over "
+        "zenoh), v4l2:/dev/video0, gst:PIPELINE, file:clip.mp4 or log:run.mcap (offline "
+        "re-run, nothing published); default: emulated when camera.model is image, else the "
+        "analytic camera model",
+    )
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Body of ``hil vision --source SPEC``."""
+    from hal.config import load_config
+    from hal.secoc import configure_key
+    from vision.process import run_live, run_offline
+    from vision.sources import parse_source
+
+    given = [f"--{name}" for name in CAMERA_ONLY if getattr(args, name, None) is not None]
+    if getattr(args, "dropout", None):
+        given.append("--dropout")
+    if given:
+        raise HalConfigError(
+            f"{', '.join(given)}: options of the analytic camera; the image pipeline measures "
+            "the frames it gets (set the emulated camera in the [camera] section)"
+        )
+    kind, _ = parse_source(args.source)
+    cfg = load_config(args.config)
+    if kind != "log":
+        cfg = configure_key(cfg, args.key_file, "hil vision")
+    if kind == "log":
+        lines = []
+
+        def keep(frame, m, msg) -> None:
+            lines.append(
+                {
+                    "seq": frame.seq,
+                    "stamp_ns": frame.stamp_ns,
+                    "valid": m.valid,
+                    "f": list(m.f) if m.f else None,
+                    "reason": m.reason,
+                }
+            )
+
+        stats = run_offline(cfg, args.source, keep)
+        if getattr(args, "frames", False):
+            for line in lines:
+                print(json.dumps(line))
+    else:
+        with stop_on_signals() as stop:
+            print(f"hil vision: image pipeline on {args.source}", file=sys.stderr, flush=True)
+            try:
+                stats = run_live(
+                    cfg,
+                    args.source,
+                    stop_event=stop,
+                    duration_s=args.duration,
+                    endpoint=args.zenoh_endpoint,
+                    config_file=args.zenoh_config,
+                    listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
+                    **({} if args.wait is None else {"wait_s": args.wait}),
+                )
+            except HalError:
+                if stop.is_set():
+                    return 0
+                raise
+    if args.json:
+        print(json.dumps(stats.__dict__), flush=True)
+    else:
+        rejected = stats.pipeline.get("rejected", {})
+        print(
+            f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
+            f"{stats.invalid} without the target ("
+            + ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
+            + f"), detection p99 {stats.detect_us_p99:.0f} us",
+            flush=True,
+        )
+    return 0

@@ -1,0 +1,142 @@
+"""Find the target in a grey frame and locate its centre to a fraction of a pixel.
+
+The target is a dark disc on the lighter plane. Steps, all OpenCV:
+
+1. A threshold half-way between the frame's median (the plane) and its darkest spot (3x3
+   mean) separates the dark from the light; the connected dark regions are the candidates
+   (``cv2.connectedComponentsWithStats``). Otsu's threshold would split the plane's texture:
+   the disc is a few hundred of 300 000 pixels.
+2. A candidate is the target when its area lies in ``[min_area, max_area]`` and it is round:
+   its second moments give an elongation (major/minor axis) of at most ``max_elongation`` and
+   it fills the ellipse they describe (fill ratio >= ``min_fill``). The roundest one wins.
+3. Sub-pixel centre: the centroid of the disc's *darkness* in a window around the region,
+   ``w = clip((bg - I) / (bg - fg), 0, 1)`` over the region and its 1 px border, with ``bg``
+   the plane's level (a linear fit to the next 2 px ring) and ``fg`` the disc's.
+   Anti-aliased edge pixels weigh by how much of them the disc covers, so the centroid is not
+   quantised to whole pixels; motion blur smears the disc symmetrically about its position at
+   mid-exposure, which the centroid keeps. The target itself: :mod:`hal.target_marker`.
+
+A frame without such a region is not a measurement; the reason says why: ``out_of_view`` (a
+dark region of the disc's size touches the image border), ``blurred`` (one of its size but too
+elongated: motion blur), ``not_found`` (nothing like it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+REASONS = ("not_found", "out_of_view", "blurred", "malformed", "wrong_size")
+"""Why a frame gave no measurement (each counted by the pipeline)."""
+
+
+@dataclass(frozen=True)
+class DetectorParams:
+    """Shape tests of a target candidate (areas in px²)."""
+
+    min_area: float = 30.0
+    max_area: float = 40_000.0
+    max_elongation: float = 1.6
+    """Major over minor axis; a sharp disc is 1, a blur of its diameter is about 2."""
+    min_fill: float = 0.8
+    """Region area over the area of its moment ellipse; a disc is 1."""
+    margin: int = 3
+    min_contrast: float = 30.0
+    """Grey levels between the frame's median and its darkest (3x3 mean) spot."""
+    """Window around the region for the sub-pixel centroid, px."""
+
+
+@dataclass(frozen=True)
+class Detection:
+    """The target's centre (u, v) in the distorted image, px; its area and elongation."""
+
+    u: float
+    v: float
+    area: float
+    elongation: float
+
+
+_KERNEL3 = np.ones((3, 3), np.uint8)
+_KERNEL5 = np.ones((5, 5), np.uint8)
+
+
+def _plane(win: np.ndarray, xs: np.ndarray, ys: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """The plane's grey level under the window: a linear fit to the ring around the region
+    (removes the texture's gradient, which would pull the centroid)."""
+    if ring.sum() < 3:
+        return np.full(win.shape, float(win.max()))
+    a = np.stack([np.ones(int(ring.sum())), xs[ring], ys[ring]], axis=1).astype(np.float64)
+    coef, *_ = np.linalg.lstsq(a, win[ring], rcond=None)
+    return coef[0] + coef[1] * xs + coef[2] * ys
+
+
+def _shape(m: dict[str, float]) -> tuple[float, float]:
+    """Elongation and fill ratio of a region from its moments."""
+    a = m["m00"]
+    mu20, mu02, mu11 = m["mu20"] / a, m["mu02"] / a, m["mu11"] / a
+    common = np.sqrt(max(((mu20 - mu02) / 2) ** 2 + mu11**2, 0.0))
+    lam1 = (mu20 + mu02) / 2 + common
+    lam2 = max((mu20 + mu02) / 2 - common, 1e-12)
+    elongation = float(np.sqrt(lam1 / lam2))
+    fill = float(a / (4.0 * np.pi * np.sqrt(lam1 * lam2)))
+    return elongation, fill
+
+
+def detect(
+    img: np.ndarray, params: DetectorParams | None = None
+) -> tuple[Detection | None, str | None]:
+    """The target in the 8-bit grey ``img``: ``(detection, None)`` or ``(None, reason)``."""
+    params = params or DetectorParams()
+    h, w = img.shape
+    smooth = cv2.blur(img, (3, 3))
+    darkest, _, _, _ = cv2.minMaxLoc(smooth)
+    level = float(np.median(smooth[::4, ::4]))
+    if level - darkest < params.min_contrast:
+        return None, "not_found"
+    _, mask = cv2.threshold(smooth, (level + darkest) / 2.0, 255, cv2.THRESH_BINARY_INV)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    best: tuple[float, int, float] | None = None
+    reason = "not_found"
+    for i in range(1, n):
+        x, y, bw, bh, area = (int(v) for v in stats[i])
+        if not params.min_area <= area <= params.max_area:
+            continue
+        border = x == 0 or y == 0 or x + bw >= w or y + bh >= h
+        if border:
+            reason = "out_of_view"
+            continue
+        region = (labels[y : y + bh, x : x + bw] == i).astype(np.uint8)
+        elongation, fill = _shape(cv2.moments(region, binaryImage=True))
+        if elongation > params.max_elongation:
+            if reason == "not_found":
+                reason = "blurred"
+            continue
+        if fill < params.min_fill:
+            continue
+        if best is None or elongation < best[2]:
+            best = (float(area), i, elongation)
+    if best is None:
+        return None, reason
+    area, i, elongation = best
+    x, y, bw, bh, _ = (int(v) for v in stats[i])
+    m = params.margin
+    x0, y0 = max(x - m, 0), max(y - m, 0)
+    x1, y1 = min(x + bw + m, w), min(y + bh + m, h)
+    win = img[y0:y1, x0:x1].astype(np.float64)
+    inside = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
+    support = cv2.dilate(inside, _KERNEL3).astype(bool)
+    ring = cv2.dilate(inside, _KERNEL5).astype(bool) & ~support
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    bg = _plane(win, xs, ys, ring)
+    core = cv2.erode(inside, _KERNEL3).astype(bool)
+    fg = float(np.median(win[core])) if core.any() else float(win.min())
+    depth = bg - fg
+    if not ring.any() or float(np.median(depth[support])) < params.min_contrast:
+        return None, "not_found"
+    weight = np.where(support, np.clip((bg - win) / depth, 0.0, 1.0), 0.0)
+    total = weight.sum()
+    u = float((weight * xs).sum() / total)
+    v = float((weight * ys).sum() / total)
+    return Detection(u, v, area, elongation), None

@@ -1,0 +1,140 @@
+"""The frame grabber: each frame through the pipeline into one features message.
+
+A frame gives ``FeatureMsg(frame=seq, stamp_ns=capture stamp, sim_time_ns, pose_seq=period,
+f, valid, lockstep)``: in lockstep the camera sends exactly one frame per control period, so
+every period is answered; a frame without a measurement is answered with ``valid = 0`` (its
+reason counted), and the controller's hold logic applies. A lockstep frame sent again (the
+DSP re-announced the period) is answered again with the same message, without a second
+detection.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from hal.camera_frame import CameraFrame
+from hal.vision_codec import FeatureMsg
+from vision.pipeline import Measurement, Pipeline
+
+Publish = Callable[[FeatureMsg], None]
+Observer = Callable[[CameraFrame, Measurement, FeatureMsg], None]
+
+
+@dataclass
+class GrabberStats:
+    """What the grabber did (``hil vision --json``)."""
+
+    source: str = ""
+    frames: int = 0
+    """Frames processed (re-sent lockstep frames not included)."""
+    published: int = 0
+    valid: int = 0
+    invalid: int = 0
+    reanswers: int = 0
+    """Lockstep frames sent again, answered again unchanged."""
+    publish_errors: int = 0
+    pipeline: dict[str, Any] = field(default_factory=dict)
+    """Frames, measurements and rejections by reason."""
+    frame_rx: dict[str, int] = field(default_factory=dict)
+    """The frame decoder's counters (emulated source)."""
+    detect_us_p50: float = 0.0
+    detect_us_p99: float = 0.0
+    latency_us_p50: float = 0.0
+    """Capture stamp to publish (emulated source and real cameras: same clock)."""
+    latency_us_p99: float = 0.0
+
+
+class Grabber:
+    """Pipeline and publisher; :meth:`on_frame` is safe to call from any one thread at a time
+    (a lock serialises zenoh's callback threads)."""
+
+    def __init__(
+        self,
+        pipeline: Pipeline,
+        publish: Publish,
+        *,
+        source_id: int,
+        observer: Observer | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.pipeline = pipeline
+        self.publish = publish
+        self.source_id = source_id
+        self.observer = observer
+        self.clock = clock
+        self.stats = GrabberStats()
+        self._lock = threading.Lock()
+        self._last: tuple[tuple[int, int, int], FeatureMsg] | None = None
+        self._detect_ns: list[int] = []
+        self._latency_ns: list[int] = []
+
+    def on_reject(self, reason: str) -> None:
+        """A payload that was no frame (nothing to answer: it names no period)."""
+        with self._lock:
+            self.pipeline.reject(reason)
+
+    def on_frame(self, frame: CameraFrame) -> FeatureMsg:
+        """Measure ``frame`` and publish its features message (returned)."""
+        with self._lock:
+            ident = (frame.source, frame.seq, frame.period)
+            if frame.lockstep and self._last is not None and self._last[0] == ident:
+                msg = self._last[1]
+                self.stats.reanswers += 1
+                self._send(msg)
+                return msg
+            m = self.pipeline.process(frame.pixels)
+            f = m.f if m.f is not None else (0.0, 0.0)
+            msg = FeatureMsg(
+                frame.seq,
+                frame.stamp_ns,
+                frame.sim_time_ns,
+                frame.period,
+                f,
+                m.valid,
+                frame.lockstep,
+                self.source_id,
+            )
+            self.stats.frames += 1
+            if m.valid:
+                self.stats.valid += 1
+            else:
+                self.stats.invalid += 1
+            self._last = (ident, msg)
+            self._send(msg)
+            self._detect_ns.append(m.detect_ns)
+            if not frame.lockstep:
+                self._latency_ns.append(self.clock() - frame.stamp_ns)
+            if self.observer is not None:
+                self.observer(frame, m, msg)
+            return msg
+
+    def _send(self, msg: FeatureMsg) -> None:
+        try:
+            self.publish(msg)
+            self.stats.published += 1
+        except Exception:  # a failed put is counted; the next frame may pass
+            self.stats.publish_errors += 1
+
+    def snapshot(self) -> GrabberStats:
+        """A copy of the counters with the timing percentiles filled in."""
+        with self._lock:
+            s = dataclasses.replace(self.stats)
+            s.pipeline = self.pipeline.counts.as_dict()
+            if self._detect_ns:
+                s.detect_us_p50, s.detect_us_p99 = _percentiles(self._detect_ns)
+            if self._latency_ns:
+                s.latency_us_p50, s.latency_us_p99 = _percentiles(self._latency_ns)
+            return s
+
+
+def _percentiles(ns: list[int]) -> tuple[float, float]:
+    """Median and p99 of durations in ns, in us."""
+    import numpy as np
+
+    p50, p99 = np.percentile(np.array(ns) / 1e3, [50, 99])
+    return float(p50), float(p99)

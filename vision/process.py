@@ -1,0 +1,95 @@
+"""``hil vision`` on frames: a frame source, the pipeline and the features publisher.
+
+Live sources (the emulated camera, a real one) publish ``hil/vision/features`` on zenoh, as
+the analytic vision process does, with a random source id; a recorded log (``log:``) is re-run
+offline: nothing is published, every frame's measurement is handed to ``on_result``.
+"""
+
+from __future__ import annotations
+
+import secrets
+import threading
+from collections.abc import Callable
+
+from hal.camera_frame import CameraFrame
+from hal.config import RigConfig
+from hal.secoc import rig_key
+from hal.vision_codec import FeatureMsg, encode_features
+from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, open_session
+from vision.grabber import Grabber, GrabberStats, Observer
+from vision.intrinsics import intrinsics_from_config
+from vision.pipeline import Measurement, Pipeline
+from vision.sources import EmulatedSource, open_source, parse_source
+
+
+def run_offline(
+    cfg: RigConfig,
+    spec: str,
+    on_result: Callable[[CameraFrame, Measurement, FeatureMsg], None] | None = None,
+    stop_event: threading.Event | None = None,
+) -> GrabberStats:
+    """Run the pipeline over every frame of a log or file, publishing nothing."""
+    grabber = Grabber(
+        Pipeline(intrinsics_from_config(cfg)), lambda msg: None, source_id=0, observer=on_result
+    )
+    source = open_source(spec)
+    source.run(grabber.on_frame, grabber.on_reject, stop_event or threading.Event())
+    stats = grabber.snapshot()
+    stats.source = source.name
+    return stats
+
+
+def run_live(
+    cfg: RigConfig,
+    spec: str,
+    *,
+    stop_event: threading.Event,
+    duration_s: float = 0.0,
+    endpoint: str | None = None,
+    config_file: str | None = None,
+    listen: bool | None = False,
+    wait_s: float = DEFAULT_WAIT_S,
+    ready: threading.Event | None = None,
+    observer: Observer | None = None,
+) -> GrabberStats:
+    """Serve ``spec``'s frames as features on zenoh until ``stop_event``, ``duration_s`` (0 =
+    forever) or the end of a file."""
+    parse_source(spec)  # a bad spec fails before zenoh is opened
+    key = rig_key(cfg)
+    session = open_session(
+        cfg,
+        listen=listen,
+        endpoint=endpoint,
+        config_file=config_file,
+        wait_s=wait_s,
+        stop_event=stop_event,
+    )
+    timer: threading.Timer | None = None
+    try:
+        pub = session.publisher(KEY_FEATURES)
+        grabber = Grabber(
+            Pipeline(intrinsics_from_config(cfg)),
+            lambda msg: pub.put(encode_features(msg, key)),
+            source_id=secrets.randbits(32),
+            observer=observer,
+        )
+        source = open_source(spec, session=session, key=key)
+        if duration_s > 0:
+            timer = threading.Timer(duration_s, stop_event.set)
+            timer.daemon = True
+            timer.start()
+        if ready is not None:
+            ready.set()
+        try:
+            source.run(grabber.on_frame, grabber.on_reject, stop_event)
+        finally:
+            pub.undeclare()
+        stats = grabber.snapshot()
+        stats.source = source.name
+        if isinstance(source, EmulatedSource):
+            stats.frame_rx = source.decoder.counters()
+        return stats
+    finally:
+        if timer is not None:
+            timer.cancel()
+        session.close()

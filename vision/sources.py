@@ -1,0 +1,233 @@
+"""Where frames come from, behind one interface: :meth:`FrameSource.run` pushes every frame
+(or the reason a payload was no frame) to the grabber until the source ends or is stopped.
+
+=========================== ===================================================================
+``--source``                frames
+=========================== ===================================================================
+``emulated``                the emulated camera over zenoh (``hil/camera/frame``,
+                            :mod:`hal.camera_frame`, authenticated with the rig key)
+``v4l2:/dev/video0``        a V4L2 device through ``cv2.VideoCapture``
+``gst:PIPELINE``            a GStreamer pipeline ending in ``appsink`` (OpenCV with GStreamer)
+``file:clip.mp4``           a video file or URL that ``cv2.VideoCapture`` opens
+``log:run.mcap``            the camera frames of a recorded log (``/camera/image``), offline
+=========================== ===================================================================
+
+A real camera's frames are stamped with CLOCK_MONOTONIC when the grab returned (the capture
+stamp is not known more closely through VideoCapture), converted to 8-bit grey, and numbered
+from 0.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from hal.camera_frame import CameraFrame, FrameDecoder
+from hal.errors import HalConfigError, HalTransportError
+
+FrameSink = Callable[[CameraFrame], None]
+"""Receives each frame."""
+RejectSink = Callable[[str], None]
+"""Receives the reason of each payload that was not a frame (``malformed``)."""
+SOURCE_KINDS = ("emulated", "v4l2", "gst", "file", "log")
+LOG_IMAGE_TOPIC = "/camera/image"
+
+
+class FrameSource(Protocol):
+    """A source of frames."""
+
+    name: str
+
+    def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
+        """Push frames until the source ends (a file, a log) or ``stop`` is set."""
+        ...  # pragma: no cover
+
+
+def to_grey(img: np.ndarray) -> np.ndarray:
+    """An 8-bit grey image of what VideoCapture or imdecode returned (grey, BGR or BGRA)."""
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    elif img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.dtype != np.uint8:
+        img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
+    return np.ascontiguousarray(img)
+
+
+def grabbed_frame(seq: int, pixels: np.ndarray, stamp_ns: int) -> CameraFrame:
+    """A frame of a real camera or file: numbered ``seq``, stamped ``stamp_ns`` (also its
+    simulation time: a real camera has no other clock), exposure unknown (0)."""
+    return CameraFrame(seq, stamp_ns, stamp_ns, 0, seq, to_grey(pixels))
+
+
+class EmulatedSource:
+    """Frames of the emulated camera over zenoh, decoded and authenticated by
+    :class:`hal.camera_frame.FrameDecoder` (its counters: :attr:`decoder`). Frames are pushed
+    from zenoh's callback thread: a lockstep answer leaves without a thread hop."""
+
+    name = "emulated"
+
+    def __init__(self, session: object, key: bytes) -> None:
+        self.session = session
+        self.decoder = FrameDecoder(key=key)
+
+    def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
+        from hal.zenoh_session import KEY_CAMERA_FRAME
+
+        def feed(payload: bytes) -> None:
+            c = self.decoder.counts
+            bad = c.malformed + c.bad_mac
+            frame = self.decoder.feed(payload)
+            if frame is not None:
+                on_frame(frame)
+            elif c.malformed + c.bad_mac > bad:  # not an out-of-order frame: no frame at all
+                on_reject("malformed")
+
+        sub = self.session.subscribe(KEY_CAMERA_FRAME, feed)  # type: ignore[attr-defined]
+        try:
+            stop.wait()
+        finally:
+            sub.undeclare()
+
+
+class CaptureSource:
+    """A camera, pipeline or file through ``cv2.VideoCapture``."""
+
+    def __init__(self, kind: str, target: str) -> None:
+        self.name = f"{kind}:{target}"
+        self.kind, self.target = kind, target
+
+    def open(self) -> cv2.VideoCapture:
+        if self.kind == "file" and "://" not in self.target and not Path(self.target).is_file():
+            raise HalConfigError(f"--source {self.name}: no such file")
+        api = {"v4l2": cv2.CAP_V4L2, "gst": cv2.CAP_GSTREAMER}.get(self.kind, cv2.CAP_ANY)
+        cap = cv2.VideoCapture(self.target, api)
+        if not cap.isOpened():
+            cap.release()
+            raise HalTransportError(
+                f"--source {self.name}: OpenCV cannot open it (device busy or missing, or this "
+                "OpenCV has no backend for it)"
+            )
+        return cap
+
+    def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
+        cap = self.open()
+        seq = 0
+        try:
+            while not stop.is_set():
+                ok, img = cap.read()
+                stamp = time.monotonic_ns()
+                if not ok:
+                    break  # end of the file, or the device went away
+                if img is None or img.size == 0:
+                    on_reject("malformed")
+                    continue
+                on_frame(grabbed_frame(seq, img, stamp))
+                seq += 1
+        finally:
+            cap.release()
+
+
+class LogSource:
+    """The camera frames a run recorded (``/camera/image``, PNG or JPEG), in log order; their
+    stamps are the log times."""
+
+    def __init__(self, path: str, topic: str = LOG_IMAGE_TOPIC) -> None:
+        self.name = f"log:{path}"
+        self.path, self.topic = Path(path), topic
+
+    def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
+        from mcap.exceptions import McapError
+        from mcap.reader import make_reader
+
+        if not self.path.is_file():
+            raise HalConfigError(f"--source {self.name}: no such file")
+        seq = 0
+        with self.path.open("rb") as fh:
+            try:
+                messages = make_reader(fh).iter_messages(topics=[self.topic])
+                for _schema, _channel, message in messages:
+                    if stop.is_set():
+                        return
+                    pixels = decode_compressed_image(message.data)
+                    if pixels is None:
+                        on_reject("malformed")
+                        continue
+                    on_frame(grabbed_frame(seq, pixels, message.log_time))
+                    seq += 1
+            except (McapError, ValueError, EOFError) as exc:
+                raise HalConfigError(
+                    f"--source {self.name}: not a readable MCAP log ({exc})"
+                ) from None
+
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        b = buf[i]
+        i += 1
+        value |= (b & 0x7F) << shift
+        if b < 0x80:
+            return value, i
+        shift += 7
+
+
+def decode_compressed_image(data: bytes) -> np.ndarray | None:
+    """The grey pixels of a ``foxglove.CompressedImage`` (protobuf; ``data`` is field 2), or
+    None when it is no such message or no image OpenCV decodes. Five protobuf wire rules here
+    instead of a protobuf runtime dependency."""
+    try:
+        i, image = 0, None
+        while i < len(data):
+            tag, i = _varint(data, i)
+            wire = tag & 7
+            if wire == 0:
+                _, i = _varint(data, i)
+            elif wire == 2:
+                n, i = _varint(data, i)
+                if tag >> 3 == 2:
+                    image = data[i : i + n]
+                i += n
+            elif wire in (1, 5):
+                i += 8 if wire == 1 else 4
+            else:
+                return None
+        if image is None or i != len(data):
+            return None
+        return cv2.imdecode(np.frombuffer(image, np.uint8), cv2.IMREAD_GRAYSCALE)
+    except (IndexError, cv2.error):
+        return None
+
+
+def parse_source(spec: str) -> tuple[str, str]:
+    """``KIND[:TARGET]`` -> (kind, target); a one-line :class:`HalConfigError` otherwise."""
+    kind, sep, target = spec.partition(":")
+    if kind not in SOURCE_KINDS:
+        raise HalConfigError(
+            f"--source {spec!r}: unknown kind {kind!r} (one of {', '.join(SOURCE_KINDS)})"
+        )
+    if kind == "emulated":
+        if target:
+            raise HalConfigError(f"--source {spec!r}: 'emulated' takes no target")
+        return kind, ""
+    if not sep or not target:
+        raise HalConfigError(f"--source {spec!r}: {kind} needs a target, e.g. {kind}:PATH")
+    return kind, target
+
+
+def open_source(spec: str, *, session: object = None, key: bytes = b"") -> FrameSource:
+    """The frame source named by ``spec`` (``emulated`` needs the zenoh ``session`` and key)."""
+    kind, target = parse_source(spec)
+    if kind == "emulated":
+        return EmulatedSource(session, key)
+    if kind == "log":
+        return LogSource(target)
+    return CaptureSource(kind, target)
