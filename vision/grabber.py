@@ -72,15 +72,24 @@ class Grabber:
         self._last: tuple[tuple[int, int, int], FeatureMsg] | None = None
         self._detect_ns: list[int] = []
         self._latency_ns: list[int] = []
+        self._closed = False
 
     def on_reject(self, reason: str) -> None:
         """A payload that was no frame (nothing to answer: it names no period)."""
         with self._lock:
             self.pipeline.reject(reason)
 
-    def on_frame(self, frame: CameraFrame) -> FeatureMsg:
-        """Measure ``frame`` and publish its features message (returned)."""
+    def close(self) -> None:
+        """Publish nothing more: waits for a frame in progress (a zenoh callback may still run
+        after its subscriber was undeclared), so the publisher can be undeclared after this."""
         with self._lock:
+            self._closed = True
+
+    def on_frame(self, frame: CameraFrame) -> FeatureMsg | None:
+        """Measure ``frame`` and publish its features message (returned; None once closed)."""
+        with self._lock:
+            if self._closed:
+                return None
             ident = (frame.source, frame.seq, frame.period)
             if frame.lockstep and self._last is not None and self._last[0] == ident:
                 msg = self._last[1]

@@ -83,6 +83,7 @@ def run_live(
         try:
             source.run(grabber.on_frame, grabber.on_reject, stop_event)
         finally:
+            grabber.close()
             pub.undeclare()
         stats = grabber.snapshot()
         stats.source = source.name

@@ -6,6 +6,11 @@ from __future__ import annotations
 
 import argparse
 
+IMAGE_DEFAULT = False
+"""Whether ``camera.model = "image"`` makes ``--source emulated`` the default. Off until the
+emulator publishes frames on ``hil/camera/frame`` (issue 38, the camera's half): without them
+the pipeline would wait for frames that never come and every ``hil up`` would run blind."""
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from plant_emulator import vision_cli
@@ -34,7 +39,7 @@ def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
 
     source = args.source
-    if source is None and getattr(load_config(args.config).camera, "model", "") == "image":
+    if source is None and load_config(args.config).camera.model == "image" and IMAGE_DEFAULT:
         source = "emulated"
     if source is None:
         from plant_emulator import vision_cli
