@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import json
 import os
 import sys
@@ -22,8 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "camera, target and image features drawn with Foxglove's schemas. Open Foxglove -> "
         "Open connection -> Foxglove WebSocket -> ws://127.0.0.1:8765. The tunable parameters "
         "are advertised (Parameters capability) and reach the controller over the rig-key-signed "
-        "link of hil param; setting them needs --allow-tuning. Runs until SIGTERM/SIGINT or "
-        "--duration.",
+        "link of hil param; setting them needs --allow-tuning. Another host may watch with "
+        "--allow-remote (read-only); tuning from another host needs TLS (--tls-cert, --tls-key: "
+        "wss://) and the access token (--print-token), which a client sets as the parameter "
+        "hil.token before it may change anything. Runs until SIGTERM/SIGINT or --duration.",
     )
     add_config_option(p)
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
@@ -33,14 +34,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--allow-remote",
         action="store_true",
-        help="allow a --host that is not a loopback address (the view is unauthenticated)",
+        help="allow a --host that is not a loopback address: a read-only view, or with "
+        "--allow-tuning over TLS with the access token",
     )
     p.add_argument(
         "--allow-tuning",
         action="store_true",
         help="let Foxglove set the tunable parameters (Parameters panel) and call the operator "
         "services (arm, disarm, switch law); without it the parameters are read-only and only "
-        "the mark service is offered",
+        "the mark service is offered; with --allow-remote it needs --tls-cert/--tls-key",
+    )
+    p.add_argument(
+        "--tls-cert",
+        metavar="FILE",
+        help="PEM certificate (chain): serve wss:// only; every change then needs the access "
+        "token, on any host",
+    )
+    p.add_argument("--tls-key", metavar="FILE", help="PEM private key of --tls-cert (mode 0600)")
+    p.add_argument(
+        "--print-token",
+        action="store_true",
+        help="print the access token of the rig key (--key-file) and exit: a client sets the "
+        "parameter hil.token to it over wss:// before it may tune",
     )
     p.add_argument(
         "--duration",
@@ -54,34 +69,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def _check_host(host: str, allow_remote: bool) -> None:
-    from hal.errors import HalConfigError
+def _access(args: argparse.Namespace) -> tuple[str, object]:
+    """The access mode and the TLS identity (None: plain ws://), or a one-line refusal."""
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.monitor.access import TlsIdentity, exposure
 
-    try:
-        loopback = ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = host == "localhost"
-    if not loopback and not allow_remote:
-        raise HalConfigError(
-            f"--host {host} is not a loopback address: the live view has no authentication; "
-            "add --allow-remote to serve it anyway"
-        )
+    if bool(args.tls_cert) != bool(args.tls_key):
+        raise ControllerConfigError("--tls-cert and --tls-key go together (wss:// needs both)")
+    mode = exposure(
+        args.host,
+        allow_remote=args.allow_remote,
+        allow_tuning=args.allow_tuning,
+        tls=bool(args.tls_cert),
+    )
+    tls = TlsIdentity.load(args.tls_cert, args.tls_key) if args.tls_cert else None
+    return mode, tls
 
 
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.errors import HalConfigError
+    from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
+    from rt_controller.monitor.access import AccessGate, tuning_token
     from rt_controller.monitor.bridge import MonitorBridge
     from rt_controller.monitor.tuning import TuningFrontEnd
 
-    _check_host(args.host, args.allow_remote)
+    if args.print_token:
+        cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
+        print(tuning_token(rig_key(cfg)))
+        return 0
+    mode, tls = _access(args)
     if not 0 <= args.port <= 65535:
         raise HalConfigError(f"--port must be in 0..65535, got {args.port}")
-    from hal.secoc import configure_key, rig_key
-
     cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
+    gate = AccessGate(mode, rig_key(cfg))
     with stop_on_signals() as stop:
         session = open_session(
             cfg,
@@ -91,19 +114,24 @@ def run(args: argparse.Namespace) -> int:
             stop_event=stop,
         )
         try:
-            tuning = TuningFrontEnd(session, rig_key(cfg), allow_tuning=args.allow_tuning)
-            bridge = MonitorBridge(cfg, session, host=args.host, port=args.port, tuning=tuning)
+            tuning = TuningFrontEnd(
+                session, rig_key(cfg), allow_tuning=args.allow_tuning, gate=gate
+            )
+            bridge = MonitorBridge(
+                cfg, session, host=args.host, port=args.port, tuning=tuning, tls=tls
+            )
             try:
                 bridge.start()
                 print(f"hil monitor: Foxglove WebSocket on {bridge.url}", file=sys.stderr)
-                mode = "tunable" if args.allow_tuning else "read-only (no --allow-tuning)"
-                print(f"hil monitor:   parameters {mode}", file=sys.stderr)
+                print(f"hil monitor:   parameters {_mode_line(args, mode)}", file=sys.stderr)
                 for topic, schema in bridge.channels().items():
                     print(f"hil monitor:   {topic}  [{schema}]", file=sys.stderr)
                 stop.wait(args.duration or None)
             finally:
                 clean = bridge.close()
                 counts = dict(bridge.counts)
+                if mode == "token":
+                    counts.update({f"access_{k}": v for k, v in gate.counts.items()})
         finally:
             session.close()
     if args.json:
@@ -116,3 +144,16 @@ def run(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         os._exit(0)
     return 0
+
+
+def _mode_line(args: argparse.Namespace, mode: str) -> str:
+    """What a client may change, in words (printed at the start)."""
+    if mode == "closed":
+        return "read-only (a remote view without TLS)"
+    if not args.allow_tuning:
+        return "read-only (no --allow-tuning)" + (
+            "; the mark needs the access token" if mode == "token" else ""
+        )
+    if mode == "token":
+        return "tunable by a connection that set hil.token (hil monitor --print-token)"
+    return "tunable by any client of this host (loopback)"

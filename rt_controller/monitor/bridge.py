@@ -20,6 +20,9 @@ callback on zenoh's threads, the oldest sample goes when a ring is full) drained
 thread; the server drops the oldest messages of a client that does not read
 (``message_backlog_size``). The camera-pose subscription starts only after the first cycle record
 arrives, so a monitor never counts as the vision process the lockstep emulator waits for.
+
+With a :class:`~rt_controller.monitor.access.TlsIdentity` the server accepts ``wss://`` only
+(foxglove-sdk's ``tls_cert``/``tls_key``); who may change the rig is the tuning front-end's gate.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ from hal.zenoh_session import (
     ZenohSession,
 )
 from rt_controller.errors import ControllerError
+from rt_controller.monitor.access import TlsIdentity
 from rt_controller.monitor.scene import SceneBuilder
 from rt_controller.monitor.tuning import TuningFrontEnd
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
@@ -143,6 +147,7 @@ class MonitorBridge:
         port: int = DEFAULT_PORT,
         clock: Callable[[], int] = time.time_ns,
         tuning: TuningFrontEnd | None = None,
+        tls: TlsIdentity | None = None,
     ) -> None:
         self.cfg = cfg
         self.session = session
@@ -177,6 +182,9 @@ class MonitorBridge:
                 "services": tuning.services(),
                 "supported_encodings": ["json"],
             }
+        if tls is not None:
+            extra.update(tls_cert=tls.cert, tls_key=tls.key)
+        self.tls = tls is not None
         try:
             self.server = foxglove.start_server(
                 name="hil monitor", host=host, port=port, message_backlog_size=BACKLOG, **extra
@@ -197,7 +205,7 @@ class MonitorBridge:
 
     @property
     def url(self) -> str:
-        return f"ws://{self.host}:{self.port}"
+        return f"{'wss' if self.tls else 'ws'}://{self.host}:{self.port}"
 
     def channels(self) -> dict[str, str]:
         """Advertised topic -> schema name."""

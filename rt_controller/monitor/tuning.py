@@ -17,10 +17,16 @@ refused here, before the controller, and the operator services that change thing
 advertised. Subscribers get fresh values whenever the cycle records' ``param_set`` moves
 (:meth:`TuningFrontEnd.param_set_seen`), whoever changed it.
 
-Services (JSON): ``/hil/mark`` (always; a note in ``/controller/events``), and with
+Services (JSON): ``/hil/mark`` (a note in ``/controller/events``), and with
 ``allow_tuning`` ``/hil/arm``, ``/hil/disarm``, ``/hil/switch_law`` (``{"law": ...}``, a set of
 ``controller.law``) and ``/hil/reset_scenario`` (refused by the controller with its reason).
 Each takes an optional ``at_tick`` and answers ``{"accepted", "tick", "reason", ...}``.
+
+Who may change the rig is the :class:`~rt_controller.monitor.access.AccessGate`'s: with TLS a
+connection first sets ``hil.token`` (write-only: always read as ""); every set and service call
+of a connection it does not admit is refused here with the reason (the reply carries it in
+``hil.last_outcome``; the shared outcome and the status line are left alone), before the
+controller. A plain remote view offers no service at all.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ from rt_controller.calibration.link import (
     request,
 )
 from rt_controller.calibration.parameters import TUNABLE
+from rt_controller.monitor.access import TOKEN_PARAMETER, AccessGate
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +104,8 @@ def _like(new: Any, old: Any) -> Any:
 class TuningFrontEnd:
     """The Parameters listener and the services of one monitor. ``session`` is an open
     :class:`~hal.zenoh_session.ZenohSession` (anything with ``session.get`` as zenoh's), ``key``
-    the rig key. ``timeout_s`` bounds the wait for an answer the controller gives at once;
+    the rig key, ``gate`` who may change the rig (default: every client, the plain loopback
+    server's rule). ``timeout_s`` bounds the wait for an answer the controller gives at once;
     ``scheduled_timeout_s`` that for a set or an action with an ``at_tick``, which the controller
     answers when that tick comes (defaults: :func:`~rt_controller.calibration.link.request`'s)."""
 
@@ -109,9 +117,11 @@ class TuningFrontEnd:
         allow_tuning: bool = False,
         timeout_s: float = ANSWER_TIMEOUT_S,
         scheduled_timeout_s: float = SCHEDULED_TIMEOUT_S,
+        gate: AccessGate | None = None,
     ) -> None:
         self.session, self.key = session, key
         self.allow_tuning = allow_tuning
+        self.gate = gate or AccessGate("open")
         self.timeout_s = timeout_s
         self.scheduled_timeout_s = scheduled_timeout_s
         self.server: Any = None
@@ -137,11 +147,18 @@ class TuningFrontEnd:
             got[name] = got[key][i][i]
         got.update({AT_TICK: self._at_tick, LAST_OUTCOME: self.last_outcome})
         got[TUNING] = self.allow_tuning
+        if self.gate.mode == "token":
+            got[TOKEN_PARAMETER] = ""  # write-only: a place to type the token
         return got
 
-    def _parameters(self, names: list[str]) -> list[Parameter]:
+    def _parameters(self, names: list[str], outcome: str | None = None) -> list[Parameter]:
+        """The values of ``names`` (all when empty); ``outcome`` stands for the last outcome
+        in this answer only."""
         values = self.values()
-        return [Parameter(n, value=values[n]) for n in (names or ADVERTISED) if n in values]
+        if outcome is not None:
+            values[LAST_OUTCOME] = outcome
+        everything = (*ADVERTISED, TOKEN_PARAMETER)
+        return [Parameter(n, value=values[n]) for n in (names or everything) if n in values]
 
     # --- foxglove ServerListener --------------------------------------------------------------
     capabilities = (Capability.Parameters, Capability.Services)
@@ -158,16 +175,30 @@ class TuningFrontEnd:
         names += [DIAGONALS[n][0] for n in names if n in DIAGONALS]  # the whole matrix too
         with self._lock:
             asked = {p.name: p.get_value() for p in parameters}
-            if not self.allow_tuning:
-                self._status(READ_ONLY_REASON, ok=False)
-                self.last_outcome = READ_ONLY_REASON
-            else:
-                try:
-                    self._set(asked)
-                except ParameterLinkError as exc:  # the answer says so; the values are the truth
-                    self.last_outcome = str(exc)
-                    self._status(self.last_outcome, ok=False)
-            return self._parameters([*names, LAST_OUTCOME])
+            outcome = None  # this connection's own answer, when the gate decides
+            if TOKEN_PARAMETER in asked:
+                outcome = self.gate.present(client.id, asked.pop(TOKEN_PARAMETER))
+            if asked:  # a refused token's line stands for the change it came with
+                change = self._change(client.id, asked)
+                outcome = outcome if outcome and change else change
+            return self._parameters([*names, LAST_OUTCOME], outcome)
+
+    def _change(self, client_id: int, asked: dict[str, Any]) -> str | None:
+        """Set ``asked`` for one connection: None when the shared outcome tells (the set was
+        judged, or tuning is off), else this connection's refusal by the gate."""
+        refusal = self.gate.refusal(client_id)
+        if refusal is not None:
+            return f"refused: {refusal}"
+        if not self.allow_tuning:
+            self._status(READ_ONLY_REASON, ok=False)
+            self.last_outcome = READ_ONLY_REASON
+            return None
+        try:
+            self._set(asked)
+        except ParameterLinkError as exc:  # the answer says so; the values are the truth
+            self.last_outcome = str(exc)
+            self._status(self.last_outcome, ok=False)
+        return None
 
     def _set(self, asked: dict[str, Any]) -> None:
         if AT_TICK in asked:
@@ -215,7 +246,10 @@ class TuningFrontEnd:
 
     # --- services -------------------------------------------------------------------------
     def services(self) -> list[Service]:
-        """The operator services to advertise (only the mark without ``allow_tuning``)."""
+        """The operator services to advertise: only the mark without ``allow_tuning``, none
+        when the gate admits nobody (a plain remote view)."""
+        if self.gate.mode == "closed":
+            return []
         handlers: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
             MARK_SERVICE: lambda body: self._action("mark", body)
         }
@@ -231,6 +265,10 @@ class TuningFrontEnd:
 
         def wrap(fn: Callable[[dict[str, Any]], dict[str, Any]]) -> Callable[..., bytes]:
             def handler(req: ServiceRequest) -> bytes:
+                refusal = self.gate.refusal(req.client_id)
+                if refusal is not None:
+                    out = {"accepted": False, "reason": refusal, "line": f"refused: {refusal}"}
+                    return json.dumps(out).encode()
                 body = json.loads(req.payload or b"{}") if req.payload else {}
                 return json.dumps(fn(body if isinstance(body, dict) else {})).encode()
 

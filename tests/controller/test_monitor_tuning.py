@@ -5,7 +5,6 @@ ParameterServer (requests signed and verified as on zenoh; the "loop" takes them
 
 from __future__ import annotations
 
-import threading
 import time
 from types import SimpleNamespace
 
@@ -13,36 +12,10 @@ import pytest
 
 from hal.config import RigConfig
 from hal.zenoh_session import free_loopback_port
-from rt_controller.calibration.link import ParameterServer
-from rt_controller.calibration.parameters import ParameterService
 from rt_controller.monitor.bridge import MonitorBridge
 from rt_controller.monitor.tuning import ADVERTISED, TuningFrontEnd
 from tests.support.foxglove_ws import FoxgloveClient
-
-KEY = bytes(range(32))
-TICK = 10
-
-
-class LoopbackLink:
-    """``session.session.get`` of zenoh, answered by a ParameterServer whose queue is taken at
-    tick :data:`TICK` (actions are done there, as the loop does)."""
-
-    def __init__(self) -> None:
-        self.service = ParameterService(RigConfig())
-        self.server = ParameterServer(self.service, KEY)
-        self.session = self
-        self.lock = threading.Lock()
-
-    def get(self, _key, payload, timeout):
-        got: list = []
-        with self.lock:
-            self.server.handle(payload, got.append)
-            if not got:
-                self.service.due(TICK)
-                for act in self.service.actions.due(TICK):
-                    act.finish(TICK, accepted=act.refusal is None, reason=act.refusal)
-        ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: got[0]))
-        return [SimpleNamespace(ok=ok)] if got and got[0] is not None else []
+from tests.support.param_link import KEY, TICK, LoopbackLink
 
 
 class SlowTickLink(LoopbackLink):

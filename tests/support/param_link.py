@@ -1,0 +1,38 @@
+"""The signed parameter link of ``hil monitor`` played in-process, for tests of the Foxglove
+front-end: ``session.session.get`` of zenoh answered by a real
+:class:`~rt_controller.calibration.link.ParameterServer` whose queue is taken at tick
+:data:`TICK` (actions are done there, as the loop does)."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+from hal.config import RigConfig
+from rt_controller.calibration.link import ParameterServer
+from rt_controller.calibration.parameters import ParameterService
+
+KEY = bytes(range(32))
+TICK = 10
+
+
+class LoopbackLink:
+    """``session.session.get`` of zenoh, answered by a ParameterServer whose queue is taken at
+    tick :data:`TICK` (actions are done there, as the loop does)."""
+
+    def __init__(self) -> None:
+        self.service = ParameterService(RigConfig())
+        self.server = ParameterServer(self.service, KEY)
+        self.session = self
+        self.lock = threading.Lock()
+
+    def get(self, _key, payload, timeout):
+        got: list = []
+        with self.lock:
+            self.server.handle(payload, got.append)
+            if not got:
+                self.service.due(TICK)
+                for act in self.service.actions.due(TICK):
+                    act.finish(TICK, accepted=act.refusal is None, reason=act.refusal)
+        ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: got[0]))
+        return [SimpleNamespace(ok=ok)] if got and got[0] is not None else []
