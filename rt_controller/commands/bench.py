@@ -70,6 +70,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="keep the runs' MCAP logs and configs in DIR (default: a temporary folder)",
     )
     _finish(lp, run_loop)
+    vp = bench.add_parser(
+        "vision",
+        help="the image pipeline: render and detection time at 640x480 and 1280x1024, error "
+        "against eq. (6) with and without noise, frames lost to motion blur at peak speed, "
+        "capture-to-publish latency over zenoh",
+    )
+    add_config_option(vp)
+    vp.add_argument(
+        "--grid",
+        type=bounded_int(2, 50, what="poses per axis"),
+        default=7,
+        help="poses per joint axis of the pose grid (default 7: 49 poses)",
+    )
+    vp.add_argument(
+        "--latency-frames",
+        type=bounded_int(0, 100_000, what="frames"),
+        default=300,
+        help="frames sent at 60 fps through a loopback zenoh hub (0 = skip)",
+    )
+    _finish(vp, run_vision)
     hp = bench.add_parser(
         "host",
         help="how late this host wakes a SCHED_FIFO 99 thread on each CPU (cyclictest's "
@@ -134,6 +154,24 @@ def run_solver(args: argparse.Namespace) -> int:
     ):
         result = bench_solver(cfg, updates=args.updates)
     print(json.dumps(result))
+    return 0
+
+
+def run_vision(args: argparse.Namespace) -> int:
+    from rt_controller.commands.vision import emulated_camera
+    from rt_controller.rig.bench_vision import bench_vision
+
+    render, truth = emulated_camera()
+    progress = Progress.of(args, "hil bench vision")
+    out = bench_vision(
+        config_from_args(args),
+        render,
+        truth,
+        grid=args.grid,
+        latency_frames=args.latency_frames,
+        progress=progress.line,
+    )
+    print(json.dumps(out))
     return 0
 
 

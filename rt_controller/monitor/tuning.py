@@ -24,9 +24,10 @@ Each takes an optional ``at_tick`` and answers ``{"accepted", "tick", "reason", 
 
 Who may change the rig is the :class:`~rt_controller.monitor.access.AccessGate`'s: with TLS a
 connection first sets ``hil.token`` (write-only: always read as ""); every set and service call
-of a connection it does not admit is refused here with the reason (the reply carries it in
-``hil.last_outcome``; the shared outcome and the status line are left alone), before the
-controller. A plain remote view offers no service at all.
+of a connection it does not admit is refused here with the reason, before the controller (the
+reply carries it in ``hil.last_outcome``, which the SDK also publishes to that parameter's
+subscribers; the shared outcome and the status line are left alone). A plain remote view offers
+no service at all.
 """
 
 from __future__ import annotations

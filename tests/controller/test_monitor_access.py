@@ -5,6 +5,7 @@ controller played in-process by the real ParameterServer (tests of test_monitor_
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -72,6 +73,7 @@ def test_over_tls_the_client_with_the_token_sets_kp_and_one_without_cannot(serve
     link, url, ctx = serve_tls()
     stranger = FoxgloveClient.open(url, ssl=ctx)
     operator = FoxgloveClient.open(url, ssl=ctx)
+    stranger.subscribe_parameters(["hil.token", "hil.last_outcome", "gains.kp"])
     # reads work for everyone
     assert stranger.get_parameters(["gains.kp"]) == {"gains.kp": 0.13}
     # a set without the token is refused, with the reason, and never reaches the controller
@@ -103,6 +105,9 @@ def test_over_tls_the_client_with_the_token_sets_kp_and_one_without_cannot(serve
     assert operator.call_service("/hil/switch_law", {"law": "rhc"})["accepted"]
     assert link.service.cfg.controller.law == "rhc"
     assert operator.call_service("/hil/disarm", {})["accepted"]
+    # the SDK publishes each set's reply to the subscribers: the token's is there, blanked
+    sent = json.dumps(stranger.parameter_updates)
+    assert "access token accepted" in sent and TOKEN not in sent
     # a new connection starts without the operator's admission
     again = FoxgloveClient.open(url, ssl=ctx)
     assert "hil.token" in again.set_parameters({"gains.kp": 0.7})["hil.last_outcome"]
