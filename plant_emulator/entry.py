@@ -11,6 +11,10 @@ Behaviour:
 * unless ``--no-vision-link``, it is the zenoh hub of the rig (router listening on
   ``--zenoh-endpoint``, or a ``--zenoh-config`` file) and publishes the camera pose on
   ``hil/emulator/camera_pose`` for the vision process (:mod:`plant_emulator.pose_link`);
+* with ``camera.model = "image"`` (unless ``--no-camera``) it is also the rig's camera: a thread
+  renders frames from those poses and streams them on ``hil/camera/frame``
+  (:mod:`plant_emulator.camera_node`); in lockstep it then waits for a frame grabber (or a pose
+  subscriber: the analytic vision process) before period 0;
 * prints one line on stderr saying where it serves, e.g.
   ``hil emulator: serving the arm on socketcan:vcan0 (realtime)``;
 * SIGTERM / SIGINT (or ``--duration``): torque off, a final DspStatus, bus and session closed,
@@ -28,13 +32,14 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hal.arguments import add_key_option, bounded_float, duration
 
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
     from plant_emulator.camera import CameraPose
+    from plant_emulator.camera_node import CameraNode
     from plant_emulator.pose_link import PosePublisher
 
 DEFAULT_VISION_WAIT_S = 10.0
@@ -92,6 +97,13 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
         help="do not open zenoh / publish camera poses (CAN only)",
     )
     p.add_argument(
+        "--no-camera",
+        dest="camera",
+        action="store_false",
+        help="with camera.model = image: do not render and stream camera frames (another "
+        "camera serves hil/camera/frame)",
+    )
+    p.add_argument(
         "--vision-wait",
         type=float,
         default=DEFAULT_VISION_WAIT_S,
@@ -106,10 +118,14 @@ class _PoseLink:
     def __init__(self, publisher: PosePublisher) -> None:
         self.publisher = publisher
         self.errors = 0
+        self.camera: CameraNode | None = None
+        """The emulated camera, offered every pose published (``camera.model = "image"``)."""
 
     def __call__(self, seq: int, sim_time_ns: int, pose: CameraPose, lockstep: bool) -> None:
         from hal.errors import HalTransportError
 
+        if self.camera is not None:
+            self.camera.offer(seq, sim_time_ns, pose, lockstep)
         try:
             self.publisher.publish(seq, sim_time_ns, pose, lockstep)
         except HalTransportError as exc:
@@ -129,6 +145,8 @@ class _PoseLink:
         while self.publisher.source == old:
             self.publisher.source = secrets.randbits(32)
         self.publisher.seed = seed
+        if self.camera is not None:
+            self.camera.new_run(seed)
 
 
 def _config(args: argparse.Namespace) -> Any:
@@ -187,11 +205,13 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(open_bus(spec))
         link: _PoseLink | None = None
+        listening: Callable[[], bool] | None = None
+        """Whether the process lockstep waits for before period 0 is there."""
         zenoh_where = ""
         if args.vision_link:
             from hal.secoc import rig_key
             from hal.zenoh_session import open_session
-            from plant_emulator.pose_link import PosePublisher
+            from plant_emulator.pose_link import PosePublisher, wait_until
 
             session = stack.enter_context(
                 open_session(
@@ -204,7 +224,22 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             publisher = PosePublisher(session, key=rig_key(cfg))
             stack.callback(publisher.close)
             link = _PoseLink(publisher)
+            listening = publisher.has_subscribers
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
+            if args.camera and cfg.camera.model == "image":
+                from plant_emulator.camera_node import CameraNode, FramePublisher
+
+                frames = FramePublisher(session)
+                stack.callback(frames.close)
+                link.camera = CameraNode(
+                    cfg, frames.put, key=rig_key(cfg), watched=frames.has_subscribers
+                )
+                poses_seen = publisher.has_subscribers
+                listening = lambda: frames.has_subscribers() or poses_seen()  # noqa: E731
+                stack.callback(link.camera.close)
+                link.camera.start()
+                c = cfg.camera
+                zenoh_where += f", camera frames {c.width_px}x{c.height_px}"
         node = DspNode(
             cfg,
             bus,
@@ -222,7 +257,8 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             lockstep
             and link is not None
             and args.vision_wait > 0
-            and not link.publisher.wait_for_subscribers(args.vision_wait, stop)
+            and listening is not None
+            and not wait_until(listening, args.vision_wait, stop)
             and not stop.is_set()
         ):
             print(
@@ -248,6 +284,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             "watchdog_period_ms": node.watchdog_ns * 1e-6,
             "poses_published": 0 if link is None else link.publisher.published,
             "pose_errors": 0 if link is None else link.errors,
+            "camera": None if link is None or link.camera is None else link.camera.stats.as_dict(),
             **stats.as_dict(),
         }
     if args.json:

@@ -19,6 +19,7 @@ import contextlib
 import secrets
 import threading
 import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -87,14 +88,22 @@ class PosePublisher:
         self, timeout_s: float, stop_event: threading.Event | None = None
     ) -> bool:
         """Wait until a vision process subscribes (call before the first lockstep pose)."""
-        deadline = time.monotonic() + timeout_s
-        while not self.has_subscribers():
-            if time.monotonic() >= deadline or (stop_event is not None and stop_event.is_set()):
-                return False
-            time.sleep(0.005)
-        return True
+        return wait_until(self.has_subscribers, timeout_s, stop_event)
 
     def close(self) -> None:
         """Undeclare the publisher (the session stays open). Idempotent."""
         with contextlib.suppress(zenoh.ZError):
             self._pub.undeclare()
+
+
+def wait_until(
+    predicate: Callable[[], bool], timeout_s: float, stop_event: threading.Event | None = None
+) -> bool:
+    """Poll ``predicate`` every 5 ms until it holds (True), ``timeout_s`` passes or
+    ``stop_event`` is set (False)."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() >= deadline or (stop_event is not None and stop_event.is_set()):
+            return False
+        time.sleep(0.005)
+    return True

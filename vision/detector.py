@@ -3,12 +3,14 @@
 The target is a dark disc on the lighter plane. Steps, all OpenCV:
 
 1. A threshold half-way between the frame's median (the plane) and its darkest spot (3x3
-   mean) separates the dark from the light; the connected dark regions are the candidates
-   (``cv2.connectedComponentsWithStats``). Otsu's threshold would split the plane's texture:
-   the disc is a few hundred of 300 000 pixels.
+   mean) separates the dark from the light; the outer contours of the dark regions are the
+   candidates (``cv2.findContours``: 0.05 ms at 640x480, against 2 ms for
+   ``connectedComponentsWithStats``). Otsu's threshold would split the plane's texture: the disc
+   is a thousand of 300 000 pixels.
 2. A candidate is the target when its area lies in ``[min_area, max_area]`` and it is round:
-   its second moments give an elongation (major/minor axis) of at most ``max_elongation`` and
-   it fills the ellipse they describe (fill ratio >= ``min_fill``). The roundest one wins.
+   the second moments of its contour polygon give an elongation (major/minor axis) of at most
+   ``max_elongation`` and it fills the ellipse they describe (fill ratio >= ``min_fill``). The
+   roundest one wins.
 3. Sub-pixel centre: the centroid of the disc's *darkness* in a window around the region,
    ``w = clip((bg - I) / (bg - fg), 0, 1)`` over the region and its 1 px border, with ``bg``
    the plane's level (a linear fit to the next 2 px ring) and ``fg`` the disc's.
@@ -62,6 +64,12 @@ _KERNEL3 = np.ones((3, 3), np.uint8)
 _KERNEL5 = np.ones((5, 5), np.uint8)
 
 
+def _median_u8(img: np.ndarray) -> float:
+    """Median grey level of an 8-bit image from its histogram (6x faster than np.median)."""
+    hist = cv2.calcHist([np.ascontiguousarray(img)], [0], None, [256], [0, 256]).ravel()
+    return float(np.searchsorted(np.cumsum(hist), hist.sum() / 2.0))
+
+
 def _plane(win: np.ndarray, xs: np.ndarray, ys: np.ndarray, ring: np.ndarray) -> np.ndarray:
     """The plane's grey level under the window: a linear fit to the ring around the region
     (removes the texture's gradient, which would pull the centroid)."""
@@ -92,23 +100,23 @@ def detect(
     h, w = img.shape
     smooth = cv2.blur(img, (3, 3))
     darkest, _, _, _ = cv2.minMaxLoc(smooth)
-    level = float(np.median(smooth[::4, ::4]))
+    level = _median_u8(smooth[::4, ::4])
     if level - darkest < params.min_contrast:
         return None, "not_found"
     _, mask = cv2.threshold(smooth, (level + darkest) / 2.0, 255, cv2.THRESH_BINARY_INV)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    best: tuple[float, int, float] | None = None
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    best: tuple[float, np.ndarray, float] | None = None
     reason = "not_found"
-    for i in range(1, n):
-        x, y, bw, bh, area = (int(v) for v in stats[i])
+    for c in contours:
+        m = cv2.moments(c)
+        area = m["m00"]
         if not params.min_area <= area <= params.max_area:
             continue
-        border = x == 0 or y == 0 or x + bw >= w or y + bh >= h
-        if border:
+        x, y, bw, bh = cv2.boundingRect(c)
+        if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
             reason = "out_of_view"
             continue
-        region = (labels[y : y + bh, x : x + bw] == i).astype(np.uint8)
-        elongation, fill = _shape(cv2.moments(region, binaryImage=True))
+        elongation, fill = _shape(m)
         if elongation > params.max_elongation:
             if reason == "not_found":
                 reason = "blurred"
@@ -116,16 +124,17 @@ def detect(
         if fill < params.min_fill:
             continue
         if best is None or elongation < best[2]:
-            best = (float(area), i, elongation)
+            best = (float(area), c, elongation)
     if best is None:
         return None, reason
-    area, i, elongation = best
-    x, y, bw, bh, _ = (int(v) for v in stats[i])
+    area, contour, elongation = best
+    x, y, bw, bh = cv2.boundingRect(contour)
     m = params.margin
     x0, y0 = max(x - m, 0), max(y - m, 0)
     x1, y1 = min(x + bw + m, w), min(y + bh + m, h)
     win = img[y0:y1, x0:x1].astype(np.float64)
-    inside = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
+    inside = np.zeros(win.shape, np.uint8)
+    cv2.drawContours(inside, [contour], 0, 1, thickness=cv2.FILLED, offset=(-x0, -y0))
     support = cv2.dilate(inside, _KERNEL3).astype(bool)
     ring = cv2.dilate(inside, _KERNEL5).astype(bool) & ~support
     ys, xs = np.mgrid[y0:y1, x0:x1]

@@ -85,24 +85,18 @@ def intrinsics_from_config(cfg: RigConfig) -> Intrinsics:
 
 
 def _nominal(cfg: RigConfig) -> dict[str, object]:
-    """The emulated camera's true intrinsics (``[camera]``; 0 = the paper's defaults: the image
-    centre, s·lambda on both axes)."""
+    """The emulated camera's true intrinsics (``[camera]``, nominal: not the plant's factors)."""
     cam = cfg.camera
-    width, height = cam.width_px, cam.height_px
-    cx, cy = cam.principal_point_px
-    if (cx, cy) == (0.0, 0.0):
-        cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
-    fx, fy = cam.focal_px
-    if (fx, fy) == (0.0, 0.0):
-        fx = fy = cam.s_lambda
+    fx, fy = cam.true_focal_px
+    cx, cy = cam.true_principal_point_px
     return {
-        "width": int(width),
-        "height": int(height),
+        "width": int(cam.width_px),
+        "height": int(cam.height_px),
         "fx": float(fx),
         "fy": float(fy),
         "cx": float(cx),
         "cy": float(cy),
-        "dist": (cam.lens_k1, cam.lens_k2, cam.lens_p1, cam.lens_p2, cam.lens_k3),
+        "dist": tuple(float(d) for d in cam.true_lens),
     }
 
 

@@ -5,6 +5,7 @@ image pipeline of ``vision/`` on frames; otherwise the emulator's analytic camer
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 IMAGE_DEFAULT = False
 """Whether ``camera.model = "image"`` makes ``--source emulated`` the default. Off until the
@@ -49,3 +50,32 @@ def _run(args: argparse.Namespace) -> int:
 
     args.source = source
     return run_from_args(args)
+
+
+def emulated_camera() -> tuple[Any, Any]:
+    """``(render, truth)`` of the emulated camera for ``hil bench vision`` (this module may
+    import the emulator; ``rt_controller.rig.bench_vision`` may not): ``render(cfg, q, dq,
+    frame)`` the frame taken at joint angles ``q`` moving at ``dq`` (exposure centred on
+    ``q``), ``truth(cfg, q)`` the true features of eq. (6) there."""
+    import functools
+
+    import numpy as np
+
+    from hal.config import RigConfig, plant_view
+    from plant_emulator.camera import camera_pose, project
+    from plant_emulator.camera_node import sensor_from_config
+    from plant_emulator.scenario import paper_target
+
+    sensor = functools.lru_cache(maxsize=8)(sensor_from_config)
+
+    def render(cfg: RigConfig, q: np.ndarray, dq: np.ndarray, frame: int) -> np.ndarray:
+        robot = plant_view(cfg).robot
+        q, dq = np.asarray(q, float), np.asarray(dq, float)
+        return sensor(cfg).render(lambda t: camera_pose(robot, q + dq * t), 0.0, frame=frame)
+
+    def truth(cfg: RigConfig, q: np.ndarray) -> tuple[float, float]:
+        plant = plant_view(cfg)
+        f = project(plant.camera, camera_pose(plant.robot, q), paper_target(plant).position(0.0))
+        return (float(f[0]), float(f[1]))
+
+    return render, truth

@@ -1,0 +1,382 @@
+"""The emulated network camera: renders frames from the arm's pose and streams them on zenoh.
+
+It runs inside ``hil emulator`` (``camera.model = "image"``), next to the arm, as a network
+camera is bolted to a real one: the DSP node hands it every camera pose it publishes
+(:meth:`CameraNode.offer`, no zenoh round trip), a worker thread renders
+(:class:`plant_emulator.camera_sensor.CameraSensor`) and publishes each frame on
+``hil/camera/frame`` (:mod:`hal.camera_frame`) for the vision process's frame grabber.
+
+* **lockstep** — exactly one frame per control period: the pose of period k ends the exposure
+  (the frame is stamped at its middle, ``t_k - exposure / 2``; the arm's motion over the
+  exposure is interpolated from the poses of periods k - 1 and k) and the frame carries
+  ``period = k``. A re-sent pose (the DSP re-announces a period while it waits) gets the same
+  frame again, byte for byte. Noise is keyed by (seed, frame), so a run is bit-exact for a seed.
+* **realtime** — the camera's own frame clock: frame j is exposed around ``j / fps`` of scenario
+  time and rendered once a pose at or after the end of its exposure has arrived (poses come at
+  ``rates.state_hz``; the motion is interpolated between them). Slots the renderer could not
+  keep up with are skipped and counted, never bunched. While the world holds its initial state
+  (sim time 0) frames come on a monotonic clock at the same rate from the newest pose.
+
+A new emulator run (a scenario reset: new pose source id; or sim time going backwards) restarts
+the frame counter and the noise with the seed the reset named (else ``camera.seed``).
+
+Why a thread of the emulator and not a process of its own: the camera needs the pose at the
+emulator's own rate and nothing else, ``hil up`` starts it with the arm, and the renderer spends
+its time in numpy and hashing, which release the GIL (the DSP loop's lateness with the camera
+on is in ``hil bench vision``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import secrets
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import zenoh
+
+from hal.camera_frame import encode_frame
+from hal.config import RigConfig, plant_view
+from hal.errors import HalError, HalTransportError
+from hal.zenoh_session import KEY_CAMERA_FRAME, ZenohSession
+from plant_emulator.camera import CameraPose
+from plant_emulator.camera_sensor import (
+    CameraSensor,
+    Intrinsics,
+    LensDistortion,
+    Resolution,
+    Scene,
+    SensorNoise,
+    marker_texture,
+)
+from plant_emulator.scenario import paper_target
+
+DEFAULT_FPS = 60.0
+"""Realtime frame rate when ``camera.frame_rate_hz`` is 0 (the XC-HR57's)."""
+HISTORY_S = 0.25
+"""Realtime: how much pose history the renderer keeps for a frame's exposure."""
+
+
+def target_scene(cfg: RigConfig) -> Scene:
+    """The paper's scene: the rig's target marker where the scenario puts it (the jump included)."""
+    target = paper_target(plant_view(cfg))
+    return lambda t: marker_texture(target.position(t))
+
+
+def sensor_from_config(
+    cfg: RigConfig, scene: Scene | None = None, seed: int | None = None
+) -> CameraSensor:
+    """The emulated camera of ``cfg`` (the plant's: :func:`hal.config.plant_view`), looking at
+    ``scene`` (default: :func:`target_scene`)."""
+    c = plant_view(cfg).camera
+    fx, fy = c.true_focal_px
+    cx, cy = c.true_principal_point_px
+    return CameraSensor(
+        Intrinsics(fx, fy, cx, cy),
+        LensDistortion(*c.true_lens),
+        Resolution(c.width_px, c.height_px),
+        SensorNoise(c.electrons_per_dn, c.read_noise_dn),
+        c.exposure_s,
+        c.seed if seed is None else seed,
+        z_wo=c.z_wo,
+        scene=target_scene(cfg) if scene is None else scene,
+    )
+
+
+@dataclass(frozen=True)
+class PoseSample:
+    seq: int
+    sim_ns: int
+    stamp_ns: int
+    pose: CameraPose
+
+
+class PoseHistory:
+    """Recent camera poses of one run; :meth:`pose_at` interpolates linearly in sim time."""
+
+    def __init__(self, keep_ns: int) -> None:
+        self.keep_ns = keep_ns
+        self.samples: deque[PoseSample] = deque()
+
+    def add(self, s: PoseSample) -> None:
+        if self.samples and s.sim_ns <= self.samples[-1].sim_ns:
+            self.samples[-1] = s  # a holding world re-publishes time 0: keep the newest pose
+        else:
+            self.samples.append(s)
+        while len(self.samples) > 2 and self.samples[1].sim_ns < s.sim_ns - self.keep_ns:
+            self.samples.popleft()
+
+    def clear(self) -> None:
+        self.samples.clear()
+
+    @property
+    def newest(self) -> PoseSample | None:
+        return self.samples[-1] if self.samples else None
+
+    def _bracket(self, t_ns: float) -> tuple[PoseSample, PoseSample, float]:
+        s = self.samples
+        if t_ns <= s[0].sim_ns:
+            return s[0], s[0], 0.0
+        for a, b in zip(s, list(s)[1:], strict=False):
+            if t_ns <= b.sim_ns:
+                return a, b, (t_ns - a.sim_ns) / (b.sim_ns - a.sim_ns)
+        return s[-1], s[-1], 0.0
+
+    def pose_at(self, t_s: float) -> CameraPose:
+        a, b, w = self._bracket(t_s * 1e9)
+        pa, pb = a.pose, b.pose
+        dphi = math.remainder(pb.phi - pa.phi, 2 * math.pi)
+        return CameraPose(pa.x + w * (pb.x - pa.x), pa.y + w * (pb.y - pa.y), pa.phi + w * dphi)
+
+    def stamp_at(self, t_s: float) -> int:
+        """The monotonic time at sim time ``t_s`` (interpolated between the poses' stamps)."""
+        a, b, w = self._bracket(t_s * 1e9)
+        return round(a.stamp_ns + w * (b.stamp_ns - a.stamp_ns))
+
+
+@dataclass
+class CameraStats:
+    """What the camera did (in ``hil emulator --json``)."""
+
+    frames: int = 0
+    """Frames rendered and published."""
+    resent: int = 0
+    """Lockstep: frames re-published for a re-sent pose."""
+    skipped: int = 0
+    """Realtime: frame slots skipped because the renderer fell behind."""
+    unwatched: int = 0
+    """Realtime: frame slots not rendered because no frame grabber listened."""
+    runs: int = 0
+    publish_errors: int = 0
+    render_ms_max: float = 0.0
+    render_ms_sum: float = 0.0
+
+    def as_dict(self) -> dict[str, float]:
+        d = asdict(self)
+        d["render_ms_mean"] = self.render_ms_sum / self.frames if self.frames else 0.0
+        del d["render_ms_sum"]
+        return d
+
+
+class CameraNode:
+    """Renders and publishes frames for the poses it is offered (see the module docstring).
+
+    ``publish`` sends one encoded frame (raises on a broken link: counted, never fatal);
+    ``watched`` says whether a frame grabber listens: realtime frames nobody would receive are
+    not rendered (counted ``unwatched``; lockstep always renders, its frames are the run's)."""
+
+    def __init__(
+        self,
+        cfg: RigConfig,
+        publish: Callable[[bytes], object],
+        *,
+        key: bytes | None = None,
+        fps: float | None = None,
+        sensor: CameraSensor | None = None,
+        clock: Callable[[], int] = time.monotonic_ns,
+        watched: Callable[[], bool] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.sensor = sensor or sensor_from_config(cfg)
+        self.publish = publish
+        self.key = key
+        fps = cfg.camera.frame_rate_hz if fps is None else fps
+        self.fps = fps if fps > 0 else DEFAULT_FPS
+        self.period_ns = round(1e9 / self.fps)
+        self.exposure_ns = round(self.sensor.exposure_s * 1e9)
+        self.stats = CameraStats()
+        self.source = secrets.randbits(32)
+        self._clock = clock
+        self._watched = watched
+        self._cond = threading.Condition()
+        self._queue: deque[tuple[PoseSample, bool] | tuple[None, int | None]] = deque()
+        """Offered poses (and lockstep flags) in order, and scenario resets (None, seed)."""
+        self._history = PoseHistory(round(HISTORY_S * 1e9))
+        self._thread: threading.Thread | None = None
+        self._lockstep = False
+        """Whether the newest pose was a lockstep one (then no realtime frame clock runs)."""
+        self._stop = threading.Event()
+        self._new_run(None)
+
+    # -- feeding (the DSP's thread) --------------------------------------------------------
+
+    def offer(self, seq: int, sim_time_ns: int, pose: CameraPose, lockstep: bool) -> None:
+        """A camera pose the emulator publishes (the pose sink's signature); returns at once."""
+        sample = PoseSample(seq, sim_time_ns, self._clock(), pose)
+        with self._cond:
+            self._queue.append((sample, lockstep))
+            self._cond.notify()
+
+    def new_run(self, seed: int | None) -> None:
+        """A scenario reset: restart the frame counter and the noise (``seed``, else
+        ``camera.seed``) before the next pose."""
+        with self._cond:
+            self._queue.append((None, seed))
+            self._cond.notify()
+
+    # -- the worker ------------------------------------------------------------------------
+
+    def start(self) -> CameraNode:
+        self._thread = threading.Thread(target=self._run, name="hil-camera", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the worker (frames not yet rendered are dropped). Idempotent."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with self._cond:
+                if not self._queue:
+                    self._cond.wait(timeout=self._idle_wait_s())
+            self.drain()
+
+    def drain(self) -> None:
+        """Handle every pose offered so far, then any realtime frame now due (the worker's
+        body; tests call it directly instead of :meth:`start`)."""
+        with self._cond:
+            batch = list(self._queue)
+            self._queue.clear()
+        self._step(batch)
+
+    def _idle_wait_s(self) -> float:
+        """Realtime, world holding: wake for the next monotonic frame slot."""
+        if self._hold_next_ns is None:
+            return 0.1
+        return min(0.1, max(0.0, (self._hold_next_ns - self._clock()) * 1e-9))
+
+    def _new_run(self, seed: int | None) -> None:
+        self._seed = self.cfg.camera.seed if seed is None else seed
+        self.sensor.seed = self._seed
+        self._frame = 0
+        self._history.clear()
+        self._last_lockstep: tuple[int, bytes] | None = None
+        self._next_slot = 0
+        self._hold_next_ns: int | None = None
+        self.stats.runs += 1
+
+    def _step(self, batch: list[tuple[PoseSample, bool] | tuple[None, int | None]]) -> None:
+        for sample, flag in batch:
+            if sample is None:
+                self._new_run(flag)
+                continue
+            self._lockstep = lockstep = bool(flag)
+            newest = self._history.newest
+            if newest is not None and sample.sim_ns < newest.sim_ns:
+                self._new_run(self._seed)  # time went backwards: a new run
+            if lockstep:
+                self._answer(sample)
+            else:
+                self._history.add(sample)
+        if not self._lockstep:
+            self._realtime_frames()
+
+    def _answer(self, sample: PoseSample) -> None:
+        last = self._last_lockstep
+        if last is not None and last[0] == sample.seq:
+            self._send(last[1])
+            self.stats.resent += 1
+            return
+        self._history.add(sample)
+        t_end = sample.sim_ns * 1e-9
+        t_mid = t_end - self.sensor.exposure_s / 2
+        payload = self._render(t_mid, sample.seq, True, sample.stamp_ns - self.exposure_ns // 2)
+        self._last_lockstep = (sample.seq, payload)
+        self._send(payload)
+
+    def _realtime_frames(self) -> None:
+        newest = self._history.newest
+        if newest is None:
+            return
+        if newest.sim_ns == 0:  # the world holds: a monotonic frame clock, the newest pose
+            now = self._clock()
+            if self._hold_next_ns is None:
+                self._hold_next_ns = now
+            if now >= self._hold_next_ns:
+                self._hold_next_ns += self.period_ns * max(
+                    1, (now - self._hold_next_ns) // self.period_ns + 1
+                )
+                if self._watching():
+                    self._send(self._render(0.0, newest.seq, False, now - self.exposure_ns // 2))
+            return
+        self._hold_next_ns = None
+        half = self.exposure_ns // 2
+        due = (newest.sim_ns - half) // self.period_ns  # the newest slot whose exposure ended
+        if due < self._next_slot:
+            return
+        if due > self._next_slot:
+            self.stats.skipped += due - self._next_slot
+        self._next_slot = due + 1
+        if self._watching():
+            t_mid = due * self.period_ns * 1e-9
+            stamp = self._history.stamp_at(t_mid)
+            self._send(self._render(t_mid, newest.seq, False, stamp))
+
+    def _watching(self) -> bool:
+        if self._watched is None or self._watched():
+            return True
+        self.stats.unwatched += 1
+        return False
+
+    def _render(self, t_mid: float, period: int, lockstep: bool, stamp_ns: int) -> bytes:
+        t0 = time.perf_counter()
+        pixels = self.sensor.render(self._history.pose_at, t_mid, frame=self._frame)
+        payload = encode_frame(
+            pixels,
+            seq=self._frame,
+            stamp_ns=stamp_ns,
+            sim_time_ns=round(t_mid * 1e9),
+            exposure_ns=self.exposure_ns,
+            period=period,
+            lockstep=lockstep,
+            source=self.source,
+            key=self.key,
+        )
+        ms = (time.perf_counter() - t0) * 1e3
+        self._frame += 1
+        self.stats.frames += 1
+        self.stats.render_ms_sum += ms
+        self.stats.render_ms_max = max(self.stats.render_ms_max, ms)
+        return payload
+
+    def _send(self, payload: bytes) -> None:
+        try:
+            self.publish(payload)
+        except HalError:  # a broken link is counted, never fatal to the arm
+            self.stats.publish_errors += 1
+
+
+class FramePublisher:
+    """``hil/camera/frame`` on a zenoh session. Priority ``INTERACTIVE_HIGH``, below the
+    ``REAL_TIME`` of the rig's small messages (poses, features), so a 300 kB frame never
+    queues ahead of them; blocking (late, never lost: a lost lockstep frame stalls a period)."""
+
+    def __init__(self, session: ZenohSession) -> None:
+        self._pub = session.publisher(KEY_CAMERA_FRAME, priority=zenoh.Priority.INTERACTIVE_HIGH)
+
+    def put(self, payload: bytes) -> None:
+        try:
+            self._pub.put(payload)
+        except zenoh.ZError as exc:
+            raise HalTransportError(f"zenoh: cannot publish a camera frame: {exc}") from exc
+
+    def has_subscribers(self) -> bool:
+        """Whether a frame grabber (the vision process) currently listens."""
+        try:
+            return bool(self._pub.matching_status.matching)
+        except zenoh.ZError:
+            return False
+
+    def close(self) -> None:
+        """Undeclare the publisher (the session stays open). Idempotent."""
+        with contextlib.suppress(zenoh.ZError):
+            self._pub.undeclare()

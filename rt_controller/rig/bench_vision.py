@@ -1,0 +1,211 @@
+"""``hil bench vision``: what the image pipeline costs and how well it measures.
+
+The emulated camera comes in as two callables from the command (``rt_controller`` never
+imports the emulator; ``commands/vision.py`` builds them): ``render(cfg, q, dq, frame)`` gives
+the frame the camera of ``cfg`` takes at joint angles ``q`` moving at ``dq`` (exposure centred
+on ``q``), ``truth(cfg, q)`` the true eq. (6) features there.
+
+Figures (times in us, errors in px, median and p99 where a distribution):
+
+* ``sizes.WxH``: render and detection (decode-free pipeline: detect, refine, undistort,
+  convert) time per frame over a grid of poses, default noise; ``detect_cpu_us`` is the
+  detection's own CPU time (the wall time also holds what other processes took on a busy host);
+* ``accuracy.no_noise`` / ``accuracy.default_noise``: RMS and max error against eq. (6) over
+  the grid, still arm, 640x480 (no noise also means no exposure blur);
+* ``blur``: at the paper's peak arm speed with the default exposure, the fraction of the grid's
+  in-view frames the pipeline measured no f in, and the error of the rest (against eq. 6 at
+  mid-exposure);
+* ``latency``: capture stamp to the features message published, through a loopback zenoh hub,
+  frames at ``fps`` in realtime (zenoh transport of the raw frame included).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from hal.config import RigConfig
+from rt_controller.sample_stats import percentile
+from vision.intrinsics import intrinsics_from_config
+from vision.pipeline import Pipeline
+
+Render = Callable[[RigConfig, np.ndarray, np.ndarray, int], np.ndarray]
+Truth = Callable[[RigConfig, np.ndarray], tuple[float, float]]
+
+PEAK_DQ = (1.2, 8.3)
+"""The paper scenario's peak joint speeds in live runs, rad/s (``dsp.dq_max``'s docstring)."""
+SIZES = ((640, 480), (1280, 1024))
+
+
+def pose_grid(cfg: RigConfig, n: int) -> list[np.ndarray]:
+    """``n`` x ``n`` joint angles about q(0) (f sweeps most of a 640x480 image)."""
+    q0 = np.array(cfg.scenario.q0)
+    d1s, d2s = np.linspace(-0.1, 0.1, n), np.linspace(-0.2, 0.15, n)
+    return [q0 + np.array((d1, d2)) for d1 in d1s for d2 in d2s]
+
+
+def _us(ns: list[int]) -> dict[str, float]:
+    a = np.array(ns, dtype=float) / 1e3
+    return {"median": round(float(np.median(a)), 1), "p99": round(float(percentile(a, 99)), 1)}
+
+
+def _in_view(cfg: RigConfig, f: tuple[float, float], margin_px: float = 25.0) -> bool:
+    k = intrinsics_from_config(cfg)
+    u, v = k.cx + f[0], k.cy + f[1]
+    return margin_px <= u <= k.width - margin_px and margin_px <= v <= k.height - margin_px
+
+
+def timing(cfg: RigConfig, render: Render, poses: list[np.ndarray]) -> dict[str, Any]:
+    pipeline = Pipeline(intrinsics_from_config(cfg))
+    render_ns, detect_ns, detect_cpu_ns = [], [], []
+    still = np.zeros(2)
+    pipeline.process(render(cfg, poses[0], still, 0))  # warm up: the sensor's rays, caches
+    for i, q in enumerate(poses):
+        t0 = time.perf_counter_ns()
+        img = render(cfg, q, still, i)
+        t1 = time.perf_counter_ns()
+        c1 = time.thread_time_ns()
+        pipeline.process(img)
+        detect_cpu_ns.append(time.thread_time_ns() - c1)
+        detect_ns.append(time.perf_counter_ns() - t1)
+        render_ns.append(t1 - t0)
+    return {
+        "render_us": _us(render_ns),
+        "detect_us": _us(detect_ns),
+        "detect_cpu_us": _us(detect_cpu_ns),
+        "frames": len(poses),
+    }
+
+
+def accuracy(
+    cfg: RigConfig, render: Render, truth: Truth, poses: list[np.ndarray], dq: np.ndarray
+) -> dict[str, Any]:
+    pipeline = Pipeline(intrinsics_from_config(cfg))
+    errors, lost, in_view = [], 0, 0
+    for i, q in enumerate(poses):
+        f_true = truth(cfg, q)
+        if not _in_view(cfg, f_true):
+            continue
+        in_view += 1
+        m = pipeline.process(render(cfg, q, dq, i))
+        if m.f is None:
+            lost += 1
+        else:
+            errors.append(np.subtract(m.f, f_true))
+    e = np.array(errors) if errors else np.zeros((0, 2))
+    return {
+        "frames": in_view,
+        "lost": lost,
+        "lost_fraction": round(lost / in_view, 4) if in_view else None,
+        "rms_px": round(float(np.sqrt(np.mean(np.square(e)))), 4) if len(e) else None,
+        "max_px": round(float(np.abs(e).max()), 4) if len(e) else None,
+        "rejected": pipeline.counts.as_dict()["rejected"],
+    }
+
+
+def latency(cfg: RigConfig, render: Render, frames: int, fps: float) -> dict[str, Any]:
+    """Frames published in realtime on a loopback hub; the grabber's capture-to-publish times."""
+    from hal.camera_frame import encode_frame
+    from hal.secoc import rig_key
+    from hal.zenoh_session import KEY_CAMERA_FRAME, free_loopback_port, open_session
+    from vision.process import run_live
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    stop, ready, out = threading.Event(), threading.Event(), {}
+
+    def serve() -> None:
+        out["stats"] = run_live(
+            cfg, "emulated", stop_event=stop, endpoint=endpoint, listen=True, ready=ready
+        )
+
+    th = threading.Thread(target=serve, name="bench-vision")
+    th.start()
+    try:
+        if not ready.wait(20):
+            return {"error": "the vision process did not start"}
+        img = render(cfg, np.array(cfg.scenario.q0), np.zeros(2), 0)
+        key = rig_key(cfg)
+        with open_session(cfg, listen=False, endpoint=endpoint) as s:
+            pub = s.publisher(KEY_CAMERA_FRAME)
+            time.sleep(0.3)  # let the subscription reach the hub
+            period = 1.0 / fps
+            t_next = time.monotonic()
+            for i in range(frames):
+                now = time.monotonic_ns()
+                pub.put(
+                    encode_frame(
+                        img,
+                        seq=i,
+                        stamp_ns=now,
+                        sim_time_ns=now,
+                        exposure_ns=4_000_000,
+                        period=i,
+                        key=key,
+                    )
+                )
+                t_next += period
+                time.sleep(max(0.0, t_next - time.monotonic()))
+            time.sleep(0.2)
+            pub.undeclare()
+    finally:
+        stop.set()
+        th.join(20)
+    stats = out.get("stats")
+    if stats is None:
+        return {"error": "the vision process ended without its counters"}
+    return {
+        "fps": fps,
+        "frames_sent": frames,
+        "frames_measured": stats.valid,
+        "capture_to_publish_us": {
+            "median": round(stats.latency_us_p50, 1),
+            "p99": round(stats.latency_us_p99, 1),
+        },
+        "pipeline_us": {
+            "median": round(stats.detect_us_p50, 1),
+            "p99": round(stats.detect_us_p99, 1),
+        },
+        "note": "the frame's stamp is taken when it is sent (render time excluded)",
+    }
+
+
+def bench_vision(
+    cfg: RigConfig,
+    render: Render,
+    truth: Truth,
+    *,
+    grid: int = 7,
+    latency_frames: int = 300,
+    fps: float = 60.0,
+    progress: Callable[[str], None] = lambda s: None,
+) -> dict[str, Any]:
+    """Every figure of the module docstring, as one JSON-ready dict."""
+    poses = pose_grid(cfg, grid)
+    out: dict[str, Any] = {"poses": len(poses), "sizes": {}}
+    for w, h in SIZES:
+        progress(f"timing {w}x{h}")
+        sized = cfg.with_overrides({"camera.width_px": w, "camera.height_px": h})
+        out["sizes"][f"{w}x{h}"] = timing(sized, render, poses)
+    still = np.zeros(2)
+    clean = cfg.with_overrides(
+        {"camera.electrons_per_dn": 0.0, "camera.read_noise_dn": 0.0, "camera.exposure_s": 0.0}
+    )
+    progress("accuracy")
+    out["accuracy"] = {
+        "no_noise": accuracy(clean, render, truth, poses, still),
+        "default_noise": accuracy(cfg, render, truth, poses, still),
+    }
+    progress("blur at peak speed")
+    out["blur"] = {
+        "dq": list(PEAK_DQ),
+        "exposure_s": cfg.camera.exposure_s,
+        **accuracy(cfg, render, truth, poses, np.array(PEAK_DQ)),
+    }
+    if latency_frames > 0:
+        progress("latency over zenoh")
+        out["latency"] = latency(cfg, render, latency_frames, fps)
+    return out
