@@ -7,11 +7,6 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-IMAGE_DEFAULT = False
-"""Whether ``camera.model = "image"`` makes ``--source emulated`` the default. Off until the
-emulator publishes frames on ``hil/camera/frame`` (issue 38, the camera's half): without them
-the pipeline would wait for frames that never come and every ``hil up`` would run blind."""
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     from plant_emulator import vision_cli
@@ -40,7 +35,7 @@ def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
 
     source = args.source
-    if source is None and load_config(args.config).camera.model == "image" and IMAGE_DEFAULT:
+    if source is None and load_config(args.config).camera.model == "image":
         source = "emulated"
     if source is None:
         from plant_emulator import vision_cli

@@ -39,7 +39,10 @@ def test_up_takes_rate_horizon_and_steps_and_says_what_it_ran(tmp_path):
     )
     assert s["duration_s"] == 1.0 and s["ticks"] == s["planned_ticks"] == 100
     assert s["end_reason"] == "duration" and s["can"].startswith("udp_multicast")
-    assert s["f_first"] == pytest.approx([-120.0, -160.0], abs=1e-6)
+    # f measured from the emulated camera's pixels (camera.model = "image", the default): the
+    # default lens and sensor noise leave 0.015 px at q(0) (measured, lockstep, bit-exact per
+    # seed); the analytic camera gave -120, -160 to 1e-13
+    assert s["f_first"] == pytest.approx([-120.0, -160.0], abs=0.05)
     assert s["jump_seen_s"] is None  # the jump comes at 3 s, after this run
 
 
