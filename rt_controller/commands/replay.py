@@ -18,13 +18,21 @@ line on stderr: "replay differs from the log: max |dtau| = ... at tick ... (tol 
 bad file or option. A truncated or damaged log is replayed as far as it goes, with a note, and
 fails (exit 1, "log is incomplete or damaged: ...") unless --allow-partial.
 
+The replay compiles the law for the CPU target the log records (numba's CPU name and features,
+in hil.run): when that is not this process's and this host can run it, in a new process with
+that target's own numba cache, saying so in one line. When this host cannot run it (or the log
+predates the record) and the replay is over --tol, the log is replayed once more for a second
+target (generic) and the difference between the two is the cross-target spread on this log: a
+difference from the log up to 10 times that spread is the compile target's (exit 0, both
+figures in compile_target); more is a change (exit 1, with the spread in the line).
+
 --config FILE replaces the log's configuration; --set KEY=VALUE (repeatable, VALUE parsed as
 JSON, else taken as a string) changes single settings on top, e.g. --set gains.kp=0.2 or
 --set rhc.kmax=8: the regression check of a changed solver against yesterday's rig run.
 --out NEW.mcap writes the replayed run (replayed u/tau, zero loop-timing fields).
 --json keys: log, law, ticks, max_abs_du, max_abs_dtau, worst_tick, worst_tick_du,
 worst_tick_dtau, ticks_over_tol, law_mismatches, tol, ok, matches, truncated, allow_partial,
-notes (and out).
+compile_target, cross_target_spread, within_spread, notes (and out).
 
 --republish plays the recorded raw inputs back instead: the /hal/can/rx frames onto CAN (raw,
 original E2E counters and CRCs) and the /vision/features payloads onto zenoh (realtime messages
@@ -125,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         return _republish(args)
     from rt_controller.commands.output import output_file
     from rt_controller.logtools.reader import read_hil_log
-    from rt_controller.logtools.replay import replay_loaded
+    from rt_controller.logtools.target_replay import replay_as_recorded
 
     out = output_file(args.out, "--out") if args.out else None
     progress = Progress.of(args, "hil replay")
@@ -137,8 +145,13 @@ def run(args: argparse.Namespace) -> int:
     with progress.stage(
         f"replaying {log.n_cycles} ticks with {law} (numba compiles on a cold cache)"
     ):
-        result = replay_loaded(
-            log, cfg_override=cfg, tol=args.tol, out=out, allow_partial=args.allow_partial
+        result = replay_as_recorded(
+            log,
+            cfg_override=cfg,
+            tol=args.tol,
+            out=out,
+            allow_partial=args.allow_partial,
+            say=progress.line,
         )
     print_summary_with_notes(result.as_dict(), args.json, f"hil replay {args.log}")
     if not result.ok:

@@ -75,6 +75,14 @@ class ReplayResult:
     """Replayed u, one row per tick."""
     tau: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     """Replayed tau, one row per tick."""
+    compile_target: str = ""
+    """Which numba compile target the replay ran on, and why (one line; see
+    :mod:`rt_controller.logtools.target_replay`)."""
+    cross_target_spread: float | None = None
+    """The largest |difference| of u or tau between replays of this log compiled for two
+    targets (measured when the recorded target cannot run here and the replay is over tol)."""
+    spread_limit: float | None = None
+    """The largest |difference| from the log the cross-target spread explains."""
 
     @property
     def matches(self) -> bool:
@@ -82,9 +90,17 @@ class ReplayResult:
         return self.ticks_over_tol == 0
 
     @property
+    def within_spread(self) -> bool:
+        """Not within ``tol``, but within what the compile target's difference explains."""
+        worst = max(self.max_abs_du, self.max_abs_dtau)
+        return self.spread_limit is not None and worst <= self.spread_limit
+
+    @property
     def ok(self) -> bool:
-        """Every tick matches, and the log was whole (or a partial one was allowed)."""
-        return self.matches and (not self.truncated or self.allow_partial)
+        """Every tick matches (or differs by no more than the cross-target spread), and the
+        log was whole (or a partial one was allowed)."""
+        same = self.matches or self.within_spread
+        return same and (not self.truncated or self.allow_partial)
 
     def as_dict(self) -> dict[str, Any]:
         """The JSON object of ``hil replay --json`` (non-finite values as None)."""
@@ -108,6 +124,9 @@ class ReplayResult:
             "matches": self.matches,
             "truncated": self.truncated,
             "allow_partial": self.allow_partial,
+            "compile_target": self.compile_target,
+            "cross_target_spread": self.cross_target_spread,
+            "within_spread": self.within_spread,
             "notes": list(self.notes),
         }
         if self.out is not None:
@@ -116,17 +135,32 @@ class ReplayResult:
 
     def failure_line(self) -> str:
         """One line saying why the replay failed (for a non-zero exit)."""
-        if self.matches:
+        if self.matches or self.within_spread:
             first = self.notes[0] if self.notes else "the log ends early"
             return (
                 f"log is incomplete or damaged: only its first {self.ticks} ticks were replayed "
                 f"({first}); pass --allow-partial to accept a partial replay"
             )
+        return f"replay differs from the log: {self.difference()}{self._why()}"
+
+    def difference(self) -> str:
+        """The largest differences of tau and u, where, and how many ticks are over tol."""
         return (
-            f"replay differs from the log: max |dtau| = {self.max_abs_dtau:.6g} at tick "
-            f"{self.worst_tick_dtau} (tol {self.tol:g}); max |du| = {self.max_abs_du:.6g} at "
-            f"tick {self.worst_tick_du}; {self.ticks_over_tol} of {self.ticks} ticks over tol"
+            f"max |dtau| = {self.max_abs_dtau:.6g} at tick {self.worst_tick_dtau} (tol "
+            f"{self.tol:g}); max |du| = {self.max_abs_du:.6g} at tick {self.worst_tick_du}; "
+            f"{self.ticks_over_tol} of {self.ticks} ticks over tol"
         )
+
+    def _why(self) -> str:
+        """What the difference is measured against: the compile target and its spread."""
+        if self.spread_limit is not None:
+            return (
+                f"; more than the cross-target spread explains (up to {self.spread_limit:.3g}; "
+                f"{self.compile_target}): a change in the code, the settings or the inputs"
+            )
+        if self.compile_target:
+            return f"; {self.compile_target}"
+        return ""
 
 
 def abs_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:

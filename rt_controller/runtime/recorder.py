@@ -36,6 +36,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from hal.config import RigConfig
+from rt_controller import compile_target
 from rt_controller.calibration.operator import EVENT_SCHEMA
 from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
 from rt_controller.errors import LogError
@@ -188,7 +189,8 @@ def _version(dist: str) -> str:
 
 def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, str]:
     """The ``hil.run`` metadata of a run of ``cfg`` started at these clock readings, in this
-    process (pid, argv, host, versions)."""
+    process (pid, argv, host, versions, numba's compile target: see
+    :mod:`rt_controller.compile_target`)."""
     start = _dt.datetime.fromtimestamp(unix_ns / 1e9, tz=_dt.UTC)
     return {
         "law": cfg.controller.law,
@@ -207,6 +209,7 @@ def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, st
         "mcap_version": _version("mcap"),
         "numpy_version": np.__version__,
         "cycle_schema_version": SCHEMA_VERSION,
+        **compile_target.run_info(),
     }
 
 

@@ -1,0 +1,179 @@
+"""A log replays bit for bit whatever numba compile target the replaying process has.
+
+The slow tests record an RHC log in a process compiled for one target and replay it with
+``hil replay --tol 1e-9`` from processes compiled for native, generic, znver4 and
+skylake-avx512 (each selected with ``NUMBA_CPU_NAME``, as a user would); and they judge a log
+whose target this host cannot run against the cross-target spread. Every target keeps its own
+numba cache (``compile_target.cache_dir``), so only the first run of each target compiles.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hal.config import RigConfig
+from rt_controller import compile_target as ct
+from rt_controller.runtime.recorder import default_run_info
+
+ROOT = Path(__file__).resolve().parents[2]
+TICKS = 200
+"""4 s at 50 Hz: past the target jump at 3 s, where targets' roundings part the most."""
+RECORD = """
+import sys
+from pathlib import Path
+from hal.config import RigConfig
+from tests.controller.test_replay import record_run
+cfg = RigConfig().with_overrides({"controller.law": "rhc"})
+record_run(Path(sys.argv[1]), cfg, int(sys.argv[2]))
+"""
+REPLAY_TARGETS = ["native", "generic", "znver4", "skylake-avx512"]
+AMX = ("amx-tile", "amx-int8", "amx-bf16")
+
+
+def env_for(name: str) -> dict[str, str]:
+    """The environment of a process compiled for ``name`` (``native``: none set), with the
+    host's features as numba takes them when only the name is set, in that target's cache."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CPU_")}
+    if name == "native":
+        target = ct.host_native()
+    else:
+        features = "" if name == ct.GENERIC else ct.host_feature_string()
+        target = ct.CompileTarget(name, features)
+        env[ct.ENV_NAME] = name
+    env[ct.ENV_CACHE] = str(ct.cache_dir(target))
+    return env
+
+
+def record(path: Path, target: ct.CompileTarget) -> Path:
+    """An RHC log recorded in a process compiled for ``target``."""
+    env = {**os.environ, **target.env()}
+    cmd = [sys.executable, "-c", RECORD, str(path), str(TICKS)]
+    subprocess.run(cmd, env=env, cwd=ROOT, check=True, timeout=900)
+    return path
+
+
+def hil_replay(log: Path, env: dict[str, str], *extra: str) -> tuple[int, dict, str]:
+    """``hil replay LOG --tol 1e-9 --json`` in a new process: exit code, JSON, stderr."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", "replay", str(log), "--tol", "1e-9"]
+    proc = subprocess.run(
+        [*cmd, "--json", *extra], env=env, cwd=ROOT, capture_output=True, text=True, timeout=900
+    )
+    return proc.returncode, json.loads(proc.stdout or "null"), proc.stderr
+
+
+# ------------------------------------------------------------------------------ the record
+
+
+def test_the_run_info_records_this_process_target_and_versions():
+    info = default_run_info(RigConfig(), 0, 0)
+    target = ct.recorded(info)
+    assert target == ct.this_process()
+    assert target.enabled and target.triple  # a real CPU's features and triple
+    for key in ct.VERSION_KEYS:
+        assert info[key] and info[key] != "unknown", key
+    assert ct.version_changes(info) == []
+
+
+def test_a_log_from_before_the_record_has_no_target():
+    assert ct.recorded({"law": "rhc", "numpy_version": "2.0.0"}) is None
+
+
+def test_changed_versions_are_named():
+    info = {**ct.versions(), "numba_version": "0.1.0", "glibc_version": "2.17"}
+    changes = ct.version_changes(info)
+    assert [c.split()[0] for c in changes] == ["numba", "glibc"]
+    assert changes[0].startswith("numba 0.1.0 -> ")
+
+
+def test_a_target_with_a_feature_this_cpu_lacks_cannot_run_here():
+    host = ct.host_native()
+    assert host.runnable() and host.missing_here() == []
+    alien = ct.CompileTarget("fantasy", host.features + ",+no-such-feature", host.triple)
+    assert not alien.runnable()
+    assert alien.missing_here() == ["no-such-feature"]
+    assert not ct.CompileTarget(
+        host.cpu_name, host.features, "aarch64-unknown-linux-gnu"
+    ).runnable()
+    assert ct.generic().runnable()
+
+
+def test_each_target_compiles_into_its_own_cache():
+    host, gen = ct.host_native(), ct.generic()
+    assert ct.cache_dir(host) != ct.cache_dir(gen)
+    same_name = ct.CompileTarget(host.cpu_name, host.features + ",+no-such-feature")
+    assert ct.cache_dir(same_name) != ct.cache_dir(host)
+    env = gen.env()
+    assert env == {
+        "NUMBA_CPU_NAME": "generic",
+        "NUMBA_CPU_FEATURES": "",
+        "NUMBA_CACHE_DIR": str(ct.cache_dir(gen)),
+    }
+
+
+# --------------------------------------------------------------------------- exact replay
+
+
+@pytest.fixture(scope="module")
+def skylake_log(tmp_path_factory) -> Path:
+    target = ct.CompileTarget("skylake-avx512", ct.host_feature_string())
+    return record(tmp_path_factory.mktemp("skylake") / "rhc.mcap", target)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+@pytest.mark.parametrize("replay_target", REPLAY_TARGETS)
+def test_a_log_replays_exactly_under_each_target(skylake_log, replay_target):
+    code, out, err = hil_replay(skylake_log, env_for(replay_target))
+    assert code == 0, err
+    assert out["matches"] and out["max_abs_dtau"] == 0.0 and out["max_abs_du"] == 0.0
+    assert "skylake-avx512" in out["compile_target"]
+    if replay_target != "skylake-avx512":  # another target than the log's: said in one line
+        assert "compiling for the log's target skylake-avx512" in err
+
+
+# ------------------------------------------------------------- a target this host cannot run
+
+
+@pytest.fixture(scope="module")
+def amx_log(tmp_path_factory) -> Path:
+    """A log compiled for a Sapphire Rapids with AMX (no AMX instruction is ever emitted for
+    the law, so it runs here; but this host cannot run that target's code in general)."""
+    if not set(AMX) - ct.host_features():
+        pytest.skip("this host has AMX: it can run every target the test could record")
+    features = ct.host_feature_string()
+    for name in AMX:
+        features = features.replace(f"-{name},", f"+{name},")
+    target = ct.CompileTarget("sapphirerapids", features)
+    return record(tmp_path_factory.mktemp("amx") / "rhc.mcap", target)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_target_this_host_cannot_run_is_judged_against_the_measured_spread(amx_log):
+    code, out, err = hil_replay(amx_log, env_for("generic"))
+    assert "cannot run here (this CPU lacks amx-" in out["compile_target"]
+    if out["matches"]:
+        pytest.skip("generic and sapphirerapids round alike on this host: no spread to judge")
+    assert code == 0, err
+    assert out["within_spread"] and out["ok"]
+    spread = out["cross_target_spread"]
+    assert 0 < out["max_abs_dtau"] <= 10 * spread
+    assert "cross-target spread" in out["compile_target"]
+    assert any("within the cross-target spread" in note for note in out["notes"])
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_changed_gain_is_more_than_the_spread_and_says_so(amx_log):
+    code, out, err = hil_replay(amx_log, env_for("generic"), "--set", "gains.kp=0.3")
+    assert code == 1
+    assert not out["ok"] and not out["within_spread"]
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("hil replay: replay differs from the log: max |dtau| = ")
+    assert "more than the cross-target spread explains" in line
