@@ -2,7 +2,8 @@
 
 The options are the analytic vision process's (``plant_emulator.vision_cli``) plus
 ``--source``; the ones that shape the analytic camera (``--fps``, ``--noise``, ``--latency``,
-``--seed``, ``--dropout``) belong to the camera, not to the frame grabber, and are refused here.
+``--seed``) belong to the camera, not to the frame grabber, and are refused here; ``--dropout``
+(fault injection) pauses the grabber's answers as it pauses the analytic process's.
 """
 
 from __future__ import annotations
@@ -33,12 +34,12 @@ def run_from_args(args: argparse.Namespace) -> int:
     """Body of ``hil vision --source SPEC``."""
     from hal.config import load_config
     from hal.secoc import configure_key
+    from vision.grabber import Dropout
     from vision.process import run_live, run_offline
     from vision.sources import parse_source
 
     given = [f"--{name}" for name in CAMERA_ONLY if getattr(args, name, None) is not None]
-    if getattr(args, "dropout", None):
-        given.append("--dropout")
+    dropouts = [Dropout.parse(text) for text in getattr(args, "dropout", None) or []]
     if given:
         raise HalConfigError(
             f"{', '.join(given)}: options of the analytic camera; the image pipeline measures "
@@ -68,7 +69,12 @@ def run_from_args(args: argparse.Namespace) -> int:
                 print(json.dumps(line))
     else:
         with stop_on_signals() as stop:
-            print(f"hil vision: image pipeline on {args.source}", file=sys.stderr, flush=True)
+            print(
+                f"hil vision: image pipeline on {args.source}"
+                + "".join(f", dropout {d}" for d in dropouts),
+                file=sys.stderr,
+                flush=True,
+            )
             try:
                 stats = run_live(
                     cfg,
@@ -78,6 +84,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                     endpoint=args.zenoh_endpoint,
                     config_file=args.zenoh_config,
                     listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
+                    dropouts=dropouts,
                     **({} if args.wait is None else {"wait_s": args.wait}),
                 )
             except HalError:

@@ -13,15 +13,48 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from hal.camera_frame import CameraFrame
+from hal.errors import HalConfigError
 from hal.vision_codec import FeatureMsg
 from vision.pipeline import Measurement, Pipeline
 
 Publish = Callable[[FeatureMsg], None]
+
+
+@dataclass(frozen=True)
+class Dropout:
+    """Fault injection: no features for frames delivered (their exposure's end, in simulation
+    time) in ``[start_s, start_s + duration_s)`` (``hil vision --dropout START:DURATION``), as
+    the analytic vision process discards frames delivered in the window."""
+
+    start_s: float
+    duration_s: float
+
+    @classmethod
+    def parse(cls, text: str) -> Dropout:
+        start, sep, length = text.strip().partition(":")
+        try:
+            d = cls(float(start), float(length))
+        except ValueError:
+            d = None
+        if not sep or d is None or not (d.start_s >= 0 and d.duration_s > 0):
+            raise HalConfigError(
+                f"--dropout must be START:DURATION in seconds, START >= 0 and DURATION > 0 "
+                f"(e.g. 1.0:0.5), got {text!r}"
+            )
+        return d
+
+    def contains(self, sim_ns: int) -> bool:
+        return round(self.start_s * 1e9) <= sim_ns < round((self.start_s + self.duration_s) * 1e9)
+
+    def __str__(self) -> str:
+        return f"{self.start_s:g}:{self.duration_s:g}"
+
+
 Observer = Callable[[CameraFrame, Measurement, FeatureMsg], None]
 
 
@@ -38,6 +71,12 @@ class GrabberStats:
     reanswers: int = 0
     """Lockstep frames sent again, answered again unchanged."""
     publish_errors: int = 0
+    dropouts: list[str] = field(default_factory=list)
+    """Fault injection: the windows ``START:DURATION`` (s of simulation time) without features."""
+    dropout_answers: int = 0
+    """Lockstep frames in a dropout, answered with valid = 0 (also counted in ``invalid``)."""
+    dropout_frames: int = 0
+    """Realtime frames in a dropout, not answered."""
     pipeline: dict[str, Any] = field(default_factory=dict)
     """Frames, measurements and rejections by reason."""
     frame_rx: dict[str, int] = field(default_factory=dict)
@@ -61,13 +100,15 @@ class Grabber:
         source_id: int,
         observer: Observer | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
+        dropouts: Sequence[Dropout] = (),
     ) -> None:
         self.pipeline = pipeline
         self.publish = publish
         self.source_id = source_id
         self.observer = observer
         self.clock = clock
-        self.stats = GrabberStats()
+        self.dropouts = tuple(dropouts)
+        self.stats = GrabberStats(dropouts=[str(d) for d in self.dropouts])
         self._lock = threading.Lock()
         self._last: tuple[tuple[int, int, int], FeatureMsg] | None = None
         self._detect_ns: list[int] = []
@@ -96,6 +137,9 @@ class Grabber:
                 self.stats.reanswers += 1
                 self._send(msg)
                 return msg
+            delivered_ns = frame.sim_time_ns + frame.exposure_ns // 2  # the exposure's end
+            if any(d.contains(delivered_ns) for d in self.dropouts):
+                return self._dropout(frame, ident)
             m = self.pipeline.process(frame.pixels)
             f = m.f if m.f is not None else (0.0, 0.0)
             msg = FeatureMsg(
@@ -121,6 +165,28 @@ class Grabber:
             if self.observer is not None:
                 self.observer(frame, m, msg)
             return msg
+
+    def _dropout(self, frame: CameraFrame, ident: tuple[int, int, int]) -> FeatureMsg | None:
+        """A frame inside a dropout window: lockstep answers it with valid = 0 (one answer per
+        period), realtime publishes nothing, so the controller's features go stale."""
+        if not frame.lockstep:
+            self.stats.dropout_frames += 1
+            return None
+        msg = FeatureMsg(
+            frame.seq,
+            frame.stamp_ns,
+            frame.sim_time_ns,
+            frame.period,
+            (0.0, 0.0),
+            False,
+            True,
+            self.source_id,
+        )
+        self.stats.dropout_answers += 1
+        self.stats.invalid += 1
+        self._last = (ident, msg)
+        self._send(msg)
+        return msg
 
     def _send(self, msg: FeatureMsg) -> None:
         try:

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import secrets
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from hal.camera_frame import CameraFrame
 from hal.config import RigConfig
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, open_session
-from vision.grabber import Grabber, GrabberStats, Observer
+from vision.grabber import Dropout, Grabber, GrabberStats, Observer
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
 from vision.sources import EmulatedSource, open_source, parse_source
@@ -51,9 +51,10 @@ def run_live(
     wait_s: float = DEFAULT_WAIT_S,
     ready: threading.Event | None = None,
     observer: Observer | None = None,
+    dropouts: Sequence[Dropout] = (),
 ) -> GrabberStats:
     """Serve ``spec``'s frames as features on zenoh until ``stop_event``, ``duration_s`` (0 =
-    forever) or the end of a file."""
+    forever) or the end of a file; ``dropouts``: windows without features (fault injection)."""
     parse_source(spec)  # a bad spec fails before zenoh is opened
     key = rig_key(cfg)
     session = open_session(
@@ -72,6 +73,7 @@ def run_live(
             lambda msg: pub.put(encode_features(msg, key)),
             source_id=secrets.randbits(32),
             observer=observer,
+            dropouts=dropouts,
         )
         source = open_source(spec, session=session, key=key)
         if duration_s > 0:

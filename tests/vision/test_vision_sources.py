@@ -164,3 +164,26 @@ def test_an_invalid_frame_is_answered_invalid():
     msg = g.on_frame(fr)
     assert msg == FeatureMsg(5, 123, 456, 9, (0.0, 0.0), False, True, 7)
     assert sent == [msg]
+
+
+def test_a_dropout_answers_lockstep_invalid_and_skips_realtime():
+    from vision.grabber import Dropout
+
+    sent: list[FeatureMsg] = []
+    g = Grabber(Pipeline(K), sent.append, source_id=7, dropouts=[Dropout.parse("1:0.5")])
+    img = frame(K, (-120.0, -160.0))
+    for i, sim_ns in enumerate((900_000_000, 1_000_000_000, 1_499_999_999, 1_500_000_000)):
+        g.on_frame(CameraFrame(i, i, sim_ns, 1, i, img, lockstep=True))
+    assert [m.valid for m in sent] == [True, False, False, True]
+    rt = g.on_frame(CameraFrame(9, 9, 1_200_000_000, 1, 9, img, lockstep=False))
+    assert rt is None and len(sent) == 4
+    s = g.snapshot()
+    assert (s.dropout_answers, s.dropout_frames, s.dropouts) == (2, 1, ["1:0.5"])
+
+
+@pytest.mark.parametrize("bad", ["0.5", "1:-2", "x:1", "-1:1"])
+def test_a_bad_dropout_is_one_clear_line(bad):
+    from vision.grabber import Dropout
+
+    with pytest.raises(HalConfigError, match="--dropout must be START:DURATION"):
+        Dropout.parse(bad)
