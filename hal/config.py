@@ -230,6 +230,12 @@ class ControllerConfig:
     """realtime | lockstep."""
     feature_timeout_s: float = 0.1
     """Features older than this are stale."""
+    outage_warn_periods: int = 5
+    """A camera outage: more than this many ticks in a row on stale or invalid features. Each
+    is a warning naming its start, its length and the longest (realtime and lockstep alike)."""
+    outage_max_share: float = 0.25
+    """A run that spent more than this share of its ticks (0-1) on stale or invalid features
+    is not clean: its J is not the paper's experiment's."""
     state_timeout_s: float = 0.05
     """Joint states older than this mean the DSP went silent."""
     predict_state: bool = True
@@ -568,6 +574,8 @@ _RANGES: dict[str, tuple[float, float, str]] = {
     "rhc.init_tol": (0, 1, "(]"),
     "rhc.init_iterations": (1, 10_000, "[]"),
     "controller.feature_timeout_s": (0, 10, "(]"),
+    "controller.outage_warn_periods": (0, 1e6, "[]"),
+    "controller.outage_max_share": (0, 1, "[]"),
     "controller.state_timeout_s": (0, 10, "(]"),
     "controller.spin_us": (0, 100_000, "[]"),
     "controller.rt_priority": (1, 99, "[]"),

@@ -113,7 +113,12 @@ class DspStats:
     last_trip_ns: int | None = None
     """DSP clock of the last watchdog trip."""
     last_trip_latency_ns: int | None = None
-    """Time from the last valid command to the watchdog trip that followed it (DSP clock)."""
+    """Time from the last valid command to the watchdog trip that followed it (DSP clock): how
+    long the arm kept its last torque after the commands stopped."""
+    last_command_sim_s: float | None = None
+    """Scenario time (the world's clock) of the last valid command."""
+    last_trip_sim_s: float | None = None
+    """Scenario time of the last watchdog trip (torque off)."""
     max_lateness_ns: int = 0
     """Realtime: the most a physics step ran after its scheduled time (host scheduling)."""
     rejected: dict[str, int] = field(default_factory=dict)
@@ -211,6 +216,7 @@ class DspNode:
         session: int | None = None,
         key: bytes | None = None,
         on_reset: Callable[[int | None], None] | None = None,
+        on_fault: Callable[[str], None] | None = None,
     ) -> None:
         """``reply_timeout_s``, ``sync_resend_s``: lockstep waits (real time, see the module
         docstring); ``wait_for_controller``: in lockstep, hold period 0 until the first command
@@ -219,12 +225,15 @@ class DspNode:
         ``key``: the rig key (default: ``cfg.transport.key_file``, else this process's
         ephemeral key, see :mod:`hal.secoc`); ``on_reset``: called with the new run's camera
         noise seed (None when the reset named none) when a scenario reset (DspControl
-        RESET_SCENARIO) is applied, e.g. to give the pose link a new source id and the seed."""
+        RESET_SCENARIO) is applied, e.g. to give the pose link a new source id and the seed;
+        ``on_fault``: called with :attr:`DspStats.last_fault` (one line) when the drive enters
+        FAULT, e.g. to say so on stderr the moment it happens."""
         self.cfg = cfg
         self.bus = bus
         self.lockstep = lockstep
         self.pose_sink = pose_sink
         self.on_reset = on_reset
+        self.on_fault = on_fault
         self._reset_pending = False
         """A RESET_SCENARIO was accepted; applied between periods (:meth:`reset_scenario`)."""
         self._reset_seed: int | None = None
@@ -423,6 +432,7 @@ class DspNode:
     def _command_seen(self, now_ns: int) -> None:
         self.last_cmd_ns = now_ns
         self.stats.last_command_ns = now_ns
+        self.stats.last_command_sim_s = self.world.t
 
     def drain(self, now_ns: int) -> None:
         """Handle every frame already waiting on the bus, at most ``DRAIN_MAX_FRAMES``."""
@@ -444,8 +454,11 @@ class DspNode:
             return False
         self.stats.watchdog_trips += 1
         self.stats.last_trip_ns = now_ns
-        self.stats.last_trip_latency_ns = now_ns - self.last_cmd_ns
-        self.fault(FaultReason.WATCHDOG, f"no valid command for {now_ns - self.last_cmd_ns} ns")
+        self.stats.last_trip_latency_ns = latency = now_ns - self.last_cmd_ns
+        self.stats.last_trip_sim_s = self.world.t
+        self.fault(
+            FaultReason.WATCHDOG, f"torque off {latency * 1e-6:.1f} ms after the last valid command"
+        )
         return True
 
     def fault(self, reason: FaultReason, detail: str = "") -> bool:
@@ -454,8 +467,13 @@ class DspNode:
             return False
         self.tau_cmd = np.zeros(2)
         self.stats.faults = dict(self.drive.faults)
-        self.stats.last_fault = f"{reason.label} at tick {self.world.step_index}: {detail}"
+        self.stats.last_fault = (
+            f"{reason.label} at physics step {self.world.step_index} "
+            f"(t = {self.world.t:.3f} s): {detail}"
+        )
         self.send_status()
+        if self.on_fault is not None:
+            self.on_fault(self.stats.last_fault)
         return True
 
     def _sensors_in_range(self) -> bool:

@@ -246,6 +246,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             lockstep=lockstep,
             pose_sink=link,
             on_reset=None if link is None else link.new_run,
+            on_fault=_say_fault,
         )
         node.warm_up()
         print(
@@ -298,6 +299,12 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             flush=True,
         )
     return 0
+
+
+def _say_fault(line: str) -> None:
+    """A fault of the drive, on stderr the moment it happens (``hil up`` waits for a watchdog
+    trip's line after the controller died)."""
+    print(f"hil emulator: fault: {line}", file=sys.stderr, flush=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -15,10 +15,14 @@ SUMMARY_KEYS = (
     "f_final_norm", "deadline_misses", "missed_periods", "stale_features", "stale_states",
     "late_states", "fallbacks", "watchdog_trips", "solve_us_median",
     "solve_us_p99", "lateness_us_p99", "cycle_us_p99", "host_steal_percent", "drive_ticks",
-    "dsp_faults", "rearms", "arming_ticks", "log", "rejections", "recorder", "problems",
-    "warnings", "exit_codes", "monitor_error",
+    "dsp_faults", "rearms", "arming_ticks", "ended_by", "dsp", "log", "log_contents",
+    "rejections", "recorder", "outages", "problems", "warnings", "exit_codes", "stderr_tail",
+    "monitor_error",
 )  # fmt: skip
 """What ``hil up`` prints of the controller's summary, in this order."""
+NONZERO_ONLY = ("rejections", "recorder")
+"""Counter blocks of which the table shows only the counters that are not zero (``--json``
+has them all)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -125,9 +129,46 @@ def _print(summary: dict | None, as_json: bool) -> None:
     from rt_controller.commands.output import print_summary
 
     if summary and "ticks" in summary:
-        print_summary({k: summary.get(k) for k in SUMMARY_KEYS}, as_json, "hil up")
+        shown = {k: summary.get(k) for k in SUMMARY_KEYS if k in summary or as_json}
+        print_summary(shown if as_json else table_view(shown), as_json, "hil up")
     elif summary:  # a hang before the controller said anything: only why
         print_summary(summary, as_json, "hil up")
+
+
+def table_view(summary: dict) -> dict:
+    """The summary as the table shows it: of :data:`NONZERO_ONLY` only the counters that are
+    not zero (nested blocks flattened to ``block.key``), the DSP's watchdog account, the
+    log's contents and the outages in words."""
+    from rt_controller.rig.ending import contents_words, dsp_words
+
+    out = dict(summary)
+    for key in NONZERO_ONLY:
+        if isinstance(out.get(key), dict):
+            counts = nonzero(out[key])
+            out[key] = ", ".join(f"{k} {v}" for k, v in counts.items()) or "none"
+    if isinstance(out.get("dsp"), dict):
+        out["dsp"] = dsp_words(out["dsp"])
+    if isinstance(out.get("log_contents"), dict):
+        out["log_contents"] = contents_words(out["log_contents"])
+    if isinstance(out.get("ended_by"), dict):
+        out.pop("ended_by")  # end_reason says it in words
+    if isinstance(out.get("outages"), dict):
+        o = out["outages"]
+        out["outages"] = f"{o.get('count', 0)} (longest {o.get('longest_ticks', 0)} ticks)"
+    return out
+
+
+def nonzero(counts: dict, prefix: str = "") -> dict:
+    """The counters of ``counts`` that are not zero (or empty), nested dicts flattened to
+    dotted keys: ``{"can_rx": {"crc": 2, "ok": 0}}`` -> ``{"can_rx.crc": 2}``."""
+    out: dict = {}
+    for key, value in counts.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(nonzero(value, f"{name}."))
+        elif value not in (0, None, False, "", [], 0.0):
+            out[name] = value
+    return out
 
 
 def _effective_config(args: argparse.Namespace) -> str | None:

@@ -201,6 +201,7 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     valid = log.column("f_valid")
     out["invalid_features"] = None if valid is None else int(np.count_nonzero(~valid.astype(bool)))
     out["stale_state"] = _stale_state(log)
+    out["outages"] = _outages(log, t, per)
     out["tau_saturated"] = _count(log.column("tau_saturated"))
     out["f_final"] = f_final
     out["f_final_norm"] = float(np.hypot(*f_final)) if f_final else None
@@ -215,6 +216,30 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     if n == 0:
         out["notes"].append(f"no {CYCLE_TOPIC} messages in the log")
     return out
+
+
+def _outages(log: LoadedLog, t: np.ndarray, per_us: float | None) -> dict[str, Any] | None:
+    """Camera outages from the per-tick ``f_stale``/``f_valid`` columns, with the log's own
+    thresholds (``controller.outage_*``, defaults for a log without a config); None when the
+    log has neither column."""
+    from hal.config import ControllerConfig
+    from rt_controller.runtime.counters import find_outages
+
+    stale, valid = log.column("f_stale"), log.column("f_valid")
+    if stale is None and valid is None:
+        return None
+    n = log.n_cycles
+    bad = np.zeros(n, dtype=bool)
+    if stale is not None:
+        bad |= np.asarray(stale, dtype=bool)
+    if valid is not None:
+        bad |= ~np.asarray(valid, dtype=bool)
+    ticks = log.column("tick")
+    ticks = np.arange(n) if ticks is None else np.asarray(ticks)
+    ctl = log.config.controller if log.config else ControllerConfig()
+    warn = int(getattr(ctl, "outage_warn_periods", ControllerConfig.outage_warn_periods))
+    share = float(getattr(ctl, "outage_max_share", ControllerConfig.outage_max_share))
+    return find_outages(ticks, t, bad, warn, share, (per_us or 0.0) / 1e6)
 
 
 def _change(rec: dict[str, Any]) -> dict[str, Any]:
@@ -329,6 +354,7 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         ("stale features", _fmt(report["stale_features"])),
         ("invalid features", _fmt(report["invalid_features"])),
         ("stale joint state", _fmt(report["stale_state"])),
+        ("camera outages (longest, ticks)", _outage_counts(report.get("outages"))),
         ("tau saturated", _fmt(report["tau_saturated"])),
         ("residual median / p99 / max", _triple(report["residual"])),
         ("residual final", _g(report["residual_final"])),
@@ -384,6 +410,16 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
     def verdict(item: dict[str, Any], ok: str) -> str:
         return ok if item["accepted"] else f"refused: {item['reason']}"
 
+    outages = report.get("outages") or {}
+    listing(
+        f"Camera outages (more than {outages.get('warn_periods')} ticks in a row on stale or "
+        "invalid features)",
+        ("from tick", "t (s)", "ticks", "s"),
+        [
+            (str(o["start_tick"]), f"{o['start_s']:.3f}", str(o["ticks"]), f"{o['s']:.2f}")
+            for o in outages.get("listed") or []
+        ],
+    )
     listing(
         "Parameter changes",
         ("tick", "set", "", "changes", "source"),
@@ -411,6 +447,13 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         for b in hist:
             ht.add_row(_bucket_label(b), str(b["count"]), _bar(b["count"], top))
         con.print(ht)
+
+
+def _outage_counts(outages: dict[str, Any] | None) -> str:
+    """Camera outages and the longest stretch, e.g. ``2 (longest 98)``."""
+    if outages is None:
+        return "-"
+    return f"{outages['count']} (longest {outages['longest_ticks']})"
 
 
 def _bar(count: int, top: int, width: int = 40) -> str:

@@ -319,7 +319,8 @@ def finish(run: RunResult, summary: dict[str, Any]) -> None:
         run.status, run.error = "failed", f"run not clean: {'; '.join(problems)}"
     else:
         run.status = "ok"
-    run.J_steady = steady_cost(run.log)
+    if "error" not in (summary.get("log_contents") or {}):  # a run cut short before its log
+        run.J_steady = steady_cost(run.log)
 
 
 def batches(

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -34,6 +35,7 @@ from hal.bus import isolated_spec, resolve_spec
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.errors import ControllerError
+from rt_controller.rig.ending import ProcessEnd, dsp_report, log_path_said, summary_after
 from rt_controller.rig.supervise import PARENT_ENV, RigInterrupted, signals_deferred
 
 STOP_TIMEOUT_S = 10.0
@@ -41,10 +43,26 @@ STARTUP_MARGIN_S = 60.0
 LOCKSTEP_SLOWEST = 20.0
 """A lockstep run is simulated time: ``hil up`` calls it hung only when it runs more than this
 many times slower than real time (user-mode Linux runs about 10x slower than the host)."""
+LOCKSTEP_MISSING_PERIOD_S = 0.5
+"""Real time a lockstep DSP waits for a period's command before it counts the period missing
+(``plant_emulator.dsp_node.LOCKSTEP_REPLY_TIMEOUT_S``): its watchdog counts such periods."""
+TRIP_MARGIN_S = 1.0
+"""How much longer than its watchdog time the supervisor waits for a DSP's trip after the
+controller died (a loaded host delays the emulator's loop)."""
+WATCHDOG_TRIP_LINE = "hil emulator: fault: watchdog"
+"""What the emulator prints on stderr when its watchdog trips (``plant_emulator.entry``)."""
 
 
 class RigProcessError(ControllerError, RuntimeError):
     """A rig process failed; the message carries its exit status and stderr tail."""
+
+
+class RigProcessDied(RigProcessError):
+    """A process of the rig ended while the run went on (``end`` says which, how and when)."""
+
+    def __init__(self, end: ProcessEnd, tail: str) -> None:
+        self.end = end
+        super().__init__(with_tail(f"{end.name} {end.how}", tail))
 
 
 class RigHung(RigProcessError):
@@ -138,6 +156,26 @@ def private_default_bus(config: str | None) -> str | None:
     return None
 
 
+def group_running(pgid: int) -> bool:
+    """Whether a process of group ``pgid`` still runs (zombies, which only wait to be reaped,
+    do not count). Read from ``/proc``; elsewhere: whether the group can be signalled."""
+    proc = Path("/proc")
+    if not (proc / "self" / "stat").exists():
+        try:
+            os.killpg(pgid, 0)
+        except (ProcessLookupError, PermissionError):
+            return False
+        return True
+    for stat in proc.glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue  # it ended while we looked
+        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+            return True
+    return False
+
+
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "rt_controller.cli", *args]
 
@@ -192,7 +230,8 @@ class Rig:
     def start(self) -> None:
         o = self.opts
         can = ["--can", self.can] if self.can else []
-        emu = _cli("emulator", *can, *self._common(), *o.extra_emulator)
+        # --json: the DSP's counters (its watchdog trips) on stdout when it stops
+        emu = _cli("emulator", *can, *self._common(), "--json", *o.extra_emulator)
         if o.lockstep:
             emu.append("--lockstep")
         self._start("emulator", emu)
@@ -221,22 +260,92 @@ class Rig:
     def _check_alive(self, but: str) -> None:
         for c in self.children:
             if c.name not in (but, "monitor") and c.proc.poll() is not None:
-                raise RigProcessError(
-                    f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}"
+                raise RigProcessDied(
+                    ProcessEnd(c.name, c.proc.returncode, time.monotonic_ns()), c.tail()
                 )
 
+    def child(self, name: str) -> Child | None:
+        return next((c for c in self.children if c.name == name), None)
+
     def wait_controller(self) -> dict[str, Any]:
-        """Wait for the controller's run to end; its JSON summary."""
+        """Wait for the controller's run to end; its JSON summary. A controller that ended
+        without one (killed, crashed) raises :class:`RigProcessDied`, as another process's
+        death does."""
         ctl = self.wait_controller_exit()
         lines = self.summaries()
         # Status 1 with a summary: the run finished but is not clean (its "problems" say why).
-        if ctl.proc.returncode not in (0, 1) or (ctl.proc.returncode == 1 and not lines):
-            raise RigProcessError(
-                with_tail(f"controller exited with status {ctl.proc.returncode}", ctl.tail())
-            )
-        if not lines:
-            raise RigProcessError(with_tail("controller printed no summary", ctl.tail()))
+        if ctl.proc.returncode not in (0, 1) or not lines:
+            end = ProcessEnd("controller", ctl.proc.returncode, time.monotonic_ns())
+            raise RigProcessDied(end, ctl.tail())
         return lines[-1]
+
+    def finish_after(self, end: ProcessEnd) -> dict[str, Any]:
+        """Stop the rig after ``end`` and the run's summary all the same
+        (:func:`~rt_controller.rig.ending.summary_after`): the controller's, if it is still
+        there to print it (it is stopped first), else its counters from the log; the DSP's
+        watchdog account, waited for when the controller died; what the log holds."""
+        if end.name == "controller":
+            self._await_trip()
+        codes = self.stop()
+        lines = self.summaries()
+        emulator, controller = self.child("emulator"), self.child("controller")
+        dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
+        log = self.opts.log or (log_path_said(controller.tail(400)) if controller else None)
+        o = self.opts
+        base = self.what_runs(o.config, o.duration_s, o.law)
+        out = summary_after(end, lines[-1] if lines else None, log, dsp, base)
+        out["exit_codes"] = codes
+        dead = self.child(end.name)
+        out["stderr_tail"] = dead.tail(5) if dead else ""
+        return out
+
+    def what_runs(self, config: str | Path | None, duration_s: float, law: str | None) -> dict:
+        """What this rig was asked to run (one run of ``duration_s`` on ``config``), for a
+        summary the controller did not print."""
+        cfg = load_config(config)
+        rate = cfg.rates.control_hz
+        return {
+            "clock": "lockstep" if self.opts.lockstep else "realtime",
+            "rate_hz": rate,
+            "duration_s": duration_s,
+            "law": law or cfg.controller.law,
+            "can": self.can,
+            "ticks": None,
+            "planned_ticks": math.floor(duration_s * rate + 1e-9),
+        }
+
+    def summary_of_cut_run(self, end: ProcessEnd, index: int) -> dict[str, Any]:
+        """Of a plan (stopped): the summary of its run ``index``, which ``end`` cut short: the
+        controller's, if it printed one as it was stopped, else its log's."""
+        from rt_controller.runtime.plan import load_plan
+
+        assert self.opts.plan is not None
+        run = load_plan(self.opts.plan)[index]
+        lines = self.summaries()
+        emulator = self.child("emulator")
+        dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
+        base = {"run": run.name, **self.what_runs(run.config, run.duration_s, run.law)}
+        partial = lines[index] if len(lines) > index else None
+        out = summary_after(end, partial, run.log, dsp, base)
+        dead = self.child(end.name)
+        out["stderr_tail"] = dead.tail(5) if dead else ""
+        return out
+
+    def _await_trip(self) -> None:
+        """After the controller died: wait (at most its watchdog time and
+        :data:`TRIP_MARGIN_S`) until the emulator reports its watchdog's trip, so that the
+        DSP's account is in the summary before the emulator is stopped. A DSP that was never
+        armed does not trip: the wait then runs out."""
+        emulator = self.child("emulator")
+        if emulator is None or emulator.proc.poll() is not None:
+            return
+        cfg = load_config(self.opts.config)
+        period = LOCKSTEP_MISSING_PERIOD_S if self.opts.lockstep else 1 / cfg.rates.control_hz
+        deadline = time.monotonic() + cfg.dsp.watchdog_periods * period + TRIP_MARGIN_S
+        while time.monotonic() < deadline and emulator.proc.poll() is None:
+            if WATCHDOG_TRIP_LINE in emulator.tail(50):
+                return
+            time.sleep(0.02)
 
     def summaries(self) -> list[dict[str, Any]]:
         """Every JSON summary the controller printed so far (one per run of a plan)."""
@@ -286,8 +395,14 @@ class Rig:
                             c.proc.wait()
                     codes[c.name] = c.proc.returncode
             if self.children:
+                group = self.children[0].proc.pid
+                # what the children started (the controller's recorder finishing the log of a
+                # killed controller) gets its time before the group is killed
+                deadline = time.monotonic() + STOP_TIMEOUT_S
+                while group_running(group) and time.monotonic() < deadline:
+                    time.sleep(0.02)
                 with contextlib.suppress(ProcessLookupError, PermissionError):
-                    os.killpg(self.children[0].proc.pid, signal.SIGKILL)
+                    os.killpg(group, signal.SIGKILL)
         return codes
 
     def close(self) -> None:
@@ -324,13 +439,16 @@ def run_rig_plan(
         try:
             ctl = rig.wait_controller_exit()
             if ctl.proc.returncode not in (0, 1):
-                error = RigProcessError(
-                    f"controller exited with status {ctl.proc.returncode}:\n{ctl.tail()}"
-                )
+                end = ProcessEnd("controller", ctl.proc.returncode, time.monotonic_ns())
+                error = RigProcessDied(end, ctl.tail())
         except RigProcessError as exc:
             error = exc
+        if isinstance(error, RigProcessDied) and error.end.name == "controller":
+            rig._await_trip()
         summaries = rig.summaries()
         codes = rig.stop()
+        if isinstance(error, RigProcessDied):  # the run it cut short gets its summary too
+            summaries.append(rig.summary_of_cut_run(error.end, len(summaries)))
         bad = [c for c in rig.children if c.name in ("emulator", "vision") and codes[c.name]]
         if bad and error is None:
             error = RigProcessError(
@@ -357,6 +475,9 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
         rig.start()
         try:
             summary = rig.wait_controller()
+            rig._check_alive(but="controller")  # one that died as the controller's run ended
+        except RigProcessDied as exc:
+            return rig.finish_after(exc.end)
         except (RigInterrupted, RigHung) as exc:
             rig.stop()  # the controller first: it turns torque off and prints its summary
             lines = rig.summaries()
@@ -368,14 +489,15 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
             exc.summary = summary
             raise
         watch = {"controller", "monitor"}  # a failed live view is reported, never fatal
-        bad = {n: c for n, c in codes.items() if n not in watch and c not in (0, None)}
-        if bad:
-            tails = "\n".join(
-                f"{c.name} exited with status {c.proc.returncode}:\n{c.tail()}"
-                for c in rig.children
-                if c.name in bad
-            )
-            raise RigProcessError(tails)
+        for c in rig.children:  # a process that failed as it stopped: the run is not clean
+            if c.name not in watch and codes.get(c.name) not in (0, None):
+                end = ProcessEnd(c.name, c.proc.returncode, time.monotonic_ns())
+                summary["problems"] = [
+                    *summary.get("problems", []),
+                    with_tail(f"{c.name} {end.how} when stopped", c.tail(5)),
+                ]
+        emulator = rig.child("emulator")
+        summary["dsp"] = dsp_report(emulator.output()) if emulator else {"reported": False}
         summary["exit_codes"] = codes
         mon = next((c for c in rig.children if c.name == "monitor"), None)
         if mon is not None and codes.get("monitor") not in (0, None):

@@ -16,6 +16,126 @@ from rt_controller.sample_stats import percentile
 
 ENDED_FULL = ("duration", "stopped")
 """End reasons of a run that is not short for a fault: its duration reached, or told to stop."""
+OUTAGES_LISTED = 10
+"""Camera outages named one by one (warnings, the summary); the rest are counted."""
+
+
+@dataclass
+class Outage:
+    """A stretch of ticks in a row on stale or invalid features."""
+
+    start_tick: int
+    start_s: float
+    """Run time of its first tick."""
+    ticks: int = 0
+    end_s: float = 0.0
+    """Run time of its last tick."""
+
+    def as_dict(self, period_s: float) -> dict[str, Any]:
+        return {
+            "start_tick": self.start_tick,
+            "start_s": self.start_s,
+            "ticks": self.ticks,
+            "s": self.end_s - self.start_s + period_s,
+        }
+
+
+@dataclass
+class OutageTracker:
+    """Camera outages: stretches of ticks that ran on stale or invalid features (the law held
+    or used old image features), found tick by tick in the loop or from a log's ``f_stale`` and
+    ``f_valid`` columns (:func:`find_outages`), so ``hil up`` and ``hil report`` agree.
+
+    A stretch longer than ``warn_periods`` ticks is an outage (a warning each); more than
+    ``max_share`` of all ticks on such features makes the run not clean (:func:`run_problems`).
+    """
+
+    warn_periods: int = 5
+    max_share: float = 0.25
+    ticks: int = 0
+    bad_ticks: int = 0
+    """Ticks on stale or invalid features, in any stretch."""
+    count: int = 0
+    """Outages closed so far (stretches longer than ``warn_periods``)."""
+    listed: list[Outage] = field(default_factory=list)
+    """The first :data:`OUTAGES_LISTED` outages."""
+    longest: Outage | None = None
+    """The longest stretch closed so far (an outage or not)."""
+    current: Outage | None = None
+    """The stretch going on at the last tick (None: that tick had good features)."""
+
+    @classmethod
+    def from_config(cls, controller: Any) -> OutageTracker:
+        """The thresholds of ``cfg.controller`` (``outage_warn_periods``, ``outage_max_share``)."""
+        return cls(int(controller.outage_warn_periods), float(controller.outage_max_share))
+
+    def note(self, tick: int, t_s: float, bad: bool) -> None:
+        """One tick: ``bad`` when it ran on stale or invalid features."""
+        self.ticks += 1
+        if bad:
+            self.bad_ticks += 1
+            if self.current is None:
+                self.current = Outage(tick, t_s)
+            self.current.ticks += 1
+            self.current.end_s = t_s
+        elif self.current is not None:
+            self._close(self.current)
+            self.current = None
+
+    def _close(self, stretch: Outage) -> None:
+        if self.longest is None or stretch.ticks > self.longest.ticks:
+            self.longest = stretch
+        if stretch.ticks > self.warn_periods:
+            self.count += 1
+            if len(self.listed) < OUTAGES_LISTED:
+                self.listed.append(stretch)
+
+    def finished(self) -> OutageTracker:
+        """This tracker with the stretch still going on at the last tick closed (a copy: the
+        run may go on)."""
+        out = OutageTracker(self.warn_periods, self.max_share, self.ticks, self.bad_ticks)
+        out.count, out.listed, out.longest = self.count, list(self.listed), self.longest
+        if self.current is not None:
+            out._close(self.current)
+        return out
+
+    def as_dict(self, period_s: float) -> dict[str, Any]:
+        """The summary's ``outages`` block (the open stretch counted as ended)."""
+        done = self.finished()
+        return {
+            "warn_periods": done.warn_periods,
+            "max_share": done.max_share,
+            "count": done.count,
+            "listed": [o.as_dict(period_s) for o in done.listed],
+            "longest": None if done.longest is None else done.longest.as_dict(period_s),
+            "longest_ticks": 0 if done.longest is None else done.longest.ticks,
+            "ticks_on_stale_or_invalid": done.bad_ticks,
+            "share": done.bad_ticks / done.ticks if done.ticks else 0.0,
+        }
+
+
+def find_outages(
+    ticks: np.ndarray,
+    t_s: np.ndarray,
+    bad: np.ndarray,
+    warn_periods: int,
+    max_share: float,
+    period_s: float,
+) -> dict[str, Any]:
+    """The ``outages`` block of a recorded run: ``bad[i]`` when tick ``ticks[i]`` (at run time
+    ``t_s[i]``) ran on stale or invalid features."""
+    tracker = OutageTracker(warn_periods, max_share)
+    for k, t, b in zip(ticks, t_s, bad, strict=True):
+        tracker.note(int(k), float(t), bool(b))
+    return tracker.as_dict(period_s)
+
+
+def outage_words(o: dict[str, Any]) -> str:
+    """One outage (an entry of the ``outages`` block) in words."""
+    return (
+        f"from tick {o['start_tick']} (t = {o['start_s']:.3f} s): {o['ticks']} ticks "
+        f"({o['s']:.2f} s)"
+    )
 
 
 @dataclass
@@ -66,6 +186,10 @@ class RunCounters:
     solve_us: list[float] = field(default_factory=list)
     lateness_us: list[float] = field(default_factory=list)
     cycle_us: list[float] = field(default_factory=list)
+    outages: OutageTracker = field(default_factory=OutageTracker)
+    """Camera outages (thresholds: ``controller.outage_warn_periods``, ``outage_max_share``)."""
+    period_s: float = 0.02
+    """The control period (the length in seconds of an outage's last tick)."""
 
     def controller_block(self) -> dict[str, int]:
         """The counters of the ``/diagnostics`` record's ``controller`` component."""
@@ -105,6 +229,7 @@ class RunCounters:
             "solve_us_p99": pct(self.solve_us, 99),
             "lateness_us_p99": pct(self.lateness_us, 99),
             "cycle_us_p99": pct(self.cycle_us, 99),
+            "outages": self.outages.as_dict(self.period_s),
         }
 
 
@@ -146,21 +271,51 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     if drive:
         what = ", ".join(f"{k} {v}" for k, v in drive.items())
         out.append(f"{sum(drive.values())} tick(s) without an enabled DSP ({what})")
+    outages = summary.get("outages") or {}
+    if outages.get("share", 0.0) > outages.get("max_share", 1.0):
+        longest = outages["longest"]
+        out.append(
+            f"{outages['ticks_on_stale_or_invalid']} tick(s) ({outages['share']:.0%} of the run) "
+            f"on stale or invalid features, more than controller.outage_max_share "
+            f"({outages['max_share']:.0%}); the longest camera outage {outage_words(longest)}"
+        )
+    return out
+
+
+def outage_warnings(outages: dict[str, Any]) -> list[str]:
+    """One warning per camera outage of an ``outages`` block (at most
+    :data:`OUTAGES_LISTED`, then how many more), the longest marked."""
+    listed, count = outages.get("listed") or [], int(outages.get("count") or 0)
+    longest = outages.get("longest")
+    out = []
+    for o in listed:
+        mark = " (the longest)" if count > 1 and o == longest else ""
+        out.append(
+            f"camera outage {outage_words(o)} on stale or invalid features{mark}: "
+            f"the law held or used old image features"
+        )
+    if count > len(listed):
+        out.append(
+            f"{count - len(listed)} more camera outage(s); the longest {outage_words(longest)}"
+        )
     return out
 
 
 def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
-    nothing): a realtime run during which the hypervisor took
-    :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT` or more of the CPUs'
-    time. The run is still clean (its exit status says so); its J is not the lockstep one's.
+    nothing): camera outages (:func:`outage_warnings`), and a realtime run during which the
+    hypervisor took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT` or more
+    of the CPUs' time. The run is still clean (its exit status says so); its J is not the
+    lockstep one's.
     """
+    out = outage_warnings(summary.get("outages") or {})
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
-        return []
+        return out
     late = summary.get("late_states")
-    return [
+    out.append(
         f"the hypervisor took {steal:.0f} % of the CPUs' time during the run ({late} tick(s) "
         f"on a late joint state): the realtime J can differ from the lockstep experiment's "
         f"by more than 1 %; `hil up --lockstep` runs it deterministically"
-    ]
+    )
+    return out

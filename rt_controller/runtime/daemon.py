@@ -30,7 +30,12 @@ from rt_controller.calibration.parameters import ParameterService
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
-from rt_controller.runtime.counters import RunCounters, run_problems, run_warnings
+from rt_controller.runtime.counters import (
+    OutageTracker,
+    RunCounters,
+    run_problems,
+    run_warnings,
+)
 from rt_controller.runtime.drive_policy import DrivePolicy
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
 from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
@@ -109,7 +114,9 @@ class ControllerDaemon:
         """The run's controller (its ``decide`` is the per-tick rule)."""
         self.features = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
         """The decoder every feature message of the run goes through."""
-        self.counters = RunCounters()
+        self.counters = RunCounters(
+            outages=OutageTracker.from_config(cfg.controller), period_s=1 / cfg.rates.control_hz
+        )
         self.params = ParameterService(cfg)
         """Online parameter changes: any thread submits, the loop takes them at a tick
         boundary (:mod:`rt_controller.calibration.parameters`)."""

@@ -150,6 +150,7 @@ class ControlLoop:
         fields = decision_fields(self.controller, d)
         st.stale_states += int(obs.state_stale)  # per tick as recorded, as `hil report` counts
         st.stale_features += int(obs.f_stale)
+        st.outages.note(release.index, release.t_s, obs.f_stale or not obs.f_valid)
         if d.mode == "control":
             st.J += fields["cost"] / self.cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])

@@ -3,7 +3,11 @@ as children of a process, and whether one still runs."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -41,3 +45,28 @@ def children_of(pid: int) -> list[int]:
         except OSError:
             continue
     return out
+
+
+def child_running(parent: int, command: str) -> int | None:
+    """The pid of ``parent``'s child whose command line runs ``hil COMMAND`` (``command`` among
+    its first four arguments, e.g. ``python -m rt_controller.cli vision``); None: no such child."""
+    for pid in children_of(parent):
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if command.encode() in argv[:4]:
+            return pid
+    return None
+
+
+@contextlib.contextmanager
+def reaped(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
+    """``proc`` (started in a session of its own), killed with its whole group and reaped if it
+    still runs when the block ends (a test that failed or timed out leaves nothing behind)."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()

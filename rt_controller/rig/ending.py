@@ -1,0 +1,210 @@
+"""The summary of a run during which a process of the rig died (``hil up``, ``hil experiment``).
+
+A killed controller prints no summary, a dead emulator or vision process ends the run early:
+either way the supervisor still says what happened, from what is left:
+
+* :class:`ProcessEnd`: which process, killed by which signal or exited with which status, and
+  when the supervisor saw it;
+* :func:`dsp_report`: the emulated DSP's own account (``hil emulator --json``): watchdog trips
+  and how long after the last valid command the torque went off;
+* :func:`log_contents`: the log's path, how many cycles it holds, whether it was finished;
+* :func:`summary_after`: the run's summary with ``end_reason``, ``ended_by``, ``dsp``,
+  ``log_contents`` and ``problems``; the counters are the controller's when it printed them,
+  else those the log has.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rt_controller.errors import LogError
+from rt_controller.runtime.counters import ENDED_FULL, run_problems
+
+LOGGING_TO = re.compile(r"logging to (?P<path>\S.*?)\s*$", re.MULTILINE)
+"""The controller's start-up line on stderr names its log (``hil controller: ... logging to
+PATH``): the path of a run whose controller died before its summary."""
+FROM_LOG = ("ticks", "J", "deadline_misses", "missed_periods", "stale_features", "f_final")
+"""Counters of a killed controller's run, as :func:`~rt_controller.logtools.deadline_report.
+summarize` reads them from its log."""
+
+
+@dataclass(frozen=True)
+class ProcessEnd:
+    """A process of the rig that ended while the run went on."""
+
+    name: str
+    """``controller``, ``emulator``, ``vision`` or ``monitor``."""
+    returncode: int
+    """As :class:`subprocess.Popen` has it: negative for a signal."""
+    at_ns: int
+    """``time.monotonic_ns()`` when the supervisor saw it (the controller's log clock)."""
+
+    @property
+    def signal_name(self) -> str | None:
+        if self.returncode >= 0:
+            return None
+        try:
+            return signal.Signals(-self.returncode).name
+        except ValueError:
+            return f"signal {-self.returncode}"
+
+    @property
+    def how(self) -> str:
+        """``killed by SIGKILL`` or ``exited with status 3``."""
+        name = self.signal_name
+        return f"killed by {name}" if name else f"exited with status {self.returncode}"
+
+
+def log_path_said(controller_stderr: str) -> Path | None:
+    """The log path the controller announced on stderr (None: it died before saying)."""
+    found = LOGGING_TO.findall(controller_stderr)
+    return Path(found[0]) if found else None
+
+
+def dsp_report(emulator_stdout: str) -> dict[str, Any]:
+    """The DSP's watchdog account from the emulator's ``--json`` counters: trips, how long the
+    torque stayed on after the last valid command (``torque_off_after_ms``), the scenario
+    times of that command and of the trip, the drive state it ended in. ``reported`` False
+    when the emulator printed no counters (it died itself)."""
+    stats = None
+    for line in emulator_stdout.splitlines():
+        if line.startswith("{"):
+            try:
+                stats = json.loads(line)
+            except json.JSONDecodeError:  # a line cut by a kill
+                continue
+    if not isinstance(stats, dict):
+        return {"reported": False, "why": "the emulator printed no counters"}
+    return {
+        "reported": True,
+        "watchdog_trips": stats.get("watchdog_trips"),
+        "torque_off_after_ms": stats.get("last_trip_latency_ms"),
+        "last_command_s": stats.get("last_command_sim_s"),
+        "torque_off_s": stats.get("last_trip_sim_s"),
+        "watchdog_period_ms": stats.get("watchdog_period_ms"),
+        "drive_state": stats.get("drive_state"),
+        "fault_reason": stats.get("fault_reason"),
+        "last_fault": stats.get("last_fault"),
+    }
+
+
+def dsp_words(dsp: dict[str, Any]) -> str:
+    """The DSP's account in one line, for the table."""
+    if not dsp.get("reported"):
+        return str(dsp.get("why", "no report"))
+    trips = dsp.get("watchdog_trips") or 0
+    if not trips:
+        return f"no watchdog trip; drive {dsp.get('drive_state')}"
+    return (
+        f"{trips} watchdog trip(s): torque off {dsp['torque_off_after_ms']:.1f} ms after the "
+        f"last command (t = {dsp['torque_off_s']:.3f} s); drive {dsp.get('drive_state')}"
+    )
+
+
+def _read_log(path: Path | None) -> tuple[dict[str, Any], Any]:
+    """What the log holds and the loaded log (None when it cannot be read)."""
+    if path is None:
+        return {"path": None, "error": "the controller named no log before it died"}, None
+    from rt_controller.logs import load
+
+    try:
+        run = load(path, raw=False)
+    except LogError as exc:
+        return {"path": str(path), "error": str(exc)}, None
+    ticks = run.log.column("tick")
+    n = run.log.n_cycles
+    return {
+        "path": str(path),
+        "cycles": n,
+        "finished": not run.truncated,
+        "first_tick": int(ticks[0]) if ticks is not None and n else None,
+        "last_tick": int(ticks[-1]) if ticks is not None and n else None,
+    }, run
+
+
+def log_contents(path: Path | None) -> dict[str, Any]:
+    """The log at ``path``: cycles, finished (False: truncated), first and last tick; or the
+    one-line reason it cannot be read."""
+    return _read_log(path)[0]
+
+
+def contents_words(contents: dict[str, Any]) -> str:
+    """What the log holds in one line, for the table."""
+    if "error" in contents:
+        return str(contents["error"])
+    state = "finished" if contents["finished"] else "TRUNCATED (the writer did not finish it)"
+    return f"{contents['cycles']} cycles, {state}"
+
+
+def _tick_at(run: Any, at_ns: int | None) -> tuple[int | None, float | None]:
+    """The log's tick at the monotonic time ``at_ns`` (None: its last) and its run time."""
+    if run is None or not run.log.n_cycles:
+        return None, None
+    from rt_controller.logtools.deadline_report import time_axis
+
+    ticks = run.log.column("tick")
+    t, _ = time_axis(run.log)
+    i = len(ticks) - 1
+    t_ns = run.log.column("t_ns")
+    if at_ns is not None and t_ns is not None:
+        before = np.flatnonzero(np.asarray(t_ns, dtype=float) <= at_ns)
+        i = int(before[-1]) if before.size else 0
+    return int(ticks[i]), float(t[i])
+
+
+def summary_after(
+    end: ProcessEnd,
+    summary: dict[str, Any] | None,
+    log_path: Path | None,
+    dsp: dict[str, Any],
+    base: dict[str, Any],
+) -> dict[str, Any]:
+    """The run's summary after ``end``: the controller's ``summary`` (None: it printed none,
+    its counters are then read from the log), ``base`` (what was run: clock, law, planned
+    ticks) under it, with ``end_reason``, ``ended_by``, ``dsp``, ``log``, ``log_contents`` and
+    ``problems`` filled in."""
+    out = {**base, **(summary or {})}
+    if log_path is None and out.get("log"):
+        log_path = Path(out["log"])
+    contents, run = _read_log(log_path)
+    if summary is None and run is not None:
+        from rt_controller.logs.info import logged_summary
+        from rt_controller.logtools.deadline_report import summarize
+
+        report = summarize(run.log, max_list=0)
+        out.update({k: report.get(k) for k in FROM_LOG})
+        out["f_final_norm"] = report.get("f_final_norm")
+        out.update(logged_summary(run))
+    # a dying controller's own view is its last tick; another process's, the tick then
+    tick, t = _tick_at(run, None if end.name == "controller" else end.at_ns)
+    when = "before its first tick" if tick is None else f"at tick {tick} (t = {t:.3f} s)"
+    own = (summary or {}).get("end_reason")
+    out["end_reason"] = f"{end.name} {end.how} {when}"
+    if own and own not in ENDED_FULL:  # the controller's own view of it, e.g. a silent DSP
+        out["end_reason"] += f"; the controller: {own}"
+    out["ended_by"] = {
+        "process": end.name,
+        "signal": end.signal_name,
+        "exit_code": None if end.returncode < 0 else end.returncode,
+        "tick": tick,
+        "time_s": None if t is None or math.isnan(t) else t,
+    }
+    out["dsp"] = dsp
+    out["log"] = contents["path"]
+    out["log_contents"] = contents
+    problems = run_problems(out)
+    if not any(out["end_reason"] in p for p in problems):
+        problems.insert(0, f"the run ended: {out['end_reason']}")
+    if "error" in contents:
+        problems.append(f"the log cannot be read: {contents['error']}")
+    out["problems"] = problems
+    out.setdefault("warnings", [])
+    return out
