@@ -226,6 +226,17 @@ def _box_split(u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return i0.astype(np.intp), frac
 
 
+@dataclass(frozen=True)
+class Placement:
+    """Where a planar texture lies in the world (m): its origin and two orthonormal in-plane
+    axes; texture coordinates (u, v) are along them. The target plane z = z_wo is
+    ``Placement((0, 0, z_wo), (1, 0, 0), (0, 1, 0))``."""
+
+    origin: np.ndarray
+    axis_u: np.ndarray
+    axis_v: np.ndarray
+
+
 Scene = Callable[[float], PlaneTexture]
 """The plane's texture at a time (s): the target jump moves the marker in the world."""
 
@@ -313,7 +324,10 @@ class CameraSensor:
         self, pose_at: Callable[[float], CameraPose], t_mid: float, *, frame: int = 0
     ) -> np.ndarray:
         """One 8-bit grey frame exposed around ``t_mid`` (s); ``frame`` keys its noise."""
-        dn = self.irradiance(pose_at, t_mid)
+        return self._to_grey(self.irradiance(pose_at, t_mid), frame)
+
+    def _to_grey(self, reflectance: np.ndarray, frame: int) -> np.ndarray:
+        dn = np.ascontiguousarray(reflectance, dtype=np.float64)
         n = self.noise
         out = np.empty(dn.shape, dtype=np.uint8)
         _expose(
@@ -326,6 +340,31 @@ class CameraSensor:
             np.uint64(int(frame) & _U64),
         )
         return out
+
+    def render_view(
+        self, pose: CameraPose, placement: Placement, texture: PlaneTexture, *, frame: int = 0
+    ) -> np.ndarray:
+        """One still frame of a planar ``texture`` placed anywhere in front of the camera
+        (a calibration board held at a tilt), with the sensor's noise; outside the texture's
+        plane or behind the camera is the texture's background."""
+        c, s = math.cos(pose.phi), math.sin(pose.phi)
+        rx, ry = self._rays_x, self._rays_y
+        d = np.stack([c * rx - s * ry, s * rx + c * ry, np.ones_like(rx)])
+        normal = np.cross(placement.axis_u, placement.axis_v)
+        rel = placement.origin - np.array([pose.x, pose.y, 0.0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = float(normal @ rel) / np.tensordot(normal, d, axes=1)
+        hit = np.isfinite(lam) & (lam > 0)
+        pts = lam * d - rel[:, None, None]
+        u = np.tensordot(placement.axis_u, pts, axes=1)
+        v = np.tensordot(placement.axis_v, pts, axes=1)
+        du_r, du_c = np.gradient(u)
+        dv_r, dv_c = np.gradient(v)
+        side = np.sqrt(np.abs(du_c * dv_r - du_r * dv_c))
+        ok = hit & np.isfinite(side)
+        refl = np.full(self.shape, float(texture.background))
+        refl[ok] = texture.sample(u[ok], v[ok], side[ok])
+        return self._to_grey(refl, frame)
 
     def _roi(self, pose: CameraPose, texture: PlaneTexture) -> tuple[slice, slice] | None:
         box = texture.support()

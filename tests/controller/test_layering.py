@@ -11,6 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 CLI_DISPATCH = {
+    "rt_controller/commands/camera.py",
     "rt_controller/commands/emulator.py",
     "rt_controller/commands/simulate.py",
     "rt_controller/commands/sweep.py",

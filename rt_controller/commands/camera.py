@@ -1,0 +1,157 @@
+"""``hil camera calibrate``: camera matrix and lens distortion from views of a ChArUco board,
+written into the rig config's ``[vision]`` section (``vision/calibration.py``).
+
+The views come from the emulated camera (``--source emulated``: the arm at several poses, the
+board held at tilts in front of it, :mod:`plant_emulator.calibration_views`), then checked
+against the emulated camera's true lens, or from a folder of a real camera's images
+(``--images DIR``). One of the ``hil`` subcommands allowed to dispatch to the emulator.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from typing import Any
+
+TARGETS = {"fx_rel": 0.005, "fy_rel": 0.005, "cx_px": 1.0, "cy_px": 1.0, "k1_rel": 0.05}
+"""How close a calibration from emulated views must come to the true lens (issue 38)."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "camera",
+        help="camera tools: calibrate the camera the vision pipeline sees through",
+        description="Camera tools. `hil camera calibrate` finds the camera matrix and lens "
+        "distortion from views of a ChArUco board and writes them into the rig config.",
+    )
+    tools = p.add_subparsers(dest="camera_command", metavar="TOOL", required=True)
+    c = tools.add_parser(
+        "calibrate",
+        help="camera matrix and distortion from ChArUco views -> [vision] of the rig config",
+        description="Detects the ChArUco board (14x10 squares of 30 mm, markers 22.5 mm, "
+        "DICT_4X4_100; --squares/--square-mm/--marker-mm for another) in every view, refines "
+        "its corners to sub-pixel and fits the camera matrix and (k1, k2, p1, p2, k3) with "
+        "cv2.calibrateCamera (k3 and p1, p2 held at 0 unless --k3 / --tangential). The result "
+        "goes into the [vision] keys of the --config file (or --write FILE; with neither it is "
+        "only printed), the rest of the file untouched, and sets vision.calibrated = true. "
+        "With --source emulated it is also compared with the emulated camera's true lens "
+        "([camera]); exit 1 if fx, fy are off by more than 0.5 %, cx, cy by more than 1 px or "
+        "k1 by more than 5 %.",
+    )
+    c.add_argument("--config", metavar="FILE", help="rig config (TOML): the camera to calibrate")
+    src = c.add_mutually_exclusive_group(required=True)
+    src.add_argument(
+        "--source",
+        choices=("emulated",),
+        help="views from the emulated camera, the arm at several poses",
+    )
+    src.add_argument("--images", metavar="DIR", help="views: the image files of a folder")
+    c.add_argument("--views", type=int, default=20, metavar="N", help="emulated views (20)")
+    c.add_argument("--seed", type=int, default=0, help="emulated views: poses and noise (0)")
+    c.add_argument("--write", metavar="FILE", help="write the result here instead of --config")
+    c.add_argument("--save-views", metavar="DIR", help="emulated views: also save them as PNG")
+    c.add_argument(
+        "--squares",
+        type=int,
+        nargs=2,
+        metavar=("X", "Y"),
+        default=(14, 10),
+        help="board squares across and down (14 10)",
+    )
+    c.add_argument("--square-mm", type=float, default=30.0, help="square side, mm (30)")
+    c.add_argument("--marker-mm", type=float, default=22.5, help="marker side, mm (22.5)")
+    c.add_argument("--k3", action="store_true", help="also fit k3 (default: held at 0)")
+    c.add_argument("--tangential", action="store_true", help="also fit p1, p2 (default: held at 0)")
+    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.set_defaults(handler=run_calibrate)
+
+
+def _spec(args: argparse.Namespace) -> Any:
+    from hal.errors import HalConfigError
+    from vision.calibration import CharucoSpec
+
+    sx, sy = args.squares
+    if sx < 3 or sy < 3:
+        raise HalConfigError(f"--squares: at least 3 x 3, got {sx} x {sy}")
+    if not (0 < args.marker_mm < args.square_mm):
+        raise HalConfigError(
+            f"--marker-mm must be positive and below --square-mm ({args.square_mm:g}), "
+            f"got {args.marker_mm:g}"
+        )
+    return CharucoSpec(sx, sy, args.square_mm / 1000.0, args.marker_mm / 1000.0)
+
+
+def truth_errors(calibration: Any, cfg: Any) -> dict[str, float]:
+    """The calibration against the emulated camera's true lens: fx, fy, k1 relative, cx, cy
+    in px."""
+    from hal.config import plant_view
+
+    c = plant_view(cfg).camera
+    fx, fy = c.true_focal_px
+    cx, cy = c.true_principal_point_px
+    return {
+        "fx_rel": calibration.fx / fx - 1.0,
+        "fy_rel": calibration.fy / fy - 1.0,
+        "cx_px": calibration.cx - cx,
+        "cy_px": calibration.cy - cy,
+        "k1_rel": float(calibration.distortion[0]) / c.lens_k1 - 1.0 if c.lens_k1 else math.nan,
+    }
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from hal.config import load_config
+    from hal.errors import HalConfigError
+    from rt_controller.commands.output import print_summary
+    from vision.calibration import calibrate, read_images, write_vision_section
+
+    cfg = load_config(args.config)
+    spec = _spec(args)
+    if args.images:
+        views = read_images(args.images)
+    else:
+        if not 3 <= args.views <= 500:
+            raise HalConfigError(f"--views must be 3..500, got {args.views}")
+        from plant_emulator.calibration_views import board_views
+
+        views = board_views(cfg, spec.cells(), spec.cell_m, args.views, seed=args.seed)
+        if args.save_views:
+            _save(views, args.save_views)
+    cal = calibrate(views, spec, k3=args.k3, tangential=args.tangential)
+    summary: dict[str, Any] = {"source": args.images or "emulated", **cal.as_dict()}
+    status = 0
+    if not args.images:
+        errors = truth_errors(cal, cfg)
+        misses = [k for k, lim in TARGETS.items() if not abs(errors[k]) <= lim]
+        summary["truth"] = errors
+        summary["within_targets"] = not misses
+        if misses:
+            print(
+                "hil camera calibrate: off the emulated lens by more than the targets: "
+                + ", ".join(f"{k} {errors[k]:+.4g} (limit {TARGETS[k]:g})" for k in misses),
+                file=sys.stderr,
+            )
+            status = 1
+    target = args.write or args.config
+    if target:
+        write_vision_section(target, cal)
+    summary["written"] = target
+    if args.json:
+        print_summary(summary, True, "hil camera calibrate")
+    else:
+        flat = {k: v for k, v in summary.items() if k != "truth"}
+        flat.update({f"truth.{k}": v for k, v in summary.get("truth", {}).items()})
+        print_summary(flat, False, "hil camera calibrate")
+        if not target:
+            print("note: not written anywhere; give --config FILE (or --write FILE)")
+    return status
+
+
+def _save(views: list[Any], folder: str) -> None:
+    import cv2
+
+    from rt_controller.commands.output import output_dir
+
+    root = output_dir(folder, "--save-views")
+    for i, img in enumerate(views):
+        cv2.imwrite(str(root / f"view-{i:03d}.png"), img)

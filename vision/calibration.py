@@ -1,0 +1,268 @@
+"""Camera calibration from views of a ChArUco board (OpenCV): the camera matrix and distortion
+the vision pipeline undistorts with (``[vision]`` of the rig config).
+
+A ChArUco board is a checkerboard with an ArUco marker in every white square: each inner corner
+is identified by the markers around it, so a view that shows only part of the board still counts,
+and the corners reach the image's edges and corners, where the lens distortion is largest. The
+corners are refined to sub-pixel accuracy (``cv2.aruco.CharucoDetector``) and
+``cv2.calibrateCamera`` fits K and (k1, k2, p1, p2, k3) to all views. Fronto-parallel views
+alone cannot separate the focal length from the distance: the board must be seen at tilts (the
+real camera's or the emulated one's views, see ``hil camera calibrate``).
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from hal.config import RigConfig, load_config
+from hal.errors import HalConfigError
+
+MIN_CORNERS = 8
+"""A view with fewer identified corners is not used (too little of the board in view)."""
+MIN_VIEWS = 3
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+
+
+class CalibrationError(HalConfigError):
+    """The views cannot give a calibration (too few usable views, unreadable images)."""
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """The printed board: squares across and down, their side and the markers' side (m)."""
+
+    squares_x: int = 14
+    squares_y: int = 10
+    square_m: float = 0.03
+    marker_m: float = 0.0225
+    dictionary: int = cv2.aruco.DICT_4X4_100
+    cells_per_square: int = 8
+    """Resolution of :meth:`cells`: the marker (4x4 bits and a 1-bit border) spans 6 cells."""
+
+    def board(self) -> cv2.aruco.CharucoBoard:
+        d = cv2.aruco.getPredefinedDictionary(self.dictionary)
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_m, self.marker_m, d
+        )
+
+    def cells(self) -> np.ndarray:
+        """The board as reflectances 0..1, one row/column per cell (row 0 at v = 0)."""
+        n = self.cells_per_square
+        img = self.board().generateImage(
+            (self.squares_x * n, self.squares_y * n), marginSize=0, borderBits=1
+        )
+        return img.astype(np.float64) / 255.0
+
+    @property
+    def cell_m(self) -> float:
+        return self.square_m / self.cells_per_square
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        return (self.squares_x * self.square_m, self.squares_y * self.square_m)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What ``cv2.calibrateCamera`` found, and from what."""
+
+    width: int
+    height: int
+    camera_matrix: np.ndarray
+    distortion: np.ndarray
+    """(k1, k2, p1, p2, k3)."""
+    rms_px: float
+    """RMS reprojection error over every corner used."""
+    views_used: int
+    views_total: int
+    corners: int
+
+    @property
+    def fx(self) -> float:
+        return float(self.camera_matrix[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.camera_matrix[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.camera_matrix[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.camera_matrix[1, 2])
+
+    def vision_keys(self) -> dict[str, float | bool]:
+        """The ``[vision]`` keys of the rig config."""
+        k1, k2, p1, p2, k3 = (float(v) for v in self.distortion[:5])
+        return {
+            "calibrated": True,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "k1": k1,
+            "k2": k2,
+            "p1": p1,
+            "p2": p2,
+            "k3": k3,
+        }
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "image_size": [self.width, self.height],
+            **{k: v for k, v in self.vision_keys().items() if k != "calibrated"},
+            "rms_px": self.rms_px,
+            "views_used": self.views_used,
+            "views_total": self.views_total,
+            "corners": self.corners,
+        }
+
+
+def detect_corners(
+    img: np.ndarray, spec: CharucoSpec, detector: cv2.aruco.CharucoDetector | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The board's identified inner corners in one grey view: (object points (N, 3) m, image
+    points (N, 2) px), or None when fewer than :data:`MIN_CORNERS` were found."""
+    board = spec.board()
+    detector = detector or cv2.aruco.CharucoDetector(board)
+    corners, ids, _, _ = detector.detectBoard(img)
+    if ids is None or len(ids) < MIN_CORNERS:
+        return None
+    obj, pts = board.matchImagePoints(corners, ids)
+    return obj.reshape(-1, 3).astype(np.float32), pts.reshape(-1, 2).astype(np.float32)
+
+
+def calibrate(
+    views: Iterable[np.ndarray],
+    spec: CharucoSpec | None = None,
+    *,
+    k3: bool = False,
+    tangential: bool = False,
+) -> Calibration:
+    """Calibrate from grey views (all of one size); :class:`CalibrationError` when fewer than
+    :data:`MIN_VIEWS` views show enough of the board.
+
+    By default k3 and the tangential p1, p2 are held at 0 (``k3``, ``tangential`` fit them):
+    for a machine-vision lens they are below what 20 views resolve, and a free p1, p2 trades
+    against the principal point (measured on the emulated camera: cx off by about 1 px with
+    them free, 0.1-0.3 px with them held)."""
+    spec = spec or CharucoSpec()
+    detector = cv2.aruco.CharucoDetector(spec.board())
+    obj_pts: list[np.ndarray] = []
+    img_pts: list[np.ndarray] = []
+    size: tuple[int, int] | None = None
+    total = 0
+    for img in views:
+        total += 1
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise CalibrationError(
+                f"view {total}: expected an 8-bit grey image, got {img.dtype} {img.shape}"
+            )
+        shape = (img.shape[1], img.shape[0])
+        if size is None:
+            size = shape
+        elif shape != size:
+            raise CalibrationError(
+                f"view {total} is {shape[0]}x{shape[1]}, the first was {size[0]}x{size[1]}"
+            )
+        found = detect_corners(img, spec, detector)
+        if found is not None:
+            obj_pts.append(found[0])
+            img_pts.append(found[1])
+    if size is None or len(obj_pts) < MIN_VIEWS:
+        raise CalibrationError(
+            f"only {len(obj_pts)} of {total} view(s) show at least {MIN_CORNERS} board corners; "
+            f"need {MIN_VIEWS} or more (is the board {spec.squares_x}x{spec.squares_y} squares, "
+            "DICT_4X4_100?)"
+        )
+    flags = (0 if k3 else cv2.CALIB_FIX_K3) | (0 if tangential else cv2.CALIB_ZERO_TANGENT_DIST)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    rms, k, dist, _, _ = cv2.calibrateCamera(
+        obj_pts, img_pts, size, None, None, flags=flags, criteria=crit
+    )
+    return Calibration(
+        size[0],
+        size[1],
+        k,
+        np.asarray(dist, dtype=np.float64).reshape(-1)[:5],
+        float(rms),
+        len(obj_pts),
+        total,
+        int(sum(len(p) for p in img_pts)),
+    )
+
+
+def read_images(folder: str | Path) -> list[np.ndarray]:
+    """Every image file of ``folder`` (sorted by name) as 8-bit grey."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise CalibrationError(f"--images {root}: not a folder")
+    files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise CalibrationError(f"--images {root}: no image files ({', '.join(IMAGE_SUFFIXES)})")
+    out = []
+    for p in files:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise CalibrationError(f"{p}: not an image OpenCV can read")
+        out.append(img)
+    return out
+
+
+_SECTION = re.compile(r"^\s*\[\s*vision\s*\]\s*(#.*)?$")
+_ANY_SECTION = re.compile(r"^\s*\[")
+
+
+def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfig:
+    """Write the calibration into the rig config ``path`` (TOML): the calibration keys of its
+    ``[vision]`` section are replaced (the section moves to the end; its other keys and every
+    other section stay as they were), or the section is appended. The file is created when
+    missing; the result is validated like any config before it replaces the file."""
+    p = Path(path)
+    text = p.read_text(encoding="utf-8") if p.exists() else ""
+    try:
+        tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise HalConfigError(f"{p}: not valid TOML, not touched: {exc}") from None
+    c = calibration
+    values = c.vision_keys()
+    kept: list[str] = []
+    others: list[str] = []
+    inside = False
+    for line in text.splitlines():
+        if _SECTION.match(line):
+            inside = True
+            continue
+        if inside and _ANY_SECTION.match(line):
+            inside = False
+        if not inside:
+            kept.append(line)
+        elif line.strip() and line.split("=")[0].strip() not in values:
+            others.append(line)  # the section's other keys stay
+    while kept and not kept[-1].strip():
+        kept.pop()
+    block = [
+        f"[vision]            # hil camera calibrate: {c.views_used} of {c.views_total} views, "
+        f"{c.corners} corners, RMS {c.rms_px:.3f} px, {c.width}x{c.height}",
+        *(f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v)}" for k, v in values.items()),
+        *others,
+    ]
+    new_text = "\n".join([*kept, *([""] if kept else []), *block]) + "\n"
+    tmp = p.with_name(p.name + ".calibrating")
+    tmp.write_text(new_text, encoding="utf-8")
+    try:
+        cfg = load_config(tmp)
+    except HalConfigError:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(p)
+    return cfg
