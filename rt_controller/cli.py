@@ -27,7 +27,6 @@ PACKAGE = "hil-rhc-visual-servo"
 COMMAND_MODULES = (
     "up",
     "keygen",
-    "camera",
     "emulator",
     "vision",
     "controller",
@@ -53,6 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hardware-in-the-loop receding-horizon visual-servo controller.",
     )
     parser.add_argument("--version", action="version", version=f"hil {package_version()}")
+    parser.add_argument(
+        "--target-of",
+        metavar="LOG.mcap",
+        help="compile numba's code for the CPU target LOG records, when this host can run it "
+        "(rerun an experiment's or a sweep's run as it was compiled)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"rt_controller.commands.{name}").register(sub)
@@ -77,7 +82,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handler: Handler = args.handler
-    return run_standalone(f"hil {args.command}", lambda: handler(args), (ControllerError,))
+
+    def body() -> int:
+        if args.target_of is not None:
+            from rt_controller.logtools.target_replay import rerun_on_log_target
+
+            rest = without_option(list(sys.argv[1:] if argv is None else argv), "--target-of")
+            status = rerun_on_log_target(args.target_of, rest, say_on_stderr)
+            if status is not None:
+                return status
+        return handler(args)
+
+    return run_standalone(f"hil {args.command}", body, (ControllerError,))
+
+
+def say_on_stderr(line: str) -> None:
+    print(f"hil: {line}", file=sys.stderr)
+
+
+def without_option(argv: list[str], option: str) -> list[str]:
+    """``argv`` without ``option VALUE`` and ``option=VALUE``."""
+    out, skip = [], False
+    for token in argv:
+        if skip:
+            skip = False
+        elif token == option:
+            skip = True
+        elif not token.startswith(f"{option}="):
+            out.append(token)
+    return out
 
 
 def exit_now(status: int) -> None:

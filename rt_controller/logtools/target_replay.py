@@ -126,6 +126,36 @@ def _why_not(recorded: ct.CompileTarget | None) -> str:
     return f"the log's target {recorded.label()} ({recorded.triple}) is another architecture"
 
 
+def rerun_on_log_target(
+    path: str | Path, argv: list[str], say: Callable[[str], None]
+) -> int | None:
+    """Run ``hil ARGV`` compiled for the target the log ``path`` records (``hil --target-of``:
+    the reruns of an experiment's or a sweep's runs). None when this process runs it: it
+    already compiles for that target, or this host cannot run that target (a warning names the
+    spread to expect). Otherwise the exit status of ``hil ARGV`` run in a new process whose
+    environment, which the rig's processes inherit, compiles for the log's target."""
+    from rt_controller.logtools.reader import read_hil_log
+
+    recorded = ct.recorded(read_hil_log(path, raw=False).run_info)
+    here = ct.this_process()
+    if recorded == here:
+        say(f"compiling for the target of {path}, {here.label()}, as this process does")
+        return None
+    if recorded is None or not recorded.runnable():
+        say(
+            f"warning: {_why_not(recorded)}; compiling for this host's {here.label()}: figures "
+            "may differ from the log's by the cross-target spread (hil replay measures it)"
+        )
+        return None
+    say(
+        f"compiling for the target of {path}, {recorded.label()}, in new processes "
+        f"(numba cache {ct.cache_dir(recorded)})"
+    )
+    cmd = [sys.executable, "-m", "rt_controller.cli", *argv]
+    env = {**os.environ, **recorded.env()}
+    return subprocess.run(cmd, env=env, stdin=None, check=False).returncode
+
+
 def replay_in_process_for(
     target: ct.CompileTarget, path: Path, options: dict[str, Any]
 ) -> ReplayResult:

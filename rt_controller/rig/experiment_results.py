@@ -120,14 +120,17 @@ def _rel(path: Path, out: Path) -> str:
 
 
 def rerun_command(run: RunResult, out: Path) -> str:
-    """The ``hil up`` command (run inside the output folder) that repeats this run."""
+    """The ``hil up`` command (run inside the output folder) that repeats this run, its code
+    compiled for the CPU target the run's log records (``hil --target-of``) where the host can
+    run it, so a lockstep rerun on another CPU gives the same J."""
     clock = "" if run.config.controller.clock == "realtime" else " --lockstep"
     can = f" --can {run.can}" if run.can else ""
     duration = run.summary.get("ticks")
     dur = f"{duration / run.config.rates.control_hz:g}" if duration else "S"
+    log = _rel(run.log, out)
     return (
-        f"hil up{clock}{can} --law {run.spec.law} --duration {dur} "
-        f"--config {_rel(run.config_file, out)} --log {_rel(run.log, out)}"
+        f"hil --target-of {log} up{clock}{can} --law {run.spec.law} --duration {dur} "
+        f"--config {_rel(run.config_file, out)} --log {log}"
     )
 
 

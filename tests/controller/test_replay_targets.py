@@ -177,3 +177,37 @@ def test_a_changed_gain_is_more_than_the_spread_and_says_so(amx_log):
     line = err.strip().splitlines()[-1]
     assert line.startswith("hil replay: replay differs from the log: max |dtau| = ")
     assert "more than the cross-target spread explains" in line
+
+
+# ------------------------------------------------------------------ reruns: hil --target-of
+
+
+def test_target_of_is_taken_out_of_the_rerun_command_line():
+    from rt_controller.cli import without_option
+
+    argv = ["--target-of", "a.mcap", "up", "--lockstep", "--target-of=b.mcap", "--law", "rhc"]
+    assert without_option(argv, "--target-of") == ["up", "--lockstep", "--law", "rhc"]
+
+
+def simulate_j(env: dict[str, str], *front: str) -> tuple[float, str]:
+    """J of a 4 s ``hil simulate --law rhc`` (the target jump at 3 s): J and stderr."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", *front, "simulate", "--law", "rhc"]
+    proc = subprocess.run(
+        [*cmd, "--duration", "4", "--json", "-q"],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)["J"], proc.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_rerun_with_target_of_compiles_for_the_logged_target(skylake_log):
+    logged, _ = simulate_j(env_for("skylake-avx512"))
+    rerun, err = simulate_j(env_for("generic"), "--target-of", str(skylake_log))
+    assert rerun == logged  # bit for bit: J is a float64 in JSON
+    assert "compiling for the target of" in err and "skylake-avx512" in err
