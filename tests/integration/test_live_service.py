@@ -89,6 +89,9 @@ PRE_JUMP_LIMIT_PX = {"pbc": 2.6, "ioc": 1.0, "rhc": 1.0}
 SIM_TRACKING_PX = 2.0
 """Largest |f_HIL - f_simulation| at any tick. The rig adds encoder quantisation, the DSP's
 velocity filter and the 60 fps camera (observed: at most 1.1 px, on a 200 px start)."""
+JUMP_TRANSIENT_S = 1.0
+"""After the jump, the rig on images sees it a tick later than the simulation: the gap is not
+compared for this long."""
 DROPOUT = (1.0, 0.5)
 """Vision dropout (start, duration) in seconds of simulation time (the issue: paused 0.5 s)."""
 REALTIME_DROPOUT_START_S = 4.0
@@ -232,7 +235,9 @@ def test_lockstep_paper_scenario_converges_before_and_after_the_jump(lockstep_ru
     assert before.max() < PRE_JUMP_LIMIT_PX[law], before
     f = norm(cycles["f"])
     t = cycles["sim_time_s"]
-    assert f[0] == pytest.approx(200.0, abs=1e-6)  # f(0) = (-120, -160) px
+    # f(0) = (-120, -160) px, measured from the emulated camera's pixels (camera.model =
+    # "image", the default): 0.014 px off through the default lens and noise (measured)
+    assert f[0] == pytest.approx(200.0, abs=0.05)
     jumped = f[(t >= JUMP_S) & (t < JUMP_S + 0.1)]
     assert jumped.max() > 100.0, "the target jump at 3 s did not reach the controller"
     assert f[-1] == pytest.approx(s["f_final_norm"])
@@ -242,6 +247,11 @@ def test_lockstep_paper_scenario_converges_before_and_after_the_jump(lockstep_ru
     t_sim, f_sim = simulate(law, DURATION_S[law])
     assert np.allclose(t_sim, t)
     gap = np.abs(f - norm(f_sim))
+    # on images (the default) the frame of the jump's tick was exposed just before the jump
+    # (its exposure ends at the tick's pose): the rig sees the jump one tick after the simulation
+    # (analytic features), and the two differ while that period's delay is worked off
+    transient = (t >= JUMP_S) & (t < JUMP_S + JUMP_TRANSIENT_S)
+    gap[transient] = 0.0
     assert gap.max() < SIM_TRACKING_PX, (gap.argmax(), gap.max())
     if law == "pbc":  # the physics bound of the module docstring, in the simulation itself
         assert pre_jump({"sim_time_s": t_sim, "f": f_sim}).min() > 2.0
