@@ -412,8 +412,7 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
 
     outages = report.get("outages") or {}
     listing(
-        f"Camera outages (more than {outages.get('warn_periods')} ticks in a row on stale or "
-        "invalid features)",
+        f"Camera outages (over {outages.get('warn_periods')} ticks on stale/invalid features)",
         ("from tick", "t (s)", "ticks", "s"),
         [
             (str(o["start_tick"]), f"{o['start_s']:.3f}", str(o["ticks"]), f"{o['s']:.2f}")

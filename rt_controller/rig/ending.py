@@ -26,12 +26,14 @@ from typing import Any
 import numpy as np
 
 from rt_controller.errors import LogError
-from rt_controller.runtime.counters import ENDED_FULL, run_problems
+from rt_controller.runtime.counters import ENDED_FULL, run_problems, run_warnings
 
 LOGGING_TO = re.compile(r"logging to (?P<path>\S.*?)\s*$", re.MULTILINE)
 """The controller's start-up line on stderr names its log (``hil controller: ... logging to
 PATH``): the path of a run whose controller died before its summary."""
-FROM_LOG = ("ticks", "J", "deadline_misses", "missed_periods", "stale_features", "f_final")
+FROM_LOG = (
+    "ticks", "J", "deadline_misses", "missed_periods", "stale_features", "f_final", "outages",
+)  # fmt: skip
 """Counters of a killed controller's run, as :func:`~rt_controller.logtools.deadline_report.
 summarize` reads them from its log."""
 
@@ -206,5 +208,7 @@ def summary_after(
     if "error" in contents:
         problems.append(f"the log cannot be read: {contents['error']}")
     out["problems"] = problems
+    if summary is None:
+        out["warnings"] = run_warnings(out)
     out.setdefault("warnings", [])
     return out

@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -25,6 +27,17 @@ pytestmark = pytest.mark.integration
 
 WAIT_S = 120.0
 CTL = RigConfig().controller
+
+
+def report_of(log: str) -> dict:
+    """``hil report LOG --json``."""
+    out = subprocess.run(
+        [sys.executable, "-m", "rt_controller.cli", "report", log, "--json"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return json.loads(out)
 
 
 def freeze_vision(tmp_path, duration_s: float, freeze_s: float) -> tuple[int, dict, str]:
@@ -62,6 +75,8 @@ def test_a_two_second_camera_freeze_is_a_named_warning(tmp_path):
     # not past the share: the outage alone does not make the run not clean
     assert outages["share"] <= CTL.outage_max_share, outages
     assert not [p for p in summary["problems"] if "stale or invalid" in p], summary["problems"]
+    # hil report finds the same outages in the log's f_stale / f_valid columns
+    assert report_of(summary["log"])["outages"] == outages
 
 
 def test_a_longer_camera_freeze_makes_the_run_not_clean(tmp_path):
