@@ -28,6 +28,7 @@ on is in ``hil bench vision``).
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import math
 import secrets
@@ -100,18 +101,23 @@ class PoseHistory:
 
     def __init__(self, keep_ns: int) -> None:
         self.keep_ns = keep_ns
-        self.samples: deque[PoseSample] = deque()
+        self.samples: list[PoseSample] = []
+        self._times: list[int] = []
 
     def add(self, s: PoseSample) -> None:
-        if self.samples and s.sim_ns <= self.samples[-1].sim_ns:
+        if self.samples and s.sim_ns <= self._times[-1]:
             self.samples[-1] = s  # a holding world re-publishes time 0: keep the newest pose
+            self._times[-1] = s.sim_ns
         else:
             self.samples.append(s)
-        while len(self.samples) > 2 and self.samples[1].sim_ns < s.sim_ns - self.keep_ns:
-            self.samples.popleft()
+            self._times.append(s.sim_ns)
+        old = bisect.bisect_left(self._times, s.sim_ns - self.keep_ns) - 1
+        if old > 0:
+            del self.samples[:old], self._times[:old]
 
     def clear(self) -> None:
         self.samples.clear()
+        self._times.clear()
 
     @property
     def newest(self) -> PoseSample | None:
@@ -119,12 +125,13 @@ class PoseHistory:
 
     def _bracket(self, t_ns: float) -> tuple[PoseSample, PoseSample, float]:
         s = self.samples
-        if t_ns <= s[0].sim_ns:
+        i = bisect.bisect_left(self._times, t_ns)
+        if i == 0:
             return s[0], s[0], 0.0
-        for a, b in zip(s, list(s)[1:], strict=False):
-            if t_ns <= b.sim_ns:
-                return a, b, (t_ns - a.sim_ns) / (b.sim_ns - a.sim_ns)
-        return s[-1], s[-1], 0.0
+        if i == len(s):
+            return s[-1], s[-1], 0.0
+        a, b = s[i - 1], s[i]
+        return a, b, (t_ns - a.sim_ns) / (b.sim_ns - a.sim_ns)
 
     def pose_at(self, t_s: float) -> CameraPose:
         a, b, w = self._bracket(t_s * 1e9)
@@ -221,6 +228,9 @@ class CameraNode:
     # -- the worker ------------------------------------------------------------------------
 
     def start(self) -> CameraNode:
+        """Compile and warm the renderer (the first frame would otherwise be late by the JIT
+        time), then start the worker thread."""
+        self.sensor.render(lambda t: CameraPose(0.0, 0.0, 0.0), 0.0)
         self._thread = threading.Thread(target=self._run, name="hil-camera", daemon=True)
         self._thread.start()
         return self

@@ -304,21 +304,24 @@ class CameraSensor:
 
     def irradiance(self, pose_at: Callable[[float], CameraPose], t_mid: float) -> np.ndarray:
         """Noise-free reflectance image (float, 0..1) averaged over the exposure."""
-        times = self.subexposures(pose_at, t_mid)
-        acc: np.ndarray | None = None
-        background = None
-        for t in times:
-            texture = self.scene(float(t))
-            if background is None:
-                background = float(texture.background)
-                acc = np.zeros(self.shape)
-            assert acc is not None
-            roi = self._roi(pose_at(float(t)), texture)
-            if roi is None:
-                continue
-            acc[roi] += self._sample(pose_at(float(t)), texture, roi) - background
-        assert acc is not None and background is not None
-        return background + acc / len(times)
+        times = [float(t) for t in self.subexposures(pose_at, t_mid)]
+        poses = [pose_at(t) for t in times]
+        textures = [self.scene(t) for t in times]
+        background = float(textures[0].background)
+        out = np.full(self.shape, background)
+        # one region for the whole exposure: the union of the first and last sub-exposure's
+        ends = ((poses[0], textures[0]), (poses[-1], textures[-1]))
+        rois = [r for r in (self._roi(p, tex) for p, tex in ends) if r is not None]
+        if not rois:
+            return out
+        roi = tuple(
+            slice(min(r[a].start for r in rois), max(r[a].stop for r in rois)) for a in (0, 1)
+        )
+        acc = np.zeros((roi[0].stop - roi[0].start, roi[1].stop - roi[1].start))
+        for pose, texture in zip(poses, textures, strict=True):
+            acc += self._sample(pose, texture, roi)
+        out[roi] = acc / len(times)
+        return out
 
     def render(
         self, pose_at: Callable[[float], CameraPose], t_mid: float, *, frame: int = 0
