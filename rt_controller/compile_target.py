@@ -6,6 +6,12 @@ on another CPU (an RHC log from an AMD Zen 4 replayed on an Intel host: max |dta
 A run records the target its code was compiled for (:func:`run_info`, in ``hil.run``), and
 the versions that change rounding besides it (numba, llvmlite, LLVM, numpy, Python, glibc).
 
+glibc picks its libm's code (sin, cos, exp...) by the CPU at run time, whatever numba compiled
+for: with FMA and AVX2 it runs variants that round differently (a replay with glibc told the
+CPU has no FMA, AVX2 or AVX differs by 1.1e-10 for ``generic`` code and 1.8e-5 for ``znver4``
+code: RHC amplifies the last bit). :func:`run_info` records the features that choice uses
+(``libm_cpu_features``) and :func:`libm_env` narrows glibc's choice to the recording host's.
+
 A recorded :class:`CompileTarget` can be compiled for again on any host that has every CPU
 feature it enables (:meth:`CompileTarget.runnable`): numba reads ``NUMBA_CPU_NAME`` and
 ``NUMBA_CPU_FEATURES`` once, when it is imported, so that code runs in a new process with
@@ -28,6 +34,11 @@ ENV_CACHE = "NUMBA_CACHE_DIR"
 KEY_NAME = "numba_cpu_name"
 KEY_FEATURES = "numba_cpu_features"
 KEY_TRIPLE = "numba_target_triple"
+KEY_LIBM = "libm_cpu_features"
+LIBM_FEATURES = {"avx": "AVX", "avx2": "AVX2", "fma": "FMA", "fma4": "FMA4"}
+"""CPU features (LLVM's names) by which glibc picks its x86-64 libm variants, with the names
+``GLIBC_TUNABLES=glibc.cpu.hwcaps=-NAME`` takes."""
+ENV_TUNABLES = "GLIBC_TUNABLES"
 VERSION_KEYS = (
     "numba_version",
     "llvmlite_version",
@@ -152,14 +163,57 @@ def versions() -> dict[str, str]:
 
 
 def run_info() -> dict[str, str]:
-    """The ``hil.run`` entries of this process's compile target and versions."""
+    """The ``hil.run`` entries of this process's compile target, libm features and versions."""
     target = this_process()
     return {
         KEY_NAME: target.cpu_name,
         KEY_FEATURES: target.features,
         KEY_TRIPLE: target.triple,
+        KEY_LIBM: ",".join(sorted(libm_features())),
         **versions(),
     }
+
+
+def _hwcaps_off(tunables: str) -> set[str]:
+    """The ``glibc.cpu.hwcaps=-NAME`` entries of a ``GLIBC_TUNABLES`` value."""
+    off: set[str] = set()
+    for item in tunables.split(":"):
+        key, _, value = item.partition("=")
+        if key == "glibc.cpu.hwcaps":
+            off |= {v[1:] for v in value.split(",") if v.startswith("-")}
+    return off
+
+
+def libm_features() -> set[str]:
+    """The features of :data:`LIBM_FEATURES` glibc's libm uses in this process: the host's,
+    less those ``GLIBC_TUNABLES`` turns off."""
+    off = _hwcaps_off(os.environ.get(ENV_TUNABLES, ""))
+    host = host_features()
+    return {f for f, name in LIBM_FEATURES.items() if f in host and name not in off}
+
+
+def libm_matches(info: dict[str, str]) -> bool:
+    """This process's libm picks the variants the log's host picked (True when the log
+    does not say)."""
+    if KEY_LIBM not in info:
+        return True
+    return libm_features() == {f for f in info[KEY_LIBM].split(",") if f}
+
+
+def libm_env(info: dict[str, str]) -> tuple[dict[str, str], list[str]]:
+    """For a process that should pick the libm variants the log's host picked: the
+    ``GLIBC_TUNABLES`` that turns off what this host has beyond it (empty when nothing is), and
+    the features the log's host used that this one lacks (those variants cannot run here)."""
+    if KEY_LIBM not in info:
+        return {}, []
+    logged = {f for f in info[KEY_LIBM].split(",") if f}
+    host = {f for f in LIBM_FEATURES if f in host_features()}
+    extra, missing = sorted(host - logged), sorted(logged - host)
+    if not extra:
+        return {}, missing
+    hwcaps = "glibc.cpu.hwcaps=" + ",".join(f"-{LIBM_FEATURES[f]}" for f in extra)
+    current = os.environ.get(ENV_TUNABLES, "")
+    return {ENV_TUNABLES: f"{current}:{hwcaps}" if current else hwcaps}, missing
 
 
 def recorded(info: dict[str, str]) -> CompileTarget | None:

@@ -69,16 +69,19 @@ def replay_as_recorded(
     }
     recorded, here = ct.recorded(log.run_info), ct.this_process()
     changed = ct.version_changes(log.run_info)
-    if recorded == here:
+    libm, libm_missing = ct.libm_env(log.run_info)
+    if recorded == here and ct.libm_matches(log.run_info):
         result = replay_loaded(log, **options)
         result.compile_target = f"compiled for {here.label()}, the log's target"
     elif recorded is not None and recorded.runnable():
-        line = (
-            f"compiling for the log's target {recorded.label()} in its own process "
-            f"(numba cache {ct.cache_dir(recorded)})"
-        )
+        where = f"numba cache {ct.cache_dir(recorded)}"
+        if libm:
+            where += (
+                f"; glibc's libm as on the log's host, {ct.ENV_TUNABLES}={libm[ct.ENV_TUNABLES]}"
+            )
+        line = f"compiling for the log's target {recorded.label()} in its own process ({where})"
         say(line)
-        result = replay_in_process_for(recorded, log.path, options)
+        result = replay_in_process_for(recorded, log.path, options, libm)
         result.compile_target = line.replace("compiling", "compiled", 1)
     else:
         result = replay_loaded(log, **options)
@@ -107,6 +110,11 @@ def replay_as_recorded(
                     f"{result.difference()}; up to {result.spread_limit:.3g} is the compile "
                     "target's difference"
                 )
+    if libm_missing and not result.matches:
+        result.notes.append(
+            f"the log's host ran glibc's libm variants for {', '.join(libm_missing)}, which "
+            "this CPU lacks: sin, cos and exp may round differently in the last bit"
+        )
     if changed and not result.matches:
         result.notes.append(
             "versions that change rounding differ from the recording: " + ", ".join(changed)
@@ -136,9 +144,10 @@ def rerun_on_log_target(
     environment, which the rig's processes inherit, compiles for the log's target."""
     from rt_controller.logtools.reader import read_hil_log
 
-    recorded = ct.recorded(read_hil_log(path, raw=False).run_info)
-    here = ct.this_process()
-    if recorded == here:
+    info = read_hil_log(path, raw=False).run_info
+    recorded, here = ct.recorded(info), ct.this_process()
+    libm, _ = ct.libm_env(info)
+    if recorded == here and ct.libm_matches(info):
         say(f"compiling for the target of {path}, {here.label()}, as this process does")
         return None
     if recorded is None or not recorded.runnable():
@@ -152,16 +161,19 @@ def rerun_on_log_target(
         f"(numba cache {ct.cache_dir(recorded)})"
     )
     cmd = [sys.executable, "-m", "rt_controller.cli", *argv]
-    env = {**os.environ, **recorded.env()}
+    env = {**os.environ, **recorded.env(), **libm}
     return subprocess.run(cmd, env=env, stdin=None, check=False).returncode
 
 
 def replay_in_process_for(
-    target: ct.CompileTarget, path: Path, options: dict[str, Any]
+    target: ct.CompileTarget,
+    path: Path,
+    options: dict[str, Any],
+    extra_env: dict[str, str] | None = None,
 ) -> ReplayResult:
     """:func:`replay_log` of ``path`` with ``options`` in a new process compiled for
-    ``target``; :class:`LogError` with the child's reason when it fails."""
-    env = {**os.environ, **target.env()}
+    ``target`` (and ``extra_env``); :class:`LogError` with the child's reason when it fails."""
+    env = {**os.environ, **target.env(), **(extra_env or {})}
     with tempfile.TemporaryDirectory(prefix="hil-replay-") as tmp:
         request, answer = Path(tmp, "request.pickle"), Path(tmp, "result.pickle")
         request.write_bytes(pickle.dumps((Path(path), options)))

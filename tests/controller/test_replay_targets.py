@@ -116,6 +116,24 @@ def test_each_target_compiles_into_its_own_cache():
     }
 
 
+def test_libm_is_narrowed_to_what_the_log_host_had(monkeypatch):
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
+    mine = ct.libm_features()
+    assert ct.libm_matches({ct.KEY_LIBM: ",".join(sorted(mine))})
+    assert ct.libm_env({ct.KEY_LIBM: ",".join(sorted(mine))}) == ({}, [])
+    assert ct.libm_env({}) == ({}, []) and ct.libm_matches({})  # a log from before the record
+    env, missing = ct.libm_env({ct.KEY_LIBM: ""})  # a host without FMA, AVX2 or AVX
+    if mine:
+        names = sorted(ct.LIBM_FEATURES[f] for f in mine)
+        off = env["GLIBC_TUNABLES"].removeprefix("glibc.cpu.hwcaps=").split(",")
+        assert sorted(v.removeprefix("-") for v in off) == names
+        assert not ct.libm_matches({ct.KEY_LIBM: ""})
+    assert missing == []
+    assert ct.libm_env({ct.KEY_LIBM: "fma,no-such-feature"})[1] == ["no-such-feature"]
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.check=0:glibc.cpu.hwcaps=-FMA,-AVX2")
+    assert not {"fma", "avx2"} & ct.libm_features()
+
+
 # --------------------------------------------------------------------------- exact replay
 
 
@@ -135,6 +153,22 @@ def test_a_log_replays_exactly_under_each_target(skylake_log, replay_target):
     assert "skylake-avx512" in out["compile_target"]
     if replay_target != "skylake-avx512":  # another target than the log's: said in one line
         assert "compiling for the log's target skylake-avx512" in err
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_log_from_a_host_without_fma_replays_exactly(tmp_path):
+    if not {"fma", "avx2"} <= ct.libm_features():
+        pytest.skip("this host's libm has no FMA variants to turn off")
+    target = ct.CompileTarget("skylake-avx512", ct.host_feature_string())
+    no_fma = "glibc.cpu.hwcaps=-AVX2,-FMA,-AVX"
+    env = {**os.environ, **target.env(), "GLIBC_TUNABLES": no_fma}  # an older rig PC's libm
+    cmd = [sys.executable, "-c", RECORD, str(tmp_path / "rhc.mcap"), str(TICKS)]
+    subprocess.run(cmd, env=env, cwd=ROOT, check=True, timeout=900)
+    code, out, err = hil_replay(tmp_path / "rhc.mcap", env_for("generic"))
+    assert code == 0, err
+    assert out["max_abs_dtau"] == 0.0 and out["max_abs_du"] == 0.0
+    assert "GLIBC_TUNABLES=glibc.cpu.hwcaps=" in out["compile_target"]
 
 
 # ------------------------------------------------------------- a target this host cannot run
