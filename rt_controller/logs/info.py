@@ -9,7 +9,17 @@ from typing import Any
 from rt_controller.logs.run import Run
 from rt_controller.runtime import diagnostics
 
-RUN_KEYS = ("clock", "law", "rate_hz", "can", "zenoh", "recorder", "start_wall_time", "hostname")
+RUN_KEYS = (
+    "clock",
+    "law",
+    "rate_hz",
+    "can",
+    "zenoh",
+    "recorder",
+    "start_wall_time",
+    "hostname",
+    "numba_cpu_name",
+)
 """The ``hil.run`` metadata ``hil info`` shows (``--json`` has all of it under ``run_info``)."""
 
 
