@@ -36,6 +36,7 @@ COMMAND_MODULES = (
     "replay",
     "report",
     "info",
+    "recover",
     "export",
     "experiment",
     "sweep",
@@ -91,7 +92,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             status = rerun_on_log_target(args.target_of, rest, say_on_stderr)
             if status is not None:
                 return status
-        return handler(args)
+        return explained_extras(handler, args)
 
     return run_standalone(f"hil {args.command}", body, (ControllerError,))
 
@@ -111,6 +112,20 @@ def without_option(argv: list[str], option: str) -> list[str]:
         elif not token.startswith(f"{option}="):
             out.append(token)
     return out
+
+
+def explained_extras(handler: Handler, args: argparse.Namespace) -> int:
+    """Run ``handler``; a module of an extra that a code path imports without
+    :func:`rt_controller.extras.require` still ends in the one-line error naming the extra."""
+    from rt_controller.extras import as_missing_extra
+
+    try:
+        return handler(args)
+    except ModuleNotFoundError as exc:
+        explained = as_missing_extra(exc, "this command")
+        if explained is None:
+            raise
+        raise explained from exc
 
 
 def exit_now(status: int) -> None:

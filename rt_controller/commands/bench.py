@@ -176,6 +176,9 @@ def run_vision(args: argparse.Namespace) -> int:
 
 
 def run_sweep(args: argparse.Namespace) -> int:
+    from rt_controller.extras import require_extra
+
+    require_extra("sweep", "this command")
     from rt_controller.commands.sweep import simulate_plant
     from rt_controller.sweep.bench import bench_sweep
 

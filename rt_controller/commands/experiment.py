@@ -149,6 +149,10 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
+    from rt_controller.extras import require_extra
+
+    require_extra("sweep", "this command")  # the runs go as tasks on the sweep's Dask executor
+
     from rt_controller.commands.output import output_dir
     from rt_controller.commands.progress import Progress
     from rt_controller.rig.experiment import EXPERIMENTS, Settings, prepare

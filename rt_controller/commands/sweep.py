@@ -63,6 +63,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rt_controller.extras import require_extra
+
+    require_extra("sweep", "this command")
     from rt_controller.commands.output import print_summary
     from rt_controller.sweep.executor import run_sweep
     from rt_controller.sweep.report import write_report

@@ -8,7 +8,6 @@ only with the ``analysis`` extra). Missing numbers are NaN; a field no record ha
 from __future__ import annotations
 
 import hashlib
-import importlib
 import json
 import re
 from functools import cached_property
@@ -17,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rt_controller.errors import LogError, MissingExtraError
+from rt_controller import extras
+from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, columns, read_hil_log
 
 if TYPE_CHECKING:
@@ -32,21 +32,14 @@ VECTOR_SUFFIXES: dict[str, tuple[str, ...]] = {"f": ("_x", "_y"), "f_pred": ("_x
 """Column suffixes of the image-plane vectors (``f`` -> ``f_x``, ``f_y``); every other vector
 field is numbered from 1 like the joints (``q`` -> ``q1``, ``q2``; ``tau`` -> ``tau1``, ...)."""
 
-INSTALL_ANALYSIS = "pip install 'hil-rhc-visual-servo[analysis]'"
-
 _CAN_LEADING = ("t_ns", "time_s", "direction", "frame_id", "message", "dlc", "data", "is_fd")
 
 
 def require(module: str, what: str) -> Any:
     """Import ``module`` of the ``analysis`` extra, or raise :class:`MissingExtraError` saying
-    how to install it (``what`` is the job that needed it)."""
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        top = module.split(".")[0]
-        raise MissingExtraError(
-            f"{what} needs {top}, which is not installed: {INSTALL_ANALYSIS}"
-        ) from exc
+    how to install it (``what`` is the job that needed it; the rule of
+    :func:`rt_controller.extras.require`)."""
+    return extras.require(module, what, "analysis")
 
 
 def identifier(name: str) -> str:

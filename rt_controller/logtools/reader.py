@@ -139,7 +139,9 @@ def columns(records: list[dict[str, Any]]) -> dict[str, np.ndarray]:
     return out
 
 
-def _check_file(path: Path) -> None:
+def check_file(path: Path) -> None:
+    """Raise :class:`LogError` (one line) unless ``path`` is a readable file that starts with
+    the MCAP magic."""
     try:
         with path.open("rb") as fh:
             head = fh.read(len(MAGIC))
@@ -160,7 +162,7 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
     after the magic (truncation, a half-written chunk) ends the read with ``truncated`` set.
     """
     path = Path(path)
-    _check_file(path)
+    check_file(path)
     out = LoadedLog(path=path)
     channels: dict[int, str] = {}
     schema_names: dict[int, str] = {}

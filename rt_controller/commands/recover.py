@@ -1,0 +1,46 @@
+"""``hil recover``: a finished copy of a log whose recorder was killed or that was cut."""
+
+from __future__ import annotations
+
+import argparse
+
+DESCRIPTION = """\
+Reads LOG.mcap up to its last complete record (mcap's stream reader) and writes every schema,
+channel, message, metadata and attachment again with mcap's writer, with chunk indexes, a
+summary section and the footer: a log whose recorder was SIGKILLed, or a file cut in a copy,
+then opens in mcap's own reader and in Foxglove, and `hil info` calls it complete. The input
+is never changed (an --out naming it is refused). Prints one line with what was kept and what
+was lost (the bytes after the last complete record, usually a half-written chunk).
+
+--json prints one object: log, out, finished (the input already had its footer), input_bytes,
+kept_bytes, lost_bytes, stopped (why the read ended), messages, cycles, schemas, channels,
+metadata (names), attachments, topics ({TOPIC: messages}).
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "recover",
+        help="write a finished copy of a cut log (recorder killed) that stock MCAP tools open",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("log", metavar="LOG.mcap", help="the cut log (read only)")
+    p.add_argument(
+        "--out", metavar="NEW.mcap", help="the copy (default: LOG.recovered.mcap beside LOG)"
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from rt_controller.commands.output import output_file
+    from rt_controller.logtools.recover import default_out, recover
+
+    out = output_file(args.out, "--out") if args.out else default_out(Path(args.log))
+    result = recover(args.log, out)
+    print(json.dumps(result.as_dict()) if args.json else result.line())
+    return 0

@@ -1,0 +1,184 @@
+"""A finished copy of a cut MCAP log (``hil recover``).
+
+A recorder that was killed (SIGKILL, power loss) or a file cut in a copy leaves an MCAP file
+without its summary section and footer, usually ending inside a chunk. ``hil`` reads such a
+file as far as it goes, but mcap's own indexed reader and Foxglove do not
+(``RecordLengthLimitExceeded``, no summary). :func:`recover` reads the records with mcap's
+:class:`~mcap.stream_reader.StreamReader` up to the last complete one and writes them again
+with mcap's :class:`~mcap.writer.Writer`: header, schemas, channels, messages, metadata and
+attachments in their order, with chunk indexes, statistics, a summary section and the footer.
+The input is never changed; the copy is written beside its final name and renamed into place.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mcap.exceptions import EndOfFile
+from mcap.records import (
+    Attachment,
+    Channel,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    Metadata,
+    Schema,
+)
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from rt_controller.errors import ControllerConfigError, LogError
+from rt_controller.logtools.reader import CYCLE_TOPIC, MAGIC, check_file
+
+CHUNK_SIZE = 1024 * 1024
+"""Chunk size of the copy (mcap's default; the recorder's small chunks only bound its loss)."""
+
+
+@dataclass
+class Recovery:
+    """What :func:`recover` kept and lost (``hil recover --json`` prints :meth:`as_dict`)."""
+
+    log: str
+    out: str
+    finished: bool = False
+    """The input already had its footer (nothing was lost; the copy is a plain rewrite)."""
+    input_bytes: int = 0
+    kept_bytes: int = 0
+    """Bytes of the input up to the end of its last complete record."""
+    lost_bytes: int = 0
+    """Bytes after that: a half-written chunk or record, never readable."""
+    stopped: str = ""
+    """Why the read ended (``footer``, ``end of file``, or the damage mcap reported)."""
+    messages: int = 0
+    cycles: int = 0
+    """``/controller/cycle`` messages kept (the ticks of a controller log)."""
+    schemas: int = 0
+    channels: int = 0
+    metadata: list[str] = field(default_factory=list)
+    attachments: int = 0
+    topics: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def line(self) -> str:
+        """One line for people: what was kept and what was lost."""
+        if self.finished:
+            lost = "nothing lost (the log was already finished)"
+        else:
+            lost = f"lost the last {self.lost_bytes} byte(s) ({self.stopped})"
+        return (
+            f"{self.out}: kept {self.messages} message(s) ({self.cycles} cycles) on "
+            f"{self.channels} channel(s), {len(self.metadata)} metadata, {self.attachments} "
+            f"attachment(s); {lost}"
+        )
+
+
+def default_out(log: Path) -> Path:
+    """``LOG.recovered.mcap`` beside ``LOG``."""
+    return log.with_name(f"{log.stem}.recovered{log.suffix or '.mcap'}")
+
+
+def _check_paths(log: Path, out: Path) -> None:
+    check_file(log)
+    if out.resolve() == log.resolve() or (out.exists() and os.path.samefile(out, log)):
+        raise ControllerConfigError(f"--out {out}: is the input log; recover never overwrites it")
+
+
+def recover(log: str | Path, out: str | Path | None = None) -> Recovery:
+    """Write a finished copy of ``log`` to ``out`` (default :func:`default_out`).
+
+    Raises :class:`LogError` for a missing or non-MCAP input or one cut before its header
+    ended, :class:`ControllerConfigError` when ``out`` is the input itself.
+    """
+    log = Path(log)
+    out = Path(out) if out is not None else default_out(log)
+    _check_paths(log, out)
+    result = Recovery(log=str(log), out=str(out), input_bytes=log.stat().st_size)
+    tmp = out.with_name(f".{out.name}.partial")
+    try:
+        with log.open("rb") as src, tmp.open("wb") as dst:
+            _copy(src, dst, result)
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    result.lost_bytes = result.input_bytes - result.kept_bytes
+    return result
+
+
+def _copy(src: Any, dst: Any, result: Recovery) -> None:
+    reader = StreamReader(src, validate_crcs=True, record_size_limit=max(result.input_bytes, 1))
+    writer: Writer | None = None
+    schema_ids: dict[int, int] = {0: 0}
+    channel_ids: dict[int, int] = {}
+    topics: dict[int, str] = {}
+    counts: Counter[str] = Counter()
+    data_end = False
+    result.kept_bytes = len(MAGIC)
+    try:
+        for rec in reader.records:
+            if isinstance(rec, Header):
+                writer = Writer(dst, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+                writer.start(profile=rec.profile, library=rec.library)
+            elif writer is None:
+                raise LogError(f"{result.log}: the first record is not the MCAP header")
+            elif isinstance(rec, Footer):
+                result.finished, result.stopped = True, "footer"
+                break
+            elif data_end:
+                continue  # the summary section repeats what was read; the writer makes its own
+            elif isinstance(rec, DataEnd):
+                data_end, result.stopped = True, "cut in the summary section (all data kept)"
+            elif isinstance(rec, Schema):
+                schema_ids[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
+            elif isinstance(rec, Channel):
+                sid = schema_ids.get(rec.schema_id, 0)
+                channel_ids[rec.id] = writer.register_channel(
+                    rec.topic, rec.message_encoding, sid, dict(rec.metadata)
+                )
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Message):
+                if rec.channel_id not in channel_ids:
+                    continue  # a message before its channel: no valid MCAP has one
+                writer.add_message(
+                    channel_ids[rec.channel_id],
+                    rec.log_time,
+                    rec.data,
+                    rec.publish_time,
+                    rec.sequence,
+                )
+                counts[topics[rec.channel_id]] += 1
+            elif isinstance(rec, Metadata):
+                writer.add_metadata(rec.name, dict(rec.metadata))
+                result.metadata.append(rec.name)
+            elif isinstance(rec, Attachment):
+                writer.add_attachment(
+                    rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data
+                )
+                result.attachments += 1
+            if not data_end or isinstance(rec, DataEnd):
+                result.kept_bytes = src.tell()
+        else:
+            result.stopped = result.stopped or "end of file"  # pragma: no cover - mcap raises
+    except EndOfFile:  # also at a record boundary: the reader looked for the next record
+        at_boundary = src.tell() == result.kept_bytes
+        result.stopped = result.stopped or ("end of file" if at_boundary else "cut inside a record")
+    except LogError:
+        raise
+    except Exception as exc:  # a damaged tail: CRC, zstd, a garbage length (what mcap raises)
+        result.stopped = result.stopped or f"damaged: {type(exc).__name__}: {exc}".rstrip(": ")
+    if writer is None:
+        raise LogError(f"{result.log}: cut before the end of its MCAP header: nothing to recover")
+    writer.finish()
+    result.kept_bytes = result.input_bytes if result.finished else result.kept_bytes
+    result.topics = dict(counts)
+    result.messages = sum(counts.values())
+    result.cycles = counts[CYCLE_TOPIC]
+    result.schemas = len(schema_ids) - 1
+    result.channels = len(channel_ids)
