@@ -53,6 +53,9 @@ KEY_CAMERA_POSE = "hil/emulator/camera_pose"
 KEY_CAMERA_FRAME = "hil/camera/frame"
 """Camera frames, camera -> vision's frame grabber (payload: :mod:`hal.camera_frame` v1, raw
 mono8 pixels with the capture stamp)."""
+KEY_VISION_IMAGE = "hil/vision/image"
+"""What the camera saw, vision -> log and live views: every ``camera.image_log_fps``-th second a
+frame as PNG with its detection (payload: :mod:`hal.vision_image` v1)."""
 KEY_CONTROLLER_CYCLE = "hil/controller/cycle"
 """Every controller tick, controller -> anyone (payload: the ``/controller/cycle`` JSON record of
 the MCAP, schema ``rt_controller/runtime/cycle_schema.json``), sent off the tick's path."""

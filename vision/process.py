@@ -11,12 +11,16 @@ import secrets
 import threading
 from collections.abc import Callable, Sequence
 
+import zenoh
+
 from hal.camera_frame import CameraFrame
 from hal.config import RigConfig
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, encode_features
-from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, open_session
+from hal.vision_image import encode_vision_image
+from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, KEY_VISION_IMAGE, open_session
 from vision.grabber import Dropout, Grabber, GrabberStats, Observer
+from vision.image_log import ImageLog
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
 from vision.sources import EmulatedSource, open_source, parse_source
@@ -68,10 +72,21 @@ def run_live(
     timer: threading.Timer | None = None
     try:
         pub = session.publisher(KEY_FEATURES)
+        source_id = secrets.randbits(32)
+        image_pub = None
+        if observer is None and cfg.camera.image_log_fps > 0:
+            image_pub = session.publisher(
+                KEY_VISION_IMAGE, block=False, priority=zenoh.Priority.DATA_LOW
+            )
+            observer = ImageLog(
+                cfg.camera.image_log_fps,
+                lambda img: image_pub.put(encode_vision_image(img, key)),
+                source_id,
+            )
         grabber = Grabber(
             Pipeline(intrinsics_from_config(cfg)),
             lambda msg: pub.put(encode_features(msg, key)),
-            source_id=secrets.randbits(32),
+            source_id=source_id,
             observer=observer,
             dropouts=dropouts,
         )
@@ -87,6 +102,8 @@ def run_live(
         finally:
             grabber.close()
             pub.undeclare()
+            if image_pub is not None:
+                image_pub.undeclare()
         stats = grabber.snapshot()
         stats.source = source.name
         if isinstance(source, EmulatedSource):

@@ -136,6 +136,9 @@ class SceneBuilder:
         self.image_every = max(1, round(cfg.rates.control_hz))
         """The background image goes with every ``image_every``-th tick (about 1 Hz)."""
         self._png = blank_png(IMAGE_WIDTH, IMAGE_HEIGHT)
+        self.blank_image = cfg.camera.model != "image"
+        """The blank plane only without frames: on images the camera's own frames are
+        ``/camera/image`` (:mod:`rt_controller.monitor.camera_view`)."""
 
     @staticmethod
     def schemas() -> dict[str, Any]:
@@ -172,7 +175,7 @@ class SceneBuilder:
             (CALIBRATION_TOPIC, self.calibration(ts)),
             (ANNOTATIONS_TOPIC, self.annotations(f, ts, tick)),
         ]
-        if isinstance(k, int) and k % self.image_every == 0:
+        if self.blank_image and isinstance(k, int) and k % self.image_every == 0:
             out.append((IMAGE_TOPIC, self.image(ts)))
         return out
 

@@ -17,13 +17,15 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
-from hal.errors import HalTimeoutError
+from hal.errors import HalCodecError, HalTimeoutError
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder, FeatureMsg
-from hal.zenoh_session import KEY_FEATURES, PayloadRing
+from hal.vision_image import decode_vision_image
+from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE, PayloadRing
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock
+from rt_controller.runtime.recorder import IMAGE
 
 STARTUP_TIMEOUT_S = 20.0
 """How long start-up waits for the first joint state and features before giving up."""
@@ -78,6 +80,9 @@ class RigHardware:
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
         self._ring: PayloadRing | None = None
         self._subscriber: Any = None
+        self._image_subscriber: Any = None
+        self.images_recorded = self.images_rejected = 0
+        """``hil/vision/image`` payloads logged, and refused (not authentic or malformed)."""
         self._feeding = threading.Lock()
         """Held while a callback feeds a message; :meth:`detach` takes it to end the feed."""
         self._attached = False
@@ -92,6 +97,8 @@ class RigHardware:
             self._subscriber = session.subscribe(KEY_FEATURES, self._on_features)
         else:
             self._ring = session.subscribe_ring(KEY_FEATURES)
+        if self.cfg.camera.image_log_fps > 0:
+            self._image_subscriber = session.subscribe(KEY_VISION_IMAGE, self._on_image)
         if self.record_raw:
             rec, now = self.recorder, self.clock.now_ns
             self.dsp.frame_hook = lambda m: rec.record_can(m, now(), "rx")
@@ -101,10 +108,11 @@ class RigHardware:
         if self._ring is not None:
             self._ring.close()
             self._ring = None
-        if self._subscriber is not None:
-            with contextlib.suppress(Exception):  # a closed session undeclared it already
-                self._subscriber.undeclare()
-            self._subscriber = None
+        for sub in (self._subscriber, self._image_subscriber):
+            if sub is not None:
+                with contextlib.suppress(Exception):  # a closed session undeclared it already
+                    sub.undeclare()
+        self._subscriber = self._image_subscriber = None
         with self._feeding:  # a callback still running on zenoh's thread finishes first
             self._attached = False
         self.dsp.frame_hook = self.dsp.tx_hook = None
@@ -119,6 +127,19 @@ class RigHardware:
             self.features.feed(payload, now)
             if self.record_raw:
                 self.recorder.record_vision(payload, now)
+
+    def _on_image(self, payload: bytes) -> None:
+        """What the camera saw (``hil/vision/image``, authenticated) into the log."""
+        with self._feeding:
+            if not self._attached:
+                return
+            try:
+                decode_vision_image(payload, self.features.key)
+            except HalCodecError:
+                self.images_rejected += 1
+                return
+            self.images_recorded += 1
+            self.recorder.write(IMAGE, self.clock.now_ns(), bytes(payload))
 
     def poll(self, now_ns: int) -> None:
         """Take every CAN frame waiting on the bus and the newest feature messages off the

@@ -69,6 +69,9 @@ TOPICS = {
     EVENTS: EVENTS_TOPIC,
 }
 """The topic of each record kind."""
+IMAGE = 7
+"""Record kind of a ``hil/vision/image`` payload (what the camera saw): written as the protobuf
+topics of :mod:`rt_controller.monitor.camera_view`, not as JSON."""
 DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
 """The record kind of a CAN frame by its direction (``record_can``)."""
 _SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
@@ -319,6 +322,8 @@ class CycleRecorder(Recorder):
         self._scene = scene
         self._scene_every = max(1, int(getattr(scene, "every", 1)))
         self.scene_written = self.scene_errors = 0
+        self.images_written = self.image_errors = 0
+        self._image_channels: dict[str, int] = {}
         mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
         self._mono_to_unix = unix_ns - mono_ns
         info = default_run_info(cfg, mono_ns, unix_ns)
@@ -375,10 +380,12 @@ class CycleRecorder(Recorder):
         self.live = sink
 
     def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
-        """Encode and write one record item (``kind`` one of :data:`TOPICS`)."""
+        """Encode and write one record item (``kind`` one of :data:`TOPICS`, or :data:`IMAGE`)."""
         if self.closed:
             self.dropped += 1
             return False
+        if kind == IMAGE:
+            return self._write_image(obj)
         try:
             t_ns = int(t_ns)
             data = encode_record(kind, t_ns, obj)
@@ -422,6 +429,39 @@ class CycleRecorder(Recorder):
         for topic, data in msgs:
             self._writer.add_message(self._scene_channels[topic], log_time, data, log_time)
             self.scene_written += 1
+
+    def _write_image(self, payload: bytes) -> bool:
+        """What the camera saw (:mod:`rt_controller.monitor.camera_view`), at its capture time;
+        a payload that does not decode is counted in ``image_errors``."""
+        from rt_controller.monitor.camera_view import SCHEMAS, payload_messages
+
+        try:
+            log_time, views = payload_messages(payload, self._mono_to_unix)
+            msgs = [(t, m.encode()) for t, m in views]
+        except Exception as exc:
+            self.image_errors += 1
+            if self.image_errors == 1:
+                log.warning("recorder: cannot draw a camera image: %s", exc)
+            return False
+        try:
+            for topic, data in msgs:
+                channel = self._image_channels.get(topic)
+                if channel is None:
+                    channel = self._scene_channels.get(topic)
+                if channel is None:
+                    schema = SCHEMAS[topic].get_schema()
+                    w = self._writer
+                    sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data))
+                    channel = w.register_channel(topic, "protobuf", sid)
+                self._image_channels[topic] = channel
+                self._writer.add_message(channel, log_time, data, log_time)
+            self.images_written += 1
+            self._dirty = True
+            self.flush_if_due()
+        except Exception as exc:
+            self._fail(exc)
+            return False
+        return True
 
     def flush(self) -> None:
         """Close the chunk in progress and flush the file to the OS: what is written so far

@@ -13,6 +13,7 @@ from hal.config import RigConfig
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
+from hal.zenoh_session import KEY_FEATURES
 from rt_controller.runtime.hardware import RigHardware
 from tests.support.fake_clock import FakeClock
 
@@ -26,7 +27,8 @@ class LateSession:
         self.undeclared = False
 
     def subscribe(self, key: str, on_payload: Any) -> Any:
-        self.callback = on_payload
+        if key == KEY_FEATURES:  # not the image stream's subscription (hil/vision/image)
+            self.callback = on_payload
         session = self
 
         class Subscriber:

@@ -14,6 +14,7 @@ from mcap.reader import make_reader
 from hal.config import RigConfig
 from rt_controller.cli import main
 from rt_controller.monitor.bridge import EMULATOR_SCENE_TOPIC
+from rt_controller.monitor.camera_view import DETECTION_TOPIC
 from rt_controller.monitor.scene import (
     ANNOTATIONS_TOPIC,
     CALIBRATION_TOPIC,
@@ -85,7 +86,13 @@ def test_recorder_sends_the_logged_bytes_live_and_draws_the_scene(tmp_path: Path
     assert [d for t, d in sent if t == DIAGNOSTICS_TOPIC] == msgs[DIAGNOSTICS_TOPIC]
     for topic in (TF_TOPIC, SCENE_TOPIC, CALIBRATION_TOPIC, ANNOTATIONS_TOPIC):
         assert len(msgs[topic]) == 60, topic  # 50 Hz: every tick drawn
-    assert len(msgs[IMAGE_TOPIC]) == 2  # ticks 0 and 50: about 1 Hz
+    # camera.model = "image" (the default): /camera/image holds the camera's own frames
+    # (rt_controller/monitor/camera_view.py); the blank plane is only the analytic camera's,
+    # with ticks 0 and 50: about 1 Hz
+    assert not msgs.get(IMAGE_TOPIC)
+    analytic = SceneBuilder(cfg.with_overrides({"camera.model": "analytic"}))
+    drawn = [[t for t, _ in analytic.messages(_cycle(k), 0)] for k in range(60)]
+    assert sum(topics.count(IMAGE_TOPIC) for topics in drawn) == 2
     scene = classes[SCENE_TOPIC].FromString(msgs[SCENE_TOPIC][7])
     assert {e.id for e in scene.entities} == {"arm", "camera", "target"}
     arm = next(e for e in scene.entities if e.id == "arm")
@@ -100,7 +107,7 @@ def test_recorder_sends_the_logged_bytes_live_and_draws_the_scene(tmp_path: Path
     ann = classes[ANNOTATIONS_TOPIC].FromString(msgs[ANNOTATIONS_TOPIC][3])
     assert ann.circles[0].position.x == pytest.approx(IMAGE_WIDTH / 2 - 117.0)
     assert ann.circles[0].position.y == pytest.approx(IMAGE_HEIGHT / 2 - 160.0)
-    assert rec.scene_written == 4 * 60 + 2 and rec.live_sent == 61
+    assert rec.scene_written == 4 * 60 and rec.live_sent == 61  # no blank plane on images
     assert rec.as_dict()["written"] == 61  # the counters of the cycle log are unchanged
 
 
@@ -124,7 +131,7 @@ def test_layout_scene_panels_use_the_topics_we_publish():
     image = panels["Image!camera"]["imageMode"]
     assert image["imageTopic"] == IMAGE_TOPIC
     assert image["calibrationTopic"] == CALIBRATION_TOPIC
-    assert set(image["annotations"]) == {ANNOTATIONS_TOPIC}
+    assert set(image["annotations"]) == {ANNOTATIONS_TOPIC, DETECTION_TOPIC}
 
 
 def test_monitor_refuses_a_remote_host_unless_told(capsys):

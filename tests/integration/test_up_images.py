@@ -47,6 +47,12 @@ def test_lockstep_on_images_is_bit_exact_and_replays_exactly(tmp_path):
     proc = run_hil(["replay", a["log_path"], "--tol", "1e-9", "--json", "-q"], timeout_s=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads(proc.stdout)["matches"] is True
+    # what the camera saw is in the log (10 fps of sim time: t = 0, 0.1, ..., 4.0 s), and the
+    # pipeline re-run offline on those frames finds the target in every one
+    proc = run_hil(["vision", "--source", f"log:{a['log_path']}", "--json"], timeout_s=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rerun = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert rerun["frames"] == rerun["valid"] == 41
 
 
 def test_clean_images_give_the_analytic_j(tmp_path):
