@@ -40,17 +40,22 @@ import foxglove
 from foxglove import Channel, Schema
 from hal.config import RigConfig
 from hal.errors import HalCodecError
+from hal.secoc import rig_key
 from hal.vision_codec import decode_features, decode_pose
+from hal.vision_image import decode_vision_image
 from hal.zenoh_session import (
     KEY_CAMERA_POSE,
     KEY_CONTROLLER_CYCLE,
     KEY_CONTROLLER_DIAGNOSTICS,
     KEY_FEATURES,
+    KEY_VISION_IMAGE,
     PayloadRing,
     ZenohSession,
 )
 from rt_controller.errors import ControllerError
 from rt_controller.monitor.access import TlsIdentity
+from rt_controller.monitor.camera_view import SCHEMAS as CAMERA_VIEW_SCHEMAS
+from rt_controller.monitor.camera_view import view_messages
 from rt_controller.monitor.scene import SceneBuilder
 from rt_controller.monitor.tuning import TuningFrontEnd
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
@@ -159,6 +164,7 @@ class MonitorBridge:
             "scenes": 0,
             "features": 0,
             "poses": 0,
+            "images": 0,
             "bad": 0,
         }
         self._side_period_ns = round(1e9 / SIDE_MAX_HZ)
@@ -172,6 +178,8 @@ class MonitorBridge:
         for topic, cls in self.builder.schemas().items():
             self._channels[topic] = _proto_channel(topic, cls)
         self._channels[EMULATOR_SCENE_TOPIC] = _proto_channel(EMULATOR_SCENE_TOPIC, SceneUpdate)
+        for topic, cls in CAMERA_VIEW_SCHEMAS.items():  # what the camera saw (on images)
+            self._channels.setdefault(topic, _proto_channel(topic, cls))
         self.tuning = tuning
         """The calibration front-end (Parameters and Services), None: a view only."""
         extra: dict[str, Any] = {}
@@ -214,6 +222,7 @@ class MonitorBridge:
     def start(self) -> MonitorBridge:
         for key in (KEY_CONTROLLER_CYCLE, KEY_CONTROLLER_DIAGNOSTICS, KEY_FEATURES):
             self._rings[key] = self.session.subscribe_ring(key, RING_CAPACITY)
+        self._rings[KEY_VISION_IMAGE] = self.session.subscribe_ring(KEY_VISION_IMAGE, 4)
         self._thread.start()
         return self
 
@@ -224,6 +233,7 @@ class MonitorBridge:
             KEY_CONTROLLER_DIAGNOSTICS: self._on_diagnostics,
             KEY_FEATURES: self._on_features,
             KEY_CAMERA_POSE: self._on_pose,
+            KEY_VISION_IMAGE: self._on_image,
         }
         while not self._stop.is_set():
             busy = False
@@ -290,6 +300,18 @@ class MonitorBridge:
         scene = self.builder.camera_marker((pose.x, pose.y, pose.phi), now)
         self._channels[EMULATOR_SCENE_TOPIC].log(scene.encode(), log_time=now)
         self.counts["poses"] += 1
+
+    def _on_image(self, payload: bytes) -> None:
+        """What the camera saw (``hil/vision/image``, authenticated): frame and detection."""
+        now = self.clock()
+        try:
+            img = decode_vision_image(payload, rig_key(self.cfg))
+        except HalCodecError:
+            self.counts["bad"] += 1
+            return
+        for topic, msg in view_messages(img, now):
+            self._channels[topic].log(msg.encode(), log_time=now)
+        self.counts["images"] += 1
 
     # --- closing --------------------------------------------------------------------------------
     def close(self, timeout_s: float = 2.0) -> bool:

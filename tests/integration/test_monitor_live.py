@@ -22,9 +22,11 @@ import pytest
 from mcap.reader import make_reader
 
 from hal.zenoh_session import free_loopback_port
+from rt_controller.monitor.camera_view import IMAGE_TOPIC
 from rt_controller.monitor.scene import SCENE_TOPIC, TF_TOPIC
 from rt_controller.runtime.recorder import CYCLE_TOPIC
 from tests.support.foxglove_ws import FoxgloveClient, decoder_for
+from vision.sources import decode_compressed_image
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -67,7 +69,7 @@ def test_monitor_streams_the_run_and_a_silent_client_changes_nothing(tmp_path: P
         clients.append(reader)
         silent = FoxgloveClient.open(url, max_queue=1, max_size=2**24)
         clients.append(silent)
-        topics = {CYCLE_TOPIC, SCENE_TOPIC, TF_TOPIC}
+        topics = {CYCLE_TOPIC, SCENE_TOPIC, TF_TOPIC, IMAGE_TOPIC}
         reader.wait_channels(topics)
         silent.wait_channels(topics)
         silent.subscribe(sorted(silent.channels))  # everything, then never read again
@@ -119,6 +121,12 @@ def test_monitor_streams_the_run_and_a_silent_client_changes_nothing(tmp_path: P
     assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks)
     for tick, payload in zip(ticks, live_cycles, strict=True):
         assert payload == mcap_cycles[tick]  # the same bytes as the log
+
+    # what the camera saw (camera.model = "image", the default), live: the frames, 640x480
+    live_images = [m.payload for m in received if m.topic == IMAGE_TOPIC]
+    assert live_images, "no camera image arrived live"
+    assert channels[IMAGE_TOPIC]["schemaName"] == "foxglove.CompressedImage"
+    assert decode_compressed_image(live_images[-1]).shape == (480, 640)
 
     SceneUpdate = decoder_for(channels[SCENE_TOPIC])
     FrameTransforms = decoder_for(channels[TF_TOPIC])
