@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from rt_controller.logtools.contact_sheet import write_contact_sheet
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, CYCLE_TOPIC, VISION_TOPIC
@@ -532,7 +533,9 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
     """Write the report's PNG figures into ``outdir`` (created); returns the files written.
 
     Figures: lateness histogram, cycle time with the deadline, solve time (and residual),
-    f(t), xi(t), u(t), tau(t). Uses matplotlib's object API (Agg), never pyplot. The time plots
+    f(t), xi(t), u(t), tau(t), and on images a contact sheet of the camera's frames around the
+    target jump (:mod:`~rt_controller.logtools.contact_sheet`). Uses matplotlib's object API
+    (Agg), never pyplot. The time plots
     mark the online parameter changes (:func:`change_lines`: green accepted, red dotted
     refused, grey dash-dot operator events).
     """
@@ -631,4 +634,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
         ax.legend(loc="upper right")
         ax.grid(alpha=0.3)
         save(fig, name)
+    sheet = out / f"{stem}_camera_jump.png"
+    if write_contact_sheet(log, sheet):  # a log with the camera's frames (camera.model = image)
+        written.append(sheet)
     return written

@@ -1,0 +1,90 @@
+"""``hil report --plot``'s contact sheet: the camera frames a log holds (``/camera/image``,
+:mod:`rt_controller.monitor.camera_view`) around the target jump, with what the detector made of
+each (``/camera/detection``).
+
+The jump's time is the scenario's ``jump_time`` in simulation time; the frames are placed on the
+same axis through the cycle records (a frame's log time is its capture stamp, a cycle's its
+tick, both CLOCK_MONOTONIC shifted by the log's ``monotonic_to_unix_ns``).
+"""
+
+from __future__ import annotations
+
+import bisect
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rt_controller.logtools.reader import LoadedLog
+
+IMAGE_TOPIC = "/camera/image"
+DETECTION_TOPIC = "/camera/detection"
+FRAMES = 8
+"""Frames on the sheet: the four before the jump and the four from it on."""
+_LABEL = re.compile(rb"frame \d+: (detected f = \([^)]*\) px|no target: [a-z_]+)")
+
+
+def frames_around(log: LoadedLog, t_jump_s: float, n: int = FRAMES) -> list[dict[str, Any]]:
+    """Up to ``n`` frames around simulation time ``t_jump_s``: ``{"t_s", "pixels", "label"}``
+    (``t_s`` in simulation time); empty when the log holds no frames or no cycles."""
+    from mcap.reader import make_reader
+
+    from vision.sources import decode_compressed_image
+
+    sim = log.cycles.get("sim_time_s")
+    t_ns = log.cycles.get("t_ns")
+    offset = log.run_info.get("monotonic_to_unix_ns")
+    if sim is None or t_ns is None or offset is None or len(sim) == 0:
+        return []
+    cyc_log = np.asarray(t_ns, dtype=np.int64) + int(offset)
+    images: list[tuple[int, bytes]] = []
+    labels: dict[int, str] = {}
+    with log.path.open("rb") as fh:
+        for _s, channel, msg in make_reader(fh).iter_messages(
+            topics=[IMAGE_TOPIC, DETECTION_TOPIC]
+        ):
+            if channel.topic == IMAGE_TOPIC:
+                images.append((msg.log_time, msg.data))
+            else:
+                m = _LABEL.search(msg.data)
+                labels[msg.log_time] = m.group(1).decode(errors="replace") if m else ""
+    if not images or not labels:  # no frames, or only an analytic run's blank image plane
+        return []
+    images.sort(key=lambda item: item[0])
+    # simulation time of each frame: the cycles' sim time interpolated at its log time
+    order = np.argsort(cyc_log)
+    t_frames = np.interp([lt for lt, _ in images], cyc_log[order], np.asarray(sim)[order])
+    at = bisect.bisect_left(list(t_frames), t_jump_s)
+    lo = max(0, at - n // 2)
+    chosen = range(lo, min(len(images), lo + n))
+    out = []
+    for i in chosen:
+        log_time, data = images[i]
+        pixels = decode_compressed_image(data)
+        if pixels is not None:
+            out.append(
+                {"t_s": float(t_frames[i]), "pixels": pixels, "label": labels.get(log_time, "")}
+            )
+    return out
+
+
+def write_contact_sheet(log: LoadedLog, path: Path) -> bool:
+    """Draw the sheet into ``path`` (PNG); False when the log has no frames to show."""
+    from matplotlib.figure import Figure
+
+    jump = log.config.scenario.jump_time if log.config is not None else 3.0
+    frames = frames_around(log, jump)
+    if not frames:
+        return False
+    cols = 4
+    rows = (len(frames) + cols - 1) // cols
+    fig = Figure(figsize=(3.2 * cols, 2.8 * rows), layout="constrained")
+    fig.suptitle(f"What the camera saw around the target jump (t = {jump:g} s)")
+    for k, fr in enumerate(frames):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        ax.imshow(fr["pixels"], cmap="gray", vmin=0, vmax=255)
+        ax.set_title(f"t ~ {fr['t_s']:.2f} s\n{fr['label']}", fontsize=7)
+        ax.set_axis_off()
+    fig.savefig(path, dpi=100)
+    return True
