@@ -89,6 +89,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=300,
         help="frames sent at 60 fps through a loopback zenoh hub (0 = skip)",
     )
+    vp.add_argument(
+        "--lockstep-duration",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="simulated seconds of the lockstep rigs with images and analytic (0 = skip)",
+    )
     _finish(vp, run_vision)
     hp = bench.add_parser(
         "host",
@@ -169,6 +176,7 @@ def run_vision(args: argparse.Namespace) -> int:
         truth,
         grid=args.grid,
         latency_frames=args.latency_frames,
+        lockstep_s=args.lockstep_duration,
         progress=progress.line,
     )
     print(json.dumps(out))

@@ -16,7 +16,9 @@ Figures (times in us, errors in px, median and p99 where a distribution):
   in-view frames the pipeline measured no f in, and the error of the rest (against eq. 6 at
   mid-exposure);
 * ``latency``: capture stamp to the features message published, through a loopback zenoh hub,
-  frames at ``fps`` in realtime (zenoh transport of the raw frame included).
+  frames at ``fps`` in realtime (zenoh transport of the raw frame included);
+* ``lockstep``: a lockstep rig run with images and one with the analytic camera: speed against
+  real time (``speedup_loop``: the ticks' own wall time) and the period's profile.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -173,6 +176,25 @@ def latency(cfg: RigConfig, render: Render, frames: int, fps: float) -> dict[str
     }
 
 
+def lockstep_speed(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[str, Any]:
+    """A lockstep rig run with images and one with the analytic camera (``hil bench loop``'s
+    lockstep measurement): speed against real time, the period's wall time and where it goes."""
+    import tempfile
+
+    from rt_controller.rig.bench_loop import bench_lockstep
+
+    out: dict[str, Any] = {}
+    for model in ("image", "analytic"):
+        with tempfile.TemporaryDirectory(prefix=f"hil-bench-vision-{model}-") as work:
+            run = bench_lockstep(
+                cfg.with_overrides({"camera.model": model}), duration_s, law, Path(work)
+            )
+        out[model] = {
+            k: run[k] for k in ("sim_s", "ticks", "speedup_loop", "speedup_total", "period_us", "J")
+        }
+    return out
+
+
 def bench_vision(
     cfg: RigConfig,
     render: Render,
@@ -181,6 +203,7 @@ def bench_vision(
     grid: int = 7,
     latency_frames: int = 300,
     fps: float = 60.0,
+    lockstep_s: float = 5.0,
     progress: Callable[[str], None] = lambda s: None,
 ) -> dict[str, Any]:
     """Every figure of the module docstring, as one JSON-ready dict."""
@@ -208,4 +231,7 @@ def bench_vision(
     if latency_frames > 0:
         progress("latency over zenoh")
         out["latency"] = latency(cfg, render, latency_frames, fps)
+    if lockstep_s > 0:
+        progress(f"lockstep rigs of {lockstep_s:g} s, with images and analytic")
+        out["lockstep"] = lockstep_speed(cfg, lockstep_s)
     return out

@@ -9,7 +9,23 @@ import json
 def test_bench_vision_reports_every_figure(capsys):
     from rt_controller.cli import main
 
-    assert main(["bench", "vision", "--json", "--grid", "3", "--latency-frames", "20", "-q"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "vision",
+                "--json",
+                "--grid",
+                "3",
+                "--latency-frames",
+                "20",
+                "-q",
+                "--lockstep-duration",
+                "0",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     for size in ("640x480", "1280x1024"):
         fig = out["sizes"][size]
