@@ -1,0 +1,96 @@
+"""The pieces of a summary after a process died (``rig/ending.py``) and the table ``hil up``
+prints (only the counters that are not zero), on fixed inputs."""
+
+from __future__ import annotations
+
+import json
+import signal
+
+from rt_controller.commands.up import nonzero, table_view
+from rt_controller.rig.ending import (
+    ProcessEnd,
+    contents_words,
+    dsp_report,
+    dsp_words,
+    log_contents,
+    log_path_said,
+    summary_after,
+)
+
+STATS = {
+    "watchdog_trips": 1,
+    "last_trip_latency_ms": 60.8,
+    "last_command_sim_s": 1.659,
+    "last_trip_sim_s": 1.72,
+    "watchdog_period_ms": 60.0,
+    "drive_state": "fault",
+    "fault_reason": "watchdog",
+    "last_fault": "watchdog at physics step 1720 (t = 1.720 s): torque off 60.8 ms after ...",
+}
+
+
+def test_how_a_process_ended_in_words():
+    killed = ProcessEnd("controller", -signal.SIGKILL, 0)
+    assert killed.how == "killed by SIGKILL" and killed.signal_name == "SIGKILL"
+    failed = ProcessEnd("vision", 3, 0)
+    assert failed.how == "exited with status 3" and failed.signal_name is None
+
+
+def test_the_log_path_the_controller_announced():
+    err = "hil controller: law ioc at 50 Hz (realtime), logging to logs/run-1-ioc.mcap\nmore"
+    assert str(log_path_said(err)) == "logs/run-1-ioc.mcap"
+    assert log_path_said("hil controller: error: no features") is None
+
+
+def test_the_dsp_report_is_the_last_whole_json_line():
+    out = json.dumps(STATS) + "\n" + '{"watchdog_trips": 7, "cut'  # a line cut by a kill
+    dsp = dsp_report(out)
+    assert dsp["reported"] and dsp["watchdog_trips"] == 1
+    assert dsp["torque_off_after_ms"] == 60.8 and dsp["torque_off_s"] == 1.72
+    assert "torque off 60.8 ms after the last command" in dsp_words(dsp)
+    assert dsp_report("")["reported"] is False
+    assert dsp_words(dsp_report("")) == "the emulator printed no counters"
+
+
+def test_a_log_that_is_not_there_is_said_so(tmp_path):
+    contents = log_contents(tmp_path / "none.mcap")
+    assert "error" in contents and contents_words(contents) == contents["error"]
+    assert "error" in log_contents(None)
+
+
+def test_a_death_before_any_log_still_gives_the_summary(tmp_path):
+    base = {"clock": "realtime", "rate_hz": 50.0, "ticks": None, "planned_ticks": 500}
+    end = ProcessEnd("emulator", 2, 0)
+    out = summary_after(end, None, tmp_path / "none.mcap", {"reported": False}, base)
+    assert out["end_reason"] == "emulator exited with status 2 before its first tick"
+    assert out["ended_by"] == {
+        "process": "emulator",
+        "signal": None,
+        "exit_code": 2,
+        "tick": None,
+        "time_s": None,
+    }
+    assert out["problems"][0] == f"the run ended after 0 of 500 ticks: {out['end_reason']}"
+    assert any("the log cannot be read" in p for p in out["problems"])
+
+
+def test_the_controllers_own_end_reason_is_kept():
+    summary = {"ticks": 40, "planned_ticks": 500, "end_reason": "the DSP fell silent"}
+    out = summary_after(ProcessEnd("emulator", -9, 0), summary, None, {"reported": False}, {})
+    assert out["end_reason"].endswith("; the controller: the DSP fell silent")
+    assert out["problems"][0].startswith("the run ended after 40 of 500 ticks: emulator killed")
+
+
+def test_the_table_shows_only_counters_that_are_not_zero():
+    rejections = {
+        "can_rx": {"accepted": 10, "crc": 0, "counter": 2},
+        "features": {"accepted": 0, "stale": 0},
+        "dsp_rejected_frames": 0,
+    }
+    assert nonzero(rejections) == {"can_rx.accepted": 10, "can_rx.counter": 2}
+    table = table_view(
+        {"rejections": rejections, "recorder": {"written": 5, "dropped": 0, "pending": 0}}
+    )
+    assert table["rejections"] == "can_rx.accepted 10, can_rx.counter 2"
+    assert table["recorder"] == "written 5"
+    assert table_view({"recorder": {"dropped": 0}})["recorder"] == "none"
