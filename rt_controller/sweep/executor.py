@@ -96,11 +96,13 @@ def open_cluster(
     *,
     processes: bool = True,
     workers_option: str = "--workers",
+    worker_env: dict[str, str] | None = None,
 ) -> Cluster:
     """Connect to ``scheduler``, else start a local cluster of ``workers`` workers of one
-    thread each on 127.0.0.1: processes, or with ``processes=False`` threads of this process
-    (for tasks that only supervise processes of their own, such as a rig's).
-    ``workers_option`` names the option that sizes the local cluster in errors."""
+    thread each on 127.0.0.1: processes (with ``worker_env`` added to :data:`WORKER_ENV`), or
+    with ``processes=False`` threads of this process (for tasks that only supervise processes
+    of their own, such as a rig's). ``workers_option`` names the option that sizes the local
+    cluster in errors."""
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -125,7 +127,7 @@ def open_cluster(
     n = machine_workers() if workers is None else workers
     if not 1 <= n <= MAX_WORKERS:
         raise ControllerConfigError(f"{workers_option} must be 1..{MAX_WORKERS}, got {n}")
-    env = {"env": WORKER_ENV} if processes else {}  # threads share this process's
+    env = {"env": {**WORKER_ENV, **(worker_env or {})}} if processes else {}  # threads: ours
     with _workers_ignore_sigint():
         local = LocalCluster(
             n_workers=n,
@@ -314,7 +316,9 @@ def run_sweep(
         own = cluster is None
         try:
             with supervised():
-                cl = cluster or open_cluster(workers, scheduler)
+                cl = cluster or open_cluster(
+                    workers, scheduler, worker_env=_target_env(out, scheduler, progress)
+                )
                 try:
                     result.workers, result.scheduler = cl.workers, cl.address
                     _collect(cl, todo, store, result, Engine(plant), progress, on_row)
@@ -326,6 +330,21 @@ def run_sweep(
         finally:
             result.wall_s = time.monotonic() - t0
     return result
+
+
+def _target_env(out: Path, scheduler: str | None, progress: bool) -> dict[str, str]:
+    """The local workers' compile target: the sweep's first run's (:mod:`.target`)."""
+    import sys
+
+    from rt_controller.sweep.target import worker_env
+
+    def say(line: str) -> None:
+        if progress:
+            print(f"hil sweep: {line}", file=sys.stderr)
+
+    if scheduler is not None:  # the cluster's workers compile for their own hosts
+        return {}
+    return worker_env(out, say)
 
 
 def _collect(

@@ -245,3 +245,48 @@ def test_a_rerun_with_target_of_compiles_for_the_logged_target(skylake_log):
     rerun, err = simulate_j(env_for("generic"), "--target-of", str(skylake_log))
     assert rerun == logged  # bit for bit: J is a float64 in JSON
     assert "compiling for the target of" in err and "skylake-avx512" in err
+
+
+# ------------------------------------------------------- sweeps: resumed on the first target
+
+ONE_POINT = (
+    '[study]\nduration_s = 4.0\n[base.controller]\nlaw = "rhc"\n'
+    '[[axes]]\nkey = "plant.z_wo"\nvalues = [1.2]\n'
+)
+
+
+def sweep_j(spec: Path, out: Path, env: dict[str, str]) -> tuple[float, str]:
+    """J of the one run of ``spec`` swept into ``out`` (simulate engine, one worker)."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", "sweep", str(spec), "--out", str(out)]
+    proc = subprocess.run(
+        [*cmd, "--workers", "1", "--engine", "simulate", "--json"],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    rows = [json.loads(line) for line in (out / "rows.jsonl").read_text().splitlines()]
+    return rows[-1]["J"], proc.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_resumed_sweep_compiles_for_its_first_rows_target(tmp_path):
+    pytest.importorskip("distributed")
+    spec = tmp_path / "one.toml"
+    spec.write_text(ONE_POINT)
+    first, _ = sweep_j(spec, tmp_path / "sky", env_for("skylake-avx512"))
+    kept = json.loads((tmp_path / "sky" / "compile_target.json").read_text())
+    assert kept["cpu_name"] == "skylake-avx512"
+    here, _ = sweep_j(spec, tmp_path / "native", env_for("native"))
+    if here == first:
+        pytest.skip("skylake-avx512 and this host's target round alike on this run")
+    # the sweep's first rows came from a skylake-avx512 host; this host resumes it
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    (resumed / "compile_target.json").write_text(json.dumps(kept))
+    again, err = sweep_j(spec, resumed, env_for("native"))
+    assert again == first
+    assert "workers compile for the sweep's target skylake-avx512" in err
