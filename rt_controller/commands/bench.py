@@ -135,6 +135,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     sw.add_argument("--rig-duration", type=duration(), default=2.0, help="simulated s per rig run")
     _finish(sw, run_sweep)
+    sk = bench.add_parser(
+        "soak",
+        help="the realtime rig for a long run: RSS of each process over time, its growth "
+        "after the warm-up, deadline misses, the log's size, the recorder's backlog",
+    )
+    add_config_option(sk)
+    sk.add_argument(
+        "--duration", type=duration(), default=1800.0, help="seconds of run (default 1800)"
+    )
+    sk.add_argument(
+        "--sample", type=duration(), default=10.0, help="seconds between samples (default 10)"
+    )
+    sk.add_argument(
+        "--warmup",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="RSS growth is measured from the first sample after S seconds (default 60)",
+    )
+    sk.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
+    sk.add_argument(
+        "--keep", metavar="DIR", help="keep the run's MCAP log and config in DIR (default: drop)"
+    )
+    _finish(sk, run_soak)
     tp = bench.add_parser(
         "tuning",
         help="in a realtime run: request-to-effect latency of hil param sets (ms, periods) "
@@ -203,6 +227,36 @@ def run_sweep(args: argparse.Namespace) -> int:
         )
     print(json.dumps(result))
     return 0
+
+
+def run_soak(args: argparse.Namespace) -> int:
+    from rt_controller.commands.output import output_dir
+    from rt_controller.errors import ControllerConfigError
+    from rt_controller.rig.bench_soak import bench_soak
+
+    if not 0 <= args.warmup < args.duration:  # growth needs samples after the warm-up
+        raise ControllerConfigError(
+            f"--warmup must be at least 0 and less than --duration, got {args.warmup!r}"
+        )
+    cfg = config_from_args(args)
+    keep = output_dir(args.keep, "--keep") if args.keep else None
+    progress = Progress.of(args, "hil bench soak")
+    with progress.stage(
+        f"running the realtime rig with {args.law} for {args.duration:g} s, sampling every "
+        f"{args.sample:g} s"
+    ):
+        result = bench_soak(
+            cfg,
+            duration=args.duration,
+            sample_s=args.sample,
+            warmup_s=args.warmup,
+            law=args.law,
+            keep=keep,
+        )
+    print(json.dumps(result))
+    if result["problems"]:  # the figures are printed either way; the exit status tells the truth
+        print(f"hil bench soak: run not clean: {'; '.join(result['problems'])}", file=sys.stderr)
+    return 1 if result["problems"] else 0
 
 
 def run_tuning(args: argparse.Namespace) -> int:

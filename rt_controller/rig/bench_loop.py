@@ -208,11 +208,7 @@ def bench_loop(
     cfg = cfg or load_config()
     host = bench_host(host_probe_s) if host_probe_s > 0 else None
     with contextlib.ExitStack() as stack:
-        if keep is None:
-            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="hil-bench-")))
-        else:
-            work = keep
-            work.mkdir(parents=True, exist_ok=True)
+        work = bench_workdir(stack, keep, "hil-bench-")
         runs = [bench_rate(cfg, r, duration, law, work, monitor_port) for r in rates]
         lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
     from hal.can_codec import bench_codec
@@ -225,8 +221,22 @@ def bench_loop(
         "monitor_port": monitor_port,
         "host": host,
         "can_frame_us": {**bench_mac(), **bench_codec(2000)},
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load": dict(zip(("1min", "5min", "15min"), os.getloadavg(), strict=True)),
-        },
+        "machine": machine(),
+    }
+
+
+def bench_workdir(stack: contextlib.ExitStack, keep: Path | None, prefix: str) -> Path:
+    """Where a bench writes its runs: ``keep`` (created, kept), else a temporary folder that
+    ``stack`` removes."""
+    if keep is None:
+        return Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=prefix)))
+    keep.mkdir(parents=True, exist_ok=True)
+    return keep
+
+
+def machine() -> dict[str, Any]:
+    """The host under a bench's figures: CPUs and load averages (other work skews them)."""
+    return {
+        "cpus": os.cpu_count(),
+        "load": dict(zip(("1min", "5min", "15min"), os.getloadavg(), strict=True)),
     }
