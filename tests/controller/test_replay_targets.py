@@ -50,20 +50,23 @@ def env_for(name: str) -> dict[str, str]:
     return env
 
 
-def record(path: Path, target: ct.CompileTarget) -> Path:
-    """An RHC log recorded in a process compiled for ``target``."""
-    env = {**os.environ, **target.env()}
+def record(path: Path, target: ct.CompileTarget, **extra_env: str) -> Path:
+    """An RHC log recorded in a process compiled for ``target`` (with ``extra_env``)."""
+    env = {**os.environ, **target.env(), **extra_env}
     cmd = [sys.executable, "-c", RECORD, str(path), str(TICKS)]
     subprocess.run(cmd, env=env, cwd=ROOT, check=True, timeout=900)
     return path
 
 
+def hil(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
+    """``hil ARGS`` in a new process with ``env``, its output captured."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", *args]
+    return subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
+
+
 def hil_replay(log: Path, env: dict[str, str], *extra: str) -> tuple[int, dict, str]:
     """``hil replay LOG --tol 1e-9 --json`` in a new process: exit code, JSON, stderr."""
-    cmd = [sys.executable, "-m", "rt_controller.cli", "replay", str(log), "--tol", "1e-9"]
-    proc = subprocess.run(
-        [*cmd, "--json", *extra], env=env, cwd=ROOT, capture_output=True, text=True, timeout=900
-    )
+    proc = hil(env, "replay", str(log), "--tol", "1e-9", "--json", *extra)
     return proc.returncode, json.loads(proc.stdout or "null"), proc.stderr
 
 
@@ -161,10 +164,8 @@ def test_a_log_from_a_host_without_fma_replays_exactly(tmp_path):
     if not {"fma", "avx2"} <= ct.libm_features():
         pytest.skip("this host's libm has no FMA variants to turn off")
     target = ct.CompileTarget("skylake-avx512", ct.host_feature_string())
-    no_fma = "glibc.cpu.hwcaps=-AVX2,-FMA,-AVX"
-    env = {**os.environ, **target.env(), "GLIBC_TUNABLES": no_fma}  # an older rig PC's libm
-    cmd = [sys.executable, "-c", RECORD, str(tmp_path / "rhc.mcap"), str(TICKS)]
-    subprocess.run(cmd, env=env, cwd=ROOT, check=True, timeout=900)
+    no_fma = "glibc.cpu.hwcaps=-AVX2,-FMA,-AVX"  # an older rig PC's libm
+    record(tmp_path / "rhc.mcap", target, GLIBC_TUNABLES=no_fma)
     code, out, err = hil_replay(tmp_path / "rhc.mcap", env_for("generic"))
     assert code == 0, err
     assert out["max_abs_dtau"] == 0.0 and out["max_abs_du"] == 0.0
@@ -225,15 +226,7 @@ def test_target_of_is_taken_out_of_the_rerun_command_line():
 
 def simulate_j(env: dict[str, str], *front: str) -> tuple[float, str]:
     """J of a 4 s ``hil simulate --law rhc`` (the target jump at 3 s): J and stderr."""
-    cmd = [sys.executable, "-m", "rt_controller.cli", *front, "simulate", "--law", "rhc"]
-    proc = subprocess.run(
-        [*cmd, "--duration", "4", "--json", "-q"],
-        env=env,
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    proc = hil(env, *front, "simulate", "--law", "rhc", "--duration", "4", "--json", "-q")
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout)["J"], proc.stderr
 
@@ -257,15 +250,8 @@ ONE_POINT = (
 
 def sweep_j(spec: Path, out: Path, env: dict[str, str]) -> tuple[float, str]:
     """J of the one run of ``spec`` swept into ``out`` (simulate engine, one worker)."""
-    cmd = [sys.executable, "-m", "rt_controller.cli", "sweep", str(spec), "--out", str(out)]
-    proc = subprocess.run(
-        [*cmd, "--workers", "1", "--engine", "simulate", "--json"],
-        env=env,
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    args = ("--workers", "1", "--engine", "simulate", "--json")
+    proc = hil(env, "sweep", str(spec), "--out", str(out), *args)
     assert proc.returncode == 0, proc.stderr
     rows = [json.loads(line) for line in (out / "rows.jsonl").read_text().splitlines()]
     return rows[-1]["J"], proc.stderr
