@@ -18,7 +18,8 @@ camera is bolted to a real one: the DSP node hands it every camera pose it publi
   (sim time 0) frames come on a monotonic clock at the same rate from the newest pose.
 
 A new emulator run (a scenario reset: new pose source id; or sim time going backwards) restarts
-the frame counter and the noise with the seed the reset named (else ``camera.seed``).
+the frame counter and the noise with the seed the reset named (else ``camera.seed``), under a
+new frame source id (the grabber takes the restarted counter as a new camera).
 
 Why a thread of the emulator and not a process of its own: the camera needs the pose at the
 emulator's own rate and nothing else, ``hil up`` starts it with the arm, and the renderer spends
@@ -265,6 +266,9 @@ class CameraNode:
         return min(0.1, max(0.0, (self._hold_next_ns - self._clock()) * 1e-9))
 
     def _new_run(self, seed: int | None) -> None:
+        # a new source id, as a restarted camera: the frame grabber's decoder orders frames by
+        # (seq, period) per source, and the counter restarts here
+        self.source = secrets.randbits(32)
         self._seed = self.cfg.camera.seed if seed is None else seed
         self.sensor.seed = self._seed
         self._frame = 0
