@@ -90,7 +90,7 @@ def run_live(
             observer=observer,
             dropouts=dropouts,
         )
-        source = open_source(spec, session=session, key=key)
+        source = open_source(spec, session=session, key=key, live=True)
         if duration_s > 0:
             timer = threading.Timer(duration_s, stop_event.set)
             timer.daemon = True

@@ -101,9 +101,11 @@ class EmulatedSource:
 class CaptureSource:
     """A camera, pipeline or file through ``cv2.VideoCapture``."""
 
-    def __init__(self, kind: str, target: str) -> None:
+    def __init__(self, kind: str, target: str, *, pace: bool = False) -> None:
         self.name = f"{kind}:{target}"
         self.kind, self.target = kind, target
+        self.pace = pace and kind == "file"
+        """A file played at its own frame rate (as if live), not as fast as it decodes."""
 
     def open(self) -> cv2.VideoCapture:
         if self.kind == "file" and "://" not in self.target and not Path(self.target).is_file():
@@ -120,9 +122,13 @@ class CaptureSource:
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
         cap = self.open()
-        seq = 0
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) if self.pace else 0.0
+        period_ns = round(1e9 / fps) if fps > 0 else 0
+        seq, t0 = 0, time.monotonic_ns()
         try:
             while not stop.is_set():
+                if period_ns:
+                    stop.wait(max(0, t0 + seq * period_ns - time.monotonic_ns()) / 1e9)
                 ok, img = cap.read()
                 stamp = time.monotonic_ns()
                 if not ok:
@@ -223,11 +229,14 @@ def parse_source(spec: str) -> tuple[str, str]:
     return kind, target
 
 
-def open_source(spec: str, *, session: object = None, key: bytes = b"") -> FrameSource:
-    """The frame source named by ``spec`` (``emulated`` needs the zenoh ``session`` and key)."""
+def open_source(
+    spec: str, *, session: object = None, key: bytes = b"", live: bool = False
+) -> FrameSource:
+    """The frame source named by ``spec`` (``emulated`` needs the zenoh ``session`` and key;
+    ``live``: a file plays at its own frame rate)."""
     kind, target = parse_source(spec)
     if kind == "emulated":
         return EmulatedSource(session, key)
     if kind == "log":
         return LogSource(target)
-    return CaptureSource(kind, target)
+    return CaptureSource(kind, target, pace=live)
