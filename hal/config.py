@@ -75,7 +75,10 @@ class CameraConfig:
     noise_px: float = 0.0
     """Standard deviation of Gaussian pixel noise on each feature; 0 = off."""
     frame_rate_hz: float = 0.0
-    """Camera frame rate; 0 = a fresh image whenever the controller asks (off)."""
+    """Camera frame rate; 0 = the default: 60 fps (the XC-HR57's) for ``hil vision`` and the
+    emulated camera in realtime and the analytic vision process in lockstep, a fresh image
+    whenever the controller asks in ``hil simulate``. The emulated camera in lockstep gives
+    exactly one frame per control period whatever this is."""
     latency_s: float = 0.0
     """Delay between capture and delivery of a feature vector; 0 = off."""
     seed: int = 0
