@@ -14,7 +14,8 @@ was lost (the bytes after the last complete record, usually a half-written chunk
 
 --json prints one object: log, out, finished (the input already had its footer), input_bytes,
 kept_bytes, lost_bytes, stopped (why the read ended), messages, cycles, schemas, channels,
-metadata (names), attachments, topics ({TOPIC: messages}).
+metadata (names), attachments, topics ({TOPIC: messages}), orphans (messages without a
+channel record, skipped).
 """
 
 

@@ -62,6 +62,8 @@ class Recovery:
     metadata: list[str] = field(default_factory=list)
     attachments: int = 0
     topics: dict[str, int] = field(default_factory=dict)
+    orphans: int = 0
+    """Messages whose channel record came nowhere before them (skipped; none in valid MCAP)."""
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -112,13 +114,55 @@ def recover(log: str | Path, out: str | Path | None = None) -> Recovery:
     return result
 
 
+class _Rewriter:
+    """The data records of the input, written again by ``writer`` under fresh ids."""
+
+    def __init__(self, writer: Writer, result: Recovery) -> None:
+        self.writer, self.result = writer, result
+        self.schema_ids: dict[int, int] = {0: 0}  # 0: a channel without schema
+        self.channel_ids: dict[int, int] = {}
+        self.topics: dict[int, str] = {}
+        self.counts: Counter[str] = Counter()
+
+    def take(self, rec: Any) -> None:
+        w, result = self.writer, self.result
+        if isinstance(rec, Schema):
+            self.schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+        elif isinstance(rec, Channel):
+            sid = self.schema_ids.get(rec.schema_id, 0)
+            self.channel_ids[rec.id] = w.register_channel(
+                rec.topic, rec.message_encoding, sid, dict(rec.metadata)
+            )
+            self.topics[rec.id] = rec.topic
+        elif isinstance(rec, Message):
+            if rec.channel_id not in self.channel_ids:
+                result.orphans += 1  # no valid MCAP has a message before its channel
+                return
+            cid = self.channel_ids[rec.channel_id]
+            w.add_message(cid, rec.log_time, rec.data, rec.publish_time, rec.sequence)
+            self.counts[self.topics[rec.channel_id]] += 1
+        elif isinstance(rec, Metadata):
+            w.add_metadata(rec.name, dict(rec.metadata))
+            result.metadata.append(rec.name)
+        elif isinstance(rec, Attachment):
+            w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
+            result.attachments += 1
+
+    def finish(self) -> None:
+        self.writer.finish()
+        result = self.result
+        result.topics = dict(self.counts)
+        result.messages = sum(self.counts.values())
+        result.cycles = self.counts[CYCLE_TOPIC]
+        result.schemas = len(self.schema_ids) - 1
+        result.channels = len(self.channel_ids)
+
+
 def _copy(src: Any, dst: Any, result: Recovery) -> None:
+    """Read ``src`` record by record into a :class:`_Rewriter` on ``dst`` until the footer or
+    the first record that cannot be read; ``result`` says where and why it stopped."""
     reader = StreamReader(src, validate_crcs=True, record_size_limit=max(result.input_bytes, 1))
-    writer: Writer | None = None
-    schema_ids: dict[int, int] = {0: 0}
-    channel_ids: dict[int, int] = {}
-    topics: dict[int, str] = {}
-    counts: Counter[str] = Counter()
+    rewriter: _Rewriter | None = None
     data_end = False
     result.kept_bytes = len(MAGIC)
     try:
@@ -126,7 +170,8 @@ def _copy(src: Any, dst: Any, result: Recovery) -> None:
             if isinstance(rec, Header):
                 writer = Writer(dst, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
                 writer.start(profile=rec.profile, library=rec.library)
-            elif writer is None:
+                rewriter = _Rewriter(writer, result)
+            elif rewriter is None:
                 raise LogError(f"{result.log}: the first record is not the MCAP header")
             elif isinstance(rec, Footer):
                 result.finished, result.stopped = True, "footer"
@@ -135,37 +180,10 @@ def _copy(src: Any, dst: Any, result: Recovery) -> None:
                 continue  # the summary section repeats what was read; the writer makes its own
             elif isinstance(rec, DataEnd):
                 data_end, result.stopped = True, "cut in the summary section (all data kept)"
-            elif isinstance(rec, Schema):
-                schema_ids[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
-            elif isinstance(rec, Channel):
-                sid = schema_ids.get(rec.schema_id, 0)
-                channel_ids[rec.id] = writer.register_channel(
-                    rec.topic, rec.message_encoding, sid, dict(rec.metadata)
-                )
-                topics[rec.id] = rec.topic
-            elif isinstance(rec, Message):
-                if rec.channel_id not in channel_ids:
-                    continue  # a message before its channel: no valid MCAP has one
-                writer.add_message(
-                    channel_ids[rec.channel_id],
-                    rec.log_time,
-                    rec.data,
-                    rec.publish_time,
-                    rec.sequence,
-                )
-                counts[topics[rec.channel_id]] += 1
-            elif isinstance(rec, Metadata):
-                writer.add_metadata(rec.name, dict(rec.metadata))
-                result.metadata.append(rec.name)
-            elif isinstance(rec, Attachment):
-                writer.add_attachment(
-                    rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data
-                )
-                result.attachments += 1
+            else:
+                rewriter.take(rec)
             if not data_end or isinstance(rec, DataEnd):
                 result.kept_bytes = src.tell()
-        else:
-            result.stopped = result.stopped or "end of file"  # pragma: no cover - mcap raises
     except EndOfFile:  # also at a record boundary: the reader looked for the next record
         at_boundary = src.tell() == result.kept_bytes
         result.stopped = result.stopped or ("end of file" if at_boundary else "cut inside a record")
@@ -173,12 +191,8 @@ def _copy(src: Any, dst: Any, result: Recovery) -> None:
         raise
     except Exception as exc:  # a damaged tail: CRC, zstd, a garbage length (what mcap raises)
         result.stopped = result.stopped or f"damaged: {type(exc).__name__}: {exc}".rstrip(": ")
-    if writer is None:
+    if rewriter is None:
         raise LogError(f"{result.log}: cut before the end of its MCAP header: nothing to recover")
-    writer.finish()
-    result.kept_bytes = result.input_bytes if result.finished else result.kept_bytes
-    result.topics = dict(counts)
-    result.messages = sum(counts.values())
-    result.cycles = counts[CYCLE_TOPIC]
-    result.schemas = len(schema_ids) - 1
-    result.channels = len(channel_ids)
+    rewriter.finish()
+    if result.finished:
+        result.kept_bytes = result.input_bytes
