@@ -9,7 +9,8 @@ topic                       schema (protobuf)             content
 =========================== ============================= =========================================
 ``/tf``                     ``foxglove.FrameTransforms``  world -> link1 -> link2 -> camera
 ``/scene/arm``              ``foxglove.SceneUpdate``      links, joints, camera frustum, target, ray
-``/camera/calibration``     ``foxglove.CameraCalibration`` pinhole of ``camera.s_lambda`` px
+``/camera/calibration``     ``foxglove.CameraCalibration`` pinhole of ``camera.s_lambda`` px (on images:
+                                                          the camera's true intrinsics and lens)
 ``/camera/annotations``     ``foxglove.ImageAnnotations`` features f, image centre (the goal f = 0)
 ``/camera/image``           ``foxglove.CompressedImage``  a blank image plane (PNG, about 1 Hz)
 =========================== ============================= =========================================
@@ -139,6 +140,15 @@ class SceneBuilder:
         self.blank_image = cfg.camera.model != "image"
         """The blank plane only without frames: on images the camera's own frames are
         ``/camera/image`` (:mod:`rt_controller.monitor.camera_view`)."""
+        self.size = (IMAGE_WIDTH, IMAGE_HEIGHT)
+        self.focal_xy = (self.focal, self.focal)
+        self.dist = [0.0] * 5
+        if not self.blank_image:  # the emulated camera's true intrinsics and lens
+            cam = cfg.camera
+            self.size = (cam.width_px, cam.height_px)
+            self.focal_xy = cam.true_focal_px
+            self.cx, self.cy = cam.true_principal_point_px
+            self.dist = list(cam.true_lens)
 
     @staticmethod
     def schemas() -> dict[str, Any]:
@@ -314,17 +324,19 @@ class SceneBuilder:
         )
 
     def calibration(self, ts: Timestamp) -> CameraCalibration:
-        fl, cx, cy = self.focal, self.cx, self.cy
+        """The image's pinhole: the paper's (s·lambda, centre, no lens), or on images the
+        emulated camera's true intrinsics and lens (the frames' own)."""
+        (fx, fy), cx, cy = self.focal_xy, self.cx, self.cy
         return CameraCalibration(
             timestamp=ts,
             frame_id=CAMERA,
-            width=IMAGE_WIDTH,
-            height=IMAGE_HEIGHT,
+            width=self.size[0],
+            height=self.size[1],
             distortion_model="plumb_bob",
-            D=[0.0] * 5,
-            K=[fl, 0.0, cx, 0.0, fl, cy, 0.0, 0.0, 1.0],
+            D=self.dist,
+            K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
             R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            P=[fl, 0.0, cx, 0.0, 0.0, fl, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
         )
 
     def annotations(

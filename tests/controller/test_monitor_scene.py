@@ -18,9 +18,7 @@ from rt_controller.monitor.camera_view import DETECTION_TOPIC
 from rt_controller.monitor.scene import (
     ANNOTATIONS_TOPIC,
     CALIBRATION_TOPIC,
-    IMAGE_HEIGHT,
     IMAGE_TOPIC,
-    IMAGE_WIDTH,
     SCENE_TOPIC,
     TF_TOPIC,
     SceneBuilder,
@@ -105,8 +103,10 @@ def test_recorder_sends_the_logged_bytes_live_and_draws_the_scene(tmp_path: Path
         ("world", "link1"), ("link1", "link2"), ("link2", "camera"),
     ]  # fmt: skip
     ann = classes[ANNOTATIONS_TOPIC].FromString(msgs[ANNOTATIONS_TOPIC][3])
-    assert ann.circles[0].position.x == pytest.approx(IMAGE_WIDTH / 2 - 117.0)
-    assert ann.circles[0].position.y == pytest.approx(IMAGE_HEIGHT / 2 - 160.0)
+    # about the principal point of the camera's frames, ((w - 1) / 2, (h - 1) / 2) on images
+    cx, cy = cfg.camera.true_principal_point_px
+    assert ann.circles[0].position.x == pytest.approx(cx - 117.0)
+    assert ann.circles[0].position.y == pytest.approx(cy - 160.0)
     assert rec.scene_written == 4 * 60 and rec.live_sent == 61  # no blank plane on images
     assert rec.as_dict()["written"] == 61  # the counters of the cycle log are unchanged
 
