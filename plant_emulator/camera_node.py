@@ -35,6 +35,7 @@ import bisect
 import contextlib
 import math
 import secrets
+import sys
 import threading
 import time
 from collections import deque
@@ -162,6 +163,9 @@ class CameraStats:
     """Realtime: frame slots not rendered because no frame grabber listened."""
     runs: int = 0
     publish_errors: int = 0
+    render_errors: int = 0
+    """Batches of poses whose frames could not be made (an unexpected error; the first is
+    printed on stderr)."""
     render_ms_max: float = 0.0
     render_ms_sum: float = 0.0
 
@@ -251,7 +255,17 @@ class CameraNode:
             with self._cond:
                 if not self._queue:
                     self._cond.wait(timeout=self._idle_wait_s())
-            self.drain()
+            try:
+                self.drain()
+            except Exception as exc:  # a frame lost, never the camera (or the arm beside it)
+                self.stats.render_errors += 1
+                if self.stats.render_errors == 1:
+                    print(
+                        f"hil emulator: camera: frame lost: {type(exc).__name__}: {exc} "
+                        "(further errors only counted)",
+                        file=sys.stderr,
+                        flush=True,
+                    )
 
     def drain(self) -> None:
         """Handle every pose offered so far, then any realtime frame now due (the worker's

@@ -166,3 +166,36 @@ def test_frames_reach_a_frame_grabber_over_zenoh_authenticated():
     assert grabber.counters()["rejected"] == 0
     assert stranger.counters()["bad_mac"] == 20
     assert node.stats.publish_errors == 0
+
+
+def test_a_frame_that_cannot_be_made_is_counted_and_the_camera_goes_on(capsys):
+    """A scene that fails for one frame: that frame is lost (counted, one line on stderr), the
+    worker keeps answering the next periods."""
+    import time
+
+    from plant_emulator.camera_node import target_scene
+
+    cfg = RigConfig()
+    good = target_scene(cfg)
+    bad_time = 2 * PERIOD_NS * 1e-9
+
+    def scene(t: float):
+        if abs(t - bad_time) < 0.003:
+            raise ValueError("texture unavailable")
+        return good(t)
+
+    from plant_emulator.camera_node import sensor_from_config
+
+    out: list[bytes] = []
+    node = CameraNode(cfg, out.append, key=KEY, sensor=sensor_from_config(cfg, scene)).start()
+    try:
+        for k in range(5):
+            node.offer(k, k * PERIOD_NS, moving_pose(cfg, k * 0.02), True)
+            deadline = time.monotonic() + 10
+            while len(out) + node.stats.render_errors < k + 1 and time.monotonic() < deadline:
+                time.sleep(0.005)
+    finally:
+        node.close()
+    assert [decode_frame(b).period for b in out] == [0, 1, 3, 4]
+    assert node.stats.render_errors == 1
+    assert "camera: frame lost: ValueError: texture unavailable" in capsys.readouterr().err
