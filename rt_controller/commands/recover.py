@@ -8,7 +8,8 @@ DESCRIPTION = """\
 Reads LOG.mcap up to its last complete record (mcap's stream reader) and writes every schema,
 channel, message, metadata and attachment again with mcap's writer, with chunk indexes, a
 summary section and the footer: a log whose recorder was SIGKILLed, or a file cut in a copy,
-then opens in mcap's own reader and in Foxglove, and `hil info` calls it complete. The input
+then opens in mcap's own reader and in Foxglove, and `hil info` calls it complete. A
+hil.recovered metadata record in the copy names the input and what was kept. The input
 is never changed (an --out naming it is refused). Prints one line with what was kept and what
 was lost (the bytes after the last complete record, usually a half-written chunk).
 

@@ -35,6 +35,10 @@ from mcap.writer import CompressionType, Writer
 from rt_controller.errors import ControllerConfigError, LogError
 from rt_controller.logtools.reader import CYCLE_TOPIC, MAGIC, check_file
 
+RECOVERED_METADATA = "hil.recovered"
+"""The metadata record ``hil recover`` adds to its copy: ``from`` (the input's path),
+``input_bytes``, ``kept_bytes``, ``stopped`` (why the read ended)."""
+
 CHUNK_SIZE = 1024 * 1024
 """Chunk size of the copy (mcap's default; the recorder's small chunks only bound its loss)."""
 
@@ -149,8 +153,19 @@ class _Rewriter:
             result.attachments += 1
 
     def finish(self) -> None:
-        self.writer.finish()
+        """Add the :data:`RECOVERED_METADATA` record (where the copy came from, what it lost)
+        and finish the file."""
         result = self.result
+        self.writer.add_metadata(
+            RECOVERED_METADATA,
+            {
+                "from": result.log,
+                "input_bytes": str(result.input_bytes),
+                "kept_bytes": str(result.kept_bytes),
+                "stopped": result.stopped,
+            },
+        )
+        self.writer.finish()
         result.topics = dict(self.counts)
         result.messages = sum(self.counts.values())
         result.cycles = self.counts[CYCLE_TOPIC]
@@ -193,6 +208,6 @@ def _copy(src: Any, dst: Any, result: Recovery) -> None:
         result.stopped = result.stopped or f"damaged: {type(exc).__name__}: {exc}".rstrip(": ")
     if rewriter is None:
         raise LogError(f"{result.log}: cut before the end of its MCAP header: nothing to recover")
-    rewriter.finish()
     if result.finished:
         result.kept_bytes = result.input_bytes
+    rewriter.finish()

@@ -95,7 +95,8 @@ def test_a_log_cut_anywhere_becomes_a_log_the_stock_reader_opens(rig_log, tmp_pa
         reader = make_reader(fh)
         assert reader.get_summary().statistics.message_count == len(got)
         names = [m.name for m in reader.iter_metadata()]
-    assert {"hil.config", "hil.run"} <= set(names) == set(res["metadata"])
+    assert {"hil.config", "hil.run"} <= set(res["metadata"])
+    assert names == [*res["metadata"], "hil.recovered"]  # the copied ones, then provenance
     info = hil("info", out, "--json")
     assert info.returncode == 0, info.stderr
     assert json.loads(info.stdout)["truncated"] is False
@@ -194,7 +195,9 @@ def test_attachments_and_metadata_survive(tmp_path):
     with (tmp_path / "r.mcap").open("rb") as fh:
         reader = make_reader(fh)
         assert [(a.name, a.data) for a in reader.iter_attachments()] == [("calib.yaml", b"k: 1\n")]
-        assert [(m.name, m.metadata) for m in reader.iter_metadata()] == [("site", {"lab": "A"})]
+        meta = [(m.name, m.metadata) for m in reader.iter_metadata()]
+        assert meta[0] == ("site", {"lab": "A"}) and meta[1][0] == "hil.recovered"
+        assert meta[1][1]["from"] == str(cut) and meta[1][1]["stopped"] == "end of file"
         assert reader.get_header().library == "other-tool"
     assert res["attachments"] == 1 and res["messages"] == 50
 
