@@ -132,6 +132,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             status = 1
+    c = cfg.camera
+    if (cal.width, cal.height) != (c.width_px, c.height_px):
+        print(
+            f"hil camera calibrate: warning: the views are {cal.width}x{cal.height} but "
+            f"camera.width_px x height_px is {c.width_px}x{c.height_px}: set them to the "
+            "camera's, the vision pipeline rejects frames of another size (wrong_size)",
+            file=sys.stderr,
+        )
     target = args.write or args.config
     if target:
         write_vision_section(target, cal)

@@ -13,10 +13,11 @@ from hal.config import load_config
 from rt_controller.cli import main
 
 
-def calibrate(capsys, *args: str) -> tuple[int, dict]:
+def calibrate(capsys, *args: str) -> tuple[int, dict, str]:
+    """Run the command: its exit status, its JSON and its stderr."""
     status = main(["camera", "calibrate", *args, "--json"])
-    out = capsys.readouterr().out
-    return status, json.loads(out) if out.strip() else {}
+    captured = capsys.readouterr()
+    return status, json.loads(captured.out) if captured.out.strip() else {}, captured.err
 
 
 def test_emulated_views_recover_the_true_lens_and_land_in_the_config(tmp_path: Path, capsys):
@@ -24,7 +25,9 @@ def test_emulated_views_recover_the_true_lens_and_land_in_the_config(tmp_path: P
     the issue's targets, and the [vision] keys the pipeline then uses."""
     rig = tmp_path / "rig.toml"
     rig.write_text("# my rig\n[gains]\nkp = 0.13  # the paper's\n")
-    status, out = calibrate(capsys, "--source", "emulated", "--views", "20", "--config", str(rig))
+    status, out, _ = calibrate(
+        capsys, "--source", "emulated", "--views", "20", "--config", str(rig)
+    )
     assert status == 0 and out["within_targets"] and out["views_used"] == 20
     t = out["truth"]
     # measured at seeds 0-7: |fx|, |fy| <= 0.03 %, |cx|, |cy| <= 0.36 px, |k1| <= 3.4 %
@@ -44,7 +47,7 @@ def test_another_true_lens_is_recovered_too(tmp_path: Path, capsys):
         "[camera]\nlens_k1 = -0.2\nlens_k2 = 0.1\nfocal_px = [1260.0, 1250.0]\n"
         "principal_point_px = [325.0, 236.0]\n"
     )
-    status, out = calibrate(capsys, "--source", "emulated", "--config", str(rig), "--seed", "1")
+    status, out, _ = calibrate(capsys, "--source", "emulated", "--config", str(rig), "--seed", "1")
     assert status == 0, out
     assert out["fx"] == pytest.approx(1260.0, rel=0.005)
     assert out["fy"] == pytest.approx(1250.0, rel=0.005)
@@ -54,16 +57,21 @@ def test_another_true_lens_is_recovered_too(tmp_path: Path, capsys):
 
 def test_a_folder_of_images_gives_the_same_calibration(tmp_path: Path, capsys):
     views = tmp_path / "views"
-    status, emulated = calibrate(
+    status, emulated, _ = calibrate(
         capsys, "--source", "emulated", "--views", "8", "--save-views", str(views)
     )
     assert len(list(views.glob("*.png"))) == 8
     out_file = tmp_path / "calibrated.toml"
-    status, real = calibrate(capsys, "--images", str(views), "--write", str(out_file))
+    status, real, _ = calibrate(capsys, "--images", str(views), "--write", str(out_file))
     assert status == 0 and "truth" not in real
     for key in ("fx", "fy", "cx", "cy", "k1", "k2"):
         assert real[key] == emulated[key]
     assert load_config(out_file).vision.calibrated
+    other = tmp_path / "other.toml"
+    other.write_text("[camera]\nwidth_px = 800\nheight_px = 600\n")
+    status, _, err = calibrate(capsys, "--images", str(views), "--config", str(other))
+    assert status == 0
+    assert "the views are 640x480 but camera.width_px x height_px is 800x600" in err
 
 
 def test_the_vision_sections_other_keys_and_a_broken_file_are_kept(tmp_path: Path, capsys):
