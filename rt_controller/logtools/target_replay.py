@@ -199,4 +199,7 @@ def _child(request: Path, answer: Path) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(_child(Path(sys.argv[1]), Path(sys.argv[2])))
+    try:
+        sys.exit(_child(Path(sys.argv[1]), Path(sys.argv[2])))
+    except KeyboardInterrupt:  # Ctrl-C reached the parent too: it reports it
+        sys.exit(130)
