@@ -402,7 +402,7 @@ class CameraSensor:
         return np.where(np.isfinite(out), out, 0.0)
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, nogil=True)
 def _expose(
     reflectance: np.ndarray,
     out: np.ndarray,
