@@ -317,6 +317,9 @@ class CameraSensor:
         roi = tuple(
             slice(min(r[a].start for r in rois), max(r[a].stop for r in rois)) for a in (0, 1)
         )
+        if all(t == textures[0] for t in textures[1:]):  # one texture: all sub-exposures at once
+            out[roi] = self._sample_many(poses, textures[0], roi).mean(axis=0)
+            return out
         acc = np.zeros((roi[0].stop - roi[0].start, roi[1].stop - roi[1].start))
         for pose, texture in zip(poses, textures, strict=True):
             acc += self._sample(pose, texture, roi)
@@ -390,6 +393,20 @@ class CameraSensor:
         if u0 >= u1 or v0 >= v1:
             return None
         return (slice(v0, v1), slice(u0, u1))
+
+    def _sample_many(
+        self, poses: list[CameraPose], texture: PlaneTexture, roi: tuple[slice, slice]
+    ) -> np.ndarray:
+        """:meth:`_sample` for several poses in one vectorised pass: (len(poses), h, w)."""
+        phi = np.array([p.phi for p in poses])[:, None, None]
+        px = np.array([p.x for p in poses])[:, None, None]
+        py = np.array([p.y for p in poses])[:, None, None]
+        c, s = np.cos(phi), np.sin(phi)
+        rx, ry = self._rays_x[roi] * self.z_wo, self._rays_y[roi] * self.z_wo
+        out = texture.sample(
+            px + c * rx - s * ry, py + s * rx + c * ry, self._footprint[roi] * self.z_wo
+        )
+        return np.where(np.isfinite(out), out, 0.0)
 
     def _sample(
         self, pose: CameraPose, texture: PlaneTexture, roi: tuple[slice, slice]
