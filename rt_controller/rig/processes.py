@@ -424,6 +424,14 @@ class Rig:
         self.close()
 
 
+def refused_to_start(end: ProcessEnd, summary: dict[str, Any]) -> bool:
+    """Whether ``end`` is a process that refused to start: exit status 2 (the ``hil`` commands'
+    bad-usage status: a CAN interface that does not exist, no vision process on the zenoh
+    endpoint, ...) before the controller ran a tick. That is reported as an error (exit 2), not
+    as a run that ended short."""
+    return end.returncode == 2 and not summary.get("ticks")
+
+
 def run_rig_plan(
     opts: RigOptions, runs: int
 ) -> tuple[list[dict[str, Any]], RigProcessError | None]:
@@ -448,7 +456,9 @@ def run_rig_plan(
         summaries = rig.summaries()
         codes = rig.stop()
         if isinstance(error, RigProcessDied):  # the run it cut short gets its summary too
-            summaries.append(rig.summary_of_cut_run(error.end, len(summaries)))
+            cut = rig.summary_of_cut_run(error.end, len(summaries))
+            if not refused_to_start(error.end, cut):
+                summaries.append(cut)
         bad = [c for c in rig.children if c.name in ("emulator", "vision") and codes[c.name]]
         if bad and error is None:
             error = RigProcessError(
@@ -477,7 +487,10 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
             summary = rig.wait_controller()
             rig._check_alive(but="controller")  # one that died as the controller's run ended
         except RigProcessDied as exc:
-            return rig.finish_after(exc.end)
+            summary = rig.finish_after(exc.end)
+            if refused_to_start(exc.end, summary):
+                raise  # bad usage: the process's one line and exit 2, as for any command
+            return summary
         except (RigInterrupted, RigHung) as exc:
             rig.stop()  # the controller first: it turns torque off and prints its summary
             lines = rig.summaries()
@@ -501,5 +514,6 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
         summary["exit_codes"] = codes
         mon = next((c for c in rig.children if c.name == "monitor"), None)
         if mon is not None and codes.get("monitor") not in (0, None):
-            summary["monitor_error"] = f"exited with status {codes['monitor']}: {mon.tail(3)}"
+            how = ProcessEnd("monitor", mon.proc.returncode, time.monotonic_ns()).how
+            summary["monitor_error"] = f"{how}: {mon.tail(3)}"
         return summary

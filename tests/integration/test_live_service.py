@@ -653,7 +653,8 @@ def test_run_rig_reports_an_emulator_killed_mid_run(tmp_path):
         with pytest.raises(RigProcessError) as info:
             rig.wait_controller()
         message = str(info.value)
-        assert message.startswith(f"emulator exited with status {-signal.SIGKILL}"), message
+        assert message.startswith("emulator killed by SIGKILL"), message
+        assert info.value.end.name == "emulator" and info.value.end.returncode == -signal.SIGKILL
         assert "hil emulator: serving the arm on" in message  # its stderr tail
     # the context manager stopped the others; the conftest fixture checks for leaks as well
     assert len(children) == 3 and all(c.proc.returncode is not None for c in children)
