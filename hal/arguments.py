@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from typing import Any
 
 MAX_DURATION_S = 7 * 24 * 3600.0
 """Longest run a command accepts (one week)."""
@@ -66,3 +67,20 @@ def add_key_option(p: argparse.ArgumentParser) -> None:
         help="rig key authenticating CAN frames and vision messages (make one with `hil keygen "
         "FILE`, mode 0600; default: transport.key_file of the config)",
     )
+
+
+ZENOH_ROLES = {"auto": None, "hub": True, "client": False}
+"""``--zenoh-role`` -> ``open_session``'s ``listen``."""
+
+
+def zenoh_session_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``open_session`` keywords from a process's ``--zenoh-endpoint``, ``--zenoh-config``,
+    ``--zenoh-role`` and ``--wait`` (None: the default wait)."""
+    out: dict[str, Any] = {
+        "endpoint": args.zenoh_endpoint,
+        "config_file": args.zenoh_config,
+        "listen": ZENOH_ROLES[args.zenoh_role],
+    }
+    if getattr(args, "wait", None) is not None:
+        out["wait_s"] = args.wait
+    return out

@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from hal.arguments import add_key_option, bounded_float, duration
+from hal.arguments import add_key_option, bounded_float, duration, zenoh_session_options
 from hal.errors import HalError
 from hal.signals import run_standalone, stop_on_signals
 
@@ -135,11 +135,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                 lockstep=lockstep,
                 stop_event=stop,
                 duration_s=args.duration,
-                endpoint=args.zenoh_endpoint,
-                config_file=args.zenoh_config,
-                listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
                 dropouts=dropouts,
-                **({} if args.wait is None else {"wait_s": args.wait}),
+                **zenoh_session_options(args),
             )
         except HalError:
             if stop.is_set():  # told to stop while waiting for the hub

@@ -12,6 +12,7 @@ import argparse
 import json
 import sys
 
+from hal.arguments import zenoh_session_options
 from hal.errors import HalConfigError, HalError
 from hal.signals import stop_on_signals
 
@@ -81,11 +82,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                     args.source,
                     stop_event=stop,
                     duration_s=args.duration,
-                    endpoint=args.zenoh_endpoint,
-                    config_file=args.zenoh_config,
-                    listen={"auto": None, "hub": True, "client": False}[args.zenoh_role],
                     dropouts=dropouts,
-                    **({} if args.wait is None else {"wait_s": args.wait}),
+                    **zenoh_session_options(args),
                 )
             except HalError:
                 if stop.is_set():
