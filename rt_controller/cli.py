@@ -27,6 +27,7 @@ PACKAGE = "hil-rhc-visual-servo"
 COMMAND_MODULES = (
     "up",
     "keygen",
+    "camera",
     "emulator",
     "vision",
     "controller",

@@ -4,16 +4,16 @@ One function, :func:`scene_messages`, turns a cycle record (``q``, ``f``, ``tick
 messages of the scene topics; the recorder writes them into the MCAP and ``hil monitor`` sends
 them live, so a log and a live connection show the same picture (``foxglove/layout.json``).
 
-=========================== ============================= =========================================
-topic                       schema (protobuf)             content
-=========================== ============================= =========================================
-``/tf``                     ``foxglove.FrameTransforms``  world -> link1 -> link2 -> camera
-``/scene/arm``              ``foxglove.SceneUpdate``      links, joints, camera frustum, target, ray
-``/camera/calibration``     ``foxglove.CameraCalibration`` pinhole of ``camera.s_lambda`` px (on images:
-                                                          the camera's true intrinsics and lens)
-``/camera/annotations``     ``foxglove.ImageAnnotations`` features f, image centre (the goal f = 0)
-``/camera/image``           ``foxglove.CompressedImage``  a blank image plane (PNG, about 1 Hz)
-=========================== ============================= =========================================
+============================ ============================== ====================================
+topic                        schema (protobuf)              content
+============================ ============================== ====================================
+``/tf``                      ``foxglove.FrameTransforms``   world -> link1 -> link2 -> camera
+``/scene/arm``               ``foxglove.SceneUpdate``       links, joints, frustum, target, ray
+``/camera/calibration``      ``foxglove.CameraCalibration`` pinhole of ``camera.s_lambda`` px
+                                                            (on images: the true lens)
+``/camera/annotations``      ``foxglove.ImageAnnotations``  features f, image centre (f = 0)
+``/camera/image``            ``foxglove.CompressedImage``   a blank image plane (PNG, ~1 Hz)
+============================ ============================== ====================================
 
 Geometry (the paper's eq. 6): the arm moves in the plane z = 0 of frame ``world``; the camera
 sits at the tip of link 2 with its optical axis along +z, image x along the hand, image y to its
