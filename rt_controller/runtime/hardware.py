@@ -11,13 +11,13 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from hal.config import RigConfig
 from hal.errors import HalCodecError, HalTimeoutError
+from hal.hardware_interface import Observation
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder, FeatureMsg
 from hal.vision_image import decode_vision_image
@@ -33,24 +33,6 @@ STARTUP_TIMEOUT_S = 20.0
 FeatureAge = Callable[[FeatureMsg, int, int], float]
 """How old a feature message is at a tick, in ms: ``(message, receive ns, wake ns)``; the
 pacer knows how (in real time, or in the simulation time of a Sync-paced run)."""
-
-
-@dataclass(frozen=True)
-class Observation:
-    """What the read phase of one tick found (NaN where absent)."""
-
-    q: np.ndarray
-    dq: np.ndarray
-    f: np.ndarray
-    state_ns: int | None
-    """Receive time of the joint state (None when stale)."""
-    state_age_ms: float
-    state_stale: bool
-    f_age_ms: float
-    f_stale: bool
-    f_valid: bool
-    drive_mode: str
-    """The DSP's drive mode (:data:`hal.drive_state.MODES`); the law runs only in ``enabled``."""
 
 
 class RigHardware:
