@@ -4,8 +4,8 @@ Writes ``docs/reference/{cli,config,dbc,zenoh,schemas}.md``:
 
 - ``cli.md``: every ``hil`` subcommand and option, walked from ``rt_controller.cli.build_parser()``;
 - ``config.md``: every configuration key with its default, range and meaning, from the
-  dataclasses of ``hal/config.py`` (attribute docstrings, else the comment of the key in
-  ``examples/rig.toml``) and its range table ``hal.config._RANGES``;
+  dataclasses of the ``hal/config/`` package (attribute docstrings, else the comment of the key
+  in ``examples/rig.toml``) and its range table ``hal.config.ranges.RANGES``;
 - ``dbc.md``: every CAN message and signal of ``hal/hil.dbc``, read with cantools;
 - ``zenoh.md``: the zenoh key expressions (``KEY_*`` of ``hal/zenoh_session.py``);
 - ``schemas.md``: the JSON Schemas of the MCAP topics and live channels (``*_SCHEMA`` dicts and
@@ -269,11 +269,14 @@ def _range(entry: tuple[float, float, str] | None) -> str:
 
 def config_page() -> str:
     from hal import config
+    from hal.config.ranges import RANGES
 
-    docs = _attribute_docs(ROOT / "hal" / "config.py")
+    docs: dict[str, dict[str, str]] = {}
+    for module in sorted((ROOT / "hal" / "config").glob("*.py")):
+        docs.update(_attribute_docs(module))
     comments = _toml_comments(ROOT / "examples" / "rig.toml")
     md = [
-        HEADER.format(source="hal/config.py (dataclasses, _RANGES) and examples/rig.toml"),
+        HEADER.format(source="hal/config/ (dataclasses, ranges.py) and examples/rig.toml"),
         "# Configuration reference\n\n",
         "Every key of the rig's TOML file (`--config FILE`), with its embedded default, the range ",
         "`hal.config` validates it against (each element of a vector or matrix; `[` closed, `(` ",
@@ -286,7 +289,7 @@ def config_page() -> str:
         ", ".join(f"`{n}`" for n in config.LAW_NAMES),
         ".\n\n",
     ]
-    ranges = config._RANGES
+    ranges = RANGES
     for section, cls in typing.get_type_hints(config.RigConfig).items():
         if not dataclasses.is_dataclass(cls):
             continue

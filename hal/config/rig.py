@@ -1,0 +1,200 @@
+"""The whole rig's configuration (:class:`RigConfig`, one field per TOML section) and how it is
+read: from a TOML file, from JSON (a log's embedded config) or from a nested dict, each value
+type-checked and the result validated (:func:`hal.config.validation.validate`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hal.config.control import ControllerConfig, GainsConfig, RhcConfig
+from hal.config.devices import DspConfig, TransportConfig, VisionConfig
+from hal.config.experiment import RatesConfig, ScenarioConfig
+from hal.config.plant import CameraConfig, PlantConfig, RobotConfig
+from hal.config.validation import validate
+from hal.config.values import Mat2, Vec2, diag
+from hal.errors import HalConfigError
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """The whole rig: every section of the TOML file."""
+
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    gains: GainsConfig = field(default_factory=GainsConfig)
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    rates: RatesConfig = field(default_factory=RatesConfig)
+    rhc: RhcConfig = field(default_factory=RhcConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    dsp: DspConfig = field(default_factory=DspConfig)
+    transport: TransportConfig = field(default_factory=TransportConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    vision: VisionConfig = field(default_factory=VisionConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain nested dict (lists for tuples), the inverse of :func:`config_from_dict`."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    def with_overrides(self, overrides: dict[str, Any]) -> RigConfig:
+        """A validated copy with ``{"section.key": value}`` overrides applied (command-line
+        options): every value gets the same type and range checks as in a file."""
+        data = self.to_dict()
+        for dotted, value in overrides.items():
+            section, _, key = dotted.partition(".")
+            if section not in data or not key:
+                raise HalConfigError(f"unknown config key {dotted!r}")
+            data[section][key] = list(value) if isinstance(value, tuple) else value
+        return config_from_dict(data)
+
+
+_SECTIONS: dict[str, type] = {f.name: f.type for f in dataclasses.fields(RigConfig)}
+_SECTION_TYPES: dict[str, type] = {
+    name: cls
+    for name, cls in typing.get_type_hints(RigConfig).items()
+    if dataclasses.is_dataclass(cls)
+}
+
+
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise HalConfigError(f"{key}: expected a number, got {value!r}")
+    if not math.isfinite(value):
+        raise HalConfigError(f"{key}: must be finite, got {value!r}")
+    return float(value)
+
+
+def _coerce(value: Any, hint: Any, key: str) -> Any:
+    if hint is float:
+        return _number(value, key)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise HalConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise HalConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise HalConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    if hint == Vec2:
+        if not isinstance(value, list | tuple) or len(value) != 2:
+            raise HalConfigError(f"{key}: expected a list of 2 numbers, got {value!r}")
+        return tuple(_number(v, f"{key}[{i}]") for i, v in enumerate(value))
+    if hint == Mat2:
+        if isinstance(value, list | tuple) and len(value) == 2:
+            if all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+                return diag(_number(value[0], f"{key}[0]"), _number(value[1], f"{key}[1]"))
+            if all(isinstance(r, list | tuple) and len(r) == 2 for r in value):
+                return tuple(
+                    tuple(_number(v, f"{key}[{i}][{j}]") for j, v in enumerate(row))
+                    for i, row in enumerate(value)
+                )
+        raise HalConfigError(
+            f"{key}: expected a 2x2 matrix [[a, b], [c, d]] or its diagonal [a, d], got {value!r}"
+        )
+    raise HalConfigError(f"{key}: unsupported type {hint!r}")  # pragma: no cover
+
+
+RETIRED_KEYS = {
+    "controller.state_wait_us": "a tick never waits for its joint state (a late one is counted "
+    "in late_states and its age compensated)",
+    "controller.gil_switch_us": "the control process runs no other Python thread",
+    "controller.recorder": "the MCAP log is always written by the recorder's own process",
+}
+"""Keys older versions had, with why they went: refused in a config file (with the reason),
+ignored in a log's embedded config (they never changed what the per-tick rule computes)."""
+
+
+def _build_section(name: str, data: Any, *, retired_ok: bool = False) -> Any:
+    cls = _SECTION_TYPES[name]
+    if not isinstance(data, dict):
+        raise HalConfigError(f"[{name}]: expected a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    known = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in data.items():
+        why = RETIRED_KEYS.get(f"{name}.{key}")
+        if why is not None:
+            if retired_ok:
+                continue
+            raise HalConfigError(f"{name}.{key} was removed: {why}; delete it from the file")
+        if key not in hints:
+            raise HalConfigError(f"unknown key {name}.{key} (known keys: {', '.join(known)})")
+        kwargs[key] = _coerce(value, hints[key], f"{name}.{key}")
+    return cls(**kwargs)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def config_from_dict(
+    data: dict[str, Any], *, source: str | None = None, retired_ok: bool = False
+) -> RigConfig:
+    """Build and validate a :class:`RigConfig` from a nested dict (parsed TOML or JSON).
+
+    Exactly the checks of a file (types, ranges, cross-field constraints); ``source`` (e.g.
+    ``"log metadata"``) prefixes the one-line error, as the path does for a file;
+    ``retired_ok`` skips :data:`RETIRED_KEYS` (a log written by an older version).
+    """
+    try:
+        if not isinstance(data, dict):
+            raise HalConfigError(f"config: expected a table of sections, got {type(data).__name__}")
+        sections = {}
+        for name, body in data.items():
+            if name not in _SECTIONS:
+                raise HalConfigError(
+                    f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
+                )
+            sections[name] = _build_section(name, body, retired_ok=retired_ok)
+        return validate(RigConfig(**sections))
+    except HalConfigError as exc:
+        msg = _one_line(str(exc))
+        raise HalConfigError(f"{source}: {msg}" if source else msg) from None
+
+
+def load_config(path: str | Path | None = None) -> RigConfig:
+    """Load and validate a TOML rig config; ``None`` gives the embedded defaults."""
+    if path is None:
+        return validate(RigConfig())
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise HalConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise HalConfigError(
+            f"{p}: not UTF-8 text (invalid byte 0x{raw[exc.start]:02x} at offset {exc.start})"
+        ) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise HalConfigError(f"{p}: not valid TOML: {_one_line(str(exc))}") from None
+    except RecursionError:
+        raise HalConfigError(f"{p}: not valid TOML: nested too deeply") from None
+    return config_from_dict(data, source=str(p))
+
+
+def config_from_json(text: str | bytes, *, source: str = "embedded config") -> RigConfig:
+    """Inverse of :meth:`RigConfig.to_json` (used to replay a log's embedded configuration);
+    validated exactly like a file, errors prefixed with ``source``; keys older versions wrote
+    and this one retired (:data:`RETIRED_KEYS`) are skipped."""
+    try:
+        data = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise HalConfigError(f"{source}: not valid JSON: {_one_line(str(exc))}") from None
+    return config_from_dict(data, source=source, retired_ok=True)

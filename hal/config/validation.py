@@ -1,0 +1,159 @@
+"""Validation of a whole :class:`~hal.config.rig.RigConfig`: every range and the cross-field
+constraints, each failure a one-line :class:`~hal.errors.HalConfigError` naming the key."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from hal.config.control import LAW_NAMES
+from hal.config.plant import plant_robot
+from hal.config.ranges import check_ranges
+from hal.config.values import Mat2
+from hal.errors import HalConfigError
+
+if TYPE_CHECKING:
+    from hal.config.rig import RigConfig
+
+
+def _require(cond: bool, key: str, message: str) -> None:
+    if not cond:
+        raise HalConfigError(f"{key}: {message}")
+
+
+def _check_spd(matrix: Mat2, key: str) -> None:
+    import numpy as np
+
+    m = np.array(matrix)
+    _require(np.allclose(m, m.T), key, f"must be symmetric, got {matrix}")
+    _require(
+        bool(np.all(np.linalg.eigvalsh(m) > 0.0)), key, f"must be positive definite, got {matrix}"
+    )
+
+
+def validate(cfg: RigConfig) -> RigConfig:
+    """Check every setting's range (:data:`~hal.config.ranges.RANGES`) and the cross-field
+    constraints; returns ``cfg`` or raises :class:`HalConfigError` naming the key."""
+    r = cfg.robot
+    for key in ("l1", "l2", "m1", "m2", "I1", "I2"):
+        _require(getattr(r, key) > 0, f"robot.{key}", "must be positive")
+    for key in ("lc1", "lc2", "gravity"):
+        _require(getattr(r, key) >= 0, f"robot.{key}", "must be non-negative")
+    for key in ("tau_max",):
+        _require(all(v > 0 for v in getattr(r, key)), f"robot.{key}", "must be positive")
+    for key in ("viscous", "coulomb"):
+        _require(all(v >= 0 for v in getattr(r, key)), f"robot.{key}", "must be non-negative")
+    c = cfg.camera
+    _require(c.s_lambda > 0, "camera.s_lambda", "must be positive")
+    _require(c.z_wo > 0, "camera.z_wo", "must be positive")
+    _require(c.noise_px >= 0, "camera.noise_px", "must be non-negative")
+    _require(c.frame_rate_hz >= 0, "camera.frame_rate_hz", "must be non-negative (0 = off)")
+    _require(c.latency_s >= 0, "camera.latency_s", "must be non-negative")
+    _require(
+        c.model in ("image", "analytic"),
+        "camera.model",
+        f"must be image or analytic, not {c.model!r}",
+    )
+    for key in ("focal_px", "principal_point_px"):
+        pair = getattr(c, key)
+        _require(
+            pair == (0.0, 0.0) or min(pair) > 0,
+            f"camera.{key}",
+            f"must be (0, 0) (derived) or positive on both axes, got {list(pair)}",
+        )
+    cx, cy = c.true_principal_point_px
+    _require(
+        cx < c.width_px and cy < c.height_px,
+        "camera.principal_point_px",
+        f"must lie inside the {c.width_px}x{c.height_px} image, got ({cx:g}, {cy:g})",
+    )
+    g = cfg.gains
+    _require(g.kp > 0, "gains.kp", "must be positive")
+    _check_spd(g.alpha, "gains.alpha")
+    _check_spd(g.K, "gains.K")
+    s = cfg.scenario
+    _require(s.name == "paper", "scenario.name", f"unknown scenario {s.name!r} (known: paper)")
+    _require(s.jump_time >= 0, "scenario.jump_time", "must be non-negative")
+    rt = cfg.rates
+    for key in ("control_hz", "physics_hz", "state_hz", "status_hz"):
+        _require(getattr(rt, key) > 0, f"rates.{key}", "must be positive")
+    _require(
+        rt.physics_hz >= rt.control_hz,
+        "rates.physics_hz",
+        f"must be at least rates.control_hz ({rt.control_hz} Hz)",
+    )
+    ratio = rt.physics_hz / rt.control_hz
+    _require(
+        abs(ratio - round(ratio)) < 1e-9,
+        "rates.physics_hz",
+        f"must be an integer multiple of rates.control_hz (got ratio {ratio:g})",
+    )
+    _require(
+        rt.state_hz <= rt.physics_hz,
+        "rates.state_hz",
+        f"cannot exceed rates.physics_hz ({rt.physics_hz} Hz)",
+    )
+    h = cfg.rhc
+    _require(h.horizon > 0, "rhc.horizon", "must be positive")
+    _require(h.steps >= 1, "rhc.steps", "must be at least 1")
+    _require(h.kmax >= 1, "rhc.kmax", "must be at least 1")
+    _require(h.zeta > 0, "rhc.zeta", "must be positive")
+    _require(h.horizon_growth >= 0, "rhc.horizon_growth", "must be non-negative (0 = off)")
+    _require(all(v > 0 for v in h.u_max), "rhc.u_max", "must be positive")
+    _require(h.dummy_weight > 0, "rhc.dummy_weight", "must be positive")
+    _require(0 < h.fd_step < 1e-2, "rhc.fd_step", "must be in (0, 0.01)")
+    _require(h.residual_bound > 0, "rhc.residual_bound", "must be positive")
+    _require(h.init_tol > 0, "rhc.init_tol", "must be positive")
+    _require(h.init_iterations >= 1, "rhc.init_iterations", "must be at least 1")
+    ct = cfg.controller
+    _require(
+        ct.law in LAW_NAMES,
+        "controller.law",
+        f"must be {', '.join(LAW_NAMES[:-1])} or {LAW_NAMES[-1]}, not {ct.law!r}",
+    )
+    _require(
+        ct.clock in ("realtime", "lockstep"),
+        "controller.clock",
+        f"must be realtime or lockstep, not {ct.clock!r}",
+    )
+    _require(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
+    _require(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")
+    _require(ct.spin_us >= 0, "controller.spin_us", "must be non-negative")
+    _require(1 <= ct.rt_priority <= 99, "controller.rt_priority", "must be in 1..99")
+    d = cfg.dsp
+    _require(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")
+    _require(d.encoder_counts >= 2, "dsp.encoder_counts", "must be at least 2")
+    _require(d.velocity_filter_hz >= 0, "dsp.velocity_filter_hz", "must be non-negative")
+    _require(
+        d.state_sync in ("command", "free"),
+        "dsp.state_sync",
+        f"must be command or free, got {d.state_sync!r}",
+    )
+    check_ranges(cfg)
+    _check_plant(cfg)
+    for j in range(2):
+        _require(
+            d.q_min[j] < d.q_max[j],
+            "dsp.q_min",
+            f"must be below dsp.q_max on every joint, got {d.q_min} and {d.q_max}",
+        )
+    for j, q in enumerate(s.q0):
+        _require(
+            d.q_min[j] <= q <= d.q_max[j],
+            "scenario.q0",
+            f"must lie within dsp.q_min {d.q_min} .. dsp.q_max {d.q_max}, got {s.q0}",
+        )
+    return cfg
+
+
+def _check_plant(cfg: RigConfig) -> None:
+    r, p = cfg.robot, cfg.plant
+    if p.theta3 != 1.0 and r.lc2 == 0:
+        raise HalConfigError("plant.theta3: robot.lc2 is 0, so theta3 = 0 cannot be scaled")
+    plant = plant_robot(cfg)
+    for key, inertia in (("theta1", plant.I1), ("theta2", plant.I2)):
+        _require(
+            inertia > 0,
+            f"plant.{key}",
+            f"{getattr(p, key)!r} (with plant.theta3 {p.theta3!r}) leaves the plant's link "
+            f"inertia I{key[-1]} at {inertia:.4g} kg·m², not positive",
+        )
