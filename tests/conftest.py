@@ -48,7 +48,7 @@ def _open_buses() -> list[str]:
         try:
             if isinstance(obj, can.BusABC) and not getattr(obj, "_is_shutdown", True):
                 found.append(f"{type(obj).__name__}({getattr(obj, 'channel_info', '?')})")
-        except ReferenceError:
+        except (ReferenceError, RuntimeError):  # canopen's unassigned-network placeholder raises
             continue
     return found
 
