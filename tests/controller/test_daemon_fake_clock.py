@@ -89,8 +89,16 @@ class NoZenoh:
         def close(self) -> None:
             pass
 
+    class _Subscriber:
+        def undeclare(self) -> None:
+            pass
+
     def subscribe_ring(self, key: str) -> _Ring:
         return self._Ring()
+
+    def subscribe(self, key: str, callback: object) -> _Subscriber:
+        """Nothing arrives on it (the camera's images are not part of a fake-clock run)."""
+        return self._Subscriber()
 
 
 def run_daemon(
