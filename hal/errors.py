@@ -29,3 +29,8 @@ class HalCodecError(HalError, ValueError):
 
 class HalStopped(HalError, InterruptedError):
     """A wait was abandoned because the caller asked to stop (not a failure of the other side)."""
+
+
+class HalDriveError(HalError, RuntimeError):
+    """A CANopen drive did not take a configuration step or a state change (names the node and
+    the object or state); the message says what to check on the drive."""

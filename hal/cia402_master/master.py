@@ -1,0 +1,340 @@
+"""The CANopen master of the ``cia402`` profile: one :class:`canopen.Network` on the run's
+python-can bus, one :class:`~canopen.profiles.p402.BaseNode402` per joint, canopen's SYNC
+producer, the controller's heartbeat (a canopen NMT slave), and per tick the RPDO (controlword,
+target torque) out and the TPDOs (statusword, position, velocity, torque) in.
+
+Timing: every PDO is synchronous. A drive latches the RPDO at the next SYNC and answers each
+SYNC with its TPDOs, so the bus carries, per period, RPDO(k-1) -> SYNC k -> TPDOs(k). In
+lockstep the caller sends SYNC k when it wants period k (:meth:`sync` then
+:meth:`wait_tpdos`); in realtime it sends the SYNC right after the tick's RPDO, so the torque
+is latched at once and the TPDOs are there before the next release.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import canopen
+from canopen.nmt import NmtError
+from canopen.profiles.p402 import BaseNode402, State402
+
+from hal.cia402_master import boot
+from hal.cia402_master.units import DriveUnits
+from hal.cia402_master.watch import (
+    HEARTBEAT_LOSS_PERIODS,
+    FaultLog,
+    NodeWatch,
+    heartbeat_dictionary,
+    state_of,
+)
+from hal.cia402_od import CONTROLWORD, HEARTBEAT_CONSUMER, TARGET_TORQUE
+from hal.drive_state import MODE_DISARMED, MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
+from hal.errors import HalDriveError
+
+CW_FAULT_RESET_BIT = 0x80
+TOWARD_ENABLED = {
+    "SWITCH ON DISABLED": "READY TO SWITCH ON",
+    "READY TO SWITCH ON": "SWITCHED ON",
+    "SWITCHED ON": "OPERATION ENABLED",
+    "OPERATION ENABLED": "OPERATION ENABLED",
+    "QUICK STOP ACTIVE": "OPERATION ENABLED",
+    "FAULT": "SWITCH ON DISABLED",
+}
+"""The next power state on the way to *operation enabled* (CiA 402 transitions 2, 3, 4, 16,
+15); the controlword of each step is canopen's ``State402.TRANSITIONTABLE``."""
+FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
+NOTIFIER_CYCLE_S = 0.1
+"""canopen's receive thread looks at its stop request this often (its default, 1 s, would
+make every close take that long)."""
+TIMING_KEPT = 100_000
+"""SYNC intervals and SYNC-to-TPDO latencies kept for the run's statistics."""
+
+
+def controlword_toward(target: str, statusword: int, last: int) -> int:
+    """The controlword for the next SYNC, one CiA 402 transition toward ``target``:
+    ``OPERATION ENABLED`` (the arming walk; a FAULT is reset by a rising edge of bit 7, so one
+    answered with bit 7 already set gets it cleared first) or ``READY TO SWITCH ON`` (disarm:
+    *shutdown*)."""
+    if target != "OPERATION ENABLED":
+        return State402.CW_SHUTDOWN
+    state = state_of(statusword)
+    if state == "FAULT" and last & CW_FAULT_RESET_BIT:
+        return State402.CW_DISABLE_VOLTAGE
+    nxt = TOWARD_ENABLED.get(state)
+    if nxt is None:  # not ready, fault reaction active: nothing to ask yet
+        return State402.CW_DISABLE_VOLTAGE
+    if nxt == state:
+        return State402.CW_OPERATION_ENABLED
+    return State402.TRANSITIONTABLE[(state, nxt)]
+
+
+@dataclass(frozen=True)
+class JointState:
+    """The joints as the newest complete set of TPDOs reported them (SI units)."""
+
+    q: tuple[float, ...]
+    dq: tuple[float, ...]
+    tau: tuple[float, ...]
+    """Torque actual 0x6077, N·m at the joint."""
+    states: tuple[str, ...]
+    """Each drive's power state."""
+    sync: int
+    """The SYNC these TPDOs answered."""
+    sync_ns: int
+    """When that SYNC was sent (the drives sample at the SYNC)."""
+
+
+class Cia402Master:
+    """The drives of one rig on one bus (see the module docstring)."""
+
+    def __init__(
+        self,
+        bus: Any,
+        node_ids: Sequence[int],
+        dictionary: Callable[[int], Any],
+        settings: boot.BootSettings,
+        torque_limits_nm: Sequence[float],
+        *,
+        now_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        """``dictionary(node_id)``: the node's object dictionary (an EDS path or a
+        :class:`canopen.ObjectDictionary`); ``torque_limits_nm``: 0x6072 per joint."""
+        if len(torque_limits_nm) != len(node_ids):
+            raise HalDriveError(f"{len(node_ids)} node ids but {len(torque_limits_nm)} limits")
+        self.settings = settings
+        self.torque_limits_nm = tuple(float(t) for t in torque_limits_nm)
+        self.now_ns = now_ns
+        self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+        self.cond = threading.Condition()
+        self.faults = FaultLog()
+        self.sync_count = 0
+        self.sync_ns: dict[int, int] = {}
+        self.nodes: list[BaseNode402] = []
+        self.watches: list[NodeWatch] = []
+        for node_id in node_ids:
+            node = BaseNode402(int(node_id), dictionary(int(node_id)))
+            self.network.add_node(node)
+            self.nodes.append(node)
+            self.watches.append(
+                NodeWatch(node, self.faults, self.cond, now_ns, lambda: self.sync_count)
+            )
+        self.heartbeat = canopen.LocalNode(settings.master_id, heartbeat_dictionary())
+        self.network.add_node(self.heartbeat)
+        self.units: list[DriveUnits] = []
+        self.limits: list[int] = []
+        self.controlwords = [State402.CW_DISABLE_VOLTAGE] * len(self.nodes)
+        self.sync_intervals_us: deque[float] = deque(maxlen=TIMING_KEPT)
+        self.tpdo_latency_us: deque[float] = deque(maxlen=TIMING_KEPT)
+        self._timed_sync = 0
+        self.connected = self.operational = False
+
+    # --- boot --------------------------------------------------------------------------------
+    def boot(self, stop: Any | None = None) -> None:
+        """Reset, configure and map every drive, CST with 0x6061 read back, NMT start, and the
+        controller's heartbeat on (see :mod:`hal.cia402_master.boot`)."""
+        if not self.connected:
+            self.network.connect()
+            self.connected = True
+        s = self.settings
+        booted = {w.node.id: w.booted for w in self.watches}
+        boot.reset_communication(self.nodes, booted, s.boot_timeout_s, stop)
+        self.units, self.limits = [], []
+        joints = zip(self.nodes, self.watches, self.torque_limits_nm, strict=True)
+        for node, watch, limit_nm in joints:
+            units, limit = boot.configure(node, s, limit_nm)
+            self.units.append(units)
+            self.limits.append(limit)
+            watch.heartbeat_limit_ns = HEARTBEAT_LOSS_PERIODS * s.heartbeat_ms * 1_000_000
+            boot.map_pdos(node)
+            watch.watch_tpdos()
+            boot.enter_cst(node)
+        self.heartbeat.nmt.state = "OPERATIONAL"
+        self.heartbeat.nmt.start_heartbeat(s.heartbeat_ms)
+        for node, watch in zip(self.nodes, self.watches, strict=True):
+            node.nmt.state = "OPERATIONAL"
+            watch.started = True
+        self.operational = True
+
+    # --- per period ----------------------------------------------------------------------------
+    def sync(self) -> int:
+        """Send SYNC (canopen's producer, once); its count (1, 2, ...)."""
+        now = self.now_ns()
+        with self.cond:
+            prev = self.sync_ns.get(self.sync_count)
+            self.sync_count += 1
+            k = self.sync_count
+            self.sync_ns[k] = now
+            self.sync_ns.pop(k - 8, None)
+        if prev is not None:
+            self.sync_intervals_us.append((now - prev) / 1e3)
+        self.network.sync.transmit()
+        return k
+
+    def _complete(self, k: int) -> bool:
+        return all(w.sample.sync.get(1) == w.sample.sync.get(2) == k for w in self.watches)
+
+    def wait_tpdos(self, k: int, timeout_s: float) -> bool:
+        """Block until every drive's TPDO1 and TPDO2 answered SYNC ``k``; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self.cond:
+            while not self._complete(k):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.cond.wait(left)
+        return True
+
+    def send(self, torques_nm: Sequence[float] | None = None) -> None:
+        """Each drive's RPDO1: its controlword and target torque (zero when ``torques_nm``
+        is None), encoded by canopen, latched by the drive at the next SYNC."""
+        for i, node in enumerate(self.nodes):
+            pdo = node.rpdo[1]
+            tau = 0.0 if torques_nm is None or not self.units else float(torques_nm[i])
+            pdo[CONTROLWORD].raw = self.controlwords[i]
+            pdo[TARGET_TORQUE].raw = self.units[i].per_mille(tau, self.limits[i]) if tau else 0
+            pdo.transmit()
+
+    def steer(self, target: str) -> bool:
+        """Set each drive's next controlword one transition toward ``target`` (``OPERATION
+        ENABLED`` or ``READY TO SWITCH ON``) from its last statusword; True once all are
+        there. Send them with :meth:`send`."""
+        there = True
+        with self.cond:
+            words = [w.sample.statusword for w in self.watches]
+            seen = [bool(w.sample.sync) for w in self.watches]
+        for i, (word, have) in enumerate(zip(words, seen, strict=True)):
+            if not have or state_of(word) != target:
+                there = False
+            if have:
+                self.controlwords[i] = controlword_toward(target, word, self.controlwords[i])
+        return there
+
+    def joint_state(self) -> JointState | None:
+        """The newest complete TPDO set (every drive answered the same SYNC), None before
+        the first; records that SYNC's TPDO latency once."""
+        with self.cond:
+            samples = [w.sample for w in self.watches]
+            ks = {k for s in samples for k in s.sync.values()}
+            if len(ks) != 1 or any(len(s.sync) != 2 for s in samples):
+                return None
+            (k,) = ks
+            sync_ns = self.sync_ns.get(k)
+            last_ns = max(t for s in samples for t in s.t_ns.values())
+            raw = [(s.statusword, s.position, s.velocity, s.torque) for s in samples]
+        if sync_ns is None:
+            return None
+        if k != self._timed_sync:
+            self._timed_sync = k
+            self.tpdo_latency_us.append((last_ns - sync_ns) / 1e3)
+        u = self.units
+        return JointState(
+            q=tuple(u[i].position_rad(r[1]) for i, r in enumerate(raw)),
+            dq=tuple(u[i].velocity_rad_s(r[2]) for i, r in enumerate(raw)),
+            tau=tuple(u[i].torque_nm(r[3]) for i, r in enumerate(raw)),
+            states=tuple(state_of(r[0]) for r in raw),
+            sync=k,
+            sync_ns=sync_ns,
+        )
+
+    def mode(self, now_ns: int) -> str:
+        """The rig's drive mode (:data:`hal.drive_state.MODES`): ``fault`` when a drive is in
+        FAULT or its heartbeat is lost, ``enabled`` when every drive is in *operation
+        enabled*, ``no_status`` before every drive answered a SYNC, else ``disarmed``."""
+        lost = [w.check_heartbeat(now_ns) for w in self.watches]
+        with self.cond:
+            samples = [(bool(w.sample.sync), state_of(w.sample.statusword)) for w in self.watches]
+        if any(lost) or any(have and st in FAULT_STATES for have, st in samples):
+            return MODE_FAULT
+        if not all(have for have, _ in samples):
+            return MODE_NO_STATUS
+        if all(st == "OPERATION ENABLED" for _, st in samples):
+            return MODE_ENABLED
+        return MODE_DISARMED
+
+    # --- the end -------------------------------------------------------------------------------
+    def deactivate(self, timeout_s: float) -> list[tuple[str, tuple[str, ...]]]:
+        """Quick stop, then disable operation (a drive still in *operation enabled*:
+        transition 5; one in *quick stop active*: disable voltage, transition 12), each
+        latched by a SYNC, then NMT pre-operational (the drives stop watching SYNC), then the
+        drives stop consuming the controller's heartbeat (0x1016.1 = 0) and it stops. Returns
+        each step with the power states the drives answered (``none`` when silent). Safe to
+        call twice or before :meth:`boot`."""
+        if not self.operational:
+            self.heartbeat.nmt.stop_heartbeat()
+            return []
+        self.operational = False
+        steps: list[tuple[str, tuple[str, ...]]] = []
+        n = len(self.nodes)
+        self.controlwords = [State402.CW_QUICK_STOP] * n
+        steps.append(("quick stop", self._latch(timeout_s)))
+        self.controlwords = [
+            State402.CW_SWITCH_ON if st == "OPERATION ENABLED" else State402.CW_DISABLE_VOLTAGE
+            for st in steps[-1][1]
+        ]
+        steps.append(("disable operation", self._latch(timeout_s)))
+        for node in self.nodes:
+            node.nmt.state = "PRE-OPERATIONAL"
+        steps.append(
+            ("pre-operational", tuple(self._next_heartbeat(n, timeout_s) for n in self.nodes))
+        )
+        for node, watch in zip(self.nodes, self.watches, strict=True):
+            watch.started = False
+            try:
+                boot.sdo_write(node, HEARTBEAT_CONSUMER, 1, 0)
+            except HalDriveError as exc:
+                steps.append((f"node {node.id} kept its heartbeat consumer: {exc}", ()))
+        self.heartbeat.nmt.stop_heartbeat()
+        return steps
+
+    @staticmethod
+    def _next_heartbeat(node: BaseNode402, timeout_s: float) -> str:
+        """The NMT state of the node's next heartbeat (``none`` when it stays silent)."""
+        try:
+            return node.nmt.wait_for_heartbeat(timeout_s)
+        except NmtError:
+            return "none"
+
+    def _latch(self, timeout_s: float) -> tuple[str, ...]:
+        """Send the controlwords with zero torque, SYNC, and the states that answered."""
+        self.send(None)
+        k = self.sync()
+        self.wait_tpdos(k, timeout_s)
+        with self.cond:
+            return tuple(
+                state_of(w.sample.statusword) if w.sample.sync.get(1) == k else "none"
+                for w in self.watches
+            )
+
+    def close(self) -> None:
+        """Stop the heartbeat and the receive thread and shut the bus down."""
+        self.heartbeat.nmt.stop_heartbeat()
+        if self.connected:
+            self.connected = False
+            self.network.disconnect()
+
+    def diagnostics(self) -> dict[str, Any]:
+        """Per drive: NMT and power state, statusword, units and torque limit; the faults."""
+        drives = {}
+        with self.cond:
+            words = [w.sample.statusword for w in self.watches]
+        for i, (node, watch) in enumerate(zip(self.nodes, self.watches, strict=True)):
+            units = self.units[i] if i < len(self.units) else None
+            drives[str(node.id)] = {
+                "nmt": watch.nmt_label,
+                "state": state_of(words[i]).lower(),
+                "statusword": f"0x{words[i]:04X}",
+                "heartbeat_lost": watch.lost,
+                "increments_per_rad": units.increments_per_rad if units else None,
+                "rated_torque_nm": units.joint_rated_torque_nm if units else None,
+                "torque_limit_per_mille": self.limits[i] if i < len(self.limits) else None,
+            }
+        return {"drives": drives, "syncs": self.sync_count, **self.faults.as_dict()}
+
+
+__all__ = ["Cia402Master", "JointState", "controlword_toward"]
