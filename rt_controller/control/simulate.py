@@ -111,6 +111,7 @@ def run_closed_loop(
     compensates them (the daemon's ``controller.predict_state`` and ``predict_features``);
     false hides them.
     """
+    controller.warm_up()  # what the daemon and ``hil replay`` do before their first tick
     rate = cfg.rates.control_hz
     substeps = cfg.rates.substeps
     ticks = math.floor(duration * rate + 1e-9)

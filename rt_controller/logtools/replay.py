@@ -260,13 +260,6 @@ def _gap_note(log: LoadedLog) -> str | None:
     )
 
 
-def _warm_up(controller: Controller, cfg: RigConfig) -> None:
-    """What the daemon does before its first tick (see ``control.controller.warm_up``)."""
-    sc = cfg.scenario
-    controller.step(0.0, np.array(sc.q0), np.array(sc.dq0), np.array(sc.f0))
-    controller.law.reset()
-
-
 def _cycle_record(log: LoadedLog, i: int) -> dict[str, Any]:
     """Tick ``i`` of the log as a cycle dict (NaN stays NaN; the recorder writes null)."""
     rec: dict[str, Any] = {}
@@ -394,7 +387,7 @@ def replay_loaded(
     if gap:
         notes.append(gap)
     ctl = Controller(cfg)
-    _warm_up(ctl, cfg)
+    ctl.warm_up()  # as the daemon does before its first tick
     changes = _ParameterChanges(log, cfg)
     recorded_law = log.column("law")
     u = np.zeros((n, 2))

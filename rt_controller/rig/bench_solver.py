@@ -6,7 +6,8 @@ ignored); the scenario restarts every :data:`EPISODE_S` seconds with a cold solv
 updates cover the transient and not only the rest state. Each update is timed with
 ``time.perf_counter_ns`` around :meth:`CGMRESSolver.update` (what the law reports as
 ``solve_ns``); the first tick of an episode is the Newton-GMRES initial solve and is reported
-apart (``init_us``). The plain-NumPy reference runs the same loop for fewer updates.
+apart (``init_us``). What compiling buys (the plain-NumPy reference solver, a test oracle, on
+the same loop) is a test-side benchmark: ``python -m tests.support.bench_reference``.
 
 ``profile`` splits a continuation tick into its parts: F evaluations per tick (each one forward and
 one backward sweep), the time of one evaluation (``sweep_us``, compiled loop), hence the time in
@@ -48,7 +49,6 @@ from rt_controller.control.rhc.kernel import (
     rhc_tick,
     sweep_probe,
 )
-from rt_controller.control.rhc.reference import ReferenceSolver
 from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
 from rt_controller.rig.bench_decide import bench_decide
 from rt_controller.sample_stats import summary_stats
@@ -94,7 +94,7 @@ def _stats(us: np.ndarray) -> dict[str, float]:
     return summary_stats(us)
 
 
-def _run(solver, model, cfg, plant_step, updates: int) -> dict[str, Any]:
+def run_updates(solver, model, cfg, plant_step, updates: int) -> dict[str, Any]:
     """Closed loop of ``updates`` ticks; per-tick time (ns), residual, iterations, F evaluations,
     flags, and (compiled solver) ``snapshots``: (state vector before the tick, x, t) of up to
     :data:`PROFILE_TICKS` continuation ticks for :func:`_profile`."""
@@ -235,7 +235,7 @@ def _paced(solver: CGMRESSolver, run: dict[str, Any], period_s: float) -> dict[s
     return {"period_s": period_s, "ticks": len(snaps), "solve_us": _stats(ns / 1e3)}
 
 
-def _summary(cfg: RigConfig, run: dict[str, Any]) -> dict[str, Any]:
+def summary(cfg: RigConfig, run: dict[str, Any]) -> dict[str, Any]:
     cont = ~run["init"]
     us = run["ns"] / 1e3
     return {
@@ -258,31 +258,22 @@ def bench_one(
     updates: int = 2000,
     *,
     plant_step: PlantStep | None = None,
-    reference_updates: int = 100,
     paced: bool = False,
 ) -> dict[str, Any]:
-    """Compiled solver and NumPy reference for the configuration as given; with ``paced``, the
+    """The compiled solver for the configuration as given; with ``paced``, the
     update at the control rate too (``paced``, see module)."""
     model = NominalModel.from_config(cfg)
     step = plant_step if plant_step is not None else nominal_plant_step(model, cfg)
     solver = CGMRESSolver(model, cfg)
     solver.warm_up()
-    run = _run(solver, model, cfg, step, updates)
-    out = _summary(cfg, run)
+    run = run_updates(solver, model, cfg, step, updates)
+    out = summary(cfg, run)
     out["profile"] = _profile(solver, run)
     if paced:
         out["paced"] = _paced(solver, run, 1.0 / cfg.rates.control_hz)
         out["decide"] = {
             law: bench_decide(cfg.with_overrides({"controller.law": law}), updates, step, EPISODE_S)
             for law in ("rhc", "ioc")
-        }
-    if reference_updates > 0:
-        ref = _summary(cfg, _run(ReferenceSolver(model, cfg), model, cfg, step, reference_updates))
-        median = ref["solve_us"]["median"]
-        out["numpy_reference"] = {
-            "updates": ref["updates"],
-            "solve_us": {"median": median, "p99": ref["solve_us"]["p99"]},
-            "ratio": median / out["solve_us"]["median"],
         }
     return out
 
@@ -292,23 +283,18 @@ def bench_solver(
     updates: int = 2000,
     *,
     plant_step: PlantStep | None = None,
-    reference_updates: int = 100,
     sweep: tuple[int, ...] = SWEEP_STEPS,
 ) -> dict[str, Any]:
     """JSON-ready benchmark: the configured N and kmax, then a sweep over N (same kmax, T).
 
-    ``plant_step`` replaces the default nominal-model plant (e.g. with the emulator);
-    ``reference_updates`` is how many updates the (slow) NumPy reference runs per N (0: skip).
+    ``plant_step`` replaces the default nominal-model plant (e.g. with the emulator).
     """
-    out = bench_one(
-        cfg, updates, plant_step=plant_step, reference_updates=reference_updates, paced=True
-    )
+    out = bench_one(cfg, updates, plant_step=plant_step, paced=True)
     out["sweep"] = [
         bench_one(
             cfg.with_overrides({"rhc.steps": n}),
             updates,
             plant_step=plant_step,
-            reference_updates=reference_updates,
         )
         for n in sweep
     ]

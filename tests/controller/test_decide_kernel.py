@@ -1,5 +1,5 @@
 """The compiled per-tick rule (``control/decide_kernel.py``) decides what the rule spelt out in
-Python on the law objects decides (``Controller.step``, the readable reference), on every
+Python on the law objects decides (``tests/support/python_rule.py``, the oracle), on every
 branch: the law for pbc, ioc and rhc, the hold, no state, a drive not enabled, the delay
 compensation, C/GMRES's fallback, a law switch; and its outputs are what the record needs."""
 
@@ -9,18 +9,13 @@ import numpy as np
 import pytest
 
 from hal.config import RigConfig
-from rt_controller.control.controller import Controller, Decision, warm_up
-from rt_controller.control.law_table import make_law
+from rt_controller.control.controller import Controller, Decision
+from tests.support.python_rule import PythonRule
 
 SAME = 1e-12
 """Both paths call the same compiled kernels in the same order on one machine: measured equal
 to the last bit (0.0) here; the bound only leaves room for NumPy's own 2x2 products in the
 Python path's closed-form laws and hold, which another BLAS may round differently."""
-
-
-def python_rule(cfg: RigConfig, law: str) -> Controller:
-    """The same rule on the law object (a law given as an object runs the Python path)."""
-    return Controller(cfg, make_law(law, Controller(cfg, "pbc").model, cfg))
 
 
 def scenario(cfg: RigConfig, ticks: int, seed: int = 1):
@@ -72,10 +67,9 @@ def diff(a: Decision, b: Decision) -> float:
 @pytest.mark.parametrize("law", ["pbc", "ioc", "rhc"])
 def test_the_compiled_rule_decides_what_the_python_rule_decides(law: str):
     cfg = RigConfig()
-    compiled, python = Controller(cfg, law), python_rule(cfg, law)
-    assert compiled.rule is not None and python.rule is None
-    warm_up(compiled, cfg)
-    warm_up(python, cfg)
+    compiled, python = Controller(cfg, law), PythonRule(cfg, law)
+    compiled.warm_up()
+    python.warm_up()
     modes = set()
     worst = 0.0
     for t, q, dq, f, kw in scenario(cfg, 300):
@@ -91,15 +85,15 @@ def test_a_fallback_and_a_law_switch_match_too():
     """A residual bound no solve meets: every rhc tick falls back to eq. (27), clipped; then a
     switch to ioc and back to rhc, at the same ticks on both paths."""
     cfg = RigConfig().with_overrides({"controller.law": "rhc", "rhc.residual_bound": 1e-300})
-    compiled, python = Controller(cfg), python_rule(cfg, "rhc")
+    compiled, python = Controller(cfg), PythonRule(cfg, "rhc")
     ioc = cfg.with_overrides({"controller.law": "ioc"})
     fallbacks = 0
     for k, (t, q, dq, f, kw) in enumerate(scenario(cfg, 120, seed=2)):
         if k in (40, 80):
             new = ioc if k == 40 else cfg
             compiled.reconfigure(new)
-            python.reconfigure(new)  # a new law object: still the Python path
-            assert python.rule is None and python.law.name == new.controller.law
+            python.reconfigure(new)  # a new law object
+            assert python.law.name == new.controller.law
         a, b = compiled.decide(t, q, dq, f, **kw), python.decide(t, q, dq, f, **kw)
         assert diff(a, b) <= SAME
         if a.command is not None and a.command.law.fallback:

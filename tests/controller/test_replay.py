@@ -89,8 +89,7 @@ def record_run(path: Path, cfg: RigConfig, ticks: int = TICKS, *, lockstep: bool
     """A daemon-shaped log of a closed-loop run on the in-process plant (no transports)."""
     world, ctl = World(cfg), Controller(cfg)
     sc = cfg.scenario
-    ctl.step(0.0, np.array(sc.q0), np.array(sc.dq0), np.array(sc.f0))  # the daemon's warm-up
-    ctl.law.reset()
+    ctl.warm_up()  # the daemon's warm-up
     dsp, own = DspCodec(), ControllerCodec()
     period = cfg.rates.control_period_ns
     last_f = np.full(2, np.nan)
@@ -189,10 +188,7 @@ def test_a_realtime_log_with_predicted_states_replays_exactly(tmp_path):
     result = replay_log(path)
     assert result.ok and result.max_abs_du <= 1e-9 and result.max_abs_dtau <= 1e-9
     blind = Controller(cfg)
-    blind.step(
-        0.0, np.array(cfg.scenario.q0), np.array(cfg.scenario.dq0), np.array(cfg.scenario.f0)
-    )
-    blind.law.reset()
+    blind.warm_up()
     c = log.cycles
     taus = [
         blind.decide(

@@ -11,7 +11,7 @@ from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import Measurement
 from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw, kernel
-from rt_controller.control.rhc.reference import ReferenceSolver
+from tests.support.rhc_reference import ReferenceSolver
 from rt_controller.control.rhc.solver import pack_state
 
 FROZEN = np.zeros(6)

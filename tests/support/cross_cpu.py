@@ -12,7 +12,8 @@ J before the target jump and of the final f, around the generic build the golden
 
 A build is an environment: ``NUMBA_CPU_NAME`` (``NUMBA_CPU_FEATURES=""`` makes LLVM take the
 named CPU's own features; unset, numba would keep the host's), glibc's and NumPy's CPU dispatch
-turned down, or the NumPy reference solver (``rhc/reference.py``) in place of the compiled one.
+turned down, or the Python rule on the NumPy reference solver (``tests/support/rhc_reference.py``)
+in place of the compiled one.
 Builds for CPUs the host cannot execute are skipped (``/proc/cpuinfo`` flags). Two rounding-level
 nudges (q0 moved by one ulp) and deliberate parameter changes are run natively for comparison:
 a tolerance must cover the first and catch the second.
@@ -111,9 +112,11 @@ def run_one(out: Path, args: list[str]) -> dict:
     from hal.config import load_config
     from plant_emulator.world import World
     from rt_controller.control.controller import Controller
+    from rt_controller.control.model import NominalModel
     from rt_controller.control.rhc.law import RecedingHorizonLaw
-    from rt_controller.control.rhc.reference import ReferenceSolver
     from rt_controller.control.simulate import run_closed_loop
+    from tests.support.python_rule import PythonRule
+    from tests.support.rhc_reference import ReferenceSolver
 
     perturb: dict = {}
     if "--perturb" in args:
@@ -126,9 +129,10 @@ def run_one(out: Path, args: list[str]) -> dict:
     runs = {}
     for name, (law, duration, overrides) in RUNS.items():
         cfg = load_config().with_overrides({**overrides, **perturb})
-        c = Controller(cfg, "ioc" if law == "rhc" and "--reference" in args else law)
-        if law == "rhc" and "--reference" in args:
-            c.law = RecedingHorizonLaw(c.model, cfg, solver=ReferenceSolver(c.model, cfg))
+        c: Controller | PythonRule = Controller(cfg, law)
+        if law == "rhc" and "--reference" in args:  # the Python rule on the NumPy solver
+            model = NominalModel.from_config(cfg)
+            c = PythonRule(cfg, RecedingHorizonLaw(model, cfg, solver=ReferenceSolver(model, cfg)))
         r = run_closed_loop(World(cfg), c, cfg, duration)
         runs[name] = {
             "J": r.J,

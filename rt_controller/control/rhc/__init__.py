@@ -1,7 +1,7 @@
 """Receding-horizon control (eq. 30) solved on-line by C/GMRES (Ohtsuka 2004).
 
-:class:`RecedingHorizonLaw` is the control law; :class:`CGMRESSolver` the compiled solver and
-:class:`~rt_controller.control.rhc.reference.ReferenceSolver` its plain-NumPy twin.
+:class:`RecedingHorizonLaw` is the control law, :class:`CGMRESSolver` the compiled solver (its
+plain-NumPy twin is a test oracle, ``tests/support/rhc_reference.py``).
 """
 
 from rt_controller.control.rhc.law import RecedingHorizonLaw
