@@ -26,13 +26,12 @@ from canopen.profiles.p402 import BaseNode402, State402
 from hal.cia402_master import boot
 from hal.cia402_master.units import DriveUnits
 from hal.cia402_master.watch import (
-    HEARTBEAT_LOSS_PERIODS,
     FaultLog,
     NodeWatch,
     heartbeat_dictionary,
     state_of,
 )
-from hal.cia402_od import CONTROLWORD, HEARTBEAT_CONSUMER, TARGET_TORQUE
+from hal.cia402_od import CONTROLWORD, EDS_PATH, HEARTBEAT_CONSUMER, TARGET_TORQUE
 from hal.drive_state import MODE_DISARMED, MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
 from hal.errors import HalDriveError
 
@@ -51,6 +50,13 @@ FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
 NOTIFIER_CYCLE_S = 0.1
 """canopen's receive thread looks at its stop request this often (its default, 1 s, would
 make every close take that long)."""
+HEARTBEAT_MS = 50
+"""Producer heartbeat time of the drives and of the controller (CiA 301 0x1017)."""
+CONSUMER_PERIODS = 3
+"""A heartbeat is lost after this many producer periods (the drives' 0x1016 time, the
+controller's check)."""
+CONTROLLER_NODE_ID = 0x7F
+"""The controller's own node id (its heartbeat's COB-ID is 0x700 + it)."""
 TIMING_KEPT = 100_000
 """SYNC intervals and SYNC-to-TPDO latencies kept for the run's statistics."""
 
@@ -134,6 +140,22 @@ class Cia402Master:
         self._timed_sync = 0
         self.connected = self.operational = False
 
+    @classmethod
+    def from_config(
+        cls, cfg: Any, bus: Any, *, now_ns: Callable[[], int] = time.monotonic_ns
+    ) -> Cia402Master:
+        """The master of ``cfg`` (a :class:`hal.config.RigConfig`): the drives of
+        ``[cia402]`` described by the shipped EDS, 0x6072 from ``robot.tau_max``, 0x60C2 and
+        the SYNC period from ``rates.control_hz``."""
+        settings = boot.BootSettings(
+            master_id=CONTROLLER_NODE_ID,
+            heartbeat_ms=HEARTBEAT_MS,
+            consumer_ms=CONSUMER_PERIODS * HEARTBEAT_MS,
+            period_s=1.0 / cfg.rates.control_hz,
+        )
+        ids = (cfg.cia402.node_id_1, cfg.cia402.node_id_2)
+        return cls(bus, ids, lambda _id: str(EDS_PATH), settings, cfg.robot.tau_max, now_ns=now_ns)
+
     # --- boot --------------------------------------------------------------------------------
     def boot(self, stop: Any | None = None) -> None:
         """Reset, configure and map every drive, CST with 0x6061 read back, NMT start, and the
@@ -150,7 +172,7 @@ class Cia402Master:
             units, limit = boot.configure(node, s, limit_nm)
             self.units.append(units)
             self.limits.append(limit)
-            watch.heartbeat_limit_ns = HEARTBEAT_LOSS_PERIODS * s.heartbeat_ms * 1_000_000
+            watch.heartbeat_limit_ns = CONSUMER_PERIODS * s.heartbeat_ms * 1_000_000
             boot.map_pdos(node)
             watch.watch_tpdos()
             boot.enter_cst(node)

@@ -24,8 +24,6 @@ from hal.cia402_od import (
 
 EVENTS_KEPT = 64
 """Fault events kept for ``/diagnostics`` and the summary (all are counted)."""
-HEARTBEAT_LOSS_PERIODS = 3
-"""A drive whose heartbeat is older than this many producer periods is lost."""
 
 
 def state_of(statusword: int) -> str:
@@ -183,7 +181,6 @@ def heartbeat_dictionary() -> canopen.ObjectDictionary:
 
 __all__ = [
     "EVENTS_KEPT",
-    "HEARTBEAT_LOSS_PERIODS",
     "FaultEvent",
     "FaultLog",
     "NodeWatch",
