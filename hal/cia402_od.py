@@ -90,8 +90,9 @@ class DriveParameters:
     """0x6072: torque limit, per mille of the rated torque."""
     encoder_increments: int = 1_048_576
     """0x608F.1: increments per motor revolution (20-bit encoder)."""
-    interpolation_ms: int = 20
-    """0x60C2: interpolation time period, ms (the control period)."""
+    interpolation: tuple[int, int] = (20, -3)
+    """0x60C2: interpolation time period as (value, index): value * 10**index s (the control
+    period; :func:`interpolation_time` writes one)."""
 
 
 def pdo_entry(index: int, subindex: int, bits: int) -> int:
@@ -227,8 +228,8 @@ def _objects(node_id: int | None, p: DriveParameters) -> list:
             INTERPOLATION_PERIOD,
             "Interpolation time period",
             [
-                ("Interpolation time period value", _U8, "rw", p.interpolation_ms),
-                ("Interpolation time index", _I8, "rw", -3),
+                ("Interpolation time period value", _U8, "rw", p.interpolation[0]),
+                ("Interpolation time index", _I8, "rw", p.interpolation[1]),
             ],
         ),
         _var(SUPPORTED_MODES, 0, "Supported drive modes", _U32, "ro", CST_SUPPORTED_BIT),
@@ -280,6 +281,23 @@ def write_eds(path: Path = EDS_PATH) -> bool:
         return False
     path.write_text(text)
     return True
+
+
+def interpolation_time(period_s: float) -> tuple[int, int]:
+    """0x60C2 (value UNSIGNED8, index INTEGER8) closest to ``period_s``: the finest index whose
+    value still fits 1..255 (20 ms -> (200, -4); 1 ms -> (100, -5))."""
+    if not 0 < period_s <= 255:
+        raise ValueError(f"interpolation period {period_s!r} s is outside 0..255 s")
+    for index in range(-6, 3):
+        value = round(period_s / 10.0**index)
+        if 1 <= value <= 255:
+            return value, index
+    raise ValueError(f"interpolation period {period_s!r} s cannot be written to 0x60C2")
+
+
+def interpolation_seconds(value: int, index: int) -> float:
+    """The period of a 0x60C2 (value, index) pair, s."""
+    return value * 10.0**index
 
 
 def increments_per_rad(

@@ -12,6 +12,7 @@ The package's modules, by concern: the sections of the plant (``plant.py``), of 
 public API.
 """
 
+from hal.config.cia402 import Cia402Config
 from hal.config.control import LAW_NAMES, ControllerConfig, GainsConfig, RhcConfig
 from hal.config.devices import DspConfig, TransportConfig, VisionConfig
 from hal.config.experiment import RatesConfig, ScenarioConfig
@@ -30,6 +31,7 @@ __all__ = [
     "LAW_NAMES",
     "RETIRED_KEYS",
     "CameraConfig",
+    "Cia402Config",
     "ControllerConfig",
     "DspConfig",
     "GainsConfig",

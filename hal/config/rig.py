@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hal.config.cia402 import Cia402Config
 from hal.config.control import ControllerConfig, GainsConfig, RhcConfig
 from hal.config.devices import DspConfig, TransportConfig, VisionConfig
 from hal.config.experiment import RatesConfig, ScenarioConfig
@@ -37,6 +38,7 @@ class RigConfig:
     transport: TransportConfig = field(default_factory=TransportConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)
     vision: VisionConfig = field(default_factory=VisionConfig)
+    cia402: Cia402Config = field(default_factory=Cia402Config)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (lists for tuples), the inverse of :func:`config_from_dict`."""

@@ -142,7 +142,20 @@ def validate(cfg: RigConfig) -> RigConfig:
             "scenario.q0",
             f"must lie within dsp.q_min {d.q_min} .. dsp.q_max {d.q_max}, got {s.q0}",
         )
+    _check_cia402(cfg)
     return cfg
+
+
+def _check_cia402(cfg: RigConfig) -> None:
+    c = cfg.cia402
+    _require(c.node_id_1 != c.node_id_2, "cia402.node_id_2", "must differ from node_id_1")
+    for j, rated in enumerate(c.rated_torque):
+        _require(
+            cfg.robot.tau_max[j] / rated * 1000 <= 32767,
+            "cia402.rated_torque",
+            f"{rated!r} Nm on joint {j + 1}: robot.tau_max {cfg.robot.tau_max[j]!r} Nm would be "
+            f"{cfg.robot.tau_max[j] / rated * 1000:.0f} per mille, beyond INT16 (32767)",
+        )
 
 
 def _check_plant(cfg: RigConfig) -> None:

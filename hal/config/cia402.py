@@ -1,0 +1,33 @@
+"""The ``[cia402]`` section: the CANopen CiA 402 drives of the ``cia402`` hardware profile.
+
+Both sides read it: the emulated drives (``hil emulator --profile cia402``) take their node ids
+and object-dictionary values from it, and the controller's master finds the drives by these node
+ids (the units it then reads from the drives themselves, by SDO)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hal.config.values import Vec2
+
+
+@dataclass(frozen=True)
+class Cia402Config:
+    """CiA 402 drives (one per joint) on the CAN bus."""
+
+    node_id_1: int = 1
+    """CANopen node id of joint 1's drive (1..127)."""
+    node_id_2: int = 2
+    """CANopen node id of joint 2's drive (1..127)."""
+    bitrate: int = 1_000_000
+    """CAN bit rate, bit/s (a real bus: set the interface to it, e.g. ``ip link set can0 type
+    can bitrate 1000000``; virtual and udp_multicast buses ignore it)."""
+    rated_torque: Vec2 = (10.0, 1.0)
+    """Emulated drives: motor rated torque per joint, Nm (object 0x6076; the unit of the target
+    and actual torque is its per mille, so INT16 reaches 32.767 times it: keep it above
+    ``robot.tau_max`` / 32.767)."""
+    encoder_increments: int = 1_048_576
+    """Emulated drives: position increments per revolution (object 0x608F; 20 bits)."""
+    sync_loss_periods: float = 2.5
+    """Emulated drives: no SYNC for this many cycle periods (0x1006, else 0x60C2) in NMT
+    OPERATIONAL is a SYNC loss: torque off, FAULT, EMCY 0x8700 (2.5 puts it within 3 periods)."""

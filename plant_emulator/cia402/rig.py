@@ -1,0 +1,143 @@
+"""Two emulated CiA 402 drives on the one physics world, paced by the controller's SYNC.
+
+Lockstep by construction: each SYNC on the bus steps the world by one control period with the
+torques the drives applied since the previous SYNC, then every drive latches its RPDOs (the
+new controlword and target torque), takes its joint's state and sends its TPDOs. So the TPDOs
+after SYNC k carry q(t_k), dq(t_k) and the torque applied over [t_k, t_k+1], and a command
+that reaches a drive between SYNCs acts from the next SYNC on. A monitor thread polls the
+drives' SYNC and heartbeat watchdogs (tests poll with their own clock instead).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from hal.cia402_od import DriveParameters, interpolation_time
+from plant_emulator.cia402.drive import EmulatedDrive
+from plant_emulator.world import World
+
+if TYPE_CHECKING:
+    import canopen
+
+    from hal.config import RigConfig
+
+SYNC_COB_ID = 0x80
+"""The SYNC's COB-ID (0x1005 default)."""
+MONITOR_POLLS_PER_PERIOD = 10
+"""How often per control period the monitor thread checks the watchdogs."""
+
+StepListener = Callable[[int, World], None]
+"""Called after each SYNC's world step with the SYNC count and the world (camera poses)."""
+
+
+def drive_parameters(cfg: RigConfig, joint: int, tau_max_nm: float) -> DriveParameters:
+    """The object-dictionary values of joint ``joint``'s drive from ``[cia402]`` and the rates."""
+    c = cfg.cia402
+    rated_mnm = round(c.rated_torque[joint] * 1000)
+    return DriveParameters(
+        rated_torque_mnm=rated_mnm,
+        max_torque_permille=min(0xFFFF, round(tau_max_nm * 1e6 / rated_mnm)),
+        encoder_increments=c.encoder_increments,
+        interpolation=interpolation_time(1.0 / cfg.rates.control_hz),
+    )
+
+
+class Cia402Rig:
+    """The world and its two drives on ``network`` (a connected :class:`canopen.Network`)."""
+
+    def __init__(
+        self,
+        cfg: RigConfig,
+        network: canopen.Network,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        on_step: StepListener | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.world = World(cfg)
+        self.network = network
+        self.clock = clock
+        self.on_step = on_step
+        self.lock = threading.RLock()
+        self.period_s = 1.0 / cfg.rates.control_hz
+        self.substeps = cfg.rates.substeps
+        tau_max = self.world.cfg.robot.tau_max  # the plant's amplifier limits
+        self.drives: list[EmulatedDrive] = []
+        for joint, node_id in enumerate((cfg.cia402.node_id_1, cfg.cia402.node_id_2)):
+            drive = EmulatedDrive(
+                node_id,
+                joint,
+                params=drive_parameters(cfg, joint, tau_max[joint]),
+                period_s=self.period_s,
+                tau_max_nm=tau_max[joint],
+                sync_loss_periods=cfg.cia402.sync_loss_periods,
+                clock=clock,
+                lock=self.lock,
+            )
+            drive.q, drive.dq = float(self.world.q[joint]), float(self.world.dq[joint])
+            network.add_node(drive)
+            self.drives.append(drive)
+        self.syncs = 0
+        """SYNCs received (= control periods the world stepped)."""
+        self._stop = threading.Event()
+        self._monitor: threading.Thread | None = None
+        network.subscribe(SYNC_COB_ID, self._on_sync)
+
+    def start(self, *, monitor: bool = True) -> None:
+        """Boot the drives (boot-up messages, PRE-OPERATIONAL) and start the monitor thread.
+        The physics kernels are loaded first, on a throw-away world, so the first SYNC is not
+        late by the JIT time (which would trip the SYNC watchdog)."""
+        World(self.cfg).hold(np.zeros(2), 1)
+        for drive in self.drives:
+            drive.boot()
+        if monitor:
+            self._monitor = threading.Thread(target=self._watch, name="cia402-monitor", daemon=True)
+            self._monitor.start()
+
+    def _watch(self) -> None:
+        interval = self.period_s / MONITOR_POLLS_PER_PERIOD
+        while not self._stop.wait(interval):
+            self.poll()
+
+    def poll(self, now: float | None = None) -> None:
+        """Check every drive's SYNC and heartbeat watchdogs at ``now`` (default: the clock)."""
+        now = self.clock() if now is None else now
+        for drive in self.drives:
+            drive.poll(now)
+
+    def _on_sync(self, _can_id: int, _data: bytearray, _timestamp: float) -> None:
+        with self.lock:
+            now = self.clock()
+            tau = np.array([drive.torque_nm() for drive in self.drives])
+            self.world.hold(tau, self.substeps)
+            self.syncs += 1
+            for drive in self.drives:
+                j = drive.joint
+                drive.on_sync(self.syncs, now, float(self.world.q[j]), float(self.world.dq[j]))
+        if self.on_step is not None:
+            self.on_step(self.syncs, self.world)
+
+    def torques(self) -> tuple[float, float]:
+        """The torques the drives apply now, Nm."""
+        with self.lock:
+            return tuple(drive.torque_nm() for drive in self.drives)  # type: ignore[return-value]
+
+    def close(self) -> None:
+        """Stop the monitor, take the drives off the network (torque off, heartbeats stop)."""
+        self._stop.set()
+        if self._monitor is not None:
+            self._monitor.join()
+            self._monitor = None
+        with self.lock:
+            for drive in self.drives:
+                drive.torque_permille = 0
+        if self._on_sync in self.network.subscribers.get(SYNC_COB_ID, []):
+            self.network.unsubscribe(SYNC_COB_ID, self._on_sync)
+        for drive in self.drives:
+            if self.network.nodes.get(drive.id) is drive:
+                del self.network[drive.id]  # remove_network: heartbeat stops, PDOs unsubscribed
