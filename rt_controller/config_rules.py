@@ -37,6 +37,10 @@ def apply_overrides(
     zeta: float | None = None,
     seed: int | None = None,
     disturbance: bool | None = None,
+    clock: str | None = None,
+    can: str | None = None,
+    zenoh_endpoint: str | None = None,
+    zenoh_config: str | None = None,
 ) -> RigConfig:
     """``cfg`` with the given settings changed (None = keep), validated.
 
@@ -53,6 +57,10 @@ def apply_overrides(
         "rhc.zeta": zeta,
         "camera.seed": seed,
         "scenario.disturbance": disturbance,
+        "controller.clock": clock,
+        "transport.can": can,
+        "transport.zenoh_endpoint": zenoh_endpoint,
+        "transport.zenoh_config": zenoh_config,
     }
     overrides: dict[str, Any] = {k: v for k, v in pairs.items() if v is not None}
     if horizon is not None and steps is None:

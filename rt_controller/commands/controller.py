@@ -87,12 +87,12 @@ def run(args: argparse.Namespace) -> int:
 
     if args.plan:
         return run_plan_command(args)
-    cfg = configure_key(config_from_args(args), args.key_file, "hil controller")
-    if args.clock:
-        cfg = cfg.with_overrides({"controller.clock": args.clock})
+    cfg = configure_key(
+        with_command_line(config_from_args(args), args), args.key_file, "hil controller"
+    )
     if args.log:
         output_file(args.log, "--log")  # before the daemon opens its links
-    opts = daemon_options(args, cfg)
+    opts = daemon_options(args)
     with stop_on_signals() as stop:
         daemon = ControllerDaemon(cfg, opts, stop)
         print(
@@ -105,18 +105,27 @@ def run(args: argparse.Namespace) -> int:
     return verdict(summary, "hil controller")
 
 
-def daemon_options(args: argparse.Namespace, cfg: RigConfig) -> DaemonOptions:
-    """The daemon's wiring from the command line."""
-    from rt_controller.runtime.daemon import DaemonOptions
-    from rt_controller.runtime.pacers import ClockMode
+def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
+    """``cfg`` with the clock and transport options of the command line (config overrides:
+    ``controller.clock``, ``transport.*``)."""
+    from rt_controller.config_rules import apply_overrides
 
-    return DaemonOptions(
+    return apply_overrides(
+        cfg,
+        clock=args.clock,
         can=args.can,
-        mode=ClockMode(cfg.controller.clock),
-        duration_s=args.duration,
-        log_path=Path(args.log) if args.log else None,
         zenoh_endpoint=args.zenoh_endpoint,
         zenoh_config=args.zenoh_config,
+    )
+
+
+def daemon_options(args: argparse.Namespace) -> DaemonOptions:
+    """What the command line asks of the run beyond the configuration."""
+    from rt_controller.runtime.daemon import DaemonOptions
+
+    return DaemonOptions(
+        duration_s=args.duration,
+        log_path=Path(args.log) if args.log else None,
         realtime_settings=not args.no_rt,
         record_raw=not args.no_raw,
         live=not args.no_live,
@@ -140,9 +149,7 @@ def run_plan_command(args: argparse.Namespace) -> int:
     runs = load_plan(args.plan)
 
     def prepare(cfg: RigConfig) -> RigConfig:
-        cfg = configure_key(cfg, args.key_file, "hil controller")
-        if args.clock:
-            cfg = cfg.with_overrides({"controller.clock": args.clock})
+        cfg = configure_key(with_command_line(cfg, args), args.key_file, "hil controller")
         if cfg.controller.clock != "lockstep":
             raise ControllerConfigError(
                 "--plan runs lockstep only (a scenario reset rewinds the emulated arm); "
@@ -152,7 +159,7 @@ def run_plan_command(args: argparse.Namespace) -> int:
 
     cfgs = run_configs(runs, prepare)
     check_started_seed(runs[0], cfgs[0], load_config(args.config))
-    opts = daemon_options(args, cfgs[0])
+    opts = daemon_options(args)
     unclean: list[str] = []
 
     def emit(summary: dict) -> None:

@@ -20,6 +20,12 @@ by (e.g. block on the input sockets until then and decode what arrives)."""
 class Clock(Protocol):
     """Integer nanoseconds and a way to wait for an absolute time."""
 
+    kernel_stamps: bool
+    """The kernel's receive stamps of CAN frames are on this clock (else frames are stamped
+    when read)."""
+    spun_ns: int
+    """Time spent busy-waiting for deadlines so far (the spin window's CPU, reported apart)."""
+
     def now_ns(self) -> int: ...
 
     def sleep_until(self, deadline_ns: int, idle: Idle | None = None) -> None: ...
@@ -27,6 +33,9 @@ class Clock(Protocol):
 
 class MonotonicClock:
     """``time.monotonic_ns`` with ``clock_nanosleep``-style waiting: sleep, then spin the rest."""
+
+    kernel_stamps = True
+    """A socket's receive stamps are wall-clock times the client moves onto this clock."""
 
     def __init__(self, spin_ns: int = 300_000) -> None:
         self.spin_ns = spin_ns

@@ -169,8 +169,6 @@ class RunCounters:
     (None in lockstep, or where ``/proc/stat`` has no steal)."""
     spin_s: float = 0.0
     """Realtime: seconds spent busy-waiting before deadlines (``controller.spin_us``)."""
-    rehearsals: int = 0
-    """Realtime: releases before which the last tick was rehearsed (``controller.rehearse``)."""
     f_final: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     f_first: list[float] = field(default_factory=lambda: [math.nan, math.nan])
     """The features the first law tick saw (the scenario's f(0))."""
@@ -223,7 +221,6 @@ class RunCounters:
             "arming_ticks": self.arming_ticks,
             "spin_s": self.spin_s,
             "host_steal_percent": self.host_steal_percent,
-            "rehearsals": self.rehearsals,
             "stopped_before_arming": self.stopped_before_arming,
             "solve_us_median": pct(self.solve_us, 50),
             "solve_us_p99": pct(self.solve_us, 99),

@@ -1,8 +1,10 @@
 """The controller daemon: wires one run's parts together and reports on it.
 
 The parts: the recorder (its own process), the links (CAN client, zenoh session), the
-hardware interface over them, the drive policy, the pacer of the clock mode and the control
-loop (:mod:`rt_controller.runtime.loop`: read → decide → write → record). Safety lives in the
+hardware profile over them (:class:`~rt_controller.runtime.hardware.DspHardware`, the seam's
+lifecycle: configure → activate → read/write → deactivate), the pacer of the clock mode and
+the control loop (:mod:`rt_controller.runtime.loop`: read → decide → write → record), all
+sharing one :class:`~rt_controller.runtime.context.RunContext`. Safety lives in the
 per-tick rule: stale features put the loop in *hold* (tau = -2 R dq, a pure joint damper) and
 the law is re-initialised when they return; a silent DSP gets zero torque.
 """
@@ -30,33 +32,29 @@ from rt_controller.calibration.parameters import ParameterService
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
+from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import (
     OutageTracker,
     RunCounters,
     run_problems,
     run_warnings,
 )
-from rt_controller.runtime.drive_policy import DrivePolicy
-from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, RigHardware
+from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, DspHardware
 from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
-from rt_controller.runtime.rehearsal import Rehearsal
 
 
 @dataclass
 class DaemonOptions:
-    """How one daemon run is wired."""
+    """How one daemon run is wired (the transports and the clock mode are configuration:
+    ``transport.*``, ``controller.clock``)."""
 
-    can: str | None = None
-    mode: ClockMode = ClockMode.REALTIME
     duration_s: float = 0.0
     """0 = until stopped (realtime) or until the Sync frames stop (lockstep)."""
     log_path: Path | None = None
-    zenoh_endpoint: str | None = None
-    zenoh_config: str | None = None
     realtime_settings: bool = True
     record_raw: bool = True
     """Also record every CAN frame and vision payload as received."""
@@ -70,30 +68,22 @@ class DaemonOptions:
     ``controller.spin_us`` before each release); tests pass a fake one."""
 
 
-def recorder_service(cfg: RigConfig, opts: DaemonOptions) -> RecorderService:
+def recorder_service(cfg: RigConfig) -> RecorderService:
     """The recorder's child process (start it before the links: while this process has a
     single thread the child is forked, which is instant). The control process then runs no
-    other Python thread."""
-    return RecorderService(cfg, zenoh_endpoint=opts.zenoh_endpoint, zenoh_config=opts.zenoh_config)
+    other Python thread. Its live stream's session is on ``cfg.transport``."""
+    return RecorderService(cfg)
 
 
 @contextlib.contextmanager
-def open_links(
-    cfg: RigConfig, opts: DaemonOptions, stop: threading.Event
-) -> Iterator[tuple[JointClient, ZenohSession]]:
+def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[JointClient, ZenohSession]]:
     """The controller's links: the CAN client in poll mode (the control thread reads the bus
-    itself, no receive thread) and the zenoh session. The bus first: a bad ``--can`` is
+    itself, no receive thread) and the zenoh session, both on ``cfg.transport``. The bus
+    first: a bad ``transport.can`` is
     reported at once, not after waiting for zenoh. :class:`HalStopped` when ``stop`` is set
     while waiting for zenoh."""
-    with JointClient.open(opts.can, cfg) as dsp:
-        session = open_session(
-            cfg,
-            listen=False,
-            endpoint=opts.zenoh_endpoint,
-            config_file=opts.zenoh_config,
-            wait_s=STARTUP_TIMEOUT_S,
-            stop_event=stop,
-        )
+    with JointClient.open(None, cfg) as dsp:
+        session = open_session(cfg, listen=False, wait_s=STARTUP_TIMEOUT_S, stop_event=stop)
         try:
             yield dsp, session
         finally:
@@ -107,6 +97,7 @@ class ControllerDaemon:
         self.cfg = cfg
         self.opts = options
         self.stop = stop
+        self.mode = ClockMode(cfg.controller.clock)
         self.clock: Clock = options.clock or MonotonicClock(
             spin_ns=round(cfg.controller.spin_us * 1e3)
         )
@@ -128,40 +119,40 @@ class ControllerDaemon:
 
     def what_runs(self) -> dict[str, Any]:
         """What this run is: clock, rate, duration, law (with the horizon for rhc), CAN bus."""
-        cfg, opts = self.cfg, self.opts
+        cfg = self.cfg
         rhc = cfg.controller.law == "rhc"
         return {
-            "clock": opts.mode.value,
+            "clock": self.mode.value,
             "rate_hz": cfg.rates.control_hz,
-            "duration_s": opts.duration_s or None,
+            "duration_s": self.opts.duration_s or None,
             "law": cfg.controller.law,
             "horizon_s": cfg.rhc.horizon if rhc else None,
             "steps": cfg.rhc.steps if rhc else None,
-            "can": opts.can or cfg.transport.can,
+            "can": cfg.transport.can,
         }
 
     # --- wiring -----------------------------------------------------------------------------
     def _open_recorder(self, service: RecorderService) -> RemoteRecorder:
         """This run's log, written by the recorder's process."""
-        cfg, opts = self.cfg, self.opts
+        cfg, transport = self.cfg, self.cfg.transport
         run_info = {
-            "clock": opts.mode.value,
-            "can": opts.can or cfg.transport.can,
-            "zenoh": opts.zenoh_config or opts.zenoh_endpoint or cfg.transport.zenoh_endpoint,
+            "clock": self.mode.value,
+            "can": transport.can,
+            "zenoh": transport.zenoh_config or transport.zenoh_endpoint,
             "recorder": f"process ({service.start_method})",
         }
-        paced_by_sync = opts.mode is ClockMode.LOCKSTEP  # no deadline: wait for a busy recorder
+        paced_by_sync = self.mode is ClockMode.LOCKSTEP  # no deadline: wait for a busy recorder
         return service.open(
-            self.log_path, cfg, run_info=run_info, scene=opts.scene, backpressure=paced_by_sync
+            self.log_path, cfg, run_info=run_info, scene=self.opts.scene, backpressure=paced_by_sync
         )
 
     def run(self) -> dict[str, Any]:
         """Open the recorder and the links, run until stopped; the summary. The recorder is
         finished on every exit."""
-        with recorder_service(self.cfg, self.opts) as service:
+        with recorder_service(self.cfg) as service:
             rec = self._open_recorder(service)
             try:
-                with open_links(self.cfg, self.opts, self.stop) as (dsp, session):
+                with open_links(self.cfg, self.stop) as (dsp, session):
                     self._run_with(dsp, session, rec)
             except HalStopped:  # told to stop while waiting for zenoh
                 self.counters.stopped_before_arming = True
@@ -183,46 +174,30 @@ class ControllerDaemon:
     def _run_with(self, dsp: JointClient, session: Any, rec: RemoteRecorder) -> None:
         """The run on open links: the parts, the live stream, the loop."""
         cfg, opts = self.cfg, self.opts
-        real_clock = opts.clock is None
-        hw = RigHardware(
-            cfg,
-            dsp,
-            self.features,
-            self.clock,
-            recorder=rec,
-            record_raw=opts.record_raw,
-            kernel_stamps=real_clock,
+        ctx = RunContext(cfg, self.clock, self.stop, self.counters, rec)
+        lockstep = self.mode is ClockMode.LOCKSTEP
+        hw = DspHardware(
+            ctx, dsp, session, self.features, lockstep=lockstep, record_raw=opts.record_raw
         )
-        drive = DrivePolicy(cfg, self.counters)
-        parts = (cfg, self.clock, hw, drive, self.counters, self.stop)
         pacer: Pacer = (
-            LockstepPacer(*parts, pause=self._pause)
-            if opts.mode is ClockMode.LOCKSTEP
-            else RealtimePacer(*parts, real_clock=real_clock)
+            LockstepPacer(ctx, hw.step) if lockstep else RealtimePacer(ctx, hw.wait_inputs)
         )
-        loop = self.loop = ControlLoop(
-            cfg, self.controller, hw, pacer, drive, rec, self.counters, self.clock, self.params
-        )
-        if isinstance(pacer, RealtimePacer) and Rehearsal.wanted(cfg):
-            pacer.rehearse = Rehearsal(cfg, loop)
+        loop = self.loop = ControlLoop(ctx, self.controller, hw, pacer, self.params)
         if opts.live:  # published by the recorder's process, on its own session
             rec.stream_live()
-        hw.attach(session, callback=pacer.features_by_callback)
-        tuning = None  # the `hil param` queryable; none on a stand-in session without zenoh
-        if hasattr(session, "session"):
-            tuning = ParameterServer(self.params, rig_key(cfg)).attach(session)
+        tuning = ParameterServer(self.params, rig_key(cfg)).attach(session)  # `hil param`
         try:
-            self._start_and_loop(hw, loop, needs_features=not pacer.features_by_callback)
+            self._start_and_loop(hw, loop)
         finally:
-            if tuning is not None:
-                tuning.undeclare()
-            hw.detach()
+            tuning.undeclare()
+            hw.deactivate()
 
-    def _start_and_loop(self, hw: RigHardware, loop: ControlLoop, *, needs_features: bool) -> None:
-        """Warm up, wait for the inputs, lock memory, then the loop; torque off at the end."""
+    def _start_and_loop(self, hw: DspHardware, loop: ControlLoop) -> None:
+        """Warm up, configure the hardware (the peer answers), lock memory, then the loop
+        (which activates it); deactivated at the end."""
         cfg = self.cfg
         warm_up(self.controller, cfg)  # every branch of the tick, before the DSP is armed
-        hw.wait_ready(self.stop, features=needs_features, pause=self._pause)
+        hw.configure(self.stop)
         if self.stop.is_set():
             self.counters.stopped_before_arming = True
             return  # told to stop during start-up: the DSP is never armed
@@ -235,21 +210,18 @@ class ControllerDaemon:
         d = self.opts.duration_s
         max_ticks = math.floor(d * cfg.rates.control_hz + 1e-9) if d > 0 else None
         self.counters.planned_ticks = max_ticks
-        before = cpu_ticks() if self.opts.mode is ClockMode.REALTIME else None
+        before = cpu_ticks() if self.mode is ClockMode.REALTIME else None
         try:
             with GcPaused():
                 loop.run(max_ticks)
         finally:
             self.counters.host_steal_percent = steal_percent(before, cpu_ticks())
+            self.counters.spin_s = self.clock.spun_ns / 1e9
             if self.stop.is_set() and self.counters.end_reason == "duration":
                 self.counters.end_reason = "stopped"
-            hw.stop_torque()
+            hw.deactivate()
             self._final_diagnostics = loop.diagnostics(final=True)
-            loop.recorder.record_diagnostics(self._final_diagnostics, final=True)
-
-    def _pause(self, ns: int) -> None:
-        """Wait ``ns`` on the loop's clock during start-up (a fake clock advances the rig)."""
-        self.clock.sleep_until(self.clock.now_ns() + ns)
+            loop.ctx.recorder.record_diagnostics(self._final_diagnostics, final=True)
 
     def _summary(self, rec: RemoteRecorder) -> dict[str, Any]:
         rec.close()

@@ -4,7 +4,6 @@ faults, re-arm by policy, and say in which mode each tick runs (the law runs onl
 
 from __future__ import annotations
 
-from hal.config import RigConfig
 from hal.drive_state import (
     MODE_ENABLED,
     MODE_NO_STATUS,
@@ -15,7 +14,7 @@ from hal.drive_state import (
 )
 from hal.joint_client import JointClient
 from rt_controller.errors import ControllerError
-from rt_controller.runtime.counters import RunCounters
+from rt_controller.runtime.context import RunContext
 
 ENABLE_TIMEOUT_S = 5.0
 """How long arming waits for the DSP to report *operation enabled* after ENABLE."""
@@ -30,9 +29,8 @@ class DrivePolicy:
     a limit or encoder fault never is.
     """
 
-    def __init__(self, cfg: RigConfig, counters: RunCounters) -> None:
-        self.cfg = cfg
-        self.counters = counters
+    def __init__(self, ctx: RunContext) -> None:
+        self.ctx = ctx
         self.monitor = DriveMonitor()
         self.held_off = False
         """The operator disarmed the DSP: no policy re-arm until the operator arms it."""
@@ -87,11 +85,11 @@ class DrivePolicy:
             if age is None or age > status_limit_s:
                 mode = MODE_NO_STATUS  # a silent DSP: its last word no longer counts
         if mode != MODE_ENABLED:
-            self.counters.drive_ticks[mode] += 1
+            self.ctx.counters.drive_ticks[mode] += 1
         return mode
 
     def _on_events(self, dsp: JointClient, upd: DriveUpdate) -> None:
-        ctl, n = self.cfg.controller, self.counters
+        ctl, n = self.ctx.cfg.controller, self.ctx.counters
         for ev in upd.events:
             if ev is DriveEvent.FAULT:
                 n.dsp_faults[upd.fault.label] += 1
@@ -121,5 +119,5 @@ class DrivePolicy:
             "watchdog_tripped": bool(status and status.watchdog_tripped),
             "rejected_frames": int(status.rejected_frames) if status else 0,
             **{f"events.{k}": v for k, v in self.monitor.counters().items()},
-            **{f"ticks.{k}": v for k, v in self.counters.drive_ticks.items()},
+            **{f"ticks.{k}": v for k, v in self.ctx.counters.drive_ticks.items()},
         }

@@ -1,59 +1,31 @@
-"""The control loop, ros2_control style: for each release of the pacer,
+"""The control loop, ros2_control style: the hardware is activated on the pacer's arming
+steps, then, for each release of the pacer,
 
     observation = hardware.read(release)
     decision    = decide(observation)
     hardware.write(decision, release)
     record(cycle)
 
-The pacer owns what depends on the clock mode, the hardware the transports, the drive policy
-the DSP's drive state, the counters every total; ``decide`` is the pure per-tick rule
+The pacer owns what depends on the clock mode, the hardware (:class:`~hal.hardware_interface.
+HardwareInterface`) the links and the drive, the run context the configuration and every
+total; ``decide`` is the pure per-tick rule
 :meth:`rt_controller.control.controller.Controller.decide`, shared with replay and simulation.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from hal.config import RigConfig
+from hal.hardware_interface import HardwareInterface
 from rt_controller.calibration.parameters import LAW_KEYS, ParameterService
-from rt_controller.control.controller import Controller, Decision
+from rt_controller.control.controller import Controller
 from rt_controller.runtime import diagnostics
-from rt_controller.runtime.cadence import Clock
-from rt_controller.runtime.counters import RunCounters
+from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.cycle_record import Timing, cycle_record, decision_fields, vec2
-from rt_controller.runtime.drive_policy import DrivePolicy
-from rt_controller.runtime.hardware import Observation, RigHardware
 from rt_controller.runtime.pacers import Pacer, Release
-
-
-class RuleCall(NamedTuple):
-    """What one tick hands the per-tick rule (kept for the rehearsal)."""
-
-    t_s: float
-    obs: Observation
-    predict_ms: float
-    f_predict_ms: float
-    now_s: float
-
-
-def apply_rule(ctl: Controller, call: RuleCall) -> Decision:
-    """``ctl.decide`` on one tick's observation (ages compensated as the record states them)."""
-    o = call.obs
-    return ctl.decide(
-        call.t_s,
-        o.q,
-        o.dq,
-        o.f,
-        f_stale=o.f_stale,
-        state_stale=o.state_stale,
-        drive_mode=o.drive_mode,
-        state_age_s=call.predict_ms / 1e3,
-        feature_age_s=call.f_predict_ms / 1e3,
-        now_s=call.now_s,
-    )
 
 
 class ControlLoop:
@@ -61,34 +33,34 @@ class ControlLoop:
 
     def __init__(
         self,
-        cfg: RigConfig,
+        ctx: RunContext,
         controller: Controller,
-        hw: RigHardware,
+        hw: HardwareInterface,
         pacer: Pacer,
-        drive: DrivePolicy,
-        recorder: Any,
-        counters: RunCounters,
-        clock: Clock,
         params: ParameterService,
     ) -> None:
-        self.cfg, self.controller, self.hw, self.pacer = cfg, controller, hw, pacer
-        self.drive, self.recorder, self.counters, self.clock = drive, recorder, counters, clock
+        self.ctx, self.controller, self.hw, self.pacer = ctx, controller, hw, pacer
         self.params = params
         """Online parameter changes and operator actions, taken at each tick boundary."""
-        self.last_call: RuleCall | None = None
-        """The last tick's rule call (the rehearsal replays it)."""
-        self.last_write_delay_us = 0
-        self._diag_every = max(1, round(cfg.rates.control_hz))
+        self._diag_every = max(1, round(ctx.cfg.rates.control_hz))
 
     def run(self, max_ticks: int | None) -> None:
+        """Activate the hardware, then the ticks until ``max_ticks`` or a stop."""
+        if not self.activate():
+            return
         for release in self.pacer.releases(max_ticks):
             self.take_parameters(release)
             self.take_actions(release)
             cycle = self.tick(release)
             if self.pacer.overran(release):
-                self.counters.deadline_misses += 1
+                self.ctx.counters.deadline_misses += 1
                 cycle["deadline_miss"] = True
             self.record(cycle)
+
+    def activate(self) -> bool:
+        """Arm: the hardware's ``activate`` at each of the pacer's arming steps until it
+        reports armed (True), or a stop came first (False)."""
+        return any(self.hw.activate(now_ns) for now_ns in self.pacer.arming())
 
     def take_parameters(self, release: Release) -> None:
         """At the tick boundary, before the tick: the change sets due, judged; an accepted one
@@ -97,62 +69,53 @@ class ControlLoop:
         if cfg is not None:
             keys = {c["key"] for o in outcomes if o.accepted for c in o.changes}
             self.controller.reconfigure(cfg, law_changed=bool(keys & LAW_KEYS))
-            self.cfg = self.hw.cfg = cfg
-            self.pacer.retune(cfg)
+            self.ctx.cfg = cfg  # every part reads it from here on
         for o in outcomes:
-            self.recorder.record_parameters(o.record())
+            self.ctx.recorder.record_parameters(o.record())
 
     def take_actions(self, release: Release) -> None:
         """At the tick boundary, after the parameters: the operator actions due
         (:mod:`rt_controller.calibration.operator`), done or refused; each to the log."""
         for act in self.params.actions.due(release.index):
-            reason = act.refusal or self.drive.operate(self.hw.dsp, act.action)
+            reason = act.refusal or self.hw.command(act.action)
             out = act.finish(
                 release.index, accepted=reason is None, reason=reason, t_ns=release.wake_ns
             )
-            self.recorder.record_event(out.record())
-
-    def read(self, release: Release) -> Observation:
-        """The read phase: the observation, with the drive state followed to this tick."""
-        mode = self.drive.follow(self.hw.dsp, release.wake_ns, self.pacer.status_limit_s)
-        return self.observe(release.wake_ns, mode)
-
-    def observe(self, wake_ns: int, drive_mode: str) -> Observation:
-        """The inputs at ``wake_ns``, judged by the pacer's limits and ages."""
-        p = self.pacer
-        return self.hw.read(
-            wake_ns,
-            state_limit_s=p.state_limit_s,
-            feature_age=p.feature_age_ms,
-            drive_mode=drive_mode,
-        )
+            self.ctx.recorder.record_event(out.record())
 
     def tick(self, release: Release) -> dict[str, Any]:
         """One tick's phases; the cycle record (every time stamp from the loop's clock)."""
-        st, now = self.counters, self.clock.now_ns
+        st, now = self.ctx.counters, self.ctx.clock.now_ns
         wake_ns, lateness_ns = release.wake_ns, release.lateness_ns
         # --- read
-        obs = self.read(release)
+        obs = self.hw.read(wake_ns, self.pacer)
         t_read = now()
         # --- decide
         predict_ms, f_predict_ms = self.pacer.prediction_ms(obs)
-        now_s = release.t_s + lateness_ns / 1e3 / 1e6  # as replay rebuilds it from the record
-        call = RuleCall(release.t_s, obs, predict_ms, f_predict_ms, now_s)
-        d = apply_rule(self.controller, call)
-        self.last_call = call
+        d = self.controller.decide(
+            release.t_s,
+            obs.q,
+            obs.dq,
+            obs.f,
+            f_stale=obs.f_stale,
+            state_stale=obs.state_stale,
+            drive_mode=obs.drive_mode,
+            state_age_s=predict_ms / 1e3,
+            feature_age_s=f_predict_ms / 1e3,
+            now_s=release.t_s + lateness_ns / 1e3 / 1e6,  # as replay rebuilds it from the record
+        )
         t_solve = now()
         # --- write
-        self.last_write_delay_us = self.hw.write(
-            d.torque, sync=release.sync, release_ns=release.release_ns
-        )
+        self.hw.write(d.torque, sync=release.sync, release_ns=release.release_ns)
         t_write = now()
         # --- record (from here on nothing delays the torque)
         fields = decision_fields(self.controller, d)
         st.stale_states += int(obs.state_stale)  # per tick as recorded, as `hil report` counts
         st.stale_features += int(obs.f_stale)
+        st.late_states += int(not obs.state_new)
         st.outages.note(release.index, release.t_s, obs.f_stale or not obs.f_valid)
         if d.mode == "control":
-            st.J += fields["cost"] / self.cfg.rates.control_hz
+            st.J += fields["cost"] / self.ctx.cfg.rates.control_hz
             st.fallbacks += int(fields["fallback"])
             self._follow_features(obs.f, release.t_s)
         st.ticks += 1
@@ -193,21 +156,21 @@ class ControlLoop:
     def record(self, cycle: dict[str, Any]) -> None:
         """The record phase: the cycle to the recorder and, about once a second (every
         ``control_hz`` ticks), the diagnostics."""
-        self.recorder.record_cycle(cycle)
-        if self.counters.ticks % self._diag_every == 0:
-            self.recorder.record_diagnostics(self.diagnostics())
+        self.ctx.recorder.record_cycle(cycle)
+        if self.ctx.counters.ticks % self._diag_every == 0:
+            self.ctx.recorder.record_diagnostics(self.diagnostics())
 
     def diagnostics(self, final: bool = False) -> dict[str, Any]:
         """The ``/diagnostics`` record of this moment (:mod:`rt_controller.runtime.diagnostics`)."""
-        recorder = self.recorder.as_dict()
+        ctx = self.ctx
+        recorder = ctx.recorder.as_dict()
         if final:
             recorder.pop("pending", None)  # the final record is itself still queued
         return diagnostics.build(
-            t_ns=self.clock.now_ns(),
-            tick=self.counters.ticks,
-            **self.hw.counters(),
-            dsp=self.drive.block(self.hw.dsp),
-            controller=self.counters.controller_block(),
+            t_ns=ctx.clock.now_ns(),
+            tick=ctx.counters.ticks,
+            **self.hw.diagnostics(),
+            controller=ctx.counters.controller_block(),
             recorder=recorder,
             final=final,
             parameters=self.params.counters.as_dict(),
@@ -216,10 +179,10 @@ class ControlLoop:
     def _follow_features(self, f: np.ndarray, t_s: float) -> None:
         """The summary's view of the scenario: f at the first law tick and at the last, and
         when the target's jump was seen (a step of more than half the configured jump)."""
-        st = self.counters
+        st = self.ctx.counters
         if st.ticks == 0 or not np.isfinite(st.f_first).all():
             st.f_first = vec2(f)
-        sc = self.cfg.scenario
+        sc = self.ctx.cfg.scenario
         if sc.disturbance and st.jump_seen_s is None and np.isfinite(st.f_final).all():
             jump = math.hypot(sc.f_jump[0] - sc.f0[0], sc.f_jump[1] - sc.f0[1])
             if math.hypot(f[0] - st.f_final[0], f[1] - st.f_final[1]) > jump / 2:

@@ -7,7 +7,6 @@ inside a tick.
 
 from __future__ import annotations
 
-import json
 import threading
 from pathlib import Path
 
@@ -19,7 +18,6 @@ from hal.config import RigConfig, load_config
 from hal.joint_client import JointClient
 from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
 from plant_emulator.dsp_node import DspNode
-from rt_controller.control.controller import Controller
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
 from rt_controller.runtime.recorder_process import RecorderService
@@ -31,9 +29,9 @@ FRAME_NS = round(1e9 / 60)
 
 
 class RigClock(FakeClock):
-    """Jumps to each deadline, running the DSP's 1 kHz service and a 60 fps camera on the way;
-    with ``rehearse`` set, it runs the loop's wait work (the rehearsal) at each release, as the
-    real clock's wait does."""
+    """Jumps to each deadline, running the DSP's 1 kHz service and a 60 fps camera on the way
+    (the loop's wait work, the read-ahead, is not run: the client takes the frames off the bus
+    as they arrive, see ``client``)."""
 
     def __init__(self, node: DspNode, start_ns: int) -> None:
         super().__init__(start_ns)
@@ -41,7 +39,6 @@ class RigClock(FakeClock):
         self.features: FeatureDecoder | None = None
         self.frame = 0
         self.next_frame = start_ns
-        self.rehearse = False
         self.stall: tuple[int, int] | None = None
         """[from, to): the DSP process gets no CPU (a busy host); it catches up at ``to``."""
         self.client: JointClient | None = None
@@ -75,8 +72,6 @@ class RigClock(FakeClock):
                     self.client.drain(self.t)
             if self.features is not None and self.t >= self.next_frame:
                 self._camera()
-        if idle is not None and self.rehearse:
-            idle(deadline_ns)
 
 
 class NoZenoh:
@@ -93,6 +88,13 @@ class NoZenoh:
         def undeclare(self) -> None:
             pass
 
+    class _Session:
+        def declare_queryable(self, key: str, on_query: object) -> NoZenoh._Subscriber:
+            """Nobody asks the ``hil param`` queryable of a fake-clock run."""
+            return NoZenoh._Subscriber()
+
+    session = _Session()
+
     def subscribe_ring(self, key: str) -> _Ring:
         return self._Ring()
 
@@ -108,25 +110,21 @@ def run_daemon(
     slow_ticks: dict[int, int],
     dsp_stalls: frozenset[int] = frozenset(),
     on_tick=None,
-    rehearsed: list | None = None,
-    raw: bool = False,
 ):
     """Run the daemon (:meth:`ControllerDaemon.run_on`, its log written by a recorder
     process) for ``duration_s`` of fake time;
     ``slow_ticks`` maps a tick number to extra nanoseconds its decide phase takes; for each
     tick in ``dsp_stalls`` the DSP gets no CPU from 4 ms before the next release to 2 ms after
-    it, so the state it samples 3 ms before that release goes out 2 ms after it. With a
-    ``rehearsed`` list, the daemon rehearses before every release (as the real clock's wait
-    does) and the list gets each rehearsal's torque, as ``("decide", tau)`` and
-    ``("write", tau)``. Returns (summary, log, node)."""
+    it, so the state it samples 3 ms before that release goes out 2 ms after it. Returns
+    (summary, log, node)."""
     spec = isolated_spec("virtual")
     log = tmp_path / "fake.mcap"
     period = cfg.rates.control_period_ns
+    cfg = cfg.with_overrides({"transport.can": spec, "controller.clock": "realtime"})
     with open_bus(spec) as dsp_bus:
         node = DspNode(cfg, dsp_bus)
         clock = RigClock(node, T0)
         opts = DaemonOptions(
-            can=spec,
             duration_s=duration_s,
             log_path=log,
             realtime_settings=False,
@@ -136,7 +134,6 @@ def run_daemon(
         )
         daemon = ControllerDaemon(cfg, opts, threading.Event())
         clock.watch(daemon.features)
-        clock.rehearse = rehearsed is not None
         decide = daemon.controller.decide
 
         def slow_decide(*args, **kwargs):
@@ -151,39 +148,10 @@ def run_daemon(
             return decide(*args, **kwargs)
 
         daemon.controller.decide = slow_decide
-        spies = None if rehearsed is None else _rehearsal_spies(daemon, rehearsed)
-        try:
-            with RecorderService(cfg) as service, JointClient.open(spec, cfg) as dsp:
-                clock.client = dsp
-                summary = daemon.run_on(dsp, NoZenoh(), service)
-        finally:
-            if spies is not None:
-                spies()
-    return summary, read_log(log, raw=rehearsed is not None or raw), node
-
-
-def _rehearsal_spies(daemon: ControllerDaemon, rehearsed: list):
-    """Record every rehearsed decision (a controller other than the run's, once ticks run:
-    not the warm-up) and write; returns the function that takes the spies away."""
-    run_controller = daemon.controller
-    decide, write = Controller.decide, JointClient.rehearse_torque
-
-    def spy_decide(self, *args, **kwargs):
-        d = decide(self, *args, **kwargs)
-        if self is not run_controller and daemon.counters.ticks:
-            rehearsed.append(("decide", d.tau.tolist()))
-        return d
-
-    def spy_write(self, tau1, tau2, **kw):
-        rehearsed.append(("write", [tau1, tau2]))
-        return write(self, tau1, tau2, **kw)
-
-    Controller.decide, JointClient.rehearse_torque = spy_decide, spy_write
-
-    def remove() -> None:
-        Controller.decide, JointClient.rehearse_torque = decide, write
-
-    return remove
+        with RecorderService(cfg) as service, JointClient.open(spec, cfg) as dsp:
+            clock.client = dsp
+            summary = daemon.run_on(dsp, NoZenoh(), service)
+    return summary, read_log(log), node
 
 
 @pytest.fixture(scope="module")
@@ -338,37 +306,3 @@ def test_a_loop_whose_states_come_a_period_late_acts_as_if_they_were_fresh(tmp_p
     blind, log, _ = run_daemon(tmp_path / "blind", off, 5.0, {}, BUSY)
     assert np.all(np.asarray(log.cycles["predict_ms"]) == 0.0)
     assert blind["J"] > 1.2 * quiet["J"]
-
-
-def test_the_rehearsal_reruns_each_tick_on_its_own_controller_and_changes_nothing(tmp_path, cfg):
-    """The rehearsal before each release replays the previous tick's read, call and write: the
-    rule on a second controller (the same code on the same inputs, so its torque equals that
-    tick's, bit for bit) and the write through a shadow codec. It leaves the run exactly as it
-    is without it: the same cycles, the same frames on the bus (none of its own, and the
-    torque commands' rolling counters never skip, so the DSP accepts every one), the same drive
-    state followed (the read rehearsal takes no status from the tick), here through a watchdog
-    trip (tick 100 overruns by 60 ms), its fault ticks and the re-arm."""
-    (tmp_path / "plain").mkdir()
-    (tmp_path / "rehearsed").mkdir()
-    slow = {100: 60 * MS}
-    plain_summary, plain, plain_node = run_daemon(tmp_path / "plain", cfg, 3.0, slow, raw=True)
-    taus: list = []
-    summary, log, node = run_daemon(tmp_path / "rehearsed", cfg, 3.0, slow, rehearsed=taus)
-    assert summary["watchdog_trips"] == 1 and summary["drive_ticks"]
-    assert summary["problems"] == plain_summary["problems"]
-    assert summary["ticks"] == plain_summary["ticks"] == 148  # the overrun skipped two periods
-    assert summary["rehearsals"] == 147 and plain_summary["rehearsals"] == 0
-    # law_us is the compiled call's own stopwatch (perf_counter, not the fake clock)
-    same = {k: v.tolist() for k, v in plain.cycles.items() if k != "law_us"}
-    assert json.dumps(same, sort_keys=True) == json.dumps(
-        {k: v.tolist() for k, v in log.cycles.items() if k != "law_us"}, sort_keys=True
-    )
-    assert taus[0::2] == [("decide", t) for t in log.cycles["tau"][:-1].tolist()]
-    assert taus[1::2] == [("write", t) for t in log.cycles["tau"][:-1].tolist()]
-    assert len(log.can_tx) == len(plain.can_tx) > 150
-    assert node.stats.commands == plain_node.stats.commands
-    received = node.codec.stats.as_dict()
-    assert received == plain_node.codec.stats.as_dict()
-    assert received["lost"] == 0 and received["accepted"] > 150
-    for key in ("drive_ticks", "dsp_faults", "watchdog_trips", "rearms"):
-        assert summary[key] == plain_summary[key], key

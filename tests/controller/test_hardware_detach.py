@@ -1,11 +1,12 @@
-"""The hardware interface's feature subscription ends at ``detach``: zenoh may still run a
+"""The hardware profile's feature subscription ends at ``deactivate``: zenoh may still run a
 subscriber's callback after the undeclare returns (its thread had the sample already), and the
-run's log is closed right after the detach. A message delivered then must reach neither the
+run's log is closed right after the deactivation. A message delivered then must reach neither the
 decoder nor the log; in a plan that shares its processes it showed up as "1 log record(s)
 lost" on a clean lockstep run."""
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from hal.bus import isolated_spec
@@ -14,7 +15,9 @@ from hal.joint_client import JointClient
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
 from hal.zenoh_session import KEY_FEATURES
-from rt_controller.runtime.hardware import RigHardware
+from rt_controller.runtime.context import RunContext
+from rt_controller.runtime.counters import RunCounters
+from rt_controller.runtime.hardware import DspHardware
 from tests.support.fake_clock import FakeClock
 
 
@@ -52,22 +55,23 @@ def _payload(cfg: RigConfig, seq: int, stamp_ns: int) -> bytes:
     return encode_features(msg, key=rig_key(cfg))
 
 
-def test_a_feature_message_delivered_after_detach_reaches_neither_decoder_nor_log() -> None:
+def test_a_feature_message_delivered_after_deactivate_reaches_neither_decoder_nor_log() -> None:
     cfg = RigConfig()
     clock = FakeClock(1_000_000_000)
     decoder = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
     rec = ListRecorder()
     session = LateSession()
+    stopped = threading.Event()
+    stopped.set()  # configure subscribes, then returns at once (no DSP answers here)
+    ctx = RunContext(cfg, clock, stopped, RunCounters(), rec)
     with JointClient.open(isolated_spec("virtual"), cfg) as dsp:
-        hw = RigHardware(
-            cfg, dsp, decoder, clock, recorder=rec, record_raw=True, kernel_stamps=False
-        )
-        hw.attach(session, callback=True)
+        hw = DspHardware(ctx, dsp, session, decoder, lockstep=True, record_raw=True)
+        hw.configure(stopped)
         session.callback(_payload(cfg, 1, clock.now_ns()))
         assert len(rec.vision) == 1 and decoder.latest is not None
         first = decoder.latest
 
-        hw.detach()
+        hw.deactivate()
         assert session.undeclared
         # zenoh's thread, after the undeclare returned:
         session.callback(_payload(cfg, 2, clock.now_ns()))

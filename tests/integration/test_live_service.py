@@ -676,8 +676,7 @@ def test_a_dsp_sampling_after_the_release_gets_its_states_compensated(tmp_path):
     (fault injection: without compensation, three runs of three ended in a velocity-limit
     fault). What holds under any scheduling: each tick that ran the law compensated the age it
     measured (``predict_ms`` = ``state_age_ms``, and ``f_predict_ms`` = ``f_age_ms``), the law
-    acted on a state other than the measured one, and the log replays exactly (the rehearsals
-    before the releases left the run's controller alone)."""
+    acted on a state other than the measured one, and the log replays exactly."""
     from rt_controller.logtools.replay import replay_log
 
     rig = tmp_path / "rig.toml"
@@ -685,7 +684,6 @@ def test_a_dsp_sampling_after_the_release_gets_its_states_compensated(tmp_path):
     log = tmp_path / "lag.mcap"
     s = run_rig(rig_options(log, law="ioc", config=str(rig), duration_s=3.0))
     assert_exit_codes(s, realtime=True)
-    assert 0 < s["rehearsals"] <= s["ticks"]  # 50 Hz: the rule is rehearsed before releases
     c = read_log(log, raw=False).cycles
     ran = np.asarray(c["law"]) == "ioc"
     age, predicted = np.asarray(c["state_age_ms"])[ran], np.asarray(c["predict_ms"])[ran]

@@ -9,6 +9,11 @@ from rt_controller.runtime.cadence import Idle
 class FakeClock:
     """A clock that jumps to each deadline instantly; ``advance`` simulates work."""
 
+    kernel_stamps = False
+    """Frames are stamped when read: the kernel's stamps are not on this clock."""
+    spun_ns = 0
+    """It never busy-waits."""
+
     def __init__(self, start_ns: int = 0, wake_latency_ns: int = 0) -> None:
         self.t = start_ns
         self.wake_latency_ns = wake_latency_ns

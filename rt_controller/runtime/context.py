@@ -1,0 +1,60 @@
+"""One run's shared context: what every part of the loop reads, passed as one typed object.
+
+The pacer, the hardware profile, the drive policy and the loop all hold the same
+:class:`RunContext`. The configuration in force lives here only: an accepted online parameter
+change replaces ``ctx.cfg`` once (:meth:`rt_controller.runtime.loop.ControlLoop.take_parameters`)
+and every part sees it from the next read on; no part keeps a copy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from hal.config import RigConfig
+from hal.hardware_interface import StopFlag
+from rt_controller.runtime.cadence import Clock
+from rt_controller.runtime.counters import RunCounters
+
+
+class Recorder(Protocol):
+    """What the loop and the hardware hand the run's recorder (the log and the live stream)."""
+
+    def record_can(self, msg: Any, t_ns: int, direction: str) -> Any: ...
+
+    def record_vision(self, payload: bytes, t_ns: int) -> Any: ...
+
+    def write(self, topic: str, t_ns: int, payload: bytes) -> Any: ...
+
+    def record_cycle(self, cycle: dict[str, Any]) -> Any: ...
+
+    def record_diagnostics(self, diag: dict[str, Any], final: bool = False) -> Any: ...
+
+    def record_parameters(self, record: dict[str, Any]) -> Any: ...
+
+    def record_event(self, record: dict[str, Any]) -> Any: ...
+
+    def as_dict(self) -> dict[str, Any]: ...
+
+
+@dataclass
+class RunContext:
+    """The parts of one run that every other part reads."""
+
+    cfg: RigConfig
+    """The configuration in force (replaced, never edited, by an accepted parameter change)."""
+    clock: Clock
+    """The loop's clock: every time stamp of the run."""
+    stop: StopFlag
+    """The run's stop request (signals, the plan, the tests)."""
+    counters: RunCounters
+    """The run's totals (the summary and ``/diagnostics``)."""
+    recorder: Recorder
+    """The run's log."""
+
+    def pause(self, ns: int) -> None:
+        """Wait ``ns`` on the loop's clock (start-up, arming in lockstep)."""
+        self.clock.sleep_until(self.clock.now_ns() + ns)
+
+
+__all__ = ["Recorder", "RunContext"]
