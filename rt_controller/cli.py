@@ -29,6 +29,7 @@ COMMAND_MODULES = (
     "keygen",
     "camera",
     "emulator",
+    "cia402",
     "vision",
     "controller",
     "monitor",

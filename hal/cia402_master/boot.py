@@ -17,6 +17,7 @@ from canopen.objectdictionary import INTEGER16, INTEGER32, UNSIGNED16
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from hal.cia402_master.units import DriveUnits, interpolation_period
+from hal.cia402_master.watch import state_of
 from hal.cia402_od import (
     CONTROLWORD,
     CST_MODE,
@@ -252,12 +253,40 @@ def enter_cst(node: canopen.RemoteNode, timeout_s: float = MODE_READBACK_S) -> N
         time.sleep(0.01)
 
 
+def describe(node: canopen.RemoteNode) -> dict[str, Any]:
+    """What a drive says of itself by SDO: power state, mode, units, limits, heartbeats,
+    0x60C2 and the PDO maps (``hil cia402 check``)."""
+    units = read_units(node)
+    value, index = sdo_read(node, INTERPOLATION_PERIOD, 1), sdo_read(node, INTERPOLATION_PERIOD, 2)
+    consumer = int(sdo_read(node, HEARTBEAT_CONSUMER, 1))
+    statusword = int(sdo_read(node, STATUSWORD))
+    return {
+        "node": node.id,
+        "state": state_of(statusword).lower(),
+        "statusword": f"0x{statusword:04X}",
+        "mode_display": int(sdo_read(node, MODES_DISPLAY)),
+        "increments_per_rad": units.increments_per_rad,
+        "gear_ratio": units.gear_ratio,
+        "rated_torque_nm": units.joint_rated_torque_nm,
+        "torque_limit_per_mille": int(sdo_read(node, MAX_TORQUE)),
+        "torque_limit_nm": units.torque_nm(int(sdo_read(node, MAX_TORQUE))),
+        "interpolation_period_s": value * 10.0**index,
+        "heartbeat_ms": int(sdo_read(node, HEARTBEAT_PRODUCER)),
+        "heartbeat_consumer": {"node": consumer >> 16 & 0x7F, "ms": consumer & 0xFFFF},
+        "pdo": {
+            kind: {str(n): [f"0x{i:04X}" for i in objs] for n, (_t, objs) in maps.items()}
+            for kind, maps in mapping(node).items()
+        },
+    }
+
+
 __all__ = [
     "CST_MODE",
     "RPDO_MAP",
     "TPDO_MAP",
     "BootSettings",
     "configure",
+    "describe",
     "enter_cst",
     "map_pdos",
     "mapping",

@@ -300,11 +300,18 @@ class Cia402Master:
             for st in steps[-1][1]
         ]
         steps.append(("disable operation", self._latch(timeout_s)))
+        steps.extend(self.release(timeout_s))
+        return steps
+
+    def release(self, timeout_s: float) -> list[tuple[str, tuple[str, ...]]]:
+        """NMT pre-operational (the drives stop watching SYNC and send no PDO), then the
+        drives stop consuming the controller's heartbeat (0x1016.1 = 0), then it stops: the
+        drives stay configured, torque off, and nothing faults them."""
+        self.operational = False
         for node in self.nodes:
             node.nmt.state = "PRE-OPERATIONAL"
-        steps.append(
-            ("pre-operational", tuple(self._next_heartbeat(n, timeout_s) for n in self.nodes))
-        )
+        states = tuple(self._next_heartbeat(n, timeout_s) for n in self.nodes)
+        steps: list[tuple[str, tuple[str, ...]]] = [("pre-operational", states)]
         for node, watch in zip(self.nodes, self.watches, strict=True):
             watch.started = False
             try:
@@ -313,6 +320,15 @@ class Cia402Master:
                 steps.append((f"node {node.id} kept its heartbeat consumer: {exc}", ()))
         self.heartbeat.nmt.stop_heartbeat()
         return steps
+
+    def check(self, stop: Any | None = None) -> list[dict[str, Any]]:
+        """Boot the drives as a run would (the maps read back, CST read back), describe each
+        by SDO, and :meth:`release` them: no SYNC is sent, no drive is enabled."""
+        self.boot(stop)
+        try:
+            return [boot.describe(node) for node in self.nodes]
+        finally:
+            self.release(1.0)
 
     @staticmethod
     def _next_heartbeat(node: BaseNode402, timeout_s: float) -> str:

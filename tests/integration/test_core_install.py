@@ -90,6 +90,7 @@ def minimal_calls(work: Path) -> dict[str, Call]:
             ("param", "get", "--timeout", "1", "--key-file", key, "--zenoh-endpoint", ep), ALONE
         ),
         "camera": Call(("camera", "calibrate", "--source", "emulated", "--json"), OK),
+        "cia402": Call(("cia402", "check", "--can", "virtual:no-drives"), ALONE),
         "simulate": Call(("simulate", "--duration", "0.2", "--json"), OK),
         "replay": Call(("replay", log, "--json"), OK),
         "report": Call(("report", log, "--plot", "plots", "--json"), OK),

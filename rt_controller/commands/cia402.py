@@ -1,0 +1,64 @@
+"""``hil cia402 check``: boot the CiA 402 drives of ``[cia402]`` as a ``cia402`` run would
+(NMT reset, SDO configuration, PDO maps read back, cyclic synchronous torque read back) and
+say what each drive reports, without a SYNC and without enabling any drive."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from rt_controller.commands.common import add_config_option, config_from_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "cia402",
+        help="CiA 402 drives (the cia402 profile): check the boot and the mapping",
+        description="`check` boots every drive of [cia402] exactly as a cia402 run does (NMT "
+        "reset communication, heartbeats, 0x60C2, 0x6072, the PDO maps read back, mode 10 read "
+        "back in 0x6061), prints what each drive reports (state, units, limits, maps), then puts "
+        "the drives in NMT pre-operational and stops consuming the controller's heartbeat. It "
+        "sends no SYNC and never enables a drive: run it before a real drive gets torque. Exit "
+        "2 when a drive does not boot or refuses a step.",
+    )
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    check = actions.add_parser("check", help="boot, map and describe the drives; no torque")
+    add_config_option(check)
+    check.add_argument(
+        "--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: transport.can)"
+    )
+    check.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    check.set_defaults(handler=run_check)
+
+
+def run_check(args: argparse.Namespace) -> int:
+    import json
+
+    from hal.bus import open_bus
+    from hal.cia402_master.master import Cia402Master
+
+    cfg = config_from_args(args)
+    bus = open_bus(args.can or cfg.transport.can)
+    master = Cia402Master.from_config(cfg, bus)
+    try:
+        drives = master.check()
+    finally:
+        master.close()
+    if args.json:
+        print(json.dumps({"drives": drives}))
+        return 0
+    for d in drives:
+        pdo = "; ".join(
+            f"{kind}{n} = {' + '.join(objs)}"
+            for kind, maps in d["pdo"].items()
+            for n, objs in maps.items()
+        )
+        print(
+            f"node {d['node']}: {d['state']} (statusword {d['statusword']}), mode "
+            f"{d['mode_display']}, {d['increments_per_rad']:.6g} increments/rad, rated "
+            f"{d['rated_torque_nm']:g} N·m, limit {d['torque_limit_nm']:g} N·m "
+            f"({d['torque_limit_per_mille']} per mille), 0x60C2 "
+            f"{d['interpolation_period_s'] * 1e3:g} ms, heartbeat {d['heartbeat_ms']} ms; {pdo}"
+        )
+    print("hil cia402 check: drives left in NMT pre-operational, not enabled", file=sys.stderr)
+    return 0
