@@ -11,6 +11,8 @@ camera is bolted to a real one: the DSP node hands it every camera pose it publi
   exposure is interpolated from the poses of periods k - 1 and k) and the frame carries
   ``period = k``. A re-sent pose (the DSP re-announces a period while it waits) gets the same
   frame again, byte for byte. Noise is keyed by (seed, frame), so a run is bit-exact for a seed.
+  Once a frame is sent, the next frame's background and noise are made while the pose of its
+  period is awaited (:meth:`CameraSensor.prepare`; the pixels are a whole render's).
 * **realtime** — the camera's own frame clock: frame j is exposed around ``j / fps`` of scenario
   time and rendered once a pose at or after the end of its exposure has arrived (poses come at
   ``rates.state_hz``; the motion is interpolated between them). Slots the renderer could not
@@ -322,6 +324,7 @@ class CameraNode:
         payload = self._render(t_mid, sample.seq, True, sample.stamp_ns - self.exposure_ns // 2)
         self._last_lockstep = (sample.seq, payload)
         self._send(payload)
+        self._prepare_next(t_mid)
 
     def _realtime_frames(self) -> None:
         newest = self._history.newest
@@ -350,6 +353,7 @@ class CameraNode:
             t_mid = due * self.period_ns * 1e-9
             stamp = self._history.stamp_at(t_mid)
             self._send(self._render(t_mid, newest.seq, False, stamp))
+            self._prepare_next(t_mid)
 
     def _watching(self) -> bool:
         if self._watched is None or self._watched():
@@ -377,6 +381,13 @@ class CameraNode:
         self.stats.render_ms_sum += ms
         self.stats.render_ms_max = max(self.stats.render_ms_max, ms)
         return payload
+
+    def _prepare_next(self, t: float) -> None:
+        """While the next pose is awaited: the next frame's background and noise, which no
+        pose changes (lockstep: the controller and the DSP work meanwhile; the pose of the
+        next period is not known before its torque is), so only the target's region is
+        rendered once the pose is there (:meth:`CameraSensor.prepare`; same pixels)."""
+        self.sensor.prepare(self._frame, self.sensor.scene(t).background)
 
     def _send(self, payload: bytes) -> None:
         try:

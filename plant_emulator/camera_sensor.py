@@ -276,6 +276,8 @@ class CameraSensor:
         k = intrinsics
         corners = np.array([[0, 0], [resolution.width, resolution.height]], dtype=float)
         self._max_radius_px = float(np.max(np.hypot(corners[:, 0] - k.cx, corners[:, 1] - k.cy)))
+        self._blank: tuple[tuple[int, int, float], np.ndarray] | None = None
+        self._flat_image: tuple[float, np.ndarray] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -302,50 +304,102 @@ class CameraSensor:
         n = min(MAX_SUBEXPOSURES, max(1, math.ceil(motion / SUBEXPOSURE_PX)))
         return t_mid + e * ((np.arange(n) + 0.5) / n - 0.5)
 
-    def irradiance(self, pose_at: Callable[[float], CameraPose], t_mid: float) -> np.ndarray:
-        """Noise-free reflectance image (float, 0..1) averaged over the exposure."""
+    def exposed_region(
+        self, pose_at: Callable[[float], CameraPose], t_mid: float
+    ) -> tuple[float, tuple[slice, slice] | None, np.ndarray | None]:
+        """What the exposure around ``t_mid`` sees: the plane's background reflectance, and the
+        region of the frame the texture's support covers with its reflectance (float, 0..1,
+        averaged over the exposure; None, None: the texture is out of view)."""
         times = [float(t) for t in self.subexposures(pose_at, t_mid)]
         poses = [pose_at(t) for t in times]
         textures = [self.scene(t) for t in times]
         background = float(textures[0].background)
-        out = np.full(self.shape, background)
         # one region for the whole exposure: the union of the first and last sub-exposure's
         ends = ((poses[0], textures[0]), (poses[-1], textures[-1]))
         rois = [r for r in (self._roi(p, tex) for p, tex in ends) if r is not None]
         if not rois:
-            return out
+            return background, None, None
         roi = tuple(
             slice(min(r[a].start for r in rois), max(r[a].stop for r in rois)) for a in (0, 1)
         )
         if all(t == textures[0] for t in textures[1:]):  # one texture: all sub-exposures at once
-            out[roi] = self._sample_many(poses, textures[0], roi).mean(axis=0)
-            return out
+            return background, roi, self._sample_many(poses, textures[0], roi).mean(axis=0)
         acc = np.zeros((roi[0].stop - roi[0].start, roi[1].stop - roi[1].start))
         for pose, texture in zip(poses, textures, strict=True):
             acc += self._sample(pose, texture, roi)
-        out[roi] = acc / len(times)
+        return background, roi, acc / len(times)
+
+    def irradiance(self, pose_at: Callable[[float], CameraPose], t_mid: float) -> np.ndarray:
+        """Noise-free reflectance image (float, 0..1) averaged over the exposure."""
+        background, roi, values = self.exposed_region(pose_at, t_mid)
+        out = np.full(self.shape, background)
+        if roi is not None:
+            out[roi] = values
         return out
 
     def render(
         self, pose_at: Callable[[float], CameraPose], t_mid: float, *, frame: int = 0
     ) -> np.ndarray:
-        """One 8-bit grey frame exposed around ``t_mid`` (s); ``frame`` keys its noise."""
-        return self._to_grey(self.irradiance(pose_at, t_mid), frame)
+        """One 8-bit grey frame exposed around ``t_mid`` (s); ``frame`` keys its noise.
 
-    def _to_grey(self, reflectance: np.ndarray, frame: int) -> np.ndarray:
-        dn = np.ascontiguousarray(reflectance, dtype=np.float64)
+        The same pixels as :meth:`expose` of :meth:`irradiance`: the background with the
+        frame's noise (made ahead by :meth:`prepare`, else now), then the region the target
+        covers exposed over it (the noise is per pixel, so the order does not matter)."""
+        background, roi, values = self.exposed_region(pose_at, t_mid)
+        key = (self.seed, int(frame), background)
+        ready, self._blank = self._blank, None
+        if ready is not None and ready[0] == key:
+            out = ready[1]
+        else:
+            out = self.expose(self._flat(background), frame)
+        if roi is not None:
+            self._expose_into(out, roi, values, frame)
+        return out
+
+    def prepare(self, frame: int, background: float) -> None:
+        """Make ahead the part of frame ``frame`` that no pose changes (the plane's
+        ``background`` reflectance with the frame's noise), so :meth:`render` only exposes the
+        target's region: a camera renders the next frame's background while it waits for the
+        pose. Kept for one :meth:`render` of that frame (same seed, same background)."""
+        blank = self.expose(self._flat(background), frame)
+        self._blank = ((self.seed, int(frame), float(background)), blank)
+
+    def _flat(self, background: float) -> np.ndarray:
+        if self._flat_image is None or self._flat_image[0] != background:
+            self._flat_image = (background, np.full(self.shape, background))
+        return self._flat_image[1]
+
+    def _noise_args(self, frame: int) -> tuple[float, float, float, np.uint64, np.uint64]:
         n = self.noise
-        out = np.empty(dn.shape, dtype=np.uint8)
-        _expose(
-            dn.ravel(),
-            out.ravel(),
+        return (
             FULL_SCALE_DN,
             1.0 / n.electrons_per_dn if n.electrons_per_dn > 0 else 0.0,
             n.read_noise_dn**2,
             np.uint64(self.seed & _U64),
             np.uint64(int(frame) & _U64),
         )
+
+    def expose(self, reflectance: np.ndarray, frame: int) -> np.ndarray:
+        """The sensor: a reflectance image (0..1) to 8-bit grey levels with frame ``frame``'s
+        shot and read noise (a function of the seed, the frame and the pixel alone)."""
+        dn = np.ascontiguousarray(reflectance, dtype=np.float64)
+        out = np.empty(dn.shape, dtype=np.uint8)
+        _expose(dn.ravel(), out.ravel(), *self._noise_args(frame))
         return out
+
+    def _expose_into(
+        self, out: np.ndarray, roi: tuple[slice, slice], values: np.ndarray, frame: int
+    ) -> None:
+        """Expose the region ``roi`` of ``out`` (a whole frame) from its reflectance ``values``,
+        each pixel with the noise of its place in the whole frame."""
+        rows, cols = roi
+        _expose_window(
+            np.ascontiguousarray(values, dtype=np.float64),
+            out,
+            rows.start,
+            cols.start,
+            *self._noise_args(frame),
+        )
 
     def render_view(
         self, pose: CameraPose, placement: Placement, texture: PlaneTexture, *, frame: int = 0
@@ -370,7 +424,7 @@ class CameraSensor:
         ok = hit & np.isfinite(side)
         refl = np.full(self.shape, float(texture.background))
         refl[ok] = texture.sample(u[ok], v[ok], side[ok])
-        return self._to_grey(refl, frame)
+        return self.expose(refl, frame)
 
     def _roi(self, pose: CameraPose, texture: PlaneTexture) -> tuple[slice, slice] | None:
         box = texture.support()
@@ -419,6 +473,34 @@ class CameraSensor:
         return np.where(np.isfinite(out), out, 0.0)
 
 
+@njit(cache=True, fastmath=False, nogil=True, inline="always")
+def _grey_level(
+    dn: float, i: int, base: np.uint64, shot_var_per_dn: float, read_var: float, noisy: bool
+) -> np.uint8:  # pragma: no cover - compiled
+    """Pixel ``i``'s grey level for ``dn`` grey levels of light (see :func:`_expose`)."""
+    if noisy:
+        quarter = np.uint64(0xFFFF)
+        z = base + np.uint64(i) * np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+        total = float(
+            (z & quarter)
+            + ((z >> np.uint64(16)) & quarter)
+            + ((z >> np.uint64(32)) & quarter)
+            + (z >> np.uint64(48))
+        )
+        gauss = (total * (1.0 / 65536.0) - 2.0) * 1.7320508075688772
+        dn += math.sqrt(read_var + max(dn, 0.0) * shot_var_per_dn) * gauss
+    v = math.floor(dn + 0.5)
+    return np.uint8(0) if v < 0.0 else (np.uint8(255) if v > 255.0 else np.uint8(v))
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _noise_base(seed: np.uint64, frame: np.uint64) -> np.uint64:  # pragma: no cover - compiled
+    return (seed * np.uint64(0x9E3779B97F4A7C15)) ^ (frame * np.uint64(0xD1B54A32D192ED03))
+
+
 @njit(cache=True, fastmath=False, nogil=True)
 def _expose(
     reflectance: np.ndarray,
@@ -437,25 +519,35 @@ def _expose(
     machine whatever was drawn before, at about 1 ns per pixel: 3x faster than a lookup of
     the normal's inverse CDF, 25x faster than ``Generator.standard_normal``."""
     noisy = shot_var_per_dn > 0.0 or read_var > 0.0
-    base = (seed * np.uint64(0x9E3779B97F4A7C15)) ^ (frame * np.uint64(0xD1B54A32D192ED03))
-    quarter = np.uint64(0xFFFF)
+    base = _noise_base(seed, frame)
     for i in range(reflectance.size):
-        dn = reflectance[i] * full_scale
-        if noisy:
-            z = base + np.uint64(i) * np.uint64(0x9E3779B97F4A7C15)
-            z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-            z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-            z = z ^ (z >> np.uint64(31))
-            total = float(
-                (z & quarter)
-                + ((z >> np.uint64(16)) & quarter)
-                + ((z >> np.uint64(32)) & quarter)
-                + (z >> np.uint64(48))
+        out[i] = _grey_level(reflectance[i] * full_scale, i, base, shot_var_per_dn, read_var, noisy)
+
+
+@njit(cache=True, fastmath=False, nogil=True)
+def _expose_window(
+    reflectance: np.ndarray,
+    out: np.ndarray,
+    row0: int,
+    col0: int,
+    full_scale: float,
+    shot_var_per_dn: float,
+    read_var: float,
+    seed: np.uint64,
+    frame: np.uint64,
+) -> None:  # pragma: no cover - compiled
+    """:func:`_expose` of a window (``reflectance``, rows x cols) into the whole frame ``out``
+    at ``(row0, col0)``: each pixel draws the noise of its index in the whole frame."""
+    noisy = shot_var_per_dn > 0.0 or read_var > 0.0
+    base = _noise_base(seed, frame)
+    width = out.shape[1]
+    rows, cols = reflectance.shape
+    for r in range(rows):
+        for c in range(cols):
+            i = (row0 + r) * width + col0 + c
+            out[row0 + r, col0 + c] = _grey_level(
+                reflectance[r, c] * full_scale, i, base, shot_var_per_dn, read_var, noisy
             )
-            gauss = (total * (1.0 / 65536.0) - 2.0) * 1.7320508075688772
-            dn += math.sqrt(read_var + max(dn, 0.0) * shot_var_per_dn) * gauss
-        v = math.floor(dn + 0.5)
-        out[i] = 0 if v < 0.0 else (255 if v > 255.0 else np.uint8(v))
 
 
 def _pixel_rays(

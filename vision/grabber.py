@@ -81,11 +81,21 @@ class GrabberStats:
     """Frames, measurements and rejections by reason."""
     frame_rx: dict[str, int] = field(default_factory=dict)
     """The frame decoder's counters (emulated source)."""
+    image_log: dict[str, int] = field(default_factory=dict)
+    """The decimated image stream's counters (:meth:`vision.image_log.ImageLog.counters`)."""
     detect_us_p50: float = 0.0
     detect_us_p99: float = 0.0
     latency_us_p50: float = 0.0
     """Capture stamp to publish (emulated source and real cameras: same clock)."""
     latency_us_p99: float = 0.0
+    pipeline_us_p50: float = 0.0
+    """Emulated source: a frame's payload received to its features published (decode, MAC,
+    detect, undistort, publish)."""
+    pipeline_us_p99: float = 0.0
+    arrival_us_p50: float = 0.0
+    """Emulated source, lockstep: the camera pose offered to the frame's arrival (the camera's
+    render and encode, zenoh)."""
+    arrival_us_p99: float = 0.0
 
 
 class Grabber:
@@ -201,13 +211,13 @@ class Grabber:
             s = dataclasses.replace(self.stats)
             s.pipeline = self.pipeline.counts.as_dict()
             if self._detect_ns:
-                s.detect_us_p50, s.detect_us_p99 = _percentiles(self._detect_ns)
+                s.detect_us_p50, s.detect_us_p99 = percentiles_us(self._detect_ns)
             if self._latency_ns:
-                s.latency_us_p50, s.latency_us_p99 = _percentiles(self._latency_ns)
+                s.latency_us_p50, s.latency_us_p99 = percentiles_us(self._latency_ns)
             return s
 
 
-def _percentiles(ns: list[int]) -> tuple[float, float]:
+def percentiles_us(ns: Sequence[int]) -> tuple[float, float]:
     """Median and p99 of durations in ns, in us."""
     import numpy as np
 

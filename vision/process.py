@@ -19,7 +19,7 @@ from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.vision_image import encode_vision_image
 from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, KEY_VISION_IMAGE, open_session
-from vision.grabber import Dropout, Grabber, GrabberStats, Observer
+from vision.grabber import Dropout, Grabber, GrabberStats, Observer, percentiles_us
 from vision.image_log import ImageLog
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
@@ -73,12 +73,12 @@ def run_live(
     try:
         pub = session.publisher(KEY_FEATURES)
         source_id = secrets.randbits(32)
-        image_pub = None
+        image_pub = image_log = None
         if observer is None and cfg.camera.image_log_fps > 0:
             image_pub = session.publisher(
                 KEY_VISION_IMAGE, block=False, priority=zenoh.Priority.DATA_LOW
             )
-            observer = ImageLog(
+            observer = image_log = ImageLog(
                 cfg.camera.image_log_fps,
                 lambda img: image_pub.put(encode_vision_image(img, key)),
                 source_id,
@@ -102,12 +102,20 @@ def run_live(
         finally:
             grabber.close()
             pub.undeclare()
+            if image_log is not None:
+                image_log.close()
             if image_pub is not None:
                 image_pub.undeclare()
         stats = grabber.snapshot()
+        if image_log is not None:
+            stats.image_log = image_log.counters()
         stats.source = source.name
         if isinstance(source, EmulatedSource):
             stats.frame_rx = source.decoder.counters()
+            if source.pipeline_ns:
+                stats.pipeline_us_p50, stats.pipeline_us_p99 = percentiles_us(source.pipeline_ns)
+            if source.arrival_ns:
+                stats.arrival_us_p50, stats.arrival_us_p99 = percentiles_us(source.arrival_ns)
         return stats
     finally:
         if timer is not None:

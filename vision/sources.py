@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
@@ -68,26 +69,41 @@ def grabbed_frame(seq: int, pixels: np.ndarray, stamp_ns: int) -> CameraFrame:
     return CameraFrame(seq, stamp_ns, stamp_ns, 0, seq, to_grey(pixels))
 
 
+TIMING_SAMPLES = 200_000
+"""Per-frame times kept for the percentiles (the newest; about an hour at 60 fps)."""
+
+
 class EmulatedSource:
     """Frames of the emulated camera over zenoh, decoded and authenticated by
     :class:`hal.camera_frame.FrameDecoder` (its counters: :attr:`decoder`). Frames are pushed
-    from zenoh's callback thread: a lockstep answer leaves without a thread hop."""
+    from zenoh's callback thread: a lockstep answer leaves without a thread hop.
+
+    Timing, per frame handed on: :attr:`pipeline_ns`, the payload's arrival to the grabber's
+    return (decode, MAC, detect, undistort, publish); :attr:`arrival_ns`, lockstep only, the
+    camera pose offered (the end of the exposure, on the emulator's monotonic clock, which
+    is this host's) to the payload's arrival (render, encode, zenoh)."""
 
     name = "emulated"
 
     def __init__(self, session: object, key: bytes) -> None:
         self.session = session
         self.decoder = FrameDecoder(key=key)
+        self.pipeline_ns: deque[int] = deque(maxlen=TIMING_SAMPLES)
+        self.arrival_ns: deque[int] = deque(maxlen=TIMING_SAMPLES)
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
         from hal.zenoh_session import KEY_CAMERA_FRAME
 
         def feed(payload: bytes) -> None:
+            t0 = time.monotonic_ns()
             c = self.decoder.counts
             bad = c.malformed + c.bad_mac
-            frame = self.decoder.feed(payload)
+            frame = self.decoder.feed(payload, t0)
             if frame is not None:
                 on_frame(frame)
+                self.pipeline_ns.append(time.monotonic_ns() - t0)
+                if frame.lockstep:
+                    self.arrival_ns.append(t0 - frame.stamp_ns - frame.exposure_ns // 2)
             elif c.malformed + c.bad_mac > bad:  # not an out-of-order frame: no frame at all
                 on_reject("malformed")
 
@@ -124,13 +140,14 @@ class CaptureSource:
         cap = self.open()
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) if self.pace else 0.0
         period_ns = round(1e9 / fps) if fps > 0 else 0
-        seq, t0 = 0, time.monotonic_ns()
+        seq, t0 = 0, 0
         try:
             while not stop.is_set():
-                if period_ns:
+                if period_ns and seq:  # frame k at k periods after the first frame was read
                     stop.wait(max(0, t0 + seq * period_ns - time.monotonic_ns()) / 1e9)
                 ok, img = cap.read()
                 stamp = time.monotonic_ns()
+                t0 = t0 or stamp  # the first read (a decoder's start-up) sets the clock
                 if not ok:
                     break  # end of the file, or the device went away
                 if img is None or img.size == 0:

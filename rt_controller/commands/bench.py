@@ -96,6 +96,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="simulated seconds of the lockstep rigs with images and analytic (0 = skip)",
     )
+    vp.add_argument(
+        "--realtime-duration",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="seconds of a realtime rig with images at 60 fps, timing the pipeline per frame "
+        "while it runs (0 = skip)",
+    )
     _finish(vp, run_vision)
     hp = bench.add_parser(
         "host",
@@ -201,6 +209,7 @@ def run_vision(args: argparse.Namespace) -> int:
         grid=args.grid,
         latency_frames=args.latency_frames,
         lockstep_s=args.lockstep_duration,
+        realtime_s=args.realtime_duration,
         progress=progress.line,
     )
     print(json.dumps(out))

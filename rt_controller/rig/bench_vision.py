@@ -176,6 +176,141 @@ def latency(cfg: RigConfig, render: Render, frames: int, fps: float) -> dict[str
     }
 
 
+def _json_line(text: str) -> dict[str, Any]:
+    """The last JSON object line a child printed ({} when none)."""
+    import json
+
+    for line in reversed(text.splitlines()):
+        if line.startswith("{"):
+            try:
+                return json.loads(line)
+            except json.JSONDecodeError:
+                continue
+    return {}
+
+
+def rig_run(
+    cfg: RigConfig, *, lockstep: bool, duration_s: float, law: str, work: Path
+) -> dict[str, Any]:
+    """One rig as ``hil up`` starts it (emulator, vision, controller; realtime or lockstep)
+    with the vision process's and the emulator's counters: ``{"controller", "vision",
+    "emulator", "cycles"}`` (the log's cycle records)."""
+    from rt_controller.config_rules import config_toml
+    from rt_controller.logtools.reader import read_log
+    from rt_controller.rig.processes import Rig, RigOptions
+
+    conf = work / "rig.toml"
+    conf.write_text(config_toml(cfg))
+    log = work / "run.mcap"
+    opts = RigOptions(
+        config=str(conf),
+        law=law,
+        duration_s=duration_s,
+        lockstep=lockstep,
+        log=log,
+        extra_vision=["--json"],
+    )
+    with Rig(opts) as rig:
+        rig.start()
+        summary = rig.wait_controller()
+        rig.stop()
+        vision = _json_line(rig.child("vision").output())  # type: ignore[union-attr]
+        emulator = _json_line(rig.child("emulator").output())  # type: ignore[union-attr]
+    return {
+        "controller": summary,
+        "vision": vision,
+        "emulator": emulator,
+        "cycles": read_log(log).cycles,
+    }
+
+
+def _pair(stats: dict[str, Any], name: str) -> dict[str, float | None]:
+    p50, p99 = stats.get(f"{name}_us_p50"), stats.get(f"{name}_us_p99")
+    return {
+        "median": None if p50 is None else round(p50, 1),
+        "p99": None if p99 is None else round(p99, 1),
+    }
+
+
+def lockstep_profile(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[str, Any]:
+    """A lockstep rig with images, and where one period goes (us, median / p99): the
+    controller's period and its wait for the features (Sync received to features in), the
+    camera's render and encode (emulator), the pose offered to the frame at the grabber
+    (render, encode, zenoh), the grabber's frame in to features out (decode, MAC, detect,
+    undistort, publish), the DSP and CAN part (torque out to the next Sync)."""
+    import tempfile
+
+    from rt_controller.rig.bench_loop import lockstep_period_profile
+
+    with tempfile.TemporaryDirectory(prefix="hil-bench-vision-profile-") as work:
+        run = rig_run(
+            cfg.with_overrides({"camera.model": "image"}),
+            lockstep=True,
+            duration_s=duration_s,
+            law=law,
+            work=Path(work),
+        )
+    c, v = run["cycles"], run["vision"]
+    t = c["t_ns"]
+    loop_s = (t[-1] - t[0]) / 1e9 if t.size > 1 else float("nan")
+    cam = run["emulator"].get("camera") or {}
+    return {
+        "sim_s": duration_s,
+        "ticks": run["controller"].get("ticks"),
+        "J": run["controller"].get("J"),
+        "speedup_loop": duration_s / loop_s if loop_s > 0 else None,
+        "period_us": lockstep_period_profile(c),
+        "camera_render_encode_us_mean": round(1e3 * cam.get("render_ms_mean", float("nan")), 1),
+        "pose_to_frame_us": _pair(v, "arrival"),
+        "frame_to_features_us": _pair(v, "pipeline"),
+        "detect_us": _pair(v, "detect"),
+        "image_log": v.get("image_log"),
+    }
+
+
+def realtime_pipeline(
+    cfg: RigConfig, duration_s: float, fps: float = 60.0, law: str = "ioc"
+) -> dict[str, Any]:
+    """The pipeline's time per frame while a realtime rig with images runs (the processes of
+    ``hil up``, the camera at ``fps``): frame in to features out at the grabber (decode, MAC,
+    detect, undistort, publish) and the detection alone, median / p99 (us); frames the camera
+    rendered, skipped (it fell behind) and the grabber measured; the controller's deadline
+    misses."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="hil-bench-vision-realtime-") as work:
+        run = rig_run(
+            cfg.with_overrides({"camera.model": "image", "camera.frame_rate_hz": fps}),
+            lockstep=False,
+            duration_s=duration_s,
+            law=law,
+            work=Path(work),
+        )
+    ctl, v = run["controller"], run["vision"]
+    cam = run["emulator"].get("camera") or {}
+    rx = v.get("frame_rx") or {}
+    rendered = cam.get("frames")
+    return {
+        "fps": fps,
+        "duration_s": duration_s,
+        "pipeline_us": _pair(v, "pipeline"),
+        "detect_us": _pair(v, "detect"),
+        "capture_to_publish_us": _pair(v, "latency"),
+        "frames_rendered": rendered,
+        "frames_skipped_by_camera": cam.get("skipped"),
+        "frames_measured": v.get("frames"),
+        "frames_lost_in_transit": (
+            rendered - rx.get("accepted", 0) if rendered is not None and rx else None
+        ),
+        "frames_rejected": rx.get("rejected"),
+        "deadline_misses": ctl.get("deadline_misses"),
+        "missed_periods": ctl.get("missed_periods"),
+        "stale_features": ctl.get("stale_features"),
+        "J": ctl.get("J"),
+        "problems": ctl.get("problems", []),
+    }
+
+
 def lockstep_speed(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[str, Any]:
     """A lockstep rig run with images and one with the analytic camera (``hil bench loop``'s
     lockstep measurement): speed against real time, the period's wall time and where it goes."""
@@ -204,6 +339,7 @@ def bench_vision(
     latency_frames: int = 300,
     fps: float = 60.0,
     lockstep_s: float = 5.0,
+    realtime_s: float = 10.0,
     progress: Callable[[str], None] = lambda s: None,
 ) -> dict[str, Any]:
     """Every figure of the module docstring, as one JSON-ready dict."""
@@ -234,4 +370,9 @@ def bench_vision(
     if lockstep_s > 0:
         progress(f"lockstep rigs of {lockstep_s:g} s, with images and analytic")
         out["lockstep"] = lockstep_speed(cfg, lockstep_s)
+        progress(f"lockstep rig of {lockstep_s:g} s with images: where a period goes")
+        out["lockstep_profile"] = lockstep_profile(cfg, lockstep_s)
+    if realtime_s > 0:
+        progress(f"realtime rig of {realtime_s:g} s with images at {fps:g} fps")
+        out["realtime"] = realtime_pipeline(cfg, realtime_s, fps)
     return out

@@ -165,3 +165,33 @@ def test_target_out_of_view_leaves_a_blank_frame():
     pose = CameraPose(5.0, 5.0, 0.0)
     img = sensor().render(lambda t: pose, 0.0)
     assert (img == round(0.8 * 255)).all()
+
+
+def test_a_frame_rendered_on_its_prepared_background_has_the_whole_frames_pixels():
+    """The camera makes the next frame's background and noise ahead (:meth:`prepare`) and then
+    exposes only the target's region: the pixels are those of exposing the whole frame's
+    reflectance, still and blurred, with a lens, in and out of view; a background prepared for
+    another frame, seed or reflectance is not used."""
+    cfg = RigConfig()
+    p0 = camera_pose(cfg.robot, np.array(cfg.scenario.q0))
+    rng = np.random.default_rng(3)
+    s = sensor(noise=SensorNoise(40.0, 0.5), lens=LENS, exposure=0.004, seed=11)
+    paper = 0.8
+    for frame in range(12):
+        dx, dy, dphi = rng.normal(0.0, 0.05, 3) if frame != 5 else (5.0, 5.0, 0.0)
+        v = rng.normal(0.0, 0.5, 2) if frame % 2 else np.zeros(2)
+
+        def pose_at(t, dx=dx, dy=dy, dphi=dphi, v=v):
+            return CameraPose(p0.x + dx + v[0] * t, p0.y + dy + v[1] * t, p0.phi + dphi)
+
+        whole = s.expose(s.irradiance(pose_at, 0.0), frame)
+        prepared_for = [(frame, paper), (frame + 1, paper), (frame, 0.5)][frame % 3]
+        s.prepare(*prepared_for)
+        np.testing.assert_array_equal(s.render(pose_at, 0.0, frame=frame), whole)
+        np.testing.assert_array_equal(s.render(pose_at, 0.0, frame=frame), whole)  # unprepared
+    s.prepare(0, paper)
+    s.seed = 12
+    fresh = sensor(noise=SensorNoise(40.0, 0.5), lens=LENS, exposure=0.004, seed=12)
+    np.testing.assert_array_equal(
+        s.render(lambda t: p0, 0.0, frame=0), fresh.render(lambda t: p0, 0.0, frame=0)
+    )

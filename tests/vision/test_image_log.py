@@ -1,0 +1,69 @@
+"""The decimated image stream (vision.image_log): PNGs made off the grabber's thread, lockstep
+frames never dropped, realtime frames dropped and counted when the backlog is full."""
+
+from __future__ import annotations
+
+import threading
+
+import cv2
+import numpy as np
+
+from hal.camera_frame import CameraFrame
+from hal.vision_codec import FeatureMsg
+from vision.image_log import ImageLog, png
+from vision.pipeline import Measurement
+
+NO_F = Measurement(None, "not_found", None, 0)
+
+
+def frame(seq: int, lockstep: bool) -> CameraFrame:
+    pixels = np.random.default_rng(seq).integers(0, 256, (48, 64), dtype=np.uint8)
+    t = seq * 20_000_000  # 50 Hz
+    return CameraFrame(seq, t, t, 0, seq, pixels, lockstep)
+
+
+def msg(f: CameraFrame) -> FeatureMsg:
+    return FeatureMsg(f.seq, f.stamp_ns, f.sim_time_ns, f.period, (0.0, 0.0), False, f.lockstep, 1)
+
+
+def test_png_is_lossless():
+    img = frame(1, True).pixels
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(png(img), np.uint8), 0), img)
+
+
+def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
+    gate, got = threading.Event(), []
+
+    def publish(image) -> None:
+        gate.wait(5.0)
+        got.append(image.frame)
+
+    log = ImageLog(10.0, publish, 1, backlog=2)
+    frames = [frame(i, True) for i in range(40)]  # 0.8 s at 50 Hz: every 5th frame is logged
+    feeder = threading.Thread(target=lambda: [log(f, NO_F, msg(f)) for f in frames])
+    feeder.start()
+    feeder.join(0.5)
+    assert feeder.is_alive()  # blocked on the full backlog, not dropping
+    gate.set()
+    feeder.join(5.0)
+    log.close()
+    assert got == list(range(0, 40, 5))
+    assert log.counters() == {"sent": 8, "dropped": 0, "errors": 0}
+
+
+def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
+    gate, got = threading.Event(), []
+
+    def publish(image) -> None:
+        gate.wait(5.0)
+        got.append(image.frame)
+
+    log = ImageLog(10.0, publish, 1, backlog=2)
+    for i in range(40):  # never blocks
+        f = frame(i, False)
+        log(f, NO_F, msg(f))
+    gate.set()
+    log.close()
+    c = log.counters()
+    assert c["sent"] + c["dropped"] == 8 and c["dropped"] >= 5  # one in the encoder, two queued
+    assert got == sorted(got) and got[0] == 0
