@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -87,17 +86,11 @@ class TorqueCommand:
     tick: int = 0
 
 
-SEED_MAX = 0xFFFF_FFFF
-"""The largest camera noise seed a RESET_SCENARIO carries (``DspControl.Seed``, 32 bits)."""
-
-
 @dataclass(frozen=True, slots=True)
 class DspControl:
-    """Controller -> DSP event command. ``seed``: RESET_SCENARIO only, the new run's camera noise
-    seed (0 .. :data:`SEED_MAX`; None = the seed the processes were started with)."""
+    """Controller -> DSP event command (the drive state machine, :mod:`hal.drive_state`)."""
 
     command: DspCommand
-    seed: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,28 +192,11 @@ def _sat(value: int, limit: int) -> int:
 
 
 def _control_signals(f: DspControl) -> dict[str, Any]:
-    if f.seed is None:
-        return {"Command": int(f.command), "SeedGiven": 0, "Seed": 0}
-    if f.command is not DspCommand.RESET_SCENARIO:
-        raise HalCodecError(f"only RESET_SCENARIO carries a seed, not {f.command.name}")
-    if isinstance(f.seed, bool) or not isinstance(f.seed, numbers.Integral):
-        raise HalCodecError(f"DspControl.Seed must be an integer, not {f.seed!r}")
-    if not 0 <= f.seed <= SEED_MAX:
-        raise HalCodecError(
-            f"DspControl.Seed must be an integer in [0, {SEED_MAX}], got {f.seed!r}"
-        )
-    return {"Command": int(f.command), "SeedGiven": 1, "Seed": int(f.seed)}
+    return {"Command": int(f.command)}
 
 
 def _control_from(s: dict[str, Any]) -> DspControl:
-    command = DspCommand(s["Command"])
-    if not s["SeedGiven"]:
-        if s["Seed"]:
-            raise HalCodecError("DspControl: Seed without SeedGiven")
-        return DspControl(command)
-    if command is not DspCommand.RESET_SCENARIO:
-        raise HalCodecError(f"DspControl: only RESET_SCENARIO carries a seed, not {command.name}")
-    return DspControl(command, int(s["Seed"]))
+    return DspControl(DspCommand(s["Command"]))
 
 
 _TO_SIGNALS: dict[type, tuple[str, Callable[[Any], dict[str, Any]]]] = {
@@ -610,8 +586,8 @@ class ControllerCodec(CanEndpoint):
     ) -> can.Message:
         return self.encode(TorqueCommand(tau1, tau2, enable, tick))
 
-    def encode_control(self, command: DspCommand, seed: int | None = None) -> can.Message:
-        return self.encode(DspControl(DspCommand(command), seed))
+    def encode_control(self, command: DspCommand) -> can.Message:
+        return self.encode(DspControl(DspCommand(command)))
 
 
 class DspCodec(CanEndpoint):

@@ -75,11 +75,6 @@ class DspCommand(enum.IntEnum):
     """FAULT -> SWITCH_ON_DISABLED; no effect in other states."""
     DISABLE_VOLTAGE = 4
     """-> SWITCH_ON_DISABLED (torque off); refused in FAULT."""
-    RESET_SCENARIO = 5
-    """Emulated lockstep DSP only: the world back to the scenario's start (simulation time 0,
-    the configured initial state) under a new session id, -> SWITCH_ON_DISABLED (clears a
-    fault); refused while operation is enabled, and by a realtime or real DSP (a real arm
-    cannot be rewound). Lets one set of rig processes run many lockstep runs."""
 
 
 _ARMABLE = (DriveState.SWITCH_ON_DISABLED, DriveState.READY_TO_SWITCH_ON)
@@ -91,9 +86,6 @@ def next_state(state: DriveState, command: DspCommand) -> DriveState | None:
     A command that leaves the state as it is (e.g. ENABLE while enabled, FAULT_RESET with no
     fault) returns ``state``, not ``None``.
     """
-    if command is DspCommand.RESET_SCENARIO:
-        refused = state in (DriveState.OPERATION_ENABLED, DriveState.NOT_READY)
-        return None if refused else DriveState.SWITCH_ON_DISABLED
     if state is DriveState.FAULT:
         return DriveState.SWITCH_ON_DISABLED if command is DspCommand.FAULT_RESET else None
     if state is DriveState.NOT_READY:

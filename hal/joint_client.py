@@ -3,7 +3,7 @@
 The client has no thread of its own: the caller's thread reads the bus (the controller's control
 thread, as part of the tick, so no other Python thread runs in the control process).
 :meth:`JointClient.drain` takes every frame waiting without blocking, :meth:`JointClient.wait_sync`
-reads until the DSP's next lockstep Sync, :meth:`JointClient.reset_scenario` until the DSP
+reads until the DSP's next lockstep Sync, :meth:`JointClient.await_new_session` until the DSP
 confirms a new scenario; :meth:`JointClient.wait_readable` blocks until a frame waits. Each frame
 goes through :class:`~hal.can_codec.ControllerCodec` (E2E and SecOC check, DBC decode) and
 updates the latest joint state, DspStatus (and the backlog of :meth:`JointClient.take_statuses`)
@@ -227,14 +227,11 @@ class JointClient:
             self.send_command(DspCommand.FAULT_RESET)
         self.send_command(DspCommand.ENABLE)
 
-    def send_command(
-        self, command: DspCommand, *, repeat: int = 2, seed: int | None = None
-    ) -> None:
-        """Send one DspControl ``command`` ``repeat`` times (consecutive counters); ``seed``
-        only with RESET_SCENARIO (:class:`~hal.errors.HalCodecError` otherwise)."""
+    def send_command(self, command: DspCommand, *, repeat: int = 2) -> None:
+        """Send one DspControl ``command`` ``repeat`` times (consecutive counters)."""
         cmd = DspCommand(command)
         for _ in range(repeat):
-            self._send(lambda c: c.encode_control(cmd, seed))
+            self._send(lambda c: c.encode_control(cmd))
 
     def disable(self) -> None:
         """Remove torque: DspControl DISABLE (twice) and a zero TorqueCommand with Enable=0."""
@@ -243,16 +240,15 @@ class JointClient:
         tick = self._sync_tick or 0
         self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick))
 
-    def reset_scenario(self, timeout_s: float, *, seed: int | None = None) -> DspStatus:
-        """Against an emulated lockstep DSP that is not armed: DspControl RESET_SCENARIO, then
-        read the bus until the DspStatus of the DSP's new session (Tick 0, switch-on disabled)
-        arrives, and return it; every input received before it is forgotten. ``seed`` (0 ..
-        :data:`~hal.can_codec.SEED_MAX`, None: unchanged) is the new run's camera noise seed.
-        :class:`HalTimeoutError` when no such status comes within ``timeout_s`` (a realtime,
-        real or armed DSP refuses the command).
+    def await_new_session(self, timeout_s: float, request: Callable[[], object]) -> DspStatus:
+        """Call ``request`` (which asks an emulated lockstep DSP for a scenario reset, e.g. on
+        the simulator-control channel, :mod:`hal.sim_control`), then read the bus until the
+        DspStatus of the DSP's new session (Tick 0, switch-on disabled) arrives, and return
+        it; every input received before it is forgotten. :class:`HalTimeoutError` when no such
+        status comes within ``timeout_s`` (a realtime or real DSP is not rewound).
         """
         old = None if self._status is None else self._status.session
-        self.send_command(DspCommand.RESET_SCENARIO, repeat=1, seed=seed)
+        request()
         deadline = time.monotonic() + timeout_s
         while (remaining := deadline - time.monotonic()) > 0:
             msg = self._receive(min(remaining, 0.05))
@@ -276,7 +272,7 @@ class JointClient:
                 return st
         raise HalTimeoutError(
             f"the DSP on {self.bus.channel_info} did not confirm a scenario reset within "
-            f"{timeout_s:g} s (only an emulated DSP in lockstep that is not armed resets)"
+            f"{timeout_s:g} s (only an emulated DSP in lockstep resets)"
         )
 
     def rehearse_torque(

@@ -64,6 +64,9 @@ KEY_CONTROLLER_DIAGNOSTICS = "hil/controller/diagnostics"
 KEY_CONTROLLER_PARAMETERS = "hil/controller/parameters"
 """Online parameters, ``hil param`` -> controller: a queryable (get, dump, set), every request
 and reply signed with the rig key (:mod:`rt_controller.calibration.link`)."""
+KEY_SIM_CONTROL = "hil/sim/control"
+"""Simulator control, harness -> emulator: a scenario reset and the next run's camera noise
+seed, signed with the rig key (:mod:`hal.sim_control`); no part of a real rig."""
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_WAIT_S = 10.0

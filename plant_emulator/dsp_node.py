@@ -146,7 +146,9 @@ class DspStats:
     """Due states that such a catch-up sample stood in for beyond the first (a catch-up over
     more than one due step sends one state)."""
     scenario_resets: int = 0
-    """Lockstep: DspControl RESET_SCENARIO applied (the world back to its start, new session)."""
+    """Lockstep: scenario resets applied (the world back to its start, new session)."""
+    resets_refused: int = 0
+    """Scenario resets asked of a realtime DSP (refused: a realtime arm is not rewound)."""
     held_states: int = 0
     """Realtime: joint states sent while the world held its initial state (before the
     scenario started; the initial state of :meth:`DspNode.start_realtime` not included)."""
@@ -224,8 +226,8 @@ class DspNode:
         ``session``: the id reported in ``DspStatus.Session`` (default: random, non-zero);
         ``key``: the rig key (default: ``cfg.transport.key_file``, else this process's
         ephemeral key, see :mod:`hal.secoc`); ``on_reset``: called with the new run's camera
-        noise seed (None when the reset named none) when a scenario reset (DspControl
-        RESET_SCENARIO) is applied, e.g. to give the pose link a new source id and the seed;
+        noise seed (None when the reset named none) when a scenario reset
+        (:meth:`request_reset`) is applied, e.g. to give the pose link a new source id and the seed;
         ``on_fault``: called with :attr:`DspStats.last_fault` (one line) when the drive enters
         FAULT, e.g. to say so on stderr the moment it happens."""
         self.cfg = cfg
@@ -234,10 +236,9 @@ class DspNode:
         self.pose_sink = pose_sink
         self.on_reset = on_reset
         self.on_fault = on_fault
-        self._reset_pending = False
-        """A RESET_SCENARIO was accepted; applied between periods (:meth:`reset_scenario`)."""
-        self._reset_seed: int | None = None
-        """The camera noise seed the pending reset named (None: the seed at start)."""
+        self._reset_request: tuple[int | None] | None = None
+        """A scenario reset asked for (its camera noise seed; None: the seed at start), applied
+        between periods (:meth:`reset_scenario`); set by :meth:`request_reset` on any thread."""
         self.world = world or World(cfg)
         self._start_seed = self.world.seed
         self.codec = DspCodec(key=key if key is not None else rig_key(cfg))
@@ -396,13 +397,7 @@ class DspNode:
         before = self._flags()
         accepted: TorqueCommand | None = None
         if isinstance(frame, DspControl):
-            if frame.command is DspCommand.RESET_SCENARIO and not self.lockstep:
-                self.drive.refused += 1  # a realtime arm cannot be rewound
-                accepted_cmd = False
-            else:
-                accepted_cmd = self.drive.command(frame.command)
-            if accepted_cmd and frame.command is DspCommand.RESET_SCENARIO:
-                self._reset_pending, self._reset_seed = True, frame.seed
+            accepted_cmd = self.drive.command(frame.command)
             self.stats.refused_commands = self.drive.refused
             if accepted_cmd and frame.command is DspCommand.ENABLE:
                 self._command_seen(now_ns)
@@ -691,7 +686,7 @@ class DspNode:
             if msg is not None and self.handle(msg, self._sim_ns()) is not None:
                 self._awaiting_controller = False
                 return True
-            if self._reset_pending:
+            if self._reset_request is not None:
                 return False
         return False
 
@@ -700,7 +695,7 @@ class DspNode:
         controller arms the DSP, so every subscriber is in place when period 0 starts."""
         resend_at = 0.0
         while not stop.is_set() and not self.armed:
-            if self._reset_pending:
+            if self._reset_request is not None:
                 self.reset_scenario()
             now = time.monotonic()
             if now >= resend_at:
@@ -723,7 +718,7 @@ class DspNode:
         self.publish_pose()
         self._announce()
         answered = self._await_command(stop)
-        if self._reset_pending:  # the period is void: the next one is period 0 of a new run
+        if self._reset_request is not None:  # the period is void: next is period 0 of a new run
             self.reset_scenario()
             return True
         if not answered:
@@ -747,19 +742,32 @@ class DspNode:
     def _sim_ns(self) -> int:
         return round(self.world.t * 1e9)
 
+    def request_reset(self, seed: int | None = None) -> bool:
+        """Ask for a scenario reset (the simulator-control channel, :mod:`hal.sim_control`;
+        any thread): a lockstep DSP applies it at the next period boundary, whatever its drive
+        state, as a restarted emulator would; a realtime DSP refuses (counted) and returns
+        False. ``seed``: the new run's camera noise seed (None: the one at start)."""
+        if not self.lockstep:
+            self.stats.resets_refused += 1
+            return False
+        self._reset_request = (seed,)
+        return True
+
     def reset_scenario(self) -> None:
-        """Lockstep: apply an accepted RESET_SCENARIO. The world goes back to the scenario's
+        """Lockstep: apply the requested scenario reset. The world goes back to the scenario's
         start (simulation time 0, the configured initial state) with fresh sensors, the DSP
-        takes a new session id and holds period 0 until the controller arms it again, as a
-        freshly started emulator does; its DspStatus (drive state switch-on disabled, Tick 0,
+        takes a new session id, its drive goes to switch-on disabled (a fault cleared) and it
+        holds period 0 until the controller arms it again, as a freshly started emulator does;
+        its DspStatus (drive state switch-on disabled, Tick 0,
         the new session) tells the controller that every frame after it is of the new run.
         Codec counters and the freshness values go on (replay protection spans runs). The
         world's camera noise restarts from the seed the reset named (else the one at start),
         and ``on_reset`` hands that seed on to the vision link."""
-        self._reset_pending = False
-        seed, self._reset_seed = self._reset_seed, None
+        request, self._reset_request = self._reset_request, None
+        seed = None if request is None else request[0]
         self.world.seed = self._start_seed if seed is None else seed
         self.world.reset()
+        self.drive.state, self.drive.fault_reason = DriveState.SWITCH_ON_DISABLED, FaultReason.NONE
         self.encoder = Encoder(self.world.q, self.world.dq, self.encoder_lsb, self.filter_gain)
         self.tau_cmd = np.zeros(2)
         self.last_cmd_ns = None

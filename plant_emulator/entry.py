@@ -10,7 +10,10 @@ Behaviour:
   ``udp_multicast``) and runs :class:`~plant_emulator.dsp_node.DspNode` in realtime or lockstep;
 * unless ``--no-vision-link``, it is the zenoh hub of the rig (router listening on
   ``--zenoh-endpoint``, or a ``--zenoh-config`` file) and publishes the camera pose on
-  ``hil/emulator/camera_pose`` for the vision process (:mod:`plant_emulator.pose_link`);
+  ``hil/emulator/camera_pose`` for the vision process (:mod:`plant_emulator.pose_link`), and
+  takes the harness's commands from ``hil/sim/control`` (:mod:`hal.sim_control`: a lockstep
+  DSP restarts the scenario with the named camera noise seed; rejected messages are counted in
+  the summary's ``sim_control``);
 * with ``camera.model = "image"`` (unless ``--no-camera``) it is also the rig's camera: a thread
   renders frames from those poses and streams them on ``hil/camera/frame``
   (:mod:`plant_emulator.camera_node`); in lockstep it then waits for a frame grabber (or a pose
@@ -27,12 +30,13 @@ do), which the ``hil`` CLI turns into exit status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hal.arguments import add_key_option, bounded_float, duration
@@ -192,8 +196,6 @@ def run_emulator(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
-    import contextlib
-
     from hal.bus import open_bus, resolve_spec
     from plant_emulator.dsp_node import DspNode
 
@@ -208,6 +210,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
         listening: Callable[[], bool] | None = None
         """Whether the process lockstep waits for before period 0 is there."""
         zenoh_where = ""
+        session = None
         if args.vision_link:
             from hal.secoc import rig_key
             from hal.zenoh_session import open_session
@@ -248,6 +251,9 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             on_reset=None if link is None else link.new_run,
             on_fault=_say_fault,
         )
+        sim_control = None
+        if session is not None:
+            sim_control = stack.enter_context(serve_sim_control(session, node, rig_key(cfg)))
         node.warm_up()
         print(
             f"hil emulator: serving the arm on {where} ({mode}){zenoh_where}",
@@ -286,6 +292,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             "poses_published": 0 if link is None else link.publisher.published,
             "pose_errors": 0 if link is None else link.errors,
             "camera": None if link is None or link.camera is None else link.camera.stats.as_dict(),
+            "sim_control": None if sim_control is None else sim_control.counts.as_dict(),
             **stats.as_dict(),
         }
     if args.json:
@@ -299,6 +306,21 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             flush=True,
         )
     return 0
+
+
+@contextlib.contextmanager
+def serve_sim_control(session: Any, node: Any, key: bytes) -> Iterator[Any]:
+    """Take the harness's commands on ``hil/sim/control`` (:mod:`hal.sim_control`) for
+    ``node`` (a scenario reset with its camera noise seed, :meth:`DspNode.request_reset`) while
+    the context is open; yields the receiver, whose ``counts`` say what was rejected."""
+    from hal.sim_control import KEY_SIM_CONTROL, SimControlReceiver
+
+    receiver = SimControlReceiver(lambda msg: node.request_reset(msg.seed), key=key)
+    subscriber = session.subscribe(KEY_SIM_CONTROL, receiver.feed)
+    try:
+        yield receiver
+    finally:
+        subscriber.undeclare()
 
 
 def _say_fault(line: str) -> None:

@@ -22,8 +22,9 @@ Reproduces the paper's experiments (Section V) on the emulated rig: `hil emulato
 `hil vision` and `hil controller` run as separate processes (lockstep by default, --realtime for
 real-time runs) and every run logs to MCAP. Lockstep runs that share the emulator's and vision's
 configuration (all but the controller's sections) run on one set of processes: the controller
-resets the emulated DSP's scenario between them (DspControl RESET_SCENARIO), which starts each
-run exactly as fresh processes would. --fresh-processes starts the rig anew for every run.
+resets the emulated DSP's scenario between them (on the simulator-control channel, zenoh
+hil/sim/control), which starts each run exactly as fresh processes would. --fresh-processes
+starts the rig anew for every run.
 
   fig3    RHC (T = 0.02 s) vs inverse-optimal vs passivity-based control: f, xi, u over time
           (solid RHC, dashed IOC, dash-dot PBC) and J of each law

@@ -2,8 +2,9 @@
 
 Starting the three processes costs more than a 10 s lockstep run, so ``hil experiment`` hands
 the controller a plan of runs. Between runs the controller resets the emulated DSP's scenario
-over the CAN link (DspControl ``RESET_SCENARIO``: simulation time 0, the initial state, a new
-session and camera noise seed, the vision process restarting from that seed); each run's log
+on the simulator-control channel (:mod:`hal.sim_control`, zenoh ``hil/sim/control``:
+simulation time 0, the initial state, a new session and camera noise seed, the vision process
+restarting from that seed) and waits for the new session's DspStatus on CAN; each run's log
 and summary are then those of ``hil up --config RUN.toml`` (tests compare them bit for bit).
 
 The plan is JSON::
@@ -18,6 +19,7 @@ The runs may differ only in what the emulator and vision processes do not read (
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import threading
@@ -27,9 +29,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hal.can_codec import SEED_MAX
 from hal.config import RigConfig, load_config
 from hal.errors import HalError, HalStopped
+from hal.secoc import rig_key
+from hal.sim_control import SEED_MAX, SimControlSender
 from rt_controller.config_rules import apply_overrides
 from rt_controller.errors import ControllerConfigError, ControllerError
 
@@ -98,7 +101,8 @@ def _planned_run(item: Any, where: str) -> PlannedRun:
 
 def reset_seed(cfg: RigConfig) -> int | None:
     """The camera noise seed a scenario reset carries for a run of ``cfg`` (None when it does
-    not fit ``DspControl.Seed``: such a seed is the processes' own, see :func:`world_of`)."""
+    not fit :data:`~hal.sim_control.SEED_MAX`: such a seed is the processes' own, see
+    :func:`world_of`)."""
     seed = cfg.camera.seed
     return seed if 0 <= seed <= SEED_MAX else None
 
@@ -172,16 +176,18 @@ def run_plan(
     out: list[dict[str, Any]] = []
     try:
         with (
-            recorder_service(cfgs[0]) as service,
-            open_links(cfgs[0], stop) as (dsp, session),
+            recorder_service(cfgs[0], opts) as service,
+            open_links(cfgs[0], opts, stop) as (dsp, session),
         ):
+            sim = SimControlSender(session, key=rig_key(cfgs[0]))
             for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
                 if stop.is_set():
                     break
                 t0 = time.monotonic()
                 if i:
                     try:
-                        dsp.reset_scenario(RESET_TIMEOUT_S, seed=reset_seed(cfg))
+                        request = functools.partial(sim.reset_scenario, reset_seed(cfg))
+                        dsp.await_new_session(RESET_TIMEOUT_S, request)
                     except HalError as exc:
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
                 run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from hal.can_codec import SEED_MAX
 from hal.config import RigConfig, load_config
+from hal.sim_control import SEED_MAX
 from rt_controller.cli import main
 from rt_controller.config_rules import config_toml
 from rt_controller.errors import ControllerConfigError
@@ -80,7 +80,7 @@ def test_a_missing_plan_file_is_a_clear_error(tmp_path):
 
 
 def test_runs_may_differ_in_the_controllers_sections_and_a_resettable_seed_only(tmp_path):
-    """The controller's sections and a camera seed that fits DspControl.Seed (the reset
+    """The controller's sections and a camera seed that fits hal.sim_control.SEED_MAX (the reset
     carries it) may differ between runs; anything else the emulator or vision reads may not,
     nor may a seed beyond 32 bits."""
     base = load_config(None)

@@ -55,11 +55,6 @@ T0 = 1_000_000_000_000
         (S.FAULT, C.DISABLE, None),
         (S.FAULT, C.DISABLE_VOLTAGE, None),
         (S.NOT_READY, C.ENABLE, None),
-        (S.FAULT, C.RESET_SCENARIO, S.SWITCH_ON_DISABLED),
-        (S.READY_TO_SWITCH_ON, C.RESET_SCENARIO, S.SWITCH_ON_DISABLED),
-        (S.SWITCH_ON_DISABLED, C.RESET_SCENARIO, S.SWITCH_ON_DISABLED),
-        (S.OPERATION_ENABLED, C.RESET_SCENARIO, None),
-        (S.NOT_READY, C.RESET_SCENARIO, None),
     ],
 )
 def test_transition_table(state: DriveState, command: DspCommand, expected: DriveState | None):

@@ -12,7 +12,6 @@ from hal.can_codec import (
     DBC_PATH,
     ENCODER_COUNTS_PER_REV,
     RAD_PER_COUNT,
-    SEED_MAX,
     ControllerCodec,
     DspCodec,
     DspCommand,
@@ -242,13 +241,12 @@ def test_own_direction_frames_are_ignored() -> None:
     "fields",
     [
         pytest.param({"Command": 7}, id="unknown command"),
-        pytest.param({"Command": 1, "SeedGiven": 1, "Seed": 3}, id="seed with ENABLE"),
-        pytest.param({"Command": 5, "Seed": 3}, id="seed without SeedGiven"),
+        pytest.param({"Command": 5}, id="the scenario reset, no longer on CAN"),
     ],
 )
 def test_a_malformed_command_with_valid_crc_is_a_decode_error(fields: dict) -> None:
     spec = load_database().by_name["DspControl"]
-    signals = {"CRC": 0, "Counter": 0, "Freshness": 0, "Mac": 0, "SeedGiven": 0, "Seed": 0}
+    signals = {"CRC": 0, "Counter": 0, "Freshness": 0, "Mac": 0}
     signals.update(fields)
     payload = bytearray(spec.message.encode(signals)[:8])
     E2ESender().protect(spec.data_id, payload)
@@ -259,27 +257,16 @@ def test_a_malformed_command_with_valid_crc_is_a_decode_error(fields: dict) -> N
     assert dsp.stats.decode_error == 1 and dsp.stats.rejected == 1
 
 
-@pytest.mark.parametrize("seed", [None, 0, 7, SEED_MAX])
-def test_a_scenario_reset_carries_its_seed(seed: int | None) -> None:
-    """RESET_SCENARIO names the new run's camera noise seed (SeedGiven + 32-bit Seed) or none;
-    the DSP decodes exactly what was sent."""
-    msg = ControllerCodec().encode_control(DspCommand.RESET_SCENARIO, seed)
-    assert DspCodec().decode(msg, 0) == DspControl(DspCommand.RESET_SCENARIO, seed)
-
-
-@pytest.mark.parametrize(
-    ("command", "seed"),
-    [
-        (DspCommand.ENABLE, 1),
-        (DspCommand.RESET_SCENARIO, -1),
-        (DspCommand.RESET_SCENARIO, SEED_MAX + 1),
-        (DspCommand.RESET_SCENARIO, True),
-        (DspCommand.RESET_SCENARIO, 1.5),
-    ],
-)
-def test_a_seed_that_cannot_be_sent_is_refused(command: DspCommand, seed: int) -> None:
-    with pytest.raises(HalCodecError, match=r"(?i)seed"):
-        ControllerCodec().encode_control(command, seed)
+def test_the_dbc_holds_only_what_a_real_dsp_implements() -> None:
+    """The harness's scenario reset and camera seed left the CAN database for the
+    simulator-control channel (hal.sim_control): no command value, no signal for them."""
+    db = cantools.database.load_file(str(DBC_PATH))
+    control = db.get_message_by_name("DspControl")
+    assert {s.name for s in control.signals} == {"CRC", "Counter", "Command", "Freshness", "Mac"}
+    assert set(control.get_signal_by_name("Command").choices) == {1, 2, 3, 4}
+    text = DBC_PATH.read_text()
+    assert "RESET_SCENARIO" not in text and "Seed" not in text
+    assert [c.name for c in DspCommand] == ["ENABLE", "DISABLE", "FAULT_RESET", "DISABLE_VOLTAGE"]
 
 
 def test_decode_command_drops_non_command_frames() -> None:

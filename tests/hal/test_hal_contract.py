@@ -286,7 +286,7 @@ def test_receive_errors_are_counted_and_read_as_no_frame(
     dsp_bus: can.BusABC, client: JointClient, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A driver error in ``bus.recv`` never reaches the caller of ``drain``, ``wait_sync`` or
-    ``reset_scenario``: each one is counted, and the client reads on afterwards."""
+    ``await_new_session``: each one is counted, and the client reads on afterwards."""
 
     def broken(timeout: float | None = None) -> can.Message | None:
         raise can.CanOperationError("driver says no")
@@ -296,7 +296,7 @@ def test_receive_errors_are_counted_and_read_as_no_frame(
     with pytest.raises(HalTimeoutError, match="Sync"):
         client.wait_sync(0.01)
     with pytest.raises(HalTimeoutError, match="scenario reset"):
-        client.reset_scenario(0.01)
+        client.await_new_session(0.01, lambda: None)
     errors = client.stats.transport_errors
     assert errors >= 3 and client.stats.frames == 0
     monkeypatch.undo()

@@ -40,14 +40,8 @@ def e2e_crc_reference(data_id: int, payload: bytes) -> int:
 
 def command_is_malformed(data: bytes) -> bool:
     """Whether a DspControl payload (bytes 0..7) is a decode error, read from the DBC's layout
-    independently of hal: Command (byte 2) outside 1..5; a seed (SeedGiven, bit 24) with
-    another command than RESET_SCENARIO (5); a Seed (bytes 4..7) without SeedGiven."""
-    command, seed_given, seed = data[2], data[3] & 1, bytes(data[4:8])
-    if command not in range(1, 6):
-        return True
-    if seed_given:
-        return command != 5
-    return seed != bytes(4)
+    independently of hal: Command (byte 2) outside 1..4."""
+    return data[2] not in range(1, 5)
 
 
 def session_key() -> bytes:
