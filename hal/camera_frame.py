@@ -51,7 +51,7 @@ import numpy as np
 
 from hal.errors import HalCodecError
 from hal.secoc import VISION_MAC_BYTES, Mac, derive, rig_key
-from hal.vision_codec import RxCounts
+from hal.vision_receivers import RxCounts
 
 FRAME_MAGIC = b"HC"
 FRAME_VERSION = 1

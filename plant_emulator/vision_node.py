@@ -56,7 +56,8 @@ import zenoh
 from hal.config import RigConfig, plant_view
 from hal.errors import HalConfigError, HalError
 from hal.secoc import rig_key
-from hal.vision_codec import FeatureMsg, PoseDecoder, PoseMsg, encode_features, is_resend
+from hal.vision_codec import FeatureMsg, PoseMsg, encode_features, is_resend
+from hal.vision_receivers import PoseDecoder
 from hal.zenoh_session import (
     DEFAULT_WAIT_S,
     KEY_CAMERA_POSE,

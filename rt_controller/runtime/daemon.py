@@ -25,7 +25,7 @@ from hal.config import RigConfig
 from hal.errors import HalStopped
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
-from hal.vision_codec import FeatureDecoder
+from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import ZenohSession, open_session
 from rt_controller.calibration.link import ParameterServer
 from rt_controller.calibration.parameters import ParameterService

@@ -21,8 +21,8 @@ import numpy as np
 from hal.errors import HalCodecError, HalTimeoutError
 from hal.hardware_interface import InputJudge, Observation, StopFlag
 from hal.joint_client import JointClient
-from hal.vision_codec import FeatureDecoder
 from hal.vision_image import decode_vision_image
+from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE, PayloadRing
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics

@@ -18,7 +18,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from hal.hardware_interface import Observation
-from hal.vision_codec import FeatureMsg, feature_age_ns
+from hal.vision_codec import FeatureMsg
+from hal.vision_receivers import feature_age_ns
 from rt_controller.runtime.cadence import Cadence, Idle, Tick
 from rt_controller.runtime.context import RunContext
 

@@ -16,7 +16,8 @@ import pytest
 from hal.bus import isolated_spec, open_bus
 from hal.config import RigConfig, load_config
 from hal.joint_client import JointClient
-from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
+from hal.vision_codec import FeatureMsg, encode_features
+from hal.vision_receivers import FeatureDecoder
 from plant_emulator.dsp_node import DspNode
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions

@@ -13,7 +13,8 @@ from hal.bus import isolated_spec
 from hal.config import RigConfig
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
-from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
+from hal.vision_codec import FeatureMsg, encode_features
+from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import RunCounters

@@ -323,7 +323,7 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
     zenoh_ctx: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
     poses: list[Any] = []
     if native:  # the native variant also checks the zenoh vision link
-        from hal.vision_codec import PoseDecoder
+        from hal.vision_receivers import PoseDecoder
         from hal.zenoh_session import KEY_CAMERA_POSE, free_loopback_port, open_session
 
         endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"

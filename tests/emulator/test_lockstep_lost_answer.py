@@ -10,14 +10,8 @@ import numpy as np
 
 from hal.config import RigConfig
 from hal.secoc import rig_key
-from hal.vision_codec import (
-    FeatureDecoder,
-    FeatureMsg,
-    PoseDecoder,
-    PoseMsg,
-    encode_features,
-    encode_pose,
-)
+from hal.vision_codec import FeatureMsg, PoseMsg, encode_features, encode_pose
+from hal.vision_receivers import FeatureDecoder, PoseDecoder
 from plant_emulator.camera import camera_pose
 from plant_emulator.vision_node import VisionCore
 

@@ -18,7 +18,8 @@ import pytest
 
 from hal.config import RigConfig
 from hal.errors import HalConfigError
-from hal.vision_codec import FeatureDecoder, FeatureMsg, PoseMsg, encode_features
+from hal.vision_codec import FeatureMsg, PoseMsg, encode_features
+from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, ZenohSession, open_session
 from plant_emulator.camera import CameraPose, camera_pose, project
 from plant_emulator.pose_link import PosePublisher

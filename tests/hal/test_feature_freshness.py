@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 
 from hal.config import RigConfig
-from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features, feature_age_ns
+from hal.vision_codec import FeatureMsg, encode_features
+from hal.vision_receivers import FeatureDecoder, feature_age_ns
 
 NOW = 50_000_000_000
 MS = 1_000_000

@@ -25,14 +25,8 @@ from hal.secoc import (
     require_rig_key,
     write_key_file,
 )
-from hal.vision_codec import (
-    FeatureDecoder,
-    FeatureMsg,
-    PoseDecoder,
-    PoseMsg,
-    encode_features,
-    encode_pose,
-)
+from hal.vision_codec import FeatureMsg, PoseMsg, encode_features, encode_pose
+from hal.vision_receivers import FeatureDecoder, PoseDecoder
 from rt_controller.cli import main
 
 KEY_A, KEY_B = bytes(range(32)), bytes(range(1, 33))

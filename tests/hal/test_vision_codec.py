@@ -13,15 +13,14 @@ from hal.errors import HalCodecError
 from hal.vision_codec import (
     FEATURES_SIZE,
     POSE_SIZE,
-    FeatureDecoder,
     FeatureMsg,
-    PoseDecoder,
     PoseMsg,
     decode_features,
     decode_pose,
     encode_features,
     encode_pose,
 )
+from hal.vision_receivers import FeatureDecoder, PoseDecoder
 
 NOW = 10_000_000_000
 

@@ -12,7 +12,8 @@ import zenoh
 from hal.config import RigConfig, load_config
 from hal.errors import HalConfigError, HalStopped, HalTransportError
 from hal.resources import open_resources
-from hal.vision_codec import FeatureDecoder, FeatureMsg, encode_features
+from hal.vision_codec import FeatureMsg, encode_features
+from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import (
     KEY_CAMERA_POSE,
     KEY_FEATURES,

@@ -10,7 +10,7 @@ import numpy as np
 from hal.camera_frame import encode_frame
 from hal.config import RigConfig
 from hal.secoc import rig_key
-from hal.vision_codec import FeatureDecoder
+from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_FEATURES, open_session
 from tests.support.synthetic_frames import frame
 from vision.intrinsics import intrinsics_from_config
