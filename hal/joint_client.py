@@ -119,8 +119,6 @@ class JointClient:
         self._owns_bus = owns_bus
         self._key = key if key is not None else rig_key(self.cfg)
         self._codec = ControllerCodec(reinit_after_s=reinit_after_s, key=self._key)
-        self._shadow = ControllerCodec(database=self._codec.database, key=self._key)
-        """The codec :meth:`rehearse_torque` encodes with (its counters are its own)."""
         self._closed = False
         self._armed = False
         # receive-side state, written by process_frame
@@ -274,24 +272,6 @@ class JointClient:
             f"the DSP on {self.bus.channel_info} did not confirm a scenario reset within "
             f"{timeout_s:g} s (only an emulated DSP in lockstep resets)"
         )
-
-    def rehearse_torque(
-        self, tau1: float, tau2: float, *, release_delay_us: int | None = None
-    ) -> None:
-        """Run :meth:`send_torque`'s code for these values without sending anything (to warm
-        it up before a release): a shadow codec (same database and key, its own counters and
-        freshness values) encodes the frame and the bus rehearses its send when it can
-        (:meth:`hal.udp_loopback.LoopbackMulticastBus.rehearse_send`). Never raises."""
-        if self._closed:
-            return
-        tick = 0 if release_delay_us is None else _delay_tick(release_delay_us)
-        try:
-            msg = self._shadow.encode_torque(tau1, tau2, enable=self._armed, tick=tick)
-        except HalError:
-            return
-        rehearse = getattr(self.bus, "rehearse_send", None)
-        if rehearse is not None:
-            rehearse(msg)
 
     # --------------------------------------------------------------------------- receive
 

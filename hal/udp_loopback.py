@@ -196,11 +196,6 @@ class LoopbackMulticastBus(can.BusABC):
         """Receive buffer the kernel granted, in the same unit as asked (bytes)."""
         self._rx: socket.socket | None = None
         self._tx: socket.socket | None = None
-        self._sink: socket.socket | None = None
-        """A private loopback socket that :meth:`rehearse_send`'s datagrams go to."""
-        self._sink_addr: tuple[Any, ...] = ()
-        self.rehearsal_errors = 0
-        """Rehearsed sends that failed (counted; a rehearsal never raises)."""
         self._dest: tuple[Any, ...] = (self._group, self._port)
         try:
             self._open(int(hop_limit))
@@ -367,7 +362,7 @@ class LoopbackMulticastBus(can.BusABC):
             )
 
     def _close_sockets(self) -> None:
-        for sock in (self._rx, self._tx, self._sink):
+        for sock in (self._rx, self._tx):
             if sock is not None:
                 try:
                     sock.close()
@@ -435,34 +430,6 @@ class LoopbackMulticastBus(can.BusABC):
             tx.send(packed)
         except OSError as exc:
             raise can.CanOperationError(f"UDP multicast send failed: {exc}") from exc
-
-    def rehearse_send(self, msg: can.Message) -> None:
-        """Everything :meth:`send` does for ``msg`` except delivering it to the group.
-
-        The frame check and the packing run as for a real send, and the packed datagram goes
-        from this bus's own sending socket to a private loopback socket of this bus (and is
-        read back at once), so the interpreter's code and the kernel's send path are warm when
-        the real send comes (a controller rehearses shortly before its release). No other
-        bus ever sees it. Never raises: a failure is counted in :attr:`rehearsal_errors`.
-        """
-        tx = self._tx
-        if tx is None or self._is_shutdown:
-            return
-        try:
-            if frame_problem(msg, fd=self._can_protocol is can.CanProtocol.CAN_FD) is not None:
-                return
-            packed = pack_message(msg)
-            sink = self._sink
-            if sink is None:
-                sink = self._sink = socket.socket(tx.family, socket.SOCK_DGRAM)
-                sink.bind(("::1" if self._v6() else "127.0.0.1", 0))
-                sink.setblocking(False)
-                self._sink_addr = sink.getsockname()
-            tx.sendto(packed, self._sink_addr)
-            with contextlib.suppress(BlockingIOError):  # one in, one out: the queue stays short
-                sink.recv(_MAX_DATAGRAM)
-        except Exception:  # a rehearsal must never reach the caller's tick
-            self.rehearsal_errors += 1
 
     def fileno(self) -> int:
         return self._rx.fileno() if self._rx is not None else -1

@@ -91,12 +91,6 @@ class ControllerConfig:
     periods old on a busy host."""
     spin_us: float = 300.0
     """Busy-wait for the last microseconds before a deadline."""
-    rehearse: bool = True
-    """Realtime, at 200 Hz and below: shortly before each release (0.2 ms before the spin
-    window) rehearse the last tick with nothing kept: its read (no drive state followed), its
-    rule on a second controller, its write through a shadow codec to a private socket, so
-    that the tick finds its code warm instead of paying for a period of sleep (the run's
-    controller, its log, its counters and the bus are untouched)."""
     rt_priority: int = 80
     """SCHED_FIFO priority (best effort)."""
     cpu: int = -1

@@ -8,7 +8,6 @@ The client reads the bus in the test's thread, as in the controller (it has no t
 
 from __future__ import annotations
 
-import math
 import socket
 import time
 from collections.abc import Iterator
@@ -176,32 +175,6 @@ def test_realtime_commands_carry_their_delay_after_the_release(
         (command,) = recv_frames(dsp_bus, dsp, 1)
         assert isinstance(command, TorqueCommand) and command.tick == sent
     assert dsp.stats.rejected == 0
-
-
-def test_a_rehearsed_torque_never_reaches_the_bus_nor_moves_the_counters(
-    dsp_bus: can.BusABC, client: JointClient
-) -> None:
-    """``rehearse_torque`` runs the send path on a shadow codec: nothing reaches the DSP, and
-    the real commands around it keep consecutive rolling counters and fresh SecOC values (the
-    DSP accepts all of them and loses none); a value the real send refuses is not rehearsed
-    and raises nothing."""
-    dsp = DspCodec()
-    client.enable()
-    client.send_torque(1.0, -1.0, release_delay_us=10)
-    for _ in range(5):
-        client.rehearse_torque(9.0, -9.0, release_delay_us=20)
-    client.rehearse_torque(math.nan, 0.0)
-    client.send_torque(2.0, -2.0, release_delay_us=30)
-    frames = recv_frames(dsp_bus, dsp, 6)
-    assert [f for f in frames if isinstance(f, TorqueCommand)] == [
-        TorqueCommand(1.0, -1.0, True, 10),
-        TorqueCommand(2.0, -2.0, True, 30),
-    ]
-    client.disable()
-    assert recv_frames(dsp_bus, dsp, 3)[-1] == TorqueCommand(0.0, 0.0, False, 0)
-    assert dsp_bus.recv(timeout=0.05) is None  # no rehearsed frame came after them
-    assert dsp.stats.rejected == 0 and dsp.stats.lost == 0
-    assert getattr(client.bus, "rehearsal_errors", 0) == 0
 
 
 def test_every_status_since_the_last_take_comes_in_order(

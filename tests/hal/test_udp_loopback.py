@@ -137,25 +137,6 @@ def test_send_refuses_an_invalid_frame_and_sends_nothing(fields: dict) -> None:
         assert rx.malformed_datagrams == 0
 
 
-def test_a_rehearsed_send_reaches_no_bus_and_never_raises() -> None:
-    """``rehearse_send`` checks, packs and sends ``msg`` to the bus's private socket only: a
-    bus on the group receives the real frame after it and nothing before; an invalid frame and
-    a shut-down bus are rehearsed as nothing, without an exception."""
-    spec = isolated_spec("udp_multicast")
-    with open_bus(spec) as tx, open_bus(spec) as rx:
-        for _ in range(3):
-            tx.rehearse_send(can.Message(arbitration_id=0x10, data=b"\x01\x02", is_fd=True))
-        tx.rehearse_send(can.Message(arbitration_id=0x800, data=b"", check=False))
-        tx.send(can.Message(arbitration_id=0x7FF, data=b"\xaa", is_extended_id=False))
-        got = rx.recv(timeout=RECV_TIMEOUT_S)
-        assert got is not None and got.arbitration_id == 0x7FF
-        assert rx.recv(timeout=0.05) is None and rx.malformed_datagrams == 0
-        assert tx.rehearsal_errors == 0
-        assert tx._sink is not None and tx._sink.getsockname()[0] == "127.0.0.1"
-    tx.rehearse_send(can.Message(arbitration_id=0x10, data=b"\x01"))  # shut down: nothing
-    assert tx.rehearsal_errors == 0
-
-
 def test_fd_frame_refused_on_a_classic_bus() -> None:
     group, port = _pair(isolated_spec("udp_multicast"))
     with LoopbackMulticastBus(group, port=port, fd=False) as bus, pytest.raises(InvalidFrameError):
