@@ -20,11 +20,8 @@ from rt_controller.control import model_kernels
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
 from rt_controller.control.model import NominalModel
+from rt_controller.control.state import IO, MODE_NAMES, OUTPUTS, Field
 from rt_controller.control.state_predictor import StatePredictor
-
-_MODE_NAMES = ("control", "hold", "no_state")
-"""The names of the compiled rule's modes ``MODE_CONTROL``, ``MODE_HOLD``, ``MODE_NO_STATE``
-(``MODE_DRIVE`` is named by the drive's mode)."""
 
 
 @dataclass(frozen=True)
@@ -38,13 +35,23 @@ class Command:
     saturated: bool
 
 
+def _record_entry(f: Field) -> tuple[str, int, str]:
+    return ("law" if f.record == "law" else f.name, IO.offset(f.name), f.record)
+
+
+_RECORD = tuple(_record_entry(f) for f in OUTPUTS if f.record)
+"""(record name, io offset, JSON type) of each output the cycle record holds, in order."""
+_OUTPUT = {f.name: (IO.offset(f.name), f.size) for f in OUTPUTS}
+
+
 class Decision:
     """One tick of the per-tick rule: the torque to send and how it was obtained.
 
-    Made from the outputs of the compiled rule's io vector (:mod:`~rt_controller.control.
-    decide_kernel`), copied; only the torque pair and the mode are made at once (the write
-    needs them), the rest when first read: the loop reads only the record's numbers
-    (:meth:`record_fields`).
+    Made from the outputs of the compiled rule's io vector (:data:`~rt_controller.control.
+    state.IO`), copied. Every output is an attribute by its declared name (``d.xi``,
+    ``d.residual``, ``d.cost``: a 2-vector as an array, a number as a float); only the torque
+    pair and the mode are made at once (the write needs them), the rest when read: the loop
+    reads only the record's numbers (:meth:`record_fields`).
     """
 
     __slots__ = ("_command", "_out", "_solve_ns", "_t", "_tau", "mode", "torque")
@@ -56,13 +63,22 @@ class Decision:
         self._out = v
         self._t, self._solve_ns = t, solve_ns
         self._tau: np.ndarray | None = None
-        self.torque = (v[dk.OUT_TAU], v[dk.OUT_TAU + 1])
+        self.torque = (v[IO.TAU], v[IO.TAU + 1])
         """The torque to send, as the pair of floats the write takes."""
-        mode = int(v[dk.OUT_MODE])
-        self.mode = _MODE_NAMES[mode] if mode < len(_MODE_NAMES) else drive_mode
+        mode = int(v[IO.MODE])
+        self.mode = MODE_NAMES[mode] if mode < len(MODE_NAMES) else drive_mode
         """``control`` (the law ran), ``hold`` (stale features: joint damper), ``no_state``, or
         the drive's mode when it is not enabled (``disarmed``, ``fault``, ...)."""
         self._command: Command | None = None
+
+    def __getattr__(self, name: str) -> Any:
+        """An output of the rule by its declared name (:data:`~rt_controller.control.state.
+        OUTPUTS`): a float, or an array for a vector."""
+        try:
+            k, size = _OUTPUT[name]
+        except KeyError:
+            raise AttributeError(name) from None
+        return self._out[k] if size == 1 else np.array(self._out[k : k + size])
 
     @property
     def tau(self) -> np.ndarray:
@@ -71,49 +87,32 @@ class Decision:
             self._tau = np.array(self.torque)
         return self._tau
 
-    def _vec(self, k: int) -> np.ndarray:
-        return np.array(self._out[k : k + 2])
-
     @property
     def command(self) -> Command | None:
         """The law's step when ``mode == "control"``."""
         if self._command is None and self.mode == "control":
-            v = self._out
-            q, dq = self.state  # type: ignore[misc]
-            m = Measurement(t=self._t, q=q, dq=dq, f=self.features, xi=self._vec(dk.OUT_XI))
+            m = Measurement(t=self._t, q=self.q_pred, dq=self.dq_pred, f=self.f_pred, xi=self.xi)
             law = LawOutput(
-                u=self._vec(dk.OUT_U),
-                residual=v[dk.OUT_RES],
-                iterations=int(v[dk.OUT_ITERS]),
-                fallback=bool(v[dk.OUT_FALLBACK]),
+                u=self.u,
+                residual=self.residual,
+                iterations=int(self.iterations),
+                fallback=bool(self.fallback),
                 solve_ns=self._solve_ns,
             )
-            self._command = Command(m, law, self._vec(dk.OUT_RAW), self.tau, bool(v[dk.OUT_SAT]))
+            self._command = Command(m, law, self.tau_raw, self.tau, bool(self.tau_saturated))
         return self._command
 
     @property
     def state(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(q, dq) the hold or the law acted on: the joint state brought up to the tick (as
         measured when its age was not given); ``None`` when neither ran."""
-        if self.mode in ("control", "hold"):
-            return (self._vec(dk.OUT_Q), self._vec(dk.OUT_DQ))
-        return None
+        return (self.q_pred, self.dq_pred) if self.mode in ("control", "hold") else None
 
     @property
     def features(self) -> np.ndarray | None:
         """f the law acted on: the features brought up to the tick (as measured when their age
         was not given); ``None`` when the law did not run."""
-        return self._vec(dk.OUT_F) if self.mode == "control" else None
-
-    @property
-    def cost(self) -> float:
-        """l(x_k, u_k) of eq. (25) for this tick; NaN when the law did not run."""
-        return self._out[dk.OUT_COST]
-
-    @property
-    def V(self) -> float:
-        """V(x_k) of eq. (13) for this tick; NaN when the law did not run."""
-        return self._out[dk.OUT_V]
+        return self.f_pred if self.mode == "control" else None
 
     @property
     def solve_ns(self) -> int:
@@ -121,24 +120,22 @@ class Decision:
         return self._solve_ns if self.mode == "control" else 0
 
     def record_fields(self, law_name: str) -> dict[str, Any]:
-        """The cycle record's output fields (see :func:`rt_controller.runtime.cycle_record.
-        decision_fields`); the rule leaves NaN in what it did not act on."""
-        v = self._out
-        return {
-            "q_pred": v[dk.OUT_Q : dk.OUT_Q + 2],
-            "dq_pred": v[dk.OUT_DQ : dk.OUT_DQ + 2],
-            "f_pred": v[dk.OUT_F : dk.OUT_F + 2],
-            "xi": v[dk.OUT_XI : dk.OUT_XI + 2],
-            "u": v[dk.OUT_U : dk.OUT_U + 2],
-            "tau": v[dk.OUT_TAU : dk.OUT_TAU + 2],
-            "tau_saturated": v[dk.OUT_SAT] != 0.0,
-            "law": law_name if self.mode == "control" else self.mode,
-            "residual": v[dk.OUT_RES],
-            "iterations": int(v[dk.OUT_ITERS]),
-            "fallback": v[dk.OUT_FALLBACK] != 0.0,
-            "cost": v[dk.OUT_COST],
-            "V": v[dk.OUT_V],
-        }
+        """The cycle record's decision fields, as declared (:data:`~rt_controller.control.
+        state.OUTPUTS`; see :func:`rt_controller.runtime.cycle_record.decision_fields`); the
+        rule leaves NaN in what it did not act on."""
+        v, out = self._out, {}
+        for name, k, kind in _RECORD:
+            if kind == "vector":
+                out[name] = v[k : k + 2]
+            elif kind == "boolean":
+                out[name] = v[k] != 0.0
+            elif kind == "integer":
+                out[name] = int(v[k])
+            elif kind == "law":
+                out[name] = law_name if self.mode == "control" else self.mode
+            else:
+                out[name] = v[k]
+        return out
 
 
 class Controller:
@@ -220,7 +217,7 @@ class Controller:
         now = t if now_s is None else now_s
         rule = self.rule
         io = rule.io  # the inputs in one slice assignment
-        io[dk.IN_T : dk.IN_ENABLED + 1] = (
+        io[: IO.OUTPUTS] = (
             t, now, q[0], q[1], dq[0], dq[1], f[0], f[1], state_age_s, feature_age_s,
             f_stale, state_stale, drive_mode == "enabled",
         )  # fmt: skip

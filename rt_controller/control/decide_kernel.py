@@ -26,36 +26,20 @@ from numba import njit
 from hal.config import RigConfig
 from rt_controller.control import model_kernels as mk
 from rt_controller.control.rhc import kernel as rk
+from rt_controller.control.state import (
+    IO,
+    KS,
+    LIM,
+    MODE_CONTROL,
+    MODE_DRIVE,
+    MODE_HOLD,
+    MODE_NO_STATE,
+    PAR,
+    ST,
+)
 
-# --- io vector: inputs
-IN_T, IN_NOW = 0, 1  # tick time and when the torque is sent (the time axis of t), s
-IN_Q, IN_DQ, IN_F = 2, 4, 6  # measured state and features (2 each)
-IN_STATE_AGE, IN_F_AGE = 8, 9  # s before IN_NOW; 0 or less: as measured
-IN_F_STALE, IN_STATE_STALE, IN_ENABLED = 10, 11, 12  # flags, 0.0 / 1.0
-# (the inputs are 0 .. IN_ENABLED in this order: Controller.decide fills them in one assignment)
-# --- io vector: outputs
-OUT_TAU = 13  # torque to send (2)
-OUT_MODE = 15  # MODE_*
-OUT_Q, OUT_DQ, OUT_F = 16, 18, 20  # the state and features acted on (2 each; NaN if none)
-OUT_XI, OUT_U = 22, 24  # xi of eq. (10) and the law's u (2 each)
-OUT_SAT, OUT_RES, OUT_ITERS, OUT_FALLBACK = 26, 27, 28, 29
-OUT_COST, OUT_V = 30, 31  # l of eq. (25), V of eq. (13); NaN when the law did not run
-OUT_RAW = 32  # the torque of eq. (11) before saturation (2)
-N_IO = 34
-
-MODE_CONTROL, MODE_HOLD, MODE_NO_STATE, MODE_DRIVE = 0.0, 1.0, 2.0, 3.0
-"""``control``: the law ran; ``hold``: no usable features (joint damper); ``no_state``: no joint
-state (zero torque); ``drive``: the DSP is not in operation enabled (zero torque)."""
-
-# --- limits vector
-LIM_TAU_MAX, LIM_U_MAX = 0, 2  # 2 each
-LIM_LAW, LIM_HORIZON, LIM_STEP, LIM_RES_BOUND = 4, 5, 6, 7
-N_LIM = 8
 LAW_CODES = {"pbc": 0.0, "ioc": 1.0, "rhc": 2.0}
-
-# --- kernel state vector
-KS_HOLDING, KS_T0, KS_N, KS_FALLBACKS = 0, 1, 2, 3
-N_KS = 4
+"""The law's code in ``LIM.LAW``."""
 
 CAPACITY = 1024
 """Torques the history holds before it drops those older than the horizon (amortised)."""
@@ -67,7 +51,7 @@ STEP_S = 1e-3
 def record_sent(hist_t, hist_tau, ks, t, tau0, tau1, horizon):
     """Append the torque sent at ``t``; a full history first keeps only the one held at
     ``t - horizon`` and those after it (the oldest goes if that is still all of them)."""
-    n = int(ks[KS_N])
+    n = int(ks[KS.N])
     cap = hist_t.shape[0]
     if n == cap:
         first = 0
@@ -86,38 +70,38 @@ def record_sent(hist_t, hist_tau, ks, t, tau0, tau1, horizon):
             n -= 1
     hist_t[n] = t
     hist_tau[n, 0], hist_tau[n, 1] = tau0, tau1
-    ks[KS_N] = n + 1
+    ks[KS.N] = n + 1
 
 
 @njit(cache=True, fastmath=False)
 def law_input(io, p, lim, ks, xi, P, st, work, iP):
     """u of the configured law at the io's tick (the C/GMRES update for rhc, falling back to
     eq. 27 clipped to the bounds when its solution is not finite or its residual too large)."""
-    law = lim[LIM_LAW]
-    r00, r01, r10, r11 = p[mk.RMAT], p[mk.RMAT + 1], p[mk.RMAT + 2], p[mk.RMAT + 3]
+    law = lim[LIM.LAW]
+    r00, r01, r10, r11 = p[PAR.R], p[PAR.R + 1], p[PAR.R + 2], p[PAR.R + 3]
     if law == 0.0:  # eq. (15)
         return -r00 * xi[0] + -r01 * xi[1], -r10 * xi[0] + -r11 * xi[1], False
     u0 = -2.0 * r00 * xi[0] + -2.0 * r01 * xi[1]  # eq. (27)
     u1 = -2.0 * r10 * xi[0] + -2.0 * r11 * xi[1]
     if law == 1.0:
         return u0, u1, False
-    t = io[IN_T]
-    if math.isnan(ks[KS_T0]):
-        ks[KS_T0] = t
-    st[rk.ST_X], st[rk.ST_X + 1] = io[OUT_Q], io[OUT_Q + 1]
-    st[rk.ST_X + 2], st[rk.ST_X + 3] = xi[0], xi[1]
-    st[rk.ST_X + 4], st[rk.ST_X + 5] = io[OUT_F], io[OUT_F + 1]
-    st[rk.ST_T] = t - ks[KS_T0]
-    st[rk.ST_MODEL_XDOT] = 1.0
+    t = io[IO.T]
+    if math.isnan(ks[KS.T0]):
+        ks[KS.T0] = t
+    st[ST.X], st[ST.X + 1] = io[IO.Q_PRED], io[IO.Q_PRED + 1]
+    st[ST.X + 2], st[ST.X + 3] = xi[0], xi[1]
+    st[ST.X + 4], st[ST.X + 5] = io[IO.F_PRED], io[IO.F_PRED + 1]
+    st[ST.T] = t - ks[KS.T0]
+    st[ST.MODEL_XDOT] = 1.0
     rk.rhc_tick(P, iP, st, work)
-    ok = st[rk.ST_STATUS] == rk.OK and st[rk.ST_RES] <= lim[LIM_RES_BOUND]
-    st[rk.ST_INIT] = 0.0 if ok else 1.0  # a failed solve starts from scratch next tick
+    ok = st[ST.STATUS] == rk.OK and st[ST.RES] <= lim[LIM.RES_BOUND]
+    st[ST.INIT] = 0.0 if ok else 1.0  # a failed solve starts from scratch next tick
     if ok:
-        return st[rk.ST_U], st[rk.ST_U + 1], False
-    ks[KS_FALLBACKS] += 1.0
+        return st[ST.U], st[ST.U + 1], False
+    ks[KS.FALLBACKS] += 1.0
     if not (math.isfinite(u0) and math.isfinite(u1)):
         return 0.0, 0.0, True
-    um0, um1 = lim[LIM_U_MAX], lim[LIM_U_MAX + 1]
+    um0, um1 = lim[LIM.U_MAX], lim[LIM.U_MAX + 1]
     return min(max(u0, -um0), um0), min(max(u1, -um1), um1), True
 
 
@@ -125,11 +109,11 @@ def law_input(io, p, lim, ks, xi, P, st, work, iP):
 def reset_law(ks, st, n_u):
     """Forget the law's warm start (U and Udot, the ``n_u`` numbers after the solver state's
     head) and its horizon-growth clock: the next solve starts from scratch."""
-    ks[KS_T0] = np.nan
-    ks[KS_FALLBACKS] = 0.0
+    ks[KS.T0] = np.nan
+    ks[KS.FALLBACKS] = 0.0
     for i in range(n_u):
-        st[rk.ST_HEAD + i] = 0.0
-    st[rk.ST_INIT] = 1.0
+        st[ST.HEAD + i] = 0.0
+    st[ST.INIT] = 1.0
 
 
 @njit(cache=True, fastmath=False)
@@ -137,63 +121,63 @@ def decide_tick(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
     """One tick of the per-tick rule (see the module docstring); writes the io's outputs.
 
     ``n_u``: the length of the solver's U and Udot at the end of ``st`` (0 for pbc, ioc)."""
-    for k in range(OUT_TAU, N_IO):
+    for k in range(IO.OUTPUTS, IO.SIZE):
         io[k] = np.nan
-    io[OUT_TAU], io[OUT_TAU + 1] = 0.0, 0.0
-    io[OUT_XI], io[OUT_XI + 1], io[OUT_U], io[OUT_U + 1] = 0.0, 0.0, 0.0, 0.0
-    io[OUT_SAT], io[OUT_RES], io[OUT_ITERS], io[OUT_FALLBACK] = 0.0, 0.0, 0.0, 0.0
-    now, horizon = io[IN_NOW], lim[LIM_HORIZON]
-    if io[IN_ENABLED] == 0.0:
-        ks[KS_HOLDING] = 1.0
-        io[OUT_MODE] = MODE_DRIVE
-    elif io[IN_STATE_STALE] != 0.0:
-        io[OUT_MODE] = MODE_NO_STATE
+    io[IO.TAU], io[IO.TAU + 1] = 0.0, 0.0
+    io[IO.XI], io[IO.XI + 1], io[IO.U], io[IO.U + 1] = 0.0, 0.0, 0.0, 0.0
+    io[IO.TAU_SATURATED], io[IO.RESIDUAL], io[IO.ITERATIONS], io[IO.FALLBACK] = 0.0, 0.0, 0.0, 0.0
+    now, horizon = io[IO.NOW], lim[LIM.HORIZON]
+    if io[IO.ENABLED] == 0.0:
+        ks[KS.HOLDING] = 1.0
+        io[IO.MODE] = MODE_DRIVE
+    elif io[IO.STATE_STALE] != 0.0:
+        io[IO.MODE] = MODE_NO_STATE
     else:
         _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u)
-    record_sent(hist_t, hist_tau, ks, now, io[OUT_TAU], io[OUT_TAU + 1], horizon)
+    record_sent(hist_t, hist_tau, ks, now, io[IO.TAU], io[IO.TAU + 1], horizon)
 
 
 @njit(cache=True, fastmath=False)
 def _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
     """The hold or the law on the state (and features) brought up to the tick."""
-    q, dq, f = io[IN_Q : IN_Q + 2], io[IN_DQ : IN_DQ + 2], io[IN_F : IN_F + 2]
-    state_age, f_age = io[IN_STATE_AGE], io[IN_F_AGE]
-    usable = io[IN_F_STALE] == 0.0 and math.isfinite(f[0]) and math.isfinite(f[1])
+    q, dq, f = io[IO.Q : IO.Q + 2], io[IO.DQ : IO.DQ + 2], io[IO.F : IO.F + 2]
+    state_age, f_age = io[IO.STATE_AGE], io[IO.F_AGE]
+    usable = io[IO.F_STALE] == 0.0 and math.isfinite(f[0]) and math.isfinite(f[1])
     if state_age > 0 or (usable and f_age > 0):
         q, dq, f = mk.compensate(
-            p, q, dq, f, hist_t, hist_tau, int(ks[KS_N]), io[IN_NOW], state_age,
-            f_age if usable else 0.0, lim[LIM_HORIZON], lim[LIM_STEP],
+            p, q, dq, f, hist_t, hist_tau, int(ks[KS.N]), io[IO.NOW], state_age,
+            f_age if usable else 0.0, lim[LIM.HORIZON], lim[LIM.STEP],
         )  # fmt: skip
-    io[OUT_Q], io[OUT_Q + 1], io[OUT_DQ], io[OUT_DQ + 1] = q[0], q[1], dq[0], dq[1]
-    tm0, tm1 = lim[LIM_TAU_MAX], lim[LIM_TAU_MAX + 1]
+    io[IO.Q_PRED], io[IO.Q_PRED + 1], io[IO.DQ_PRED], io[IO.DQ_PRED + 1] = q[0], q[1], dq[0], dq[1]
+    tm0, tm1 = lim[LIM.TAU_MAX], lim[LIM.TAU_MAX + 1]
     if not usable:  # hold: tau = -2 R dq, clipped (eq. 27 with eta = 0, no feedforward)
-        ks[KS_HOLDING] = 1.0
-        io[OUT_MODE] = MODE_HOLD
-        r = p[mk.RMAT : mk.RMAT + 4]
+        ks[KS.HOLDING] = 1.0
+        io[IO.MODE] = MODE_HOLD
+        r = p[PAR.R : PAR.R + 4]
         h0 = -2.0 * r[0] * dq[0] + -2.0 * r[1] * dq[1]
         h1 = -2.0 * r[2] * dq[0] + -2.0 * r[3] * dq[1]
-        io[OUT_TAU], io[OUT_TAU + 1] = min(max(h0, -tm0), tm0), min(max(h1, -tm1), tm1)
+        io[IO.TAU], io[IO.TAU + 1] = min(max(h0, -tm0), tm0), min(max(h1, -tm1), tm1)
         return
-    if ks[KS_HOLDING] != 0.0:  # features are back: the law starts again
+    if ks[KS.HOLDING] != 0.0:  # features are back: the law starts again
         reset_law(ks, st, n_u)
-        ks[KS_HOLDING] = 0.0
-    io[OUT_MODE] = MODE_CONTROL
-    io[OUT_F], io[OUT_F + 1] = f[0], f[1]
+        ks[KS.HOLDING] = 0.0
+    io[IO.MODE] = MODE_CONTROL
+    io[IO.F_PRED], io[IO.F_PRED + 1] = f[0], f[1]
     xi, tau_ff = mk.prepare(p, q, dq, f)
-    io[OUT_XI], io[OUT_XI + 1] = xi[0], xi[1]
+    io[IO.XI], io[IO.XI + 1] = xi[0], xi[1]
     u0, u1, fallback = law_input(io, p, lim, ks, xi, P, st, work, iP)
     u = np.empty(2)
     u[0], u[1] = u0, u1
-    tau, raw, saturated = mk.torque(tau_ff, u, lim[LIM_TAU_MAX : LIM_TAU_MAX + 2])
-    io[OUT_U], io[OUT_U + 1] = u0, u1
-    io[OUT_RAW], io[OUT_RAW + 1] = raw[0], raw[1]
-    io[OUT_SAT] = 1.0 if saturated else 0.0
-    io[OUT_FALLBACK] = 1.0 if fallback else 0.0
-    if lim[LIM_LAW] == 2.0:
-        io[OUT_RES], io[OUT_ITERS] = st[rk.ST_RES], st[rk.ST_ITERS]
+    tau, raw, saturated = mk.torque(tau_ff, u, lim[LIM.TAU_MAX : LIM.TAU_MAX + 2])
+    io[IO.U], io[IO.U + 1] = u0, u1
+    io[IO.TAU_RAW], io[IO.TAU_RAW + 1] = raw[0], raw[1]
+    io[IO.TAU_SATURATED] = 1.0 if saturated else 0.0
+    io[IO.FALLBACK] = 1.0 if fallback else 0.0
+    if lim[LIM.LAW] == 2.0:
+        io[IO.RESIDUAL], io[IO.ITERATIONS] = st[ST.RES], st[ST.ITERS]
     if math.isfinite(tau[0]) and math.isfinite(tau[1]):
-        io[OUT_TAU], io[OUT_TAU + 1] = tau[0], tau[1]
-    io[OUT_COST], io[OUT_V] = mk.costs(p, q, xi, f, u)
+        io[IO.TAU], io[IO.TAU + 1] = tau[0], tau[1]
+    io[IO.COST], io[IO.V] = mk.costs(p, q, xi, f, u)
 
 
 class CompiledRule:
@@ -205,12 +189,12 @@ class CompiledRule:
     """
 
     def __init__(self, cfg: RigConfig, law: str, params: np.ndarray, solver: object | None) -> None:
-        self.io = np.zeros(N_IO)
-        self.ks = np.zeros(N_KS)
-        self.ks[KS_T0] = np.nan
+        self.io = np.zeros(IO.SIZE)
+        self.ks = np.zeros(KS.SIZE)
+        self.ks[KS.T0] = np.nan
         self.hist_t = np.zeros(CAPACITY)
         self.hist_tau = np.zeros((CAPACITY, 2))
-        self.lim = np.zeros(N_LIM)
+        self.lim = np.zeros(LIM.SIZE)
         self.retarget(cfg, law, params, solver)
 
     def retarget(self, cfg: RigConfig, law: str, params: np.ndarray, solver: object | None) -> None:
@@ -219,15 +203,15 @@ class CompiledRule:
         c = cfg.controller
         self.p = params
         lim = self.lim
-        lim[LIM_TAU_MAX : LIM_TAU_MAX + 2] = cfg.robot.tau_max
-        lim[LIM_U_MAX : LIM_U_MAX + 2] = cfg.rhc.u_max
-        lim[LIM_LAW] = LAW_CODES[law]
-        lim[LIM_HORIZON] = max(c.state_timeout_s, c.feature_timeout_s)
-        lim[LIM_STEP] = STEP_S
-        lim[LIM_RES_BOUND] = cfg.rhc.residual_bound
+        lim[LIM.TAU_MAX : LIM.TAU_MAX + 2] = cfg.robot.tau_max
+        lim[LIM.U_MAX : LIM.U_MAX + 2] = cfg.rhc.u_max
+        lim[LIM.LAW] = LAW_CODES[law]
+        lim[LIM.HORIZON] = max(c.state_timeout_s, c.feature_timeout_s)
+        lim[LIM.STEP] = STEP_S
+        lim[LIM.RES_BOUND] = cfg.rhc.residual_bound
         if solver is None:
             self.P, self.iP = np.zeros(1), np.zeros(1, dtype=np.int64)
-            self.st, self.work, self.n_u = np.zeros(rk.ST_HEAD), np.zeros(1), 0
+            self.st, self.work, self.n_u = np.zeros(ST.HEAD), np.zeros(1), 0
         else:
             s = solver
             self.P, self.iP, self.st, self.work = s.P, s.iP, s.st, s.work  # type: ignore[attr-defined]
@@ -240,31 +224,31 @@ class CompiledRule:
     @property
     def horizon_s(self) -> float:
         """The oldest measurement worth compensating, s."""
-        return float(self.lim[LIM_HORIZON])
+        return float(self.lim[LIM.HORIZON])
 
     def __len__(self) -> int:
         """Torques held in the history."""
-        return int(self.ks[KS_N])
+        return int(self.ks[KS.N])
 
     @property
     def fallbacks(self) -> int:
         """Ticks that fell back to eq. (27) since the law last started."""
-        return int(self.ks[KS_FALLBACKS])
+        return int(self.ks[KS.FALLBACKS])
 
     def reset_law(self) -> None:
         """The law starts again at the next tick that runs it."""
         reset_law(self.ks, self.st, self.n_u)
-        self.ks[KS_HOLDING] = 0.0
+        self.ks[KS.HOLDING] = 0.0
 
     def reset(self) -> None:
         """As new: the law starts again and the torque history is empty."""
         self.reset_law()
-        self.ks[KS_N] = 0.0
+        self.ks[KS.N] = 0.0
 
     def limits(self, cfg: RigConfig) -> None:
         """The timeouts (the prediction horizon) of ``cfg`` from now on; the law goes on."""
         c = cfg.controller
-        self.lim[LIM_HORIZON] = max(c.state_timeout_s, c.feature_timeout_s)
+        self.lim[LIM.HORIZON] = max(c.state_timeout_s, c.feature_timeout_s)
 
     def __call__(self) -> np.ndarray:
         """Decide on the inputs in :attr:`io`; the same vector, outputs filled in."""

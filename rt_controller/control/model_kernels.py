@@ -11,31 +11,13 @@ import numpy as np
 from numba import njit
 
 from rt_controller.control.model import NominalModel
-
-# Parameter vector layout.
-TH1, TH2, TH3, L1, L2, GAIN, KP, G1, G2 = range(9)
-ALPHA, RMAT, RINV = 9, 13, 17  # 2x2 blocks, row-major
-N_PARAMS = 21
+from rt_controller.control.state import PAR, pack_params
 
 
 def pack(model: NominalModel) -> np.ndarray:
-    """The model's numbers in the kernels' parameter vector."""
-    p = np.empty(N_PARAMS)
-    p[:9] = (
-        model.theta1,
-        model.theta2,
-        model.theta3,
-        model.l1,
-        model.l2,
-        model.gain,
-        model.kp,
-        model.gravity1,
-        model.gravity2,
-    )
-    p[ALPHA : ALPHA + 4] = model.alpha.ravel()
-    p[RMAT : RMAT + 4] = model.R.ravel()
-    p[RINV : RINV + 4] = model.R_inv.ravel()
-    return p
+    """The model's numbers in the kernels' parameter vector (:data:`~rt_controller.control.
+    state.PAR`; the rhc settings zero: :func:`~rt_controller.control.state.pack_params`)."""
+    return pack_params(model)
 
 
 @njit(cache=True, fastmath=False)
@@ -43,7 +25,7 @@ def prepare(p, q, dq, f):
     """(xi, tau_ff): xi = dq - alpha eta and tau_ff = M alpha eta_dot + C alpha eta + g."""
     s1, c1 = np.sin(q[0]), np.cos(q[0])
     s12, c12 = np.sin(q[0] + q[1]), np.cos(q[0] + q[1])
-    l1, l2, g = p[L1], p[L2], p[GAIN]
+    l1, l2, g = p[PAR.L1], p[PAR.L2], p[PAR.GAIN]
     w = dq[0] + dq[1]
     # J_b, R_wc and their derivatives.
     j00, j01 = -l1 * s1 - l2 * s12, -l2 * s12
@@ -65,20 +47,20 @@ def prepare(p, q, dq, f):
     eta1 = j01 * rf0 + j11 * rf1
     ed0 = jd00 * rf0 + jd10 * rf1 + j00 * rdf0 + j10 * rdf1 + j00 * rfd0 + j10 * rfd1
     ed1 = jd01 * rf0 + jd11 * rf1 + j01 * rdf0 + j11 * rdf1 + j01 * rfd0 + j11 * rfd1
-    a = p[ALPHA : ALPHA + 4]
+    a = p[PAR.ALPHA : PAR.ALPHA + 4]
     ae0, ae1 = a[0] * eta0 + a[1] * eta1, a[2] * eta0 + a[3] * eta1
     aed0, aed1 = a[0] * ed0 + a[1] * ed1, a[2] * ed0 + a[3] * ed1
     c2, s2 = np.cos(q[1]), np.sin(q[1])
-    m00 = p[TH1] + p[TH2] + 2 * p[TH3] * c2
-    m01 = p[TH2] + p[TH3] * c2
-    m11 = p[TH2]
-    h = p[TH3] * s2
+    m00 = p[PAR.TH1] + p[PAR.TH2] + 2 * p[PAR.TH3] * c2
+    m01 = p[PAR.TH2] + p[PAR.TH3] * c2
+    m11 = p[PAR.TH2]
+    h = p[PAR.TH3] * s2
     c00, c01, c10 = -h * dq[1], -h * w, h * dq[0]
     xi = np.empty(2)
     xi[0], xi[1] = dq[0] - ae0, dq[1] - ae1
     tau = np.empty(2)
-    tau[0] = m00 * aed0 + m01 * aed1 + c00 * ae0 + c01 * ae1 + p[G1] * c1 + p[G2] * c12
-    tau[1] = m01 * aed0 + m11 * aed1 + c10 * ae0 + p[G2] * c12
+    tau[0] = m00 * aed0 + m01 * aed1 + c00 * ae0 + c01 * ae1 + p[PAR.G1] * c1 + p[PAR.G2] * c12
+    tau[1] = m01 * aed0 + m11 * aed1 + c10 * ae0 + p[PAR.G2] * c12
     return xi, tau
 
 
@@ -103,16 +85,16 @@ def torque(tau_ff, u, tau_max):
 @njit(cache=True, fastmath=False)
 def costs(p, q, xi, f, u):
     """(l, V): the stage cost of eq. (25) and the energy of eq. (13)."""
-    l1, l2, kp, g = p[L1], p[L2], p[KP], p[GAIN]
+    l1, l2, kp, g = p[PAR.L1], p[PAR.L2], p[PAR.KP], p[PAR.GAIN]
     s2, c2 = np.sin(q[1]), np.cos(q[1])
     # A = R_wc^T J_b depends on q2 only.
     a00, a01, a10, a11 = l1 * s2, 0.0, l1 * c2 + l2, l2
     af0 = a00 * xi[0] + a01 * xi[1]
     af1 = a10 * xi[0] + a11 * xi[1]
     eta0, eta1 = a00 * f[0] + a10 * f[1], a01 * f[0] + a11 * f[1]  # A^T f
-    al = p[ALPHA : ALPHA + 4]
-    r = p[RMAT : RMAT + 4]
-    ri = p[RINV : RINV + 4]
+    al = p[PAR.ALPHA : PAR.ALPHA + 4]
+    r = p[PAR.R : PAR.R + 4]
+    ri = p[PAR.R_INV : PAR.R_INV + 4]
     xrx = xi[0] * (r[0] * xi[0] + r[1] * xi[1]) + xi[1] * (r[2] * xi[0] + r[3] * xi[1])
     cross = f[0] * af0 + f[1] * af1
     aeta0, aeta1 = al[0] * eta0 + al[1] * eta1, al[2] * eta0 + al[3] * eta1
@@ -120,9 +102,9 @@ def costs(p, q, xi, f, u):
     uru = u[0] * (ri[0] * u[0] + ri[1] * u[1]) + u[1] * (ri[2] * u[0] + ri[3] * u[1])
     cost = 4.0 * (xrx + kp * cross + kp * ff) + uru
     c = np.cos(q[1])
-    m00 = p[TH1] + p[TH2] + 2 * p[TH3] * c
-    m01 = p[TH2] + p[TH3] * c
-    m11 = p[TH2]
+    m00 = p[PAR.TH1] + p[PAR.TH2] + 2 * p[PAR.TH3] * c
+    m01 = p[PAR.TH2] + p[PAR.TH3] * c
+    m11 = p[PAR.TH2]
     V = 0.5 * (m00 * xi[0] ** 2 + 2 * m01 * xi[0] * xi[1] + m11 * xi[1] ** 2)
     V += kp / (2.0 * g) * (f[0] ** 2 + f[1] ** 2)
     return cost, V
@@ -132,14 +114,14 @@ def costs(p, q, xi, f, u):
 def _accel(p, q0, q1, dq0, dq1, tau0, tau1):
     """ddq of the nominal arm, M(q) ddq + C(q, dq) dq + g(q) = tau (eq. 1)."""
     c2, s2 = np.cos(q1), np.sin(q1)
-    m00 = p[TH1] + p[TH2] + 2 * p[TH3] * c2
-    m01 = p[TH2] + p[TH3] * c2
-    m11 = p[TH2]
-    h = p[TH3] * s2
+    m00 = p[PAR.TH1] + p[PAR.TH2] + 2 * p[PAR.TH3] * c2
+    m01 = p[PAR.TH2] + p[PAR.TH3] * c2
+    m11 = p[PAR.TH2]
+    h = p[PAR.TH3] * s2
     w = dq0 + dq1
     c12 = np.cos(q0 + q1)
-    r0 = tau0 + h * dq1 * dq0 + h * w * dq1 - p[G1] * np.cos(q0) - p[G2] * c12
-    r1 = tau1 - h * dq0 * dq0 - p[G2] * c12
+    r0 = tau0 + h * dq1 * dq0 + h * w * dq1 - p[PAR.G1] * np.cos(q0) - p[PAR.G2] * c12
+    r1 = tau1 - h * dq0 * dq0 - p[PAR.G2] * c12
     det = m00 * m11 - m01 * m01
     return (m11 * r0 - m01 * r1) / det, (m00 * r1 - m01 * r0) / det
 
@@ -183,7 +165,7 @@ def predict(p, q, dq, taus, durations, h_max):
 def reproject(p, q_then, q_now, f):
     """Features of eq. (6) seen from ``q_now`` of the target that showed as ``f`` from
     ``q_then`` (a static target: p_wo = p_wc + R_wc f / gain, then eq. 6 at ``q_now``)."""
-    l1, l2, g = p[L1], p[L2], p[GAIN]
+    l1, l2, g = p[PAR.L1], p[PAR.L2], p[PAR.GAIN]
     c, s = np.cos(q_then[0] + q_then[1]), np.sin(q_then[0] + q_then[1])
     x = l1 * np.cos(q_then[0]) + l2 * c + (c * f[0] - s * f[1]) / g
     y = l1 * np.sin(q_then[0]) + l2 * s + (s * f[0] + c * f[1]) / g

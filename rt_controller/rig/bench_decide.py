@@ -36,6 +36,7 @@ from numba import njit
 from hal.config import RigConfig
 from rt_controller.control import decide_kernel as dk
 from rt_controller.control.controller import Controller, warm_up
+from rt_controller.control.state import IO
 from rt_controller.sample_stats import summary_stats
 
 SNAPSHOTS = 200
@@ -176,15 +177,15 @@ def bench_decide(cfg: RigConfig, updates: int, plant_step: Any, episode_s: float
                 ctl.reset()
                 first[k] = True
             t = (k % episode) * period
-            io[dk.IN_T], io[dk.IN_NOW] = t, t
-            io[dk.IN_Q : dk.IN_Q + 2], io[dk.IN_DQ : dk.IN_DQ + 2] = q, dq
-            io[dk.IN_F : dk.IN_F + 2] = f
-            io[dk.IN_STATE_AGE : dk.IN_ENABLED] = 0.0
-            io[dk.IN_ENABLED] = 1.0
+            io[IO.T], io[IO.NOW] = t, t
+            io[IO.Q : IO.Q + 2], io[IO.DQ : IO.DQ + 2] = q, dq
+            io[IO.F : IO.F + 2] = f
+            io[IO.STATE_AGE : IO.ENABLED] = 0.0
+            io[IO.ENABLED] = 1.0
             if k % every == 0 and not first[k]:
                 snaps.append(_state(rule))
             ns[k] = _timed(rule)
-            q, dq, f = plant_step(q, dq, f, io[dk.OUT_U : dk.OUT_U + 2].copy())
+            q, dq, f = plant_step(q, dq, f, io[IO.U : IO.U + 2].copy())
         warm = np.zeros(len(snaps), dtype=np.int64)
         for i, snap in enumerate(snaps):
             _restore(rule, snap)

@@ -41,15 +41,9 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.kernel import (
-    ST_INIT,
-    ST_MODEL_XDOT,
-    ST_T,
-    ST_X,
-    rhc_tick,
-    sweep_probe,
-)
+from rt_controller.control.rhc.kernel import rhc_tick, sweep_probe
 from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
+from rt_controller.control.state import ST
 from rt_controller.rig.bench_decide import bench_decide
 from rt_controller.sample_stats import summary_stats
 
@@ -180,16 +174,16 @@ def _profile(solver: CGMRESSolver, run: dict[str, Any]) -> dict[str, Any]:
             solver.update(x, t)
             wrapped[i] = time.perf_counter_ns() - start
             st[:] = snap
-            st[ST_X : ST_X + 6] = x
-            st[ST_T] = t
-            st[ST_INIT] = 0.0
-            st[ST_MODEL_XDOT] = 1.0
+            st[ST.X : ST.X + 6] = x
+            st[ST.T] = t
+            st[ST.INIT] = 0.0
+            st[ST.MODEL_XDOT] = 1.0
             start = time.perf_counter_ns()
             rhc_tick(P, iP, st, work)
             bare[i] = time.perf_counter_ns() - start
             st[:] = snap
-            st[ST_X : ST_X + 6] = x
-            st[ST_T] = t
+            st[ST.X : ST.X + 6] = x
+            st[ST.T] = t
             start = time.perf_counter_ns()
             sweep_probe(P, iP, st, work, reps)
             sweep[i] = (time.perf_counter_ns() - start) / reps

@@ -7,8 +7,12 @@ Pure: no I/O, so the control layer (``simulate``) may use it.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from rt_controller.control.state import OUTPUTS
 
 if TYPE_CHECKING:
     from rt_controller.control.controller import Controller, Decision
@@ -45,6 +49,51 @@ class Timing:
     e2e_us: float = 0.0
     deadline_miss: bool = False
     missed_periods: int = 0
+
+
+SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
+"""The JSON Schema of the record; its decision part is generated (:func:`decision_schema`)."""
+
+
+def _property(record: str, doc: str) -> dict[str, Any]:
+    if record == "vector":
+        kind = {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}
+    else:
+        kind = {"type": "string" if record == "law" else record}
+    return {**kind, "description": doc}
+
+
+def decision_schema() -> dict[str, dict[str, Any]]:
+    """The decision part of the record's JSON Schema properties, in order, from the one
+    declaration of the rule's outputs (:data:`rt_controller.control.state.OUTPUTS`)."""
+    return {
+        "law" if f.record == "law" else f.name: _property(f.record, f.doc)
+        for f in OUTPUTS
+        if f.record
+    }
+
+
+def schema_with_decision(schema: dict[str, Any]) -> dict[str, Any]:
+    """``schema`` with its decision properties replaced by :func:`decision_schema` (in place,
+    after ``state_stale``, before ``param_set``)."""
+    decision = decision_schema()
+    props: dict[str, Any] = {}
+    for key, value in schema["properties"].items():
+        if key == "param_set":
+            props.update(decision)
+        if key not in decision:
+            props[key] = value
+    return {**schema, "properties": props}
+
+
+def write_schema(path: Path = SCHEMA_FILE) -> bool:
+    """Regenerate the decision part of ``cycle_schema.json``; whether the file changed.
+    (``python -m rt_controller.runtime.cycle_record`` after changing the rule's outputs.)"""
+    old = path.read_text(encoding="utf-8")
+    new = json.dumps(schema_with_decision(json.loads(old)), indent=2, ensure_ascii=False) + "\n"
+    if new != old:
+        path.write_text(new, encoding="utf-8")
+    return new != old
 
 
 def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
@@ -102,3 +151,7 @@ def cycle_record(
         **decision,
         "param_set": param_set,
     }
+
+
+if __name__ == "__main__":
+    print(f"{SCHEMA_FILE}: {'rewritten' if write_schema() else 'up to date'}")

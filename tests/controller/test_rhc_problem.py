@@ -117,7 +117,7 @@ def discrete_cost(model: NominalModel, x0: np.ndarray, u: np.ndarray, T: float) 
 def test_F_is_the_gradient_of_the_discretised_cost(model, params, T):
     """With mu = 0, F's input rows times dtau are dJ/du_k of the Euler-discretised problem."""
     P, iP = params
-    N = int(iP[pb.I_N])
+    N = int(iP[pb.IP.N])
     rng = np.random.default_rng(7)
     x0 = np.array([np.pi / 6, -np.pi / 6, 3.1, 6.2, -120.0, -160.0])
     u = rng.normal(0, 3, (N, 2))
@@ -135,7 +135,7 @@ def test_F_is_the_gradient_of_the_discretised_cost(model, params, T):
 
 def test_kernel_F_matches_the_reference(model, params, cfg):
     P, iP = params
-    N = int(iP[pb.I_N])
+    N = int(iP[pb.IP.N])
     rng = np.random.default_rng(11)
     x0 = np.array([0.3, -0.8, 2.0, -4.0, 80.0, -150.0])
     U = np.column_stack(

@@ -19,12 +19,18 @@ import time
 import numpy as np
 
 from hal.config import RigConfig
-from rt_controller.control import decide_kernel as dk
 from rt_controller.control import model_kernels
 from rt_controller.control.controller import Decision
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import ControlLaw, Measurement
 from rt_controller.control.model import NominalModel
+from rt_controller.control.state import (
+    IO,
+    MODE_CONTROL,
+    MODE_DRIVE,
+    MODE_HOLD,
+    MODE_NO_STATE,
+)
 from rt_controller.control.state_predictor import StatePredictor
 
 
@@ -84,19 +90,19 @@ class PythonRule:
         now_s: float | None = None,
     ) -> Decision:
         now = t if now_s is None else now_s
-        io = np.full(dk.N_IO, np.nan)
-        io[dk.OUT_TAU : dk.OUT_TAU + 2] = 0.0
-        io[dk.OUT_XI : dk.OUT_XI + 2] = io[dk.OUT_U : dk.OUT_U + 2] = 0.0
-        io[[dk.OUT_SAT, dk.OUT_RES, dk.OUT_ITERS, dk.OUT_FALLBACK]] = 0.0
+        io = np.full(IO.SIZE, np.nan)  # the compiled rule's io vector, outputs as it sets them
+        io[IO.TAU : IO.TAU + 2] = 0.0
+        io[IO.XI : IO.XI + 2] = io[IO.U : IO.U + 2] = 0.0
+        io[[IO.TAU_SATURATED, IO.RESIDUAL, IO.ITERATIONS, IO.FALLBACK]] = 0.0
         solve_ns = 0
         if drive_mode != "enabled":
             self._holding = True
-            io[dk.OUT_MODE] = dk.MODE_DRIVE
+            io[IO.MODE] = MODE_DRIVE
         elif state_stale:
-            io[dk.OUT_MODE] = dk.MODE_NO_STATE
+            io[IO.MODE] = MODE_NO_STATE
         else:
             solve_ns = self._act(io, t, now, (q, dq, f), f_stale, (state_age_s, feature_age_s))
-        self.predictor.sent(now, io[dk.OUT_TAU : dk.OUT_TAU + 2].copy())
+        self.predictor.sent(now, io[IO.TAU : IO.TAU + 2].copy())
         return Decision(io, drive_mode, t, solve_ns)
 
     def _act(self, io, t, now, qdqf, f_stale, ages) -> int:
@@ -107,29 +113,29 @@ class PythonRule:
         usable = not f_stale and finite2(f)
         if state_age > 0 or (usable and f_age > 0):
             q, dq, f = self.predictor.compensate(now, q, dq, f, state_age, f_age if usable else 0)
-        io[dk.OUT_Q : dk.OUT_Q + 2], io[dk.OUT_DQ : dk.OUT_DQ + 2] = q, dq
+        io[IO.Q_PRED : IO.Q_PRED + 2], io[IO.DQ_PRED : IO.DQ_PRED + 2] = q, dq
         if not usable:  # hold: a joint damper, eq. (27) with eta = 0 and no feedforward
             self._holding = True
-            io[dk.OUT_MODE] = dk.MODE_HOLD
+            io[IO.MODE] = MODE_HOLD
             hold = np.clip(-2.0 * self.model.R @ dq, -self.tau_max, self.tau_max)
-            io[dk.OUT_TAU : dk.OUT_TAU + 2] = hold
+            io[IO.TAU : IO.TAU + 2] = hold
             return 0
         if self._holding:
             self.law.reset()
             self._holding = False
-        io[dk.OUT_MODE] = dk.MODE_CONTROL
-        io[dk.OUT_F : dk.OUT_F + 2] = f
+        io[IO.MODE] = MODE_CONTROL
+        io[IO.F_PRED : IO.F_PRED + 2] = f
         xi, tau_ff = model_kernels.prepare(self._p, q, dq, f)
         start = time.perf_counter_ns()
         out = self.law(Measurement(t=t, q=q, dq=dq, f=f, xi=xi))
         solve_ns = time.perf_counter_ns() - start
         u = np.asarray(out.u, dtype=float)
         tau, raw, saturated = model_kernels.torque(tau_ff, u, self.tau_max)  # eq. (11)
-        io[dk.OUT_XI : dk.OUT_XI + 2], io[dk.OUT_U : dk.OUT_U + 2] = xi, u
-        io[dk.OUT_RAW : dk.OUT_RAW + 2] = raw
-        io[dk.OUT_SAT], io[dk.OUT_FALLBACK] = float(saturated), float(out.fallback)
-        io[dk.OUT_RES], io[dk.OUT_ITERS] = out.residual, out.iterations
+        io[IO.XI : IO.XI + 2], io[IO.U : IO.U + 2] = xi, u
+        io[IO.TAU_RAW : IO.TAU_RAW + 2] = raw
+        io[IO.TAU_SATURATED], io[IO.FALLBACK] = float(saturated), float(out.fallback)
+        io[IO.RESIDUAL], io[IO.ITERATIONS] = out.residual, out.iterations
         if finite2(tau):
-            io[dk.OUT_TAU : dk.OUT_TAU + 2] = tau
-        io[dk.OUT_COST], io[dk.OUT_V] = model_kernels.costs(self._p, q, xi, f, u)
+            io[IO.TAU : IO.TAU + 2] = tau
+        io[IO.COST], io[IO.V] = model_kernels.costs(self._p, q, xi, f, u)
         return solve_ns

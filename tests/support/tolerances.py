@@ -20,8 +20,8 @@ vectors with FMA, as on ARM), ``haswell`` (= ``znver3``), ``skylake-avx512`` (= 
 reproduces the goldens pinned before, recorded on such an Intel CPU, to the last bit), ``generic``
 with glibc's libm FMA variants and NumPy's AVX dispatch off, the NumPy reference solver
 (``tests/support/rhc_reference.py``), and q0 nudged by one ulp. The largest relative spread of J
-in the default RHC loop (T = 0.1 s, N = 10, what ``hil simulate --law rhc`` runs) was 2.7e-8; the inverse-optimal
-loop's 7.4e-16 (the ulp nudge only). Per-golden figures are beside the goldens in
+in the default RHC loop (T = 0.1 s, N = 10, what ``hil simulate --law rhc`` runs) was 2.7e-8; the
+inverse-optimal loop's 7.4e-16 (the ulp nudge only). Per-golden figures are beside the goldens in
 ``tests/controller/test_rhc_closed_loop.py``.
 
 A tolerance is about 15-30x the largest spread measured, and still an order of magnitude or more

@@ -39,36 +39,11 @@ import math
 import numpy as np
 from numba import njit
 
+from rt_controller.control.state import IP, NAUX, NPRE, NS, NX, PAR, ST, W, work_offsets
+
 # ============================================================================================
 # Parameter layout and the optimal control problem (see rt_controller.control.rhc.problem)
 # ============================================================================================
-
-NX = 6
-"""Prediction state dimension (q, xi, f)."""
-NU = 2
-"""Input dimension."""
-NS = 6
-"""Unknowns per horizon stage: u (2), dummy v (2), multiplier mu (2)."""
-
-# --- layout of the float parameter vector P ----------------------------------------------------
-T1, T2, T3, L1, L2, GAIN, KP = 0, 1, 2, 3, 4, 5, 6
-ALPHA = 7  # 4 entries, row-major
-RW = 11  # R, 4 entries
-RINV = 15  # R^-1, 4 entries
-UMAX = 19  # 2 entries
-RV = 21  # dummy weight
-VMIN = 22  # 2 entries: floor of the dummy inputs
-HFD = 24  # forward-difference step
-ZETA = 25  # continuation gain, 1/s
-DT = 26  # control period, s
-TF = 27  # final horizon, s
-GROWTH = 28  # a of T(t) = Tf (1 - exp(-a t))
-INIT_TOL = 29  # residual target of the initial Newton solve
-NP = 30
-
-# --- layout of the integer parameter vector iP -------------------------------------------------
-I_N, I_KMAX, I_INIT_ITERS, I_INIT_KRYLOV, I_SUB = 0, 1, 2, 3, 4
-NIP = 5
 
 JIT = {"cache": True, "error_model": "numpy", "fastmath": {"nsz", "arcp", "contract", "reassoc"}}
 """numba options: cached, IEEE NaN/inf semantics kept (the fallback relies on them)."""
@@ -77,14 +52,10 @@ JIT = {"cache": True, "error_model": "numpy", "fastmath": {"nsz", "arcp", "contr
 @njit(inline="always", **JIT)
 def horizon_at(P, t):
     """T(t) = Tf (1 - exp(-a t)), or Tf when a = 0."""
-    a = P[GROWTH]
+    a = P[PAR.GROWTH]
     if a <= 0.0:
-        return P[TF]
-    return P[TF] * (1.0 - math.exp(-a * max(t, 0.0)))
-
-
-NAUX = 13
-"""Intermediates of one stage kept from the forward sweep for the backward sweep."""
+        return P[PAR.TF]
+    return P[PAR.TF] * (1.0 - math.exp(-a * max(t, 0.0)))
 
 
 @njit(inline="always", **JIT)
@@ -93,14 +64,14 @@ def stage_forward(P, x, u, aux, out):
 
     ``aux`` (NAUX) receives s2, c2, eta, dq, xi', M11, M12, 1/det M and C(q, dq) xi / (t3 s2).
     """
-    t1, t2, t3, l1, l2, g = P[T1], P[T2], P[T3], P[L1], P[L2], P[GAIN]
+    t1, t2, t3, l1, l2, g = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3], P[PAR.L1], P[PAR.L2], P[PAR.GAIN]
     s2, c2 = math.sin(x[1]), math.cos(x[1])
     xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
     a11, a21, a22 = l1 * s2, l1 * c2 + l2, l2
     e1 = a11 * f1 + a21 * f2
     e2 = a22 * f2
-    dq1 = xi1 + P[ALPHA] * e1 + P[ALPHA + 1] * e2
-    dq2 = xi2 + P[ALPHA + 2] * e1 + P[ALPHA + 3] * e2
+    dq1 = xi1 + P[PAR.ALPHA] * e1 + P[PAR.ALPHA + 1] * e2
+    dq2 = xi2 + P[PAR.ALPHA + 2] * e1 + P[PAR.ALPHA + 3] * e2
     w = dq1 + dq2
     hh = t3 * s2
     k1 = -dq2 * xi1 - w * xi2
@@ -132,16 +103,18 @@ def rhs(P, x, u, out):
 @njit(**JIT)
 def stage_cost(P, x, u):
     """l(x, u) of eq. (25) (without the dummy term)."""
-    l1, l2, kp = P[L1], P[L2], P[KP]
+    l1, l2, kp = P[PAR.L1], P[PAR.L2], P[PAR.KP]
     s2, c2 = math.sin(x[1]), math.cos(x[1])
     xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
     e1 = l1 * s2 * f1 + (l1 * c2 + l2) * f2
     e2 = l2 * f2
-    dq1 = xi1 + P[ALPHA] * e1 + P[ALPHA + 1] * e2
-    dq2 = xi2 + P[ALPHA + 2] * e1 + P[ALPHA + 3] * e2
-    xrx = xi1 * (P[RW] * xi1 + P[RW + 1] * xi2) + xi2 * (P[RW + 2] * xi1 + P[RW + 3] * xi2)
-    uru = u[0] * (P[RINV] * u[0] + P[RINV + 1] * u[1]) + u[1] * (
-        P[RINV + 2] * u[0] + P[RINV + 3] * u[1]
+    dq1 = xi1 + P[PAR.ALPHA] * e1 + P[PAR.ALPHA + 1] * e2
+    dq2 = xi2 + P[PAR.ALPHA + 2] * e1 + P[PAR.ALPHA + 3] * e2
+    xrx = xi1 * (P[PAR.R] * xi1 + P[PAR.R + 1] * xi2) + xi2 * (
+        P[PAR.R + 2] * xi1 + P[PAR.R + 3] * xi2
+    )
+    uru = u[0] * (P[PAR.R_INV] * u[0] + P[PAR.R_INV + 1] * u[1]) + u[1] * (
+        P[PAR.R_INV + 2] * u[0] + P[PAR.R_INV + 3] * u[1]
     )
     return 4.0 * xrx + 4.0 * kp * (e1 * dq1 + e2 * dq2) + uru
 
@@ -149,19 +122,19 @@ def stage_cost(P, x, u):
 @njit(**JIT)
 def terminal_cost(P, x):
     """phi = 4 V(x) of eq. (13)."""
-    t1, t2, t3 = P[T1], P[T2], P[T3]
+    t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
     c2 = math.cos(x[1])
     xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
     m11 = t1 + t2 + 2.0 * t3 * c2
     m12 = t2 + t3 * c2
     xmx = m11 * xi1 * xi1 + 2.0 * m12 * xi1 * xi2 + t2 * xi2 * xi2
-    return 2.0 * xmx + 2.0 * P[KP] / P[GAIN] * (f1 * f1 + f2 * f2)
+    return 2.0 * xmx + 2.0 * P[PAR.KP] / P[PAR.GAIN] * (f1 * f1 + f2 * f2)
 
 
 @njit(inline="always", **JIT)
 def terminal_grad(P, x, out):
     """Gradient of phi = 4 V(x) with respect to x into ``out`` (6)."""
-    t1, t2, t3 = P[T1], P[T2], P[T3]
+    t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
     s2, c2 = math.sin(x[1]), math.cos(x[1])
     xi1, xi2 = x[2], x[3]
     m11 = t1 + t2 + 2.0 * t3 * c2
@@ -170,7 +143,7 @@ def terminal_grad(P, x, out):
     out[1] = -4.0 * t3 * s2 * xi1 * (xi1 + xi2)
     out[2] = 4.0 * (m11 * xi1 + m12 * xi2)
     out[3] = 4.0 * (m12 * xi1 + t2 * xi2)
-    c = 4.0 * P[KP] / P[GAIN]
+    c = 4.0 * P[PAR.KP] / P[PAR.GAIN]
     out[4] = c * x[4]
     out[5] = c * x[5]
 
@@ -195,13 +168,13 @@ def hamiltonian_grad(P, x, u, lam, hx, hu):
 @njit(inline="always", **JIT)
 def stage_adjoint(P, x, u, lam, aux, hx, hu):
     """:func:`hamiltonian_grad` from the intermediates ``aux`` of :func:`stage_forward`."""
-    t3, l1, l2, g, kp = P[T3], P[L1], P[L2], P[GAIN], P[KP]
+    t3, l1, l2, g, kp = P[PAR.TH3], P[PAR.L1], P[PAR.L2], P[PAR.GAIN], P[PAR.KP]
     s2, c2, e1, e2, dq1, dq2 = aux[0], aux[1], aux[2], aux[3], aux[4], aux[5]
     y1, y2, m11, m12, idet, k1, k2 = aux[6], aux[7], aux[8], aux[9], aux[10], aux[11], aux[12]
-    m22 = P[T2]
+    m22 = P[PAR.TH2]
     xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
     lq1, lq2, lx1, lx2, lf1, lf2 = lam[0], lam[1], lam[2], lam[3], lam[4], lam[5]
-    al11, al12, al21, al22 = P[ALPHA], P[ALPHA + 1], P[ALPHA + 2], P[ALPHA + 3]
+    al11, al12, al21, al22 = P[PAR.ALPHA], P[PAR.ALPHA + 1], P[PAR.ALPHA + 2], P[PAR.ALPHA + 3]
     a11, a21, a22 = l1 * s2, l1 * c2 + l2, l2
     w = dq1 + dq2
     hh = t3 * s2
@@ -223,16 +196,24 @@ def stage_adjoint(P, x, u, lam, aux, hx, hu):
     hx[1] = -zMy - zCxi - g * lAdq + fAE
     # H_xi = 4 (R + R^T) xi - C^T z + G, C^T z = hh * (-dq2 z1 + dq1 z2, -w z1).
     hx[2] = (
-        4.0 * ((P[RW] + P[RW]) * xi1 + (P[RW + 1] + P[RW + 2]) * xi2)
+        4.0 * ((P[PAR.R] + P[PAR.R]) * xi1 + (P[PAR.R + 1] + P[PAR.R + 2]) * xi2)
         - hh * (-dq2 * z1 + dq1 * z2)
         + g1
     )
-    hx[3] = 4.0 * ((P[RW + 2] + P[RW + 1]) * xi1 + (P[RW + 3] + P[RW + 3]) * xi2) + hh * w * z1 + g2
+    hx[3] = (
+        4.0 * ((P[PAR.R + 2] + P[PAR.R + 1]) * xi1 + (P[PAR.R + 3] + P[PAR.R + 3]) * xi2)
+        + hh * w * z1
+        + g2
+    )
     # H_f = w (-lam_f2, lam_f1) + A E.
     hx[4] = -w * lf2 + a11 * E1
     hx[5] = w * lf1 + a21 * E1 + a22 * E2
-    hu[0] = (P[RINV] + P[RINV]) * u[0] + (P[RINV + 1] + P[RINV + 2]) * u[1] + z1
-    hu[1] = (P[RINV + 2] + P[RINV + 1]) * u[0] + (P[RINV + 3] + P[RINV + 3]) * u[1] + z2
+    hu[0] = (P[PAR.R_INV] + P[PAR.R_INV]) * u[0] + (P[PAR.R_INV + 1] + P[PAR.R_INV + 2]) * u[1] + z1
+    hu[1] = (
+        (P[PAR.R_INV + 2] + P[PAR.R_INV + 1]) * u[0]
+        + (P[PAR.R_INV + 3] + P[PAR.R_INV + 3]) * u[1]
+        + z2
+    )
 
 
 # ============================================================================================
@@ -266,7 +247,7 @@ def eval_F(P, N, U, x0, T, sw, F):
             for i in range(NX):
                 X[r + 1, i] = X[r, i] + h * hx[i]
     terminal_grad(P, X[ns], Lam[ns])
-    rv = P[RV]
+    rv = P[PAR.RV]
     inv_s = 1.0 / S
     for k in range(N - 1, -1, -1):
         j = NS * k
@@ -288,7 +269,7 @@ def eval_F(P, N, U, x0, T, sw, F):
             ui, vi, mi = U[j + i], U[j + 2 + i], U[j + 4 + i]
             F[j + i] = (g0 if i == 0 else g1) + 2.0 * mi * ui
             F[j + 2 + i] = -rv + 2.0 * mi * vi
-            F[j + 4 + i] = ui * ui + vi * vi - P[UMAX + i] * P[UMAX + i]
+            F[j + 4 + i] = ui * ui + vi * vi - P[PAR.U_MAX + i] * P[PAR.U_MAX + i]
     cnt[0] += 1
 
 
@@ -304,8 +285,8 @@ def clip_dummies(P, N, U):
     for k in range(N):
         for i in range(2):
             j = NS * k + i
-            um = P[UMAX + i]
-            vmin = P[VMIN + i]
+            um = P[PAR.U_MAX + i]
+            vmin = P[PAR.VMIN + i]
             u, v = U[j], U[j + 2]
             if v < vmin:
                 v = vmin
@@ -328,10 +309,6 @@ def norm(a):
     return math.sqrt(s)
 
 
-NPRE = 10
-"""Floats per stage of the block preconditioner."""
-
-
 @njit(**JIT)
 def precond_setup(P, N, U, X, T, pre):
     """Per-stage block-Jacobi preconditioner of F_U around U (X: the states of U's forward sweep).
@@ -342,7 +319,7 @@ def precond_setup(P, N, U, X, T, pre):
     """
     dtau = T / N
     S = (X.shape[0] - 1) // N
-    t1, t2, t3 = P[T1], P[T2], P[T3]
+    t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
     for k in range(N):
         j = NS * k
         c2 = math.cos(X[k * S, 1])
@@ -350,9 +327,9 @@ def precond_setup(P, N, U, X, T, pre):
         m12 = t2 + t3 * c2
         det = m11 * t2 - m12 * m12
         c = 4.0 * dtau / det
-        s11 = P[RINV] + P[RINV] + c * t2
-        s12 = P[RINV + 1] + P[RINV + 2] - c * m12
-        s22 = P[RINV + 3] + P[RINV + 3] + c * m11
+        s11 = P[PAR.R_INV] + P[PAR.R_INV] + c * t2
+        s12 = P[PAR.R_INV + 1] + P[PAR.R_INV + 2] - c * m12
+        s22 = P[PAR.R_INV + 3] + P[PAR.R_INV + 3] + c * m11
         o = NPRE * k
         for i in range(2):
             ui, vi, mi = U[j + i], U[j + 2 + i], U[j + 4 + i]
@@ -395,7 +372,7 @@ def precond_apply(N, pre, r, d):
 @njit(**JIT)
 def _jvp(P, N, U, x0, T, F0, v, scale, out, Ut, sw):
     """out = (F(U + h v, x0, T) - F0) / h, a forward-difference Jacobian-vector product."""
-    h = P[HFD] * scale
+    h = P[PAR.HFD] * scale
     n = U.shape[0]
     for i in range(n):
         Ut[i] = U[i] + h * v[i]
@@ -512,8 +489,8 @@ def initial_guess(P, N, U, x0, T, X, xd):
     h = dtau / S
     for i in range(NX):
         X[0, i] = x0[i]
-    rw0, rw1, rw2, rw3 = P[RW], P[RW + 1], P[RW + 2], P[RW + 3]
-    t1, t2, t3 = P[T1], P[T2], P[T3]
+    rw0, rw1, rw2, rw3 = P[PAR.R], P[PAR.R + 1], P[PAR.R + 2], P[PAR.R + 3]
+    t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
     c2 = math.cos(x0[1])
     m11 = t1 + t2 + 2.0 * t3 * c2
     m12 = t2 + t3 * c2
@@ -526,15 +503,15 @@ def initial_guess(P, N, U, x0, T, X, xd):
         ua = -gain * (rw0 * xk[2] + rw1 * xk[3])
         ub = -gain * (rw2 * xk[2] + rw3 * xk[3])
         for i in range(2):
-            lim = 0.9 * P[UMAX + i]
+            lim = 0.9 * P[PAR.U_MAX + i]
             ui = ua if i == 0 else ub
             if not math.isfinite(ui):
                 ui = 0.0
             ui = min(max(ui, -lim), lim)
-            vi = math.sqrt(P[UMAX + i] * P[UMAX + i] - ui * ui)
+            vi = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - ui * ui)
             U[j + i] = ui
             U[j + 2 + i] = vi
-            U[j + 4 + i] = P[RV] / (2.0 * vi)
+            U[j + 4 + i] = P[PAR.RV] / (2.0 * vi)
         for s in range(S):
             r = k * S + s
             rhs(P, X[r], U[j : j + 2], xd)
@@ -545,14 +522,14 @@ def initial_guess(P, N, U, x0, T, X, xd):
 @njit(**JIT)
 def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
     """Newton-GMRES on F(U, x0, T) = 0 with backtracking; returns (||F||, GMRES iterations)."""
-    N = iP[I_N]
+    N = iP[IP.N]
     n = U.shape[0]
-    m = iP[I_INIT_KRYLOV]
+    m = iP[IP.INIT_KRYLOV]
     iters = 0
     eval_F(P, N, U, x0, T, sw, F)
     fn = norm(F)
-    for _ in range(iP[I_INIT_ITERS]):
-        if not math.isfinite(fn) or fn <= P[INIT_TOL]:
+    for _ in range(iP[IP.INIT_ITERS]):
+        if not math.isfinite(fn) or fn <= P[PAR.INIT_TOL]:
             break
         precond_setup(P, N, U, sw[0], T, pre)
         for i in range(n):
@@ -602,15 +579,15 @@ def release_bounds(P, N, U, F):
                 continue
             ui = U[j + i]
             g = F[j + i] - 2.0 * mu * ui
-            un = ui - g / (2.0 * P[RINV + 3 * i])
-            lim = 0.9 * P[UMAX + i]
+            un = ui - g / (2.0 * P[PAR.R_INV + 3 * i])
+            lim = 0.9 * P[PAR.U_MAX + i]
             if not math.isfinite(un):
                 un = 0.0
             un = min(max(un, -lim), lim)
-            vn = math.sqrt(P[UMAX + i] * P[UMAX + i] - un * un)
+            vn = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - un * un)
             U[j + i] = un
             U[j + 2 + i] = vn
-            U[j + 4 + i] = P[RV] / (2.0 * vn)
+            U[j + 4 + i] = P[PAR.RV] / (2.0 * vn)
             count += 1
     return count
 
@@ -720,99 +697,37 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
     return k
 
 
-# Layout of the per-solver state vector ``st`` of :func:`rhc_tick` (U and Udot follow the head).
-ST_X = 0  # measured state x (6)
-ST_XDOT = 6  # given state motion (6), used when ST_MODEL_XDOT is 0
-ST_U = 12  # input to apply (2)
-ST_T = 14  # solver time, s
-ST_INIT = 15  # 1: solve from scratch (Newton-GMRES) first
-ST_MODEL_XDOT = 16  # 1: predict the state motion with eq. (12)
-ST_RES = 17  # out: ||F|| at the applied solution
-ST_ITERS = 18  # out: forward-difference products spent in GMRES
-ST_STATUS = 19  # out: OK | NOT_FINITE
-ST_FEVALS = 20  # out: evaluations of F (sweep pairs) this tick
-ST_HEAD = 24
+@njit(inline="always", **JIT)
+def _cut2(iP, work, k):
+    """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (2-D)."""
+    o = IP.WORK + 3 * k
+    off, rows, cols = iP[o], iP[o + 1], iP[o + 2]
+    return work[off : off + rows * cols].reshape((rows, cols))
 
 
-def state_size(n_steps: int) -> int:
-    """Length of the state vector: the head, U (6N) and Udot (6N)."""
-    return ST_HEAD + 2 * NS * n_steps
+@njit(inline="always", **JIT)
+def _cut1(iP, work, k):
+    """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (one row)."""
+    o = IP.WORK + 3 * k
+    return work[iP[o] : iP[o] + iP[o + 2]]
 
 
 @njit(**JIT)
 def _views(iP, work):
-    """The arrays of one tick carved out of ``work`` (see :func:`workspace_size`)."""
-    N = iP[I_N]
-    S = iP[I_SUB]
-    n = NS * N
-    m = max(iP[I_KMAX], iP[I_INIT_KRYLOV])
-    rows = N * S + 1
-    off = 0
-    X = work[off : off + rows * NX].reshape((rows, NX))
-    off += rows * NX
-    Lam = work[off : off + rows * NX].reshape((rows, NX))
-    off += rows * NX
-    Vb = work[off : off + (m + 2) * n].reshape((m + 2, n))
-    off += (m + 2) * n
-    Hs = work[off : off + (m + 2) * m].reshape((m + 2, m))
-    off += (m + 2) * m
-    small = work[off : off + 4 * (m + 1)].reshape((4, m + 1))
-    off += 4 * (m + 1)
-    G = work[off : off + 2 * (m + 2)].reshape((m + 2, 2))
-    off += 2 * (m + 2)
-    Ys = work[off : off + 2 * (m + 2)].reshape((2, m + 2))
-    off += 2 * (m + 2)
-    vecs = work[off : off + NVEC * n].reshape((NVEC, n))
-    off += NVEC * n
-    pre = work[off : off + NPRE * N]
-    off += NPRE * N
-    xs = work[off : off + NX]
-    off += NX
-    hx = work[off : off + NX]
-    off += NX
-    hu = work[off : off + NX]
-    off += NX
-    cnt = work[off : off + 1]
-    off += 1
-    Aux = work[off : off + (rows - 1) * NAUX].reshape((rows - 1, NAUX))
+    """The arrays of one tick cut out of ``work`` (:data:`~rt_controller.control.state.WORK`)."""
+    X, Lam, Aux = _cut2(iP, work, W.X), _cut2(iP, work, W.LAM), _cut2(iP, work, W.AUX)
+    Vb, Hs, small = _cut2(iP, work, W.VB), _cut2(iP, work, W.HS), _cut2(iP, work, W.SMALL)
+    G, Ys, vecs = _cut2(iP, work, W.G), _cut2(iP, work, W.YS), _cut2(iP, work, W.VECS)
+    hx, hu, cnt = _cut1(iP, work, W.HX), _cut1(iP, work, W.HU), _cut1(iP, work, W.CNT)
     sw = (X, Lam, Aux, hx, hu, cnt)
-    ws = (
-        Vb,
-        Hs,
-        small[0],
-        small[1],
-        small[2],
-        small[3],
-        vecs[6],
-        vecs[7],
-        vecs[8],
-        G,
-        Ys,
-    )
-    return sw, ws, vecs, pre, xs
-
-
-NVEC = 11
-"""Work vectors of length 6N."""
+    ws = (Vb, Hs, small[0], small[1], small[2], small[3], vecs[6], vecs[7], vecs[8], G, Ys)
+    return sw, ws, vecs, _cut1(iP, work, W.PRE), _cut1(iP, work, W.XS)
 
 
 def workspace_size(n_steps: int, kmax: int, init_krylov: int, substeps: int = 1) -> int:
-    """Length of the float64 work array :func:`rhc_tick` needs."""
-    n = NS * n_steps
-    m = max(kmax, init_krylov)
-    rows = n_steps * substeps + 1
-    return (
-        2 * rows * NX
-        + (m + 2) * n
-        + (m + 2) * m
-        + 4 * (m + 1)
-        + 4 * (m + 2)
-        + NVEC * n
-        + NPRE * n_steps
-        + 3 * NX
-        + 1
-        + NAUX * (rows - 1)
-    )
+    """Length of the float64 work array :func:`rhc_tick` needs (:data:`~rt_controller.control.
+    state.WORK`)."""
+    return work_offsets(n_steps, substeps, max(kmax, init_krylov))[1]
 
 
 @njit(**JIT)
@@ -821,8 +736,8 @@ def _apply_input(P, U, st):
     ok = True
     for i in range(2):
         ui = U[i]
-        lim = P[UMAX + i]
-        st[ST_U + i] = min(max(ui, -lim), lim)
+        lim = P[PAR.U_MAX + i]
+        st[ST.U + i] = min(max(ui, -lim), lim)
         ok = ok and math.isfinite(ui)
     return ok
 
@@ -832,11 +747,11 @@ def _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2):
     """b2 = -dt (F(U, x0 + h xdot, T(t + h)) - F) / h: the prediction of dF over one period.
 
     Leaves the forward sweep of that evaluation in sw."""
-    h = P[HFD]
+    h = P[PAR.HFD]
     for i in range(NX):
         xs[i] = x0[i] + h * xdot[i]
     eval_F(P, N, U, xs, horizon_at(P, t + h), sw, Fs)
-    c = P[DT] / h
+    c = P[PAR.DT] / h
     for i in range(U.shape[0]):
         b2[i] = -c * (Fs[i] - F[i])
 
@@ -860,8 +775,8 @@ def rhc_tick(P, iP, st, work):
     F is evaluated kmax + 3 times (8 for kmax = 5; the previous two-solve tick took 14). With
     ``init`` the solution is first found by Newton-GMRES and only the prediction is solved for.
     """
-    N = iP[I_N]
-    kmax = iP[I_KMAX]
+    N = iP[IP.N]
+    kmax = iP[IP.KMAX]
     n = NS * N
     sw, ws, vecs, pre, xs = _views(iP, work)
     cnt = sw[5]
@@ -876,16 +791,16 @@ def rhc_tick(P, iP, st, work):
         vecs[9],
         vecs[10],
     )
-    U = st[ST_HEAD : ST_HEAD + n]
-    Udot = st[ST_HEAD + n : ST_HEAD + 2 * n]
-    x0 = st[ST_X : ST_X + NX]
-    xdot = st[ST_XDOT : ST_XDOT + NX]
-    t = st[ST_T]
-    model_xdot = st[ST_MODEL_XDOT] != 0.0
+    U = st[ST.HEAD : ST.HEAD + n]
+    Udot = st[ST.HEAD + n : ST.HEAD + 2 * n]
+    x0 = st[ST.X : ST.X + NX]
+    xdot = st[ST.XDOT : ST.XDOT + NX]
+    t = st[ST.T]
+    model_xdot = st[ST.MODEL_XDOT] != 0.0
     T = horizon_at(P, t)
-    dt = P[DT]
+    dt = P[PAR.DT]
     iters = 0
-    if st[ST_INIT] != 0.0:
+    if st[ST.INIT] != 0.0:
         initial_guess(P, N, U, x0, T, sw[0], sw[3])
         fn, iters = newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw)
         eval_F(P, N, U, x0, T, sw, F)
@@ -894,7 +809,7 @@ def rhc_tick(P, iP, st, work):
         if ok:
             precond_setup(P, N, U, sw[0], T, pre)
             if model_xdot:
-                rhs(P, x0, st[ST_U : ST_U + 2], xdot)
+                rhs(P, x0, st[ST.U : ST.U + 2], xdot)
             _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
             for i in range(n):
                 b[i] = 0.0
@@ -902,11 +817,11 @@ def rhc_tick(P, iP, st, work):
     else:
         if model_xdot:
             _apply_input(P, U, st)
-            rhs(P, x0, st[ST_U : ST_U + 2], xdot)
+            rhs(P, x0, st[ST.U : ST.U + 2], xdot)
         eval_F(P, N, U, x0, T, sw, F)
         precond_setup(P, N, U, sw[0], T, pre)
         _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
-        c = min(P[ZETA] * dt, 1.0)
+        c = min(P[PAR.ZETA] * dt, 1.0)
         for i in range(n):
             b[i] = -c * F[i]
         iters += block_gmres(P, N, U, x0, T, F, b, b2, dU, d2, kmax, pre, ws, sw)
@@ -924,35 +839,35 @@ def rhc_tick(P, iP, st, work):
             # The prediction d2 belongs to the bounds as they were: solve it again (rare).
             precond_setup(P, N, U, sw[0], T, pre)
             if model_xdot:
-                rhs(P, x0, st[ST_U : ST_U + 2], xdot)
+                rhs(P, x0, st[ST.U : ST.U + 2], xdot)
             _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
             for i in range(n):
                 b[i] = 0.0
             iters += block_gmres(P, N, U, x0, T, F, b, b2, dU, d2, kmax, pre, ws, sw)
-    st[ST_RES] = fn
-    st[ST_ITERS] = iters
+    st[ST.RES] = fn
+    st[ST.ITERS] = iters
     if not ok:
-        st[ST_STATUS] = NOT_FINITE
-        st[ST_FEVALS] = cnt[0]
+        st[ST.STATUS] = NOT_FINITE
+        st[ST.FEVALS] = cnt[0]
         return
     inv_dt = 1.0 / dt
     for i in range(n):
         U[i] += d2[i]
         Udot[i] = d2[i] * inv_dt
     clip_dummies(P, N, U)
-    st[ST_STATUS] = OK
-    st[ST_FEVALS] = cnt[0]
+    st[ST.STATUS] = OK
+    st[ST.FEVALS] = cnt[0]
 
 
 @njit(**JIT)
 def sweep_probe(P, iP, st, work, reps):
     """Evaluate F at the state's U, x and T(t) ``reps`` times (for the benchmark's profile)."""
-    N = iP[I_N]
+    N = iP[IP.N]
     n = NS * N
     sw, _ws, vecs, _pre, _xs = _views(iP, work)
-    U = st[ST_HEAD : ST_HEAD + n]
-    x0 = st[ST_X : ST_X + NX]
-    T = horizon_at(P, st[ST_T])
+    U = st[ST.HEAD : ST.HEAD + n]
+    x0 = st[ST.X : ST.X + NX]
+    T = horizon_at(P, st[ST.T])
     for _ in range(reps):
         eval_F(P, N, U, x0, T, sw, vecs[1])
 

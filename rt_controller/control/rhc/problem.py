@@ -35,38 +35,9 @@ import math
 import numpy as np
 
 from hal.config import RigConfig
+from rt_controller.control import state
 from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc.kernel import (  # noqa: F401  (re-exported: the compiled OCP functions)
-    ALPHA,
-    DT,
-    GAIN,
-    GROWTH,
-    HFD,
-    I_INIT_ITERS,
-    I_INIT_KRYLOV,
-    I_KMAX,
-    I_N,
-    I_SUB,
-    INIT_TOL,
-    KP,
-    L1,
-    L2,
-    NAUX,
-    NIP,
-    NP,
-    NS,
-    NU,
-    NX,
-    RINV,
-    RV,
-    RW,
-    T1,
-    T2,
-    T3,
-    TF,
-    UMAX,
-    VMIN,
-    ZETA,
     hamiltonian_grad,
     horizon_at,
     rhs,
@@ -76,6 +47,7 @@ from rt_controller.control.rhc.kernel import (  # noqa: F401  (re-exported: the 
     terminal_cost,
     terminal_grad,
 )
+from rt_controller.control.state import IP, NAUX, NS, NX, PAR, work_offsets  # noqa: F401
 
 DUMMY_FLOOR = 1e-6
 """Dummy inputs are kept at or above ``DUMMY_FLOOR * umax_i``: this selects the minimising branch
@@ -96,34 +68,33 @@ def substeps(horizon: float, steps: int) -> int:
 
 
 def pack_params(model: NominalModel, cfg: RigConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Float and integer parameter vectors (P, iP) for the compiled kernels."""
+    """Float and integer parameter vectors (P, iP) for the compiled kernels (layouts
+    :data:`~rt_controller.control.state.PAR` and :data:`~rt_controller.control.state.IP`)."""
     h = cfg.rhc
-    P = np.zeros(NP)
-    P[T1], P[T2], P[T3] = model.theta1, model.theta2, model.theta3
-    P[L1], P[L2], P[GAIN], P[KP] = model.l1, model.l2, model.gain, model.kp
-    P[ALPHA : ALPHA + 4] = np.asarray(model.alpha, dtype=float).ravel()
-    P[RW : RW + 4] = np.asarray(model.R, dtype=float).ravel()
-    P[RINV : RINV + 4] = np.asarray(model.R_inv, dtype=float).ravel()
+    P = state.pack_params(model)
     umax = np.asarray(h.u_max, dtype=float)
-    P[UMAX : UMAX + 2] = umax
-    P[RV] = h.dummy_weight
-    P[VMIN : VMIN + 2] = DUMMY_FLOOR * umax
-    P[HFD] = h.fd_step
-    P[ZETA] = h.zeta
-    P[DT] = 1.0 / cfg.rates.control_hz
-    P[TF] = h.horizon
-    P[GROWTH] = h.horizon_growth
-    P[INIT_TOL] = h.init_tol
-    iP = np.zeros(NIP, dtype=np.int64)
-    iP[I_N] = h.steps
-    iP[I_KMAX] = h.kmax
-    iP[I_INIT_ITERS] = h.init_iterations
-    iP[I_INIT_KRYLOV] = min(NS * h.steps, max(INIT_KRYLOV, h.kmax))
-    iP[I_SUB] = substeps(h.horizon, h.steps)
+    P[PAR.U_MAX : PAR.U_MAX + 2] = umax
+    P[PAR.RV] = h.dummy_weight
+    P[PAR.VMIN : PAR.VMIN + 2] = DUMMY_FLOOR * umax
+    P[PAR.HFD] = h.fd_step
+    P[PAR.ZETA] = h.zeta
+    P[PAR.DT] = 1.0 / cfg.rates.control_hz
+    P[PAR.TF] = h.horizon
+    P[PAR.GROWTH] = h.horizon_growth
+    P[PAR.INIT_TOL] = h.init_tol
+    iP = np.zeros(IP.SIZE, dtype=np.int64)
+    iP[IP.N] = h.steps
+    iP[IP.KMAX] = h.kmax
+    iP[IP.INIT_ITERS] = h.init_iterations
+    iP[IP.INIT_KRYLOV] = min(NS * h.steps, max(INIT_KRYLOV, h.kmax))
+    iP[IP.SUB] = substeps(h.horizon, h.steps)
+    krylov = int(max(iP[IP.KMAX], iP[IP.INIT_KRYLOV]))
+    cut, _ = work_offsets(h.steps, int(iP[IP.SUB]), krylov)
+    iP[IP.WORK : IP.WORK + cut.size] = cut
     return P, iP
 
 
 def horizon_length(P: np.ndarray, t: float) -> float:
     """T(t) = Tf (1 - exp(-a t)), or Tf when a = 0 (plain-Python twin of :func:`horizon_at`)."""
-    a = P[GROWTH]
-    return float(P[TF]) if a <= 0.0 else float(P[TF] * (1.0 - math.exp(-a * max(t, 0.0))))
+    a = P[PAR.GROWTH]
+    return float(P[PAR.TF]) if a <= 0.0 else float(P[PAR.TF] * (1.0 - math.exp(-a * max(t, 0.0))))

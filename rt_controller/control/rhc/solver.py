@@ -10,24 +10,9 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.kernel import (
-    OK,
-    ST_FEVALS,
-    ST_HEAD,
-    ST_INIT,
-    ST_ITERS,
-    ST_MODEL_XDOT,
-    ST_RES,
-    ST_STATUS,
-    ST_T,
-    ST_U,
-    ST_X,
-    ST_XDOT,
-    new_workspace,
-    rhc_tick,
-    state_size,
-)
-from rt_controller.control.rhc.problem import I_INIT_KRYLOV, I_SUB, NS, NX, pack_params
+from rt_controller.control.rhc.kernel import OK, new_workspace, rhc_tick
+from rt_controller.control.rhc.problem import pack_params
+from rt_controller.control.state import IP, NS, NX, ST
 
 
 class SolveReport(NamedTuple):
@@ -71,9 +56,9 @@ class CGMRESSolver:
     """Continuation/GMRES solver of eq. (30); one compiled call per :meth:`update`.
 
     All the solver's state lives in one float64 vector ``st`` (the measured state, the flags, the
-    outputs, U and Udot; layout ``kernel.ST_*``) and one work array, so a tick is a single
-    compiled call with four array arguments (after :meth:`warm_up`, straight to the compiled
-    overload) and nothing is allocated but the report.
+    outputs, U and Udot; layout :data:`~rt_controller.control.state.ST`) and one work array, so
+    a tick is a single compiled call with four array arguments (after :meth:`warm_up`, straight
+    to the compiled overload) and nothing is allocated but the report.
     """
 
     def __init__(self, model: NominalModel, cfg: RigConfig) -> None:
@@ -84,26 +69,26 @@ class CGMRESSolver:
         self.kmax = cfg.rhc.kmax
         self.residual_bound = cfg.rhc.residual_bound
         n = NS * self.N
-        self.st = np.zeros(state_size(self.N))
-        self.U = self.st[ST_HEAD : ST_HEAD + n]
-        self.Udot = self.st[ST_HEAD + n : ST_HEAD + 2 * n]
-        self._x = self.st[ST_X : ST_X + NX]
-        self._xdot = self.st[ST_XDOT : ST_XDOT + NX]
+        self.st = np.zeros(ST.HEAD + 2 * n)
+        self.U = self.st[ST.HEAD : ST.HEAD + n]
+        self.Udot = self.st[ST.HEAD + n : ST.HEAD + 2 * n]
+        self._x = self.st[ST.X : ST.X + NX]
+        self._xdot = self.st[ST.XDOT : ST.XDOT + NX]
         self.work = new_workspace(
-            self.N, self.kmax, int(self.iP[I_INIT_KRYLOV]), int(self.iP[I_SUB])
+            self.N, self.kmax, int(self.iP[IP.INIT_KRYLOV]), int(self.iP[IP.SUB])
         )
-        self.st[ST_INIT] = 1.0
+        self.st[ST.INIT] = 1.0
         self._tick: Callable = rhc_tick
 
     @property
     def needs_init(self) -> bool:
         """The next update solves from scratch (kept in the state vector, so the compiled
         per-tick rule that advances this solver's arrays shares it)."""
-        return self.st[ST_INIT] != 0.0
+        return self.st[ST.INIT] != 0.0
 
     @needs_init.setter
     def needs_init(self, value: bool) -> None:
-        self.st[ST_INIT] = float(value)
+        self.st[ST.INIT] = float(value)
 
     def reset(self) -> None:
         """Forget the warm start: the next update solves from scratch."""
@@ -119,7 +104,7 @@ class CGMRESSolver:
     @property
     def last_fevals(self) -> int:
         """Evaluations of F (forward and backward sweep pairs) in the last update."""
-        return int(self.st[ST_FEVALS])
+        return int(self.st[ST.FEVALS])
 
     def update(self, x: np.ndarray, t: float, xdot: np.ndarray | None = None) -> SolveReport:
         """One tick at state ``x`` (6) and solver time ``t`` (s, for the horizon growth).
@@ -130,17 +115,17 @@ class CGMRESSolver:
         st = self.st
         self._x[:] = x
         init = self.needs_init
-        st[ST_T] = t
+        st[ST.T] = t
         if xdot is None:
-            st[ST_MODEL_XDOT] = 1.0
+            st[ST.MODEL_XDOT] = 1.0
         else:
-            st[ST_MODEL_XDOT] = 0.0
+            st[ST.MODEL_XDOT] = 0.0
             self._xdot[:] = xdot
         self._tick(self.P, self.iP, st, self.work)
-        residual = float(st[ST_RES])
-        ok = st[ST_STATUS] == OK and residual <= self.residual_bound
-        st[ST_INIT] = 0.0 if ok else 1.0
-        return SolveReport(st[ST_U : ST_U + 2].copy(), residual, int(st[ST_ITERS]), ok, init)
+        residual = float(st[ST.RES])
+        ok = st[ST.STATUS] == OK and residual <= self.residual_bound
+        st[ST.INIT] = 0.0 if ok else 1.0
+        return SolveReport(st[ST.U : ST.U + 2].copy(), residual, int(st[ST.ITERS]), ok, init)
 
     def warm_up(self) -> None:
         """Compile (or load from the numba cache) before the first tick, then reset."""
