@@ -62,6 +62,14 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
     add_key_option(p)
     p.add_argument(
+        "--profile",
+        choices=("dsp", "cia402"),
+        default="dsp",
+        help="the hardware to emulate: dsp (our DSP, hal/hil.dbc with SecOC; the default) or "
+        "cia402 (two CANopen CiA 402 drives in cyclic synchronous torque mode, node ids from "
+        "[cia402], paced by the controller's SYNC)",
+    )
+    p.add_argument(
         "--lockstep",
         action="store_true",
         help="lockstep clock: send Sync once per control period and advance the physics only "
@@ -199,6 +207,10 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     from hal.bus import open_bus, resolve_spec
     from plant_emulator.dsp_node import DspNode
 
+    if args.profile == "cia402":
+        from plant_emulator.cia402.entry import serve_cia402
+
+        return serve_cia402(args, stop)
     cfg = _config(args)
     lockstep = bool(args.lockstep) or cfg.controller.clock == "lockstep"
     spec = args.can or cfg.transport.can

@@ -80,21 +80,23 @@ class Cia402Rig:
                 lock=self.lock,
             )
             drive.q, drive.dq = float(self.world.q[joint]), float(self.world.dq[joint])
-            network.add_node(drive)
             self.drives.append(drive)
         self.syncs = 0
         """SYNCs received (= control periods the world stepped)."""
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
-        network.subscribe(SYNC_COB_ID, self._on_sync)
 
     def start(self, *, monitor: bool = True) -> None:
-        """Boot the drives (boot-up messages, PRE-OPERATIONAL) and start the monitor thread.
-        The physics kernels are loaded first, on a throw-away world, so the first SYNC is not
-        late by the JIT time (which would trip the SYNC watchdog)."""
+        """Put the drives on the network and boot them (boot-up messages, PRE-OPERATIONAL),
+        then start the monitor thread. The physics kernels are loaded first, on a throw-away
+        world, so the drives answer nothing before they can follow the SYNC without a JIT
+        pause (which would trip the SYNC watchdog or undo a master's NMT start)."""
         World(self.cfg).hold(np.zeros(2), 1)
-        for drive in self.drives:
-            drive.boot()
+        with self.lock:
+            for drive in self.drives:
+                self.network.add_node(drive)
+                drive.boot()
+            self.network.subscribe(SYNC_COB_ID, self._on_sync)
         if monitor:
             self._monitor = threading.Thread(target=self._watch, name="cia402-monitor", daemon=True)
             self._monitor.start()
@@ -139,5 +141,5 @@ class Cia402Rig:
         if self._on_sync in self.network.subscribers.get(SYNC_COB_ID, []):
             self.network.unsubscribe(SYNC_COB_ID, self._on_sync)
         for drive in self.drives:
-            if self.network.nodes.get(drive.id) is drive:
+            if self.network.nodes.get(drive.id) is drive:  # started
                 del self.network[drive.id]  # remove_network: heartbeat stops, PDOs unsubscribed
