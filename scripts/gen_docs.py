@@ -1,6 +1,6 @@
 """Generate the reference pages of the docs site from the code, so they cannot drift.
 
-Writes ``docs/reference/{cli,config,dbc,zenoh,schemas}.md``:
+Writes ``docs/reference/{cli,config,dbc,zenoh,schemas,cia402-od}.md``:
 
 - ``cli.md``: every ``hil`` subcommand and option, walked from ``rt_controller.cli.build_parser()``;
 - ``config.md``: every configuration key with its default, range and meaning, from the
@@ -9,7 +9,9 @@ Writes ``docs/reference/{cli,config,dbc,zenoh,schemas}.md``:
 - ``dbc.md``: every CAN message and signal of ``hal/hil.dbc``, read with cantools;
 - ``zenoh.md``: the zenoh key expressions (``KEY_*`` of ``hal/zenoh_session.py``);
 - ``schemas.md``: the JSON Schemas of the MCAP topics and live channels (``*_SCHEMA`` dicts and
-  ``*schema*.json`` files of the packages).
+  ``*schema*.json`` files of the packages);
+- ``cia402-od.md``: the emulated CiA 402 drive's object dictionary, read from its EDS
+  (``hal/cia402_drive.eds``, which this script also writes from ``hal/cia402_od.py``).
 
     python scripts/gen_docs.py           # (re)write the pages
     python scripts/gen_docs.py --check   # exit 1 naming every page that is not up to date
@@ -497,12 +499,68 @@ def schemas_page() -> str:
     return "".join(md).rstrip() + "\n"
 
 
+_ACCESS = {
+    "ro": "read",
+    "wo": "write",
+    "rw": "read/write",
+    "rww": "read/write",
+    "rwr": "read/write",
+}
+
+
+def _od_default(var: object) -> str:
+    raw = getattr(var, "default_raw", None)
+    if raw is not None and "$NODEID" in str(raw):
+        return code(str(raw).replace("$NODEID", "node id"))
+    value = getattr(var, "default", None)
+    if isinstance(value, int) and var.data_type in (5, 6, 7) and value > 9:  # UNSIGNED8/16/32
+        return code(f"0x{value:X}")
+    return "" if value is None else code(value)
+
+
+def cia402_od_page() -> str:
+    """The emulated CiA 402 drive's object dictionary, read back from the shipped EDS."""
+    import canopen
+    from canopen.objectdictionary import ODVariable, datatypes
+
+    from hal.cia402_od import EDS_PATH
+
+    od = canopen.import_od(str(EDS_PATH))
+    types = {getattr(datatypes, n): n for n in dir(datatypes) if n.isupper() and n[:1] in "IUVB"}
+    md = [
+        HEADER.format(source="hal/cia402_drive.eds (written by hal/cia402_od.py)"),
+        heading(1, "CiA 402 object dictionary"),
+        "The objects of the emulated CiA 402 servo drive (`hil emulator --profile cia402`), "
+        "read with canopen's `import_od` from the EDS the emulator ships "
+        "(`hal/cia402_drive.eds`, generated from the one table in `hal/cia402_od.py`). A real "
+        "drive's EDS lists these objects too; its values (rated torque, encoder resolution) come "
+        "from its manual. Defaults relative to the node id are written `node id+0x...`; PDO "
+        "COB-IDs with bit 31 (0x80000000) set are disabled.\n\n",
+        "| index | sub | name | type | access | PDO | default | unit |\n",
+        "|---|---|---|---|---|---|---|---|\n",
+    ]
+    for index in sorted(od.indices):
+        obj = od[index]
+        members = [obj] if isinstance(obj, ODVariable) else [obj[s] for s in sorted(obj.subindices)]
+        if not isinstance(obj, ODVariable):
+            md.append(f"| `0x{index:04X}` |  | **{esc(obj.name)}** |  |  |  |  |  |\n")
+        for var in members:
+            sub = "" if isinstance(obj, ODVariable) else str(var.subindex)
+            md.append(
+                f"| `0x{index:04X}` | {sub} | {esc(var.name)} | {types.get(var.data_type, '?')} | "
+                f"{_ACCESS.get(var.access_type, var.access_type)} | "
+                f"{'yes' if var.pdo_mappable else ''} | {_od_default(var)} | {esc(var.unit)} |\n"
+            )
+    return "".join(md)
+
+
 PAGES: dict[str, Callable[[], str]] = {
     "cli.md": cli_page,
     "config.md": config_page,
     "dbc.md": dbc_page,
     "zenoh.md": zenoh_page,
     "schemas.md": schemas_page,
+    "cia402-od.md": cia402_od_page,
 }
 
 
@@ -516,15 +574,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 if stale")
     ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
     args = ap.parse_args(argv)
+    from hal.cia402_od import EDS_PATH, eds_text
+
     stale = []
-    for name, text in generate().items():
-        path = args.out / name
+
+    def compare(path: Path, text: str) -> None:
         if path.exists() and path.read_text(encoding="utf-8") == text:
-            continue
+            return
         stale.append(path)
         if not args.check:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text, encoding="utf-8")
+
+    compare(EDS_PATH, eds_text())  # first: cia402-od.md is read from the shipped EDS
+    for name, text in generate().items():
+        compare(args.out / name, text)
     if args.check and stale:
         names = ", ".join(p.relative_to(ROOT).as_posix() for p in stale)
         print(f"gen_docs: out of date: {names}; run: python scripts/gen_docs.py", file=sys.stderr)
