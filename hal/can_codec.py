@@ -2,8 +2,9 @@
 
 The DBC is the single source of truth: ids, signal layouts, scalings, directions (the DBC's
 transmitter and receiver nodes ``Controller`` and ``DSP``) and E2E data ids (message attribute
-``E2EDataID``) all come from it. This module adds typed dataclasses and the E2E protection of
-:mod:`hal.e2e`:
+``E2EDataID``) all come from it (:mod:`hal.can_database`). This module encodes and decodes the
+typed frames of :mod:`hal.can_frames` with the E2E protection of :mod:`hal.e2e` and the SecOC
+trailer of :mod:`hal.secoc`:
 
 * :class:`ControllerCodec` is the controller's side (sends :class:`TorqueCommand` and
   :class:`DspControl`, receives joint state, :class:`DspStatus` and :class:`Sync`);
@@ -16,20 +17,27 @@ raise :class:`~hal.errors.HalCodecError` (a command is never silently invented).
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import can
-import cantools
-from cantools.database.can import Database
-from cantools.database.can import Message as DbcMessage
 
-from hal.drive_state import DriveState, DspCommand, FaultReason
+from hal.can_database import CONTROLLER, DBC_PATH, DSP, FD_FRAME_LENGTH, HilDatabase, load_database
+from hal.can_frames import (
+    FROM_SIGNALS,
+    STRICT_SIGNALS,
+    TO_SIGNALS,
+    DspControl,
+    DspStatus,
+    Frame,
+    JointPosition,
+    JointVelocity,
+    Sync,
+    TorqueCommand,
+)
+from hal.drive_state import DspCommand
 from hal.e2e import (
     DEFAULT_MAX_DELTA,
     DEFAULT_REINIT_AFTER_NS,
@@ -43,413 +51,10 @@ from hal.errors import HalCodecError
 from hal.secoc import (
     DEFAULT_MAX_AGE_US,
     DEFAULT_MAX_SKEW_US,
-    TRAILER_BYTES,
     SecOCSigner,
     SecOCVerifier,
     rig_key,
 )
-
-DBC_PATH = Path(__file__).with_name("hil.dbc")
-CONTROLLER = "Controller"
-DSP = "DSP"
-E2E_SIGNALS = ("CRC", "Counter")
-SECOC_SIGNALS = ("Freshness", "Mac")
-FD_FRAME_LENGTH = FRAME_LENGTH + TRAILER_BYTES
-"""Every message: 8 E2E-protected bytes + SecOC trailer (freshness, MAC) = a 16-byte CAN FD
-frame."""
-
-STRICT_SIGNALS = frozenset({"Q1", "Q2", "Dq1", "Dq2"})
-"""Measurements that are never saturated on encode: a value beyond the signal's range raises
-:class:`~hal.errors.HalCodecError` (a pinned joint angle or speed would lie to the controller;
-the DSP faults with FaultReason ENCODER instead)."""
-
-ENCODER_COUNTS_PER_REV = 1 << 20
-RAD_PER_COUNT = 2.0 * math.pi / ENCODER_COUNTS_PER_REV
-RELEASE_DELAY_SATURATED = 0xFFFF
-"""Realtime ``TorqueCommand.Tick``: microseconds from the controller's release to the frame;
-this value means "this long or more" (the DSP then does not learn the phase from it)."""
-"""Resolution of the joint-angle signals Q1/Q2 (20-bit direct-drive encoder)."""
-
-
-# --------------------------------------------------------------------------- typed frames
-
-
-@dataclass(frozen=True, slots=True)
-class TorqueCommand:
-    """Controller -> DSP torque command (N·m). ``tick``: in lockstep the Sync period it answers
-    (low 16 bits); in realtime the microseconds from the controller's release to this frame
-    (:data:`RELEASE_DELAY_SATURATED` and above saturate)."""
-
-    tau1: float
-    tau2: float
-    enable: bool = True
-    tick: int = 0
-
-
-@dataclass(frozen=True, slots=True)
-class DspControl:
-    """Controller -> DSP event command (the drive state machine, :mod:`hal.drive_state`)."""
-
-    command: DspCommand
-
-
-@dataclass(frozen=True, slots=True)
-class JointPosition:
-    """DSP -> controller joint angles (rad); ``sample`` is the DSP sample index mod 16."""
-
-    q1: float
-    q2: float
-    sample: int = 0
-
-
-@dataclass(frozen=True, slots=True)
-class JointVelocity:
-    """DSP -> controller joint velocities (rad/s); ``sample`` pairs it with a JointPosition."""
-
-    dq1: float
-    dq2: float
-    sample: int = 0
-
-
-@dataclass(frozen=True, slots=True)
-class DspStatus:
-    """DSP -> controller status flags, counters and drive state (see :mod:`hal.drive_state`).
-
-    ``drive_state`` / ``fault_reason`` default to what the legacy flags imply (TorqueEnabled ->
-    OPERATION_ENABLED, WatchdogTripped -> FAULT/WATCHDOG, else SWITCH_ON_DISABLED), so a status
-    built from the flags alone round-trips. ``session`` is the DSP process's random id (0 =
-    unknown); ``tick`` is carried mod 4096, ``watchdog_trips`` saturates at 15.
-    """
-
-    torque_enabled: bool
-    watchdog_tripped: bool
-    torque_saturated: bool = False
-    lockstep: bool = False
-    rejected_frames: int = 0
-    watchdog_trips: int = 0
-    tick: int = 0
-    drive_state: DriveState | None = None
-    fault_reason: FaultReason | None = None
-    session: int = 0
-
-    def __post_init__(self) -> None:
-        state = self.drive_state
-        if state is None:
-            if self.watchdog_tripped:
-                state = DriveState.FAULT
-            elif self.torque_enabled:
-                state = DriveState.OPERATION_ENABLED
-            else:
-                state = DriveState.SWITCH_ON_DISABLED
-        object.__setattr__(self, "drive_state", DriveState(state))
-        reason = self.fault_reason
-        if reason is None:
-            reason = (
-                FaultReason.WATCHDOG
-                if self.watchdog_tripped and state is DriveState.FAULT
-                else FaultReason.NONE
-            )
-        object.__setattr__(self, "fault_reason", FaultReason(reason))
-
-    @property
-    def fault(self) -> bool:
-        return self.drive_state is DriveState.FAULT
-
-
-@dataclass(frozen=True, slots=True)
-class Sync:
-    """DSP -> controller lockstep clock: control period index ``tick``."""
-
-    tick: int
-
-
-@dataclass(frozen=True, slots=True)
-class JointState:
-    """One DSP sample of both joints, as the controller sees it.
-
-    ``t_ns`` is the ``time.monotonic_ns()`` at which the second frame of the pair arrived.
-    """
-
-    q: tuple[float, float]
-    dq: tuple[float, float]
-    sample: int
-    t_ns: int
-
-    def age_s(self, now_ns: int | None = None) -> float:
-        """Seconds since this state was received."""
-        now = time.monotonic_ns() if now_ns is None else now_ns
-        return (now - self.t_ns) * 1e-9
-
-
-Frame = TorqueCommand | DspControl | JointPosition | JointVelocity | DspStatus | Sync
-
-
-# ------------------------------------------------------------------- dataclass <-> signals
-
-
-def _sat(value: int, limit: int) -> int:
-    return max(0, min(int(value), limit))
-
-
-def _control_signals(f: DspControl) -> dict[str, Any]:
-    return {"Command": int(f.command)}
-
-
-def _control_from(s: dict[str, Any]) -> DspControl:
-    return DspControl(DspCommand(s["Command"]))
-
-
-_TO_SIGNALS: dict[type, tuple[str, Callable[[Any], dict[str, Any]]]] = {
-    TorqueCommand: (
-        "TorqueCommand",
-        lambda f: {
-            "Enable": int(bool(f.enable)),
-            "Tau1": f.tau1,
-            "Tau2": f.tau2,
-            "Tick": int(f.tick) & 0xFFFF,
-        },
-    ),
-    DspControl: ("DspControl", lambda f: _control_signals(f)),
-    JointPosition: (
-        "JointPosition",
-        lambda f: {"Sample": int(f.sample) & 0xF, "Q1": f.q1, "Q2": f.q2},
-    ),
-    JointVelocity: (
-        "JointVelocity",
-        lambda f: {"Sample": int(f.sample) & 0xF, "Dq1": f.dq1, "Dq2": f.dq2},
-    ),
-    DspStatus: (
-        "DspStatus",
-        lambda f: {
-            "TorqueEnabled": int(bool(f.torque_enabled)),
-            "WatchdogTripped": int(bool(f.watchdog_tripped)),
-            "TorqueSaturated": int(bool(f.torque_saturated)),
-            "Lockstep": int(bool(f.lockstep)),
-            "RejectedFrames": _sat(f.rejected_frames, 255),
-            "DriveState": int(f.drive_state),
-            "FaultReason": int(f.fault_reason),
-            "Session": int(f.session) & 0xFFFF,
-            "WatchdogTrips": _sat(f.watchdog_trips, 15),
-            "Tick": int(f.tick) & 0xFFF,
-        },
-    ),
-    Sync: ("Sync", lambda f: {"Tick": int(f.tick) & 0xFFFFFFFF}),
-}
-
-_FROM_SIGNALS: dict[str, Callable[[dict[str, Any]], Frame]] = {
-    "TorqueCommand": lambda s: TorqueCommand(s["Tau1"], s["Tau2"], bool(s["Enable"]), s["Tick"]),
-    "DspControl": lambda s: _control_from(s),
-    "JointPosition": lambda s: JointPosition(s["Q1"], s["Q2"], s["Sample"]),
-    "JointVelocity": lambda s: JointVelocity(s["Dq1"], s["Dq2"], s["Sample"]),
-    "DspStatus": lambda s: DspStatus(
-        bool(s["TorqueEnabled"]),
-        bool(s["WatchdogTripped"]),
-        bool(s["TorqueSaturated"]),
-        bool(s["Lockstep"]),
-        s["RejectedFrames"],
-        s["WatchdogTrips"],
-        s["Tick"],
-        DriveState(s["DriveState"]),
-        FaultReason(s["FaultReason"]),
-        s["Session"],
-    ),
-    "Sync": lambda s: Sync(s["Tick"]),
-}
-
-
-# ------------------------------------------------------------------------------- database
-
-
-class HeadPacker:
-    """Bytes 0..7 of one message <-> its physical signal values, compiled once from the DBC:
-    every signal is Intel byte order inside one 64-bit little-endian word, so a frame is one
-    integer, shifts and masks. Equal to cantools' ``encode(..., scaling=True)`` and
-    ``decode_simple(..., scaling=True, decode_choices=False)`` on these messages (the test
-    suite compares the two on random values), at a fraction of the cost on the 1 kHz path.
-
-    Encoding: raw = round((value - offset) / scale) for a scaled signal, round(value) for an
-    integer one; a raw value that does not fit its bits raises :class:`HalCodecError`.
-    Decoding: raw * scale + offset (a float) for a scaled signal, the raw int otherwise.
-    """
-
-    def __init__(self, message: DbcMessage) -> None:
-        self.name = message.name
-        enc, dec = [], []
-        for sig in message.signals:
-            kind = type(sig.conversion).__name__
-            if kind == "NamedSignalConversion":
-                kind = type(sig.conversion._conversion).__name__
-            if kind not in ("IdentityConversion", "LinearConversion"):
-                raise HalCodecError(f"{message.name}.{sig.name}: unsupported conversion {kind}")
-            if sig.byte_order != "little_endian" or sig.start + sig.length > 64:
-                raise HalCodecError(f"{message.name}.{sig.name}: not an Intel signal in bytes 0..7")
-            if getattr(sig.conversion, "is_float", False):
-                raise HalCodecError(f"{message.name}.{sig.name}: float signals are not supported")
-            mask = (1 << sig.length) - 1
-            lo, hi = (
-                (-(1 << (sig.length - 1)), (1 << (sig.length - 1)) - 1)
-                if sig.is_signed
-                else (0, mask)
-            )
-            linear = kind == "LinearConversion"
-            scale, offset = float(sig.scale), float(sig.offset)
-            enc.append((sig.name, sig.start, mask, lo, hi, linear, scale, offset))
-            sign = 1 << (sig.length - 1) if sig.is_signed else 0
-            dec.append((sig.name, sig.start, mask, sign, linear, scale, offset))
-        self._enc = tuple(enc)
-        self._dec = tuple(dec)
-
-    def encode(self, signals: dict[str, Any]) -> bytes:
-        """The 8 bytes of ``signals`` (every signal of the message must be given)."""
-        word = 0
-        for name, shift, mask, lo, hi, linear, scale, offset in self._enc:
-            value = signals[name]
-            try:
-                raw = round((value - offset) / scale) if linear else round(value)
-            except (TypeError, ValueError, OverflowError) as exc:
-                raise HalCodecError(f"cannot encode {self.name}.{name} = {value!r}") from exc
-            if not lo <= raw <= hi:
-                raise HalCodecError(f"{self.name}.{name}: raw value {raw} does not fit its bits")
-            word |= (raw & mask) << shift
-        return word.to_bytes(FRAME_LENGTH, "little")
-
-    def decode(self, data: bytes | bytearray) -> dict[str, Any]:
-        """The signals of the first 8 bytes of ``data``."""
-        word = int.from_bytes(data[:FRAME_LENGTH], "little")
-        out: dict[str, Any] = {}
-        for name, shift, mask, sign, linear, scale, offset in self._dec:
-            raw = (word >> shift) & mask
-            if raw & sign:
-                raw -= mask + 1
-            out[name] = raw * scale + offset if linear else raw
-        return out
-
-
-@dataclass(frozen=True)
-class MessageSpec:
-    """One DBC message with what the codec needs at run time."""
-
-    message: DbcMessage
-    data_id: int
-    clamps: tuple[tuple[str, float, float], ...]
-    """(signal, lowest, highest) physical value of every scaled (non-integer) signal."""
-
-    @functools.cached_property
-    def head(self) -> DbcMessage:
-        """The message's bytes 0..7 alone (E2E header and signals, no SecOC trailer): what the
-        codec encodes and decodes with cantools, the trailer being :mod:`hal.secoc`'s."""
-        m = self.message
-        return DbcMessage(
-            frame_id=m.frame_id,
-            name=m.name,
-            length=FRAME_LENGTH,
-            signals=[s for s in m.signals if s.name not in SECOC_SIGNALS],
-            senders=m.senders,
-            strict=False,
-        )
-
-    @functools.cached_property
-    def packer(self) -> HeadPacker:
-        """:attr:`head` compiled for the run-time path (:class:`HeadPacker`)."""
-        return HeadPacker(self.head)
-
-    @property
-    def name(self) -> str:
-        return self.message.name
-
-    @property
-    def frame_id(self) -> int:
-        return self.message.frame_id
-
-
-def _clamps(msg: DbcMessage) -> tuple[tuple[str, float, float], ...]:
-    out = []
-    for sig in msg.signals:
-        if (
-            sig.name in E2E_SIGNALS
-            or sig.name in SECOC_SIGNALS
-            or (sig.scale == 1 and sig.offset == 0)
-        ):
-            continue
-        raw_lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
-        raw_hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
-        out.append((sig.name, raw_lo * sig.scale + sig.offset, raw_hi * sig.scale + sig.offset))
-    return tuple(out)
-
-
-def _validate_e2e_layout(msg: DbcMessage) -> int:
-    """Check that ``msg`` carries CRC/Counter where :mod:`hal.e2e` expects them; its data id."""
-    where = f"{DBC_PATH.name}: message {msg.name}"
-    if msg.length != FD_FRAME_LENGTH or msg.is_extended_frame or not msg.is_fd:
-        raise HalCodecError(f"{where}: must be a 16-byte CAN FD frame with an 11-bit id")
-    layout = {s.name: (s.start, s.length, s.byte_order, s.is_signed) for s in msg.signals}
-    if layout.get("CRC") != (0, 8, "little_endian", False):
-        raise HalCodecError(f"{where}: signal CRC must be unsigned 0|8@1+")
-    if layout.get("Counter") != (8, 4, "little_endian", False):
-        raise HalCodecError(f"{where}: signal Counter must be unsigned 8|4@1+")
-    if layout.get("Freshness") != (64, 32, "little_endian", False):
-        raise HalCodecError(f"{where}: signal Freshness must be unsigned 64|32@1+")
-    if layout.get("Mac") != (96, 32, "little_endian", False):
-        raise HalCodecError(f"{where}: signal Mac must be unsigned 96|32@1+")
-    attr = msg.dbc.attributes.get("E2EDataID") if msg.dbc is not None else None
-    if attr is None or not 0 < int(attr.value) <= 0xFFFF:
-        raise HalCodecError(f"{where}: needs a non-zero E2EDataID attribute")
-    return int(attr.value)
-
-
-class HilDatabase:
-    """The loaded DBC, validated, with :class:`MessageSpec` lookups by name and frame id."""
-
-    def __init__(self, path: str | Path = DBC_PATH) -> None:
-        try:
-            self.db: Database = cantools.database.load_file(str(path))
-        except Exception as exc:  # cantools raises several parser errors
-            raise HalCodecError(f"cannot load CAN database {path}: {exc}") from exc
-        self.by_name: dict[str, MessageSpec] = {}
-        self.by_id: dict[int, MessageSpec] = {}
-        data_ids: dict[int, str] = {}
-        for msg in self.db.messages:
-            data_id = _validate_e2e_layout(msg)
-            if data_id in data_ids:
-                raise HalCodecError(
-                    f"{path}: E2EDataID {data_id:#06x} used by {data_ids[data_id]} and {msg.name}"
-                )
-            data_ids[data_id] = msg.name
-            spec = MessageSpec(msg, data_id, _clamps(msg))
-            self.by_name[msg.name] = spec
-            self.by_id[msg.frame_id] = spec
-        for _cls, (name, _fn) in _TO_SIGNALS.items():
-            if name not in self.by_name:
-                raise HalCodecError(f"{path}: message {name} is missing")
-
-    def sent_by(self, node: str) -> list[MessageSpec]:
-        """Messages whose DBC transmitter is ``node``."""
-        return [s for s in self.by_name.values() if node in s.message.senders]
-
-    def received_by(self, node: str) -> list[MessageSpec]:
-        """Messages that ``node`` receives from another node."""
-        return [
-            s
-            for s in self.by_name.values()
-            if node in s.message.receivers and node not in s.message.senders
-        ]
-
-
-def signal_range(message: str, signal: str) -> tuple[float, float]:
-    """Lowest and highest physical value the DBC signal can carry (scaled signals only)."""
-    for sig, lo, hi in load_database().by_name[message].clamps:
-        if sig == signal:
-            return lo, hi
-    raise HalCodecError(f"{message}.{signal} is not a scaled signal of {DBC_PATH.name}")
-
-
-@functools.cache
-def load_database() -> HilDatabase:
-    """The rig's database from :data:`DBC_PATH`, loaded and validated once per process."""
-    return HilDatabase(DBC_PATH)
-
-
-# ------------------------------------------------------------------------------- endpoints
 
 
 class CanEndpoint:
@@ -529,7 +134,7 @@ class CanEndpoint:
     def encode(self, frame: Frame) -> can.Message:
         """A protected ``can.Message`` for ``frame`` (advances that message's rolling counter)."""
         try:
-            name, to_signals = _TO_SIGNALS[type(frame)]
+            name, to_signals = TO_SIGNALS[type(frame)]
         except KeyError:
             raise HalCodecError(f"cannot encode {type(frame).__name__!r} as a CAN frame") from None
         spec = self._tx.get(name)
@@ -567,7 +172,7 @@ class CanEndpoint:
             if self.receiver.check(msg, now) is not Verdict.OK:
                 return None
             spec = self._rx[msg.arbitration_id]
-            frame = _FROM_SIGNALS[spec.name](spec.packer.decode(msg.data))
+            frame = FROM_SIGNALS[spec.name](spec.packer.decode(msg.data))
         except Exception:  # a bad frame must never escape the receive path
             stats.record(Verdict.DECODE_ERROR)
             return None

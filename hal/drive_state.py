@@ -140,7 +140,7 @@ class Drive:
 
 
 class StatusLike(Protocol):
-    """What :class:`DriveMonitor` reads of a ``hal.can_codec.DspStatus``."""
+    """What :class:`DriveMonitor` reads of a ``hal.can_frames.DspStatus``."""
 
     @property
     def drive_state(self) -> DriveState: ...

@@ -33,10 +33,9 @@ from typing import Any
 
 import can
 
-from hal.can_codec import (
+from hal.can_codec import ControllerCodec, DspCommand
+from hal.can_frames import (
     RELEASE_DELAY_SATURATED,
-    ControllerCodec,
-    DspCommand,
     DspStatus,
     JointPosition,
     JointState,

@@ -1,6 +1,6 @@
 """The emulated DSP node: arm physics behind the rig's CAN interface.
 
-It applies the latest valid :class:`~hal.can_codec.TorqueCommand` (saturated by the amplifier),
+It applies the latest valid :class:`~hal.can_frames.TorqueCommand` (saturated by the amplifier),
 publishes quantised joint angles and a filtered velocity estimate, reports :class:`DspStatus`,
 and runs a watchdog that removes torque when commands stop. Two clock modes:
 
@@ -59,14 +59,14 @@ from typing import Any
 import can
 import numpy as np
 
-from hal.can_codec import (
+from hal.can_codec import DspCodec
+from hal.can_database import signal_range
+from hal.can_frames import (
     RAD_PER_COUNT,
     RELEASE_DELAY_SATURATED,
-    DspCodec,
     DspControl,
     DspStatus,
     TorqueCommand,
-    signal_range,
 )
 from hal.config import RigConfig
 from hal.drive_state import Drive, DriveState, DspCommand, FaultReason

@@ -189,7 +189,7 @@ class Run:
         return self._with_time(columns(rows))
 
     def _can_arrays(self) -> dict[str, np.ndarray]:
-        from hal.can_codec import load_database
+        from hal.can_database import load_database
 
         db = load_database().db
         frames = [("rx", f) for f in self.log.can_rx] + [("tx", f) for f in self.log.can_tx]

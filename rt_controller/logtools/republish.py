@@ -44,7 +44,8 @@ from typing import Any
 
 import can
 
-from hal.can_codec import CONTROLLER, DspCodec, load_database
+from hal.can_codec import DspCodec
+from hal.can_database import CONTROLLER, load_database
 from hal.config import RigConfig
 from hal.errors import HalCodecError, HalConfigError
 from hal.secoc import rig_key

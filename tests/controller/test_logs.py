@@ -24,7 +24,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from hal.can_codec import DBC_PATH, ControllerCodec, DspCodec
+from hal.can_codec import ControllerCodec, DspCodec
+from hal.can_database import DBC_PATH
 from hal.config import RigConfig
 from rt_controller.cli import main
 from rt_controller.errors import LogError, MissingExtraError

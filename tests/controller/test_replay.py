@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import ControllerCodec, DspCodec, load_database
+from hal.can_codec import ControllerCodec, DspCodec
+from hal.can_database import load_database
 from hal.config import RigConfig
 from hal.secoc import SecOCVerifier, rig_key
 from hal.vision_codec import FeatureMsg, decode_features, encode_features

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import ControllerCodec, DspStatus, JointPosition, signal_range
+from hal.can_codec import ControllerCodec
+from hal.can_database import signal_range
+from hal.can_frames import DspStatus, JointPosition
 from hal.config import RigConfig
 from hal.drive_state import (
     MODE_DISARMED,

@@ -14,11 +14,8 @@ import numpy as np
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import (
-    DBC_PATH,
-    ControllerCodec,
-    DspCommand,
-)
+from hal.can_codec import ControllerCodec, DspCommand
+from hal.can_database import DBC_PATH
 from hal.config import RigConfig
 from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS
 from plant_emulator.dsp_node import DspNode

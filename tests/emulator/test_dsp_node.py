@@ -17,12 +17,8 @@ import numpy as np
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import (
-    RAD_PER_COUNT,
-    ControllerCodec,
-    JointPosition,
-    JointVelocity,
-)
+from hal.can_codec import ControllerCodec
+from hal.can_frames import RAD_PER_COUNT, JointPosition, JointVelocity
 from hal.config import RigConfig
 from hal.joint_client import DRAIN_MAX_FRAMES
 from plant_emulator.dsp_node import DspNode

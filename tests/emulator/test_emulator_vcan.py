@@ -37,7 +37,8 @@ import cantools
 import pytest
 
 from hal.bus import isolated_spec
-from hal.can_codec import DBC_PATH, RAD_PER_COUNT, DspStatus
+from hal.can_database import DBC_PATH
+from hal.can_frames import RAD_PER_COUNT, DspStatus
 from hal.config import RigConfig
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient

@@ -8,7 +8,8 @@ import can
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import ControllerCodec, JointPosition
+from hal.can_codec import ControllerCodec
+from hal.can_frames import JointPosition
 from hal.config import RigConfig
 from plant_emulator.dsp_node import CommandPhase, DspNode
 

@@ -8,21 +8,17 @@ import can
 import cantools
 import pytest
 
-from hal.can_codec import (
-    DBC_PATH,
+from hal.can_codec import ControllerCodec, DspCodec, DspCommand, bench_codec
+from hal.can_database import DBC_PATH, load_database
+from hal.can_frames import (
     ENCODER_COUNTS_PER_REV,
     RAD_PER_COUNT,
-    ControllerCodec,
-    DspCodec,
-    DspCommand,
     DspControl,
     DspStatus,
     JointPosition,
     JointVelocity,
     Sync,
     TorqueCommand,
-    bench_codec,
-    load_database,
 )
 from hal.config import RigConfig
 from hal.e2e import E2ESender

@@ -19,17 +19,8 @@ import pytest
 
 from hal import bus as hal_bus
 from hal.bus import BusSpec, isolated_spec, open_bus, parse_spec, resolve_spec
-from hal.can_codec import (
-    RAD_PER_COUNT,
-    ControllerCodec,
-    DspCodec,
-    DspCommand,
-    DspControl,
-    DspStatus,
-    Frame,
-    JointState,
-    TorqueCommand,
-)
+from hal.can_codec import ControllerCodec, DspCodec, DspCommand
+from hal.can_frames import RAD_PER_COUNT, DspControl, DspStatus, Frame, JointState, TorqueCommand
 from hal.config import RigConfig
 from hal.errors import HalConfigError, HalError, HalTimeoutError, HalTransportError
 from hal.joint_client import DRAIN_MAX_FRAMES, JointClient

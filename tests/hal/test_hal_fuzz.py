@@ -16,12 +16,9 @@ import cantools
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import (
-    DBC_PATH,
-    CanEndpoint,
-    ControllerCodec,
-    DspCodec,
-    DspCommand,
+from hal.can_codec import CanEndpoint, ControllerCodec, DspCodec, DspCommand
+from hal.can_database import DBC_PATH
+from hal.can_frames import (
     DspControl,
     DspStatus,
     Frame,

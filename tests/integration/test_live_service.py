@@ -50,7 +50,7 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from hal.bus import isolated_spec
-from hal.can_codec import DBC_PATH
+from hal.can_database import DBC_PATH
 from hal.config import RigConfig, config_from_json, load_config
 from hal.joint_client import JointClient
 from hal.vision_codec import decode_features

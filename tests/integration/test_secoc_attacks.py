@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import DspCodec, load_database
+from hal.can_codec import DspCodec
+from hal.can_database import load_database
 from hal.config import load_config
 from hal.drive_state import DspCommand
 from hal.joint_client import JointClient

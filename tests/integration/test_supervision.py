@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from hal.can_codec import DspCodec, TorqueCommand
+from hal.can_codec import DspCodec
+from hal.can_frames import TorqueCommand
 from hal.zenoh_session import free_loopback_port
 from rt_controller.logtools.reader import read_log
 from rt_controller.logtools.republish import can_message

@@ -14,7 +14,8 @@ import can
 import pytest
 
 from hal.bus import isolated_spec, open_bus
-from hal.can_codec import ControllerCodec, DspStatus
+from hal.can_codec import ControllerCodec
+from hal.can_frames import DspStatus
 from hal.config import RigConfig
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient

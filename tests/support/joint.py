@@ -11,7 +11,7 @@ import math
 import time
 from collections.abc import Callable, Iterable
 
-from hal.can_codec import DspStatus, JointState
+from hal.can_frames import DspStatus, JointState
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
 
