@@ -176,8 +176,8 @@ def run_plan(
     out: list[dict[str, Any]] = []
     try:
         with (
-            recorder_service(cfgs[0], opts) as service,
-            open_links(cfgs[0], opts, stop) as (dsp, session),
+            recorder_service(cfgs[0]) as service,
+            open_links(cfgs[0], stop) as (dsp, session),
         ):
             sim = SimControlSender(session, key=rig_key(cfgs[0]))
             for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
