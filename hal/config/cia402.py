@@ -31,3 +31,7 @@ class Cia402Config:
     sync_loss_periods: float = 2.5
     """Emulated drives: no SYNC for this many cycle periods (0x1006, else 0x60C2) in NMT
     OPERATIONAL is a SYNC loss: torque off, FAULT, EMCY 0x8700 (2.5 puts it within 3 periods)."""
+    lockstep_sync_timeout_s: float = 2.0
+    """Emulated drives, lockstep (``controller.clock = lockstep`` or ``--lockstep``): no SYNC for
+    this many seconds is a SYNC loss instead (the controller paces the world and may take longer
+    than a period over a tick; the heartbeat consumer still catches a dead controller)."""

@@ -90,6 +90,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "cia402.rated_torque": (0, 1e4, "(]"),
     "cia402.encoder_increments": (2, 2**31 - 1, "[]"),
     "cia402.sync_loss_periods": (1, 100, "[]"),
+    "cia402.lockstep_sync_timeout_s": (0, 600, "(]"),
     "plant.theta1": (0.1, 10, "[]"),
     "plant.theta2": (0.1, 10, "[]"),
     "plant.theta3": (0, 10, "[]"),

@@ -10,7 +10,8 @@ Cia402Rig` steps the one world on each SYNC and hands each drive its joint's sta
 Fault reactions (torque off, FAULT, EMCY; the drive stays in FAULT until a fault reset):
 
 * SYNC loss: once a SYNC arrived in NMT OPERATIONAL, no SYNC for ``sync_loss_periods`` times
-  the cycle (0x1006 if set, else 0x60C2) -> EMCY 0x8700 (sync controller);
+  the cycle (0x1006 if set, else 0x60C2), or for ``sync_timeout_s`` in lockstep -> EMCY 0x8700
+  (sync controller);
 * heartbeat loss: 0x1016.1 = (node id << 16) | ms; after the first heartbeat of that node, a gap
   longer than ms -> EMCY 0x8130 (life guard / heartbeat error);
 * enabling operation with a 0x60C2 that is not the emulator's control period -> EMCY 0x6320
@@ -54,6 +55,7 @@ class EmulatedDrive(canopen.LocalNode):
         period_s: float,
         tau_max_nm: float,
         sync_loss_periods: float,
+        sync_timeout_s: float | None = None,
         clock: Callable[[], float],
         lock: threading.RLock,
     ) -> None:
@@ -62,6 +64,9 @@ class EmulatedDrive(canopen.LocalNode):
         self.period_s = period_s
         self.tau_max_nm = tau_max_nm
         self.sync_loss_periods = sync_loss_periods
+        self.sync_timeout_s = sync_timeout_s
+        """Lockstep: the SYNC-loss limit in seconds instead of ``sync_loss_periods`` cycles (a
+        controller that paces the world may take longer than a period over a tick)."""
         self.clock = clock
         self.lock = lock
         self.power = PowerStateMachine(
@@ -225,7 +230,7 @@ class EmulatedDrive(canopen.LocalNode):
     def poll(self, now: float) -> None:
         """Check the SYNC and heartbeat monitors at time ``now`` (the rig's monitor thread)."""
         with self.lock:
-            sync_limit = self.sync_loss_periods * self.cycle_period_s()
+            sync_limit = self.sync_timeout_s or self.sync_loss_periods * self.cycle_period_s()
             if (
                 self._last_sync is not None
                 and self.operational

@@ -1,12 +1,13 @@
 """``hil emulator --profile cia402``: two emulated CiA 402 drives on the CAN bus.
 
 :mod:`plant_emulator.entry` dispatches here after reading the configuration. The drives are
-canopen LocalNodes (:class:`~plant_emulator.cia402.rig.Cia402Rig`) on a
-:class:`canopen.Network` over the bus of ``--can`` (default ``transport.can``); the node ids
-and object-dictionary values come from ``[cia402]``. The run is always paced by the
-controller's SYNC (each SYNC steps the world one control period), so ``--lockstep`` changes
-nothing. Unless ``--no-vision-link``, the camera pose after each SYNC goes out on zenoh for the
-vision process, as with the emulated DSP (the rendered-image camera is not served here).
+canopen LocalNodes (:class:`~plant_emulator.cia402.rig.Cia402Rig`) on a :class:`canopen.Network`
+over the bus of ``--can`` (default ``transport.can``); the node ids and object-dictionary values
+come from ``[cia402]``. The run is always paced by the controller's SYNC (each SYNC steps the
+world one control period); ``--lockstep`` (or ``controller.clock = lockstep``) only widens the
+SYNC-loss limit to ``cia402.lockstep_sync_timeout_s``, since a lockstep controller may pause
+over a tick. Unless ``--no-vision-link``, the camera pose after each SYNC goes out on zenoh for
+the vision process, as with the emulated DSP (the rendered-image camera is not served here).
 SIGTERM / SIGINT or ``--duration`` (simulated seconds) end it with exit status 0; ``--json``
 prints the final counters.
 """
@@ -91,13 +92,14 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         network = canopen.Network(bus)
         network.connect()  # the notifier on our bus (closed by open_bus's context)
         stack.callback(network.notifier.stop)
-        rig = Cia402Rig(cfg, network, on_step=poses)
+        lockstep = bool(args.lockstep) or cfg.controller.clock == "lockstep"
+        rig = Cia402Rig(cfg, network, on_step=poses, lockstep=lockstep)
         stack.callback(rig.close)
         rig.start()
         ids = ", ".join(str(d.id) for d in rig.drives)
         print(
             f"hil emulator: serving CiA 402 drives (nodes {ids}) on {where} "
-            f"(paced by SYNC){zenoh_where}",
+            f"(paced by SYNC{', lockstep' if lockstep else ''}){zenoh_where}",
             file=sys.stderr,
             flush=True,
         )

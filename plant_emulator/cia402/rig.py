@@ -1,11 +1,13 @@
 """Two emulated CiA 402 drives on the one physics world, paced by the controller's SYNC.
 
 Lockstep by construction: each SYNC on the bus steps the world by one control period with the
-torques the drives applied since the previous SYNC, then every drive latches its RPDOs (the
-new controlword and target torque), takes its joint's state and sends its TPDOs. So the TPDOs
-after SYNC k carry q(t_k), dq(t_k) and the torque applied over [t_k, t_k+1], and a command
-that reaches a drive between SYNCs acts from the next SYNC on. A monitor thread polls the
-drives' SYNC and heartbeat watchdogs (tests poll with their own clock instead).
+torques the drives applied since the previous SYNC, then every drive latches its RPDOs (the new
+controlword and target torque), takes its joint's state and sends its TPDOs. The world's clock
+starts once every drive is in OPERATION ENABLED (:attr:`Cia402Rig.running`), as the emulated DSP
+holds its period 0 until it is armed: the arming SYNCs do not move the scenario. So the TPDOs
+after SYNC k carry q(t_k), dq(t_k) and the torque applied over [t_k, t_k+1], and a command that
+reaches a drive between SYNCs acts from the next SYNC on. A monitor thread polls the drives'
+SYNC and heartbeat watchdogs (tests poll with their own clock instead).
 """
 
 from __future__ import annotations
@@ -48,7 +50,9 @@ def drive_parameters(cfg: RigConfig, joint: int, tau_max_nm: float) -> DrivePara
 
 
 class Cia402Rig:
-    """The world and its two drives on ``network`` (a connected :class:`canopen.Network`)."""
+    """The world and its two drives on ``network`` (a connected :class:`canopen.Network`);
+    ``lockstep``: the controller paces the world with its SYNC and may pause longer than a
+    period (``cia402.lockstep_sync_timeout_s`` is then the SYNC-loss limit)."""
 
     def __init__(
         self,
@@ -57,6 +61,7 @@ class Cia402Rig:
         *,
         clock: Callable[[], float] = time.monotonic,
         on_step: StepListener | None = None,
+        lockstep: bool = False,
     ) -> None:
         self.cfg = cfg
         self.world = World(cfg)
@@ -76,13 +81,18 @@ class Cia402Rig:
                 period_s=self.period_s,
                 tau_max_nm=tau_max[joint],
                 sync_loss_periods=cfg.cia402.sync_loss_periods,
+                sync_timeout_s=cfg.cia402.lockstep_sync_timeout_s if lockstep else None,
                 clock=clock,
                 lock=self.lock,
             )
             drive.q, drive.dq = float(self.world.q[joint]), float(self.world.dq[joint])
             self.drives.append(drive)
         self.syncs = 0
-        """SYNCs received (= control periods the world stepped)."""
+        """SYNCs received."""
+        self.running = False
+        """Whether the world's clock runs: from the SYNC after the one at which every drive is
+        in OPERATION ENABLED (the scenario's t = 0 then, as the DSP holds its period 0 until
+        it is armed), every SYNC steps it; the arming SYNCs before do not."""
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
 
@@ -115,8 +125,10 @@ class Cia402Rig:
     def _on_sync(self, _can_id: int, _data: bytearray, _timestamp: float) -> None:
         with self.lock:
             now = self.clock()
-            tau = np.array([drive.torque_nm() for drive in self.drives])
-            self.world.hold(tau, self.substeps)
+            self.running = self.running or all(d.power.torque_enabled for d in self.drives)
+            if self.running:
+                tau = np.array([drive.torque_nm() for drive in self.drives])
+                self.world.hold(tau, self.substeps)
             self.syncs += 1
             for drive in self.drives:
                 j = drive.joint

@@ -5,6 +5,7 @@ drive leaves FAULT only by a fault reset. The monitors run on a manual clock the
 from __future__ import annotations
 
 from hal import cia402_od as cia
+from hal.config import RigConfig
 from plant_emulator.cia402.power_state import PowerState
 from tests.support.cia402 import Bench, drives_on_virtual_bus, round_trip, sync_and_wait
 
@@ -107,3 +108,13 @@ def test_no_sync_monitoring_outside_operational():
         bench.rig.poll(bench.clock.t + 100 * PERIOD_S)
         assert all(d.power.state is PowerState.OPERATION_ENABLED for d in bench.rig.drives)
         assert all(not n.emcy.log for n in nodes)
+
+
+def test_lockstep_widens_the_sync_loss_limit_to_its_timeout():
+    with drives_on_virtual_bus(lockstep=True) as bench:
+        nodes = both_enabled_with_torque(bench)
+        last_sync = bench.clock.t
+        bench.rig.poll(last_sync + 10 * PERIOD_S)  # a slow lockstep tick: no fault
+        assert all(d.power.state is PowerState.OPERATION_ENABLED for d in bench.rig.drives)
+        bench.rig.poll(last_sync + RigConfig().cia402.lockstep_sync_timeout_s + 0.001)
+        assert_faulted(bench, nodes, cia.EMCY_SYNC)

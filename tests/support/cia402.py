@@ -53,7 +53,7 @@ class Bench:
 
 @contextmanager
 def drives_on_virtual_bus(
-    cfg: RigConfig | None = None, *, manual_clock: bool = True
+    cfg: RigConfig | None = None, *, manual_clock: bool = True, lockstep: bool = False
 ) -> Iterator[Bench]:
     """The rig (monitor thread off with the manual clock: the test polls) and a master."""
     channel = f"cia402-{os.getpid()}-{next(_channels)}"
@@ -64,7 +64,7 @@ def drives_on_virtual_bus(
     master = canopen.Network(can.Bus(interface="virtual", channel=channel))
     master.connect()
     kwargs = {"clock": clock} if clock is not None else {}
-    rig = Cia402Rig(cfg, emulator, **kwargs)
+    rig = Cia402Rig(cfg, emulator, lockstep=lockstep, **kwargs)
     try:
         rig.start(monitor=clock is None)
         yield Bench(rig, master, clock)
