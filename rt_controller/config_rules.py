@@ -41,6 +41,7 @@ def apply_overrides(
     can: str | None = None,
     zenoh_endpoint: str | None = None,
     zenoh_config: str | None = None,
+    profile: str | None = None,
 ) -> RigConfig:
     """``cfg`` with the given settings changed (None = keep), validated.
 
@@ -61,6 +62,7 @@ def apply_overrides(
         "transport.can": can,
         "transport.zenoh_endpoint": zenoh_endpoint,
         "transport.zenoh_config": zenoh_config,
+        "hardware.profile": profile,
     }
     overrides: dict[str, Any] = {k: v for k, v in pairs.items() if v is not None}
     if horizon is not None and steps is None:

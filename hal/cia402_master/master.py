@@ -355,6 +355,9 @@ class Cia402Master:
         if self.connected:
             self.connected = False
             self.network.disconnect()
+        elif self.network.bus is not None:  # never connected: the bus is still ours to shut
+            self.network.bus.shutdown()
+            self.network.bus = None
 
     def diagnostics(self) -> dict[str, Any]:
         """Per drive: NMT and power state, statusword, units and torque limit; the faults."""

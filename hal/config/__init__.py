@@ -16,6 +16,7 @@ from hal.config.cia402 import Cia402Config
 from hal.config.control import LAW_NAMES, ControllerConfig, GainsConfig, RhcConfig
 from hal.config.devices import DspConfig, TransportConfig, VisionConfig
 from hal.config.experiment import RatesConfig, ScenarioConfig
+from hal.config.hardware import PROFILES, HardwareConfig
 from hal.config.plant import CameraConfig, PlantConfig, RobotConfig, plant_view
 from hal.config.rig import (
     RETIRED_KEYS,
@@ -29,12 +30,14 @@ from hal.config.values import Mat2, Vec2
 
 __all__ = [
     "LAW_NAMES",
+    "PROFILES",
     "RETIRED_KEYS",
     "CameraConfig",
     "Cia402Config",
     "ControllerConfig",
     "DspConfig",
     "GainsConfig",
+    "HardwareConfig",
     "Mat2",
     "PlantConfig",
     "RatesConfig",

@@ -17,6 +17,7 @@ from hal.config.cia402 import Cia402Config
 from hal.config.control import ControllerConfig, GainsConfig, RhcConfig
 from hal.config.devices import DspConfig, TransportConfig, VisionConfig
 from hal.config.experiment import RatesConfig, ScenarioConfig
+from hal.config.hardware import HardwareConfig
 from hal.config.plant import CameraConfig, PlantConfig, RobotConfig
 from hal.config.validation import validate
 from hal.config.values import Mat2, Vec2, diag
@@ -39,6 +40,7 @@ class RigConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     vision: VisionConfig = field(default_factory=VisionConfig)
     cia402: Cia402Config = field(default_factory=Cia402Config)
+    hardware: HardwareConfig = field(default_factory=HardwareConfig)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (lists for tuples), the inverse of :func:`config_from_dict`."""

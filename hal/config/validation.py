@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from hal.config.control import LAW_NAMES
+from hal.config.hardware import PROFILES
 from hal.config.plant import plant_robot
 from hal.config.ranges import check_ranges
 from hal.config.values import Mat2
@@ -114,6 +115,11 @@ def validate(cfg: RigConfig) -> RigConfig:
         ct.clock in ("realtime", "lockstep"),
         "controller.clock",
         f"must be realtime or lockstep, not {ct.clock!r}",
+    )
+    _require(
+        cfg.hardware.profile in PROFILES,
+        "hardware.profile",
+        f"must be {' or '.join(PROFILES)}, not {cfg.hardware.profile!r}",
     )
     _require(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
     _require(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")

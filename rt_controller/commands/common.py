@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hal.config import LAW_NAMES, RigConfig, load_config
+from hal.config import LAW_NAMES, PROFILES, RigConfig, load_config
 from rt_controller.config_rules import apply_overrides
 
 
@@ -34,6 +34,15 @@ def add_scenario_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="camera noise seed (camera.seed)")
 
 
+def add_profile_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--profile",
+        choices=PROFILES,
+        help="hardware profile (hardware.profile): dsp, our DSP with SecOC (the default), or "
+        "cia402, CANopen CiA 402 drives in cyclic synchronous torque (not authenticated)",
+    )
+
+
 def config_from_args(args: argparse.Namespace) -> RigConfig:
     """The config file (or defaults) with the command-line overrides applied and validated
     (the rules: :func:`rt_controller.config_rules.apply_overrides`)."""
@@ -47,4 +56,5 @@ def config_from_args(args: argparse.Namespace) -> RigConfig:
         zeta=getattr(args, "zeta", None),
         seed=getattr(args, "seed", None),
         disturbance=False if getattr(args, "no_disturbance", False) else None,
+        profile=getattr(args, "profile", None),
     )

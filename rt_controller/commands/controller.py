@@ -8,7 +8,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from hal.arguments import add_key_option, duration
-from rt_controller.commands.common import add_config_option, add_law_options, config_from_args
+from rt_controller.commands.common import (
+    add_config_option,
+    add_law_options,
+    add_profile_option,
+    config_from_args,
+)
 
 if TYPE_CHECKING:
     from hal.config import RigConfig
@@ -36,6 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_law_options(p)
     add_config_option(p)
+    add_profile_option(p)
     add_transport_options(p)
     p.add_argument(
         "--clock",

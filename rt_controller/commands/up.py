@@ -7,7 +7,11 @@ import sys
 from pathlib import Path
 
 from hal.arguments import duration
-from rt_controller.commands.common import add_law_options, add_scenario_options
+from rt_controller.commands.common import (
+    add_law_options,
+    add_profile_option,
+    add_scenario_options,
+)
 
 SUMMARY_KEYS = (
     "clock", "rate_hz", "duration_s", "law", "horizon_s", "steps", "can",
@@ -49,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "lockstep: 20 x duration + 60 s)",
     )
     p.add_argument("--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: auto)")
+    add_profile_option(p)
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
     p.add_argument("--log", metavar="FILE.mcap", help="controller log path")
     p.add_argument(
@@ -178,7 +183,7 @@ def _effective_config(args: argparse.Namespace) -> str | None:
     from rt_controller.config_rules import config_toml
 
     cfg = config_from_args(args)
-    names = ("rate", "horizon", "steps", "kmax", "zeta", "seed")
+    names = ("rate", "horizon", "steps", "kmax", "zeta", "seed", "profile")
     if all(getattr(args, n) is None for n in names) and not args.no_disturbance:
         return None
     return config_toml(cfg, header="hil up: the config with its command-line overrides")

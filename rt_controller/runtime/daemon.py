@@ -21,8 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from hal.cia402_master.master import Cia402Master
 from hal.config import RigConfig
 from hal.errors import HalStopped
+from hal.hardware_interface import HardwareInterface
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
 from hal.vision_receivers import FeatureDecoder
@@ -32,6 +34,7 @@ from rt_controller.calibration.parameters import ParameterService
 from rt_controller.control.controller import Controller, warm_up
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
+from rt_controller.runtime.cia402_hardware import Cia402Hardware, open_cia402_links
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import (
     OutageTracker,
@@ -39,6 +42,7 @@ from rt_controller.runtime.counters import (
     run_problems,
     run_warnings,
 )
+from rt_controller.runtime.feature_link import FeatureLink
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, DspHardware
 from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
 from rt_controller.runtime.loop import ControlLoop
@@ -152,8 +156,12 @@ class ControllerDaemon:
         with recorder_service(self.cfg) as service:
             rec = self._open_recorder(service)
             try:
-                with open_links(self.cfg, self.stop) as (dsp, session):
-                    self._run_with(dsp, session, rec)
+                if self.cfg.hardware.profile == "cia402":
+                    with open_cia402_links(self.cfg, self.stop) as (master, session):
+                        self._run_with(None, session, rec, master=master)
+                else:
+                    with open_links(self.cfg, self.stop) as (dsp, session):
+                        self._run_with(dsp, session, rec)
             except HalStopped:  # told to stop while waiting for zenoh
                 self.counters.stopped_before_arming = True
             finally:
@@ -171,14 +179,30 @@ class ControllerDaemon:
             rec.close()
         return self._summary(rec)
 
-    def _run_with(self, dsp: JointClient, session: Any, rec: RemoteRecorder) -> None:
-        """The run on open links: the parts, the live stream, the loop."""
+    def _run_with(
+        self,
+        dsp: JointClient | None,
+        session: Any,
+        rec: RemoteRecorder,
+        *,
+        master: Cia402Master | None = None,
+    ) -> None:
+        """The run on open links (the DSP's client, or the cia402 profile's CANopen
+        ``master``): the parts, the live stream, the loop."""
         cfg, opts = self.cfg, self.opts
         ctx = RunContext(cfg, self.clock, self.stop, self.counters, rec)
         lockstep = self.mode is ClockMode.LOCKSTEP
-        hw = DspHardware(
-            ctx, dsp, session, self.features, lockstep=lockstep, record_raw=opts.record_raw
-        )
+        hw: HardwareInterface
+        if master is not None:
+            link = FeatureLink(
+                ctx, session, self.features, by_callback=lockstep, record_raw=opts.record_raw
+            )
+            hw = Cia402Hardware(ctx, master, link, lockstep=lockstep)
+        else:
+            assert dsp is not None
+            hw = DspHardware(
+                ctx, dsp, session, self.features, lockstep=lockstep, record_raw=opts.record_raw
+            )
         pacer: Pacer = (
             LockstepPacer(ctx, hw.step) if lockstep else RealtimePacer(ctx, hw.wait_inputs)
         )
@@ -192,7 +216,7 @@ class ControllerDaemon:
             tuning.undeclare()
             hw.deactivate()
 
-    def _start_and_loop(self, hw: DspHardware, loop: ControlLoop) -> None:
+    def _start_and_loop(self, hw: HardwareInterface, loop: ControlLoop) -> None:
         """Warm up, configure the hardware (the peer answers), lock memory, then the loop
         (which activates it); deactivated at the end."""
         cfg = self.cfg

@@ -1,0 +1,253 @@
+"""The ``cia402`` profile of the hardware seam (:class:`hal.hardware_interface.HardwareInterface`):
+two CiA 402 drives in cyclic synchronous torque over CANopen (:mod:`hal.cia402_master`, on the
+``canopen`` library), the image features over zenoh (:class:`FeatureLink`).
+
+Per period the bus carries RPDO(k-1) -> SYNC k -> TPDOs(k): the drives latch the torque at the
+SYNC and answer it with their statusword, position, velocity and torque. In lockstep
+:meth:`Cia402Hardware.step` sends SYNC k (the emulated world steps one period on it) and waits
+for the TPDOs and the features of period k; in realtime :meth:`Cia402Hardware.write` sends the
+SYNC right after the tick's RPDO, so the torque is latched at once and the TPDOs are in before
+the next release.
+
+CANopen carries no MAC: nothing on this profile's CAN side is authenticated (the ``dsp``
+profile's SecOC has no counterpart here); see docs/tutorials/cia402-drive.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections import Counter
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from hal.bus import open_bus
+from hal.cia402_master.master import Cia402Master
+from hal.config import RigConfig
+from hal.drive_state import MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
+from hal.hardware_interface import InputJudge, Observation, StopFlag
+from hal.zenoh_session import open_session
+from rt_controller.errors import ControllerError
+from rt_controller.runtime.context import RunContext
+from rt_controller.runtime.feature_link import FeatureLink
+from rt_controller.sample_stats import percentile
+
+ENABLE_TIMEOUT_S = 5.0
+"""How long arming may take until every drive reports *operation enabled*."""
+STARTUP_TIMEOUT_S = 20.0
+"""Realtime: how long start-up waits for the first features."""
+LOCKSTEP_TPDO_TIMEOUT_S = 1.0
+"""Lockstep: how long a SYNC may wait for every drive's TPDOs."""
+LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
+"""Lockstep: how long a step waits for the features answering its period's pose."""
+ENABLED = "OPERATION ENABLED"
+DISARMED = "READY TO SWITCH ON"
+
+
+class Cia402Hardware:
+    """The CANopen drives and the zenoh features of one run, from the control thread."""
+
+    def __init__(
+        self, ctx: RunContext, master: Cia402Master, features: FeatureLink, *, lockstep: bool
+    ) -> None:
+        self.ctx = ctx
+        self.master = master
+        self.features = features
+        self.lockstep = lockstep
+        self.target: str | None = ENABLED
+        """Where the controlwords steer: *operation enabled* (armed), *ready to switch on*
+        (the operator disarmed), None (a fault: hold, no automatic reset)."""
+        self._enable_by: int | None = None
+        self._seen_sync = 0
+        self._faults_seen: Counter[str] = Counter()
+        self.deactivation: list[tuple[str, tuple[str, ...]]] = []
+        """The steps of :meth:`deactivate` with the states the drives answered."""
+        self.last_tau = (0.0, 0.0)
+        self._pending: int | None = None
+        """Lockstep: a SYNC whose TPDOs :meth:`step` is still waiting for."""
+
+    # --- lifecycle --------------------------------------------------------------------------
+    def configure(self, stop: StopFlag) -> None:
+        """Boot the drives (NMT, SDO, PDO maps, CST read back, NMT start, the controller's
+        heartbeat) and subscribe to the features; realtime: wait for the first features."""
+        self.master.boot(stop)
+        self.features.attach()
+        if self.lockstep:
+            return
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not stop.is_set() and self.features.features.latest is None:
+            if time.monotonic() > deadline:
+                raise ControllerError(
+                    f"no image features (zenoh) within {STARTUP_TIMEOUT_S:.0f} s: is `hil "
+                    f"vision` running on the same zenoh endpoints?"
+                )
+            self.features.poll(self.ctx.clock.now_ns())
+            self.ctx.pause(10_000_000)
+
+    def activate(self, now_ns: int) -> bool:
+        """One step of the arming walk: each drive's controlword one CiA 402 transition toward
+        *operation enabled* (zero torque) and a SYNC that latches it; True once every drive
+        reports it. Realtime: one SYNC per release (counted in ``arming_ticks``); lockstep:
+        the SYNC steps the world and this waits for its TPDOs."""
+        clock = self.ctx.clock
+        if self._enable_by is None:
+            self._enable_by = clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
+        if self.master.steer(ENABLED):
+            return True
+        if clock.now_ns() > self._enable_by:
+            states = ", ".join(f"node {n.id}: {d['state']}" for n, d in self._drive_states())
+            raise ControllerError(
+                f"the drives did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
+                f"({states})"
+            )
+        self.master.send(None)
+        k = self.master.sync()
+        if self.lockstep:
+            self.master.wait_tpdos(k, LOCKSTEP_TPDO_TIMEOUT_S)
+        else:
+            self.ctx.counters.arming_ticks += 1
+        return False
+
+    def deactivate(self) -> None:
+        """Quick stop, disable operation, NMT pre-operational, the controller's heartbeat
+        off (:meth:`Cia402Master.deactivate`); the features' subscription ended."""
+        if self._enable_by is not None:
+            period_s = self.ctx.cfg.rates.control_period_ns / 1e9
+            self.deactivation = self.master.deactivate(max(3 * period_s, 0.1))
+            self._enable_by = None
+        self.features.detach()
+
+    # --- pacing -----------------------------------------------------------------------------
+    def wait_inputs(self, until_ns: int) -> None:
+        """Realtime: the TPDOs come by canopen's receive thread; feed the features' ring
+        until ``until_ns``."""
+        self.features.poll(self.ctx.clock.now_ns())
+        time.sleep(max(0, until_ns - self.ctx.clock.now_ns()) / 1e9)
+
+    def step(self, timeout_s: float) -> int | None:
+        """Lockstep: SYNC k (the world steps one period), then every drive's TPDOs of k and
+        the features answering pose k; k, or None when the drives did not answer within
+        ``timeout_s`` (the next call waits for the same SYNC's answer, it sends none)."""
+        k = self._pending if self._pending is not None else self.master.sync()
+        if not self.master.wait_tpdos(k, timeout_s):
+            self._pending = k  # wait again for this SYNC's answer: another would step the world
+            return None
+        self._pending = None
+        self.features.wait_pose(k, LOCKSTEP_FEATURE_TIMEOUT_S)
+        return k
+
+    # --- read and write ---------------------------------------------------------------------
+    def read(self, now_ns: int, judge: InputJudge) -> Observation:
+        """The newest complete TPDO set and features, judged by ``judge``; the drive mode
+        (a fault holds the controlwords: no automatic reset)."""
+        self.features.poll(self.ctx.clock.now_ns())
+        js = self.master.joint_state()
+        mode = self.master.mode(now_ns)
+        self._count_faults()
+        if mode == MODE_FAULT and self.target == ENABLED:
+            self.target = None
+        state_new = js is not None and js.sync != self._seen_sync
+        if js is not None:
+            self._seen_sync = js.sync
+        age_ms = math.nan if js is None else (now_ns - js.sync_ns) / 1e6
+        stale = js is None or age_ms > judge.state_limit_s * 1e3
+        limit = judge.status_limit_s
+        if mode == MODE_ENABLED and (js is None or (limit is not None and age_ms > limit * 1e3)):
+            mode = MODE_NO_STATUS  # silent drives: their last word no longer counts
+        if mode != MODE_ENABLED:
+            self.ctx.counters.drive_ticks[mode] += 1
+        f, f_age_ms, f_stale, f_valid = self.features.latest(now_ns, judge)
+        return Observation(
+            q=np.full(2, math.nan) if stale else np.array(js.q),
+            dq=np.zeros(2) if stale else np.array(js.dq),
+            f=f,
+            state_ns=None if stale else js.sync_ns,
+            state_age_ms=age_ms,
+            state_stale=stale,
+            f_age_ms=f_age_ms,
+            f_stale=f_stale,
+            f_valid=f_valid,
+            drive_mode=mode,
+            state_new=state_new,
+        )
+
+    def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:
+        """The tick's torque in RPDO1 with the controlword of the run's target; realtime: the
+        SYNC that latches it, at once."""
+        self.last_tau = tau
+        if self.target is not None:
+            self.master.steer(self.target)
+        self.master.send(tau)
+        if sync is None:
+            self.master.sync()
+
+    def command(self, action: str) -> str | None:
+        """``disarm``: *shutdown* (ready to switch on, torque off) until ``arm``; ``arm``:
+        the walk to *operation enabled* again, resetting a fault; ``mark``: nothing."""
+        if action == "disarm":
+            if self.target == DISARMED:
+                return "already disarmed by the operator"
+            self.target = DISARMED
+        elif action == "arm":
+            if self.target == ENABLED and self.master.mode(self.ctx.clock.now_ns()) == MODE_ENABLED:
+                return "already armed"
+            self.target = ENABLED
+        return None
+
+    def diagnostics(self) -> dict[str, dict[str, Any]]:
+        """The ``/diagnostics`` blocks of the DSP profile's names: ``can_rx`` (SYNCs sent;
+        CANopen frames carry no MAC, so nothing is judged), ``features``, and ``dsp``: the
+        drives (NMT and power state, units, limits), their faults, the SYNC interval and the
+        SYNC-to-TPDO latency (median, p99, µs), the deactivation's steps."""
+        m = self.master
+        block: dict[str, Any] = {"profile": "cia402"}
+        mode = m.mode(self.ctx.clock.now_ns())
+        block.update(mode=mode, torque_enabled=mode == MODE_ENABLED, **m.diagnostics())
+        block["deactivation"] = [list(step) for step in self.deactivation]
+        for name, samples in (
+            ("sync_interval_us", list(m.sync_intervals_us)),
+            ("sync_to_tpdo_us", list(m.tpdo_latency_us)),
+        ):
+            block[f"{name}_median"] = percentile(samples, 50)
+            block[f"{name}_p99"] = percentile(samples, 99)
+        return {
+            "can_rx": {"authenticated": False, "syncs_sent": m.sync_count},
+            "features": self.features.features.counts.as_dict(),
+            "dsp": block,
+        }
+
+    # --- helpers ----------------------------------------------------------------------------
+    def _count_faults(self) -> None:
+        """New faults of the drives (EMCY codes, heartbeat loss, reboot) into the run's
+        ``dsp_faults`` (the summary's, which make a run not clean)."""
+        counts = Counter(self.master.faults.counts)
+        new = counts - self._faults_seen
+        if new:
+            self.ctx.counters.dsp_faults.update(new)
+            self._faults_seen = counts
+
+    def _drive_states(self) -> list[tuple[Any, dict[str, Any]]]:
+        drives = self.master.diagnostics()["drives"]
+        return [(n, drives[str(n.id)]) for n in self.master.nodes]
+
+
+@contextlib.contextmanager
+def open_cia402_links(cfg: RigConfig, stop: Any) -> Iterator[tuple[Cia402Master, Any]]:
+    """The cia402 profile's links: the CANopen master on ``transport.can`` (its own receive
+    thread: canopen's) and the zenoh session. The bus first, so a bad ``transport.can`` is
+    reported at once; both closed at the end."""
+    master = Cia402Master.from_config(cfg, open_bus(cfg.transport.can))
+    try:
+        session = open_session(cfg, listen=False, wait_s=STARTUP_TIMEOUT_S, stop_event=stop)
+        try:
+            yield master, session
+        finally:
+            session.close()
+    finally:
+        master.close()
+
+
+__all__ = ["Cia402Hardware", "open_cia402_links"]

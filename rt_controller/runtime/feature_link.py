@@ -1,0 +1,117 @@
+"""The zenoh half of a hardware profile: the image features (and, when logged, the camera's
+images) of one run, fed to one :class:`~hal.vision_receivers.FeatureDecoder`.
+
+Realtime: a ring the control thread drains (:meth:`FeatureLink.poll`); lockstep: a callback
+feeds each message as it arrives, so a period's tick can wait for the answer to its pose
+(:meth:`FeatureLink.wait_pose`). After :meth:`FeatureLink.detach` no callback touches the run
+(zenoh may deliver a sample after the undeclare returns, and the run's log is closed next)."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+from typing import Any
+
+import numpy as np
+
+from hal.errors import HalCodecError
+from hal.hardware_interface import InputJudge
+from hal.vision_image import decode_vision_image
+from hal.vision_receivers import FeatureDecoder
+from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE, PayloadRing
+from rt_controller.runtime.context import RunContext
+from rt_controller.runtime.recorder import IMAGE
+
+
+class FeatureLink:
+    """The features of one run (see the module docstring)."""
+
+    def __init__(
+        self,
+        ctx: RunContext,
+        session: Any,
+        features: FeatureDecoder,
+        *,
+        by_callback: bool,
+        record_raw: bool,
+    ) -> None:
+        self.ctx = ctx
+        self.session = session
+        self.features = features
+        self.by_callback = by_callback
+        self.record_raw = record_raw
+        self._ring: PayloadRing | None = None
+        self._subscriber: Any = None
+        self._image_subscriber: Any = None
+        self.images_recorded = self.images_rejected = 0
+        """``hil/vision/image`` payloads logged, and refused (not authentic or malformed)."""
+        self._feeding = threading.Lock()
+        self._attached = False
+
+    def attach(self) -> None:
+        """Subscribe this run to the features (and the camera's images, when logged)."""
+        self._attached = True
+        if self.by_callback:
+            self._subscriber = self.session.subscribe(KEY_FEATURES, self._on_features)
+        else:
+            self._ring = self.session.subscribe_ring(KEY_FEATURES)
+        if self.ctx.cfg.camera.image_log_fps > 0:
+            self._image_subscriber = self.session.subscribe(KEY_VISION_IMAGE, self._on_image)
+
+    def detach(self) -> None:
+        """Undeclare the subscriptions; wait for a callback still feeding to finish."""
+        if self._ring is not None:
+            self._ring.close()
+            self._ring = None
+        for sub in (self._subscriber, self._image_subscriber):
+            if sub is not None:
+                with contextlib.suppress(Exception):  # a closed session undeclared it already
+                    sub.undeclare()
+        self._subscriber = self._image_subscriber = None
+        with self._feeding:
+            self._attached = False
+
+    def poll(self, now_ns: int) -> None:
+        """Realtime: the messages waiting in the ring into the decoder, stamped ``now_ns``."""
+        if self._ring is not None:
+            for payload in self._ring.drain():
+                self._on_features(payload, now_ns)
+
+    def wait_pose(self, seq: int, timeout_s: float) -> bool:
+        """Lockstep: until the features answering pose ``seq`` (or newer) arrived."""
+        return self.features.wait_pose_seq(seq, timeout_s) is not None
+
+    def latest(self, now_ns: int, judge: InputJudge) -> tuple[np.ndarray, float, bool, bool]:
+        """The newest features at ``now_ns``: ``(f, age ms, stale, valid)`` (NaN when none)."""
+        feat, recv_ns = self.features.latest_received()
+        if feat is None or recv_ns is None:
+            return np.full(2, math.nan), math.nan, True, False
+        age_ms = judge.feature_age_ms(feat, recv_ns, now_ns)
+        timeout_ms = self.ctx.cfg.controller.feature_timeout_s * 1e3
+        return np.array(feat.f), age_ms, not (0.0 <= age_ms <= timeout_ms), feat.valid
+
+    def _on_features(self, payload: bytes, now_ns: int | None = None) -> None:
+        with self._feeding:
+            if not self._attached:
+                return
+            now = self.ctx.clock.now_ns() if now_ns is None else now_ns
+            self.features.feed(payload, now)
+            if self.record_raw:
+                self.ctx.recorder.record_vision(payload, now)
+
+    def _on_image(self, payload: bytes) -> None:
+        """What the camera saw (``hil/vision/image``, authenticated) into the log."""
+        with self._feeding:
+            if not self._attached:
+                return
+            try:
+                decode_vision_image(payload, self.features.key)
+            except HalCodecError:
+                self.images_rejected += 1
+                return
+            self.images_recorded += 1
+            self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
+
+
+__all__ = ["FeatureLink"]
