@@ -25,6 +25,7 @@ from numba import njit
 
 from hal.config import RigConfig
 from rt_controller.control import model_kernels as mk
+from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
 from rt_controller.control.rhc import kernel as rk
 from rt_controller.control.state import (
     IO,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
 from rt_controller.control.model import NominalModel
 from rt_controller.control.state import PAR, pack_params
 

@@ -11,7 +11,7 @@ import pytest
 
 from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc import problem as pb
-from rt_controller.control.rhc.kernel import eval_F
+from rt_controller.control.rhc.residual import eval_F
 from tests.support.rhc_reference import ReferenceProblem, ReferenceSolver
 
 EPS = 1e-6

@@ -10,9 +10,9 @@ from hal.config import RigConfig
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import Measurement
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw, kernel
-from tests.support.rhc_reference import ReferenceSolver
+from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw, gmres, kernel, residual
 from rt_controller.control.rhc.solver import pack_state
+from tests.support.rhc_reference import ReferenceSolver
 
 FROZEN = np.zeros(6)
 
@@ -236,12 +236,12 @@ def test_block_gmres_with_one_right_hand_side_is_gmres(cfg):
     x1 = x + np.array([0.02, -0.02, -0.5, 1.0, 10.0, -10.0])
     T = cfg.rhc.horizon
     F = np.zeros_like(U)
-    kernel.eval_F(P, N, U, x1, T, sw, F)
-    kernel.precond_setup(P, N, U, sw[0], T, pre)
+    residual.eval_F(P, N, U, x1, T, sw, F)
+    residual.precond_setup(P, N, U, sw[0], T, pre)
     b, zero = -F, np.zeros_like(U)
     d1, d2, ref = np.zeros_like(U), np.ones_like(U), np.zeros_like(U)
-    k = kernel.block_gmres(P, N, U, x1, T, F, b, zero, d1, d2, 5, pre, ws, sw)
-    kg = kernel.fd_gmres(P, N, U, x1, T, F, b.copy(), ref, False, 5, 0.0, pre, ws, sw)
+    k = gmres.block_gmres(P, N, U, x1, T, F, b, zero, d1, d2, 5, pre, ws, sw)
+    kg = gmres.fd_gmres(P, N, U, x1, T, F, b.copy(), ref, False, 5, 0.0, pre, ws, sw)
     assert k == kg == 5
     np.testing.assert_allclose(d1, ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
     assert np.all(d2 == 0.0)
@@ -256,23 +256,23 @@ def test_block_gmres_solves_both_right_hand_sides(cfg):
     x1 = x + np.array([0.02, -0.02, -0.5, 1.0, 10.0, -10.0])
     T = cfg.rhc.horizon
     F = np.zeros(n)
-    kernel.eval_F(P, N, U, x1, T, sw, F)
-    kernel.precond_setup(P, N, U, sw[0], T, pre)
+    residual.eval_F(P, N, U, x1, T, sw, F)
+    residual.precond_setup(P, N, U, sw[0], T, pre)
     rng = np.random.default_rng(2)
     b2 = rng.normal(size=n) * np.abs(F).max()
     d1, d2 = np.zeros(n), np.zeros(n)
-    k = kernel.block_gmres(P, N, U, x1, T, F, -F, b2, d1, d2, n, pre, ws, sw)
+    k = gmres.block_gmres(P, N, U, x1, T, F, -F, b2, d1, d2, n, pre, ws, sw)
     assert k == n
     for b, d in ((-F, d1), (b2, d2)):
         Ad = np.zeros(n)
         scale = 1.0 / np.linalg.norm(d)
-        kernel._jvp(P, N, U, x1, T, F, d, scale, Ad, np.zeros(n), sw)
+        gmres._jvp(P, N, U, x1, T, F, d, scale, Ad, np.zeros(n), sw)
         assert np.linalg.norm(Ad - b) <= 1e-3 * np.linalg.norm(b)
     # The Newton step d1 cuts the residual at the new state by orders of magnitude.
     F1 = np.zeros(n)
     Un = U + d1
-    kernel.clip_dummies(P, N, Un)
-    kernel.eval_F(P, N, Un, x1, T, sw, F1)
+    residual.clip_dummies(P, N, Un)
+    residual.eval_F(P, N, Un, x1, T, sw, F1)
     assert np.linalg.norm(F1) < 1e-2 * np.linalg.norm(F)
 
 

@@ -23,7 +23,7 @@ check them against finite differences of :class:`~rt_controller.control.model.No
 The gravity term of eq. (1) cancels in eq. (11) and does not appear here.
 
 The compiled functions (``rhs``, ``stage_cost``, ``terminal_cost``, ``terminal_grad``,
-``hamiltonian_grad``, ``horizon_at``) live in :mod:`rt_controller.control.rhc.kernel` and are
+``hamiltonian_grad``, ``horizon_at``) live in :mod:`rt_controller.control.rhc.dynamics` and are
 re-exported here; this module adds the packing of the model and the ``rhc`` settings into their
 parameter vectors.
 """
@@ -37,7 +37,7 @@ import numpy as np
 from hal.config import RigConfig
 from rt_controller.control import state
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.kernel import (  # noqa: F401  (re-exported: the compiled OCP functions)
+from rt_controller.control.rhc.dynamics import (  # noqa: F401  (re-exported: the compiled OCP)
     hamiltonian_grad,
     horizon_at,
     rhs,
