@@ -55,8 +55,10 @@ def run(args: argparse.Namespace) -> int:
 
     from rt_controller.commands.output import output_dir
     from rt_controller.errors import ControllerConfigError
-    from rt_controller.logtools.deadline_report import render_text, summarize, write_plots
+    from rt_controller.logtools.deadline_report import summarize
     from rt_controller.logtools.reader import read_hil_log
+    from rt_controller.logtools.report_plots import write_plots
+    from rt_controller.logtools.report_text import render_text
 
     if args.max_list < 0:
         raise ControllerConfigError(f"--max-list must be non-negative, got {args.max_list}")

@@ -1,7 +1,8 @@
 """The deadline-miss report of a controller log (``hil report``), cyclictest-style.
 
 :func:`summarize` turns a :class:`~rt_controller.logtools.reader.LoadedLog` into one plain dict (the
-``--json`` output), :func:`render_text` prints it with rich, :func:`write_plots` draws the PNGs.
+``--json`` output); :func:`~rt_controller.logtools.report_text.render_text` prints it with rich
+and :func:`~rt_controller.logtools.report_plots.write_plots` draws the PNGs.
 Percentiles are numpy's default (linear interpolation); NaN/null samples are left out of every
 statistic. Durations are in µs, times in s from the first tick (plant time in lockstep mode).
 """
@@ -10,16 +11,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rt_controller.logtools.contact_sheet import write_contact_sheet
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.runtime import diagnostics
-from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, CYCLE_TOPIC, VISION_TOPIC
+from rt_controller.runtime.recorder import CYCLE_TOPIC
 from rt_controller.sample_stats import finite, summary_stats
 
 #: Edges (µs) of the log-scale lateness histogram; below 0 and above the last edge get buckets.
@@ -210,7 +208,7 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     out["messages"] = dict(log.topic_counts)
     out["recorder_dropped"] = _int_or_none(log.recorder_info.get("dropped"))
     out["diagnostics"] = _final_diagnostics(log)
-    out["parameter_changes"] = [_change(r) for r in log.parameters]
+    out["parameter_changes"] = [change_entry(r) for r in log.parameters]
     out["events"] = [_event(r) for r in log.events]
     if out["recorder_dropped"]:
         out["notes"].append(f"the recorder dropped {out['recorder_dropped']} records")
@@ -243,7 +241,7 @@ def _outages(log: LoadedLog, t: np.ndarray, per_us: float | None) -> dict[str, A
     return find_outages(ticks, t, bad, warn, share, (per_us or 0.0) / 1e6)
 
 
-def _change(rec: dict[str, Any]) -> dict[str, Any]:
+def change_entry(rec: dict[str, Any]) -> dict[str, Any]:
     """One ``/controller/parameters`` record as the report lists it."""
     items = ", ".join(f"{c['key']} {c['old']} -> {c['new']}" for c in rec.get("changes", []))
     return {
@@ -292,349 +290,3 @@ def _int_or_none(text: str | None) -> int | None:
         return None if text is None else int(text)
     except ValueError:
         return None
-
-
-# ---------------------------------------------------------------------------- text output
-
-
-def _fmt(x: Any, digits: int = 1) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, float):
-        return f"{x:.{digits}f}" if abs(x) < 1e6 else f"{x:.4g}"
-    return str(x)
-
-
-def _g(x: float | None) -> str:
-    return "-" if x is None else f"{x:.6g}"
-
-
-def _bucket_label(b: dict) -> str:
-    lo, hi = b["lo_us"], b["hi_us"]
-    if lo is None:
-        return f"< {hi:g}"
-    if hi is None:
-        return f">= {lo:g}"
-    return f"{lo:g} - {hi:g}"
-
-
-def render_text(report: dict[str, Any], console: Any = None) -> None:
-    """Print one report with rich (tables for timing, misses and the lateness histogram)."""
-    from rich.console import Console
-    from rich.table import Table
-
-    con = console or Console()
-    head = (
-        f"[bold]{report['log']}[/bold]  law {report['law'] or '?'}, "
-        f"{_g(report['rate_hz'])} Hz, clock {report['clock'] or '?'}, "
-        f"{report['ticks']} ticks over {_fmt(report['duration_s'], 3)} s"
-    )
-    con.print(head)
-    for note in report["notes"]:
-        con.print(f"[yellow]note:[/yellow] {note}")
-
-    timing = Table(title="Timing (µs)", title_justify="left")
-    for col in ("", "min", "median", "p99", "max"):
-        timing.add_column(col, justify="right" if col else "left")
-    for key in TIMING_FIELDS:
-        s = report.get(key)
-        cells = ["-"] * 4 if s is None else [_fmt(s[k]) for k in ("min", "median", "p99", "max")]
-        timing.add_row(key.removesuffix("_us"), *cells)
-    con.print(timing)
-
-    summary = Table(title="Run", title_justify="left", show_header=False)
-    summary.add_column("what")
-    summary.add_column("value", justify="right")
-    misses = report["deadline_misses"]
-    pct = report["miss_pct"]
-    rows = [
-        ("deadline misses", "-" if misses is None else f"{misses} ({pct:.3f} %)"),
-        ("missed periods", _fmt(report["missed_periods"])),
-        ("period (deadline)", f"{_fmt(report['period_us'])} µs"),
-        ("fallbacks", _fmt(report["fallbacks"])),
-        ("stale features", _fmt(report["stale_features"])),
-        ("invalid features", _fmt(report["invalid_features"])),
-        ("stale joint state", _fmt(report["stale_state"])),
-        ("camera outages (longest, ticks)", _outage_counts(report.get("outages"))),
-        ("tau saturated", _fmt(report["tau_saturated"])),
-        ("residual median / p99 / max", _triple(report["residual"])),
-        ("residual final", _g(report["residual_final"])),
-        ("iterations median / max", _iters(report["iterations"])),
-        ("final f (px)", _vec(report["f_final"])),
-        ("final |f| (px)", _fmt(report["f_final_norm"], 3)),
-        ("J", _fmt(report["J"], 6)),
-        ("raw messages CAN rx / tx / vision", _raw_counts(report["messages"])),
-        ("records dropped by the recorder", _fmt(report["recorder_dropped"])),
-    ]
-    diag = report.get("diagnostics")
-    if diag is not None:
-        for name, label in (("can_rx", "CAN frames rejected"), ("features", "features rejected")):
-            reasons = ", ".join(f"{k} {v}" for k, v in diag[f"{name}_by_reason"].items())
-            rows.append(
-                (label, f"{diag[f'{name}_rejected']}" + (f" ({reasons})" if reasons else ""))
-            )
-        rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
-        dsp_rejected = diag["dsp"].get("rejected_frames")
-        if dsp_rejected is not None:
-            rows.append(("frames the DSP rejected (saturates at 255)", _fmt(dsp_rejected)))
-    else:
-        rows.append(("diagnostics", "none in this log"))
-    for k, v in rows:
-        summary.add_row(k, v)
-    con.print(summary)
-
-    if report["misses"]:
-        shown = report["misses_listed"]
-        title = "Deadline misses" + (f" (first {shown} of {misses})" if shown < misses else "")
-        mt = Table(title=title, title_justify="left")
-        for col in ("tick", "t (s)", "lateness µs", "cycle µs", "skipped"):
-            mt.add_column(col, justify="right")
-        for m in report["misses"]:
-            mt.add_row(
-                str(m["tick"]),
-                f"{m['t_s']:.3f}",
-                _fmt(m["lateness_us"]),
-                _fmt(m["cycle_us"]),
-                _fmt(m["missed_periods"]),
-            )
-        con.print(mt)
-
-    def listing(title: str, columns: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
-        if rows:
-            t = Table(title=title, title_justify="left")
-            for col in columns:
-                t.add_column(col)
-            for row in rows:
-                t.add_row(*row)
-            con.print(t)
-
-    def verdict(item: dict[str, Any], ok: str) -> str:
-        return ok if item["accepted"] else f"refused: {item['reason']}"
-
-    outages = report.get("outages") or {}
-    listing(
-        f"Camera outages (over {outages.get('warn_periods')} ticks on stale/invalid features)",
-        ("from tick", "t (s)", "ticks", "s"),
-        [
-            (str(o["start_tick"]), f"{o['start_s']:.3f}", str(o["ticks"]), f"{o['s']:.2f}")
-            for o in outages.get("listed") or []
-        ],
-    )
-    listing(
-        "Parameter changes",
-        ("tick", "set", "", "changes", "source"),
-        [
-            (str(c["tick"]), str(c["param_set"]), verdict(c, "accepted"), c["changes"], c["source"])
-            for c in report.get("parameter_changes") or []
-        ],
-    )
-    listing(
-        "Operator events (marks, arm, disarm)",
-        ("tick", "action", "", "note", "source"),
-        [
-            (str(e["tick"]), e["action"], verdict(e, "done"), e["note"] or "", e["source"])
-            for e in report.get("events") or []
-        ],
-    )
-
-    hist = report["lateness_histogram"]
-    if hist:
-        ht = Table(title="Wake-up lateness histogram (µs)", title_justify="left")
-        ht.add_column("bucket", justify="right")
-        ht.add_column("count", justify="right")
-        ht.add_column("")
-        top = max(b["count"] for b in hist) or 1
-        for b in hist:
-            ht.add_row(_bucket_label(b), str(b["count"]), _bar(b["count"], top))
-        con.print(ht)
-
-
-def _outage_counts(outages: dict[str, Any] | None) -> str:
-    """Camera outages and the longest stretch, e.g. ``2 (longest 98)``."""
-    if outages is None:
-        return "-"
-    return f"{outages['count']} (longest {outages['longest_ticks']})"
-
-
-def _bar(count: int, top: int, width: int = 40) -> str:
-    """A log-scaled bar (counts span decades, as in cyclictest's histograms)."""
-    if count <= 0:
-        return ""
-    return "█" * max(1, round(width * math.log1p(count) / math.log1p(top)))
-
-
-def _raw_counts(messages: dict[str, int]) -> str:
-    return " / ".join(str(messages.get(t, 0)) for t in (CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC))
-
-
-def _triple(s: dict | None) -> str:
-    return "-" if s is None else " / ".join(f"{s[k]:.3g}" for k in ("median", "p99", "max"))
-
-
-def _iters(s: dict | None) -> str:
-    return "-" if s is None else f"{s['median']:g} / {s['max']:g}"
-
-
-def _vec(v: list[float] | None) -> str:
-    return "-" if v is None else "(" + ", ".join(f"{x:.3f}" for x in v) + ")"
-
-
-# ---------------------------------------------------------------------------- figures
-
-
-@dataclass(frozen=True)
-class ChangeLine:
-    """A vertical line of the report's time plots: an online change or an operator event."""
-
-    t: float
-    kind: str
-    """``accepted``, ``refused`` (parameter change sets) or ``event`` (a mark, arm, disarm)."""
-    label: str
-
-
-LINE_STYLES = {
-    "accepted": {"color": "tab:green", "ls": "-", "lw": 1.2},
-    "refused": {"color": "tab:red", "ls": ":", "lw": 1.2},
-    "event": {"color": "tab:gray", "ls": "-.", "lw": 1.0},
-}
-
-
-def change_lines(log: LoadedLog) -> list[ChangeLine]:
-    """Where the log's parameter changes and operator events fall on :func:`time_axis`, in
-    log order (changes, then events); a record whose tick has no cycle is left out."""
-    tick = log.column("tick")
-    if tick is None or log.n_cycles == 0:
-        return []
-    t, _ = time_axis(log)
-    at = {int(k): float(t[i]) for i, k in enumerate(np.asarray(tick))}
-    out = []
-    for rec in log.parameters:
-        if int(rec.get("tick", -1)) in at:
-            kind = "accepted" if rec.get("accepted") else "refused"
-            out.append(ChangeLine(at[int(rec["tick"])], kind, _change(rec)["changes"]))
-    for rec in log.events:
-        if int(rec.get("tick", -1)) in at:
-            label = rec.get("action", "") + (f": {rec['note']}" if rec.get("note") else "")
-            out.append(ChangeLine(at[int(rec["tick"])], "event", label))
-    return out
-
-
-def _draw_lines(ax: Any, lines: list[ChangeLine]) -> None:
-    """The change lines on ``ax``, one legend entry per kind."""
-    named: set[str] = set()
-    for ln in lines:
-        name = "operator event" if ln.kind == "event" else f"parameters {ln.kind}"
-        label = None if ln.kind in named else name
-        named.add(ln.kind)
-        ax.axvline(ln.t, label=label, **LINE_STYLES[ln.kind])
-
-
-def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -> list[Path]:
-    """Write the report's PNG figures into ``outdir`` (created); returns the files written.
-
-    Figures: lateness histogram, cycle time with the deadline, solve time (and residual),
-    f(t), xi(t), u(t), tau(t), and on images a contact sheet of the camera's frames around the
-    target jump (:mod:`~rt_controller.logtools.contact_sheet`). Uses matplotlib's object API
-    (Agg), never pyplot. The time plots
-    mark the online parameter changes (:func:`change_lines`: green accepted, red dotted
-    refused, grey dash-dot operator events).
-    """
-    from matplotlib.figure import Figure
-
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = prefix if prefix is not None else log.path.stem
-    if log.n_cycles == 0:
-        return []
-    t, t_label = time_axis(log)
-    lines = change_lines(log)
-    written: list[Path] = []
-
-    def save(fig: Figure, name: str) -> None:
-        path = out / f"{stem}_{name}.png"
-        fig.savefig(path, dpi=110)
-        written.append(path)
-
-    late = log.column("lateness_us")
-    if late is not None:
-        fig = Figure(figsize=(8, 4), layout="constrained")
-        ax = fig.add_subplot()
-        v = np.asarray(late, dtype=float)
-        v = v[np.isfinite(v)]
-        lo = max(min(float(v.min()) if v.size else 1.0, 1.0), 0.1)
-        hi = max(float(v.max()) if v.size else 10.0, lo * 10)
-        bins = np.logspace(np.log10(lo), np.log10(hi * 1.01), 60)
-        ax.hist(np.clip(v, lo, None), bins=bins, color="tab:blue")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel(f"wake-up lateness (µs; values below {lo:.2g} shown at {lo:.2g})")
-        ax.set_ylabel("ticks")
-        ax.set_title(f"Wake-up lateness, {log.path.name}")
-        save(fig, "lateness_hist")
-
-    cyc = log.column("cycle_us")
-    if cyc is not None:
-        fig = Figure(figsize=(9, 4), layout="constrained")
-        ax = fig.add_subplot()
-        ax.plot(t, cyc, lw=0.8, label="cycle time")
-        per = period_us(log)
-        if per:
-            ax.axhline(per, color="tab:red", ls="--", label=f"deadline (period {per:g} µs)")
-        miss = log.column("deadline_miss")
-        if miss is not None and np.any(miss):
-            m = np.asarray(miss, dtype=bool)
-            ax.plot(t[m], np.asarray(cyc, dtype=float)[m], "rx", label="deadline miss")
-        c = np.asarray(cyc, dtype=float)
-        c = c[np.isfinite(c) & (c > 0)]
-        if c.size and max(float(c.max()), per or 0.0) > 50 * float(c.min()):
-            ax.set_yscale("log")  # µs-scale cycles under a ms-scale deadline
-        _draw_lines(ax, lines)
-        ax.set_xlabel(t_label)
-        ax.set_ylabel("µs")
-        ax.set_title("Cycle time (wake-up to end of tick)")
-        ax.legend(loc="best")
-        save(fig, "cycle_time")
-
-    solve = log.column("solve_us")
-    if solve is not None:
-        res = log.column("residual")
-        fig = Figure(figsize=(9, 5), layout="constrained")
-        ax = fig.add_subplot(2, 1, 1)
-        ax.plot(t, solve, lw=0.8)
-        s_stats = stats(solve)
-        if s_stats is not None:
-            ax.axhline(s_stats["p99"], color="tab:red", ls="--", lw=0.8, label="p99")
-            ax.legend(loc="best")
-        ax.set_ylabel("solve time (µs)")
-        ax.set_title("Solver")
-        ax2 = fig.add_subplot(2, 1, 2, sharex=ax)
-        if res is not None:
-            r = np.asarray(res, dtype=float)
-            ax2.plot(t, r, lw=0.8, color="tab:orange")
-            if np.any(r > 0):
-                ax2.set_yscale("log")
-        _draw_lines(ax2, lines)
-        ax2.set_ylabel("residual")
-        ax2.set_xlabel(t_label)
-        save(fig, "solve_time")
-
-    units = {"f": "px", "xi": "", "u": "N·m", "tau": "N·m"}
-    for name, unit in units.items():
-        col = log.column(name)
-        if col is None or col.ndim != 2:
-            continue
-        fig = Figure(figsize=(9, 4), layout="constrained")
-        ax = fig.add_subplot()
-        for j in range(col.shape[1]):
-            ax.plot(t, col[:, j], lw=1.0, label=f"{name}{j + 1}")
-        _draw_lines(ax, lines)
-        ax.set_xlabel(t_label)
-        ax.set_ylabel(f"{name} ({unit})" if unit else name)
-        ax.set_title(f"{name}(t)")
-        ax.legend(loc="upper right")
-        ax.grid(alpha=0.3)
-        save(fig, name)
-    sheet = out / f"{stem}_camera_jump.png"
-    if write_contact_sheet(log, sheet):  # a log with the camera's frames (camera.model = image)
-        written.append(sheet)
-    return written

@@ -60,7 +60,7 @@ def test_mark_disarm_arm_and_a_refused_reset(tmp_path, cfg):
     assert marks[0]["note"] == "step" and marks[0]["tick"] == t0 + 20
     from rich.console import Console
 
-    from rt_controller.logtools.deadline_report import render_text
+    from rt_controller.logtools.report_text import render_text
 
     con = Console(record=True, width=200)
     render_text(summarize(log), con)
@@ -70,7 +70,8 @@ def test_mark_disarm_arm_and_a_refused_reset(tmp_path, cfg):
 
 def test_report_plots_mark_the_changes_accepted_refused_and_events(tmp_path, cfg):
     from rt_controller.calibration.parameters import Request
-    from rt_controller.logtools.deadline_report import change_lines, time_axis, write_plots
+    from rt_controller.logtools.deadline_report import time_axis
+    from rt_controller.logtools.report_plots import change_lines, write_plots
 
     def submit(service):
         service.submit(Request({"gains.kp": 0.3}, "test", at_tick=30))

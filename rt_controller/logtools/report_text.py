@@ -1,0 +1,193 @@
+"""The text of ``hil report``: one report dict
+(:func:`~rt_controller.logtools.deadline_report.summarize`) printed with rich: timing, misses,
+the lateness histogram, online changes, outages."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from rt_controller.logtools.deadline_report import TIMING_FIELDS
+from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC
+
+
+def _fmt(x: Any, digits: int = 1) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:.{digits}f}" if abs(x) < 1e6 else f"{x:.4g}"
+    return str(x)
+
+
+def _g(x: float | None) -> str:
+    return "-" if x is None else f"{x:.6g}"
+
+
+def _bucket_label(b: dict) -> str:
+    lo, hi = b["lo_us"], b["hi_us"]
+    if lo is None:
+        return f"< {hi:g}"
+    if hi is None:
+        return f">= {lo:g}"
+    return f"{lo:g} - {hi:g}"
+
+
+def render_text(report: dict[str, Any], console: Any = None) -> None:
+    """Print one report with rich (tables for timing, misses and the lateness histogram)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    con = console or Console()
+    head = (
+        f"[bold]{report['log']}[/bold]  law {report['law'] or '?'}, "
+        f"{_g(report['rate_hz'])} Hz, clock {report['clock'] or '?'}, "
+        f"{report['ticks']} ticks over {_fmt(report['duration_s'], 3)} s"
+    )
+    con.print(head)
+    for note in report["notes"]:
+        con.print(f"[yellow]note:[/yellow] {note}")
+
+    timing = Table(title="Timing (µs)", title_justify="left")
+    for col in ("", "min", "median", "p99", "max"):
+        timing.add_column(col, justify="right" if col else "left")
+    for key in TIMING_FIELDS:
+        s = report.get(key)
+        cells = ["-"] * 4 if s is None else [_fmt(s[k]) for k in ("min", "median", "p99", "max")]
+        timing.add_row(key.removesuffix("_us"), *cells)
+    con.print(timing)
+
+    summary = Table(title="Run", title_justify="left", show_header=False)
+    summary.add_column("what")
+    summary.add_column("value", justify="right")
+    misses = report["deadline_misses"]
+    pct = report["miss_pct"]
+    rows = [
+        ("deadline misses", "-" if misses is None else f"{misses} ({pct:.3f} %)"),
+        ("missed periods", _fmt(report["missed_periods"])),
+        ("period (deadline)", f"{_fmt(report['period_us'])} µs"),
+        ("fallbacks", _fmt(report["fallbacks"])),
+        ("stale features", _fmt(report["stale_features"])),
+        ("invalid features", _fmt(report["invalid_features"])),
+        ("stale joint state", _fmt(report["stale_state"])),
+        ("camera outages (longest, ticks)", _outage_counts(report.get("outages"))),
+        ("tau saturated", _fmt(report["tau_saturated"])),
+        ("residual median / p99 / max", _triple(report["residual"])),
+        ("residual final", _g(report["residual_final"])),
+        ("iterations median / max", _iters(report["iterations"])),
+        ("final f (px)", _vec(report["f_final"])),
+        ("final |f| (px)", _fmt(report["f_final_norm"], 3)),
+        ("J", _fmt(report["J"], 6)),
+        ("raw messages CAN rx / tx / vision", _raw_counts(report["messages"])),
+        ("records dropped by the recorder", _fmt(report["recorder_dropped"])),
+    ]
+    diag = report.get("diagnostics")
+    if diag is not None:
+        for name, label in (("can_rx", "CAN frames rejected"), ("features", "features rejected")):
+            reasons = ", ".join(f"{k} {v}" for k, v in diag[f"{name}_by_reason"].items())
+            rows.append(
+                (label, f"{diag[f'{name}_rejected']}" + (f" ({reasons})" if reasons else ""))
+            )
+        rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
+        dsp_rejected = diag["dsp"].get("rejected_frames")
+        if dsp_rejected is not None:
+            rows.append(("frames the DSP rejected (saturates at 255)", _fmt(dsp_rejected)))
+    else:
+        rows.append(("diagnostics", "none in this log"))
+    for k, v in rows:
+        summary.add_row(k, v)
+    con.print(summary)
+
+    if report["misses"]:
+        shown = report["misses_listed"]
+        title = "Deadline misses" + (f" (first {shown} of {misses})" if shown < misses else "")
+        mt = Table(title=title, title_justify="left")
+        for col in ("tick", "t (s)", "lateness µs", "cycle µs", "skipped"):
+            mt.add_column(col, justify="right")
+        for m in report["misses"]:
+            mt.add_row(
+                str(m["tick"]),
+                f"{m['t_s']:.3f}",
+                _fmt(m["lateness_us"]),
+                _fmt(m["cycle_us"]),
+                _fmt(m["missed_periods"]),
+            )
+        con.print(mt)
+
+    def listing(title: str, columns: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
+        if rows:
+            t = Table(title=title, title_justify="left")
+            for col in columns:
+                t.add_column(col)
+            for row in rows:
+                t.add_row(*row)
+            con.print(t)
+
+    def verdict(item: dict[str, Any], ok: str) -> str:
+        return ok if item["accepted"] else f"refused: {item['reason']}"
+
+    outages = report.get("outages") or {}
+    listing(
+        f"Camera outages (over {outages.get('warn_periods')} ticks on stale/invalid features)",
+        ("from tick", "t (s)", "ticks", "s"),
+        [
+            (str(o["start_tick"]), f"{o['start_s']:.3f}", str(o["ticks"]), f"{o['s']:.2f}")
+            for o in outages.get("listed") or []
+        ],
+    )
+    listing(
+        "Parameter changes",
+        ("tick", "set", "", "changes", "source"),
+        [
+            (str(c["tick"]), str(c["param_set"]), verdict(c, "accepted"), c["changes"], c["source"])
+            for c in report.get("parameter_changes") or []
+        ],
+    )
+    listing(
+        "Operator events (marks, arm, disarm)",
+        ("tick", "action", "", "note", "source"),
+        [
+            (str(e["tick"]), e["action"], verdict(e, "done"), e["note"] or "", e["source"])
+            for e in report.get("events") or []
+        ],
+    )
+
+    hist = report["lateness_histogram"]
+    if hist:
+        ht = Table(title="Wake-up lateness histogram (µs)", title_justify="left")
+        ht.add_column("bucket", justify="right")
+        ht.add_column("count", justify="right")
+        ht.add_column("")
+        top = max(b["count"] for b in hist) or 1
+        for b in hist:
+            ht.add_row(_bucket_label(b), str(b["count"]), _bar(b["count"], top))
+        con.print(ht)
+
+
+def _outage_counts(outages: dict[str, Any] | None) -> str:
+    """Camera outages and the longest stretch, e.g. ``2 (longest 98)``."""
+    if outages is None:
+        return "-"
+    return f"{outages['count']} (longest {outages['longest_ticks']})"
+
+
+def _bar(count: int, top: int, width: int = 40) -> str:
+    """A log-scaled bar (counts span decades, as in cyclictest's histograms)."""
+    if count <= 0:
+        return ""
+    return "█" * max(1, round(width * math.log1p(count) / math.log1p(top)))
+
+
+def _raw_counts(messages: dict[str, int]) -> str:
+    return " / ".join(str(messages.get(t, 0)) for t in (CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC))
+
+
+def _triple(s: dict | None) -> str:
+    return "-" if s is None else " / ".join(f"{s[k]:.3g}" for k in ("median", "p99", "max"))
+
+
+def _iters(s: dict | None) -> str:
+    return "-" if s is None else f"{s['median']:g} / {s['max']:g}"
+
+
+def _vec(v: list[float] | None) -> str:
+    return "-" if v is None else "(" + ", ".join(f"{x:.3f}" for x in v) + ")"
