@@ -64,10 +64,9 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--profile",
         choices=("dsp", "cia402"),
-        default="dsp",
-        help="the hardware to emulate: dsp (our DSP, hal/hil.dbc with SecOC; the default) or "
-        "cia402 (two CANopen CiA 402 drives in cyclic synchronous torque mode, node ids from "
-        "[cia402], paced by the controller's SYNC)",
+        help="the hardware to emulate: dsp (our DSP, hal/hil.dbc with SecOC) or cia402 (two "
+        "CANopen CiA 402 drives in cyclic synchronous torque mode, node ids from [cia402], paced "
+        "by the controller's SYNC); default: hardware.profile of the config (dsp)",
     )
     p.add_argument(
         "--lockstep",
@@ -203,11 +202,20 @@ def run_emulator(args: argparse.Namespace) -> int:
         return _serve(args, stop)
 
 
+def _profile(args: argparse.Namespace) -> str:
+    """``--profile``, else ``hardware.profile`` of the configuration (``hil up`` passes it so)."""
+    if args.profile is not None:
+        return args.profile
+    from hal.config import load_config
+
+    return load_config(args.config).hardware.profile
+
+
 def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     from hal.bus import open_bus, resolve_spec
     from plant_emulator.dsp_node import DspNode
 
-    if args.profile == "cia402":
+    if _profile(args) == "cia402":
         from plant_emulator.cia402.entry import serve_cia402
 
         return serve_cia402(args, stop)

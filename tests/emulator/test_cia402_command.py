@@ -1,6 +1,6 @@
-"""``hil emulator --profile cia402`` as a process on a host-local udp_multicast bus: both drives
-boot, follow a canopen master's SYNC, and when the SYNC stops every drive is in FAULT with an
-EMCY 0x8700 on the bus; SIGTERM then ends the emulator cleanly with its counters."""
+"""``hil emulator`` with ``hardware.profile = "cia402"`` as a process on a host-local udp_multicast
+bus: both drives boot, follow a canopen master's SYNC, and when the SYNC stops every drive is in
+FAULT with an EMCY 0x8700 on the bus; SIGTERM then ends the emulator cleanly with its counters."""
 
 from __future__ import annotations
 
@@ -51,7 +51,9 @@ def wait_for(predicate, timeout_s: float) -> bool:
 
 def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_path):
     config = tmp_path / "rig.toml"
-    config.write_text(f"[cia402]\nsync_loss_periods = {SYNC_LOSS_PERIODS}\n")
+    config.write_text(  # the profile from the config, as hil up hands it to the emulator
+        f'[hardware]\nprofile = "cia402"\n[cia402]\nsync_loss_periods = {SYNC_LOSS_PERIODS}\n'
+    )
     spec = isolated_spec("udp_multicast")
     with open_bus(spec) as bus:
         network = canopen.Network(bus)
@@ -59,7 +61,7 @@ def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_p
         nodes = [canopen.RemoteNode(i, str(EDS_PATH)) for i in (1, 2)]
         for node in nodes:
             network.add_node(node)
-        args = ["emulator", "--profile", "cia402", "--can", spec, "--config", str(config)]
+        args = ["emulator", "--can", spec, "--config", str(config)]
         proc = subprocess.Popen(
             [*hil_command(), *args, "--no-vision-link", "--json"],
             stdout=subprocess.PIPE,
