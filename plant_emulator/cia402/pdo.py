@@ -74,7 +74,8 @@ class PdoService:
         self._subscribed: dict[int, PdoMap] = {}
         self._last_sent: dict[int, bytes] = {}
         self.rejected_rpdos = 0
-        """RPDO frames of the wrong length (not applied, EMCY 0x8210)."""
+        """RPDO frames of the wrong length (not applied, EMCY 0x8210) and mapped values the
+        object refused (that value not applied; the frame's other values are)."""
 
     # -- configuration --------------------------------------------------------------------
     def reload(self) -> None:
@@ -196,7 +197,10 @@ class PdoService:
                 continue
             pdo_map.data = bytearray(data)
             for var in pdo_map.map:
-                self.node.set_data(var.index, var.subindex, var.get_data())
+                try:
+                    self.node.set_data(var.index, var.subindex, var.get_data())
+                except SdoAbortedError:  # a value the object refuses (e.g. mode 4): counted
+                    self.rejected_rpdos += 1
 
     def transmit(self, sync_count: int) -> int:
         """At SYNC (after the latch): send the TPDOs due; returns how many were sent."""

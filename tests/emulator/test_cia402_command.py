@@ -1,6 +1,7 @@
 """``hil emulator`` with ``hardware.profile = "cia402"`` as a process on a host-local udp_multicast
-bus: both drives boot, follow a canopen master's SYNC, and when the SYNC stops every drive is in
-FAULT with an EMCY 0x8700 on the bus; SIGTERM then ends the emulator cleanly with its counters."""
+bus (and on SocketCAN vcan0 with ``-m vcan``): both drives boot, follow a canopen master's SYNC,
+and when the SYNC stops every drive is in FAULT with an EMCY 0x8700 on the bus; SIGTERM then
+ends the emulator cleanly with its counters."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from canopen.sdo import SdoCommunicationError
 from hal.bus import isolated_spec, open_bus
 from hal.cia402_od import EDS_PATH, EMCY_SYNC
 from tests.support import REPO, hil_command
+from tests.support.vcan import requires_vcan
 
 pytestmark = pytest.mark.integration
 
@@ -49,12 +51,16 @@ def wait_for(predicate, timeout_s: float) -> bool:
     return True
 
 
-def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_path):
+@pytest.mark.parametrize(
+    "transport",
+    ["udp_multicast", pytest.param("socketcan", marks=[pytest.mark.vcan, requires_vcan])],
+)
+def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_path, transport):
     config = tmp_path / "rig.toml"
     config.write_text(  # the profile from the config, as hil up hands it to the emulator
         f'[hardware]\nprofile = "cia402"\n[cia402]\nsync_loss_periods = {SYNC_LOSS_PERIODS}\n'
     )
-    spec = isolated_spec("udp_multicast")
+    spec = isolated_spec(transport)
     with open_bus(spec) as bus:
         network = canopen.Network(bus)
         network.connect()  # listening before the drives boot

@@ -231,3 +231,19 @@ def test_the_world_holds_until_every_drive_is_enabled_then_every_sync_steps_it()
         sync_and_wait(bench, node.tpdo[1])
         sync_and_wait(bench, node.tpdo[1])
         assert bench.rig.world.t == pytest.approx(0.06)
+
+
+def test_an_rpdo_value_the_drive_refuses_is_counted_and_the_sync_goes_on():
+    with drives_on_virtual_bus() as bench:
+        node = operational(bench, 1)
+        rpdo2 = node.rpdo[2]
+        rpdo2.clear()
+        rpdo2.add_variable(cia.MODES_OF_OPERATION)
+        rpdo2.enabled = True
+        rpdo2.trans_type = 1
+        rpdo2.save()
+        rpdo2["Modes of operation"].raw = 4  # profile torque: not supported
+        rpdo2.transmit()
+        sync_and_wait(bench, node.tpdo[1], node.tpdo[2])  # the TPDOs still go out
+        assert node.sdo[cia.MODES_DISPLAY].raw == cia.CST_MODE
+        assert bench.rig.drives[0].pdos.rejected_rpdos == 1
