@@ -114,7 +114,8 @@ def _config(args: argparse.Namespace) -> RigConfig:
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Body of ``hil vision``: SIGTERM/SIGINT end it cleanly with status 0."""
-    from plant_emulator.vision_node import Dropout, resolve_fps, run_vision
+    from plant_emulator.vision_node import run_vision
+    from plant_emulator.vision_timing import Dropout, resolve_fps
 
     cfg = _config(args)
     fps = resolve_fps(cfg, args.fps)

@@ -25,16 +25,8 @@ from plant_emulator.camera import CameraPose, camera_pose, project
 from plant_emulator.pose_link import PosePublisher
 from plant_emulator.scenario import paper_target
 from plant_emulator.vision_cli import main
-from plant_emulator.vision_node import (
-    DEFAULT_FPS,
-    Dropout,
-    FrameClock,
-    VisionCore,
-    VisionStats,
-    in_dropout,
-    resolve_fps,
-    run_vision,
-)
+from plant_emulator.vision_node import VisionCore, VisionStats, run_vision
+from plant_emulator.vision_timing import DEFAULT_FPS, Dropout, FrameClock, in_dropout, resolve_fps
 
 MS = 1_000_000
 HANG_S = 20.0
