@@ -168,11 +168,12 @@ def read_units(node: canopen.RemoteNode) -> DriveUnits:
 def configure(
     node: canopen.RemoteNode, settings: BootSettings, torque_limit_nm: float
 ) -> tuple[DriveUnits, int]:
-    """Heartbeats, interpolation period and torque limit by SDO; the drive's units and the
-    torque limit it took (per mille)."""
+    """Heartbeats (the drive's producer on, its consumer of the controller off until
+    arming: :func:`watch_controller`), interpolation period and torque limit by SDO; the
+    drive's units and the torque limit it took (per mille)."""
     check_types(node)
     sdo_write(node, HEARTBEAT_PRODUCER, None, settings.heartbeat_ms)
-    sdo_write(node, HEARTBEAT_CONSUMER, 1, (settings.master_id << 16) | settings.consumer_ms)
+    watch_controller(node, settings, on=False)
     value, index = interpolation_period(settings.period_s)
     sdo_write(node, INTERPOLATION_PERIOD, 1, value)
     sdo_write(node, INTERPOLATION_PERIOD, 2, index)
@@ -180,6 +181,15 @@ def configure(
     limit = units.limit_per_mille(torque_limit_nm)
     sdo_write(node, MAX_TORQUE, None, limit)
     return units, limit
+
+
+def watch_controller(node: canopen.RemoteNode, settings: BootSettings, *, on: bool) -> None:
+    """The drive's heartbeat consumer 0x1016.1: the controller's node id and consumer time
+    (``on``), or 0 (off). Off during boot and after the run: the controller's process may
+    stall longer than the consumer time before it arms (locking its memory, compiling), and
+    a drive must not fault for that; on from the first arming step."""
+    value = (settings.master_id << 16) | settings.consumer_ms if on else 0
+    sdo_write(node, HEARTBEAT_CONSUMER, 1, value)
 
 
 def _remap(maps: Any, layout: dict[int, tuple[int, ...]], node: canopen.RemoteNode) -> None:
@@ -294,4 +304,5 @@ __all__ = [
     "reset_communication",
     "sdo_read",
     "sdo_write",
+    "watch_controller",
 ]

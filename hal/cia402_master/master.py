@@ -31,7 +31,7 @@ from hal.cia402_master.watch import (
     heartbeat_dictionary,
     state_of,
 )
-from hal.cia402_od import CONTROLWORD, EDS_PATH, HEARTBEAT_CONSUMER, TARGET_TORQUE
+from hal.cia402_od import CONTROLWORD, EDS_PATH, TARGET_TORQUE
 from hal.drive_state import MODE_DISARMED, MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
 from hal.errors import HalDriveError
 
@@ -315,11 +315,17 @@ class Cia402Master:
         for node, watch in zip(self.nodes, self.watches, strict=True):
             watch.started = False
             try:
-                boot.sdo_write(node, HEARTBEAT_CONSUMER, 1, 0)
+                boot.watch_controller(node, self.settings, on=False)
             except HalDriveError as exc:
                 steps.append((f"node {node.id} kept its heartbeat consumer: {exc}", ()))
         self.heartbeat.nmt.stop_heartbeat()
         return steps
+
+    def watch_controller(self) -> None:
+        """Every drive consumes the controller's heartbeat from now on (0x1016.1): the
+        first step of arming (:func:`boot.watch_controller` says why not at boot)."""
+        for node in self.nodes:
+            boot.watch_controller(node, self.settings, on=True)
 
     def check(self, stop: Any | None = None) -> list[dict[str, Any]]:
         """Boot the drives as a run would (the maps read back, CST read back), describe each

@@ -94,6 +94,7 @@ class Cia402Hardware:
         the SYNC steps the world and this waits for its TPDOs."""
         clock = self.ctx.clock
         if self._enable_by is None:
+            self.master.watch_controller()  # the drives fault if this process stops from now on
             self._enable_by = clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
         if self.master.steer(ENABLED):
             return True

@@ -53,7 +53,9 @@ def one_sync(m: Cia402Master, torques=None) -> None:
 
 
 def enable(m: Cia402Master) -> int:
-    """The arming walk, one SYNC per transition; the SYNCs it took."""
+    """The arming walk, one SYNC per transition (the drives watch the controller's heartbeat
+    from its start, as in the profile); the SYNCs it took."""
+    m.watch_controller()
     for n in range(1, 12):
         if m.steer("OPERATION ENABLED"):
             return n
@@ -63,6 +65,9 @@ def enable(m: Cia402Master) -> int:
 
 def test_boot_configures_and_maps_every_drive(bench, master):
     master.boot()
+    for node_id in IDS:  # the controller's heartbeat is consumed from arming on
+        assert bench.remote(node_id).sdo[0x1016][1].raw == 0
+    master.watch_controller()
     for node_id in IDS:
         node = bench.remote(node_id)
         assert node.sdo[0x1017].raw == HEARTBEAT_MS
