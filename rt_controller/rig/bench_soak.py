@@ -4,8 +4,9 @@ One realtime run of the three processes (the machinery of ``hil up``, :func:`run
 ``duration`` seconds. Every ``sample_s`` seconds the RSS of each process (controller,
 emulator, vision and the controller's recorder process, from ``/proc/PID/status`` through
 :class:`~rt_controller.rig.footprint.FootprintSampler`) and the log's size on disk are taken;
-the recorder's backlog (records handed to the recorder and not yet written, ``pending``) comes
-from the controller's own ``/diagnostics`` records in the log, about one a second. Reported:
+the recorder's backlog (bytes of the record stream the recorder process has not read yet,
+``backlog_bytes``) comes from the controller's own ``/diagnostics`` records in the log, about
+one a second. Reported:
 the series, each process's RSS growth after the warm-up (default: the first minute, which holds
 numba's compile and the first allocations), its slope, deadline misses and the log's size.
 Figures only: nothing is asserted here (a test checks the structure).
@@ -61,8 +62,8 @@ def rss_growth(series: list[tuple[float, float]], warmup_s: float) -> dict[str, 
 
 
 def recorder_backlog(diagnostics: list[dict[str, Any]], t0_s: float) -> list[list[float]]:
-    """``[t_s, pending, dropped]`` of each periodic ``/diagnostics`` record (the final one is
-    taken after the run), ``t_s`` on the soak's time axis."""
+    """``[t_s, backlog_bytes, dropped]`` of each periodic ``/diagnostics`` record (the final one
+    is taken after the run), ``t_s`` on the soak's time axis."""
     out = []
     for rec in diagnostics:
         if rec.get("final"):
@@ -74,7 +75,8 @@ def recorder_backlog(diagnostics: list[dict[str, Any]], t0_s: float) -> list[lis
         if values is None or "t_ns" not in rec:
             continue
         t = rec["t_ns"] / 1e9 - t0_s
-        out.append([round(t, 3), int(values.get("pending", 0)), int(values.get("dropped", 0))])
+        backlog = int(values.get("backlog_bytes", 0))
+        out.append([round(t, 3), backlog, int(values.get("dropped", 0))])
     return out
 
 

@@ -22,7 +22,6 @@ import base64
 import datetime as _dt
 import json
 import logging
-import math
 import os
 import platform
 import socket
@@ -41,6 +40,7 @@ from rt_controller.calibration.operator import EVENT_SCHEMA
 from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
 from rt_controller.errors import LogError
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
+from rt_controller.runtime.record_encoding import CAN_SCHEMA, VISION_SCHEMA, can_dict, encode_json
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,10 @@ TOPICS = {
 IMAGE = 7
 """Record kind of a ``hil/vision/image`` payload (what the camera saw): written as the protobuf
 topics of :mod:`rt_controller.monitor.camera_view`, not as JSON."""
+CHUNK_SIZE = 4 << 20
+"""Bytes of records a chunk holds before it is closed: more than a second of the rig's records
+(about 2.5 MB with camera images), so chunks are closed by the flushes, one a second. mcap's
+writer keeps an index of about 1 kB per chunk until the end of the log (the soak's RSS)."""
 DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
 """The record kind of a CAN frame by its direction (``record_can``)."""
 _SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
@@ -82,92 +86,6 @@ def cycle_schema() -> dict[str, Any]:
     return json.loads(_SCHEMA_FILE.read_text(encoding="utf-8"))
 
 
-CAN_SCHEMA: dict[str, Any] = {
-    "title": "hil.CanFrame",
-    "description": "A raw CAN frame as received (/hal/can/rx) or sent (/hal/can/tx).",
-    "type": "object",
-    "properties": {
-        "t_ns": {"type": "integer", "description": "time.monotonic_ns() at receive/send"},
-        "timestamp": {"type": "number", "description": "python-can Message.timestamp, s"},
-        "arbitration_id": {"type": "integer"},
-        "is_extended_id": {"type": "boolean"},
-        "dlc": {"type": "integer"},
-        "data": {"type": "string", "description": "payload bytes as lowercase hex"},
-        "is_fd": {"type": "boolean"},
-        "bitrate_switch": {"type": "boolean"},
-        "is_error_frame": {"type": "boolean"},
-        "is_remote_frame": {"type": "boolean"},
-        "channel": {"type": "string", "description": "bus channel, empty if unknown"},
-    },
-    "required": ["t_ns", "arbitration_id", "dlc", "data", "is_fd"],
-}
-
-VISION_SCHEMA: dict[str, Any] = {
-    "title": "hil.VisionPayload",
-    "description": "A vision message (zenoh key hil/vision/features) exactly as received: the "
-    "raw payload bytes (decode them with hal's vision codec) and the receive time.",
-    "type": "object",
-    "properties": {
-        "t_ns": {"type": "integer", "description": "time.monotonic_ns() at receive"},
-        "size": {"type": "integer", "description": "payload length, bytes"},
-        "data": {"type": "string", "contentEncoding": "base64", "description": "raw payload"},
-    },
-    "required": ["t_ns", "size", "data"],
-}
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, bytes | bytearray | memoryview):
-        return bytes(obj).hex()
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
-
-
-def _finite(obj: Any) -> Any:
-    """Copy of ``obj`` with NaN/inf replaced by None (JSON has no NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
-def encode_json(obj: Any) -> bytes:
-    """Compact JSON; numpy values become lists/scalars, non-finite floats become null."""
-    try:
-        text = json.dumps(obj, default=_json_default, allow_nan=False, separators=(",", ":"))
-    except ValueError:
-        text = json.dumps(_finite(obj), default=_json_default, separators=(",", ":"))
-    return text.encode()
-
-
-def _can_dict(t_ns: int, msg: Any) -> dict[str, Any]:
-    data = bytes(msg.data)
-    channel = getattr(msg, "channel", None)
-    return {
-        "t_ns": t_ns,
-        "timestamp": float(getattr(msg, "timestamp", 0.0) or 0.0),
-        "arbitration_id": int(msg.arbitration_id),
-        "is_extended_id": bool(getattr(msg, "is_extended_id", False)),
-        "dlc": int(getattr(msg, "dlc", len(data))),
-        "data": data.hex(),
-        "is_fd": bool(getattr(msg, "is_fd", False)),
-        "bitrate_switch": bool(getattr(msg, "bitrate_switch", False)),
-        "is_error_frame": bool(getattr(msg, "is_error_frame", False)),
-        "is_remote_frame": bool(getattr(msg, "is_remote_frame", False)),
-        "channel": "" if channel is None else str(channel),
-    }
-
-
 def encode_record(kind: int, t_ns: int, obj: Any) -> bytes:
     """The JSON message of one record item (a cycle without ``t_ns`` gets the item's)."""
     if kind == VISION:
@@ -175,7 +93,7 @@ def encode_record(kind: int, t_ns: int, obj: Any) -> bytes:
         b64 = base64.b64encode(data).decode("ascii")
         return encode_json({"t_ns": t_ns, "size": len(data), "data": b64})
     if kind in (CAN_RX, CAN_TX):
-        return encode_json(_can_dict(t_ns, obj))
+        return encode_json(can_dict(t_ns, obj))
     if kind == CYCLE and "t_ns" not in obj:
         obj = {**obj, "t_ns": t_ns}
     return encode_json(obj)
@@ -281,7 +199,8 @@ class CycleRecorder(Recorder):
         path: the ``.mcap`` file to create (parent folders are created).
         cfg: the run's configuration, stored as ``hil.config`` metadata.
         run_info: extra ``hil.run`` metadata (values become strings); overrides the defaults.
-        flush_interval_s: how often records flush the file to the OS (bounds a SIGKILL's loss).
+        flush_interval_s: how often records flush the file to the OS (bounds a SIGKILL's loss);
+            each flush closes a chunk.
         chunk_size: a chunk is also closed when it grows past this many bytes.
         live, scene: see the module docstring.
 
@@ -299,8 +218,8 @@ class CycleRecorder(Recorder):
         cfg: RigConfig,
         *,
         run_info: dict[str, Any] | None = None,
-        flush_interval_s: float = 0.5,
-        chunk_size: int = 64 * 1024,
+        flush_interval_s: float = 1.0,
+        chunk_size: int = CHUNK_SIZE,
         live: Callable[[str, bytes], Any] | None = None,
         scene: Any | None = None,
     ) -> None:
@@ -325,10 +244,10 @@ class CycleRecorder(Recorder):
         self.images_written = self.image_errors = 0
         self._image_channels: dict[str, int] = {}
         mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
-        self._mono_to_unix = unix_ns - mono_ns
         info = default_run_info(cfg, mono_ns, unix_ns)
         info.update({str(k): str(v) for k, v in (run_info or {}).items()})
         self.run_info = info
+        self._mono_to_unix = int(info["monotonic_to_unix_ns"])  # the run's, when it gave one
         self._stream: BinaryIO | None = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -394,13 +313,23 @@ class CycleRecorder(Recorder):
             if self.encode_errors == 1:
                 log.warning("recorder: cannot encode a %s record: %s", TOPICS[kind], exc)
             return False
+        return self.add(kind, t_ns, data, obj)
+
+    def add(self, kind: int, t_ns: int, data: bytes, obj: Any = None) -> bool:
+        """Write one record already encoded (``data``: its message bytes; ``obj``: the cycle
+        the scene is drawn from, decoded from ``data`` when not given)."""
+        if self.closed:
+            self.dropped += 1
+            return False
+        if kind == IMAGE:
+            return self._write_image(data)
         log_time = max(0, t_ns + self._mono_to_unix)
         try:
             self._writer.add_message(self._channels[kind], log_time, data, log_time)
             self._written[kind] += 1
             self._dirty = True
             if kind == CYCLE and self._scene is not None:
-                self._write_scene(obj, log_time)
+                self._write_scene(json.loads(data) if obj is None else obj, log_time)
             self.flush_if_due()
         except Exception as exc:  # disk full, I/O error...: the log ends, the caller goes on
             self._fail(exc)
@@ -503,10 +432,15 @@ class CycleRecorder(Recorder):
         return sum(self._written.values())
 
     def as_dict(self) -> dict[str, int]:
-        """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and ``pending``."""
+        """Counters per topic plus ``written``, ``dropped``, ``encode_errors``, ``pending`` and
+        ``backlog_bytes`` (always 0 here: written at once)."""
         out = {TOPICS[k]: v for k, v in self._written.items()}
         out.update(
-            written=self.written, dropped=self.dropped, encode_errors=self.encode_errors, pending=0
+            written=self.written,
+            dropped=self.dropped,
+            encode_errors=self.encode_errors,
+            pending=0,
+            backlog_bytes=0,
         )
         return out
 

@@ -1,171 +1,126 @@
-"""The recorder's child process, and the pipe protocol it speaks with the controller process.
+"""The recorder's process: the run's records arrive as an MCAP stream on a pipe, leave as files.
 
-:class:`RecorderChild` reads the control process's batches from one pipe, writes each log with a
-:class:`~rt_controller.runtime.recorder.CycleRecorder` and answers on the other pipe with each
-log's counters. It owns the live zenoh stream (``hil/controller/cycle``, ``.../diagnostics``) on
-a session of its own, opened on first use. The control side is
-:mod:`rt_controller.runtime.recorder_process`.
+The controller process writes each log as a plain MCAP stream, unchunked, with mcap's own
+``Writer`` (:mod:`rt_controller.runtime.recorder_process`); this process reads it with mcap's
+``StreamReader`` and writes the file with
+:class:`~rt_controller.runtime.recorder.CycleRecorder` (chunked, compressed, indexed, the scene
+drawn, camera images converted), and publishes ``/controller/cycle`` and ``/diagnostics`` live
+on zenoh. Logs follow each other on the pipe, each a whole MCAP from magic to magic; two
+metadata records of the stream are the controller's instructions and are not copied:
+``hil.log`` (the path and how to write it) and ``hil.live`` (publish live, on which zenoh
+endpoint). Answers go back as JSON lines on the other pipe: ``{"opened": PATH, "error": ...}``
+when a log was created (or could not be), ``{"closed": PATH, "counts": ..., "error": ...}``
+with its counters when it was finished.
 
-The child ignores SIGINT, SIGTERM and SIGHUP (the controller decides when its logs end) and
-finishes every open log at end of file on its pipe, so the logs of a SIGKILLed controller are
-still complete. While it waits it flushes the logs that are due (``flush_interval_s``).
-
-Wire format, both directions: a 4-byte little-endian length, then a pickled tuple. Parent to
-child: ``(LINK, cfg_json, zenoh_endpoint, zenoh_config)`` first, then ``(OPEN, rid, path,
-cfg_json, run_info, scene, flush_interval_s)``, ``(RECORDS, rid, items)`` (each item
-``(kind, t_ns, obj)`` of :meth:`CycleRecorder.write`, a CAN frame as a :class:`CanFrame`),
-``(LIVE, rid)`` and ``(CLOSE, rid)``. Child to parent: ``(OPENED, rid, error)`` and ``(COUNTS,
-rid, counts, error, final)``.
+The controller starts it with :data:`LAUNCH` (a fresh interpreter: it holds none of the
+controller's memory). It ignores SIGINT, SIGTERM and SIGHUP (the controller decides when its
+logs end) and finishes the open log at end of file on its pipe, so the log of a SIGKILLed
+controller is still complete. While it waits for records it flushes the log when it is due.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
+import json
 import os
-import pickle
 import select
 import signal
 import struct
 import sys
-import time
-from collections import namedtuple
 from typing import Any
 
-from rt_controller.errors import LogError
-from rt_controller.runtime.recorder import CycleRecorder
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
 
-LINK, OPEN, RECORDS, LIVE, CLOSE = "link", "open", "records", "live", "close"
-OPENED, COUNTS = "opened", "counts"
-READ_SIZE = 1 << 20
-"""Bytes read from a pipe in one call."""
-COUNTS_EVERY_S = 0.25
-"""The child reports a log's counters at most this often (and at its close)."""
-_HEADER = struct.Struct("<I")
-_PIPE_SIZE = 1 << 20
-"""Requested pipe capacity (``F_SETPIPE_SZ``; Linux's default unprivileged maximum)."""
-
-CanFrame = namedtuple(
-    "CanFrame",
-    "arbitration_id is_extended_id dlc data is_fd bitrate_switch is_error_frame "
-    "is_remote_frame channel timestamp",
+from rt_controller.runtime.recorder import (
+    CONFIG_METADATA,
+    IMAGE,
+    RUN_METADATA,
+    TOPICS,
+    CycleRecorder,
 )
-"""A received or sent CAN frame as it crosses the pipe (the attributes of a python-can
-``Message`` that the ``/hal/can/*`` records keep)."""
+
+LOG_METADATA, LIVE_METADATA = "hil.log", "hil.live"
+"""The controller's instructions in the stream (see the module docstring)."""
+IMAGE_TOPIC = "hil/vision/image"
+"""The stream's channel of the camera's images, as received (the file gets protobuf topics)."""
+KIND_OF_TOPIC = {**{topic: kind for kind, topic in TOPICS.items()}, IMAGE_TOPIC: IMAGE}
+IDLE_S = 0.25
+"""How often a waiting recorder looks whether the log is due for a flush."""
 
 
-def can_frame(msg: Any) -> CanFrame:
-    """The picklable :class:`CanFrame` of a python-can ``Message``."""
-    channel = msg.channel
-    return CanFrame(
-        msg.arbitration_id,
-        msg.is_extended_id,
-        msg.dlc,
-        bytes(msg.data),
-        msg.is_fd,
-        msg.bitrate_switch,
-        msg.is_error_frame,
-        msg.is_remote_frame,
-        "" if channel is None else str(channel),
-        msg.timestamp,
-    )
+class PipeInput:
+    """The read end of the pipe as the file ``StreamReader`` reads: ``read(n)`` gives ``n``
+    bytes (fewer only at end of file) and calls ``idle`` while it waits."""
+
+    def __init__(self, fd: int, idle: Any) -> None:
+        self.fd, self.idle = fd, idle
+        self.eof = False
+
+    def read(self, n: int = -1) -> bytes:
+        parts, want = [], n
+        while want > 0 and not self.eof:
+            if not select.select([self.fd], [], [], IDLE_S)[0]:
+                self.idle()
+                continue
+            data = os.read(self.fd, min(want, 1 << 20))
+            if not data:
+                self.eof = True
+            parts.append(data)
+            want -= len(data)
+        return b"".join(parts)
 
 
-def encode_frame(message: tuple) -> bytes:
-    """One message on the wire: its length, then the pickled tuple."""
-    body = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    return _HEADER.pack(len(body)) + body
+class LogCopy:
+    """One log of the stream into its file (and the live stream)."""
 
+    def __init__(self, child: RecorderChild) -> None:
+        self.child = child
+        self.rec: CycleRecorder | None = None
+        self.kinds: dict[int, int] = {}
+        self.meta: dict[str, dict[str, str]] = {}
 
-def split_frames(buf: bytearray) -> list[tuple]:
-    """Remove and unpickle every whole frame at the start of ``buf``."""
-    out, pos, size = [], 0, len(buf)
-    while size - pos >= _HEADER.size:
-        (n,) = _HEADER.unpack_from(buf, pos)
-        if size - pos - _HEADER.size < n:
-            break
-        start = pos + _HEADER.size
-        out.append(pickle.loads(buf[start : start + n]))
-        pos = start + n
-    del buf[:pos]
-    return out
+    def handle(self, record: Any) -> None:
+        if isinstance(record, Message):
+            kind = self.kinds.get(record.channel_id)
+            if self.rec is not None and kind is not None:
+                self.rec.add(kind, record.log_time, record.data)
+        elif isinstance(record, Channel):
+            self.kinds[record.id] = KIND_OF_TOPIC[record.topic]
+        elif isinstance(record, Metadata):
+            self.meta[record.name] = record.metadata
+            if record.name == RUN_METADATA:  # hil.log and hil.config come before it
+                self.open()
+            elif record.name == LIVE_METADATA and self.rec is not None:
+                self.rec.set_live(self.child.live_sink(self.meta, record.metadata))
 
-
-class RecorderChild:
-    """The child's side: one ``CycleRecorder`` per open log, the live zenoh session."""
-
-    def __init__(self, fd_in: int, fd_out: int) -> None:
-        self.fd_in, self.fd_out = fd_in, fd_out
-        self.cfg_json: str | None = None
-        self.endpoint: str | None = None
-        self.config_file: str | None = None
-        self.logs: dict[int, CycleRecorder] = {}
-        self.reported: dict[int, tuple] = {}
-        self.received: dict[int, int] = {}
-        self.session: Any = None
-        self.live: Any = None
-        self.live_failed = False
-
-    def reply(self, message: tuple) -> None:
-        with contextlib.suppress(OSError):  # the parent is gone: the logs still get finished
-            os.write(self.fd_out, encode_frame(message))
-
-    def handle(self, message: tuple) -> None:
-        kind, rid = message[0], message[1]
-        if kind == LINK:
-            self.cfg_json, self.endpoint, self.config_file = message[1:]
-        elif kind == RECORDS:
-            rec = self.logs.get(rid)
-            if rec is not None:
-                write = rec.write
-                for item in message[2]:
-                    write(*item)
-                self.received[rid] += len(message[2])
-        elif kind == OPEN:
-            self.open(rid, *message[2:])
-        elif kind == LIVE:
-            rec = self.logs.get(rid)
-            if rec is not None:
-                rec.set_live(self.live_sink())
-        elif kind == CLOSE:
-            self.close(rid)
-
-    def open(
-        self, rid: int, path: str, cfg_json: str, info: dict, scene: bool, flush_s: float
-    ) -> None:
+    def open(self) -> None:
         from hal.config import config_from_json
 
+        how = self.meta.get(LOG_METADATA, {})
+        path = how.get("path", "")
         try:
-            cfg = config_from_json(cfg_json)
-            builder = None
-            if scene:
+            cfg = config_from_json(self.meta[CONFIG_METADATA]["json"])
+            scene = None
+            if how.get("scene") == "1":
                 from rt_controller.monitor.scene import SceneBuilder
 
-                builder = SceneBuilder(cfg)
-            rec = CycleRecorder(path, cfg, run_info=info, flush_interval_s=flush_s, scene=builder)
+                scene = SceneBuilder(cfg)
+            self.rec = CycleRecorder(
+                path,
+                cfg,
+                run_info=self.meta[RUN_METADATA],
+                flush_interval_s=float(how.get("flush_interval_s", 1.0)),
+                scene=scene,
+            )
         except Exception as exc:
-            self.reply((OPENED, rid, str(exc) or type(exc).__name__))
+            self.child.reply({"opened": path, "error": str(exc) or type(exc).__name__})
             return
-        self.received[rid] = 0
-        self.logs[rid] = rec
-        self.reply((OPENED, rid, None))
+        self.child.reply({"opened": path, "error": None})
 
-    def counts(self, rid: int, rec: CycleRecorder) -> dict[str, Any]:
-        out: dict[str, Any] = rec.as_dict()
-        out.update(received=self.received.get(rid, 0), finished=rec.finished)
-        return out
-
-    def report(self) -> None:
-        """Each open log's counters, when they changed since the last report."""
-        for rid, rec in self.logs.items():
-            counts = self.counts(rid, rec)
-            if self.reported.get(rid) != (key := tuple(counts.values())):
-                self.reported[rid] = key
-                self.reply((COUNTS, rid, counts, rec.error and str(rec.error), False))
-
-    def close(self, rid: int) -> None:
-        rec = self.logs.pop(rid, None)
-        self.reported.pop(rid, None)
+    def close(self) -> None:
+        rec, self.rec = self.rec, None
         if rec is None:
             return
         rec.close()
@@ -173,13 +128,50 @@ class RecorderChild:
         error = str(rec.error) if rec.error else None
         if not (error or rec.finished):
             error = "the writer did not finish the file"
-        counts = self.counts(rid, rec)
-        self.received.pop(rid, None)
-        self.reply((COUNTS, rid, counts, error, True))
+        counts = {**rec.as_dict(), "finished": rec.finished}
+        self.child.reply({"closed": str(rec.path), "counts": counts, "error": error})
 
-    def live_sink(self) -> Any:
+
+class RecorderChild:
+    """The process's side: the logs one after another, the live zenoh session."""
+
+    def __init__(self, fd_in: int, fd_out: int) -> None:
+        self.fd_out = fd_out
+        os.set_blocking(fd_in, True)
+        self.log: LogCopy | None = None
+        self.input = PipeInput(fd_in, self.idle)
+        self.session: Any = None
+        self.live: Any = None
+        self.live_failed = False
+
+    def reply(self, message: dict[str, Any]) -> None:
+        with contextlib.suppress(OSError):  # the controller is gone: the log still gets finished
+            os.write(self.fd_out, json.dumps(message).encode() + b"\n")
+
+    def idle(self) -> None:
+        if self.log is not None and self.log.rec is not None:
+            self.log.rec.flush_if_due()  # a quiet log still reaches the disk
+
+    def run(self) -> None:
+        """Serve logs until end of file on the input pipe; the last one is finished then."""
+        while not self.input.eof:
+            self.log = LogCopy(self)
+            try:
+                for record in StreamReader(self.input, record_size_limit=None).records:
+                    self.log.handle(record)  # the stream ends after the Footer's magic
+            except (McapError, struct.error, ValueError) as exc:  # the controller died mid-log
+                if not self.input.eof:
+                    print(f"hil controller: recorder: bad record stream: {exc}", file=sys.stderr)
+                    self.input.eof = True
+            self.log.close()
+        if self.live is not None:
+            self.live.close()
+        if self.session is not None:
+            self.session.close()
+
+    def live_sink(self, meta: dict[str, dict[str, str]], link: dict[str, str]) -> Any:
         """The zenoh publisher of the live stream (the session opens on first use), or None."""
-        if self.live is not None or self.live_failed or self.cfg_json is None:
+        if self.live is not None or self.live_failed:
             return self.live
         from hal.config import config_from_json
         from hal.errors import HalError
@@ -188,10 +180,10 @@ class RecorderChild:
 
         try:
             self.session = open_session(
-                config_from_json(self.cfg_json),
+                config_from_json(meta[CONFIG_METADATA]["json"]),
                 listen=False,
-                endpoint=self.endpoint,
-                config_file=self.config_file,
+                endpoint=link.get("endpoint") or None,
+                config_file=link.get("config") or None,
                 wait_s=5.0,
             )
             self.live = LivePublisher(self.session)
@@ -199,127 +191,6 @@ class RecorderChild:
             self.live_failed = True
             print(f"hil controller: warning: no live stream: {exc}", file=sys.stderr)
         return self.live
-
-    def run(self) -> None:
-        """Serve until end of file on the input pipe, then finish every open log."""
-        buf = bytearray()
-        last_report = time.monotonic()
-        while True:
-            readable, _, _ = select.select([self.fd_in], [], [], COUNTS_EVERY_S)
-            if readable:
-                data = os.read(self.fd_in, READ_SIZE)
-                if not data:
-                    break  # the controller closed its end (or died)
-                buf += data
-                for message in split_frames(buf):
-                    self.handle(message)
-            now = time.monotonic()
-            if now - last_report >= COUNTS_EVERY_S:
-                last_report = now
-                for rec in self.logs.values():  # a quiet log still reaches the disk
-                    rec.flush_if_due()
-                self.report()
-        for rid in list(self.logs):
-            self.close(rid)
-        if self.live is not None:
-            self.live.close()
-        if self.session is not None:
-            self.session.close()
-
-
-class ChildProcess:
-    """The recorder's child as its parent sees it: ``start`` ``"auto"`` forks while the parent
-    has one OS thread (else spawns ``python -m rt_controller.runtime.recorder_child``), or
-    ``"fork"`` / ``"spawn"``; :attr:`fd_out` (to the child, grown) and :attr:`fd_in` (from it)
-    are the parent's non-blocking ends of the two pipes."""
-
-    def __init__(self, start: str = "auto") -> None:
-        if start not in ("auto", "fork", "spawn"):
-            raise LogError(f"recorder start must be auto, fork or spawn, not {start!r}")
-        self._status: int | None = None
-        child_in, self.fd_out = os.pipe()
-        self.fd_in, child_out = os.pipe()
-        with contextlib.suppress(OSError, AttributeError):
-            fcntl.fcntl(self.fd_out, fcntl.F_SETPIPE_SZ, _PIPE_SIZE)
-        fork = start == "fork" or (start == "auto" and _os_threads() == 1)
-        self.start_method = "fork" if fork else "spawn"
-        try:
-            self.pid = (self._fork if fork else self._spawn)(child_in, child_out)
-        except BaseException:
-            os.close(self.fd_out)
-            os.close(self.fd_in)
-            raise
-        finally:
-            os.close(child_in)
-            os.close(child_out)
-        os.set_blocking(self.fd_out, False)
-        os.set_blocking(self.fd_in, False)
-
-    def _fork(self, child_in: int, child_out: int) -> int:
-        sys.stdout.flush()  # or the child would write the parent's buffered output again
-        sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:  # the child: never returns into the caller's code
-            status = 1
-            try:
-                os.close(self.fd_out)
-                os.close(self.fd_in)
-                serve(child_in, child_out)
-                status = 0
-            except BaseException as exc:  # report, then leave without the parent's cleanup
-                with contextlib.suppress(Exception):
-                    print(f"hil controller: recorder process failed: {exc}", file=sys.stderr)
-            finally:
-                with contextlib.suppress(Exception):
-                    sys.stderr.flush()
-                os._exit(status)
-        return pid
-
-    @staticmethod
-    def _spawn(child_in: int, child_out: int) -> int:
-        os.set_inheritable(child_in, True)
-        os.set_inheritable(child_out, True)
-        argv = [sys.executable, "-m", __name__, str(child_in), str(child_out)]
-        quiet = [(os.POSIX_SPAWN_OPEN, fd, os.devnull, os.O_RDWR, 0) for fd in (0, 1)]
-        return os.posix_spawn(sys.executable, argv, os.environ, file_actions=quiet)
-
-    def reap(self, timeout: float) -> int | None:
-        """The child's exit status (negative: killed by that signal), None while it runs."""
-        deadline = time.monotonic() + timeout
-        while self._status is None:
-            try:
-                pid, status = os.waitpid(self.pid, os.WNOHANG)
-            except ChildProcessError:  # reaped by someone else
-                pid, status = self.pid, 0
-            if pid:
-                self._status = os.waitstatus_to_exitcode(status)
-            elif time.monotonic() >= deadline:
-                return None
-            else:
-                time.sleep(0.005)
-        return self._status
-
-    def exit_note(self) -> str:
-        """`` (status N)`` or `` (killed by signal N)`` once the child has exited, else ``""``."""
-        status = self.reap(0.2)
-        if status is None:
-            return ""
-        return f" (killed by signal {-status})" if status < 0 else f" (status {status})"
-
-    def end(self, timeout: float) -> None:
-        """Reap the child (its input pipe closed, it exits by itself); SIGKILL it after
-        ``timeout`` seconds."""
-        if self.reap(timeout) is None and self.pid > 0:
-            with contextlib.suppress(OSError):
-                os.kill(self.pid, signal.SIGKILL)
-            self.reap(timeout)
-
-
-def _os_threads() -> int:
-    try:
-        return len(os.listdir("/proc/self/task"))
-    except OSError:
-        return 2  # unknown: do not fork
 
 
 def _demote() -> None:
@@ -335,23 +206,20 @@ def _demote() -> None:
         pass
 
 
-def serve(fd_in: int, fd_out: int) -> None:
-    """The child's main loop: until end of file on ``fd_in``, then every open log finished.
-    Standard input and output become ``/dev/null`` (the controller's stdout carries its JSON
-    summary, and whoever reads it must not wait for this process); warnings go to stderr."""
+def serve(fd_in: int = 0, fd_out: int = 1) -> None:
+    """The process's main loop: logs from ``fd_in`` until its end of file, the last one
+    finished then; answers on ``fd_out``. Warnings go to stderr."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
-    devnull = os.open(os.devnull, os.O_RDWR)
-    for fd in (0, 1):
-        with contextlib.suppress(OSError):
-            os.dup2(devnull, fd)
-    os.close(devnull)
-    os.set_blocking(fd_in, True)
     _demote()
     RecorderChild(fd_in, fd_out).run()
 
 
-if __name__ == "__main__":  # the spawned child: python -m ... FD_IN FD_OUT
-    serve(int(sys.argv[1]), int(sys.argv[2]))
-    sys.stderr.flush()
-    os._exit(0)
+LAUNCH = (
+    "import signal\n"
+    "for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP): signal.signal(s, signal.SIG_IGN)\n"
+    "from rt_controller.runtime.recorder_child import serve\n"
+    "serve()\n"
+)
+"""The process's program (``python -c``): signals ignored before anything is imported, then
+:func:`serve` on its standard input and output."""

@@ -23,8 +23,8 @@ def test_rss_growth_needs_two_samples_after_the_warmup() -> None:
     assert g == {"from_mb": None, "to_mb": None, "growth_mb": None, "slope_mb_per_h": None}
 
 
-def _diag(t_s: float, pending: int, final: bool = False, dropped: int = 0) -> dict:
-    recorder = {"written": 1, "dropped": dropped, "pending": pending}
+def _diag(t_s: float, backlog: int, final: bool = False, dropped: int = 0) -> dict:
+    recorder = {"written": 1, "dropped": dropped, "pending": 0, "backlog_bytes": backlog}
     return {
         "t_ns": int(t_s * 1e9),
         "final": final,

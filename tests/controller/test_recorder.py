@@ -160,6 +160,7 @@ def test_each_record_is_written_before_its_call_returns(tmp_path, cfg):
         "dropped": 0,
         "encode_errors": 0,
         "pending": 0,
+        "backlog_bytes": 0,
     }
 
 
