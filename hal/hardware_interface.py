@@ -56,6 +56,12 @@ class Observation:
     state_new: bool = True
     """A joint state arrived since the previous read (realtime: False means this period's
     state came late)."""
+    actuation_delay_ms: float = 0.0
+    """How long after the state's sampling the torque written this tick starts to act, beyond
+    the state's age: 0 for the DSP (it applies a torque when it arrives); one control period
+    for CiA 402 cyclic synchronous torque (a drive latches the RPDO at the next SYNC). The
+    pacer brings the state and the features forward by it (``controller.predict_state``,
+    ``predict_features``)."""
 
 
 class StopFlag(Protocol):

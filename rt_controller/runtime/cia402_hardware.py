@@ -173,6 +173,7 @@ class Cia402Hardware:
             f_valid=f_valid,
             drive_mode=mode,
             state_new=state_new,
+            actuation_delay_ms=self.ctx.cfg.rates.control_period_ns / 1e6,
         )
 
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:

@@ -83,9 +83,9 @@ class RealtimePacer:
     def prediction_ms(self, obs: Observation) -> tuple[float, float]:
         """How far the joint state and features are brought forward: their ages, when fresh
         (``controller.predict_state``, ``controller.predict_features``)."""
-        ctl = self.ctx.cfg.controller
-        state = obs.state_age_ms if ctl.predict_state and not obs.state_stale else 0.0
-        feats = obs.f_age_ms if ctl.predict_features and not obs.f_stale else 0.0
+        ctl, delay = self.ctx.cfg.controller, obs.actuation_delay_ms
+        state = obs.state_age_ms + delay if ctl.predict_state and not obs.state_stale else 0.0
+        feats = obs.f_age_ms + delay if ctl.predict_features and not obs.f_stale else 0.0
         return (
             state if math.isfinite(state) and state > 0 else 0.0,
             feats if math.isfinite(feats) and feats > 0 else 0.0,
@@ -144,8 +144,12 @@ class LockstepPacer:
         return (self._now_sim_ns - feat.sim_time_ns) / 1e6
 
     def prediction_ms(self, obs: Observation) -> tuple[float, float]:
-        """Nothing to bring forward: state and features are sampled at the tick."""
-        return 0.0, 0.0
+        """State and features are sampled at the tick: only the hardware's actuation delay
+        (CiA 402: one period) is brought forward, by the same switches as in realtime."""
+        ctl, delay = self.ctx.cfg.controller, obs.actuation_delay_ms
+        state = delay if ctl.predict_state and not obs.state_stale else 0.0
+        feats = delay if ctl.predict_features and not obs.f_stale else 0.0
+        return state, feats
 
     def overran(self, release: Release) -> bool:
         """No deadlines: the world waits for the tick."""
