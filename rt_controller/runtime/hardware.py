@@ -2,34 +2,30 @@
 the emulated or real DSP of ``hal/hil.dbc`` over CAN, the image features over zenoh.
 
 The CAN link is a :class:`~hal.joint_client.JointClient` in poll mode (read in the control
-thread, no receive thread); the features come from a zenoh subscription into one decoder: a
-ring the control thread drains (realtime), or a callback (lockstep: a period's tick waits for
-the answer to its pose). The drive's state is followed by :class:`DrivePolicy`. In lockstep
-the DSP paces: :meth:`DspHardware.step` waits for its ``Sync(k)``.
+thread, no receive thread); the features come through a
+:class:`~rt_controller.runtime.feature_link.FeatureLink` (the zenoh half every profile shares).
+The drive's state is followed by :class:`DrivePolicy`. In lockstep the DSP paces:
+:meth:`DspHardware.step` waits for its ``Sync(k)``.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import threading
 import time
 from typing import Any
 
 import numpy as np
 
-from hal.errors import HalCodecError, HalTimeoutError
+from hal.errors import HalTimeoutError
 from hal.hardware_interface import InputJudge, Observation, StopFlag
 from hal.joint_client import JointClient
-from hal.vision_image import decode_vision_image
 from hal.vision_receivers import FeatureDecoder
-from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE, PayloadRing
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.drive_policy import ENABLE_TIMEOUT_S, DrivePolicy
+from rt_controller.runtime.feature_link import FeatureLink
 from rt_controller.runtime.pacers import LOCKSTEP_FEATURE_TIMEOUT_S
-from rt_controller.runtime.recorder import IMAGE
 
 STARTUP_TIMEOUT_S = 20.0
 """How long start-up waits for the first joint state and features before giving up."""
@@ -58,21 +54,14 @@ class DspHardware:
         ``lockstep``: the DSP's Sync paces (features by callback, no cyclic arming)."""
         self.ctx = ctx
         self.dsp = dsp
-        self.session = session
-        self.features = features
+        self.features = FeatureLink(
+            ctx, session, features, by_callback=lockstep, record_raw=record_raw
+        )
         self.lockstep = lockstep
         self.record_raw = record_raw
         self.drive = DrivePolicy(ctx)
         self.can_base = dsp.stats.e2e.as_dict()
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
-        self._ring: PayloadRing | None = None
-        self._subscriber: Any = None
-        self._image_subscriber: Any = None
-        self.images_recorded = self.images_rejected = 0
-        """``hil/vision/image`` payloads logged, and refused (not authentic or malformed)."""
-        self._feeding = threading.Lock()
-        """Held while a callback feeds a message; :meth:`deactivate` takes it to end the feed."""
-        self._attached = False
         self._enable_by: int | None = None
         """Arming: when the DSP must report *operation enabled* (None: not yet activated)."""
         self._arming_sent = 0
@@ -117,16 +106,7 @@ class DspHardware:
             self.dsp.send_torque(0.0, 0.0)
             self.dsp.disable()
             self._enable_by = None
-        if self._ring is not None:
-            self._ring.close()
-            self._ring = None
-        for sub in (self._subscriber, self._image_subscriber):
-            if sub is not None:
-                with contextlib.suppress(Exception):  # a closed session undeclared it already
-                    sub.undeclare()
-        self._subscriber = self._image_subscriber = None
-        with self._feeding:  # a callback still running on zenoh's thread finishes first
-            self._attached = False
+        self.features.detach()
         self.dsp.frame_hook = self.dsp.tx_hook = None
 
     # --- pacing -----------------------------------------------------------------------------
@@ -157,7 +137,7 @@ class DspHardware:
             if k == last:  # a re-sent Sync: our command was lost, send it again
                 self.dsp.send_torque(*self.last_tau, tick=k)
         self._last_sync = k
-        self.features.wait_pose_seq(k, LOCKSTEP_FEATURE_TIMEOUT_S)
+        self.features.wait_pose(k, LOCKSTEP_FEATURE_TIMEOUT_S)
         return k
 
     # --- read and write ---------------------------------------------------------------------
@@ -176,12 +156,7 @@ class DspHardware:
             state_age_ms = (now_ns - state.t_ns) / 1e6
         except HalTimeoutError:
             state_stale, q, dq, state_age_ms = True, np.full(2, math.nan), np.zeros(2), math.nan
-        feat, recv_ns = self.features.latest_received()
-        if feat is None or recv_ns is None:
-            f, f_age_ms = np.full(2, math.nan), math.nan
-        else:
-            f, f_age_ms = np.array(feat.f), judge.feature_age_ms(feat, recv_ns, now_ns)
-        timeout_ms = self.ctx.cfg.controller.feature_timeout_s * 1e3
+        f, f_age_ms, f_stale, f_valid = self.features.latest(now_ns, judge)
         return Observation(
             q=q,
             dq=dq,
@@ -190,8 +165,8 @@ class DspHardware:
             state_age_ms=state_age_ms,
             state_stale=state_stale,
             f_age_ms=f_age_ms,
-            f_stale=not (0.0 <= f_age_ms <= timeout_ms),
-            f_valid=feat is not None and feat.valid,
+            f_stale=f_stale,
+            f_valid=f_valid,
             drive_mode=mode,
             state_new=state_new,
         )
@@ -214,22 +189,16 @@ class DspHardware:
         """The receive verdicts of this run (``can_rx``, ``features``) and the drive (``dsp``)."""
         return {
             "can_rx": diagnostics.since(self.can_base, self.dsp.stats.e2e.as_dict()),
-            "features": self.features.counts.as_dict(),
+            "features": self.features.features.counts.as_dict(),
             "dsp": self.drive.block(self.dsp),
         }
 
     # --- links ------------------------------------------------------------------------------
     def _attach(self) -> None:
-        self._attached = True
-        session, rec = self.session, self.ctx.recorder
-        if self.lockstep:
-            self._subscriber = session.subscribe(KEY_FEATURES, self._on_features)
-        else:
-            self._ring = session.subscribe_ring(KEY_FEATURES)
-        if self.ctx.cfg.camera.image_log_fps > 0:
-            self._image_subscriber = session.subscribe(KEY_VISION_IMAGE, self._on_image)
+        """This run's feature subscriptions, and the raw CAN log's hooks."""
+        self.features.attach()
         if self.record_raw:
-            now = self.ctx.clock.now_ns
+            rec, now = self.ctx.recorder, self.ctx.clock.now_ns
             self.dsp.frame_hook = lambda m: rec.record_can(m, now(), "rx")
             self.dsp.tx_hook = lambda m: rec.record_can(m, now(), "tx")
 
@@ -239,7 +208,7 @@ class DspHardware:
         while not stop.is_set():
             self._poll(self.ctx.clock.now_ns())
             have_state = self.dsp.state_age_s() is not None
-            if have_state and (not features or self.features.latest is not None):
+            if have_state and (not features or self.features.features.latest is not None):
                 return
             if time.monotonic() > deadline:
                 missing = "joint state (CAN)" if not have_state else "image features (zenoh)"
@@ -254,34 +223,7 @@ class DspHardware:
         transports, into their decoders (stamped ``now_ns`` where the clock has no kernel
         stamps)."""
         self.dsp.drain(now_ns, timestamps=self.ctx.clock.kernel_stamps)
-        if self._ring is not None:
-            for payload in self._ring.drain():
-                self._on_features(payload, now_ns)
-
-    def _on_features(self, payload: bytes, now_ns: int | None = None) -> None:
-        """One feature message into the decoder and the log; none after :meth:`deactivate`
-        (zenoh may still deliver a sample after the undeclare returns, and the run's log is
-        closed next)."""
-        with self._feeding:
-            if not self._attached:
-                return
-            now = self.ctx.clock.now_ns() if now_ns is None else now_ns
-            self.features.feed(payload, now)
-            if self.record_raw:
-                self.ctx.recorder.record_vision(payload, now)
-
-    def _on_image(self, payload: bytes) -> None:
-        """What the camera saw (``hil/vision/image``, authenticated) into the log."""
-        with self._feeding:
-            if not self._attached:
-                return
-            try:
-                decode_vision_image(payload, self.features.key)
-            except HalCodecError:
-                self.images_rejected += 1
-                return
-            self.images_recorded += 1
-            self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
+        self.features.poll(now_ns)
 
 
 __all__ = ["STARTUP_TIMEOUT_S", "DspHardware"]
