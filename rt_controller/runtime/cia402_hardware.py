@@ -37,8 +37,8 @@ from rt_controller.sample_stats import percentile
 
 ENABLE_TIMEOUT_S = 5.0
 """How long arming may take until every drive reports *operation enabled*."""
-STARTUP_TIMEOUT_S = 20.0
-"""Realtime: how long start-up waits for the first features."""
+ZENOH_WAIT_S = 20.0
+"""How long start-up waits for the zenoh hub (the emulator's)."""
 LOCKSTEP_TPDO_TIMEOUT_S = 1.0
 """Lockstep: how long a SYNC may wait for every drive's TPDOs."""
 LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
@@ -72,33 +72,32 @@ class Cia402Hardware:
     # --- lifecycle --------------------------------------------------------------------------
     def configure(self, stop: StopFlag) -> None:
         """Boot the drives (NMT, SDO, PDO maps, CST read back, NMT start, the controller's
-        heartbeat) and subscribe to the features; realtime: wait for the first features."""
+        heartbeat) and subscribe to the features. The first features are awaited while arming
+        (:meth:`activate`): the emulated world publishes its camera pose only on SYNC."""
         self.master.boot(stop)
         self.features.attach()
-        if self.lockstep:
-            return
-        deadline = time.monotonic() + STARTUP_TIMEOUT_S
-        while not stop.is_set() and self.features.features.latest is None:
-            if time.monotonic() > deadline:
-                raise ControllerError(
-                    f"no image features (zenoh) within {STARTUP_TIMEOUT_S:.0f} s: is `hil "
-                    f"vision` running on the same zenoh endpoints?"
-                )
-            self.features.poll(self.ctx.clock.now_ns())
-            self.ctx.pause(10_000_000)
 
     def activate(self, now_ns: int) -> bool:
         """One step of the arming walk: each drive's controlword one CiA 402 transition toward
         *operation enabled* (zero torque) and a SYNC that latches it; True once every drive
-        reports it. Realtime: one SYNC per release (counted in ``arming_ticks``); lockstep:
-        the SYNC steps the world and this waits for its TPDOs."""
+        reports it (realtime: and the first features are in). Realtime: one SYNC per release
+        (counted in ``arming_ticks``); lockstep: the SYNC steps the world and this waits for
+        its TPDOs."""
         clock = self.ctx.clock
         if self._enable_by is None:
             self.master.watch_controller()  # the drives fault if this process stops from now on
             self._enable_by = clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
-        if self.master.steer(ENABLED):
+        self.features.poll(clock.now_ns())
+        enabled = self.master.steer(ENABLED)
+        have_features = self.lockstep or self.features.features.latest is not None
+        if enabled and have_features:
             return True
         if clock.now_ns() > self._enable_by:
+            if enabled:
+                raise ControllerError(
+                    f"no image features (zenoh) within {ENABLE_TIMEOUT_S:g} s of arming: is "
+                    f"`hil vision` running on the same zenoh endpoints?"
+                )
             states = ", ".join(f"node {n.id}: {d['state']}" for n, d in self._drive_states())
             raise ControllerError(
                 f"the drives did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
@@ -173,7 +172,7 @@ class Cia402Hardware:
             f_valid=f_valid,
             drive_mode=mode,
             state_new=state_new,
-            actuation_delay_ms=self.ctx.cfg.rates.control_period_ns / 1e6,
+            actuation_delay_ms=self._actuation_delay_ms(),
         )
 
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:
@@ -222,6 +221,14 @@ class Cia402Hardware:
         }
 
     # --- helpers ----------------------------------------------------------------------------
+    def _actuation_delay_ms(self) -> float:
+        """How long after its state the tick's torque starts to act, beyond the state's age.
+        Lockstep: the state is sampled at the tick (age 0) and the torque is latched by the
+        next step's SYNC, one period on. Realtime: the SYNC follows the RPDO at once, so the
+        torque acts when written and the state's age (since its SYNC, about one period)
+        already covers the delay."""
+        return self.ctx.cfg.rates.control_period_ns / 1e6 if self.lockstep else 0.0
+
     def _count_faults(self) -> None:
         """New faults of the drives (EMCY codes, heartbeat loss, reboot) into the run's
         ``dsp_faults`` (the summary's, which make a run not clean)."""
@@ -243,7 +250,7 @@ def open_cia402_links(cfg: RigConfig, stop: Any) -> Iterator[tuple[Cia402Master,
     reported at once; both closed at the end."""
     master = Cia402Master.from_config(cfg, open_bus(cfg.transport.can))
     try:
-        session = open_session(cfg, listen=False, wait_s=STARTUP_TIMEOUT_S, stop_event=stop)
+        session = open_session(cfg, listen=False, wait_s=ZENOH_WAIT_S, stop_event=stop)
         try:
             yield master, session
         finally:
