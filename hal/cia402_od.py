@@ -64,6 +64,10 @@ EMCY_SYNC = 0x8700
 """CiA 402 EMCY: sync controller (no SYNC within the allowed periods)."""
 EMCY_PARAMETER = 0x6320
 """CiA 301 EMCY: parameter error (operation cannot be enabled with the objects as they are)."""
+EMCY_POSITION_LIMIT = 0x8612
+"""CiA 402 EMCY: reference limit (the joint left its software position limits)."""
+EMCY_VELOCITY_LIMIT = 0x8400
+"""CiA 402 EMCY: velocity speed controller (the joint turned faster than its limit)."""
 
 PDO_COUNT = {"rpdo": 2, "tpdo": 3}
 """PDOs the drive has (0x1400-0x1401, 0x1800-0x1802)."""

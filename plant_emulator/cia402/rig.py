@@ -19,7 +19,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hal.cia402_od import DriveParameters, interpolation_time
+from hal.cia402_od import (
+    EMCY_POSITION_LIMIT,
+    EMCY_VELOCITY_LIMIT,
+    DriveParameters,
+    interpolation_time,
+)
 from plant_emulator.cia402.drive import EmulatedDrive
 from plant_emulator.world import World
 
@@ -129,12 +134,27 @@ class Cia402Rig:
             if self.running:
                 tau = np.array([drive.torque_nm() for drive in self.drives])
                 self.world.hold(tau, self.substeps)
+                self._check_limits()
             self.syncs += 1
             for drive in self.drives:
                 j = drive.joint
                 drive.on_sync(self.syncs, now, float(self.world.q[j]), float(self.world.dq[j]))
         if self.on_step is not None:
             self.on_step(self.syncs, self.world)
+
+    def _check_limits(self) -> None:
+        """At the end of each control period, as the emulated DSP: a drive with operation
+        enabled whose joint is beyond ``dsp.q_min``/``dsp.q_max`` (EMCY 0x8612) or faster than
+        ``dsp.dq_max`` (EMCY 0x8400) faults. Each drive watches its own joint only."""
+        limits = self.cfg.dsp
+        for drive in self.drives:
+            j = drive.joint
+            if not drive.power.torque_enabled:
+                continue
+            if not limits.q_min[j] <= self.world.q[j] <= limits.q_max[j]:
+                drive.fault(EMCY_POSITION_LIMIT)
+            elif abs(self.world.dq[j]) > limits.dq_max[j]:
+                drive.fault(EMCY_VELOCITY_LIMIT)
 
     def torques(self) -> tuple[float, float]:
         """The torques the drives apply now, Nm."""

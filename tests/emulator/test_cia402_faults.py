@@ -118,3 +118,33 @@ def test_lockstep_widens_the_sync_loss_limit_to_its_timeout():
         assert all(d.power.state is PowerState.OPERATION_ENABLED for d in bench.rig.drives)
         bench.rig.poll(last_sync + RigConfig().cia402.lockstep_sync_timeout_s + 0.001)
         assert_faulted(bench, nodes, cia.EMCY_SYNC)
+
+
+def test_a_joint_beyond_its_position_limit_faults_its_own_drive():
+    cfg = RigConfig().with_overrides({"dsp.q_max": (0.53, 2.6)})  # q0 = pi/6 = 0.5236
+    with drives_on_virtual_bus(cfg) as bench:
+        nodes = both_enabled_with_torque(bench)  # +4 Nm and +0.4 Nm
+        for _ in range(20):
+            bench.clock.t += PERIOD_S
+            sync_and_wait(bench, *(n.tpdo[1] for n in nodes))
+            if bench.rig.drives[0].power.faulted:
+                break
+        drive1, drive2 = bench.rig.drives
+        assert drive1.power.state is PowerState.FAULT and drive1.torque_nm() == 0.0
+        assert bench.rig.world.q[0] > 0.53
+        assert [e.code for e in nodes[0].emcy.log] == [cia.EMCY_POSITION_LIMIT]
+        assert drive2.power.state is PowerState.OPERATION_ENABLED  # its joint is within limits
+        assert nodes[1].tpdo[1]["Statusword"].raw & 0x6F == 0x27
+
+
+def test_a_joint_faster_than_its_limit_faults_its_drive():
+    cfg = RigConfig().with_overrides({"dsp.dq_max": (10.0, 0.05)})
+    with drives_on_virtual_bus(cfg) as bench:
+        nodes = both_enabled_with_torque(bench)
+        for _ in range(20):
+            bench.clock.t += PERIOD_S
+            sync_and_wait(bench, *(n.tpdo[1] for n in nodes))
+            if bench.rig.drives[1].power.faulted:
+                break
+        assert bench.rig.drives[1].power.state is PowerState.FAULT
+        assert [e.code for e in nodes[1].emcy.log] == [cia.EMCY_VELOCITY_LIMIT]
