@@ -50,11 +50,13 @@ FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
 NOTIFIER_CYCLE_S = 0.1
 """canopen's receive thread looks at its stop request this often (its default, 1 s, would
 make every close take that long)."""
-HEARTBEAT_MS = 50
+HEARTBEAT_MS = 100
 """Producer heartbeat time of the drives and of the controller (CiA 301 0x1017)."""
-CONSUMER_PERIODS = 3
+CONSUMER_PERIODS = 5
 """A heartbeat is lost after this many producer periods (the drives' 0x1016 time, the
-controller's check)."""
+controller's check): 500 ms. The heartbeat is the slow backstop (a thread of a process on a
+loaded host may stall for a few hundred ms, the control thread does not); a controller that
+stops ticking is caught within 3 periods by the drives' SYNC monitoring."""
 CONTROLLER_NODE_ID = 0x7F
 """The controller's own node id (its heartbeat's COB-ID is 0x700 + it)."""
 TIMING_KEPT = 100_000
