@@ -7,7 +7,8 @@ Behaviour:
 
 * opens the bus with :func:`hal.bus.open_bus` (``--can``, default ``transport.can`` of the config:
   ``auto`` = python-can's configuration, else ``socketcan:vcan0`` if it exists, else host-local
-  ``udp_multicast``) and runs :class:`~plant_emulator.dsp_node.DspNode` in realtime or lockstep;
+  ``udp_multicast``) and runs the emulated DSP (:mod:`plant_emulator.dsp_node`) with the runner
+  of its clock mode (:func:`plant_emulator.dsp.make_dsp`: realtime or lockstep);
 * unless ``--no-vision-link``, it is the zenoh hub of the rig (router listening on
   ``--zenoh-endpoint``, or a ``--zenoh-config`` file) and publishes the camera pose on
   ``hil/emulator/camera_pose`` for the vision process (:mod:`plant_emulator.pose_link`), and
@@ -213,7 +214,7 @@ def _profile(args: argparse.Namespace) -> str:
 
 def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     from hal.bus import open_bus, resolve_spec
-    from plant_emulator.dsp_node import DspNode
+    from plant_emulator.dsp import make_dsp
 
     if _profile(args) == "cia402":
         from plant_emulator.cia402.entry import serve_cia402
@@ -263,7 +264,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
                 link.camera.start()
                 c = cfg.camera
                 zenoh_where += f", camera frames {c.width_px}x{c.height_px}"
-        node = DspNode(
+        node = make_dsp(
             cfg,
             bus,
             lockstep=lockstep,
@@ -331,8 +332,9 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
 @contextlib.contextmanager
 def serve_sim_control(session: Any, node: Any, key: bytes) -> Iterator[Any]:
     """Take the harness's commands on ``hil/sim/control`` (:mod:`hal.sim_control`) for
-    ``node`` (a scenario reset with its camera noise seed, :meth:`DspNode.request_reset`) while
-    the context is open; yields the receiver, whose ``counts`` say what was rejected."""
+    ``node`` (a scenario reset with its camera noise seed,
+    :meth:`~plant_emulator.dsp_lockstep.LockstepDsp.request_reset`) while the context is open;
+    yields the receiver, whose ``counts`` say what was rejected."""
     from hal.sim_control import KEY_SIM_CONTROL, SimControlReceiver
 
     receiver = SimControlReceiver(lambda msg: node.request_reset(msg.seed), key=key)

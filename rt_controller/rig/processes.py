@@ -45,7 +45,7 @@ LOCKSTEP_SLOWEST = 20.0
 many times slower than real time (user-mode Linux runs about 10x slower than the host)."""
 LOCKSTEP_MISSING_PERIOD_S = 0.5
 """Real time a lockstep DSP waits for a period's command before it counts the period missing
-(``plant_emulator.dsp_node.LOCKSTEP_REPLY_TIMEOUT_S``): its watchdog counts such periods."""
+(``plant_emulator.dsp_lockstep.LOCKSTEP_REPLY_TIMEOUT_S``): its watchdog counts such periods."""
 TRIP_MARGIN_S = 1.0
 """How much longer than its watchdog time the supervisor waits for a DSP's trip after the
 controller died (a loaded host delays the emulator's loop)."""

@@ -29,7 +29,8 @@ class Features:
     """The zenoh half, standing still: features f0, always fresh (this test is about CAN)."""
 
     def __init__(self) -> None:
-        self.features = SimpleNamespace(counts=SimpleNamespace(as_dict=dict), latest=None)
+        counts = SimpleNamespace(as_dict=dict)
+        self.features = SimpleNamespace(counts=counts, latest=SimpleNamespace(f=CFG.scenario.f0))
         self.attached = False
 
     def attach(self) -> None:
@@ -56,13 +57,13 @@ class Judge:
         return 0.0
 
 
-@pytest.fixture
-def profile():
+@pytest.fixture(params=[True])
+def profile(request):
     with drives_on_virtual_bus(CFG) as bench:
         bus = can.Bus(interface="virtual", channel=bench.master.bus.channel_id)
         master = Cia402Master.from_config(CFG, bus)
         ctx = RunContext(CFG, MonotonicClock(), threading.Event(), RunCounters(), None)
-        hw = Cia402Hardware(ctx, master, Features(), lockstep=True)
+        hw = Cia402Hardware(ctx, master, Features(), lockstep=request.param)
         try:
             yield hw, bench
         finally:
@@ -140,3 +141,25 @@ def test_the_profile_key_is_validated_and_overridden_by_the_command_line():
     assert apply_overrides(RigConfig(), profile="cia402").hardware.profile == "cia402"
     with pytest.raises(HalConfigError, match=r"hardware.profile: must be dsp or cia402, not 'x'"):
         RigConfig().with_overrides({"hardware.profile": "x"})
+
+
+@pytest.mark.parametrize("profile", [False], indirect=True)
+def test_realtime_latches_each_torque_with_its_own_sync(profile):
+    """Realtime: arming sends one SYNC per call (counted), the tick's RPDO goes out with the
+    SYNC that latches it, and the state's age since its SYNC stands for the CST delay."""
+    hw, bench = profile
+    hw.configure(hw.ctx.stop)
+    calls = 1
+    while not hw.activate(hw.ctx.clock.now_ns()):
+        assert hw.master.wait_tpdos(hw.master.sync_count, 5.0)  # a period: the drives answer
+        calls += 1
+        assert calls < 20, "not armed"
+    assert hw.ctx.counters.arming_ticks == calls - 1 >= 3
+    syncs = bench.rig.syncs
+    hw.write((2.0, 0.3), sync=None, release_ns=hw.ctx.clock.now_ns())
+    assert hw.master.wait_tpdos(hw.master.sync_count, 5.0)
+    assert bench.rig.syncs == syncs + 1  # the SYNC went with the RPDO
+    assert bench.rig.torques() == pytest.approx((2.0, 0.3))
+    obs = hw.read(hw.ctx.clock.now_ns(), Judge())
+    assert obs.actuation_delay_ms == 0.0 and obs.state_age_ms > 0
+    assert obs.drive_mode == "enabled"

@@ -19,6 +19,7 @@ from hal.joint_client import JointClient
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.vision_receivers import FeatureDecoder
 from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp_realtime import RealtimeDsp
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
 from rt_controller.runtime.recorder_process import RecorderService
@@ -34,7 +35,7 @@ class RigClock(FakeClock):
     (the loop's wait work, the read-ahead, is not run: the client takes the frames off the bus
     as they arrive, see ``client``)."""
 
-    def __init__(self, node: DspNode, start_ns: int) -> None:
+    def __init__(self, node: RealtimeDsp, start_ns: int) -> None:
         super().__init__(start_ns)
         self.node = node
         self.features: FeatureDecoder | None = None
@@ -123,7 +124,7 @@ def run_daemon(
     period = cfg.rates.control_period_ns
     cfg = cfg.with_overrides({"transport.can": spec, "controller.clock": "realtime"})
     with open_bus(spec) as dsp_bus:
-        node = DspNode(cfg, dsp_bus)
+        node = RealtimeDsp(cfg, dsp_bus)
         clock = RigClock(node, T0)
         opts = DaemonOptions(
             duration_s=duration_s,

@@ -1,7 +1,7 @@
 """Drive state machine (hal.drive_state, pure) and the DSP emulator's drive behaviour.
 
-The DSP is driven with a fake clock (``DspNode.service``) and fed frames through
-``DspNode.handle``; nothing asserts wall-clock timings.
+The DSP is driven with a fake clock (``RealtimeDsp.service``) and fed frames through
+``RealtimeDsp.handle``; nothing asserts wall-clock timings.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from hal.drive_state import (
     FaultReason,
     next_state,
 )
-from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp_realtime import RealtimeDsp
 
 S = DriveState
 C = DspCommand
@@ -144,10 +144,10 @@ def test_status_flags_imply_drive_state_for_legacy_construction():
 
 
 class Rig:
-    """A DspNode on a private bus, fed controller frames directly, on a fake clock."""
+    """A RealtimeDsp on a private bus, fed controller frames directly, on a fake clock."""
 
     def __init__(self, cfg: RigConfig, bus: can.BusABC, tap: can.BusABC, **kw: object) -> None:
-        self.node = DspNode(cfg, bus, session=4242, **kw)  # type: ignore[arg-type]
+        self.node = RealtimeDsp(cfg, bus, session=4242, **kw)  # type: ignore[arg-type]
         self.ctl = ControllerCodec()
         self.tap = tap
         self.now = T0
@@ -202,7 +202,7 @@ def test_dsp_boots_disabled_with_its_session_and_applies_no_torque(rig):
     assert np.array_equal(r.node.world.tau_applied, np.zeros(2))
     first = r.statuses()[0]
     assert first.drive_state is S.SWITCH_ON_DISABLED and first.session == 4242
-    assert DspNode(r.node.cfg, r.node.bus).session != 0  # random, non-zero by default
+    assert RealtimeDsp(r.node.cfg, r.node.bus).session != 0  # random, non-zero by default
 
 
 def test_disable_mid_run_goes_ready_and_removes_torque(rig):

@@ -18,7 +18,7 @@ from hal.can_codec import ControllerCodec, DspCommand
 from hal.can_database import DBC_PATH
 from hal.config import RigConfig
 from hal.e2e import DEFAULT_MAX_DELTA, DEFAULT_REINIT_AFTER_NS
-from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp_realtime import RealtimeDsp
 from tests.support import SecocReference, command_is_malformed, e2e_crc_reference
 from tests.support.dsp import (
     RECV_TIMEOUT_S,
@@ -168,7 +168,7 @@ def test_fuzz_into_the_dsp_receive_path(cfg: RigConfig, seed: int) -> None:
     rng = random.Random(seed)
     oracle = DspOracle()
     with open_bus(isolated_spec("virtual")) as bus:
-        node = DspNode(cfg, bus)
+        node = RealtimeDsp(cfg, bus)
         node.start_realtime(0)
         for i, msg in enumerate(fuzz_frames(rng)):
             t_ns = i * 100_000  # 0.1 ms per frame: 1 s in all, re-init and watchdog reachable
@@ -202,7 +202,7 @@ def test_fuzz_through_the_bus_into_the_running_node(cfg: RigConfig) -> None:
     frames = list(fuzz_frames(random.Random(13)))[:2000]
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus, open_bus(spec) as tx:
-        node = DspNode(cfg, bus)
+        node = RealtimeDsp(cfg, bus)
         stop = threading.Event()
         runner = threading.Thread(target=node.run, args=(stop,), name="dsp-node")
         runner.start()

@@ -1,8 +1,8 @@
 """The emulated DSP node (plant_emulator.dsp_node) against a real JointClient on real buses.
 
 Everything runs in-process on ``virtual`` and host-local ``udp_multicast`` buses (isolated per
-test). Realtime behaviour is driven with a fake clock through ``DspNode.start_realtime`` /
-``DspNode.service``, so no test depends on the host's speed; lockstep runs use the real node
+test). Realtime behaviour is driven with a fake clock through ``RealtimeDsp.start_realtime`` /
+``RealtimeDsp.service``, so no test depends on the host's speed; lockstep runs use the real node
 loop. Receive timeouts are generous; nothing asserts wall-clock timings.
 """
 
@@ -21,7 +21,7 @@ from hal.can_codec import ControllerCodec
 from hal.can_frames import RAD_PER_COUNT, JointPosition, JointVelocity
 from hal.config import RigConfig
 from hal.joint_client import DRAIN_MAX_FRAMES
-from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp_realtime import RealtimeDsp
 from tests.support.dsp import (
     MS,
     RECV_TIMEOUT_S,
@@ -257,7 +257,7 @@ class StateTap:
 def test_reported_angles_are_whole_encoder_counts(cfg: RigConfig, transport: str) -> None:
     spec = isolated_spec(transport)
     with open_bus(spec) as bus, open_bus(spec) as tap_bus:
-        node, tap = DspNode(cfg, bus), StateTap(tap_bus)
+        node, tap = RealtimeDsp(cfg, bus), StateTap(tap_bus)
         node.start_realtime(T0)
         tap.next_state()  # the initial state
         node.armed, node.tau_cmd = True, np.array([7.0, -0.7])
@@ -278,7 +278,7 @@ def test_velocity_estimate_tracks_true_velocity(cfg: RigConfig, transport: str) 
     fc = cfg.dsp.velocity_filter_hz
     lag_s = 1.0 / (2 * math.pi * fc)  # first-order filter delay
     with open_bus(spec) as bus, open_bus(spec) as tap_bus:
-        node, tap = DspNode(cfg, bus), StateTap(tap_bus)
+        node, tap = RealtimeDsp(cfg, bus), StateTap(tap_bus)
         node.start_realtime(T0)
         tap.next_state()
         node.armed = True

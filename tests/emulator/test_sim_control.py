@@ -28,7 +28,8 @@ from hal.sim_control import (
     encode,
 )
 from hal.zenoh_session import free_loopback_port, open_session
-from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp_lockstep import LockstepDsp
+from plant_emulator.dsp_realtime import RealtimeDsp
 from plant_emulator.entry import serve_sim_control
 from plant_emulator.pose_link import wait_until
 from tests.support import session_key
@@ -141,10 +142,9 @@ def test_a_reset_over_the_channel_runs_again_exactly_as_a_fresh_dsp(
         JointClient.open(spec, cfg) as client,
         zenoh_pair() as (hub, controller_session),
     ):
-        node = DspNode(
+        node = LockstepDsp(
             cfg,
             bus,
-            lockstep=True,
             sync_resend_s=0.02,
             reply_timeout_s=5.0,
             on_reset=lambda seed: resets.append((node.session, seed)),
@@ -179,7 +179,7 @@ def test_a_reset_over_the_channel_runs_again_exactly_as_a_fresh_dsp(
 def test_a_realtime_dsp_refuses_a_reset(cfg: RigConfig) -> None:
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus:
-        node = DspNode(cfg, bus)
+        node = RealtimeDsp(cfg, bus)
         clock = FakeClock(node)
         clock.advance(40)
         q, steps, session = node.world.q.copy(), node.world.step_index, node.session

@@ -11,7 +11,7 @@ from hal.bus import isolated_spec, open_bus
 from hal.can_codec import ControllerCodec
 from hal.can_frames import JointPosition
 from hal.config import RigConfig
-from plant_emulator.dsp_node import CommandPhase, DspNode
+from plant_emulator.dsp_realtime import CommandPhase, RealtimeDsp
 
 MS = 1_000_000
 T0 = 1_000_000_000_000
@@ -37,8 +37,8 @@ def test_phase_near_the_period_boundary_does_not_wrap() -> None:
     assert ph.residue_ns == (base + 50_000) % PERIOD
 
 
-def _node(cfg: RigConfig, bus: can.BusABC, **dsp: object) -> DspNode:
-    return DspNode(cfg.with_overrides({f"dsp.{k}": v for k, v in dsp.items()}), bus)
+def _node(cfg: RigConfig, bus: can.BusABC, **dsp: object) -> RealtimeDsp:
+    return RealtimeDsp(cfg.with_overrides({f"dsp.{k}": v for k, v in dsp.items()}), bus)
 
 
 def test_the_phase_is_learnt_from_arrival_less_the_delay_each_command_reports(
@@ -105,7 +105,7 @@ def test_commands_that_stopped_fall_back_to_the_dsp_clock(cfg: RigConfig) -> Non
 def test_a_period_of_one_physics_step_gets_a_state_after_every_step(cfg: RigConfig) -> None:
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus:
-        node = DspNode(cfg.with_overrides({"rates.control_hz": 1000.0}), bus)
+        node = RealtimeDsp(cfg.with_overrides({"rates.control_hz": 1000.0}), bus)
         node.start_realtime(T0)
         node.phase.observe(T0)
         node.last_cmd_ns = T0
@@ -118,7 +118,7 @@ def test_a_period_shorter_than_the_lead_still_gets_one_state_per_period(cfg: Rig
     twice the frames for the controller to decode on its tick for no fresher a sample."""
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus:
-        node = DspNode(cfg.with_overrides({"rates.control_hz": 500.0}), bus)
+        node = RealtimeDsp(cfg.with_overrides({"rates.control_hz": 500.0}), bus)
         assert node.state_lead_ns == 3 * MS
         node.start_realtime(T0)
         tick = T0 + 7 * MS  # the controller's ticks: T0 + 1 ms (mod 2 ms)
@@ -132,7 +132,7 @@ def test_a_period_shorter_than_the_lead_still_gets_one_state_per_period(cfg: Rig
 def test_free_mode_keeps_the_configured_state_rate(cfg: RigConfig) -> None:
     spec = isolated_spec("virtual")
     with open_bus(spec) as bus, open_bus(spec) as tap:
-        node = DspNode(cfg.with_overrides({"dsp.state_sync": "free"}), bus)
+        node = RealtimeDsp(cfg.with_overrides({"dsp.state_sync": "free"}), bus)
         node.start_realtime(T0)
         for i in range(10):
             node.service(T0 + (i + 1) * MS)

@@ -44,12 +44,12 @@ import numpy as np
 from numba.core import event
 from hal.bus import isolated_spec, open_bus
 from hal.config import load_config
-from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp import make_dsp
 
 cfg = load_config()
 lockstep = sys.argv[1] == "lockstep"
 with open_bus(isolated_spec("virtual")) as bus:
-    node = DspNode(cfg, bus, lockstep=lockstep)
+    node = make_dsp(cfg, bus, lockstep=lockstep)
     node.warm_up()
     with event.install_recorder("numba:compile") as rec:
         if lockstep:

@@ -19,7 +19,10 @@ from hal.can_frames import DspStatus
 from hal.config import RigConfig
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
+from plant_emulator.dsp import make_dsp
+from plant_emulator.dsp_lockstep import LockstepDsp
 from plant_emulator.dsp_node import DspNode
+from plant_emulator.dsp_realtime import RealtimeDsp
 
 RECV_TIMEOUT_S = 10.0
 MS = 1_000_000
@@ -50,16 +53,17 @@ def wait_for(cond: Callable[[], bool], what: str, poll: Callable[[], object] | N
 def rig(
     cfg: RigConfig, transport: str, **node_kwargs: object
 ) -> Iterator[tuple[DspNode, JointClient]]:
-    """A DspNode on its own bus and a JointClient (controller side) on the same bus."""
+    """A DSP (``lockstep=True``: the lockstep runner) on its own bus and a JointClient
+    (controller side) on the same bus."""
     spec = isolated_spec(transport)
     with open_bus(spec) as bus, JointClient.open(spec, cfg) as client:
-        yield DspNode(cfg, bus, **node_kwargs), client  # type: ignore[arg-type]
+        yield make_dsp(cfg, bus, **node_kwargs), client  # type: ignore[arg-type]
 
 
 class FakeClock:
     """Drives a realtime node: ``now`` in ns, ``advance`` runs the steps that became due."""
 
-    def __init__(self, node: DspNode) -> None:
+    def __init__(self, node: RealtimeDsp) -> None:
         self.node = node
         self.now = T0
         node.start_realtime(T0)
@@ -155,12 +159,10 @@ def lockstep_run(
     periods: int,
     spoil: frozenset[int] = frozenset(),
     pose_sink: Any = None,
-) -> tuple[DspNode, Responder]:
+) -> tuple[LockstepDsp, Responder]:
     spec = isolated_spec(transport)
     with open_bus(spec) as bus, JointClient.open(spec, cfg) as client:
-        node = DspNode(
-            cfg, bus, lockstep=True, sync_resend_s=0.02, reply_timeout_s=5.0, pose_sink=pose_sink
-        )
+        node = LockstepDsp(cfg, bus, sync_resend_s=0.02, reply_timeout_s=5.0, pose_sink=pose_sink)
         with Responder(client, spoil) as responder:
             node.run(threading.Event(), duration_s=periods / cfg.rates.control_hz)
     return node, responder
