@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import os
 
-# One BLAS thread (before numpy is imported): the control law's matrices are tiny, and a
-# process with a single OS thread can fork the MCAP recorder's process at once
-# (runtime/recorder_process.py) instead of spawning an interpreter.
+# One BLAS thread (before numpy is imported): the control law's matrices are tiny, and the
+# control process runs no other thread of its own.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse

@@ -194,7 +194,8 @@ class RecorderChild:
 
 
 def _demote() -> None:
-    """Best effort: the recorder must not compete with a SCHED_FIFO loop it was forked from."""
+    """Best effort: the recorder must not compete with a SCHED_FIFO loop that started it (the
+    policy and a single-CPU affinity are inherited)."""
     try:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
