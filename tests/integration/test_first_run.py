@@ -33,8 +33,7 @@ with event.install_recorder("numba:compile") as rec:
         dq = rng.normal(0, 0.2, 2)
         f = f0 * (1 - k / 60) + rng.normal(0, 1, 2)
         d = ctl.decide(k * 0.02, q, dq, f, f_stale=k % 17 == 5, state_stale=k % 23 == 7)
-        if d.command is not None:
-            ctl.costs(d.command)
+        d.record_fields(ctl.law.name)
 print(json.dumps([str(ev.data.get("dispatcher", ev)) for _, ev in rec.buffer]))
 """
 
