@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import sys
 import threading
 import time
@@ -183,13 +182,10 @@ def fifo_priority(priority: int) -> str | None:
     """SCHED_FIFO at ``priority`` for the calling thread (the DSP loop; zenoh's threads keep
     normal scheduling); 0 leaves scheduling alone. A refusal (no CAP_SYS_NICE) is returned as
     a one-line warning, never raised: the emulator then runs with normal scheduling."""
-    if priority <= 0:
-        return None
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, AttributeError) as exc:
-        return f"SCHED_FIFO {priority} refused ({exc}); the DSP loop runs with normal scheduling"
-    return None
+    from hal.fifo import fifo_thread
+
+    why = fifo_thread(priority)
+    return None if why is None else f"{why}; the DSP loop runs with normal scheduling"
 
 
 def run_emulator(args: argparse.Namespace) -> int:

@@ -83,6 +83,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                     stop_event=stop,
                     duration_s=args.duration,
                     dropouts=dropouts,
+                    rt_priority=cfg.vision.rt_priority,
                     **zenoh_session_options(args),
                 )
             except HalError:

@@ -19,6 +19,7 @@ from typing import Any
 
 from hal.camera_frame import CameraFrame
 from hal.errors import HalConfigError
+from hal.fifo import fifo_thread
 from hal.vision_codec import FeatureMsg
 from vision.pipeline import Measurement, Pipeline
 
@@ -81,6 +82,9 @@ class GrabberStats:
     """Frames, measurements and rejections by reason."""
     frame_rx: dict[str, int] = field(default_factory=dict)
     """The frame decoder's counters (emulated source)."""
+    scheduling: str = ""
+    """How realtime frames were measured: ``SCHED_FIFO`` (``vision.rt_priority``), the reason it
+    was refused, or empty (normal scheduling, or no realtime frame)."""
     image_log: dict[str, int] = field(default_factory=dict)
     """The decimated image stream's counters (:meth:`vision.image_log.ImageLog.counters`)."""
     detect_us_p50: float = 0.0
@@ -111,8 +115,12 @@ class Grabber:
         observer: Observer | None = None,
         clock: Callable[[], int] = time.monotonic_ns,
         dropouts: Sequence[Dropout] = (),
+        rt_priority: int = 0,
     ) -> None:
         self.pipeline = pipeline
+        self.rt_priority = rt_priority
+        """Realtime frames are measured on SCHED_FIFO threads of this priority (0: normal)."""
+        self._fifo_threads: set[int] = set()
         self.publish = publish
         self.source_id = source_id
         self.observer = observer
@@ -147,6 +155,8 @@ class Grabber:
                 self.stats.reanswers += 1
                 self._send(msg)
                 return msg
+            if self.rt_priority and not frame.lockstep:
+                self._realtime_thread()
             delivered_ns = frame.sim_time_ns + frame.exposure_ns // 2  # the exposure's end
             if any(d.contains(delivered_ns) for d in self.dropouts):
                 return self._dropout(frame, ident)
@@ -175,6 +185,15 @@ class Grabber:
             if self.observer is not None:
                 self.observer(frame, m, msg)
             return msg
+
+    def _realtime_thread(self) -> None:
+        """SCHED_FIFO for the thread that measures realtime frames, asked once per thread (the
+        source's: zenoh's callback thread, the capture loop); a refusal is kept in
+        ``scheduling``."""
+        thread = threading.get_ident()
+        if thread not in self._fifo_threads:
+            self._fifo_threads.add(thread)
+            self.stats.scheduling = fifo_thread(self.rt_priority) or "SCHED_FIFO"
 
     def _dropout(self, frame: CameraFrame, ident: tuple[int, int, int]) -> FeatureMsg | None:
         """A frame inside a dropout window: lockstep answers it with valid = 0 (one answer per

@@ -56,9 +56,12 @@ def run_live(
     ready: threading.Event | None = None,
     observer: Observer | None = None,
     dropouts: Sequence[Dropout] = (),
+    rt_priority: int = 0,
 ) -> GrabberStats:
     """Serve ``spec``'s frames as features on zenoh until ``stop_event``, ``duration_s`` (0 =
-    forever) or the end of a file; ``dropouts``: windows without features (fault injection)."""
+    forever) or the end of a file; ``dropouts``: windows without features (fault injection);
+    ``rt_priority``: realtime frames are measured on SCHED_FIFO threads (``hil vision`` passes
+    ``vision.rt_priority``; 0: normal scheduling)."""
     parse_source(spec)  # a bad spec fails before zenoh is opened
     key = rig_key(cfg)
     session = open_session(
@@ -89,6 +92,7 @@ def run_live(
             source_id=source_id,
             observer=observer,
             dropouts=dropouts,
+            rt_priority=rt_priority,
         )
         source = open_source(spec, session=session, key=key, live=True)
         if duration_s > 0:

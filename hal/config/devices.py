@@ -90,3 +90,8 @@ class VisionConfig:
     """Tangential distortion p2."""
     k3: float = 0.0
     """Radial distortion k3."""
+    rt_priority: int = 60
+    """Realtime: SCHED_FIFO priority of the thread that measures the frames (best effort; 0 =
+    normal scheduling). Below the controller's (80) and the emulated DSP's and camera's (70,
+    69): on a busy host a normal thread waits behind every other process for its turn, and a
+    frame's features come late by as much."""

@@ -100,6 +100,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "vision.fy": (0, 1e6, "(]"),
     "vision.cx": (-1e5, 1e5, "[]"),
     "vision.cy": (-1e5, 1e5, "[]"),
+    "vision.rt_priority": (0, 99, "[]"),
     "vision.k1": (-100, 100, "[]"),
     "vision.k2": (-100, 100, "[]"),
     "vision.p1": (-1, 1, "[]"),

@@ -213,14 +213,18 @@ def rig_run(
     with Rig(opts) as rig:
         rig.start()
         summary = rig.wait_controller()
-        rig.stop()
-        vision = _json_line(rig.child("vision").output())  # type: ignore[union-attr]
+        codes = rig.stop()
+        vision_child = rig.child("vision")
+        vision = _json_line(vision_child.output())  # type: ignore[union-attr]
         emulator = _json_line(rig.child("emulator").output())  # type: ignore[union-attr]
+        vision_tail = "" if vision else vision_child.tail(5)  # type: ignore[union-attr]
     return {
+        "vision_tail": vision_tail,
         "controller": summary,
         "vision": vision,
         "emulator": emulator,
         "cycles": read_log(log).cycles,
+        "exit_codes": codes,
     }
 
 
@@ -265,6 +269,7 @@ def lockstep_profile(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dic
         "frame_to_features_us": _pair(v, "pipeline"),
         "detect_us": _pair(v, "detect"),
         "image_log": v.get("image_log"),
+        "vision_tail": run["vision_tail"],
     }
 
 
@@ -306,8 +311,12 @@ def realtime_pipeline(
         "deadline_misses": ctl.get("deadline_misses"),
         "missed_periods": ctl.get("missed_periods"),
         "stale_features": ctl.get("stale_features"),
+        "vision_scheduling": v.get("scheduling"),
         "J": ctl.get("J"),
         "problems": ctl.get("problems", []),
+        "vision_reported": bool(v),
+        "vision_tail": run["vision_tail"],
+        "exit_codes": run["exit_codes"],
     }
 
 

@@ -22,6 +22,8 @@ def test_bench_vision_reports_every_figure(capsys):
                 "-q",
                 "--lockstep-duration",
                 "0",
+                "--realtime-duration",
+                "0",
             ]
         )
         == 0

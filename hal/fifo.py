@@ -1,0 +1,19 @@
+"""SCHED_FIFO for the calling thread, best effort: the rig's time-critical threads that are not
+the controller's loop (the emulated camera, the frame grabber) ask for it once, from the thread
+itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only)."""
+
+from __future__ import annotations
+
+import os
+
+
+def fifo_thread(priority: int) -> str | None:
+    """Put the calling thread on SCHED_FIFO at ``priority`` (0: leave scheduling alone). A
+    refusal (no CAP_SYS_NICE, no such policy) is returned as a one-line reason, never raised."""
+    if priority <= 0:
+        return None
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return f"SCHED_FIFO {priority} refused ({exc})"
+    return None
