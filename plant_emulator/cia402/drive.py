@@ -124,11 +124,20 @@ class EmulatedDrive(canopen.LocalNode):
         self._watch_heartbeat(None)
         self.pdos.reload()
         if node:
+            self.new_run(self.q, self.dq)
+
+    def new_run(self, q: float, dq: float) -> None:
+        """A scenario reset: SWITCH ON DISABLED with no fault, torque off, watchdogs disarmed
+        (the heartbeat consumer rearms at the next heartbeat), the joint at ``q``, ``dq``."""
+        with self.lock:
             self.power = PowerStateMachine(
                 quick_stop_option=lambda: self._value(cia.QUICK_STOP_OPTION),
                 enable_check=self._enable_check,
             )
             self.torque_permille = 0
+            self._last_sync = None
+            self._last_heartbeat = None
+            self.q, self.dq = q, dq
 
     @property
     def operational(self) -> bool:

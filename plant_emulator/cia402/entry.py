@@ -7,7 +7,8 @@ come from ``[cia402]``. The run is always paced by the controller's SYNC (each S
 world one control period); ``--lockstep`` (or ``controller.clock = lockstep``) only widens the
 SYNC-loss limit to ``cia402.lockstep_sync_timeout_s``, since a lockstep controller may pause
 over a tick. Unless ``--no-vision-link``, the camera pose after each SYNC goes out on zenoh for
-the vision process, as with the emulated DSP (the rendered-image camera is not served here).
+the vision process, and the harness's scenario resets are taken from ``hil/sim/control``, as with
+the emulated DSP (the rendered-image camera is not served here).
 SIGTERM / SIGINT or ``--duration`` (simulated seconds) end it with exit status 0; ``--json``
 prints the final counters.
 """
@@ -39,6 +40,16 @@ class _Poses:
         self.publisher = publisher
         self.period_ns = period_ns
         self.errors = 0
+
+    def new_run(self, seed: int | None) -> None:
+        """A scenario reset: later poses carry a new source id and the reset's seed, so the
+        vision process starts a new run (as for the emulated DSP)."""
+        import secrets
+
+        old = self.publisher.source
+        while self.publisher.source == old:
+            self.publisher.source = secrets.randbits(32)
+        self.publisher.seed = seed
 
     def __call__(self, syncs: int, world: World) -> None:
         from hal.errors import HalTransportError
@@ -75,6 +86,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(open_bus(spec))
         zenoh_where = ""
+        session = None
         if args.vision_link:
             from hal.secoc import rig_key
             from hal.zenoh_session import open_session
@@ -93,8 +105,13 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         network.connect()  # the notifier on our bus (closed by open_bus's context)
         stack.callback(network.notifier.stop)
         lockstep = bool(args.lockstep) or cfg.controller.clock == "lockstep"
-        rig = Cia402Rig(cfg, network, on_step=poses, lockstep=lockstep)
+        new_run = None if poses is None else poses.new_run
+        rig = Cia402Rig(cfg, network, on_step=poses, lockstep=lockstep, on_reset=new_run)
         stack.callback(rig.close)
+        if session is not None:
+            from plant_emulator.entry import serve_sim_control
+
+            stack.enter_context(serve_sim_control(session, rig, rig_key(cfg)))
         rig.start()
         ids = ", ".join(str(d.id) for d in rig.drives)
         print(

@@ -67,12 +67,15 @@ class Cia402Rig:
         clock: Callable[[], float] = time.monotonic,
         on_step: StepListener | None = None,
         lockstep: bool = False,
+        on_reset: Callable[[int | None], None] | None = None,
     ) -> None:
         self.cfg = cfg
         self.world = World(cfg)
+        self._start_seed = self.world.seed
         self.network = network
         self.clock = clock
         self.on_step = on_step
+        self.on_reset = on_reset
         self.lock = threading.RLock()
         self.period_s = 1.0 / cfg.rates.control_hz
         self.substeps = cfg.rates.substeps
@@ -155,6 +158,23 @@ class Cia402Rig:
                 drive.fault(EMCY_POSITION_LIMIT)
             elif abs(self.world.dq[j]) > limits.dq_max[j]:
                 drive.fault(EMCY_VELOCITY_LIMIT)
+
+    def request_reset(self, seed: int | None = None) -> bool:
+        """A scenario reset (the simulator-control channel, :mod:`hal.sim_control`; any
+        thread), applied at once between SYNCs, as a freshly started emulator: the world back
+        to the scenario's start with the camera noise of ``seed`` (None: the one at start), the
+        SYNC count back to 0, every drive in SWITCH ON DISABLED with its fault cleared and its
+        watchdogs disarmed. ``on_reset`` (the pose link) hears the seed."""
+        with self.lock:
+            self.world.seed = self._start_seed if seed is None else seed
+            self.world.reset()
+            self.running = False
+            self.syncs = 0
+            for drive in self.drives:
+                drive.new_run(float(self.world.q[drive.joint]), float(self.world.dq[drive.joint]))
+        if self.on_reset is not None:
+            self.on_reset(seed)
+        return True
 
     def torques(self) -> tuple[float, float]:
         """The torques the drives apply now, Nm."""

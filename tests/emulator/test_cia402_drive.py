@@ -247,3 +247,25 @@ def test_an_rpdo_value_the_drive_refuses_is_counted_and_the_sync_goes_on():
         sync_and_wait(bench, node.tpdo[1], node.tpdo[2])  # the TPDOs still go out
         assert node.sdo[cia.MODES_DISPLAY].raw == cia.CST_MODE
         assert bench.rig.drives[0].pdos.rejected_rpdos == 1
+
+
+def test_a_scenario_reset_starts_a_new_run_as_a_fresh_emulator():
+    with drives_on_virtual_bus() as bench:
+        nodes = [operational(bench, node_id) for node_id in (1, 2)]
+        for word, torque in ((SHUTDOWN, 0), (ENABLE, 500), (ENABLE, 500), (ENABLE, 500)):
+            for node in nodes:
+                send_rpdo(node, word, torque)
+            sync_and_wait(bench, *(n.tpdo[1] for n in nodes))
+        bench.rig.drives[1].fault(cia.EMCY_SYNC)
+        assert bench.rig.world.t > 0 and bench.rig.world.q[0] != pytest.approx(math.pi / 6)
+        heard = []
+        bench.rig.on_reset = heard.append
+        assert bench.rig.request_reset(seed=7)
+        assert heard == [7] and bench.rig.world.seed == 7
+        assert bench.rig.world.t == 0.0 and bench.rig.syncs == 0 and not bench.rig.running
+        for node, drive in zip(nodes, bench.rig.drives, strict=True):
+            assert drive.power.state is PowerState.SWITCH_ON_DISABLED
+            assert node.sdo[cia.ERROR_CODE].raw == 0
+            assert node.sdo[cia.TORQUE_ACTUAL].raw == 0
+        ipr = cia.increments_per_rad(1 << 20)
+        assert nodes[0].sdo[cia.POSITION_ACTUAL].raw == round(math.pi / 6 * ipr)
