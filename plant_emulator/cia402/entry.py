@@ -7,8 +7,9 @@ come from ``[cia402]``. The run is always paced by the controller's SYNC (each S
 world one control period); ``--lockstep`` (or ``controller.clock = lockstep``) only widens the
 SYNC-loss limit to ``cia402.lockstep_sync_timeout_s``, since a lockstep controller may pause
 over a tick. Unless ``--no-vision-link``, the camera pose after each SYNC goes out on zenoh for
-the vision process, and the harness's scenario resets are taken from ``hil/sim/control``, as with
-the emulated DSP (the rendered-image camera is not served here).
+the vision process (with ``camera.model = "image"`` the emulated camera renders and streams
+frames from them, unless ``--no-camera``), and the harness's scenario resets are taken from
+``hil/sim/control``, as with the emulated DSP.
 SIGTERM / SIGINT or ``--duration`` (simulated seconds) end it with exit status 0; ``--json``
 prints the final counters.
 """
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from hal.config import RigConfig
+    from plant_emulator.camera_node import CameraNode
     from plant_emulator.cia402.rig import Cia402Rig
     from plant_emulator.pose_link import PosePublisher
     from plant_emulator.world import World
@@ -36,10 +38,11 @@ WAIT_SLICE_S = 0.05
 class _Poses:
     """After each SYNC: the camera pose on zenoh; a broken session is counted, never fatal."""
 
-    def __init__(self, publisher: PosePublisher, period_ns: int) -> None:
+    def __init__(self, publisher: PosePublisher) -> None:
         self.publisher = publisher
-        self.period_ns = period_ns
         self.errors = 0
+        self.camera: CameraNode | None = None
+        """The emulated camera (``camera.model = "image"``), offered every pose published."""
 
     def new_run(self, seed: int | None) -> None:
         """A scenario reset: later poses carry a new source id and the reset's seed, so the
@@ -50,12 +53,17 @@ class _Poses:
         while self.publisher.source == old:
             self.publisher.source = secrets.randbits(32)
         self.publisher.seed = seed
+        if self.camera is not None:
+            self.camera.new_run(seed)
 
     def __call__(self, syncs: int, world: World) -> None:
         from hal.errors import HalTransportError
 
+        sim_time_ns, pose = round(world.t * 1e9), world.pose()
+        if self.camera is not None:
+            self.camera.offer(syncs, sim_time_ns, pose, True)
         try:
-            self.publisher.publish(syncs, syncs * self.period_ns, world.pose(), True)
+            self.publisher.publish(syncs, sim_time_ns, pose, True)
         except HalTransportError as exc:
             self.errors += 1
             if self.errors == 1:
@@ -99,8 +107,19 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             )
             publisher = PosePublisher(session, key=rig_key(cfg))
             stack.callback(publisher.close)
-            poses = _Poses(publisher, cfg.rates.control_period_ns)
+            poses = _Poses(publisher)
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
+            if args.camera and cfg.camera.model == "image":
+                from plant_emulator.camera_node import CameraNode, FramePublisher
+
+                frames = FramePublisher(session)
+                stack.callback(frames.close)
+                poses.camera = CameraNode(
+                    cfg, frames.put, key=rig_key(cfg), watched=frames.has_subscribers
+                )
+                stack.callback(poses.camera.close)
+                poses.camera.start()
+                zenoh_where += f", camera frames {cfg.camera.width_px}x{cfg.camera.height_px}"
         network = canopen.Network(bus)
         network.connect()  # the notifier on our bus (closed by open_bus's context)
         stack.callback(network.notifier.stop)
@@ -160,4 +179,7 @@ def _summary(rig: Cia402Rig, where: str, wall_s: float, poses: _Poses | None) ->
             ],
             "poses_published": 0 if poses is None else poses.publisher.published,
             "pose_errors": 0 if poses is None else poses.errors,
+            "camera": None
+            if poses is None or poses.camera is None
+            else poses.camera.stats.as_dict(),
         }
