@@ -83,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
     import tempfile
 
     from rt_controller.commands.output import output_file, verdict
-    from rt_controller.rig.processes import RigHung, RigOptions, run_rig
+    from rt_controller.rig.failures import RigHung
+    from rt_controller.rig.options import RigOptions
+    from rt_controller.rig.processes import run_rig
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
     if args.log:

@@ -26,7 +26,8 @@ from hal.config import RigConfig, load_config
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.footprint import FootprintSampler
-from rt_controller.rig.processes import RigOptions, run_rig
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import run_rig
 from rt_controller.sample_stats import summary_stats
 
 DEFAULT_RATES = (50.0, 200.0, 500.0, 1000.0)

@@ -26,7 +26,8 @@ from rt_controller.config_rules import config_toml
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.bench_loop import bench_workdir, machine
 from rt_controller.rig.footprint import MIB, FootprintSampler
-from rt_controller.rig.processes import RigOptions, run_rig
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import run_rig
 
 
 class SoakSampler(FootprintSampler):

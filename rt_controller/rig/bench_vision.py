@@ -197,7 +197,8 @@ def rig_run(
     "emulator", "cycles"}`` (the log's cycle records)."""
     from rt_controller.config_rules import config_toml
     from rt_controller.logtools.reader import read_log
-    from rt_controller.rig.processes import Rig, RigOptions
+    from rt_controller.rig.options import RigOptions
+    from rt_controller.rig.processes import Rig
 
     conf = work / "rig.toml"
     conf.write_text(config_toml(cfg))

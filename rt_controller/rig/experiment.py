@@ -30,13 +30,9 @@ from hal.config import RigConfig, load_config
 from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerError
-from rt_controller.rig.processes import (
-    RigCancelled,
-    RigOptions,
-    private_default_bus,
-    run_rig,
-    run_rig_plan,
-)
+from rt_controller.rig.failures import RigCancelled
+from rt_controller.rig.options import RigOptions, private_default_bus
+from rt_controller.rig.processes import run_rig, run_rig_plan
 from rt_controller.rig.supervise import RigInterrupted
 
 EXPERIMENTS = ("fig3", "fig4", "table1")
@@ -445,7 +441,7 @@ def run_batch(batch: list[RunResult], settings: Settings, stop: str | None) -> l
 def bus_for_run(settings: Settings, run: RunResult) -> str:
     """The bus the run will use, named so that results.json and the rerun commands record it.
 
-    ``--can``, else :func:`~rt_controller.rig.processes.private_default_bus` (the automatic
+    ``--can``, else :func:`~rt_controller.rig.options.private_default_bus` (the automatic
     host-local ``udp_multicast`` bus becomes a private port, as every rig gets), else the
     config's bus as resolved (SocketCAN cannot be isolated and is used as it is). It is passed
     to the rig explicitly, so the recorded private port is the one the processes use.

@@ -25,24 +25,26 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from hal.bus import isolated_spec, resolve_spec
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.errors import ControllerError
 from rt_controller.rig.ending import ProcessEnd, dsp_report, log_path_said, summary_after
+from rt_controller.rig.failures import (
+    RigCancelled,
+    RigHung,
+    RigProcessDied,
+    RigProcessError,
+    with_tail,
+)
+from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, private_default_bus
 from rt_controller.rig.supervise import PARENT_ENV, RigInterrupted, signals_deferred
 
 STOP_TIMEOUT_S = 10.0
-STARTUP_MARGIN_S = 60.0
-LOCKSTEP_SLOWEST = 20.0
-"""A lockstep run is simulated time: ``hil up`` calls it hung only when it runs more than this
-many times slower than real time (user-mode Linux runs about 10x slower than the host)."""
 LOCKSTEP_MISSING_PERIOD_S = 0.5
 """Real time a lockstep DSP waits for a period's command before it counts the period missing
 (``plant_emulator.dsp_lockstep.LOCKSTEP_REPLY_TIMEOUT_S``): its watchdog counts such periods."""
@@ -51,35 +53,6 @@ TRIP_MARGIN_S = 1.0
 controller died (a loaded host delays the emulator's loop)."""
 WATCHDOG_TRIP_LINE = "hil emulator: fault: watchdog"
 """What the emulator prints on stderr when its watchdog trips (``plant_emulator.entry``)."""
-
-
-class RigProcessError(ControllerError, RuntimeError):
-    """A rig process failed; the message carries its exit status and stderr tail."""
-
-
-class RigProcessDied(RigProcessError):
-    """A process of the rig ended while the run went on (``end`` says which, how and when)."""
-
-    def __init__(self, end: ProcessEnd, tail: str) -> None:
-        self.end = end
-        super().__init__(with_tail(f"{end.name} {end.how}", tail))
-
-
-class RigHung(RigProcessError):
-    """The controller was still running after its wall-clock budget; the rig was stopped.
-    ``summary`` is what the controller reported when stopped (None if it reported nothing)."""
-
-    summary: dict[str, Any] | None = None
-
-
-def with_tail(message: str, tail: str) -> str:
-    """``message``, then a child's stderr tail on the lines below when it has one."""
-    return f"{message}:\n{tail}" if tail else message
-
-
-class RigCancelled(ControllerError):
-    """The run was cancelled (:attr:`RigOptions.cancel`) before it ended; its processes have
-    been stopped."""
 
 
 @dataclass
@@ -99,61 +72,6 @@ class Child:
         self.stdout.flush()
         self.stdout.seek(0)
         return self.stdout.read().decode(errors="replace")
-
-
-@dataclass
-class RigOptions:
-    """What to start."""
-
-    config: str | None = None
-    law: str | None = None
-    duration_s: float = 10.0
-    lockstep: bool = False
-    can: str | None = None
-    zenoh_endpoint: str | None = None
-    log: Path | None = None
-    key_file: Path | None = None
-    """The rig key of every child; None: a fresh key for this run (private temporary dir)."""
-    extra_controller: list[str] = field(default_factory=list)
-    extra_vision: list[str] = field(default_factory=list)
-    extra_emulator: list[str] = field(default_factory=list)
-    wall_timeout_s: float | None = None
-    """Wall-clock budget for the controller's run, start-up included; None: see
-    :meth:`wall_budget_s`."""
-    monitor: bool = False
-    """Also start ``hil monitor`` (the live view); its failure never ends the run."""
-    monitor_host: str | None = None
-    monitor_port: int | None = None
-    extra_monitor: list[str] = field(default_factory=list)
-    plan: Path | None = None
-    """A plan of lockstep runs for one controller (``hil controller --plan``, see
-    :mod:`rt_controller.runtime.plan`): ``law`` and ``log`` are then unused and ``duration_s``
-    is the plan's total simulated time (for the wall-clock budget)."""
-    cancel: threading.Event | None = None
-    """Set from another thread to stop this run (children stopped, :class:`RigCancelled`):
-    ``hil experiment --jobs`` runs rigs in worker threads, and only the main thread gets
-    signals."""
-
-    def wall_budget_s(self) -> float:
-        """How long :meth:`Rig.wait_controller` waits before calling the run hung: the given
-        ``wall_timeout_s``, else the duration (realtime) or ``LOCKSTEP_SLOWEST`` times the
-        simulated duration (lockstep), plus ``STARTUP_MARGIN_S`` for start-up."""
-        if self.wall_timeout_s is not None:
-            return self.wall_timeout_s
-        scale = LOCKSTEP_SLOWEST if self.lockstep else 1.0
-        return scale * self.duration_s + STARTUP_MARGIN_S
-
-
-def private_default_bus(config: str | None) -> str | None:
-    """The bus a rig uses when none is named: the configured/auto bus, except that the shared
-    default ``udp_multicast`` group becomes a free port of its own, so that rigs started at the
-    same time on one host (tests, experiments) never hear each other. A SocketCAN interface is a
-    real shared bus and is kept as it is."""
-    cfg = load_config(config)
-    spec = resolve_spec(None if cfg.transport.can == "auto" else cfg.transport.can)
-    if spec.interface == "udp_multicast" and spec.source == "auto":
-        return isolated_spec("udp_multicast")
-    return None
 
 
 def group_running(pgid: int) -> bool:

@@ -197,7 +197,8 @@ def rig_run(task: RunTask) -> dict[str, Any]:
 
     from rt_controller.config_rules import config_toml
     from rt_controller.logtools.reader import read_log
-    from rt_controller.rig.processes import RigOptions, run_rig
+    from rt_controller.rig.options import RigOptions
+    from rt_controller.rig.processes import run_rig
     from rt_controller.runtime.counters import run_problems
 
     cfg = config_from_dict(task.config, source="run config").with_overrides(

@@ -98,7 +98,7 @@ def test_help_imports_no_heavy_library(argv):
 def test_rig_wall_budget_scales_with_simulated_time_in_lockstep():
     """A lockstep run is simulated time: on a slow host (user-mode Linux, about 10x slower) it
     must not be called hung after its simulated duration; an explicit budget wins."""
-    from rt_controller.rig.processes import LOCKSTEP_SLOWEST, STARTUP_MARGIN_S, RigOptions
+    from rt_controller.rig.options import LOCKSTEP_SLOWEST, STARTUP_MARGIN_S, RigOptions
 
     assert RigOptions(duration_s=6.0).wall_budget_s() == 6.0 + STARTUP_MARGIN_S
     lockstep = RigOptions(duration_s=6.0, lockstep=True)

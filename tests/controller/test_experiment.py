@@ -15,7 +15,7 @@ from rt_controller.cli import main
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig import experiment as ex
 from rt_controller.rig import experiment_results as exr
-from rt_controller.rig.processes import RigProcessError
+from rt_controller.rig.failures import RigProcessError
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -166,7 +166,7 @@ def test_runs_go_jobs_at_a_time_and_a_stop_request_cancels_those_in_flight(
     import signal
     import threading
 
-    from rt_controller.rig.processes import RigCancelled
+    from rt_controller.rig.failures import RigCancelled
 
     started: list[str] = []
     lock = threading.Lock()

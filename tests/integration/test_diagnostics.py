@@ -19,7 +19,8 @@ from hal.config import load_config
 from hal.zenoh_session import KEY_FEATURES, free_loopback_port, open_session
 from rt_controller.logtools.deadline_report import summarize
 from rt_controller.logtools.reader import read_log
-from rt_controller.rig.processes import Rig, RigOptions
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import Rig
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.recorder import DIAGNOSTICS_TOPIC, CycleRecorder
 

@@ -27,7 +27,8 @@ from hal.secoc import load_key_file
 from hal.vision_codec import decode_features, encode_features
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.logtools.reader import read_log
-from rt_controller.rig.processes import Child, Rig, RigOptions
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import Child, Rig
 from tests.support import cycles_logged, free_endpoint
 from tests.support.proc import children_of
 

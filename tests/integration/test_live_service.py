@@ -55,7 +55,9 @@ from hal.config import RigConfig, config_from_json, load_config
 from hal.joint_client import JointClient
 from hal.vision_codec import decode_features
 from rt_controller.logtools.reader import read_log
-from rt_controller.rig.processes import Rig, RigOptions, RigProcessError, run_rig
+from rt_controller.rig.failures import RigProcessError
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import Rig, run_rig
 from rt_controller.runtime.recorder import (
     CAN_RX_TOPIC,
     CAN_TX_TOPIC,

@@ -12,7 +12,8 @@ import pytest
 from hal.config import load_config
 from rt_controller.config_rules import config_toml
 from rt_controller.logtools.reader import read_log
-from rt_controller.rig.processes import RigOptions, run_rig, run_rig_plan
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import run_rig, run_rig_plan
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

@@ -21,7 +21,9 @@ import pytest
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.config_rules import config_toml
-from rt_controller.rig.processes import RigOptions, RigProcessDied, run_rig_plan
+from rt_controller.rig.failures import RigProcessDied
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import run_rig_plan
 from tests.support import cycles_logged, start_hil_up
 from tests.support.proc import child_running, processes_mentioning, reaped
 

@@ -33,7 +33,8 @@ from hal.joint_client import JointClient
 from hal.vision_codec import FeatureMsg, decode_features, encode_features
 from hal.zenoh_session import KEY_FEATURES, open_session
 from rt_controller.logtools.reader import read_log
-from rt_controller.rig.processes import Child, Rig, RigOptions
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import Child, Rig
 from tests.support import free_endpoint
 
 pytestmark = pytest.mark.integration

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from hal.bus import isolated_spec
-from rt_controller.rig.processes import Rig, RigOptions
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import Rig
 from tests.support import free_endpoint
 
 pytestmark = pytest.mark.integration

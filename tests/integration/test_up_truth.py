@@ -17,7 +17,8 @@ import time
 
 import pytest
 
-from rt_controller.rig.processes import Rig, RigOptions
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import Rig
 from rt_controller.runtime.counters import run_problems
 from tests.support import cycles_logged, free_endpoint, run_hil, start_hil_up, wait_until
 

@@ -1,0 +1,71 @@
+"""What a rig run is asked to do (:class:`RigOptions`), its wall-clock budget, and the private
+default bus of rigs that run side by side."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hal.bus import isolated_spec, resolve_spec
+from hal.config import load_config
+
+STARTUP_MARGIN_S = 60.0
+LOCKSTEP_SLOWEST = 20.0
+"""A lockstep run is simulated time: ``hil up`` calls it hung only when it runs more than this
+many times slower than real time (user-mode Linux runs about 10x slower than the host)."""
+
+
+@dataclass
+class RigOptions:
+    """What to start."""
+
+    config: str | None = None
+    law: str | None = None
+    duration_s: float = 10.0
+    lockstep: bool = False
+    can: str | None = None
+    zenoh_endpoint: str | None = None
+    log: Path | None = None
+    key_file: Path | None = None
+    """The rig key of every child; None: a fresh key for this run (private temporary dir)."""
+    extra_controller: list[str] = field(default_factory=list)
+    extra_vision: list[str] = field(default_factory=list)
+    extra_emulator: list[str] = field(default_factory=list)
+    wall_timeout_s: float | None = None
+    """Wall-clock budget for the controller's run, start-up included; None: see
+    :meth:`wall_budget_s`."""
+    monitor: bool = False
+    """Also start ``hil monitor`` (the live view); its failure never ends the run."""
+    monitor_host: str | None = None
+    monitor_port: int | None = None
+    extra_monitor: list[str] = field(default_factory=list)
+    plan: Path | None = None
+    """A plan of lockstep runs for one controller (``hil controller --plan``, see
+    :mod:`rt_controller.runtime.plan`): ``law`` and ``log`` are then unused and ``duration_s``
+    is the plan's total simulated time (for the wall-clock budget)."""
+    cancel: threading.Event | None = None
+    """Set from another thread to stop this run (children stopped, :class:`RigCancelled`):
+    ``hil experiment --jobs`` runs rigs in worker threads, and only the main thread gets
+    signals."""
+
+    def wall_budget_s(self) -> float:
+        """How long :meth:`Rig.wait_controller` waits before calling the run hung: the given
+        ``wall_timeout_s``, else the duration (realtime) or ``LOCKSTEP_SLOWEST`` times the
+        simulated duration (lockstep), plus ``STARTUP_MARGIN_S`` for start-up."""
+        if self.wall_timeout_s is not None:
+            return self.wall_timeout_s
+        scale = LOCKSTEP_SLOWEST if self.lockstep else 1.0
+        return scale * self.duration_s + STARTUP_MARGIN_S
+
+
+def private_default_bus(config: str | None) -> str | None:
+    """The bus a rig uses when none is named: the configured/auto bus, except that the shared
+    default ``udp_multicast`` group becomes a free port of its own, so that rigs started at the
+    same time on one host (tests, experiments) never hear each other. A SocketCAN interface is a
+    real shared bus and is kept as it is."""
+    cfg = load_config(config)
+    spec = resolve_spec(None if cfg.transport.can == "auto" else cfg.transport.can)
+    if spec.interface == "udp_multicast" and spec.source == "auto":
+        return isolated_spec("udp_multicast")
+    return None
