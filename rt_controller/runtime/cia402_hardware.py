@@ -67,6 +67,9 @@ class Cia402Hardware:
         """The steps of :meth:`deactivate` with the states the drives answered."""
         self.last_tau = (0.0, 0.0)
         self._pending: int | None = None
+        self._k0: int | None = None
+        """Lockstep: the SYNC whose TPDOs found every drive enabled: period 0 of the run."""
+        self._period0_due = False
         """Lockstep: a SYNC whose TPDOs :meth:`step` is still waiting for."""
 
     # --- lifecycle --------------------------------------------------------------------------
@@ -91,6 +94,7 @@ class Cia402Hardware:
         enabled = self.master.steer(ENABLED)
         have_features = self.lockstep or self.features.features.latest is not None
         if enabled and have_features:
+            self._k0, self._period0_due = self.master.sync_count, True
             return True
         if clock.now_ns() > self._enable_by:
             if enabled:
@@ -129,15 +133,23 @@ class Cia402Hardware:
 
     def step(self, timeout_s: float) -> int | None:
         """Lockstep: SYNC k (the world steps one period), then every drive's TPDOs of k and
-        the features answering pose k; k, or None when the drives did not answer within
-        ``timeout_s`` (the next call waits for the same SYNC's answer, it sends none)."""
+        the features answering pose k; the period's index, or None when the drives did not
+        answer within ``timeout_s`` (the next call waits for the same SYNC's answer, it sends
+        none). Periods count from the SYNC whose TPDOs found every drive enabled (period 0:
+        its state, the world at t = 0, nothing sent), as the emulated world's clock starts
+        there: the tick's t matches the world's time (the poses' stamps)."""
+        if self._period0_due and self._k0 is not None:
+            # period 0: the TPDOs that found the drives enabled are the world at t = 0
+            self._period0_due = False
+            self.features.wait_pose(self._k0, LOCKSTEP_FEATURE_TIMEOUT_S)
+            return 0
         k = self._pending if self._pending is not None else self.master.sync()
         if not self.master.wait_tpdos(k, timeout_s):
             self._pending = k  # wait again for this SYNC's answer: another would step the world
             return None
         self._pending = None
         self.features.wait_pose(k, LOCKSTEP_FEATURE_TIMEOUT_S)
-        return k
+        return k - (self._k0 or 0)
 
     # --- read and write ---------------------------------------------------------------------
     def read(self, now_ns: int, judge: InputJudge) -> Observation:
