@@ -81,6 +81,8 @@ class EmulatedDrive(canopen.LocalNode):
         self._last_sync: float | None = None
         self._heartbeat: tuple[int, float] | None = None  # (node id, seconds)
         self._last_heartbeat: float | None = None
+        self.on_fault: Callable[[int, int], None] | None = None
+        """Told (node id, EMCY code) of each fault as it happens (the command prints it)."""
         self.emcys: list[int] = []
         """Every EMCY code sent, in order (0 = error reset)."""
         self.add_read_callback(self._read)
@@ -258,6 +260,8 @@ class EmulatedDrive(canopen.LocalNode):
             if self.power.fault(code):
                 self.torque_permille = 0
                 self._send_emcy(code)
+                if self.on_fault is not None:
+                    self.on_fault(self.id, code)
 
     def _send_emcy(self, code: int) -> None:
         self.emcys.append(code)

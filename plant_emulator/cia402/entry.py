@@ -24,6 +24,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from hal import cia402_od as cia
+
 if TYPE_CHECKING:
     from hal.config import RigConfig
     from plant_emulator.camera_node import CameraNode
@@ -127,6 +129,8 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         new_run = None if poses is None else poses.new_run
         rig = Cia402Rig(cfg, network, on_step=poses, lockstep=lockstep, on_reset=new_run)
         stack.callback(rig.close)
+        for drive in rig.drives:
+            drive.on_fault = _say_fault
         if session is not None:
             from plant_emulator.entry import serve_sim_control
 
@@ -155,6 +159,25 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             flush=True,
         )
     return 0
+
+
+_FAULTS = {
+    cia.EMCY_SYNC: "SYNC loss",
+    cia.EMCY_HEARTBEAT: "controller heartbeat lost",
+    cia.EMCY_PARAMETER: "0x60C2 is not the control period",
+    cia.EMCY_POSITION_LIMIT: "joint beyond its position limit",
+    cia.EMCY_VELOCITY_LIMIT: "joint beyond its velocity limit",
+}
+
+
+def _say_fault(node_id: int, code: int) -> None:
+    """A drive's fault on stderr the moment it happens (as the DSP emulator says its own)."""
+    what = _FAULTS.get(code, "fault")
+    print(
+        f"hil emulator: fault: node {node_id} EMCY 0x{code:04X} ({what})",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def _summary(rig: Cia402Rig, where: str, wall_s: float, poses: _Poses | None) -> dict[str, Any]:

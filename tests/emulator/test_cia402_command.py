@@ -105,6 +105,7 @@ def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_p
             network.notifier.stop()
     assert proc.returncode == 0, err
     assert "serving CiA 402 drives (nodes 1, 2)" in err
+    assert "fault: node 1 EMCY 0x8700 (SYNC loss)" in err
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["syncs"] == 3
     assert summary["sim_time_s"] == 0.0  # no drive was enabled: the world's clock held
