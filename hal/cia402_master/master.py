@@ -140,6 +140,7 @@ class Cia402Master:
         self.sync_intervals_us: deque[float] = deque(maxlen=TIMING_KEPT)
         self.tpdo_latency_us: deque[float] = deque(maxlen=TIMING_KEPT)
         self._timed_sync = 0
+        self._last_state: JointState | None = None
         self.connected = self.operational = False
 
     @classmethod
@@ -240,24 +241,25 @@ class Cia402Master:
         return there
 
     def joint_state(self) -> JointState | None:
-        """The newest complete TPDO set (every drive answered the same SYNC), None before
-        the first; records that SYNC's TPDO latency once."""
+        """The newest complete TPDO set (every drive answered the same SYNC; while the
+        TPDOs of the newest SYNC are still arriving, the previous complete one), None before
+        the first; records each SYNC's TPDO latency once."""
         with self.cond:
             samples = [w.sample for w in self.watches]
             ks = {k for s in samples for k in s.sync.values()}
             if len(ks) != 1 or any(len(s.sync) != 2 for s in samples):
-                return None
+                return self._last_state
             (k,) = ks
             sync_ns = self.sync_ns.get(k)
             last_ns = max(t for s in samples for t in s.t_ns.values())
             raw = [(s.statusword, s.position, s.velocity, s.torque) for s in samples]
         if sync_ns is None:
-            return None
+            return self._last_state
         if k != self._timed_sync:
             self._timed_sync = k
             self.tpdo_latency_us.append((last_ns - sync_ns) / 1e3)
         u = self.units
-        return JointState(
+        self._last_state = JointState(
             q=tuple(u[i].position_rad(r[1]) for i, r in enumerate(raw)),
             dq=tuple(u[i].velocity_rad_s(r[2]) for i, r in enumerate(raw)),
             tau=tuple(u[i].torque_nm(r[3]) for i, r in enumerate(raw)),
@@ -265,6 +267,7 @@ class Cia402Master:
             sync=k,
             sync_ns=sync_ns,
         )
+        return self._last_state
 
     def mode(self, now_ns: int) -> str:
         """The rig's drive mode (:data:`hal.drive_state.MODES`): ``fault`` when a drive is in

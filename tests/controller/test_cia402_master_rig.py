@@ -182,3 +182,17 @@ def test_hil_cia402_check_without_drives_says_so_in_one_line(capsys):
         "hil cia402: error: node 1 sent no boot-up within 5 s of NMT reset communication: is "
         "it powered, on this bus at its bit rate, with node id 1?"
     ]
+
+
+def test_an_incomplete_tpdo_set_gives_the_last_complete_one(bench, master):
+    """While the TPDOs of the newest SYNC are still arriving (here: one drive never answers)
+    the joint state is the previous complete set, not none."""
+    master.boot()
+    one_sync(master)
+    enable(master)
+    before = master.joint_state()
+    bench.remote(IDS[1]).nmt.state = "PRE-OPERATIONAL"  # node 2 sends no more PDOs
+    k = master.sync()
+    assert not master.wait_tpdos(k, 0.5)
+    assert master.joint_state() == before
+    assert before.sync == k - 1
