@@ -41,6 +41,7 @@ from rt_controller.rig.failures import (
     RigProcessError,
     with_tail,
 )
+from rt_controller.rig.kernel_cache import prepare_kernels
 from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, private_default_bus
 from rt_controller.rig.supervise import PARENT_ENV, RigInterrupted, signals_deferred
 
@@ -147,6 +148,8 @@ class Rig:
 
     def start(self) -> None:
         o = self.opts
+        # numba's compile on a cold cache is not part of the run or of its wall-clock budget
+        prepare_kernels(o.config, o.law if o.plan is None else None, o.cancel)
         can = ["--can", self.can] if self.can else []
         # --json: the DSP's counters (its watchdog trips) on stdout when it stops
         emu = _cli("emulator", *can, *self._common(), "--json", *o.extra_emulator)
