@@ -15,7 +15,8 @@ import numpy as np
 from hal.config import RigConfig
 from plant_emulator.camera import camera_pose
 from plant_emulator.camera_node import sensor_from_config
-from plant_emulator.camera_sensor import GridTexture, Placement
+from plant_emulator.camera_sensor import Placement
+from plant_emulator.camera_textures import GridTexture
 
 PAPER = 0.8
 """Reflectance around the board (and of its white cells' surroundings)."""

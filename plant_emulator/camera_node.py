@@ -59,8 +59,8 @@ from plant_emulator.camera_sensor import (
     Resolution,
     Scene,
     SensorNoise,
-    marker_texture,
 )
+from plant_emulator.camera_textures import marker_texture
 from plant_emulator.scenario import paper_target
 
 DEFAULT_FPS = 60.0

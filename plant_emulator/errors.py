@@ -11,3 +11,7 @@ class EmulatorError(HalError):
 
 class PhysicsError(EmulatorError, ArithmeticError):
     """The arm's state became non-finite (the integration diverged)."""
+
+
+class CameraSensorError(EmulatorError, ValueError):
+    """The camera's settings cannot make an image (e.g. a lens that cannot be inverted)."""

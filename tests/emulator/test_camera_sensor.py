@@ -10,16 +10,15 @@ from hal.config import RigConfig
 from plant_emulator.camera import CameraPose, camera_pose, project
 from plant_emulator.camera_sensor import (
     CameraSensor,
-    CameraSensorError,
-    GridTexture,
     Intrinsics,
     LensDistortion,
     Resolution,
     SensorNoise,
     distort,
-    marker_texture,
     undistort,
 )
+from plant_emulator.camera_textures import GridTexture, marker_texture
+from plant_emulator.errors import CameraSensorError
 from plant_emulator.scenario import paper_target
 
 LENS = LensDistortion(k1=-0.21, k2=0.12, p1=0.0015, p2=-0.0008, k3=-0.03)

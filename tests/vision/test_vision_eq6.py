@@ -15,8 +15,8 @@ from plant_emulator.camera_sensor import (
     LensDistortion,
     Resolution,
     SensorNoise,
-    marker_texture,
 )
+from plant_emulator.camera_textures import marker_texture
 from plant_emulator.scenario import paper_target
 from vision.intrinsics import Intrinsics as VisionIntrinsics
 from vision.intrinsics import intrinsics_from_config
