@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -129,8 +130,8 @@ class Grabber:
         self.stats = GrabberStats(dropouts=[str(d) for d in self.dropouts])
         self._lock = threading.Lock()
         self._last: tuple[tuple[int, int, int], FeatureMsg] | None = None
-        self._detect_ns: list[int] = []
-        self._latency_ns: list[int] = []
+        self._detect_ns = array("q")  # 8 bytes a frame (a list of ints: about 36)
+        self._latency_ns = array("q")
         self._closed = False
 
     def on_reject(self, reason: str) -> None:

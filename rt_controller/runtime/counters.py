@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from array import array
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
@@ -181,9 +182,11 @@ class RunCounters:
     """Why the loop ended: ``duration``, ``stopped`` (a stop request) or a short phrase (the
     DSP fell silent, ...); anything but :data:`ENDED_FULL` before ``planned_ticks`` makes the
     run not clean."""
-    solve_us: list[float] = field(default_factory=list)
-    lateness_us: list[float] = field(default_factory=list)
-    cycle_us: list[float] = field(default_factory=list)
+    solve_us: array[float] = field(default_factory=lambda: array("d"))
+    """Per-tick samples for the summary's percentiles, 8 bytes each (a Python float in a list
+    takes about 32: 17 MB/h at 50 Hz for the three, the controller's RSS growth in a soak)."""
+    lateness_us: array[float] = field(default_factory=lambda: array("d"))
+    cycle_us: array[float] = field(default_factory=lambda: array("d"))
     outages: OutageTracker = field(default_factory=OutageTracker)
     """Camera outages (thresholds: ``controller.outage_warn_periods``, ``outage_max_share``)."""
     period_s: float = 0.02
