@@ -315,7 +315,7 @@ class Cia402Master:
         self.operational = False
         for node in self.nodes:
             node.nmt.state = "PRE-OPERATIONAL"
-        states = tuple(self._next_heartbeat(n, timeout_s) for n in self.nodes)
+        states = tuple(self._heartbeat_in(n, "PRE-OPERATIONAL", timeout_s) for n in self.nodes)
         steps: list[tuple[str, tuple[str, ...]]] = [("pre-operational", states)]
         for node, watch in zip(self.nodes, self.watches, strict=True):
             watch.started = False
@@ -348,6 +348,19 @@ class Cia402Master:
             return node.nmt.wait_for_heartbeat(timeout_s)
         except NmtError:
             return "none"
+
+    @classmethod
+    def _heartbeat_in(cls, node: BaseNode402, state: str, timeout_s: float) -> str:
+        """The NMT state of the node's heartbeats until one says ``state`` or ``timeout_s``
+        passes: the first heartbeat after an NMT command may have left before the drive took
+        the command."""
+        deadline = time.monotonic() + timeout_s
+        seen = "none"
+        while (left := deadline - time.monotonic()) > 0:
+            seen = cls._next_heartbeat(node, left)
+            if seen in (state, "none"):
+                break
+        return seen
 
     def _latch(self, timeout_s: float) -> tuple[str, ...]:
         """Send the controlwords with zero torque, SYNC, and the states that answered."""
