@@ -58,6 +58,12 @@ PROCESS_POOLS = ("Dask-Offload",)
 offload pool, used by an in-process cluster such as ``hil experiment``'s): not leaks."""
 
 
+def _foreign(t: threading.Thread) -> bool:
+    """A native thread (the foxglove SDK's, zenoh's) that called into Python once: ``threading``
+    registers it as a dummy for good and cannot join it, so it is not ours to leak."""
+    return isinstance(t, threading._DummyThread)
+
+
 def _leaks(threads_before: set[threading.Thread], children_before: set[int]) -> list[str]:
     from hal.resources import open_resources
 
@@ -66,7 +72,10 @@ def _leaks(threads_before: set[threading.Thread], children_before: set[int]) -> 
     out += [
         f"thread still running: {t.name}"
         for t in threading.enumerate()
-        if t not in threads_before and t.is_alive() and not t.name.startswith(PROCESS_POOLS)
+        if t not in threads_before
+        and t.is_alive()
+        and not t.name.startswith(PROCESS_POOLS)
+        and not _foreign(t)
     ]
     out += [f"child process still running: pid {p}" for p in _child_pids() - children_before]
     return out
