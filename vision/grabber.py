@@ -13,12 +13,12 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from hal.camera_frame import CameraFrame
+from hal.durations import Durations
 from hal.errors import HalConfigError
 from hal.fifo import fifo_thread
 from hal.vision_codec import FeatureMsg
@@ -130,8 +130,8 @@ class Grabber:
         self.stats = GrabberStats(dropouts=[str(d) for d in self.dropouts])
         self._lock = threading.Lock()
         self._last: tuple[tuple[int, int, int], FeatureMsg] | None = None
-        self._detect_ns = array("q")  # 8 bytes a frame (a list of ints: about 36)
-        self._latency_ns = array("q")
+        self._detect_ns = Durations()
+        self._latency_ns = Durations()
         self._closed = False
 
     def on_reject(self, reason: str) -> None:
@@ -180,9 +180,9 @@ class Grabber:
                 self.stats.invalid += 1
             self._last = (ident, msg)
             self._send(msg)
-            self._detect_ns.append(m.detect_ns)
+            self._detect_ns.add(m.detect_ns)
             if not frame.lockstep:
-                self._latency_ns.append(self.clock() - frame.stamp_ns)
+                self._latency_ns.add(self.clock() - frame.stamp_ns)
             if self.observer is not None:
                 self.observer(frame, m, msg)
             return msg
@@ -231,15 +231,7 @@ class Grabber:
             s = dataclasses.replace(self.stats)
             s.pipeline = self.pipeline.counts.as_dict()
             if self._detect_ns:
-                s.detect_us_p50, s.detect_us_p99 = percentiles_us(self._detect_ns)
+                s.detect_us_p50, s.detect_us_p99 = self._detect_ns.percentiles_us()
             if self._latency_ns:
-                s.latency_us_p50, s.latency_us_p99 = percentiles_us(self._latency_ns)
+                s.latency_us_p50, s.latency_us_p99 = self._latency_ns.percentiles_us()
             return s
-
-
-def percentiles_us(ns: Sequence[int]) -> tuple[float, float]:
-    """Median and p99 of durations in ns, in us."""
-    import numpy as np
-
-    p50, p99 = np.percentile(np.array(ns) / 1e3, [50, 99])
-    return float(p50), float(p99)

@@ -19,7 +19,7 @@ from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.vision_image import encode_vision_image
 from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, KEY_VISION_IMAGE, open_session
-from vision.grabber import Dropout, Grabber, GrabberStats, Observer, percentiles_us
+from vision.grabber import Dropout, Grabber, GrabberStats, Observer
 from vision.image_log import ImageLog
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
@@ -117,9 +117,9 @@ def run_live(
         if isinstance(source, EmulatedSource):
             stats.frame_rx = source.decoder.counters()
             if source.pipeline_ns:
-                stats.pipeline_us_p50, stats.pipeline_us_p99 = percentiles_us(source.pipeline_ns)
+                stats.pipeline_us_p50, stats.pipeline_us_p99 = source.pipeline_ns.percentiles_us()
             if source.arrival_ns:
-                stats.arrival_us_p50, stats.arrival_us_p99 = percentiles_us(source.arrival_ns)
+                stats.arrival_us_p50, stats.arrival_us_p99 = source.arrival_ns.percentiles_us()
         return stats
     finally:
         if timer is not None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
@@ -30,6 +29,7 @@ import cv2
 import numpy as np
 
 from hal.camera_frame import CameraFrame, FrameDecoder
+from hal.durations import Durations
 from hal.errors import HalConfigError, HalTransportError
 
 FrameSink = Callable[[CameraFrame], None]
@@ -69,10 +69,6 @@ def grabbed_frame(seq: int, pixels: np.ndarray, stamp_ns: int) -> CameraFrame:
     return CameraFrame(seq, stamp_ns, stamp_ns, 0, seq, to_grey(pixels))
 
 
-TIMING_SAMPLES = 200_000
-"""Per-frame times kept for the percentiles (the newest; about an hour at 60 fps)."""
-
-
 class EmulatedSource:
     """Frames of the emulated camera over zenoh, decoded and authenticated by
     :class:`hal.camera_frame.FrameDecoder` (its counters: :attr:`decoder`). Frames are pushed
@@ -88,8 +84,8 @@ class EmulatedSource:
     def __init__(self, session: object, key: bytes) -> None:
         self.session = session
         self.decoder = FrameDecoder(key=key)
-        self.pipeline_ns: deque[int] = deque(maxlen=TIMING_SAMPLES)
-        self.arrival_ns: deque[int] = deque(maxlen=TIMING_SAMPLES)
+        self.pipeline_ns = Durations()
+        self.arrival_ns = Durations()
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
         from hal.zenoh_session import KEY_CAMERA_FRAME
@@ -101,9 +97,9 @@ class EmulatedSource:
             frame = self.decoder.feed(payload, t0)
             if frame is not None:
                 on_frame(frame)
-                self.pipeline_ns.append(time.monotonic_ns() - t0)
+                self.pipeline_ns.add(time.monotonic_ns() - t0)
                 if frame.lockstep:
-                    self.arrival_ns.append(t0 - frame.stamp_ns - frame.exposure_ns // 2)
+                    self.arrival_ns.add(t0 - frame.stamp_ns - frame.exposure_ns // 2)
             elif c.malformed + c.bad_mac > bad:  # not an out-of-order frame: no frame at all
                 on_reject("malformed")
 
