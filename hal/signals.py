@@ -9,12 +9,16 @@ both ``plant_emulator`` and ``rt_controller`` use it and neither may import the 
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+STACKS_AFTER_S = 8.0
+"""A process still stopping this long after a stop signal prints every thread's stack to
+stderr, so a stop that hangs (the rig SIGKILLs after 10 s) names where it hung."""
 
 
 @contextlib.contextmanager
@@ -22,16 +26,24 @@ def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.E
     """Yield an event that SIGTERM or SIGINT sets; restore the previous handlers on exit.
 
     Outside the main thread (where Python cannot install handlers) the event is only set by
-    the caller.
+    the caller. A signal also arms :data:`STACKS_AFTER_S`'s stack dump, cancelled on exit.
     """
     event = threading.Event() if stop is None else stop
     previous: dict[int, object] = {}
+
+    def on_signal(*_: object) -> None:
+        if not event.is_set():
+            faulthandler.dump_traceback_later(STACKS_AFTER_S, file=sys.stderr)
+        event.set()
+
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
-            previous[sig] = signal.signal(sig, lambda *_: event.set())
+            previous[sig] = signal.signal(sig, on_signal)
     try:
         yield event
     finally:
+        if previous:
+            faulthandler.cancel_dump_traceback_later()
         for sig, handler in previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
 

@@ -426,9 +426,10 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
         for c in rig.children:  # a process that failed as it stopped: the run is not clean
             if c.name not in watch and codes.get(c.name) not in (0, None):
                 end = ProcessEnd(c.name, c.proc.returncode, time.monotonic_ns())
+                hung = end.returncode == -signal.SIGKILL  # its stderr ends in its stacks
                 summary["problems"] = [
                     *summary.get("problems", []),
-                    with_tail(f"{c.name} {end.how} when stopped", c.tail(5)),
+                    with_tail(f"{c.name} {end.how} when stopped", c.tail(40 if hung else 5)),
                 ]
         emulator = rig.child("emulator")
         summary["dsp"] = dsp_report(emulator.output()) if emulator else {"reported": False}
