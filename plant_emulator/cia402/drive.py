@@ -85,6 +85,11 @@ class EmulatedDrive(canopen.LocalNode):
         """Told (node id, EMCY code) of each fault as it happens (the command prints it)."""
         self.emcys: list[int] = []
         """Every EMCY code sent, in order (0 = error reset)."""
+        self.last_sync_s: float | None = None
+        """Clock time of the last SYNC seen while operational (kept across a fault)."""
+        self.torque_off: tuple[int, float, float | None] | None = None
+        """The last fault that took the torque away: (EMCY code, clock time, time since the
+        last SYNC in s, None before any SYNC), for the run's account of a lost controller."""
         self.add_read_callback(self._read)
         self.add_write_callback(self._write)
 
@@ -259,6 +264,9 @@ class EmulatedDrive(canopen.LocalNode):
         with self.lock:
             if self.power.fault(code):
                 self.torque_permille = 0
+                now = self.clock()
+                since = None if self.last_sync_s is None else now - self.last_sync_s
+                self.torque_off = (code, now, since)
                 self._send_emcy(code)
                 if self.on_fault is not None:
                     self.on_fault(self.id, code)
@@ -284,7 +292,7 @@ class EmulatedDrive(canopen.LocalNode):
         with self.lock:
             operational = self.operational
             if operational:
-                self._last_sync = now
+                self._last_sync = self.last_sync_s = now
             self.power.tick()
             self.pdos.latch(operational)
             self.q, self.dq = q, dq

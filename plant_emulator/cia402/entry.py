@@ -29,6 +29,7 @@ from hal import cia402_od as cia
 if TYPE_CHECKING:
     from hal.config import RigConfig
     from plant_emulator.camera_node import CameraNode
+    from plant_emulator.cia402.drive import EmulatedDrive
     from plant_emulator.cia402.rig import Cia402Rig
     from plant_emulator.pose_link import PosePublisher
     from plant_emulator.world import World
@@ -197,6 +198,7 @@ def _summary(rig: Cia402Rig, where: str, wall_s: float, poses: _Poses | None) ->
                     "nmt": d.nmt.state,
                     "emcys": [f"0x{code:04X}" for code in d.emcys],
                     "rejected_rpdos": d.pdos.rejected_rpdos,
+                    "torque_off": _torque_off(d),
                 }
                 for d in rig.drives
             ],
@@ -206,3 +208,16 @@ def _summary(rig: Cia402Rig, where: str, wall_s: float, poses: _Poses | None) ->
             if poses is None or poses.camera is None
             else poses.camera.stats.as_dict(),
         }
+
+
+def _torque_off(drive: EmulatedDrive) -> dict[str, Any] | None:
+    """The drive's last fault: EMCY code, what it means, and how long after the last SYNC the
+    torque went off (None: no fault)."""
+    if drive.torque_off is None:
+        return None
+    code, _at, since_s = drive.torque_off
+    return {
+        "emcy": f"0x{code:04X}",
+        "reason": _FAULTS.get(code, "fault"),
+        "after_last_sync_ms": None if since_s is None else since_s * 1e3,
+    }

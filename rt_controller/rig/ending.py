@@ -85,6 +85,8 @@ def dsp_report(emulator_stdout: str) -> dict[str, Any]:
                 continue
     if not isinstance(stats, dict):
         return {"reported": False, "why": "the emulator printed no counters"}
+    if stats.get("mode") == "cia402":
+        return _drives_report(stats.get("drives") or [])
     return {
         "reported": True,
         "watchdog_trips": stats.get("watchdog_trips"),
@@ -98,10 +100,42 @@ def dsp_report(emulator_stdout: str) -> dict[str, Any]:
     }
 
 
+def _drives_report(drives: list[dict[str, Any]]) -> dict[str, Any]:
+    """The CiA 402 drives' account in the DSP's terms: a fault that took the torque away is a
+    trip (SYNC loss and heartbeat loss are the drives' watchdogs), ``torque_off_after_ms`` the
+    longest time from a drive's last SYNC to its torque off; each drive's own under ``drives``."""
+    offs = [d["torque_off"] for d in drives if d.get("torque_off")]
+    after = [o["after_last_sync_ms"] for o in offs if o.get("after_last_sync_ms") is not None]
+    states = {d.get("state") for d in drives}
+    return {
+        "reported": True,
+        "profile": "cia402",
+        "watchdog_trips": len(offs),
+        "torque_off_after_ms": max(after) if after else None,
+        "drive_state": states.pop().lower() if len(states) == 1 else "mixed",
+        "fault_reason": ", ".join(sorted({o["reason"] for o in offs})) or None,
+        "emcys": {str(d.get("node_id")): d.get("emcys", []) for d in drives},
+        "drives": {
+            str(d.get("node_id")): {"state": d.get("state"), "torque_off": d.get("torque_off")}
+            for d in drives
+        },
+    }
+
+
 def dsp_words(dsp: dict[str, Any]) -> str:
     """The DSP's account in one line, for the table."""
     if not dsp.get("reported"):
         return str(dsp.get("why", "no report"))
+    if dsp.get("profile") == "cia402":
+        trips = dsp.get("watchdog_trips") or 0
+        if not trips:
+            return f"no drive fault; drives {dsp.get('drive_state')}"
+        after = dsp.get("torque_off_after_ms")
+        return (
+            f"{trips} drive fault(s) ({dsp.get('fault_reason')}): torque off "
+            + ("" if after is None else f"{after:.1f} ms after the last SYNC")
+            + f"; drives {dsp.get('drive_state')}"
+        )
     trips = dsp.get("watchdog_trips") or 0
     if not trips:
         return f"no watchdog trip; drive {dsp.get('drive_state')}"

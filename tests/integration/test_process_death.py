@@ -97,6 +97,25 @@ def test_a_killed_controller_leaves_a_summary_and_the_dsp_trip(tmp_path):
     assert dsp["torque_off_s"] >= dsp["last_command_s"], dsp
 
 
+def test_a_killed_controller_faults_every_cia402_drive(tmp_path):
+    """The cia402 profile: with the controller gone, SYNC stops; every drive takes its torque
+    away in FAULT with an EMCY, no sooner than its SYNC-loss limit, and the summary says so."""
+    rc, summary, err, log, seen = kill_mid_run(tmp_path, "controller", "--profile", "cia402")
+    check_common(rc, summary, err, log, "controller", seen)
+    cfg = load_config(None)
+    limit_ms = cfg.cia402.sync_loss_periods * cfg.rates.control_period_ns / 1e6
+    dsp = summary["dsp"]
+    assert dsp["profile"] == "cia402" and dsp["drive_state"] == "fault", dsp
+    nodes = {str(cfg.cia402.node_id_1), str(cfg.cia402.node_id_2)}
+    assert set(dsp["drives"]) == nodes and dsp["watchdog_trips"] == len(nodes), dsp
+    for node, drive in dsp["drives"].items():
+        off = drive["torque_off"]
+        assert drive["state"] == "FAULT" and off["emcy"] in ("0x8700", "0x8130"), dsp
+        assert off["emcy"] in dsp["emcys"][node], dsp  # the EMCY went on the bus
+        if off["emcy"] == "0x8700":  # SYNC loss: never before its limit
+            assert off["after_last_sync_ms"] >= limit_ms, dsp
+
+
 def test_a_killed_emulator_leaves_a_summary(tmp_path):
     rc, summary, err, log, seen = kill_mid_run(tmp_path, "emulator")
     check_common(rc, summary, err, log, "emulator", seen)
