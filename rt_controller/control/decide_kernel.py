@@ -37,6 +37,7 @@ from rt_controller.control.state import (
     MODE_NO_STATE,
     PAR,
     ST,
+    XS,
 )
 
 LAW_CODES = {"pbc": 0.0, "ioc": 1.0, "rhc": 2.0}
@@ -89,9 +90,10 @@ def law_input(io, p, lim, ks, xi, P, st, work, iP):
     t = io[IO.T]
     if math.isnan(ks[KS.T0]):
         ks[KS.T0] = t
-    st[ST.X], st[ST.X + 1] = io[IO.Q_PRED], io[IO.Q_PRED + 1]
-    st[ST.X + 2], st[ST.X + 3] = xi[0], xi[1]
-    st[ST.X + 4], st[ST.X + 5] = io[IO.F_PRED], io[IO.F_PRED + 1]
+    x = st[ST.X : ST.X + XS.SIZE]
+    x[XS.Q], x[XS.Q + 1] = io[IO.Q_PRED], io[IO.Q_PRED + 1]
+    x[XS.XI], x[XS.XI + 1] = xi[0], xi[1]
+    x[XS.F], x[XS.F + 1] = io[IO.F_PRED], io[IO.F_PRED + 1]
     st[ST.T] = t - ks[KS.T0]
     st[ST.MODEL_XDOT] = 1.0
     rk.rhc_tick(P, iP, st, work)

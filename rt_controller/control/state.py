@@ -180,6 +180,51 @@ ST = Block(
 )
 ST.HEAD = ST.SIZE
 
+# --- the optimal control problem's vectors, per horizon stage -------------------------------------
+XS = Block(
+    "XS",
+    "The prediction state x of eq. (12) in (q, xi, f) coordinates; its costate lam likewise.",
+    _fields(("q", 2, "joint angles, rad"), ("xi", 2, "xi of eq. (11)"), ("f", 2, "features, px")),
+)
+STAGE = Block(
+    "STAGE",
+    "The unknowns of one horizon stage in U (and in F, its KKT rows), Ohtsuka's dummy inputs.",
+    _fields(
+        ("u", 2, "input u_k, N m"),
+        ("v", 2, "dummy inputs of the bounds u_i^2 + v_i^2 = umax_i^2"),
+        ("mu", 2, "multipliers of the bounds"),
+    ),
+)
+AUX = Block(
+    "AUX",
+    "Intermediates of one Euler substep kept from the forward sweep for the backward sweep.",
+    _fields(
+        ("s2", 1, "sin q2"),
+        ("c2", 1, "cos q2"),
+        ("e1", 1, "eta1"),
+        ("e2", 1, "eta2"),
+        ("dq1", 1, "dq1 = xi1 + (alpha eta)_1"),
+        ("dq2", 1, "dq2"),
+        ("y1", 1, "xi1'"),
+        ("y2", 1, "xi2'"),
+        ("m11", 1, "M11(q)"),
+        ("m12", 1, "M12(q)"),
+        ("idet", 1, "1 / det M(q)"),
+        ("k1", 1, "C(q, dq) xi / (t3 s2), row 1"),
+        ("k2", 1, "row 2"),
+    ),
+)
+PRE = Block(
+    "PRE",
+    "The block preconditioner of one stage (rhc.residual.precond_setup).",
+    _fields(
+        ("s_inv", 4, "inverse of the reduced 2x2 system in du, row-major"),
+        ("uv", 2, "u_i / v_i"),
+        ("mv", 2, "mu_i / v_i"),
+        ("iv", 2, "1 / v_i"),
+    ),
+)
+
 
 # --- the solver's work vector -------------------------------------------------------------------
 @dataclass(frozen=True)
@@ -192,7 +237,29 @@ class WorkArray:
     cols: Callable[[int, int, int, int], int]
 
 
-NX, NS, NAUX, NVEC, NPRE = 6, 6, 13, 11, 10
+VEC = Block(
+    "VEC",
+    "The rows of the work array vecs: vectors of length n = 6 N.",
+    _fields(
+        ("f", 1, "F at U"),
+        ("fs", 1, "F at the state moved along xdot"),
+        ("b", 1, "right-hand side of the correction"),
+        ("du", 1, "the correction, a Newton step"),
+        ("utry", 1, "U of a backtracking trial"),
+        ("ftry", 1, "F there"),
+        ("ut", 1, "U + h v of a forward-difference product"),
+        ("z", 1, "preconditioned basis vector"),
+        ("zz", 1, "its solution part"),
+        ("b2", 1, "right-hand side of the prediction"),
+        ("d2", 1, "the prediction"),
+    ),
+)
+SMALL = Block(
+    "SMALL",
+    "The rows of the work array small (m + 1 each): GMRES's rotations and its small system.",
+    _fields(("cs", 1, "cosines"), ("sn", 1, "sines"), ("g", 1, "rotated residual"), ("y", 1, "y")),
+)
+NX, NS, NAUX, NVEC, NPRE = XS.SIZE, STAGE.SIZE, AUX.SIZE, VEC.SIZE, PRE.SIZE
 """State dimension; unknowns per stage; intermediates of a stage kept from the forward sweep;
 work vectors of length 6N; floats per stage of the block preconditioner."""
 
@@ -201,7 +268,7 @@ WORK = (
     WorkArray("Lam", lambda N, S, n, m: N * S + 1, lambda N, S, n, m: NX),
     WorkArray("Vb", lambda N, S, n, m: m + 2, lambda N, S, n, m: n),
     WorkArray("Hs", lambda N, S, n, m: m + 2, lambda N, S, n, m: m),
-    WorkArray("small", lambda N, S, n, m: 4, lambda N, S, n, m: m + 1),
+    WorkArray("small", lambda N, S, n, m: SMALL.SIZE, lambda N, S, n, m: m + 1),
     WorkArray("G", lambda N, S, n, m: m + 2, lambda N, S, n, m: 2),
     WorkArray("Ys", lambda N, S, n, m: 2, lambda N, S, n, m: m + 2),
     WorkArray("vecs", lambda N, S, n, m: NVEC, lambda N, S, n, m: n),
@@ -215,6 +282,11 @@ WORK = (
 """The work vector of one tick, in order (:func:`~rt_controller.control.rhc.kernel.rhc_tick`
 finds each array by its index here: :data:`W`)."""
 W = Block("W", "Index of each work array in WORK.", [Field(a.name) for a in WORK])
+CUT = Block(
+    "CUT",
+    "Where one WORK array lies in the work vector (IP.WORK holds one per array, in order).",
+    _fields(("off", 1, "offset"), ("rows", 1, "rows"), ("cols", 1, "columns")),
+)
 
 IP = Block(
     "IP",
@@ -225,7 +297,7 @@ IP = Block(
         ("init_iters", 1, "Newton iterations of the initial solve"),
         ("init_krylov", 1, "Krylov dimension of one Newton step"),
         ("sub", 1, "Euler substeps per stage"),
-        ("work", 3 * len(WORK), "offset, rows and columns of each WORK array, in order"),
+        ("work", CUT.SIZE * len(WORK), "the CUT of each WORK array, in order"),
     ),
 )
 
@@ -238,7 +310,8 @@ def work_offsets(steps: int, substeps: int, krylov: int) -> tuple[np.ndarray, in
     off = 0
     for i, a in enumerate(WORK):
         rows, cols = a.rows(steps, substeps, n, krylov), a.cols(steps, substeps, n, krylov)
-        out[3 * i], out[3 * i + 1], out[3 * i + 2] = off, rows, cols
+        o = CUT.SIZE * i
+        out[o + CUT.OFF], out[o + CUT.ROWS], out[o + CUT.COLS] = off, rows, cols
         off += rows * cols
     return out, off
 

@@ -16,7 +16,8 @@ from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc.problem import pack_params
 from rt_controller.runtime import cycle_record
 
-BLOCKS = (state.IO, state.LIM, state.KS, state.PAR, state.IP, state.ST, state.W)
+BLOCKS = (state.IO, state.LIM, state.KS, state.PAR, state.IP, state.ST, state.W, state.CUT)
+BLOCKS += (state.XS, state.STAGE, state.AUX, state.PRE, state.VEC, state.SMALL)
 
 
 @pytest.mark.parametrize("block", BLOCKS, ids=lambda b: b.__name__.rsplit(".", 1)[1])
@@ -73,7 +74,8 @@ def test_a_decision_records_the_declared_fields_with_their_types(law):
 def test_the_work_cut_tiles_the_work_vector():
     cfg = RigConfig()
     _, iP = pack_params(NominalModel.from_config(cfg), cfg)
-    cut = iP[state.IP.WORK : state.IP.WORK + 3 * len(state.WORK)].reshape(-1, 3)
+    cut = iP[state.IP.WORK : state.IP.WORK + state.IP.field("work").size]
+    cut = cut.reshape(-1, state.CUT.SIZE)
     end = 0
     for (off, rows, cols), a in zip(cut, state.WORK, strict=True):
         assert off == end, a.name

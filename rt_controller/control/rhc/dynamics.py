@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
-from rt_controller.control.state import NAUX, NX, PAR
+from rt_controller.control.state import AUX, NAUX, NX, PAR, XS
 
 JIT = {"cache": True, "error_model": "numpy", "fastmath": {"nsz", "arcp", "contract", "reassoc"}}
 """numba options of every C/GMRES kernel: cached, IEEE NaN/inf semantics kept (the fallback
@@ -34,8 +34,8 @@ def stage_forward(P, x, u, aux, out):
     ``aux`` (NAUX) receives s2, c2, eta, dq, xi', M11, M12, 1/det M and C(q, dq) xi / (t3 s2).
     """
     t1, t2, t3, l1, l2, g = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3], P[PAR.L1], P[PAR.L2], P[PAR.GAIN]
-    s2, c2 = math.sin(x[1]), math.cos(x[1])
-    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    s2, c2 = math.sin(x[XS.Q + 1]), math.cos(x[XS.Q + 1])
+    xi1, xi2, f1, f2 = x[XS.XI], x[XS.XI + 1], x[XS.F], x[XS.F + 1]
     a11, a21, a22 = l1 * s2, l1 * c2 + l2, l2
     e1 = a11 * f1 + a21 * f2
     e2 = a22 * f2
@@ -52,14 +52,15 @@ def stage_forward(P, x, u, aux, out):
     idet = 1.0 / (m11 * t2 - m12 * m12)
     y1 = (t2 * r1 - m12 * r2) * idet
     y2 = (-m12 * r1 + m11 * r2) * idet
-    out[0] = dq1
-    out[1] = dq2
-    out[2] = y1
-    out[3] = y2
-    out[4] = -g * a11 * dq1 + w * f2
-    out[5] = -g * (a21 * dq1 + a22 * dq2) - w * f1
-    aux[0], aux[1], aux[2], aux[3], aux[4], aux[5] = s2, c2, e1, e2, dq1, dq2
-    aux[6], aux[7], aux[8], aux[9], aux[10], aux[11], aux[12] = y1, y2, m11, m12, idet, k1, k2
+    out[XS.Q] = dq1
+    out[XS.Q + 1] = dq2
+    out[XS.XI] = y1
+    out[XS.XI + 1] = y2
+    out[XS.F] = -g * a11 * dq1 + w * f2
+    out[XS.F + 1] = -g * (a21 * dq1 + a22 * dq2) - w * f1
+    aux[AUX.S2], aux[AUX.C2], aux[AUX.E1], aux[AUX.E2] = s2, c2, e1, e2
+    aux[AUX.DQ1], aux[AUX.DQ2], aux[AUX.Y1], aux[AUX.Y2] = dq1, dq2, y1, y2
+    aux[AUX.M11], aux[AUX.M12], aux[AUX.IDET], aux[AUX.K1], aux[AUX.K2] = m11, m12, idet, k1, k2
 
 
 @njit(**JIT)
@@ -73,8 +74,8 @@ def rhs(P, x, u, out):
 def stage_cost(P, x, u):
     """l(x, u) of eq. (25) (without the dummy term)."""
     l1, l2, kp = P[PAR.L1], P[PAR.L2], P[PAR.KP]
-    s2, c2 = math.sin(x[1]), math.cos(x[1])
-    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    s2, c2 = math.sin(x[XS.Q + 1]), math.cos(x[XS.Q + 1])
+    xi1, xi2, f1, f2 = x[XS.XI], x[XS.XI + 1], x[XS.F], x[XS.F + 1]
     e1 = l1 * s2 * f1 + (l1 * c2 + l2) * f2
     e2 = l2 * f2
     dq1 = xi1 + P[PAR.ALPHA] * e1 + P[PAR.ALPHA + 1] * e2
@@ -92,8 +93,8 @@ def stage_cost(P, x, u):
 def terminal_cost(P, x):
     """phi = 4 V(x) of eq. (13)."""
     t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
-    c2 = math.cos(x[1])
-    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
+    c2 = math.cos(x[XS.Q + 1])
+    xi1, xi2, f1, f2 = x[XS.XI], x[XS.XI + 1], x[XS.F], x[XS.F + 1]
     m11 = t1 + t2 + 2.0 * t3 * c2
     m12 = t2 + t3 * c2
     xmx = m11 * xi1 * xi1 + 2.0 * m12 * xi1 * xi2 + t2 * xi2 * xi2
@@ -104,17 +105,17 @@ def terminal_cost(P, x):
 def terminal_grad(P, x, out):
     """Gradient of phi = 4 V(x) with respect to x into ``out`` (6)."""
     t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
-    s2, c2 = math.sin(x[1]), math.cos(x[1])
-    xi1, xi2 = x[2], x[3]
+    s2, c2 = math.sin(x[XS.Q + 1]), math.cos(x[XS.Q + 1])
+    xi1, xi2 = x[XS.XI], x[XS.XI + 1]
     m11 = t1 + t2 + 2.0 * t3 * c2
     m12 = t2 + t3 * c2
-    out[0] = 0.0
-    out[1] = -4.0 * t3 * s2 * xi1 * (xi1 + xi2)
-    out[2] = 4.0 * (m11 * xi1 + m12 * xi2)
-    out[3] = 4.0 * (m12 * xi1 + t2 * xi2)
+    out[XS.Q] = 0.0
+    out[XS.Q + 1] = -4.0 * t3 * s2 * xi1 * (xi1 + xi2)
+    out[XS.XI] = 4.0 * (m11 * xi1 + m12 * xi2)
+    out[XS.XI + 1] = 4.0 * (m12 * xi1 + t2 * xi2)
     c = 4.0 * P[PAR.KP] / P[PAR.GAIN]
-    out[4] = c * x[4]
-    out[5] = c * x[5]
+    out[XS.F] = c * x[XS.F]
+    out[XS.F + 1] = c * x[XS.F + 1]
 
 
 @njit(**JIT)
@@ -138,11 +139,13 @@ def hamiltonian_grad(P, x, u, lam, hx, hu):
 def stage_adjoint(P, x, u, lam, aux, hx, hu):
     """:func:`hamiltonian_grad` from the intermediates ``aux`` of :func:`stage_forward`."""
     t3, l1, l2, g, kp = P[PAR.TH3], P[PAR.L1], P[PAR.L2], P[PAR.GAIN], P[PAR.KP]
-    s2, c2, e1, e2, dq1, dq2 = aux[0], aux[1], aux[2], aux[3], aux[4], aux[5]
-    y1, y2, m11, m12, idet, k1, k2 = aux[6], aux[7], aux[8], aux[9], aux[10], aux[11], aux[12]
+    s2, c2, e1, e2 = aux[AUX.S2], aux[AUX.C2], aux[AUX.E1], aux[AUX.E2]
+    dq1, dq2, y1, y2 = aux[AUX.DQ1], aux[AUX.DQ2], aux[AUX.Y1], aux[AUX.Y2]
+    m11, m12, idet, k1, k2 = aux[AUX.M11], aux[AUX.M12], aux[AUX.IDET], aux[AUX.K1], aux[AUX.K2]
     m22 = P[PAR.TH2]
-    xi1, xi2, f1, f2 = x[2], x[3], x[4], x[5]
-    lq1, lq2, lx1, lx2, lf1, lf2 = lam[0], lam[1], lam[2], lam[3], lam[4], lam[5]
+    xi1, xi2, f1, f2 = x[XS.XI], x[XS.XI + 1], x[XS.F], x[XS.F + 1]
+    lq1, lq2, lx1, lx2 = lam[XS.Q], lam[XS.Q + 1], lam[XS.XI], lam[XS.XI + 1]
+    lf1, lf2 = lam[XS.F], lam[XS.F + 1]
     al11, al12, al21, al22 = P[PAR.ALPHA], P[PAR.ALPHA + 1], P[PAR.ALPHA + 2], P[PAR.ALPHA + 3]
     a11, a21, a22 = l1 * s2, l1 * c2 + l2, l2
     w = dq1 + dq2
@@ -161,22 +164,22 @@ def stage_adjoint(P, x, u, lam, aux, hx, hu):
     zCxi = t3 * c2 * (z1 * k1 + z2 * k2)
     lAdq = dq1 * l1 * (c2 * lf1 - s2 * lf2)
     fAE = E1 * l1 * (c2 * f1 - s2 * f2)
-    hx[0] = 0.0
-    hx[1] = -zMy - zCxi - g * lAdq + fAE
+    hx[XS.Q] = 0.0
+    hx[XS.Q + 1] = -zMy - zCxi - g * lAdq + fAE
     # H_xi = 4 (R + R^T) xi - C^T z + G, C^T z = hh * (-dq2 z1 + dq1 z2, -w z1).
-    hx[2] = (
+    hx[XS.XI] = (
         4.0 * ((P[PAR.R] + P[PAR.R]) * xi1 + (P[PAR.R + 1] + P[PAR.R + 2]) * xi2)
         - hh * (-dq2 * z1 + dq1 * z2)
         + g1
     )
-    hx[3] = (
+    hx[XS.XI + 1] = (
         4.0 * ((P[PAR.R + 2] + P[PAR.R + 1]) * xi1 + (P[PAR.R + 3] + P[PAR.R + 3]) * xi2)
         + hh * w * z1
         + g2
     )
     # H_f = w (-lam_f2, lam_f1) + A E.
-    hx[4] = -w * lf2 + a11 * E1
-    hx[5] = w * lf1 + a21 * E1 + a22 * E2
+    hx[XS.F] = -w * lf2 + a11 * E1
+    hx[XS.F + 1] = w * lf1 + a21 * E1 + a22 * E2
     hu[0] = (P[PAR.R_INV] + P[PAR.R_INV]) * u[0] + (P[PAR.R_INV + 1] + P[PAR.R_INV + 2]) * u[1] + z1
     hu[1] = (
         (P[PAR.R_INV + 2] + P[PAR.R_INV + 1]) * u[0]

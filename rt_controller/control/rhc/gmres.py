@@ -59,9 +59,10 @@ def fd_gmres(P, N, U, x0, T, F0, b, sol, use_guess, m, tol, pre, ws, sw):
     ``sol`` is the initial guess when ``use_guess`` (else it starts at 0) and receives the
     solution. Stops after ``m`` iterations, at breakdown, or when the residual falls to
     ``tol * ||b - F_U sol0||`` (``tol = 0``: always ``m`` iterations). ``pre`` holds the factors of
-    :func:`precond_setup`; ``ws`` is a :class:`GmresWork` tuple. Returns the iteration count.
+    :func:`precond_setup`; ``ws`` is the GMRES work tuple of :func:`~rt_controller.control.rhc.
+    kernel.rhc_tick`. Returns the iteration count.
     """
-    Vb, Hs, cs, sn, g, y, Ut, z, zz = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], ws[7], ws[8]
+    Vb, Hs, cs, sn, g, y, Ut, z, zz, _G, _Ys = ws
     n = U.shape[0]
     r = Vb[0]
     if use_guess:
@@ -142,7 +143,7 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
     ``y_i = argmin ||V^T b_i - H y||`` (Givens QR of H). With b2 = 0 this is GMRES(m) on b1.
     ``ws`` is the :func:`rhc_tick` tuple; returns the number of products.
     """
-    Vb, Hs, G, Ys, Ut, z = ws[0], ws[1], ws[9], ws[10], ws[6], ws[7]
+    Vb, Hs, _cs, _sn, _g, _y, Ut, z, _zz, G, Ys = ws
     n = U.shape[0]
     for i in range(m + 2):
         for p in range(m):
@@ -228,13 +229,14 @@ def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
     N = iP[IP.N]
     n = U.shape[0]
     m = iP[IP.INIT_KRYLOV]
+    X, _Lam, _Aux, _hx, _hu, _cnt = sw
     iters = 0
     eval_F(P, N, U, x0, T, sw, F)
     fn = norm(F)
     for _ in range(iP[IP.INIT_ITERS]):
         if not math.isfinite(fn) or fn <= P[PAR.INIT_TOL]:
             break
-        precond_setup(P, N, U, sw[0], T, pre)
+        precond_setup(P, N, U, X, T, pre)
         for i in range(n):
             Ftry[i] = -F[i]
         iters += fd_gmres(P, N, U, x0, T, F, Ftry, dU, False, m, 1e-6, pre, ws, sw)
@@ -265,7 +267,8 @@ def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
 @njit(**JIT)
 def correct(P, N, kmax, c, U, x0, T, F, b, dU, pre, ws, sw):
     """One corrector pass ``F_U dU = -c F`` from U; F holds F(U) on entry and on exit."""
-    precond_setup(P, N, U, sw[0], T, pre)
+    X, _Lam, _Aux, _hx, _hu, _cnt = sw
+    precond_setup(P, N, U, X, T, pre)
     n = U.shape[0]
     for i in range(n):
         b[i] = -c * F[i]

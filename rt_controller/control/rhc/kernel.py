@@ -51,7 +51,7 @@ from rt_controller.control.rhc.residual import (
     precond_setup,
     release_bounds,
 )
-from rt_controller.control.state import IP, NS, NX, PAR, ST, W, work_offsets
+from rt_controller.control.state import CUT, IP, NS, NX, PAR, SMALL, ST, VEC, W, work_offsets
 
 OK = 0
 """Result code of :func:`rhc_tick` (``ST.STATUS``): a finite solution."""
@@ -62,16 +62,16 @@ NOT_FINITE = 1
 @njit(inline="always", **JIT)
 def _cut2(iP, work, k):
     """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (2-D)."""
-    o = IP.WORK + 3 * k
-    off, rows, cols = iP[o], iP[o + 1], iP[o + 2]
+    o = IP.WORK + CUT.SIZE * k
+    off, rows, cols = iP[o + CUT.OFF], iP[o + CUT.ROWS], iP[o + CUT.COLS]
     return work[off : off + rows * cols].reshape((rows, cols))
 
 
 @njit(inline="always", **JIT)
 def _cut1(iP, work, k):
     """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (one row)."""
-    o = IP.WORK + 3 * k
-    return work[iP[o] : iP[o] + iP[o + 2]]
+    o = IP.WORK + CUT.SIZE * k
+    return work[iP[o + CUT.OFF] : iP[o + CUT.OFF] + iP[o + CUT.COLS]]
 
 
 @njit(**JIT)
@@ -82,7 +82,8 @@ def _views(iP, work):
     G, Ys, vecs = _cut2(iP, work, W.G), _cut2(iP, work, W.YS), _cut2(iP, work, W.VECS)
     hx, hu, cnt = _cut1(iP, work, W.HX), _cut1(iP, work, W.HU), _cut1(iP, work, W.CNT)
     sw = (X, Lam, Aux, hx, hu, cnt)
-    ws = (Vb, Hs, small[0], small[1], small[2], small[3], vecs[6], vecs[7], vecs[8], G, Ys)
+    cs, sn, g, y = small[SMALL.CS], small[SMALL.SN], small[SMALL.G], small[SMALL.Y]
+    ws = (Vb, Hs, cs, sn, g, y, vecs[VEC.UT], vecs[VEC.Z], vecs[VEC.ZZ], G, Ys)
     return sw, ws, vecs, _cut1(iP, work, W.PRE), _cut1(iP, work, W.XS)
 
 
@@ -141,18 +142,10 @@ def rhc_tick(P, iP, st, work):
     kmax = iP[IP.KMAX]
     n = NS * N
     sw, ws, vecs, pre, xs = _views(iP, work)
-    cnt = sw[5]
+    X, _Lam, _Aux, hx, _hu, cnt = sw
     cnt[0] = 0.0
-    F, Fs, b, dU, Utry, Ftry, b2, d2 = (
-        vecs[0],
-        vecs[1],
-        vecs[2],
-        vecs[3],
-        vecs[4],
-        vecs[5],
-        vecs[9],
-        vecs[10],
-    )
+    F, Fs, b, dU = vecs[VEC.F], vecs[VEC.FS], vecs[VEC.B], vecs[VEC.DU]
+    Utry, Ftry, b2, d2 = vecs[VEC.UTRY], vecs[VEC.FTRY], vecs[VEC.B2], vecs[VEC.D2]
     U = st[ST.HEAD : ST.HEAD + n]
     Udot = st[ST.HEAD + n : ST.HEAD + 2 * n]
     x0 = st[ST.X : ST.X + NX]
@@ -163,13 +156,13 @@ def rhc_tick(P, iP, st, work):
     dt = P[PAR.DT]
     iters = 0
     if st[ST.INIT] != 0.0:
-        initial_guess(P, N, U, x0, T, sw[0], sw[3])
+        initial_guess(P, N, U, x0, T, X, hx)
         fn, iters = newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw)
         eval_F(P, N, U, x0, T, sw, F)
         fn = norm(F)
         ok = _apply_input(P, U, st) and math.isfinite(fn)
         if ok:
-            precond_setup(P, N, U, sw[0], T, pre)
+            precond_setup(P, N, U, X, T, pre)
             if model_xdot:
                 rhs(P, x0, st[ST.U : ST.U + 2], xdot)
             _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
@@ -181,7 +174,7 @@ def rhc_tick(P, iP, st, work):
             _apply_input(P, U, st)
             rhs(P, x0, st[ST.U : ST.U + 2], xdot)
         eval_F(P, N, U, x0, T, sw, F)
-        precond_setup(P, N, U, sw[0], T, pre)
+        precond_setup(P, N, U, X, T, pre)
         _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
         c = min(P[PAR.ZETA] * dt, 1.0)
         for i in range(n):
@@ -199,7 +192,7 @@ def rhc_tick(P, iP, st, work):
         ok = _apply_input(P, U, st) and math.isfinite(fn)
         if ok and released:
             # The prediction d2 belongs to the bounds as they were: solve it again (rare).
-            precond_setup(P, N, U, sw[0], T, pre)
+            precond_setup(P, N, U, X, T, pre)
             if model_xdot:
                 rhs(P, x0, st[ST.U : ST.U + 2], xdot)
             _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
@@ -231,7 +224,7 @@ def sweep_probe(P, iP, st, work, reps):
     x0 = st[ST.X : ST.X + NX]
     T = horizon_at(P, st[ST.T])
     for _ in range(reps):
-        eval_F(P, N, U, x0, T, sw, vecs[1])
+        eval_F(P, N, U, x0, T, sw, vecs[VEC.FS])
 
 
 def new_workspace(n_steps: int, kmax: int, init_krylov: int, substeps: int = 1) -> np.ndarray:

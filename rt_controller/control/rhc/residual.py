@@ -16,7 +16,7 @@ from numba import njit
 
 from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
 from rt_controller.control.rhc.dynamics import JIT, rhs, stage_adjoint, stage_forward, terminal_grad
-from rt_controller.control.state import NPRE, NS, NX, PAR
+from rt_controller.control.state import NPRE, NS, NX, PAR, PRE, STAGE, XS
 
 
 @njit(**JIT)
@@ -34,7 +34,7 @@ def eval_F(P, N, U, x0, T, sw, F):
     for i in range(NX):
         X[0, i] = x0[i]
     for k in range(N):
-        u = U[NS * k : NS * k + 2]
+        u = U[NS * k + STAGE.U : NS * k + STAGE.U + 2]
         for s in range(S):
             r = k * S + s
             stage_forward(P, X[r], u, Aux[r], hx)
@@ -45,7 +45,7 @@ def eval_F(P, N, U, x0, T, sw, F):
     inv_s = 1.0 / S
     for k in range(N - 1, -1, -1):
         j = NS * k
-        u = U[j : j + 2]
+        u = U[j + STAGE.U : j + STAGE.U + 2]
         g0 = 0.0
         g1 = 0.0
         for s in range(S - 1, -1, -1):
@@ -60,10 +60,10 @@ def eval_F(P, N, U, x0, T, sw, F):
             g0 *= inv_s
             g1 *= inv_s
         for i in range(2):
-            ui, vi, mi = U[j + i], U[j + 2 + i], U[j + 4 + i]
-            F[j + i] = (g0 if i == 0 else g1) + 2.0 * mi * ui
-            F[j + 2 + i] = -rv + 2.0 * mi * vi
-            F[j + 4 + i] = ui * ui + vi * vi - P[PAR.U_MAX + i] * P[PAR.U_MAX + i]
+            ui, vi, mi = U[j + STAGE.U + i], U[j + STAGE.V + i], U[j + STAGE.MU + i]
+            F[j + STAGE.U + i] = (g0 if i == 0 else g1) + 2.0 * mi * ui
+            F[j + STAGE.V + i] = -rv + 2.0 * mi * vi
+            F[j + STAGE.MU + i] = ui * ui + vi * vi - P[PAR.U_MAX + i] * P[PAR.U_MAX + i]
     cnt[0] += 1
 
 
@@ -81,7 +81,7 @@ def clip_dummies(P, N, U):
             j = NS * k + i
             um = P[PAR.U_MAX + i]
             vmin = P[PAR.VMIN + i]
-            u, v = U[j], U[j + 2]
+            u, v = U[j + STAGE.U], U[j + STAGE.V]
             if v < vmin:
                 v = vmin
             r = math.sqrt(u * u + v * v)
@@ -91,8 +91,8 @@ def clip_dummies(P, N, U):
             if v < vmin:
                 v = vmin
                 u = math.copysign(math.sqrt(um * um - vmin * vmin), u)
-            U[j] = u
-            U[j + 2] = v
+            U[j + STAGE.U] = u
+            U[j + STAGE.V] = v
 
 
 @njit(inline="always", **JIT)
@@ -118,20 +118,20 @@ def release_bounds(P, N, U, F):
     for k in range(N):
         j = NS * k
         for i in range(2):
-            mu = U[j + 4 + i]
+            mu = U[j + STAGE.MU + i]
             if mu >= 0.0:
                 continue
-            ui = U[j + i]
-            g = F[j + i] - 2.0 * mu * ui
+            ui = U[j + STAGE.U + i]
+            g = F[j + STAGE.U + i] - 2.0 * mu * ui
             un = ui - g / (2.0 * P[PAR.R_INV + 3 * i])
             lim = 0.9 * P[PAR.U_MAX + i]
             if not math.isfinite(un):
                 un = 0.0
             un = min(max(un, -lim), lim)
             vn = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - un * un)
-            U[j + i] = un
-            U[j + 2 + i] = vn
-            U[j + 4 + i] = P[PAR.RV] / (2.0 * vn)
+            U[j + STAGE.U + i] = un
+            U[j + STAGE.V + i] = vn
+            U[j + STAGE.MU + i] = P[PAR.RV] / (2.0 * vn)
             count += 1
     return count
 
@@ -151,7 +151,7 @@ def initial_guess(P, N, U, x0, T, X, xd):
         X[0, i] = x0[i]
     rw0, rw1, rw2, rw3 = P[PAR.R], P[PAR.R + 1], P[PAR.R + 2], P[PAR.R + 3]
     t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
-    c2 = math.cos(x0[1])
+    c2 = math.cos(x0[XS.Q + 1])
     m11 = t1 + t2 + 2.0 * t3 * c2
     m12 = t2 + t3 * c2
     det = m11 * t2 - m12 * m12
@@ -160,8 +160,8 @@ def initial_guess(P, N, U, x0, T, X, xd):
     for k in range(N):
         xk = X[k * S]
         j = NS * k
-        ua = -gain * (rw0 * xk[2] + rw1 * xk[3])
-        ub = -gain * (rw2 * xk[2] + rw3 * xk[3])
+        ua = -gain * (rw0 * xk[XS.XI] + rw1 * xk[XS.XI + 1])
+        ub = -gain * (rw2 * xk[XS.XI] + rw3 * xk[XS.XI + 1])
         for i in range(2):
             lim = 0.9 * P[PAR.U_MAX + i]
             ui = ua if i == 0 else ub
@@ -169,12 +169,12 @@ def initial_guess(P, N, U, x0, T, X, xd):
                 ui = 0.0
             ui = min(max(ui, -lim), lim)
             vi = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - ui * ui)
-            U[j + i] = ui
-            U[j + 2 + i] = vi
-            U[j + 4 + i] = P[PAR.RV] / (2.0 * vi)
+            U[j + STAGE.U + i] = ui
+            U[j + STAGE.V + i] = vi
+            U[j + STAGE.MU + i] = P[PAR.RV] / (2.0 * vi)
         for s in range(S):
             r = k * S + s
-            rhs(P, X[r], U[j : j + 2], xd)
+            rhs(P, X[r], U[j + STAGE.U : j + STAGE.U + 2], xd)
             for i in range(NX):
                 X[r + 1, i] = X[r, i] + h * xd[i]
 
@@ -192,7 +192,7 @@ def precond_setup(P, N, U, X, T, pre):
     t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
     for k in range(N):
         j = NS * k
-        c2 = math.cos(X[k * S, 1])
+        c2 = math.cos(X[k * S, XS.Q + 1])
         m11 = t1 + t2 + 2.0 * t3 * c2
         m12 = t2 + t3 * c2
         det = m11 * t2 - m12 * m12
@@ -202,21 +202,21 @@ def precond_setup(P, N, U, X, T, pre):
         s22 = P[PAR.R_INV + 3] + P[PAR.R_INV + 3] + c * m11
         o = NPRE * k
         for i in range(2):
-            ui, vi, mi = U[j + i], U[j + 2 + i], U[j + 4 + i]
+            ui, vi, mi = U[j + STAGE.U + i], U[j + STAGE.V + i], U[j + STAGE.MU + i]
             iv = 1.0 / vi
-            pre[o + 4 + i] = ui * iv  # u / v
-            pre[o + 6 + i] = mi * iv  # mu / v
-            pre[o + 8 + i] = iv
+            pre[o + PRE.UV + i] = ui * iv
+            pre[o + PRE.MV + i] = mi * iv
+            pre[o + PRE.IV + i] = iv
             dgl = 2.0 * mi + 2.0 * ui * ui * mi * iv * iv
             if i == 0:
                 s11 += dgl
             else:
                 s22 += dgl
         sdet = s11 * s22 - s12 * s12
-        pre[o + 0] = s22 / sdet
-        pre[o + 1] = -s12 / sdet
-        pre[o + 2] = -s12 / sdet
-        pre[o + 3] = s11 / sdet
+        pre[o + PRE.S_INV] = s22 / sdet
+        pre[o + PRE.S_INV + 1] = -s12 / sdet
+        pre[o + PRE.S_INV + 2] = -s12 / sdet
+        pre[o + PRE.S_INV + 3] = s11 / sdet
 
 
 @njit(inline="always", **JIT)
@@ -226,14 +226,19 @@ def precond_apply(N, pre, r, d):
         j = NS * k
         o = NPRE * k
         # Reduced right-hand side of the du system.
-        q0 = r[j] - pre[o + 4] * r[j + 2] + pre[o + 4] * pre[o + 6] * r[j + 4]
-        q1 = r[j + 1] - pre[o + 5] * r[j + 3] + pre[o + 5] * pre[o + 7] * r[j + 5]
-        du0 = pre[o] * q0 + pre[o + 1] * q1
-        du1 = pre[o + 2] * q0 + pre[o + 3] * q1
+        uv0, uv1 = pre[o + PRE.UV], pre[o + PRE.UV + 1]
+        q0 = r[j + STAGE.U] - uv0 * r[j + STAGE.V] + uv0 * pre[o + PRE.MV] * r[j + STAGE.MU]
+        q1 = (
+            r[j + STAGE.U + 1]
+            - uv1 * r[j + STAGE.V + 1]
+            + uv1 * pre[o + PRE.MV + 1] * r[j + STAGE.MU + 1]
+        )
+        du0 = pre[o + PRE.S_INV] * q0 + pre[o + PRE.S_INV + 1] * q1
+        du1 = pre[o + PRE.S_INV + 2] * q0 + pre[o + PRE.S_INV + 3] * q1
         for i in range(2):
             dui = du0 if i == 0 else du1
-            uv, mv, iv = pre[o + 4 + i], pre[o + 6 + i], pre[o + 8 + i]
-            dvi = 0.5 * iv * r[j + 4 + i] - uv * dui
-            d[j + i] = dui
-            d[j + 2 + i] = dvi
-            d[j + 4 + i] = 0.5 * iv * r[j + 2 + i] - mv * dvi
+            uv, mv, iv = pre[o + PRE.UV + i], pre[o + PRE.MV + i], pre[o + PRE.IV + i]
+            dvi = 0.5 * iv * r[j + STAGE.MU + i] - uv * dui
+            d[j + STAGE.U + i] = dui
+            d[j + STAGE.V + i] = dvi
+            d[j + STAGE.MU + i] = 0.5 * iv * r[j + STAGE.V + i] - mv * dvi
