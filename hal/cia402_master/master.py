@@ -23,6 +23,7 @@ import canopen
 from canopen.nmt import NmtError
 from canopen.profiles.p402 import BaseNode402, State402
 
+from hal.can_tap import FrameTap
 from hal.cia402_master import boot
 from hal.cia402_master.units import DriveUnits
 from hal.cia402_master.watch import (
@@ -117,7 +118,9 @@ class Cia402Master:
         self.settings = settings
         self.torque_limits_nm = tuple(float(t) for t in torque_limits_nm)
         self.now_ns = now_ns
-        self.network = canopen.Network(bus)
+        self.tap = FrameTap(bus)
+        """The bus as canopen uses it: its hooks show the run's log every frame."""
+        self.network = canopen.Network(self.tap)
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         self.cond = threading.Condition()
         self.faults = FaultLog()

@@ -8,7 +8,7 @@ import sys
 from collections.abc import Callable
 
 from hal.arguments import bounded_int, duration
-from hal.config import LAW_NAMES
+from hal.config import LAW_NAMES, PROFILES
 from rt_controller.commands.common import add_config_option, config_from_args
 from rt_controller.commands.progress import Progress, add_quiet_option
 
@@ -68,6 +68,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--keep",
         metavar="DIR",
         help="keep the runs' MCAP logs and configs in DIR (default: a temporary folder)",
+    )
+    lp.add_argument(
+        "--profile",
+        choices=PROFILES,
+        default="dsp",
+        help="cia402: every run with the dsp profile, then at once with the cia402 profile, "
+        "adding SYNC jitter, SYNC-to-TPDO and torque-to-effect latency (default dsp)",
     )
     _finish(lp, run_loop)
     vp = bench.add_parser(
@@ -322,12 +329,15 @@ def run_loop(args: argparse.Namespace) -> int:
             monitor_port=args.monitor_port,
             keep=keep,
             host_probe_s=args.host_probe,
+            profile=args.profile,
         )
     print(json.dumps(result))
-    unclean = [r for r in result["rates"] if r["problems"]]
+    runs = result["rates"] + result.get("dsp_rates", [])
+    unclean = [r for r in runs if r["problems"]]
     for r in unclean:  # the figures are printed either way; the exit status tells the truth
         print(
-            f"hil bench loop: run not clean at {r['rate_hz']:g} Hz: {'; '.join(r['problems'])}",
+            f"hil bench loop: {r.get('profile', 'dsp')} run not clean at {r['rate_hz']:g} Hz: "
+            f"{'; '.join(r['problems'])}",
             file=sys.stderr,
         )
     return 1 if unclean else 0

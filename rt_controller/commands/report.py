@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     plot_dir = output_dir(args.plot, "--plot") if args.plot else None
     progress = Progress.of(args, "hil report")
     with progress.stage(f"reading {len(args.logs)} log(s)"):
-        logs = [read_hil_log(path, raw=False) for path in args.logs]
+        logs = [_with_canopen_frames(read_hil_log(path, raw=False)) for path in args.logs]
     reports = [summarize(log, max_list=args.max_list) for log in logs]
     if plot_dir is not None:
         stems: dict[str, int] = {}
@@ -89,6 +89,17 @@ def run(args: argparse.Namespace) -> int:
         if rep.get("plots"):
             console.print(f"plots: {', '.join(rep['plots'])}")
     return 0
+
+
+def _with_canopen_frames(log: Any) -> Any:
+    """A cia402 log read again with its raw CAN frames (the CANopen section decodes them);
+    any other log as it is (its raw frames are only counted)."""
+    from rt_controller.logtools.reader import read_hil_log
+
+    cfg = log.config
+    if cfg is None or cfg.hardware.profile != "cia402":
+        return log
+    return read_hil_log(log.path, raw=True)
 
 
 def _json_safe(obj: Any) -> Any:

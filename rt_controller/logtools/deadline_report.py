@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from rt_controller.logtools.canopen_timing import log_timing
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.recorder import CYCLE_TOPIC
@@ -210,6 +211,7 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     out["diagnostics"] = _final_diagnostics(log)
     out["parameter_changes"] = [change_entry(r) for r in log.parameters]
     out["events"] = [_event(r) for r in log.events]
+    out["canopen"] = log_timing(log)
     if out["recorder_dropped"]:
         out["notes"].append(f"the recorder dropped {out['recorder_dropped']} records")
     if n == 0:

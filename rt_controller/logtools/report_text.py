@@ -151,6 +151,8 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         ],
     )
 
+    _canopen(con, report.get("canopen"))
+
     hist = report["lateness_histogram"]
     if hist:
         ht = Table(title="Wake-up lateness histogram (µs)", title_justify="left")
@@ -161,6 +163,45 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         for b in hist:
             ht.add_row(_bucket_label(b), str(b["count"]), _bar(b["count"], top))
         con.print(ht)
+
+
+def _canopen(con: Any, co: dict[str, Any] | None) -> None:
+    """The cia402 profile's CANopen section: SYNC jitter, latencies, counts, the EMCYs."""
+    from rich.table import Table
+
+    if co is None:
+        return
+    t = Table(title="CANopen (cia402): SYNC and PDO timing (µs)", title_justify="left")
+    for col in ("", "median", "p99", "max"):
+        t.add_column(col, justify="right" if col else "left")
+    rows = (
+        ("SYNC interval", co["sync"]["interval_us"]),
+        ("SYNC period error", co["sync"]["period_error_us"]),
+        ("SYNC to TPDOs", co["sync_to_tpdo_us"]),
+        ("PDO round trip", co["pdo_round_trip_us"]),
+        ("torque to effect", co["torque_to_effect_us"]),
+    )
+    for label, s in rows:
+        t.add_row(label, *(_fmt(s[k]) for k in ("median", "p99", "max")))
+    con.print(t)
+    con.print(
+        f"SYNCs {co['sync']['syncs']}, answered {co['answered']}, incomplete "
+        f"{co['incomplete']}; torque changes {co['changes']} (superseded {co['superseded']}, "
+        f"never seen {co['never']}); frames {co['frames']}, undecodable {co['undecodable']}"
+    )
+    for node, states in co["drive_states"].items():
+        con.print(f"node {node} power states: {' -> '.join(states)}")
+    emcys = co["emcys"]
+    if not emcys:
+        con.print("EMCY: none")
+        return
+    et = Table(title="EMCY", title_justify="left")
+    for col in ("t (s)", "node", "code", "meaning"):
+        et.add_column(col)
+    for e in emcys:
+        meaning = "error reset" if e["error_reset"] else e["text"]
+        et.add_row(_fmt(e["t_s"], 3), str(e["node"]), e["code"], meaning)
+    con.print(et)
 
 
 def _outage_counts(outages: dict[str, Any] | None) -> str:

@@ -8,6 +8,12 @@ peak RSS (anonymous and file-backed), peak locked memory, peak thread count, and
 core over the controller's steady second half, per thread name too; the controller's busy-wait
 before each deadline (``controller.spin_us``) is reported apart (``spin_cpu_percent``) and
 ``cpu_percent_excluding_spin`` is the rest.
+
+With ``profile="cia402"`` each rate (and the lockstep run) runs twice back to back, the ``dsp``
+profile first, so both profiles' figures come from the same window of the host's load: the
+CiA 402 runs add ``canopen`` (SYNC jitter, SYNC-to-TPDO, PDO round trip, torque-to-effect,
+from the log's raw frames: :mod:`rt_controller.logtools.canopen_timing`) and ``compare`` puts
+the headline figures of both side by side.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import numpy as np
 
 from hal.config import RigConfig, load_config
 from rt_controller.config_rules import apply_overrides, config_toml
+from rt_controller.logtools.canopen_timing import log_timing
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.footprint import FootprintSampler
 from rt_controller.rig.options import RigOptions
@@ -36,6 +43,10 @@ DEFAULT_RATES = (50.0, 200.0, 500.0, 1000.0)
 def _rate_config(cfg: RigConfig, rate: float) -> RigConfig:
     rcfg = apply_overrides(cfg, rate=rate)
     return rcfg.with_overrides({"rates.state_hz": min(cfg.rates.state_hz, rcfg.rates.physics_hz)})
+
+
+def _profile_config(cfg: RigConfig, profile: str | None) -> RigConfig:
+    return cfg if profile is None else cfg.with_overrides({"hardware.profile": profile})
 
 
 def _write_toml(cfg: RigConfig, path: Path) -> None:
@@ -53,13 +64,17 @@ def bench_rate(
     law: str,
     workdir: Path,
     monitor_port: int | None = None,
+    profile: str | None = None,
 ) -> dict:
     """One real-time run at ``rate``; statistics from its log. ``monitor_port``: also run
-    ``hil monitor`` on that port (connect a Foxglove client to measure its cost)."""
-    rcfg = _rate_config(cfg, rate)
-    conf = workdir / f"rig-{rate:g}.toml"
+    ``hil monitor`` on that port (connect a Foxglove client to measure its cost);
+    ``profile``: the hardware profile (None: the configuration's)."""
+    rcfg = _profile_config(_rate_config(cfg, rate), profile)
+    name = rcfg.hardware.profile
+    tag = "" if profile is None else f"{profile}-"  # both profiles' runs side by side
+    conf = workdir / f"rig-{tag}{rate:g}.toml"
     _write_toml(rcfg, conf)
-    log = workdir / f"loop-{rate:g}.mcap"
+    log = workdir / f"loop-{tag}{rate:g}.mcap"
     with FootprintSampler() as sampler:
         summary = run_rig(
             RigOptions(
@@ -71,12 +86,14 @@ def bench_rate(
                 **_monitor(monitor_port),
             )
         )
-    c = read_log(log).cycles
+    loaded = read_log(log)
+    c = loaded.cycles
     ticks = int(c["tick"].size)
     misses = int(np.sum(c["deadline_miss"]))
     missed_periods = int(np.sum(c["missed_periods"]))
     return {
         "rate_hz": rate,
+        "profile": name,
         "law": law,
         "ticks": ticks,
         "deadline_misses": misses,
@@ -98,7 +115,46 @@ def bench_rate(
         "problems": summary.get("problems") or [],
         "log": str(log),
         "footprint": footprint(sampler, duration, summary),
+        "canopen": canopen_figures(loaded) if name == "cia402" else None,
     }
+
+
+def canopen_figures(log: Any) -> dict[str, Any] | None:
+    """The CANopen timing of a cia402 run's log (:func:`log_timing`), without the per-frame
+    lists (the EMCYs are kept: a fault in a bench run matters)."""
+    timing = log_timing(log)
+    if timing is None:
+        return None
+    timing.pop("drive_states", None)
+    return timing
+
+
+COMPARED = ("lateness_us", "cycle_us", "e2e_us")
+"""The loop figures both profiles have, compared per rate."""
+
+
+def compare(dsp: dict[str, Any], cia402: dict[str, Any]) -> dict[str, Any]:
+    """One rate's headline figures of both profiles, side by side (median and p99, µs)."""
+
+    def pick(run: dict[str, Any]) -> dict[str, Any]:
+        out = {k: _median_p99(run.get(k)) for k in COMPARED}
+        out["deadline_misses"] = run.get("deadline_misses")
+        out["clean"] = not run.get("problems")
+        return out
+
+    row: dict[str, Any] = {"rate_hz": dsp["rate_hz"], "dsp": pick(dsp), "cia402": pick(cia402)}
+    co = cia402.get("canopen") or {}
+    row["cia402"].update(
+        sync_period_error_us=_median_p99((co.get("sync") or {}).get("period_error_us")),
+        sync_to_tpdo_us=_median_p99(co.get("sync_to_tpdo_us")),
+        pdo_round_trip_us=_median_p99(co.get("pdo_round_trip_us")),
+        torque_to_effect_us=_median_p99(co.get("torque_to_effect_us")),
+    )
+    return row
+
+
+def _median_p99(stats: dict[str, float] | None) -> dict[str, float] | None:
+    return None if stats is None else {"median": stats["median"], "p99": stats["p99"]}
 
 
 def _law_stats(c: dict, law: str) -> dict | None:
@@ -134,9 +190,15 @@ def footprint(sampler: FootprintSampler, duration: float, summary: dict) -> dict
     return out
 
 
-def bench_lockstep(cfg: RigConfig, duration: float, law: str, workdir: Path) -> dict:
+def bench_lockstep(
+    cfg: RigConfig, duration: float, law: str, workdir: Path, profile: str | None = None
+) -> dict:
     """Wall time of a lockstep run of ``duration`` simulated seconds (all processes)."""
-    conf = workdir / "rig-lockstep.toml"
+    cfg = _profile_config(cfg, profile)
+    name = cfg.hardware.profile
+    tag = "" if profile is None else f"-{profile}"
+    conf = workdir / f"rig-lockstep{tag}.toml"
+    log = workdir / f"lockstep{tag}.mcap"
     _write_toml(cfg, conf)
     t0 = time.perf_counter()
     summary = run_rig(
@@ -145,15 +207,17 @@ def bench_lockstep(cfg: RigConfig, duration: float, law: str, workdir: Path) -> 
             law=law,
             duration_s=duration,
             lockstep=True,
-            log=workdir / "lockstep.mcap",
+            log=log,
         )
     )
     wall = time.perf_counter() - t0
-    c = read_log(workdir / "lockstep.mcap").cycles
+    loaded = read_log(log)
+    c = loaded.cycles
     t = c["t_ns"]
     loop_wall = (t[-1] - t[0]) / 1e9 if t.size > 1 else math.nan
     sim = duration
     return {
+        "profile": name,
         "law": law,
         "sim_s": sim,
         "ticks": summary.get("ticks"),
@@ -164,6 +228,7 @@ def bench_lockstep(cfg: RigConfig, duration: float, law: str, workdir: Path) -> 
         "speedup_loop": sim / loop_wall if loop_wall > 0 else math.nan,
         "period_us": lockstep_period_profile(c),
         "J": summary.get("J"),
+        "canopen": canopen_figures(loaded) if name == "cia402" else None,
     }
 
 
@@ -199,29 +264,70 @@ def bench_loop(
     monitor_port: int | None = None,
     keep: Path | None = None,
     host_probe_s: float = 5.0,
+    profile: str = "dsp",
 ) -> dict[str, Any]:
     """The JSON object ``hil bench loop`` prints. ``keep``: write the runs' logs and configs
     there (kept) instead of a temporary folder. ``host_probe_s``: first measure the host's own
     wake-up lateness that long (``host``, :func:`~rt_controller.rig.bench_host.bench_host`),
-    so the run's figures come with the floor under them; 0 skips it."""
+    so the run's figures come with the floor under them; 0 skips it. ``profile="cia402"``:
+    every run twice, ``dsp`` then ``cia402`` (see the module docstring); ``rates`` and
+    ``lockstep`` are then the cia402 runs, ``dsp_rates`` and ``dsp_lockstep`` the dsp's."""
     from rt_controller.rig.bench_host import bench_host
 
     cfg = cfg or load_config()
     host = bench_host(host_probe_s) if host_probe_s > 0 else None
     with contextlib.ExitStack() as stack:
         work = bench_workdir(stack, keep, "hil-bench-")
+        if profile == "cia402":
+            return _bench_both(
+                cfg, rates, duration, law, lockstep_duration, work, host, monitor_port
+            )
         runs = [bench_rate(cfg, r, duration, law, work, monitor_port) for r in rates]
         lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
     from hal.can_codec import bench_codec
     from hal.secoc import bench_mac
 
     return {
+        "profile": "dsp",
         "duration_s": duration,
         "rates": runs,
         "lockstep": lock,
         "monitor_port": monitor_port,
         "host": host,
         "can_frame_us": {**bench_mac(), **bench_codec(2000)},
+        "machine": machine(),
+    }
+
+
+def _bench_both(
+    cfg: RigConfig,
+    rates: tuple[float, ...],
+    duration: float,
+    law: str,
+    lockstep_duration: float,
+    work: Path,
+    host: dict[str, Any] | None,
+    monitor_port: int | None,
+) -> dict[str, Any]:
+    """Each rate (and the lockstep run) with the dsp profile, then at once the cia402."""
+    dsp_runs, runs = [], []
+    for r in rates:
+        dsp_runs.append(bench_rate(cfg, r, duration, law, work, monitor_port, profile="dsp"))
+        runs.append(bench_rate(cfg, r, duration, law, work, monitor_port, profile="cia402"))
+    dsp_lock = lock = None
+    if lockstep_duration > 0:
+        dsp_lock = bench_lockstep(cfg, lockstep_duration, law, work, profile="dsp")
+        lock = bench_lockstep(cfg, lockstep_duration, law, work, profile="cia402")
+    return {
+        "profile": "cia402",
+        "duration_s": duration,
+        "compare": [compare(d, c) for d, c in zip(dsp_runs, runs, strict=True)],
+        "rates": runs,
+        "dsp_rates": dsp_runs,
+        "lockstep": lock,
+        "dsp_lockstep": dsp_lock,
+        "monitor_port": monitor_port,
+        "host": host,
         "machine": machine(),
     }
 

@@ -51,9 +51,18 @@ class Cia402Hardware:
     """The CANopen drives and the zenoh features of one run, from the control thread."""
 
     def __init__(
-        self, ctx: RunContext, master: Cia402Master, features: FeatureLink, *, lockstep: bool
+        self,
+        ctx: RunContext,
+        master: Cia402Master,
+        features: FeatureLink,
+        *,
+        lockstep: bool,
+        record_raw: bool = False,
     ) -> None:
+        """``record_raw``: every CANopen frame sent and received goes to the log's
+        ``/hal/can/tx`` and ``/hal/can/rx``, from the boot on (as the DSP profile's)."""
         self.ctx = ctx
+        self.record_raw = record_raw
         self.master = master
         self.features = features
         self.lockstep = lockstep
@@ -77,6 +86,10 @@ class Cia402Hardware:
         """Boot the drives (NMT, SDO, PDO maps, CST read back, NMT start, the controller's
         heartbeat) and subscribe to the features. The first features are awaited while arming
         (:meth:`activate`): the emulated world publishes its camera pose only on SYNC."""
+        if self.record_raw:
+            rec, now, tap = self.ctx.recorder, self.ctx.clock.now_ns, self.master.tap
+            tap.rx_hook = lambda m: rec.record_can(m, now(), "rx")
+            tap.tx_hook = lambda m: rec.record_can(m, now(), "tx")
         self.master.boot(stop)
         self.features.attach()
 

@@ -197,7 +197,7 @@ class ControllerDaemon:
             link = FeatureLink(
                 ctx, session, self.features, by_callback=lockstep, record_raw=opts.record_raw
             )
-            hw = Cia402Hardware(ctx, master, link, lockstep=lockstep)
+            hw = Cia402Hardware(ctx, master, link, lockstep=lockstep, record_raw=opts.record_raw)
         else:
             assert dsp is not None
             hw = DspHardware(

@@ -87,3 +87,32 @@ def test_kept_logs_are_the_runs_logs(tmp_path) -> None:
     ages = sorted(float(log.cycles["predict_ms"][i]) for i in ran)
     assert run["predict_ms"]["max"] == ages[-1]  # the compensated ages, over the law's ticks
     assert run["f_predict_ms"]["max"] == max(float(log.cycles["f_predict_ms"][i]) for i in ran)
+
+
+def test_compare_puts_both_profiles_figures_of_one_rate_side_by_side() -> None:
+    from rt_controller.rig.bench_loop import compare
+
+    stats = {"min": 1.0, "median": 2.0, "p99": 3.0, "max": 4.0}
+    run = {"rate_hz": 50.0, "lateness_us": stats, "cycle_us": stats, "e2e_us": None}
+    timing = {
+        "sync": {"period_error_us": {**stats, "median": 5.0}},
+        "sync_to_tpdo_us": stats,
+        "pdo_round_trip_us": stats,
+        "torque_to_effect_us": {**stats, "p99": 9.0},
+    }
+    row = compare(
+        {**run, "deadline_misses": 0, "problems": []},
+        {**run, "deadline_misses": 1, "problems": ["x"], "canopen": timing},
+    )
+    assert row["rate_hz"] == 50.0
+    assert row["dsp"] == {
+        "lateness_us": {"median": 2.0, "p99": 3.0},
+        "cycle_us": {"median": 2.0, "p99": 3.0},
+        "e2e_us": None,
+        "deadline_misses": 0,
+        "clean": True,
+    }
+    c = row["cia402"]
+    assert c["clean"] is False and c["deadline_misses"] == 1
+    assert c["sync_period_error_us"] == {"median": 5.0, "p99": 3.0}
+    assert c["torque_to_effect_us"] == {"median": 2.0, "p99": 9.0}

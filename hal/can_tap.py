@@ -1,0 +1,53 @@
+"""A python-can bus that shows every frame it sends and receives to hooks: how a CANopen
+master (canopen's :class:`~canopen.Network`, which owns its bus) lets the run's log see the raw
+frames, as the DSP client's ``rx_hook`` / ``tx_hook`` do.
+
+The hooks run where the frame passes: ``tx_hook`` on the sender's thread just before the
+frame goes out, ``rx_hook`` on the receive thread (canopen's notifier) as it comes in. A hook
+that raises is counted in :attr:`FrameTap.hook_errors` and never stops the frame. Frames that
+python-can sends by itself (``send_periodic``, the controller's heartbeat) do not pass here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+Hook = Callable[[can.Message], Any]
+
+
+class FrameTap:
+    """``bus`` with :attr:`rx_hook` and :attr:`tx_hook` (None: off); everything else is the
+    bus's own (attribute access is forwarded)."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.rx_hook: Hook | None = None
+        self.tx_hook: Hook | None = None
+        self.hook_errors = 0
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._show(self.tx_hook, msg)
+        self.bus.send(msg, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        msg = self.bus.recv(timeout)
+        if msg is not None:
+            self._show(self.rx_hook, msg)
+        return msg
+
+    def _show(self, hook: Hook | None, msg: can.Message) -> None:
+        if hook is None:
+            return
+        try:
+            hook(msg)
+        except Exception:  # the log never stops a frame
+            self.hook_errors += 1
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.bus, name)
+
+
+__all__ = ["FrameTap"]

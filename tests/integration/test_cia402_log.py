@@ -1,0 +1,104 @@
+"""A real cia402 run's log (the three processes, lockstep, 1 s): its raw CANopen frames are
+in ``/hal/can/tx`` and ``/hal/can/rx`` from the boot on, decode as the profile's traffic, and
+``hil report`` has the CANopen section (SYNC jitter, SYNC to TPDO, PDO round trip, torque to
+effect, EMCYs) computed from them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from hal.bus import isolated_spec
+from hal.config import load_config
+from hal.zenoh_session import free_loopback_port
+from rt_controller.config_rules import config_toml
+from rt_controller.logtools.canopen_timing import decoded_frames
+from rt_controller.logtools.deadline_report import summarize
+from rt_controller.logtools.reader import read_log
+from rt_controller.rig.options import RigOptions
+from rt_controller.rig.processes import run_rig
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture(scope="module")
+def cia402_log(tmp_path_factory):
+    work = tmp_path_factory.mktemp("cia402-log")
+    cfg = load_config(None).with_overrides({"hardware.profile": "cia402"})
+    conf = work / "rig.toml"
+    conf.write_text(config_toml(cfg))
+    log = work / "run.mcap"
+    summary = run_rig(
+        RigOptions(
+            config=str(conf),
+            law="ioc",
+            duration_s=1.0,
+            lockstep=True,
+            log=log,
+            can=isolated_spec("udp_multicast"),
+            zenoh_endpoint=f"tcp/127.0.0.1:{free_loopback_port()}",
+        )
+    )
+    assert not summary.get("problems"), summary
+    return cfg, log, summary
+
+
+def test_the_log_holds_every_canopen_frame_from_the_boot_on(cia402_log):
+    cfg, log, summary = cia402_log
+    loaded = read_log(log)
+    frames = decoded_frames(loaded.can_rx, loaded.can_tx)
+    kinds = {(f.direction, f.kind) for f in frames}
+    for want in (
+        ("tx", "nmt"),
+        ("tx", "sdo_request"),
+        ("rx", "sdo_response"),
+        ("rx", "heartbeat"),
+        ("tx", "sync"),
+        ("tx", "rpdo1"),
+        ("rx", "tpdo1"),
+        ("rx", "tpdo2"),
+    ):
+        assert want in kinds, sorted(kinds)
+    assert not [f for f in frames if "error" in f.fields]
+    nodes = {cfg.cia402.node_id_1, cfg.cia402.node_id_2}
+    assert {f.node for f in frames if f.kind == "tpdo1"} == nodes
+    # every SYNC of the run is there (arming and deactivation send some more)
+    syncs = sum(1 for f in frames if f.kind == "sync")
+    assert syncs >= summary["ticks"], (syncs, summary["ticks"])
+
+
+def test_report_times_sync_and_pdos_and_lists_no_emcy(cia402_log):
+    _cfg, log, summary = cia402_log
+    co = summarize(read_log(log))["canopen"]
+    assert co is not None
+    # lockstep: one SYNC per tick after period 0, each answered by both drives
+    assert co["sync"]["syncs"] == summary["ticks"] - 1, co["sync"]
+    assert co["answered"] == co["sync"]["syncs"] and co["incomplete"] == 0, co
+    for key in ("sync_to_tpdo_us", "pdo_round_trip_us", "torque_to_effect_us"):
+        assert co[key]["median"] > 0, (key, co[key])
+    assert co["sync_to_tpdo_us"]["median"] <= co["pdo_round_trip_us"]["median"]
+    assert co["changes"] > 0 and co["never"] == 0, co  # the law's torques took effect
+    assert co["emcys"] == []
+    for states in co["drive_states"].values():
+        assert "OPERATION ENABLED" in states and "FAULT" not in states, states
+
+
+def test_hil_report_prints_the_canopen_section(cia402_log):
+    _cfg, log, _summary = cia402_log
+    text = subprocess.run(
+        [sys.executable, "-m", "rt_controller.cli", "report", str(log)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "CANopen (cia402)" in text and "EMCY: none" in text, text
+    out = subprocess.run(
+        [sys.executable, "-m", "rt_controller.cli", "report", "--json", str(log)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert json.loads(out)["canopen"]["answered"] > 0
