@@ -15,7 +15,9 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 VCAN_CHANNEL = "vcan0"
 UML_MODULES_ROOT = Path("/usr/lib/uml/modules")
 # Loaded in this order (dependencies first); located by file name under the module tree.
-CAN_MODULES = ("can", "can-raw", "can-dev", "vcan")
+# can-bcm: python-can sends periodic frames (canopen's heartbeat producer) by the kernel's
+# broadcast manager.
+CAN_MODULES = ("can", "can-raw", "can-bcm", "can-dev", "vcan")
 APT_PACKAGES = ("user-mode-linux", "kmod", "can-utils")
 # Environment passed into the UML guest: exact names and name prefixes. Everything else on the
 # host (tokens, sockets, display, ...) stays out, because the init script is a file on disk.

@@ -23,8 +23,9 @@ Where the command runs, first match wins:
    as an ordinary process, so this works in containers and CI runners whose kernel has no
    SocketCAN. The script boots UML with the host filesystem as its root (hostfs), and a generated
    init script mounts /proc, /sys, a tmpfs on /dev/shm (zenoh and multiprocessing need it),
-   brings ``lo`` up, loads can, can-raw, can-dev and vcan with ``insmod``, creates ``vcan0``, runs
-   the command from the repository root with a curated environment, records its output and exit
+   brings ``lo`` up, loads can, can-raw, can-bcm, can-dev and vcan with ``insmod``, creates
+   ``vcan0``, runs the command from the repository root with a curated environment, records its
+   output and exit
    status in a temporary directory and powers the virtual machine off. The host streams that
    output while the command runs and exits with the command's exit status. A host-side timeout
    (``--timeout``, default 1200 s) kills the UML process group, so a wedged guest never hangs CI.

@@ -76,8 +76,10 @@ class BootSettings:
     """The drives' consumer time of the controller's heartbeat (0x1016.1)."""
     period_s: float
     """The control period: 0x60C2, and the SYNC period."""
-    boot_timeout_s: float = 5.0
-    """How long a node may take to send its boot-up after NMT reset communication."""
+    boot_timeout_s: float = 20.0
+    """How long a node may take to send its boot-up after NMT reset communication: a rig
+    starts its processes together, and an emulated drive on a slow host (user-mode Linux)
+    comes up many seconds after the controller (the DSP profile waits as long)."""
 
 
 def _what(node: canopen.RemoteNode, index: int, sub: int | None) -> str:
