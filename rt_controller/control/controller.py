@@ -16,11 +16,10 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control import decide_kernel as dk
-from rt_controller.control import model_kernels
 from rt_controller.control.law_table import make_law
 from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
 from rt_controller.control.model import NominalModel
-from rt_controller.control.state import IO, MODE_NAMES, OUTPUTS, Field
+from rt_controller.control.state import IO, MODE_NAMES, OUTPUTS, Field, pack_params
 from rt_controller.control.state_predictor import StatePredictor
 
 
@@ -145,7 +144,7 @@ class Controller:
     def __init__(self, cfg: RigConfig, law: str | None = None) -> None:
         self.cfg = cfg
         self.model = NominalModel.from_config(cfg)
-        self._p = model_kernels.pack(self.model)
+        self._p = pack_params(self.model)
         name = cfg.controller.law if law is None else law
         self.law: ControlLaw = make_law(name, self.model, cfg)
         """The law by name (its C/GMRES solver's arrays are the compiled rule's, for rhc)."""
@@ -170,7 +169,7 @@ class Controller:
         self.cfg = cfg
         if law_changed:
             self.model = NominalModel.from_config(cfg)
-            self._p = model_kernels.pack(self.model)
+            self._p = pack_params(self.model)
             self.law = make_law(cfg.controller.law, self.model, cfg)
             solver = getattr(self.law, "solver", None)
             self.rule.retarget(cfg, cfg.controller.law, self._p, solver)

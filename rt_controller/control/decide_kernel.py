@@ -187,8 +187,8 @@ class CompiledRule:
     """The arrays :func:`decide_tick` works on, and the call itself.
 
     ``law`` is the law's name (:data:`LAW_CODES`), ``params`` the model's parameter vector
-    (:func:`model_kernels.pack`), ``solver`` the law's C/GMRES solver (``None`` for pbc and
-    ioc), whose state vector and work array the call advances in place.
+    (:func:`~rt_controller.control.state.pack_params`), ``solver`` the law's C/GMRES solver
+    (``None`` for pbc and ioc), whose state vector and work array the call advances in place.
     """
 
     def __init__(self, cfg: RigConfig, law: str, params: np.ndarray, solver: object | None) -> None:
@@ -233,30 +233,16 @@ class CompiledRule:
         """Torques held in the history."""
         return int(self.ks[KS.N])
 
-    @property
-    def fallbacks(self) -> int:
-        """Ticks that fell back to eq. (27) since the law last started."""
-        return int(self.ks[KS.FALLBACKS])
-
-    def reset_law(self) -> None:
-        """The law starts again at the next tick that runs it."""
+    def reset(self) -> None:
+        """As new: the law starts again, not holding, and the torque history is empty."""
         reset_law(self.ks, self.st, self.n_u)
         self.ks[KS.HOLDING] = 0.0
-
-    def reset(self) -> None:
-        """As new: the law starts again and the torque history is empty."""
-        self.reset_law()
         self.ks[KS.N] = 0.0
 
     def limits(self, cfg: RigConfig) -> None:
         """The timeouts (the prediction horizon) of ``cfg`` from now on; the law goes on."""
         c = cfg.controller
         self.lim[LIM.HORIZON] = max(c.state_timeout_s, c.feature_timeout_s)
-
-    def __call__(self) -> np.ndarray:
-        """Decide on the inputs in :attr:`io`; the same vector, outputs filled in."""
-        self.call()
-        return self.io
 
     @property
     def arguments(self) -> tuple:

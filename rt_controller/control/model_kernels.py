@@ -2,7 +2,9 @@
 
 The loop calls these once per tick instead of a few dozen small NumPy operations. They compute
 exactly what :class:`~rt_controller.control.model.NominalModel` computes (the tests compare the
-two); the NumPy model stays the readable reference.
+two); the NumPy model stays the readable reference. Their parameter vector ``p`` is the model's
+part of :data:`~rt_controller.control.state.PAR` (:func:`~rt_controller.control.state.
+pack_params`).
 """
 
 from __future__ import annotations
@@ -11,14 +13,7 @@ import numpy as np
 from numba import njit
 
 from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
-from rt_controller.control.model import NominalModel
-from rt_controller.control.state import PAR, pack_params
-
-
-def pack(model: NominalModel) -> np.ndarray:
-    """The model's numbers in the kernels' parameter vector (:data:`~rt_controller.control.
-    state.PAR`; the rhc settings zero: :func:`~rt_controller.control.state.pack_params`)."""
-    return pack_params(model)
+from rt_controller.control.state import PAR
 
 
 @njit(cache=True, fastmath=False)

@@ -316,6 +316,12 @@ def work_offsets(steps: int, substeps: int, krylov: int) -> tuple[np.ndarray, in
     return out, off
 
 
+def work_length(iP: np.ndarray) -> int:
+    """The work vector's length for the cut in ``iP`` (:data:`IP`): the end of its last array."""
+    last = IP.WORK + CUT.SIZE * (len(WORK) - 1)
+    return int(iP[last + CUT.OFF] + iP[last + CUT.ROWS] * iP[last + CUT.COLS])
+
+
 def pack_params(model: NominalModel) -> np.ndarray:
     """The model's numbers in a :data:`PAR` vector; the rhc settings are left zero (filled by
     :func:`rt_controller.control.rhc.problem.pack_params`)."""

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from rt_controller.control import model_kernels
-from rt_controller.control.decide_kernel import CAPACITY, STEP_S
+from rt_controller.control.decide_kernel import CAPACITY, STEP_S, record_sent
+from rt_controller.control.state import KS
 
 
 class StatePredictor:
@@ -42,11 +43,13 @@ class StatePredictor:
         self.horizon_s = float(horizon_s)
         if history is None:
             history = (np.zeros(CAPACITY), np.zeros((CAPACITY, 2)), 0)
-        self._times, self._taus, self._n = history
+        self._times, self._taus, n = history
+        self._ks = np.zeros(KS.SIZE)  # the compiled rule's count of torques held, KS.N
+        self._ks[KS.N] = n
 
     def __len__(self) -> int:
         """Torques held in the history."""
-        return self._n
+        return int(self._ks[KS.N])
 
     def retarget(self, params: np.ndarray, horizon_s: float) -> None:
         """Predict with new model parameters and horizon from now on (the torques sent so far
@@ -56,27 +59,16 @@ class StatePredictor:
 
     def reset(self) -> None:
         """Forget the torques sent (a new run)."""
-        self._n = 0
+        self._ks[KS.N] = 0.0
 
     def sent(self, t: float, tau: np.ndarray) -> None:
-        """Record that ``tau`` was sent at tick time ``t`` (held until the next one)."""
-        if self._n == CAPACITY:  # keep the one held at t - horizon and all after it
-            held = np.flatnonzero(self._times[: self._n] <= t - self.horizon_s)
-            first = int(held[-1]) if held.size else 0
-            keep = self._n - first
-            self._times[:keep] = self._times[first : self._n]
-            self._taus[:keep] = self._taus[first : self._n]
-            self._n = keep
-            if keep == CAPACITY:  # a horizon longer than the history: drop the oldest
-                self._times[:-1], self._taus[:-1] = self._times[1:], self._taus[1:]
-                self._n -= 1
-        self._times[self._n] = t
-        self._taus[self._n] = tau
-        self._n += 1
+        """Record that ``tau`` was sent at tick time ``t`` (held until the next one), as the
+        compiled rule records it (:func:`~rt_controller.control.decide_kernel.record_sent`)."""
+        record_sent(self._times, self._taus, self._ks, t, tau[0], tau[1], self.horizon_s)
 
     def segments(self, start: float, end: float) -> tuple[np.ndarray, np.ndarray]:
         """(torques, durations): what the drive held over [start, end], in order."""
-        return model_kernels.held_torques(self._times, self._taus, self._n, start, end)
+        return model_kernels.held_torques(self._times, self._taus, len(self), start, end)
 
     def advance(
         self, q: np.ndarray, dq: np.ndarray, t_from: float, t_to: float
@@ -85,7 +77,7 @@ class StatePredictor:
         time; neither end further than ``horizon_s`` before the other."""
         q, dq = np.asarray(q, float), np.asarray(dq, float)
         return model_kernels.advance(
-            self._p, q, dq, self._times, self._taus, self._n, t_from, t_to, self.horizon_s, STEP_S
+            self._p, q, dq, self._times, self._taus, len(self), t_from, t_to, self.horizon_s, STEP_S
         )
 
     def predict(
@@ -116,7 +108,7 @@ class StatePredictor:
             f,
             self._times,
             self._taus,
-            self._n,
+            len(self),
             now,
             state_age_s,
             feature_age_s,

@@ -144,12 +144,13 @@ def test_eq22_holds_for_any_input(model):
 @pytest.mark.parametrize("gravity", [0.0, 9.81])
 def test_compiled_tick_terms_equal_the_numpy_model(cfg: RigConfig, gravity: float):
     from rt_controller.control import model_kernels
+    from rt_controller.control.state import pack_params
 
     cfg = cfg.with_overrides(
         {"robot.gravity": gravity, "gains.alpha": [[0.05, 0.01], [0.01, 0.15]]}
     )
     model = NominalModel.from_config(cfg)
-    p = model_kernels.pack(model)
+    p = pack_params(model)
     for q, dq, f, u in random_states(100):
         xi, tau_ff = model_kernels.prepare(p, q, dq, f)
         np.testing.assert_allclose(xi, model.xi(q, dq, f), rtol=1e-12, atol=1e-12)

@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rt_controller.control import state
 from rt_controller.control.model import NominalModel
+from rt_controller.control.rhc import dynamics as dyn
 from rt_controller.control.rhc import problem as pb
 from rt_controller.control.rhc.residual import eval_F
 from tests.support.rhc_reference import ReferenceProblem, ReferenceSolver
@@ -56,11 +58,11 @@ def test_dynamics_and_costs_match_the_model(model, params):
     P, _ = params
     for x, u, _ in states():
         out = np.zeros(6)
-        pb.rhs(P, x, u, out)
+        dyn.rhs(P, x, u, out)
         np.testing.assert_allclose(out, model_rhs(model, x, u), rtol=1e-12, atol=1e-9)
         q, xi, f = x[0:2], x[2:4], x[4:6]
-        assert pb.stage_cost(P, x, u) == pytest.approx(model.stage_cost(q, xi, f, u), rel=1e-12)
-        assert pb.terminal_cost(P, x) == pytest.approx(4 * model.V(q, xi, f), rel=1e-12)
+        assert dyn.stage_cost(P, x, u) == pytest.approx(model.stage_cost(q, xi, f, u), rel=1e-12)
+        assert dyn.terminal_cost(P, x) == pytest.approx(4 * model.V(q, xi, f), rel=1e-12)
 
 
 @pytest.mark.parametrize("case", range(6))
@@ -68,7 +70,7 @@ def test_hamiltonian_gradients_against_finite_differences(model, params, cfg, ca
     P, _ = params
     x, u, lam = states()[case]
     hx, hu = np.zeros(6), np.zeros(6)
-    pb.hamiltonian_grad(P, x, u, lam, hx, hu)
+    dyn.hamiltonian_grad(P, x, u, lam, hx, hu)
     fd_x = central(lambda z: model_H(model, z, u, lam), x)
     fd_u = central(lambda z: model_H(model, x, z, lam), u)
     scale_x = np.abs(fd_x).max()
@@ -85,7 +87,7 @@ def test_terminal_gradient_against_finite_differences(model, params, case):
     P, _ = params
     x = states()[case][0]
     g = np.zeros(6)
-    pb.terminal_grad(P, x, g)
+    dyn.terminal_grad(P, x, g)
     fd = central(lambda z: 4.0 * model.V(z[0:2], z[2:4], z[4:6]), x)
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8 * np.abs(fd).max())
 
@@ -95,7 +97,7 @@ def sweep_work(N: int):
     return (
         np.zeros((N + 1, 6)),
         np.zeros((N + 1, 6)),
-        np.zeros((N, pb.NAUX)),
+        np.zeros((N, state.NAUX)),
         np.zeros(6),
         np.zeros(6),
         np.zeros(1),
@@ -117,31 +119,31 @@ def discrete_cost(model: NominalModel, x0: np.ndarray, u: np.ndarray, T: float) 
 def test_F_is_the_gradient_of_the_discretised_cost(model, params, T):
     """With mu = 0, F's input rows times dtau are dJ/du_k of the Euler-discretised problem."""
     P, iP = params
-    N = int(iP[pb.IP.N])
+    N = int(iP[state.IP.N])
     rng = np.random.default_rng(7)
     x0 = np.array([np.pi / 6, -np.pi / 6, 3.1, 6.2, -120.0, -160.0])
     u = rng.normal(0, 3, (N, 2))
-    U = np.zeros((N, pb.NS))
+    U = np.zeros((N, state.NS))
     U[:, 0:2] = u
     U[:, 2:4] = 1.0
-    F = np.zeros(N * pb.NS)
+    F = np.zeros(N * state.NS)
     sw = sweep_work(N)
     eval_F(P, N, U.ravel(), x0, T, sw, F)
     grad = central(lambda z: discrete_cost(model, x0, z.reshape(N, 2), T), u.ravel(), 1e-5)
     dtau = T / N
-    got = F.reshape(N, pb.NS)[:, 0:2].ravel() * dtau
+    got = F.reshape(N, state.NS)[:, 0:2].ravel() * dtau
     np.testing.assert_allclose(got, grad, rtol=1e-5, atol=1e-6 * np.abs(grad).max())
 
 
 def test_kernel_F_matches_the_reference(model, params, cfg):
     P, iP = params
-    N = int(iP[pb.IP.N])
+    N = int(iP[state.IP.N])
     rng = np.random.default_rng(11)
     x0 = np.array([0.3, -0.8, 2.0, -4.0, 80.0, -150.0])
     U = np.column_stack(
         [rng.normal(0, 3, (N, 2)), rng.uniform(1, 10, (N, 2)), rng.uniform(0, 1, (N, 2))]
     ).ravel()
-    F = np.zeros(N * pb.NS)
+    F = np.zeros(N * state.NS)
     sw = sweep_work(N)
     eval_F(P, N, U, x0, 0.1, sw, F)
     ref = ReferenceSolver(model, cfg).F(U, x0, 0.1)
@@ -150,13 +152,12 @@ def test_kernel_F_matches_the_reference(model, params, cfg):
 
 def test_horizon_growth(params, cfg):
     P, _ = params
-    assert pb.horizon_at(P, 0.0) == cfg.rhc.horizon
+    assert dyn.horizon_at(P, 0.0) == cfg.rhc.horizon
     grown = pb.pack_params(
         NominalModel.from_config(cfg), cfg.with_overrides({"rhc.horizon_growth": 2.0})
     )[0]
-    assert pb.horizon_at(grown, 0.0) == 0.0
-    assert pb.horizon_at(grown, 0.5) == pytest.approx(cfg.rhc.horizon * (1 - np.exp(-1.0)))
-    assert pb.horizon_length(grown, 0.5) == pytest.approx(pb.horizon_at(grown, 0.5))
+    assert dyn.horizon_at(grown, 0.0) == 0.0
+    assert dyn.horizon_at(grown, 0.5) == pytest.approx(cfg.rhc.horizon * (1 - np.exp(-1.0)))
 
 
 def test_substeps_keep_each_euler_step_short():
@@ -176,18 +177,18 @@ def test_F_with_substeps_is_the_gradient_of_the_discretised_cost(model, params):
     rng = np.random.default_rng(5)
     x0 = np.array([np.pi / 6, -np.pi / 6, 3.1, 6.2, -120.0, -160.0])
     u = rng.normal(0, 3, (N, 2))
-    U = np.zeros((N, pb.NS))
+    U = np.zeros((N, state.NS))
     U[:, 0:2] = u
     U[:, 2:4] = 1.0
     sw = (
         np.zeros((N * S + 1, 6)),
         np.zeros((N * S + 1, 6)),
-        np.zeros((N * S, pb.NAUX)),
+        np.zeros((N * S, state.NAUX)),
         np.zeros(6),
         np.zeros(6),
         np.zeros(1),
     )
-    F = np.zeros(N * pb.NS)
+    F = np.zeros(N * state.NS)
     eval_F(P, N, U.ravel(), x0, T, sw, F)
     assert sw[5][0] == 1.0  # the call counter
 
@@ -201,5 +202,5 @@ def test_F_with_substeps_is_the_gradient_of_the_discretised_cost(model, params):
         return J + 4.0 * model.V(x[0:2], x[2:4], x[4:6])
 
     grad = central(cost, u.ravel(), 1e-5)
-    got = F.reshape(N, pb.NS)[:, 0:2].ravel() * (T / N)
+    got = F.reshape(N, state.NS)[:, 0:2].ravel() * (T / N)
     np.testing.assert_allclose(got, grad, rtol=1e-5, atol=1e-6 * np.abs(grad).max())

@@ -81,4 +81,4 @@ def test_the_work_cut_tiles_the_work_vector():
         assert off == end, a.name
         end = off + rows * cols
     n, s, m = cfg.rhc.steps, iP[state.IP.SUB], max(iP[state.IP.KMAX], iP[state.IP.INIT_KRYLOV])
-    assert state.work_offsets(n, s, m)[1] == end
+    assert state.work_offsets(n, s, m)[1] == end == state.work_length(iP)

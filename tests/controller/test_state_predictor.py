@@ -12,6 +12,7 @@ from hal.config import RigConfig
 from rt_controller.control import model_kernels
 from rt_controller.control.controller import Controller
 from rt_controller.control.model import NominalModel
+from rt_controller.control.state import pack_params
 from rt_controller.control.state_predictor import CAPACITY, StatePredictor
 
 
@@ -38,7 +39,7 @@ def _reference(model: NominalModel, q, dq, pieces) -> tuple[np.ndarray, np.ndarr
 
 
 def test_the_compiled_prediction_integrates_the_nominal_model(model):
-    p = model_kernels.pack(model)
+    p = pack_params(model)
     q, dq = np.array([0.4, -1.1]), np.array([0.8, -3.0])
     pieces = [((1.5, -0.4), 0.0027), ((-2.0, 0.9), 0.02), ((0.3, 0.1), 0.0113)]
     taus = np.array([t for t, _ in pieces])
@@ -49,7 +50,7 @@ def test_the_compiled_prediction_integrates_the_nominal_model(model):
 
 
 def test_the_torques_held_over_the_age_come_from_the_history(model):
-    pred = StatePredictor(model_kernels.pack(model), horizon_s=0.05)
+    pred = StatePredictor(pack_params(model), horizon_s=0.05)
     pred.sent(1.00, np.array([1.0, 0.1]))
     pred.sent(1.02, np.array([2.0, 0.2]))
     pred.sent(1.04, np.array([3.0, 0.3]))
@@ -62,7 +63,7 @@ def test_the_torques_held_over_the_age_come_from_the_history(model):
 
 
 def test_old_torques_are_forgotten_but_the_one_still_held_is_kept(model):
-    pred = StatePredictor(model_kernels.pack(model), horizon_s=0.05)
+    pred = StatePredictor(pack_params(model), horizon_s=0.05)
     n = CAPACITY + 10
     for k in range(n):
         pred.sent(k * 0.02, np.array([k, 0.0]))
@@ -75,12 +76,12 @@ def test_old_torques_are_forgotten_but_the_one_still_held_is_kept(model):
 
 
 def test_no_age_no_prediction(model):
-    pred = StatePredictor(model_kernels.pack(model), horizon_s=0.05)
+    pred = StatePredictor(pack_params(model), horizon_s=0.05)
     q, dq = np.array([0.1, 0.2]), np.array([0.3, 0.4])
     assert pred.predict(1.0, q, dq, 0.0) == (q, dq)
     assert pred.predict(1.0, q, dq, -0.002) == (q, dq)
     with pytest.raises(ValueError, match="horizon"):
-        StatePredictor(model_kernels.pack(model), horizon_s=0.0)
+        StatePredictor(pack_params(model), horizon_s=0.0)
 
 
 @pytest.mark.parametrize("law", ["ioc", "rhc"])
@@ -133,7 +134,7 @@ def test_the_decision_carries_the_state_it_acted_on(model):
 
 
 def test_a_static_target_seen_from_another_pose_is_what_the_camera_model_sees_there(model):
-    p = model_kernels.pack(model)
+    p = pack_params(model)
     target = np.array([0.41, 0.23])
     q_then, q_now = np.array([0.5, -0.4]), np.array([0.62, -0.71])
     f_then = model.features(q_then, target)
@@ -143,7 +144,7 @@ def test_a_static_target_seen_from_another_pose_is_what_the_camera_model_sees_th
 
 
 def test_advancing_backwards_retraces_the_motion(model):
-    pred = StatePredictor(model_kernels.pack(model), horizon_s=0.1)
+    pred = StatePredictor(pack_params(model), horizon_s=0.1)
     pred.sent(0.0, np.array([1.0, -0.2]))
     pred.sent(0.02, np.array([-0.5, 0.3]))
     q, dq = np.array([0.3, 0.9]), np.array([0.4, -1.5])
@@ -155,7 +156,7 @@ def test_advancing_backwards_retraces_the_motion(model):
 
 
 def test_a_state_older_than_the_horizon_is_predicted_over_the_horizon_only(model):
-    pred = StatePredictor(model_kernels.pack(model), horizon_s=0.05)
+    pred = StatePredictor(pack_params(model), horizon_s=0.05)
     q, dq = np.array([0.3, 0.9]), np.array([0.4, -1.5])
     assert np.array_equal(pred.predict(1.0, q, dq, 0.5)[0], pred.predict(1.0, q, dq, 0.05)[0])
 

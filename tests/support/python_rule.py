@@ -30,6 +30,7 @@ from rt_controller.control.state import (
     MODE_DRIVE,
     MODE_HOLD,
     MODE_NO_STATE,
+    pack_params,
 )
 from rt_controller.control.state_predictor import StatePredictor
 
@@ -46,7 +47,7 @@ class PythonRule:
     def __init__(self, cfg: RigConfig, law: str | ControlLaw | None = None) -> None:
         self.cfg = cfg
         self.model = NominalModel.from_config(cfg)
-        self._p = model_kernels.pack(self.model)
+        self._p = pack_params(self.model)
         name = cfg.controller.law if law is None else law
         self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
@@ -62,7 +63,7 @@ class PythonRule:
         self.cfg = cfg
         if law_changed:
             self.model = NominalModel.from_config(cfg)
-            self._p = model_kernels.pack(self.model)
+            self._p = pack_params(self.model)
             self.law = make_law(cfg.controller.law, self.model, cfg)
         self.predictor.retarget(self._p, self._horizon(cfg))
 

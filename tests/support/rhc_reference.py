@@ -16,8 +16,9 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.problem import DUMMY_FLOOR, INIT_KRYLOV, NS, NX, substeps
+from rt_controller.control.rhc.problem import DUMMY_FLOOR, INIT_KRYLOV, substeps
 from rt_controller.control.rhc.solver import SolveReport
+from rt_controller.control.state import NS, NX
 
 _SKEW = np.array([[0.0, -1.0], [1.0, 0.0]])
 _E = np.eye(2)

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
@@ -51,7 +50,7 @@ from rt_controller.control.rhc.residual import (
     precond_setup,
     release_bounds,
 )
-from rt_controller.control.state import CUT, IP, NS, NX, PAR, SMALL, ST, VEC, W, work_offsets
+from rt_controller.control.state import CUT, IP, NS, NX, PAR, SMALL, ST, VEC, W
 
 OK = 0
 """Result code of :func:`rhc_tick` (``ST.STATUS``): a finite solution."""
@@ -85,12 +84,6 @@ def _views(iP, work):
     cs, sn, g, y = small[SMALL.CS], small[SMALL.SN], small[SMALL.G], small[SMALL.Y]
     ws = (Vb, Hs, cs, sn, g, y, vecs[VEC.UT], vecs[VEC.Z], vecs[VEC.ZZ], G, Ys)
     return sw, ws, vecs, _cut1(iP, work, W.PRE), _cut1(iP, work, W.XS)
-
-
-def workspace_size(n_steps: int, kmax: int, init_krylov: int, substeps: int = 1) -> int:
-    """Length of the float64 work array :func:`rhc_tick` needs (:data:`~rt_controller.control.
-    state.WORK`)."""
-    return work_offsets(n_steps, substeps, max(kmax, init_krylov))[1]
 
 
 @njit(**JIT)
@@ -225,8 +218,3 @@ def sweep_probe(P, iP, st, work, reps):
     T = horizon_at(P, st[ST.T])
     for _ in range(reps):
         eval_F(P, N, U, x0, T, sw, vecs[VEC.FS])
-
-
-def new_workspace(n_steps: int, kmax: int, init_krylov: int, substeps: int = 1) -> np.ndarray:
-    """A zeroed work array for :func:`rhc_tick`."""
-    return np.zeros(workspace_size(n_steps, kmax, init_krylov, substeps))

@@ -10,8 +10,8 @@ import numpy as np
 from hal.config import RigConfig
 from rt_controller.control.laws import LawOutput, Measurement, inverse_optimal
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.problem import NX
 from rt_controller.control.rhc.solver import CGMRESSolver, SolveReport, pack_state
+from rt_controller.control.state import NX
 
 
 class Solver(Protocol):

@@ -17,15 +17,14 @@ and the costs of eq. (25) and (13)::
     l   = 4 xi^T R xi + 4 kp eta^T dq + u^T R^-1 u      (= 4 x^T Q x + u^T R^-1 u)
     phi = 4 V = 2 xi^T M xi + 2 kp / g f^T f
 
-The Hamiltonian ``H = l - r_v sum(v) + lam^T x' + mu^T (u^2 + v^2 - umax^2)``. Its gradients are
-derived by hand with ``dq`` and ``eta`` as intermediates (see :func:`hamiltonian_grad`); the tests
-check them against finite differences of :class:`~rt_controller.control.model.NominalModel`.
+The Hamiltonian ``H = l - r_v sum(v) + lam^T x' + mu^T (u^2 + v^2 - umax^2)``. Its gradients
+are derived by hand with ``dq`` and ``eta`` as intermediates (``dynamics.hamiltonian_grad``); the
+tests check them against finite differences of :class:`~rt_controller.control.model.NominalModel`.
 The gravity term of eq. (1) cancels in eq. (11) and does not appear here.
 
 The compiled functions (``rhs``, ``stage_cost``, ``terminal_cost``, ``terminal_grad``,
-``hamiltonian_grad``, ``horizon_at``) live in :mod:`rt_controller.control.rhc.dynamics` and are
-re-exported here; this module adds the packing of the model and the ``rhc`` settings into their
-parameter vectors.
+``hamiltonian_grad``, ``horizon_at``) live in :mod:`rt_controller.control.rhc.dynamics`; this
+module packs the model and the ``rhc`` settings into their parameter vectors.
 """
 
 from __future__ import annotations
@@ -37,17 +36,7 @@ import numpy as np
 from hal.config import RigConfig
 from rt_controller.control import state
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.dynamics import (  # noqa: F401  (re-exported: the compiled OCP)
-    hamiltonian_grad,
-    horizon_at,
-    rhs,
-    stage_adjoint,
-    stage_cost,
-    stage_forward,
-    terminal_cost,
-    terminal_grad,
-)
-from rt_controller.control.state import IP, NAUX, NS, NX, PAR, work_offsets  # noqa: F401
+from rt_controller.control.state import IP, NS, PAR, work_offsets
 
 DUMMY_FLOOR = 1e-6
 """Dummy inputs are kept at or above ``DUMMY_FLOOR * umax_i``: this selects the minimising branch
@@ -92,9 +81,3 @@ def pack_params(model: NominalModel, cfg: RigConfig) -> tuple[np.ndarray, np.nda
     cut, _ = work_offsets(h.steps, int(iP[IP.SUB]), krylov)
     iP[IP.WORK : IP.WORK + cut.size] = cut
     return P, iP
-
-
-def horizon_length(P: np.ndarray, t: float) -> float:
-    """T(t) = Tf (1 - exp(-a t)), or Tf when a = 0 (plain-Python twin of :func:`horizon_at`)."""
-    a = P[PAR.GROWTH]
-    return float(P[PAR.TF]) if a <= 0.0 else float(P[PAR.TF] * (1.0 - math.exp(-a * max(t, 0.0))))

@@ -10,9 +10,9 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc.kernel import OK, new_workspace, rhc_tick
+from rt_controller.control.rhc.kernel import OK, rhc_tick
 from rt_controller.control.rhc.problem import pack_params
-from rt_controller.control.state import IP, NS, NX, ST
+from rt_controller.control.state import NS, NX, ST, work_length
 
 
 class SolveReport(NamedTuple):
@@ -74,9 +74,7 @@ class CGMRESSolver:
         self.Udot = self.st[ST.HEAD + n : ST.HEAD + 2 * n]
         self._x = self.st[ST.X : ST.X + NX]
         self._xdot = self.st[ST.XDOT : ST.XDOT + NX]
-        self.work = new_workspace(
-            self.N, self.kmax, int(self.iP[IP.INIT_KRYLOV]), int(self.iP[IP.SUB])
-        )
+        self.work = np.zeros(work_length(self.iP))
         self.st[ST.INIT] = 1.0
         self._tick: Callable = rhc_tick
 
