@@ -48,7 +48,7 @@ from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
-from rt_controller.runtime.recorder_process import RecorderService, RemoteRecorder
+from rt_controller.runtime.recorder_process import RecorderProcess
 
 
 @dataclass
@@ -70,13 +70,6 @@ class DaemonOptions:
     clock: Clock | None = None
     """The loop's clock (default: the monotonic clock, sleeping then spinning
     ``controller.spin_us`` before each release); tests pass a fake one."""
-
-
-def recorder_service(cfg: RigConfig) -> RecorderService:
-    """The recorder's child process (start it before the links: while this process has a
-    single thread the child is forked, which is instant). The control process then runs no
-    other Python thread. Its live stream's session is on ``cfg.transport``."""
-    return RecorderService(cfg)
 
 
 @contextlib.contextmanager
@@ -136,43 +129,47 @@ class ControllerDaemon:
         }
 
     # --- wiring -----------------------------------------------------------------------------
-    def _open_recorder(self, service: RecorderService) -> RemoteRecorder:
-        """This run's log, written by the recorder's process."""
+    def _open_recorder(self) -> RecorderProcess:
+        """This run's log, written by a recorder process of its own (which also publishes the
+        live stream on ``cfg.transport``)."""
         cfg, transport = self.cfg, self.cfg.transport
         run_info = {
             "clock": self.mode.value,
             "can": transport.can,
             "zenoh": transport.zenoh_config or transport.zenoh_endpoint,
-            "recorder": f"process ({service.start_method})",
+            "recorder": "process (spawn)",
         }
         paced_by_sync = self.mode is ClockMode.LOCKSTEP  # no deadline: wait for a busy recorder
-        return service.open(
-            self.log_path, cfg, run_info=run_info, scene=self.opts.scene, backpressure=paced_by_sync
+        return RecorderProcess(
+            self.log_path,
+            cfg,
+            run_info=run_info,
+            scene=self.opts.scene,
+            live=self.opts.live,
+            backpressure=paced_by_sync,
         )
 
     def run(self) -> dict[str, Any]:
         """Open the recorder and the links, run until stopped; the summary. The recorder is
         finished on every exit."""
-        with recorder_service(self.cfg) as service:
-            rec = self._open_recorder(service)
-            try:
-                if self.cfg.hardware.profile == "cia402":
-                    with open_cia402_links(self.cfg, self.stop) as (master, session):
-                        self._run_with(None, session, rec, master=master)
-                else:
-                    with open_links(self.cfg, self.stop) as (dsp, session):
-                        self._run_with(dsp, session, rec)
-            except HalStopped:  # told to stop while waiting for zenoh
-                self.counters.stopped_before_arming = True
-            finally:
-                rec.close()
+        rec = self._open_recorder()
+        try:
+            if self.cfg.hardware.profile == "cia402":
+                with open_cia402_links(self.cfg, self.stop) as (master, session):
+                    self._run_with(None, session, rec, master=master)
+            else:
+                with open_links(self.cfg, self.stop) as (dsp, session):
+                    self._run_with(dsp, session, rec)
+        except HalStopped:  # told to stop while waiting for zenoh
+            self.counters.stopped_before_arming = True
+        finally:
+            rec.close()
         return self._summary(rec)
 
-    def run_on(self, dsp: JointClient, session: Any, service: RecorderService) -> dict[str, Any]:
-        """One run on links and a recorder process that outlive it (``hil controller --plan``,
-        tests: a poll-mode client, an open session); the summary. Leaves them as it found
-        them."""
-        rec = self._open_recorder(service)
+    def run_on(self, dsp: JointClient, session: Any) -> dict[str, Any]:
+        """One run on links that outlive it (``hil controller --plan``, tests: a poll-mode
+        client, an open session); the summary. Leaves them as it found them."""
+        rec = self._open_recorder()
         try:
             self._run_with(dsp, session, rec)
         finally:
@@ -183,7 +180,7 @@ class ControllerDaemon:
         self,
         dsp: JointClient | None,
         session: Any,
-        rec: RemoteRecorder,
+        rec: RecorderProcess,
         *,
         master: Cia402Master | None = None,
     ) -> None:
@@ -207,8 +204,6 @@ class ControllerDaemon:
             LockstepPacer(ctx, hw.step) if lockstep else RealtimePacer(ctx, hw.wait_inputs)
         )
         loop = self.loop = ControlLoop(ctx, self.controller, hw, pacer, self.params)
-        if opts.live:  # published by the recorder's process, on its own session
-            rec.stream_live()
         tuning = ParameterServer(self.params, rig_key(cfg)).attach(session)  # `hil param`
         try:
             self._start_and_loop(hw, loop)
@@ -247,7 +242,7 @@ class ControllerDaemon:
             self._final_diagnostics = loop.diagnostics(final=True)
             loop.ctx.recorder.record_diagnostics(self._final_diagnostics, final=True)
 
-    def _summary(self, rec: RemoteRecorder) -> dict[str, Any]:
+    def _summary(self, rec: RecorderProcess) -> dict[str, Any]:
         rec.close()
         out = {**self.what_runs(), **self.counters.as_dict()}
         out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.as_dict())
@@ -266,4 +261,4 @@ class ControllerDaemon:
         return out
 
 
-__all__ = ["ControllerDaemon", "DaemonOptions", "open_links", "recorder_service", "run_problems"]
+__all__ = ["ControllerDaemon", "DaemonOptions", "open_links", "run_problems"]

@@ -171,14 +171,11 @@ def run_plan(
     """Run the plan; ``emit`` gets each run's summary (with ``run`` and ``wall_s``) as soon as
     it ends. Stops early on ``stop``; raises :class:`ControllerError` when the DSP does not
     confirm a scenario reset (the runs so far were emitted)."""
-    from rt_controller.runtime.daemon import ControllerDaemon, open_links, recorder_service
+    from rt_controller.runtime.daemon import ControllerDaemon, open_links
 
     out: list[dict[str, Any]] = []
     try:
-        with (
-            recorder_service(cfgs[0]) as service,
-            open_links(cfgs[0], stop) as (dsp, session),
-        ):
+        with open_links(cfgs[0], stop) as (dsp, session):
             sim = SimControlSender(session, key=rig_key(cfgs[0]))
             for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
                 if stop.is_set():
@@ -192,7 +189,7 @@ def run_plan(
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
                 run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)
                 daemon = ControllerDaemon(cfg, run_opts, stop)
-                summary = daemon.run_on(dsp, session, service)
+                summary = daemon.run_on(dsp, session)
                 summary.update(run=run.name, wall_s=time.monotonic() - t0)
                 out.append(summary)
                 emit(summary)

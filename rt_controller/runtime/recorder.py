@@ -1,19 +1,17 @@
 """The MCAP log of a run: every controller cycle, the raw CAN frames and vision messages.
 
-:class:`CycleRecorder` encodes each record as JSON and writes it at once with mcap's synchronous
+:class:`CycleRecorder` writes each record at once with mcap's synchronous
 :class:`~mcap.writer.Writer` (zstd chunks). In a run it lives in the recorder's own process
 (:mod:`rt_controller.runtime.recorder_process`); ``hil replay --out`` and tests use it directly.
 
 One JSON topic per record kind (:data:`TOPICS`, each with its JSON Schema; the table is in
-``docs/concepts/logs.md``).
-
-``log_time`` is the record's monotonic time shifted to the Unix epoch (the offset is in the
-``hil.run`` metadata). ``live`` gets the topic and JSON bytes of each cycle and diagnostics
-record (for zenoh); ``scene`` (:mod:`rt_controller.monitor.scene`) draws every
-``scene.every``-th cycle on protobuf channels. Metadata: ``hil.config``, ``hil.run`` and, at a
-clean close, ``hil.recorder`` (counters). The first record ``flush_interval_s`` after the last
-flush closes the chunk and flushes the file to the OS, so a SIGKILLed writer loses about that
-much at most.
+``docs/concepts/logs.md``). ``log_time`` is the record's monotonic time shifted to the Unix
+epoch (the offset is in the ``hil.run`` metadata). ``live`` gets the topic and JSON bytes of
+each cycle and diagnostics record (for zenoh); ``scene`` (:mod:`rt_controller.monitor.scene`)
+draws every ``scene.every``-th cycle on protobuf channels. Metadata: ``hil.config``,
+``hil.run`` and, at a clean close, ``hil.recorder`` (counters). The first record
+``flush_interval_s`` after the last flush closes the chunk and flushes the file to the OS, so
+a SIGKILLed writer loses about that much at most.
 """
 
 from __future__ import annotations
@@ -28,6 +26,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, BinaryIO, Self
 
@@ -58,7 +57,7 @@ SCHEMA_VERSION = "1"
 
 CYCLE, CAN_RX, CAN_TX, VISION, DIAG, PARAMS, EVENTS = 0, 1, 2, 3, 4, 5, 6
 """Record kinds: the first element of a record item ``(kind, t_ns, obj)``
-(:meth:`CycleRecorder.write`; small ints, cheap to pickle for the recorder process)."""
+(:meth:`Recorder.write`)."""
 TOPICS = {
     CYCLE: CYCLE_TOPIC,
     CAN_RX: CAN_RX_TOPIC,
@@ -79,6 +78,7 @@ writer keeps an index of about 1 kB per chunk until the end of the log (the soak
 DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
 """The record kind of a CAN frame by its direction (``record_can``)."""
 _SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
+_ENCODE_ERRORS = (TypeError, ValueError, AttributeError, RecursionError)
 
 
 def cycle_schema() -> dict[str, Any]:
@@ -100,12 +100,18 @@ def encode_record(kind: int, t_ns: int, obj: Any) -> bytes:
 
 
 def _version(dist: str) -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(dist)
     except PackageNotFoundError:
         return "unknown"
+
+
+def run_metadata(cfg: RigConfig, extra: dict[str, Any] | None = None) -> dict[str, str]:
+    """The ``hil.run`` metadata of a run of ``cfg`` starting now in this process, ``extra``
+    (values become strings) overriding the defaults."""
+    info = default_run_info(cfg, time.monotonic_ns(), time.time_ns())
+    info.update({str(k): str(v) for k, v in (extra or {}).items()})
+    return info
 
 
 def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, str]:
@@ -136,18 +142,36 @@ def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, st
 
 class Recorder:
     """What both recorders share: the ``record_*`` calls of the loop, each one record item
-    ``(kind, t_ns, obj)`` for :meth:`write`, and the context manager (``__exit__`` raises a log
-    that ended early as :class:`LogError`)."""
+    ``(kind, t_ns, obj)`` that :meth:`write` encodes for ``add``, the counters, and the context
+    manager (``__exit__`` raises a log that ended early as :class:`LogError`)."""
 
     path: Path
-    closed = False
+    closed = finished = False
+    """``finished``: the file has its summary and footer (a clean close)."""
     error: Any = None
-
-    written: int
-    write: Callable[..., bool]
-    """``write(kind, t_ns, obj, final=False)``: record one item; False if it was not (counted;
-    ``final``: the run's last)."""
+    dropped = encode_errors = 0
+    """Records refused (after :meth:`close`, a write failure, a full outbox...) and records
+    that could not be encoded: counted, never raised into the tick."""
+    pending = 0
+    """Records not written yet: always 0 (a record is written, or dropped and counted)."""
+    counts: dict[int, int]
+    """Messages written per record kind of :data:`TOPICS`."""
+    add: Callable[..., bool]
+    """``add(kind, t_ns, data, obj=None, final=False)``: record one encoded item; False if it
+    was not (counted; ``final``: the run's last)."""
     close: Callable[[], None]
+
+    def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
+        """Encode and record one item (``kind`` one of :data:`TOPICS`, or :data:`IMAGE`)."""
+        try:
+            t_ns = int(t_ns)
+            data = bytes(obj) if kind == IMAGE else encode_record(kind, t_ns, obj)
+        except _ENCODE_ERRORS as exc:
+            self.encode_errors += 1
+            if self.encode_errors == 1:
+                log.warning("recorder: cannot encode a %s record: %s", TOPICS.get(kind), exc)
+            return False
+        return self.add(kind, t_ns, data, obj, final)
 
     def record_cycle(self, record: dict[str, Any]) -> bool:
         """One tick (a dict with the fields of ``cycle_schema.json``)."""
@@ -177,6 +201,23 @@ class Recorder:
         """A raw vision payload received at ``t_ns``."""
         return self.write(VISION, t_ns, payload)
 
+    @property
+    def written(self) -> int:
+        """Messages written so far (all topics)."""
+        return sum(self.counts.values())
+
+    def backlog_bytes(self) -> int:
+        """Bytes of records on their way to the file: none here (written at once)."""
+        return 0
+
+    def as_dict(self) -> dict[str, int]:
+        """Counters per topic plus ``written``, ``dropped``, ``encode_errors``, ``pending`` and
+        ``backlog_bytes``."""
+        out = {t: self.counts[k] for k, t in TOPICS.items()}
+        out.update(written=self.written, dropped=self.dropped, encode_errors=self.encode_errors)
+        out.update(pending=0, backlog_bytes=0 if self.closed else self.backlog_bytes())
+        return out
+
     def __enter__(self) -> Self:
         return self
 
@@ -186,10 +227,6 @@ class Recorder:
         if err is not None and exc_type is None:
             cause = err if isinstance(err, BaseException) else None
             raise LogError(f"MCAP log {self.path} is incomplete: {err}") from cause
-
-    def __repr__(self) -> str:
-        state = "closed" if self.closed else "open"
-        return f"{type(self).__name__}({str(self.path)!r}, {state}, written={self.written})"
 
 
 class CycleRecorder(Recorder):
@@ -206,11 +243,9 @@ class CycleRecorder(Recorder):
 
     ``record_*`` write at once (True) and never raise: a record that cannot be encoded counts
     in ``encode_errors``, one after :meth:`close` or a write failure (which ends the log and
-    stays in :attr:`error`) in ``dropped``. One thread records and closes.
+    stays in :attr:`error`) in ``dropped``; a failing ``live`` sink, scene or camera image in
+    ``live_errors``, ``scene_errors``, ``image_errors``. One thread records and closes.
     """
-
-    pending = 0
-    """Records not written yet: always 0 (written at once)."""
 
     def __init__(
         self,
@@ -227,14 +262,6 @@ class CycleRecorder(Recorder):
             raise LogError(f"flush_interval_s must be positive, got {flush_interval_s}")
         self.path = Path(path)
         self.flush_interval_s = float(flush_interval_s)
-        self.closed = False  # records are refused once set
-        self.finished = False
-        """The file has its summary and footer (a clean close)."""
-        self.dropped = 0
-        self.encode_errors = 0
-        self.error: BaseException | None = None
-        self._dirty = False  # messages since the last flush
-        self._written = dict.fromkeys(TOPICS, 0)
         self.live = live
         """The live sink (None: none); its exceptions are counted, never propagated."""
         self.live_sent = self.live_errors = 0
@@ -242,11 +269,9 @@ class CycleRecorder(Recorder):
         self._scene_every = max(1, int(getattr(scene, "every", 1)))
         self.scene_written = self.scene_errors = 0
         self.images_written = self.image_errors = 0
-        self._image_channels: dict[str, int] = {}
-        mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
-        info = default_run_info(cfg, mono_ns, unix_ns)
-        info.update({str(k): str(v) for k, v in (run_info or {}).items()})
-        self.run_info = info
+        self.counts = dict.fromkeys(TOPICS, 0)
+        self._dirty = False  # messages since the last flush
+        info = run_metadata(cfg, run_info)
         self._mono_to_unix = int(info["monotonic_to_unix_ns"])  # the run's, when it gave one
         self._stream: BinaryIO | None = None
         try:
@@ -257,11 +282,9 @@ class CycleRecorder(Recorder):
             )
             w.start(profile="", library=f"hil-rt_controller/{info['hil_version']}")
             self._channels = self._register_channels()
-            self._scene_channels: dict[str, int] = {}
+            self._proto: dict[str, int] = {}
             for topic, cls in scene.schemas().items() if scene is not None else ():
-                schema = cls.get_schema()
-                sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data))
-                self._scene_channels[topic] = w.register_channel(topic, "protobuf", sid)
+                self._proto_channel(topic, cls)
             w.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
             w.add_metadata(RUN_METADATA, info)
             self._stream.flush()
@@ -274,75 +297,74 @@ class CycleRecorder(Recorder):
         self._next_flush = time.monotonic() + self.flush_interval_s
 
     def _register_channels(self) -> dict[int, int]:
-        w = self._writer
-
-        def schema(name: str, body: dict[str, Any]) -> int:
-            return w.register_schema(name, "jsonschema", encode_json(body))
-
-        cycle, can = (
-            schema("hil.ControllerCycle", cycle_schema()),
-            schema("hil.CanFrame", CAN_SCHEMA),
-        )
-        schema_of = {
-            CYCLE: cycle,
-            CAN_RX: can,
-            CAN_TX: can,
-            VISION: schema("hil.VisionPayload", VISION_SCHEMA),
-            DIAG: schema("hil.Diagnostics", DIAGNOSTICS_SCHEMA),
-            PARAMS: schema("hil.ParameterChange", PARAMETERS_SCHEMA),
-            EVENTS: schema("hil.OperatorEvent", EVENT_SCHEMA),
+        schemas = {
+            CYCLE: ("hil.ControllerCycle", cycle_schema()),
+            CAN_RX: ("hil.CanFrame", CAN_SCHEMA),
+            VISION: ("hil.VisionPayload", VISION_SCHEMA),
+            DIAG: ("hil.Diagnostics", DIAGNOSTICS_SCHEMA),
+            PARAMS: ("hil.ParameterChange", PARAMETERS_SCHEMA),
+            EVENTS: ("hil.OperatorEvent", EVENT_SCHEMA),
         }
-        return {k: w.register_channel(TOPICS[k], "json", schema_of[k]) for k in TOPICS}
+        w = self._writer
+        ids = {
+            k: w.register_schema(n, "jsonschema", encode_json(b)) for k, (n, b) in schemas.items()
+        }
+        ids[CAN_TX] = ids[CAN_RX]  # one frame schema, two topics
+        return {k: w.register_channel(topic, "json", ids[k]) for k, topic in TOPICS.items()}
+
+    def _proto_channel(self, topic: str, cls: Any) -> int:
+        """The protobuf channel of ``topic`` (registered on first use: a log has the camera's
+        topics only if it saw an image)."""
+        if topic not in self._proto:
+            schema = cls.get_schema()
+            sid = self._writer.register_schema(schema.name, schema.encoding, bytes(schema.data))
+            self._proto[topic] = self._writer.register_channel(topic, "protobuf", sid)
+        return self._proto[topic]
 
     def set_live(self, sink: Callable[[str, bytes], Any] | None) -> None:
         """Attach (or detach with None) the ``live`` sink."""
         self.live = sink
 
-    def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
-        """Encode and write one record item (``kind`` one of :data:`TOPICS`, or :data:`IMAGE`)."""
-        if self.closed:
-            self.dropped += 1
-            return False
-        if kind == IMAGE:
-            return self._write_image(obj)
-        try:
-            t_ns = int(t_ns)
-            data = encode_record(kind, t_ns, obj)
-        except (TypeError, ValueError, AttributeError) as exc:
-            self.encode_errors += 1
-            if self.encode_errors == 1:
-                log.warning("recorder: cannot encode a %s record: %s", TOPICS[kind], exc)
-            return False
-        return self.add(kind, t_ns, data, obj)
-
-    def add(self, kind: int, t_ns: int, data: bytes, obj: Any = None) -> bool:
-        """Write one record already encoded (``data``: its message bytes; ``obj``: the cycle
-        the scene is drawn from, decoded from ``data`` when not given)."""
+    def add(self, kind: int, t_ns: int, data: bytes, obj: Any = None, final: bool = False) -> bool:
+        """Write one record already encoded (``data``: its message bytes, or an image's payload;
+        ``obj``: the cycle the scene is drawn from, decoded from ``data`` when not given)."""
         if self.closed:
             self.dropped += 1
             return False
         if kind == IMAGE:
             return self._write_image(data)
         log_time = max(0, t_ns + self._mono_to_unix)
-        try:
-            self._writer.add_message(self._channels[kind], log_time, data, log_time)
-            self._written[kind] += 1
-            self._dirty = True
-            if kind == CYCLE and self._scene is not None:
-                self._write_scene(json.loads(data) if obj is None else obj, log_time)
-            self.flush_if_due()
-        except Exception as exc:  # disk full, I/O error...: the log ends, the caller goes on
-            self._fail(exc)
+        if not self._put(self._channels[kind], log_time, data):
             return False
+        self.counts[kind] += 1
+        if kind == CYCLE and self._scene is not None:
+            self._write_scene(json.loads(data) if obj is None else obj, log_time)
         if kind in (CYCLE, DIAG) and self.live is not None:
             try:
                 self.live(TOPICS[kind], data)
                 self.live_sent += 1
             except Exception as exc:  # a monitor never stops the log
-                self.live_errors += 1
-                if self.live_errors == 1:
-                    log.warning("recorder: live sink failed: %s", exc)
+                self._count("live_errors", "live sink failed", exc)
         return True
+
+    def _put(self, channel: int, log_time: int, data: bytes) -> bool:
+        """Write one message; False when the write failed (disk full, I/O error...), which ends
+        the log while the caller goes on."""
+        try:
+            self._writer.add_message(channel, log_time, data, log_time)
+        except Exception as exc:
+            self._fail(exc)
+            return False
+        self._dirty = True
+        self.flush_if_due()
+        return True
+
+    def _count(self, counter: str, what: str, exc: Exception) -> None:
+        """Count a record part that could not be made (the first one is logged)."""
+        n = getattr(self, counter) + 1
+        setattr(self, counter, n)
+        if n == 1:
+            log.warning("recorder: %s: %s", what, exc)
 
     def _write_scene(self, record: dict[str, Any], log_time: int) -> None:
         tick = record.get("tick")
@@ -351,45 +373,29 @@ class CycleRecorder(Recorder):
         try:
             msgs = [(t, m.encode()) for t, m in self._scene.messages(record, log_time)]
         except Exception as exc:
-            self.scene_errors += 1
-            if self.scene_errors == 1:
-                log.warning("recorder: cannot draw the scene of a cycle: %s", exc)
+            self._count("scene_errors", "cannot draw the scene of a cycle", exc)
             return
         for topic, data in msgs:
-            self._writer.add_message(self._scene_channels[topic], log_time, data, log_time)
+            if not self._put(self._proto[topic], log_time, data):
+                return
             self.scene_written += 1
 
     def _write_image(self, payload: bytes) -> bool:
         """What the camera saw (:mod:`rt_controller.monitor.camera_view`), at its capture time;
         a payload that does not decode is counted in ``image_errors``."""
-        from rt_controller.monitor.camera_view import SCHEMAS, payload_messages
+        from rt_controller.monitor.camera_view import SCHEMAS as VIEWS
+        from rt_controller.monitor.camera_view import payload_messages
 
         try:
             log_time, views = payload_messages(payload, self._mono_to_unix)
             msgs = [(t, m.encode()) for t, m in views]
         except Exception as exc:
-            self.image_errors += 1
-            if self.image_errors == 1:
-                log.warning("recorder: cannot draw a camera image: %s", exc)
+            self._count("image_errors", "cannot draw a camera image", exc)
             return False
-        try:
-            for topic, data in msgs:
-                channel = self._image_channels.get(topic)
-                if channel is None:
-                    channel = self._scene_channels.get(topic)
-                if channel is None:
-                    schema = SCHEMAS[topic].get_schema()
-                    w = self._writer
-                    sid = w.register_schema(schema.name, schema.encoding, bytes(schema.data))
-                    channel = w.register_channel(topic, "protobuf", sid)
-                self._image_channels[topic] = channel
-                self._writer.add_message(channel, log_time, data, log_time)
-            self.images_written += 1
-            self._dirty = True
-            self.flush_if_due()
-        except Exception as exc:
-            self._fail(exc)
-            return False
+        for topic, data in msgs:
+            if not self._put(self._proto_channel(topic, VIEWS[topic]), log_time, data):
+                return False
+        self.images_written += 1
         return True
 
     def flush(self) -> None:
@@ -425,24 +431,6 @@ class CycleRecorder(Recorder):
                 stream.close()
             except OSError as exc:
                 self.error = self.error or exc
-
-    @property
-    def written(self) -> int:
-        """Messages written so far (all topics)."""
-        return sum(self._written.values())
-
-    def as_dict(self) -> dict[str, int]:
-        """Counters per topic plus ``written``, ``dropped``, ``encode_errors``, ``pending`` and
-        ``backlog_bytes`` (always 0 here: written at once)."""
-        out = {TOPICS[k]: v for k, v in self._written.items()}
-        out.update(
-            written=self.written,
-            dropped=self.dropped,
-            encode_errors=self.encode_errors,
-            pending=0,
-            backlog_bytes=0,
-        )
-        return out
 
     def close(self) -> None:
         """Finish the file (``hil.recorder`` counters, summary, footer); later records are

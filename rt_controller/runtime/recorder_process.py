@@ -1,18 +1,20 @@
-"""The MCAP recorder in a process of its own, so the control process runs no other Python thread.
+"""A run's log written by a process of its own, so the control process runs no other thread.
 
-:class:`RecorderService` starts one child process for a controller process (the runs of a plan
-share it); :meth:`RecorderService.open` gives a :class:`RemoteRecorder`, the daemon's recorder.
-The loop publishes each record once, as the MCAP message it will be in the log: encoded here,
-framed by mcap's own ``Writer`` into an unchunked MCAP stream, written to a pipe once per tick.
-The child (:mod:`rt_controller.runtime.recorder_child`) reads the stream with mcap's
-``StreamReader``, writes the file and publishes the live stream. No protocol of our own: the
-pipe carries MCAP, the answers are JSON lines.
+:class:`RecorderProcess` is the daemon's recorder. The loop publishes each record once, as the
+MCAP message it will be in the log: encoded here, framed by mcap's own ``Writer`` into a plain
+MCAP stream (unchunked), written to the child's standard input once per tick. The child
+(:func:`serve`, a fresh interpreter) reads it with mcap's ``StreamReader``, writes the file
+with :class:`~rt_controller.runtime.recorder.CycleRecorder` (chunked, compressed, indexed, the
+scene drawn, camera images converted), publishes the live stream, and at the end of its input
+prints the log's counters as one JSON line. No protocol of our own crosses the pipes.
 
 A realtime tick never blocks on the child: the pipe is non-blocking (1 MiB where the kernel
 allows it), what it cannot take waits in an outbox, and a record that would grow the outbox past
-:attr:`RecorderService.outbox_limit` bytes is dropped and counted (the run is then not clean).
+:attr:`RecorderProcess.outbox_limit` bytes is dropped and counted (the run is then not clean).
 Lockstep has no deadline: there the tick waits for the child (``backpressure``), so a
-Sync-paced log is never short because the host was busy.
+Sync-paced log is never short because the host was busy. The child ignores SIGINT, SIGTERM and
+SIGHUP (the controller decides when the log ends) and finishes the log at the end of its input,
+so the log of a SIGKILLed controller is complete too.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import fcntl
 import json
 import os
 import select
+import struct
 import subprocess
 import sys
 import termios
@@ -31,9 +34,12 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
 from mcap.writer import IndexType, Writer
 
-from hal.config import RigConfig
+from hal.config import RigConfig, config_from_json
 from rt_controller.errors import LogError
 from rt_controller.runtime.recorder import (
     CONFIG_METADATA,
@@ -42,24 +48,27 @@ from rt_controller.runtime.recorder import (
     IMAGE,
     RUN_METADATA,
     TOPICS,
+    CycleRecorder,
     Recorder,
-    default_run_info,
-    encode_record,
+    run_metadata,
 )
-from rt_controller.runtime.recorder_child import IMAGE_TOPIC, LAUNCH, LIVE_METADATA, LOG_METADATA
 
-REPLY_TIMEOUT_S = 30.0
-"""How long opening or closing a log waits for the child's answer."""
+TIMEOUT_S = 30.0
+"""How long a lockstep tick or the end of the log waits for the child."""
+IMAGE_TOPIC = "hil/vision/image"
+"""The stream's channel of the camera's images, as received (the file gets protobuf topics)."""
+KIND_OF_TOPIC = {**{topic: kind for kind, topic in TOPICS.items()}, IMAGE_TOPIC: IMAGE}
 MMAP_THRESHOLD = 128 << 10
 """glibc's mmap threshold for the recorder process, fixed: buffers of a chunk or a camera image
 are mapped and given back when freed. Left to glibc, the threshold grows to the largest buffer
 freed, and the heap keeps about 2 MB more after the first minutes (an in-process recorder fed
 600 s of the soak's records: +2.7 MB against +0.5 MB)."""
-_ENCODE_ERRORS = (TypeError, ValueError, AttributeError, RecursionError)
+IDLE_S = 0.25
+"""How often the waiting child looks whether the log is due for a flush."""
 
 
 class _Outbox(bytearray):
-    """The bytes of the stream not yet in the pipe (the file the stream ``Writer`` writes)."""
+    """The bytes of the stream not yet in the pipe (the file the stream's ``Writer`` writes)."""
 
     written = 0
 
@@ -75,26 +84,57 @@ class _Outbox(bytearray):
         pass
 
 
-class RemoteRecorder(Recorder):
-    """One run's log, recorded by the service's child process (the interface and counters of
-    :class:`~rt_controller.runtime.recorder.CycleRecorder`). ``record_*`` encode at once; the
-    tick's records reach the pipe with its cycle record. Counters are this process's until
-    :meth:`close`, then the child's final ones plus what this process dropped."""
+class RecorderProcess(Recorder):
+    """One run's log ``path`` of ``cfg``, written by a child process (see the module
+    docstring), with :class:`CycleRecorder`'s arguments and counters: this process's until
+    :meth:`close`, then the child's final ones plus what this process dropped. ``live``:
+    the child publishes the cycle and diagnostics records on zenoh (``cfg.transport``)."""
 
-    def __init__(self, service: RecorderService, path: Path, backpressure: bool) -> None:
-        self.path = path
-        self._service = service
+    outbox_limit = 8 << 20
+    """Bytes that may wait for the pipe; a realtime record beyond them is dropped and counted."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        cfg: RigConfig,
+        *,
+        run_info: dict[str, Any] | None = None,
+        scene: bool = False,
+        live: bool = False,
+        backpressure: bool = False,
+        flush_interval_s: float = 1.0,
+    ) -> None:
+        self.path = Path(path)
+        try:  # a bad path is this process's clear error, before the child starts
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_bytes(b"")
+        except OSError as exc:
+            raise LogError(f"cannot create MCAP log {path}: {exc.strerror or exc}") from exc
         self._backpressure = backpressure
-        self.closed = False
         self.error: str | None = None
         """Why the log is incomplete (the child's writer failed, or the child died)."""
-        self._sent: Counter[int] = Counter()
-        self._dropped = self._encode_errors = 0
-        self._final: dict[str, Any] | None = None
-        """The child's counters of the finished log."""
+        self.dead: str | None = None
+        """Why the child is gone before the end of the log (None while it serves)."""
+        self._outbox = _Outbox()
+        self._queued = 0  # records in the outbox, at most (it was last empty before them)
+        self.counts: Counter[int] = Counter()  # sent; the child's written once it finished
         self._lock = threading.Lock()  # images and Sync-paced features come from zenoh's thread
-        self._writer = Writer(
-            service.outbox,
+        how = json.dumps(
+            {"path": str(path), "scene": scene, "live": live, "flush": flush_interval_s}
+        )
+        self._child = subprocess.Popen(
+            [sys.executable, "-c", LAUNCH, how],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env={"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD), **os.environ},
+        )
+        self.pid = self._child.pid
+        self._pipe = self._child.stdin.fileno()
+        with contextlib.suppress(OSError):
+            fcntl.fcntl(self._pipe, fcntl.F_SETPIPE_SZ, 1 << 20)  # Linux's unprivileged maximum
+        os.set_blocking(self._pipe, False)
+        w = self._writer = Writer(
+            self._outbox,
             use_chunking=False,
             index_types=IndexType.NONE,
             repeat_channels=False,
@@ -103,288 +143,227 @@ class RemoteRecorder(Recorder):
             use_summary_offsets=False,
             enable_crcs=False,
         )
-        self._writer.start(library="hil-rt_controller")
-        topics = {**TOPICS, IMAGE: IMAGE_TOPIC}
-        encoding = {IMAGE: "hil.vision_image"}
-        self._channels = {
-            kind: self._writer.register_channel(topic, encoding.get(kind, "json"), 0)
-            for kind, topic in topics.items()
-        }
+        w.start(library="hil-rt_controller")
+        self._channels = {k: w.register_channel(t, "json", 0) for k, t in TOPICS.items()}
+        self._channels[IMAGE] = w.register_channel(IMAGE_TOPIC, "hil.vision_image", 0)
+        w.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
+        w.add_metadata(RUN_METADATA, run_metadata(cfg, run_info))  # this process's pid, argv
+        self._send(wait=True)
 
-    def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
-        """Encode one record item into the stream; a cycle or diagnostics record sends the
+    def add(self, kind: int, t_ns: int, data: bytes, obj: Any = None, final: bool = False) -> bool:
+        """Put one encoded record into the stream; a cycle or diagnostics record sends the
         tick's records to the pipe (a final one even past the outbox's limit: it carries the
         run's totals)."""
-        try:
-            data = bytes(obj) if kind == IMAGE else encode_record(kind, int(t_ns), obj)
-        except _ENCODE_ERRORS:
-            self._encode_errors += 1
-            return False
+        wait = self._backpressure or final
         with self._lock:
-            if self.closed or not self._service.room(self._backpressure or final):
-                self._dropped += 1
+            if self.closed or not self._room(wait):
+                self.dropped += 1
                 return False
-            self._writer.add_message(self._channels[kind], int(t_ns), data, int(t_ns))
-            self._sent[kind] += 1
-            self._service.queued += 1
+            self._writer.add_message(self._channels[kind], t_ns, data, t_ns)
+            self.counts[kind] += 1
+            self._queued += 1
             if kind in (CYCLE, DIAG):
-                self._service.send(wait=self._backpressure or final)
-        return not self._service.dead
+                self._send(wait)
+        return self.dead is None
 
-    def lost(self, n: int) -> None:
-        """``n`` records sent that the child will never get (it died)."""
-        self._dropped += n
-
-    def add_metadata(self, name: str, data: dict[str, str]) -> None:
-        with self._lock:
-            self._writer.add_metadata(name, data)
-
-    def stream_live(self) -> None:
-        """Ask the child to publish this log's cycle and diagnostics records on zenoh."""
-        self.add_metadata(LIVE_METADATA, self._service.link)
-        self._service.send(wait=True)
-
-    def end_stream(self) -> bool:
-        """Refuse later records and end this log's MCAP stream (False: it was ended)."""
-        with self._lock:
-            if self.closed:
-                return False
-            self.closed = True
-            self._writer.finish()
-            return True
-
-    def close(self, timeout: float | None = REPLY_TIMEOUT_S) -> None:
-        """End the stream of this log, wait for the child's final counters. Idempotent."""
-        if not self.end_stream():
-            return
-        self._final = self._service.finish(self, REPLY_TIMEOUT_S if timeout is None else timeout)
-
-    @property
-    def finished(self) -> bool:
-        """The child finished the file cleanly (summary and footer written)."""
-        return bool(self._final and self._final.get("finished"))
-
-    @property
-    def written(self) -> int:
-        return self.as_dict()["written"]
-
-    @property
-    def dropped(self) -> int:
-        return self.as_dict()["dropped"]
-
-    @property
-    def pending(self) -> int:
-        return 0
-
-    def as_dict(self) -> dict[str, int]:
-        """The keys of ``CycleRecorder.as_dict``: the child's counts of the finished log, else
-        what this process sent; ``backlog_bytes``: the stream's bytes in the outbox and the pipe
-        (the child has not read them yet)."""
-        final = self._final or {}
-        counts = {t: int(final.get(t, self._sent[k])) for k, t in TOPICS.items()}
-        counts.update(
-            written=sum(counts.values()),
-            dropped=self._dropped + int(final.get("dropped", 0)),
-            encode_errors=self._encode_errors + int(final.get("encode_errors", 0)),
-            pending=0,
-            backlog_bytes=0 if self.closed else self._service.backlog_bytes(),
-        )
-        return counts
-
-
-class RecorderService:
-    """The recorder's child process and the two pipes to it (see the module docstring): ``cfg``
-    (and ``zenoh_endpoint`` / ``zenoh_config``) for the live stream's session. One log at a
-    time; :meth:`close` ends the child."""
-
-    outbox_limit = 8 << 20
-    """Bytes that may wait for the pipe; a realtime record beyond them is dropped and counted."""
-
-    def __init__(
-        self,
-        cfg: RigConfig,
-        *,
-        zenoh_endpoint: str | None = None,
-        zenoh_config: str | None = None,
-    ) -> None:
-        self.link = {"endpoint": zenoh_endpoint or "", "config": zenoh_config or ""}
-        """Where the child opens the live stream's session (empty: the log's configuration)."""
-        self.outbox = _Outbox()
-        self.queued = 0
-        """Records in the outbox, at most (it was last empty before them)."""
-        self._answers = bytearray()
-        self.dead: str | None = None
-        """Why the child is gone (None while it serves)."""
-        self._open: RemoteRecorder | None = None
-        self._closed = False
-        env = {"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD), **os.environ}
-        self._child = subprocess.Popen(
-            [sys.executable, "-c", LAUNCH], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env
-        )
-        self.pid = self._child.pid
-        self.start_method = "spawn"
-        """How the child was started (a fresh interpreter), for the ``hil.run`` metadata."""
-        self._out, self._in = self._child.stdin.fileno(), self._child.stdout.fileno()
-        with contextlib.suppress(OSError):
-            fcntl.fcntl(self._out, fcntl.F_SETPIPE_SZ, 1 << 20)  # Linux's unprivileged maximum
-        os.set_blocking(self._out, False)
-        os.set_blocking(self._in, False)
-
-    def open(
-        self,
-        path: str | os.PathLike[str],
-        cfg: RigConfig,
-        *,
-        run_info: dict[str, Any] | None = None,
-        scene: bool = False,
-        backpressure: bool = False,
-        flush_interval_s: float = 1.0,
-    ) -> RemoteRecorder:
-        """Create the log ``path`` in the child (as ``CycleRecorder(path, cfg, ...)`` would,
-        ``scene`` drawing the arm from ``cfg``); :class:`LogError` if it cannot."""
-        if self._open is not None:
-            raise LogError(f"the recorder process is still writing {self._open.path}")
-        if self.dead or self._closed:
-            raise LogError(f"cannot create MCAP log {path}: {self.dead or 'service closed'}")
-        mono_ns, unix_ns = time.monotonic_ns(), time.time_ns()
-        info = default_run_info(cfg, mono_ns, unix_ns)  # this process's pid, argv, ...
-        info.update({str(k): str(v) for k, v in (run_info or {}).items()})
-        rec = self._open = RemoteRecorder(self, Path(path), backpressure)
-        how = {"path": str(path), "scene": "1" if scene else "0"}
-        rec.add_metadata(LOG_METADATA, {**how, "flush_interval_s": repr(flush_interval_s)})
-        rec.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
-        rec.add_metadata(RUN_METADATA, info)
-        self.send(wait=True)
-        answer = self._answer("opened", REPLY_TIMEOUT_S)
-        if answer is None or answer["error"]:
-            rec.end_stream()  # the child reads on to the next log's stream
-            self.send(wait=True)
-            self._open = None
-            error = self.dead or "no answer" if answer is None else answer["error"]
-            raise LogError(error if answer else f"cannot create MCAP log {path}: {error}")
-        return rec
-
-    def room(self, wait: bool) -> bool:
-        """Whether a record may join the outbox (never when the child is gone; when ``wait``
-        is false, only while the outbox is under its limit)."""
+    def _room(self, wait: bool) -> bool:
+        """Whether a record may join the outbox (never when the child is gone; unless ``wait``,
+        only while the outbox is under its limit)."""
         if self.dead is not None:
             return False
-        if wait or len(self.outbox) <= self.outbox_limit:
-            return True
-        self._pump()
-        return len(self.outbox) <= self.outbox_limit
-
-    def send(self, *, wait: bool) -> None:
-        """Write what the pipe takes now; with ``wait`` (lockstep, the run's final record, a
-        control record) all of it, however long the child takes."""
-        self._pump()
-        deadline = time.monotonic() + REPLY_TIMEOUT_S
-        while wait and self.outbox and self.dead is None:
-            if time.monotonic() >= deadline:
-                self._die(f"the recorder process took nothing for {REPLY_TIMEOUT_S:g} s")
-                break
-            select.select([], [self._out], [], 0.1)
+        if not wait and len(self._outbox) > self.outbox_limit:
             self._pump()
+        return wait or len(self._outbox) <= self.outbox_limit
+
+    def _send(self, wait: bool) -> None:
+        """Write what the pipe takes now; with ``wait`` all of it, however long the child takes
+        (up to :data:`TIMEOUT_S` without progress)."""
+        self._pump()
+        deadline = time.monotonic() + TIMEOUT_S
+        while wait and self._outbox and self.dead is None:
+            if time.monotonic() >= deadline:
+                self._die(f"the recorder process took nothing for {TIMEOUT_S:g} s")
+            elif select.select([], [self._pipe], [], 0.1)[1]:
+                self._pump()
+                deadline = time.monotonic() + TIMEOUT_S
 
     def _pump(self) -> None:
         """Write what the pipe takes now (never blocks)."""
-        out = self.outbox
+        out = self._outbox
         while out and self.dead is None:
             try:
-                n = os.write(self._out, out)
+                n = os.write(self._pipe, out)
             except BlockingIOError:
                 return
             except OSError as exc:  # EPIPE: the child is gone
                 self._die(f"the recorder process is gone ({exc.strerror or exc})")
                 return
             del out[:n]
-        self.queued = 0
-
-    def backlog_bytes(self) -> int:
-        """The stream's bytes the child has not read: the outbox and the pipe's content."""
-        buf = bytearray(4)
-        try:
-            fcntl.ioctl(self._out, termios.FIONREAD, buf)
-        except OSError:
-            return len(self.outbox)
-        return len(self.outbox) + int.from_bytes(buf, "little")
-
-    def finish(self, rec: RemoteRecorder, timeout: float) -> dict[str, Any] | None:
-        """Send the end of ``rec``'s stream and wait for the child's final counters."""
-        self.send(wait=True)
-        answer = self._answer("closed", timeout)
-        if self._open is rec:
-            self._open = None
-        if answer is None:
-            why = self.dead or f"the recorder process did not finish the log in {timeout:g} s"
-            rec.error = rec.error or why
-            return None
-        rec.error = rec.error or answer["error"]
-        return {**answer["counts"]}
-
-    def _answer(self, kind: str, timeout: float) -> dict[str, Any] | None:
-        """The child's next answer of ``kind`` (None: it died, or ``timeout`` ran out)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            line, nl, rest = self._answers.partition(b"\n")
-            if nl:
-                self._answers = bytearray(rest)
-                answer = json.loads(line)
-                if kind in answer:
-                    return answer
-                continue
-            left = deadline - time.monotonic()
-            if self.dead is not None or left <= 0:
-                return None
-            if not select.select([self._in], [], [], min(left, 0.1))[0]:
-                continue
-            try:
-                data = os.read(self._in, 1 << 16)
-            except BlockingIOError:
-                continue
-            except OSError as exc:
-                data, why = b"", f" ({exc.strerror or exc})"
-            else:
-                why = self._exit_note()
-            if not data:
-                self._die(f"the recorder process exited{why}")
-            self._answers += data
+        self._queued = 0
 
     def _die(self, reason: str) -> None:
         """The child is gone: the records still in the outbox are lost (counted)."""
         if self.dead is None:
-            self.dead = reason
-            if self._open is not None:
-                self._open.error = self._open.error or reason
-                self._open.lost(self.queued)
-            self.outbox.clear()
+            self.dead = self.error = reason
+            self.dropped += self._queued
+            self._outbox.clear()
 
-    def close(self, timeout: float = REPLY_TIMEOUT_S) -> None:
-        """Close the log still open, end the child (end of file on its pipe) and reap it.
+    def backlog_bytes(self) -> int:
+        """The stream's bytes the child has not read: the outbox and the pipe's content."""
+        buf = bytearray(4)
+        with contextlib.suppress(OSError):
+            fcntl.ioctl(self._pipe, termios.FIONREAD, buf)
+        return len(self._outbox) + int.from_bytes(buf, "little")
+
+    def close(self, timeout: float = TIMEOUT_S) -> None:
+        """End the stream, wait for the child to finish the file, take its final counters.
         Idempotent."""
-        if self._closed:
-            return
-        if self._open is not None:
-            self._open.close(timeout)
-        self._closed = True
-        self._child.stdin.close()  # end of file: the child exits
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            self._writer.finish()
+            self._send(wait=True)
         try:
-            self._child.wait(timeout)
+            out, _ = self._child.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
             self._child.kill()
-            self._child.wait()
-        self._child.stdout.close()
+            out, _ = self._child.communicate()
+            self._die(f"the recorder process did not finish the log in {timeout:g} s")
+        status = self._child.returncode
+        if not out.strip():
+            how = f"killed by signal {-status}" if status < 0 else f"status {status}"
+            self._die(f"the recorder process exited ({how})")
+            return
+        final = json.loads(out.splitlines()[-1])
+        self.counts = Counter({k: final[t] for k, t in TOPICS.items()})
+        self.dropped += final["dropped"]
+        self.finished, self.error = final["finished"], self.error or final["error"]
 
-    def _exit_note(self) -> str:
-        """`` (status N)`` or `` (killed by signal N)`` once the child has exited, else ``""``."""
-        try:
-            status = self._child.wait(0.2)
-        except subprocess.TimeoutExpired:
-            return ""
-        return f" (killed by signal {-status})" if status < 0 else f" (status {status})"
 
-    def __enter__(self) -> RecorderService:
-        return self
+class _PipeInput:
+    """The child's standard input as the file ``StreamReader`` reads: ``read(n)`` gives ``n``
+    bytes (fewer only at its end) and calls ``idle`` while it waits."""
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __init__(self, idle: Any) -> None:
+        self.idle = idle
+        self.eof = False
+
+    def read(self, n: int = -1) -> bytes:
+        parts = []
+        while n > 0 and not self.eof:
+            if not select.select([0], [], [], IDLE_S)[0]:
+                self.idle()
+                continue
+            data = os.read(0, min(n, 1 << 20))
+            self.eof = not data
+            parts.append(data)
+            n -= len(data)
+        return b"".join(parts)
+
+
+class _LogCopy:
+    """The child's side: the stream's records into the file and the live stream."""
+
+    def __init__(self, how: dict[str, Any]) -> None:
+        self.how = how
+        self.rec: CycleRecorder | None = None
+        self.error: str | None = None
+        self.kinds: dict[int, int] = {}
+        self.cfg_json = ""
+        self.session: Any = None
+
+    def handle(self, record: Any) -> None:
+        if isinstance(record, Message):
+            kind = self.kinds.get(record.channel_id)
+            if self.rec is not None and kind is not None:
+                self.rec.add(kind, record.log_time, record.data)
+        elif isinstance(record, Channel):
+            self.kinds[record.id] = KIND_OF_TOPIC[record.topic]
+        elif isinstance(record, Metadata) and record.name == CONFIG_METADATA:
+            self.cfg_json = record.metadata["json"]
+        elif isinstance(record, Metadata) and record.name == RUN_METADATA:
+            try:
+                self.rec = self.open(config_from_json(self.cfg_json), record.metadata)
+            except Exception as exc:  # the stream is still read to its end
+                self.error = str(exc) or type(exc).__name__
+
+    def open(self, cfg: RigConfig, info: dict[str, str]) -> CycleRecorder:
+        scene = None
+        if self.how["scene"]:
+            from rt_controller.monitor.scene import SceneBuilder
+
+            scene = SceneBuilder(cfg)
+        rec = CycleRecorder(
+            self.how["path"], cfg, run_info=info, flush_interval_s=self.how["flush"], scene=scene
+        )
+        if self.how["live"]:
+            from hal.errors import HalError
+            from hal.zenoh_session import open_session
+            from rt_controller.monitor.live import LivePublisher
+
+            try:
+                self.session = open_session(cfg, listen=False, wait_s=5.0)
+                rec.set_live(LivePublisher(self.session))
+            except HalError as exc:
+                print(f"hil controller: warning: no live stream: {exc}", file=sys.stderr)
+        return rec
+
+    def idle(self) -> None:
+        if self.rec is not None:
+            self.rec.flush_if_due()  # a quiet log still reaches the disk
+
+    def close(self) -> dict[str, Any]:
+        """Finish the file; its counters, ``finished`` and ``error``."""
+        rec = self.rec
+        if rec is None:
+            return {"finished": False, "error": self.error or "no log in the stream"}
+        rec.close()
+        if rec.live is not None:
+            rec.live.close()
+        if self.session is not None:
+            self.session.close()
+        error = str(rec.error) if rec.error else None
+        if not (error or rec.finished):
+            error = "the writer did not finish the file"
+        return {**rec.as_dict(), "finished": rec.finished, "error": error}
+
+
+def _demote() -> None:
+    """Best effort: the recorder must not compete with a SCHED_FIFO loop that started it (the
+    policy and a single-CPU affinity are inherited)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        cpus = os.sched_getaffinity(0)
+        everything = set(range(os.cpu_count() or 1))
+        if len(cpus) == 1 and len(everything) > 1:
+            os.sched_setaffinity(0, everything - cpus)
+    except (AttributeError, OSError):
+        pass
+
+
+def serve(how: str) -> None:
+    """The child's program: the log's MCAP stream from standard input into the file, then the
+    log's counters as one JSON line on standard output. Warnings go to stderr."""
+    _demote()
+    copy = _LogCopy(json.loads(how))
+    pipe = _PipeInput(copy.idle)
+    try:
+        for record in StreamReader(pipe, record_size_limit=None).records:
+            copy.handle(record)  # the stream ends after the Footer's magic
+    except (McapError, struct.error, ValueError) as exc:  # the controller died mid-log
+        if not pipe.eof:
+            print(f"hil controller: recorder: bad record stream: {exc}", file=sys.stderr)
+    result = json.dumps(copy.close()).encode() + b"\n"
+    with contextlib.suppress(OSError):  # the controller is gone: the log is finished all the same
+        os.write(1, result)
+
+
+LAUNCH = (
+    "import signal, sys\n"
+    "for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP): signal.signal(s, signal.SIG_IGN)\n"
+    "from rt_controller.runtime.recorder_process import serve\n"
+    "serve(sys.argv[1])\n"
+)
+"""The child's program (``python -c``): signals ignored before anything is imported."""

@@ -22,7 +22,6 @@ from plant_emulator.dsp_node import DspNode
 from plant_emulator.dsp_realtime import RealtimeDsp
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.daemon import ControllerDaemon, DaemonOptions
-from rt_controller.runtime.recorder_process import RecorderService
 from tests.support.fake_clock import FakeClock
 
 MS = 1_000_000
@@ -150,9 +149,9 @@ def run_daemon(
             return decide(*args, **kwargs)
 
         daemon.controller.decide = slow_decide
-        with RecorderService(cfg) as service, JointClient.open(spec, cfg) as dsp:
+        with JointClient.open(spec, cfg) as dsp:
             clock.client = dsp
-            summary = daemon.run_on(dsp, NoZenoh(), service)
+            summary = daemon.run_on(dsp, NoZenoh())
     return summary, read_log(log), node
 
 

@@ -1,5 +1,5 @@
-"""The MCAP recorder in its own process: the same log as a ``CycleRecorder`` in this process,
-flushed while it waits, counted drops that never block a realtime tick, backpressure for
+"""The MCAP recorder in a process of its own: the same log as a ``CycleRecorder`` in this
+process, flushed while it waits, counted drops that never block a realtime tick, backpressure for
 lockstep, and the failures of either process."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from rt_controller.errors import LogError
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.counters import run_problems
 from rt_controller.runtime.recorder import CycleRecorder
-from rt_controller.runtime.recorder_process import RecorderService
+from rt_controller.runtime.recorder_process import RecorderProcess
 from tests.controller.test_recorder import cycle, flushed_ticks
 from tests.support import wait_until
 from tests.support.proc import alive
@@ -61,10 +61,8 @@ def _contents(path: Path) -> str:
 def test_the_process_writes_the_log_a_recorder_here_writes(tmp_path, cfg):
     with CycleRecorder(tmp_path / "here.mcap", cfg) as rec:
         _feed(rec, 300)
-    with RecorderService(cfg) as service:
-        remote = service.open(tmp_path / "process.mcap", cfg, run_info={"law": "rhc"})
+    with RecorderProcess(tmp_path / "process.mcap", cfg, run_info={"law": "rhc"}) as remote:
         _feed(remote, 300)
-        remote.close()
     assert remote.finished and remote.error is None
     assert remote.as_dict() == rec.as_dict()  # every topic, written, dropped, pending
     assert _contents(tmp_path / "process.mcap") == _contents(tmp_path / "here.mcap")
@@ -76,52 +74,44 @@ def test_a_quiet_log_reaches_the_disk_and_survives_a_killed_recorder(tmp_path, c
     """The child flushes a log that is due while it waits for more (no record arrives after
     the first 20); SIGKILLed then, it leaves those 20 readable."""
     path = tmp_path / "quiet.mcap"
-    with RecorderService(cfg) as service:
-        rec = service.open(path, cfg, flush_interval_s=0.05)
-        _feed(rec, 20)
-        assert wait_until(lambda: flushed_ticks(path) == 20, timeout_s=60.0, poll_s=0.05)
-        os.kill(service.pid, signal.SIGKILL)
-        rec.close(timeout=5)
+    rec = RecorderProcess(path, cfg, flush_interval_s=0.05)
+    _feed(rec, 20)
+    assert wait_until(lambda: flushed_ticks(path) == 20, timeout_s=60.0, poll_s=0.05)
+    os.kill(rec.pid, signal.SIGKILL)
+    rec.close(timeout=5)
     assert "recorder process" in rec.error
     log = read_log(path)
     assert log.truncated and list(log.cycles["tick"]) == list(range(20))
 
 
-def test_one_process_serves_the_logs_of_a_plan(tmp_path, cfg):
-    with RecorderService(cfg) as service:
-        for k in range(3):
-            rec = service.open(tmp_path / f"run{k}.mcap", cfg)
+def test_each_log_has_a_process_that_ends_with_it(tmp_path, cfg):
+    for k in range(3):
+        with RecorderProcess(tmp_path / f"run{k}.mcap", cfg) as rec:
             _feed(rec, 10 * (k + 1))
-            rec.close()
-            assert rec.as_dict()["/controller/cycle"] == 10 * (k + 1)
-        pid = service.pid
-    assert not alive(pid)
+        assert rec.as_dict()["/controller/cycle"] == 10 * (k + 1)
+        assert not alive(rec.pid)
     assert [read_log(tmp_path / f"run{k}.mcap").n_cycles for k in range(3)] == [10, 20, 30]
 
 
-def test_a_bad_log_path_is_a_clear_error_and_the_process_stays_usable(tmp_path, cfg):
+def test_a_bad_log_path_is_a_clear_error(tmp_path, cfg):
     (tmp_path / "file").write_text("not a folder")
-    with RecorderService(cfg) as service:
-        with pytest.raises(LogError, match="cannot create MCAP log"):
-            service.open(tmp_path / "file" / "run.mcap", cfg)
-        rec = service.open(tmp_path / "ok.mcap", cfg)
+    with pytest.raises(LogError, match="cannot create MCAP log"):
+        RecorderProcess(tmp_path / "file" / "run.mcap", cfg)
+    with RecorderProcess(tmp_path / "ok.mcap", cfg) as rec:
         _feed(rec, 5)
-        rec.close()
     assert read_log(tmp_path / "ok.mcap").n_cycles == 5
 
 
 def test_a_stalled_recorder_costs_a_realtime_tick_counted_drops_never_a_wait(tmp_path, cfg):
-    with RecorderService(cfg) as service:
-        service.outbox_limit = 4096
-        rec = service.open(tmp_path / "run.mcap", cfg, backpressure=False)
-        os.kill(service.pid, signal.SIGSTOP)  # the recorder gets no CPU
+    with RecorderProcess(tmp_path / "run.mcap", cfg, backpressure=False) as rec:
+        rec.outbox_limit = 4096
+        os.kill(rec.pid, signal.SIGSTOP)  # the recorder gets no CPU
         try:
             kept = sum(rec.record_cycle(cycle(i)) for i in range(20_000))
         finally:
-            os.kill(service.pid, signal.SIGCONT)
+            os.kill(rec.pid, signal.SIGCONT)
         dropped = 20_000 - kept
         assert dropped > 0  # the pipe and the outbox filled up: later ticks were dropped
-        rec.close()
     counts = rec.as_dict()
     assert counts["dropped"] == dropped and counts["pending"] == 0
     assert counts["/controller/cycle"] == kept == read_log(tmp_path / "run.mcap").n_cycles
@@ -129,34 +119,31 @@ def test_a_stalled_recorder_costs_a_realtime_tick_counted_drops_never_a_wait(tmp
 
 
 def test_a_stalled_recorder_makes_a_lockstep_tick_wait_and_loses_nothing(tmp_path, cfg):
-    with RecorderService(cfg) as service:
-        service.outbox_limit = 4096
-        rec = service.open(tmp_path / "run.mcap", cfg, backpressure=True)
-        os.kill(service.pid, signal.SIGSTOP)
-        resume = threading.Timer(0.3, os.kill, (service.pid, signal.SIGCONT))
+    with RecorderProcess(tmp_path / "run.mcap", cfg, backpressure=True) as rec:
+        rec.outbox_limit = 4096
+        os.kill(rec.pid, signal.SIGSTOP)
+        resume = threading.Timer(0.3, os.kill, (rec.pid, signal.SIGCONT))
         resume.start()
         try:
             assert all(rec.record_cycle(cycle(i)) for i in range(20_000))
         finally:
             resume.join()
-        rec.close()
     assert rec.as_dict()["dropped"] == 0 and rec.as_dict()["/controller/cycle"] == 20_000
     assert read_log(tmp_path / "run.mcap").n_cycles == 20_000
 
 
 def test_a_killed_recorder_is_reported_and_never_stops_the_loop(tmp_path, cfg):
-    with RecorderService(cfg) as service:
-        rec = service.open(tmp_path / "run.mcap", cfg)
-        _feed(rec, 50)
-        os.kill(service.pid, signal.SIGKILL)
-        # the loop goes on; a record is refused once the pipe reports the loss (the kernel
-        # closes a killed process's pipes when its last thread has exited)
-        i = 50
-        while rec.record_cycle(cycle(i)) and i < 100_000:
-            i += 1
-            time.sleep(0.001)
-        sent = [rec.record_cycle(cycle(j)) for j in range(i, i + 10)]
-        rec.close(timeout=5)
+    rec = RecorderProcess(tmp_path / "run.mcap", cfg)
+    _feed(rec, 50)
+    os.kill(rec.pid, signal.SIGKILL)
+    # the loop goes on; a record is refused once the pipe reports the loss (the kernel
+    # closes a killed process's pipes when its last thread has exited)
+    i = 50
+    while rec.record_cycle(cycle(i)) and i < 100_000:
+        i += 1
+        time.sleep(0.001)
+    sent = [rec.record_cycle(cycle(j)) for j in range(i, i + 10)]
+    rec.close(timeout=5)
     assert not any(sent)  # nothing is queued in vain after that
     assert rec.dropped == 11  # the refused records are counted
     assert "recorder process" in rec.error and not rec.finished
@@ -167,14 +154,12 @@ def test_a_killed_recorder_is_reported_and_never_stops_the_loop(tmp_path, cfg):
 
 
 def test_the_recorder_ignores_ctrl_c_and_the_controller_ends_the_log(tmp_path, cfg):
-    with RecorderService(cfg) as service:
-        rec = service.open(tmp_path / "run.mcap", cfg)
+    with RecorderProcess(tmp_path / "run.mcap", cfg) as rec:
         _feed(rec, 10)
         time.sleep(0.2)  # let the child install its handlers (no assertion on timing)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            os.kill(service.pid, sig)
+            os.kill(rec.pid, sig)
         _feed(rec, 10, start=10)
-        rec.close()
     assert rec.error is None and read_log(tmp_path / "run.mcap").n_cycles == 20
 
 
@@ -182,15 +167,14 @@ _KILLED_CONTROLLER = textwrap.dedent(
     """
     import os, signal, sys
     from hal.config import RigConfig
-    from rt_controller.runtime.recorder_process import RecorderService
+    from rt_controller.runtime.recorder_process import RecorderProcess
     from tests.controller.test_recorder import cycle
 
     cfg = RigConfig()
-    service = RecorderService(cfg)
-    rec = service.open(sys.argv[1], cfg)
+    rec = RecorderProcess(sys.argv[1], cfg)
     for i in range(200):
         rec.record_cycle(cycle(i))
-    print(service.pid, flush=True)
+    print(rec.pid, flush=True)
     os.kill(os.getpid(), signal.SIGKILL)
     """
 )
@@ -219,14 +203,12 @@ def test_the_recorder_finishes_the_log_of_a_sigkilled_controller(tmp_path):
 
 
 def test_a_record_that_cannot_be_encoded_is_counted_and_the_rest_kept(tmp_path, cfg):
-    with RecorderService(cfg) as service:
-        rec = service.open(tmp_path / "run.mcap", cfg)
+    with RecorderProcess(tmp_path / "run.mcap", cfg) as rec:
         rec.record_vision(b"ok", 1)
         bad = cycle(0)
         bad["u"] = lambda: None  # not JSON
         assert rec.record_cycle(bad) is False  # counted, never raised into the tick
         _feed(rec, 5, start=1)
-        rec.close()
     counts = rec.as_dict()
     assert counts["encode_errors"] == 1 and counts["/vision/features"] == 6
     assert counts["/controller/cycle"] == 5 and rec.error is None
@@ -245,14 +227,12 @@ def test_lockstep_logs_of_the_same_records_hold_the_same_bytes(tmp_path, cfg):
     with CycleRecorder(tmp_path / "here.mcap", cfg) as here:
         _feed(here, 200)
     paths = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
-    with RecorderService(cfg) as service:
-        for k, path in enumerate(paths):
-            rec = service.open(path, cfg, backpressure=True)
+    for k, path in enumerate(paths):
+        with RecorderProcess(path, cfg, backpressure=True) as rec:
             if k:
-                os.kill(service.pid, signal.SIGSTOP)
-                threading.Timer(0.3, os.kill, (service.pid, signal.SIGCONT)).start()
+                os.kill(rec.pid, signal.SIGSTOP)
+                threading.Timer(0.3, os.kill, (rec.pid, signal.SIGCONT)).start()
             _feed(rec, 200)
-            rec.close()
-            assert rec.dropped == 0 and rec.error is None
+        assert rec.dropped == 0 and rec.error is None
     a, b = (_messages(p) for p in paths)
     assert len(a) == 801 and a == b == _messages(tmp_path / "here.mcap")
