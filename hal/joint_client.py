@@ -52,19 +52,14 @@ from hal.secoc import rig_key
 log = logging.getLogger(__name__)
 
 STATUS_BACKLOG = 64
+"""DspStatus frames kept for :meth:`JointClient.take_statuses` between two calls (the DSP sends
+10 a second plus one per change)."""
 DRAIN_MAX_FRAMES = 1024
 """Most frames one :meth:`JointClient.drain` takes (half a second of free-running state at
 1 kHz): a bus that never runs dry (a flood, or a reader slower than the sender) ends the drain
 here instead of never, and the rest waits for the next one."""
-"""DspStatus frames kept for :meth:`JointClient.take_statuses` between two calls (the DSP sends
-10 a second plus one per change)."""
 
 FrameHook = Callable[[can.Message], None]
-
-
-def _delay_tick(release_delay_us: int) -> int:
-    """A TorqueCommand's ``Tick`` carrying a release delay (saturated)."""
-    return min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
 
 
 @dataclass
@@ -82,7 +77,7 @@ class ClientStats:
     transport_errors: int = 0
     """Receive calls that raised (a driver error), counted and read as "no frame"."""
     hook_errors: int = 0
-    """Exceptions raised by ``frame_hook`` (logged once, swallowed)."""
+    """Exceptions raised by ``rx_hook`` (logged once, swallowed)."""
     drains_cut: int = 0
     """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (the bus had not run dry)."""
 
@@ -92,7 +87,7 @@ class JointClient:
 
     :param bus: an open python-can bus (see :func:`hal.bus.open_bus`).
     :param cfg: rig configuration (``controller.state_timeout_s`` is the default staleness limit).
-    :param frame_hook: called with every raw frame as it is read, before validation (e.g. to
+    :param rx_hook: called with every raw frame as it is read, before validation (e.g. to
         log it to MCAP); it must be quick; its exceptions are swallowed.
     :param tx_hook: called with every frame after it was sent (quick).
     :param owns_bus: shut ``bus`` down on :meth:`close`.
@@ -105,7 +100,7 @@ class JointClient:
         bus: can.BusABC,
         cfg: RigConfig | None = None,
         *,
-        frame_hook: FrameHook | None = None,
+        rx_hook: FrameHook | None = None,
         tx_hook: FrameHook | None = None,
         owns_bus: bool = False,
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
@@ -113,7 +108,7 @@ class JointClient:
     ) -> None:
         self.cfg = cfg if cfg is not None else RigConfig()
         self.bus = bus
-        self.frame_hook = frame_hook
+        self.rx_hook = rx_hook
         self.tx_hook = tx_hook
         self._owns_bus = owns_bus
         self._key = key if key is not None else rig_key(self.cfg)
@@ -208,7 +203,7 @@ class JointClient:
         :class:`HalTransportError` when the bus refuses the frame.
         """
         if release_delay_us is not None:
-            tick = _delay_tick(release_delay_us)
+            tick = min(max(0, int(release_delay_us)), RELEASE_DELAY_SATURATED)
         elif tick is None:
             tick = self._sync_tick or 0
         on = self._armed if enable is None else enable and self._armed
@@ -234,8 +229,7 @@ class JointClient:
         """Remove torque: DspControl DISABLE (twice) and a zero TorqueCommand with Enable=0."""
         self._armed = False
         self.send_command(DspCommand.DISABLE)
-        tick = self._sync_tick or 0
-        self._send(lambda c: c.encode_torque(0.0, 0.0, enable=False, tick=tick))
+        self.send_torque(0.0, 0.0, enable=False)
 
     def await_new_session(self, timeout_s: float, request: Callable[[], object]) -> DspStatus:
         """Call ``request`` (which asks an emulated lockstep DSP for a scenario reset, e.g. on
@@ -310,14 +304,14 @@ class JointClient:
         raises."""
         now = time.monotonic_ns() if t_ns is None else t_ns
         self._n.frames += 1
-        hook = self.frame_hook
+        hook = self.rx_hook
         if hook is not None:
             try:
                 hook(msg)
             except Exception as exc:
                 self._n.hook_errors += 1
                 if self._n.hook_errors == 1:
-                    log.warning("frame_hook raised (further errors are only counted): %r", exc)
+                    log.warning("rx_hook raised (further errors are only counted): %r", exc)
         frame = self._codec.decode(msg, now)
         if frame is None:
             return

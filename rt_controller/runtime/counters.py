@@ -91,18 +91,13 @@ class OutageTracker:
             if len(self.listed) < OUTAGES_LISTED:
                 self.listed.append(stretch)
 
-    def finished(self) -> OutageTracker:
-        """This tracker with the stretch still going on at the last tick closed (a copy: the
-        run may go on)."""
-        out = OutageTracker(self.warn_periods, self.max_share, self.ticks, self.bad_ticks)
-        out.count, out.listed, out.longest = self.count, list(self.listed), self.longest
-        if self.current is not None:
-            out._close(self.current)
-        return out
-
     def as_dict(self, period_s: float) -> dict[str, Any]:
-        """The summary's ``outages`` block (the open stretch counted as ended)."""
-        done = self.finished()
+        """The summary's ``outages`` block, the open stretch counted as ended (on a copy: the
+        run may go on)."""
+        done = OutageTracker(self.warn_periods, self.max_share, self.ticks, self.bad_ticks)
+        done.count, done.listed, done.longest = self.count, list(self.listed), self.longest
+        if self.current is not None:
+            done._close(self.current)
         return {
             "warn_periods": done.warn_periods,
             "max_share": done.max_share,

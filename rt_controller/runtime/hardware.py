@@ -3,9 +3,11 @@ the emulated or real DSP of ``hal/hil.dbc`` over CAN, the image features over ze
 
 The CAN link is a :class:`~hal.joint_client.JointClient` in poll mode (read in the control
 thread, no receive thread); the features come through a
-:class:`~rt_controller.runtime.feature_link.FeatureLink` (the zenoh half every profile shares).
-The drive's state is followed by :class:`DrivePolicy`. In lockstep the DSP paces:
-:meth:`DspHardware.step` waits for its ``Sync(k)``.
+:class:`~rt_controller.runtime.feature_link.FeatureLink` (the zenoh half every profile shares,
+with the rest of :class:`~rt_controller.runtime.hardware_base.HardwareBase`). Every DspStatus
+is followed by a :class:`~hal.drive_state.DriveMonitor`, which says in which mode each tick
+runs and when the re-arm policy acts. In lockstep the DSP paces: :meth:`DspHardware.step`
+waits for its ``Sync(k)``.
 """
 
 from __future__ import annotations
@@ -14,8 +16,7 @@ import math
 import time
 from typing import Any
 
-import numpy as np
-
+from hal.drive_state import MODE_ENABLED, DriveEvent, DriveMonitor, DriveUpdate, FaultReason
 from hal.errors import HalTimeoutError
 from hal.hardware_interface import InputJudge, Observation, StopFlag
 from hal.joint_client import JointClient
@@ -23,8 +24,8 @@ from hal.vision_receivers import FeatureDecoder
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.context import RunContext
-from rt_controller.runtime.drive_policy import ENABLE_TIMEOUT_S, DrivePolicy
 from rt_controller.runtime.feature_link import FeatureLink
+from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, HardwareBase
 from rt_controller.runtime.pacers import LOCKSTEP_FEATURE_TIMEOUT_S
 
 STARTUP_TIMEOUT_S = 20.0
@@ -37,8 +38,14 @@ PREFETCH_GUARD_NS = 1_000_000
 """Realtime: the read-ahead between releases stops this long before the next release."""
 
 
-class DspHardware:
-    """CAN and zenoh of one run, read and written from the control thread."""
+class DspHardware(HardwareBase):
+    """CAN and zenoh of one run, read and written from the control thread.
+
+    Re-arm policy (``controller.rearm_after_trip``, ``controller.rearm_after_restart``): a
+    watchdog fault means this loop was late, so it may be reset and re-armed once per trip; a
+    DSP that restarted (new session) or was disabled by someone else is re-armed only when
+    configured; a limit or encoder fault never is; after the operator's ``disarm`` none is.
+    """
 
     def __init__(
         self,
@@ -52,29 +59,24 @@ class DspHardware:
     ) -> None:
         """``session``: the run's zenoh session (``subscribe``, ``subscribe_ring``);
         ``lockstep``: the DSP's Sync paces (features by callback, no cyclic arming)."""
-        self.ctx = ctx
+        link = FeatureLink(ctx, session, features, by_callback=lockstep, record_raw=record_raw)
+        super().__init__(ctx, link, lockstep=lockstep, record_raw=record_raw)
         self.dsp = dsp
-        self.features = FeatureLink(
-            ctx, session, features, by_callback=lockstep, record_raw=record_raw
-        )
-        self.lockstep = lockstep
-        self.record_raw = record_raw
-        self.drive = DrivePolicy(ctx)
+        self.monitor = DriveMonitor()
+        self.held_off = False
+        """The operator disarmed the DSP: no policy re-arm until the operator arms it."""
         self.can_base = dsp.stats.e2e.as_dict()
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
-        self._enable_by: int | None = None
-        """Arming: when the DSP must report *operation enabled* (None: not yet activated)."""
         self._arming_sent = 0
-        self._states_seen = -1
         self._last_sync: int | None = None
-        self.last_tau = (0.0, 0.0)
 
     # --- lifecycle --------------------------------------------------------------------------
     def configure(self, stop: StopFlag) -> None:
         """Subscribe this run to the features (and the camera's images, when logged), hook
         the raw CAN log, then wait for the DSP's first joint state (and, read by ring, the
         first features)."""
-        self._attach()
+        self.features.attach()
+        self._hook_raw_can(self.dsp)
         self._wait_ready(stop, features=not self.lockstep)
 
     def activate(self, now_ns: int) -> bool:
@@ -87,27 +89,22 @@ class DspHardware:
         expired = self._enable_by is not None and clock.now_ns() > self._enable_by
         self._poll(clock.now_ns())
         needed = 0 if self.lockstep else ARMING_COMMANDS
-        if self.drive.enabled_now(dsp, expired) and self._arming_sent >= needed:
+        if self._enabled_now(expired) and self._arming_sent >= needed:
             return True
         if self._enable_by is None:
             dsp.enable()
-            self._enable_by = clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
+            self._start_arming()
         if not self.lockstep:
             delay = (clock.now_ns() - now_ns) // 1000
             dsp.send_torque(0.0, 0.0, release_delay_us=delay, enable=False)
             self._arming_sent += 1
             self.ctx.counters.arming_ticks += 1
-        self._states_seen = dsp.states_received
+        self._arrived(dsp.states_received)
         return False
 
-    def deactivate(self) -> None:
-        """Zero torque and DISABLE when armed; end the feeds and hooks of this run."""
-        if self._enable_by is not None:
-            self.dsp.send_torque(0.0, 0.0)
-            self.dsp.disable()
-            self._enable_by = None
-        self.features.detach()
-        self.dsp.frame_hook = self.dsp.tx_hook = None
+    def _disarm(self) -> None:
+        self.dsp.send_torque(0.0, 0.0)
+        self.dsp.disable()
 
     # --- pacing -----------------------------------------------------------------------------
     def wait_inputs(self, until_ns: int) -> None:
@@ -146,30 +143,14 @@ class DspHardware:
         the newest joint state and features judged stale or fresh by ``judge``."""
         self._poll(self.ctx.clock.now_ns())  # stamped when actually read, not at the wake-up
         dsp = self.dsp
-        state_new = dsp.states_received != self._states_seen
-        self._states_seen = dsp.states_received
-        mode = self.drive.follow(dsp, now_ns, judge.status_limit_s)
-        state_stale, state_ns = False, None
+        state_new = self._arrived(dsp.states_received)
+        mode = self._follow(now_ns, judge.status_limit_s)
         try:
             state = dsp.latest_state(max_age_s=judge.state_limit_s, now_ns=now_ns)
-            q, dq, state_ns = np.array(state.q), np.array(state.dq), state.t_ns
-            state_age_ms = (now_ns - state.t_ns) / 1e6
         except HalTimeoutError:
-            state_stale, q, dq, state_age_ms = True, np.full(2, math.nan), np.zeros(2), math.nan
-        f, f_age_ms, f_stale, f_valid = self.features.latest(now_ns, judge)
-        return Observation(
-            q=q,
-            dq=dq,
-            f=f,
-            state_ns=state_ns,
-            state_age_ms=state_age_ms,
-            state_stale=state_stale,
-            f_age_ms=f_age_ms,
-            f_stale=f_stale,
-            f_valid=f_valid,
-            drive_mode=mode,
-            state_new=state_new,
-        )
+            return self._observation(now_ns, judge, None, None, math.nan, mode, state_new)
+        age_ms = (now_ns - state.t_ns) / 1e6
+        return self._observation(now_ns, judge, state, state.t_ns, age_ms, mode, state_new)
 
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:
         """Send the tick's torque: answering Sync ``sync`` when given, else carrying how long
@@ -181,27 +162,92 @@ class DspHardware:
             delay = (self.ctx.clock.now_ns() - release_ns) // 1000
             self.dsp.send_torque(t1, t2, release_delay_us=delay)
 
+    # --- the drive state (every DspStatus followed) -----------------------------------------
+    def _enabled_now(self, expired: bool) -> bool:
+        """During arming: whether the DSP reports *operation enabled* (its statuses are
+        followed, not acted on: ENABLE resets); raises once ``expired`` and it does not."""
+        status = self.dsp.status
+        for st in self.dsp.take_statuses():
+            self.monitor.update(st)
+        if self.monitor.mode == MODE_ENABLED:
+            return True
+        if expired:
+            state = "no DspStatus" if status is None else status.drive_state.label
+            fault = "" if status is None else f", fault {status.fault_reason.label}"
+            raise ControllerError(
+                f"the DSP did not enter operation enabled within {ENABLE_TIMEOUT_S:g} s "
+                f"(state {state}{fault})"
+            )
+        return False
+
+    def _follow(self, now_ns: int, status_limit_s: float | None) -> str:
+        """Feed every status since the last read to the monitor, in order, acting on each
+        update's events (a fault, reset and enable that arrived between two reads are all
+        seen); the drive mode of this tick. A status older than ``status_limit_s`` means a
+        silent DSP (None: no limit, the pacer's clock already proves the DSP alive)."""
+        for status in self.dsp.take_statuses():
+            self._on_events(self.monitor.update(status))
+        silent = False
+        if status_limit_s is not None:
+            age = self.dsp.status_age_s_at(now_ns)
+            silent = age is None or age > status_limit_s
+        return self._tick_mode(self.monitor.mode, silent)
+
+    def _on_events(self, upd: DriveUpdate) -> None:
+        ctl, n, dsp = self.ctx.cfg.controller, self.ctx.counters, self.dsp
+        for ev in upd.events:
+            if ev is DriveEvent.FAULT:
+                n.dsp_faults[upd.fault.label] += 1
+            if self.held_off:  # the operator's disarm stands: count, never re-arm
+                continue
+            if ev is DriveEvent.FAULT and upd.fault is FaultReason.WATCHDOG:
+                n.watchdog_trips += 1
+                if ctl.rearm_after_trip:
+                    dsp.enable(reset_fault=True)
+                    n.rearms += 1
+            elif ev in (DriveEvent.DSP_RESTARTED, DriveEvent.DISARMED) and ctl.rearm_after_restart:
+                if ev is DriveEvent.DSP_RESTARTED:
+                    self.monitor.acknowledge_restart()
+                dsp.enable(reset_fault=False)
+                n.rearms += 1
+
     def command(self, action: str) -> str | None:
-        """An operator's ``arm``, ``disarm`` or ``mark`` (:meth:`DrivePolicy.operate`)."""
-        return self.drive.operate(self.dsp, action)
+        """An operator's ``arm``, ``disarm`` or ``mark`` (nothing to do); None when done,
+        else why not."""
+        if action == "disarm":
+            if self.held_off:
+                return "already disarmed by the operator"
+            self.held_off = True
+            self.dsp.disable()
+        elif action == "arm":
+            if not self.held_off and self.monitor.mode == MODE_ENABLED:
+                return "already armed"
+            self.held_off = False
+            self.dsp.enable(reset_fault=True)
+        return None
 
     def diagnostics(self) -> dict[str, dict[str, Any]]:
-        """The receive verdicts of this run (``can_rx``, ``features``) and the drive (``dsp``)."""
+        """The receive verdicts of this run (``can_rx``, ``features``) and the drive (``dsp``:
+        its last status, the monitor's events, the run's ticks by drive mode)."""
+        status = self.dsp.status
         return {
             "can_rx": diagnostics.since(self.can_base, self.dsp.stats.e2e.as_dict()),
             "features": self.features.features.counts.as_dict(),
-            "dsp": self.drive.block(self.dsp),
+            "dsp": {
+                "status_received": status is not None,
+                "mode": self.monitor.mode,
+                "drive_state": status.drive_state.label if status else "none",
+                "fault_reason": status.fault_reason.label if status else "none",
+                "session": int(status.session) if status else 0,
+                "torque_enabled": bool(status and status.torque_enabled),
+                "watchdog_tripped": bool(status and status.watchdog_tripped),
+                "rejected_frames": int(status.rejected_frames) if status else 0,
+                **{f"events.{k}": v for k, v in self.monitor.counters().items()},
+                **{f"ticks.{k}": v for k, v in self.ctx.counters.drive_ticks.items()},
+            },
         }
 
     # --- links ------------------------------------------------------------------------------
-    def _attach(self) -> None:
-        """This run's feature subscriptions, and the raw CAN log's hooks."""
-        self.features.attach()
-        if self.record_raw:
-            rec, now = self.ctx.recorder, self.ctx.clock.now_ns
-            self.dsp.frame_hook = lambda m: rec.record_can(m, now(), "rx")
-            self.dsp.tx_hook = lambda m: rec.record_can(m, now(), "tx")
-
     def _wait_ready(self, stop: StopFlag, *, features: bool) -> None:
         """Until the first joint state (and, with ``features``, image features)."""
         deadline = time.monotonic() + STARTUP_TIMEOUT_S

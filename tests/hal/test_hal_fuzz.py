@@ -229,7 +229,7 @@ def test_client_receive_path_counts_every_frame(seed: int) -> None:
     hooked: list[can.Message] = []
     with (
         open_bus(isolated_spec("virtual")) as bus,
-        JointClient(bus, frame_hook=hooked.append) as client,
+        JointClient(bus, rx_hook=hooked.append) as client,
     ):
         for i, msg in enumerate(FrameSource(rng, DspCodec(), dsp_frames(rng))):
             before = client.stats.e2e.as_dict()
