@@ -62,6 +62,10 @@ class Observation:
     for CiA 402 cyclic synchronous torque (a drive latches the RPDO at the next SYNC). The
     pacer brings the state and the features forward by it (``controller.predict_state``,
     ``predict_features``)."""
+    drives: dict[str, Any] | None = None
+    """What the profile's drives reported for this tick, as extra fields of the cycle record
+    (the ``drive_*`` fields of ``cycle_schema.json``, one value per joint); None: the profile
+    has none (the DSP's drive state is ``drive_mode``)."""
 
 
 class StopFlag(Protocol):

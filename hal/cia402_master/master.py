@@ -96,6 +96,10 @@ class JointState:
     """The SYNC these TPDOs answered."""
     sync_ns: int
     """When that SYNC was sent (the drives sample at the SYNC)."""
+    statuswords: tuple[int, ...] = ()
+    """Each drive's statusword 0x6041 (raw)."""
+    torques_per_mille: tuple[int, ...] = ()
+    """Each drive's torque actual 0x6077 (raw: per mille of the rated torque 0x6076)."""
 
 
 class Cia402Master:
@@ -140,6 +144,8 @@ class Cia402Master:
         self.units: list[DriveUnits] = []
         self.limits: list[int] = []
         self.controlwords = [State402.CW_DISABLE_VOLTAGE] * len(self.nodes)
+        self.targets = [0] * len(self.nodes)
+        """The target torque 0x6071 of each drive's last RPDO (raw, per mille)."""
         self.sync_intervals_us: deque[float] = deque(maxlen=TIMING_KEPT)
         self.tpdo_latency_us: deque[float] = deque(maxlen=TIMING_KEPT)
         self._timed_sync = 0
@@ -224,8 +230,9 @@ class Cia402Master:
         for i, node in enumerate(self.nodes):
             pdo = node.rpdo[1]
             tau = 0.0 if torques_nm is None or not self.units else float(torques_nm[i])
+            target = self.units[i].per_mille(tau, self.limits[i]) if tau else 0
             pdo[CONTROLWORD].raw = self.controlwords[i]
-            pdo[TARGET_TORQUE].raw = self.units[i].per_mille(tau, self.limits[i]) if tau else 0
+            pdo[TARGET_TORQUE].raw = self.targets[i] = target
             pdo.transmit()
 
     def steer(self, target: str) -> bool:
@@ -269,6 +276,8 @@ class Cia402Master:
             states=tuple(state_of(r[0]) for r in raw),
             sync=k,
             sync_ns=sync_ns,
+            statuswords=tuple(r[0] for r in raw),
+            torques_per_mille=tuple(r[3] for r in raw),
         )
         return self._last_state
 

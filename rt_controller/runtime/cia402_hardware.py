@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from hal.bus import open_bus
-from hal.cia402_master.master import Cia402Master
+from hal.cia402_master.master import Cia402Master, JointState
 from hal.config import RigConfig
 from hal.drive_state import MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
 from hal.hardware_interface import InputJudge, Observation, StopFlag
@@ -198,6 +198,7 @@ class Cia402Hardware:
             drive_mode=mode,
             state_new=state_new,
             actuation_delay_ms=self._actuation_delay_ms(),
+            drives=self._drive_fields(js),
         )
 
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:
@@ -253,6 +254,23 @@ class Cia402Hardware:
         torque acts when written and the state's age (since its SYNC, about one period)
         already covers the delay."""
         return self.ctx.cfg.rates.control_period_ns / 1e6 if self.lockstep else 0.0
+
+    def _drive_fields(self, js: JointState | None) -> dict[str, Any] | None:
+        """The cycle record's ``drive_*`` fields (``cycle_schema.json``): each drive's power
+        state, statusword and torque actual from the TPDO set ``js``, the controlword and
+        target torque of the last RPDO sent; None before the first TPDO set."""
+        if js is None:
+            return None
+        m = self.master
+        return {
+            "drive_state_1": js.states[0],
+            "drive_state_2": js.states[1],
+            "drive_statusword": list(js.statuswords),
+            "drive_controlword": list(m.controlwords),
+            "drive_target_torque": list(m.targets),
+            "drive_torque_actual": list(js.torques_per_mille),
+            "drive_sync": js.sync,
+        }
 
     def _count_faults(self) -> None:
         """New faults of the drives (EMCY codes, heartbeat loss, reboot) into the run's

@@ -120,11 +120,13 @@ def cycle_record(
     predict_ms: float = 0.0,
     f_predict_ms: float = 0.0,
     param_set: int = 0,
+    drives: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One cycle record, fields in the order of ``cycle_schema.json``; ``decision`` comes from
     :func:`decision_fields`; ``predict_ms`` and ``f_predict_ms`` are the ages of the state and
     of the features the tick compensated; ``param_set`` the online parameter set in force
-    (:mod:`rt_controller.calibration.parameters`)."""
+    (:mod:`rt_controller.calibration.parameters`); ``drives``: the hardware profile's per-joint
+    drive fields (``drive_*``, the cia402 profile's), after the rest."""
     return {
         "tick": tick,
         "t_ns": t_ns,
@@ -150,6 +152,7 @@ def cycle_record(
         "state_stale": state_stale,
         **decision,
         "param_set": param_set,
+        **(drives or {}),
     }
 
 

@@ -151,6 +151,7 @@ class ControlLoop:
             predict_ms=predict_ms,
             f_predict_ms=f_predict_ms,
             param_set=self.params.param_set,
+            drives=obs.drives,
         )
 
     def record(self, cycle: dict[str, Any]) -> None:
