@@ -9,7 +9,6 @@ that the compiled call is held to; the product has this one implementation.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -17,28 +16,16 @@ import numpy as np
 from hal.config import RigConfig
 from rt_controller.control import decide_kernel as dk
 from rt_controller.control.law_table import make_law
-from rt_controller.control.laws import ControlLaw, LawOutput, Measurement
+from rt_controller.control.laws import ControlLaw
 from rt_controller.control.model import NominalModel
-from rt_controller.control.state import IO, MODE_NAMES, OUTPUTS, Field, pack_params
+from rt_controller.control.state import IO, MODE_NAMES, OUTPUTS, pack_params
 from rt_controller.control.state_predictor import StatePredictor
 
-
-@dataclass(frozen=True)
-class Command:
-    """What one tick decided: the law's output, the torque of eq. (11) and its saturated value."""
-
-    measurement: Measurement
-    law: LawOutput
-    tau_raw: np.ndarray
-    tau: np.ndarray
-    saturated: bool
-
-
-def _record_entry(f: Field) -> tuple[str, int, str]:
-    return ("law" if f.record == "law" else f.name, IO.offset(f.name), f.record)
-
-
-_RECORD = tuple(_record_entry(f) for f in OUTPUTS if f.record)
+_RECORD = tuple(
+    ("law" if f.record == "law" else f.name, IO.offset(f.name), f.record)
+    for f in OUTPUTS
+    if f.record
+)
 """(record name, io offset, JSON type) of each output the cycle record holds, in order."""
 _OUTPUT = {f.name: (IO.offset(f.name), f.size) for f in OUTPUTS}
 
@@ -53,14 +40,14 @@ class Decision:
     reads only the record's numbers (:meth:`record_fields`).
     """
 
-    __slots__ = ("_command", "_out", "_solve_ns", "_t", "_tau", "mode", "torque")
+    __slots__ = ("_out", "_solve_ns", "_tau", "mode", "torque")
 
-    def __init__(self, io: np.ndarray, drive_mode: str, t: float, solve_ns: int) -> None:
+    def __init__(self, io: np.ndarray, drive_mode: str, solve_ns: int) -> None:
         """``io``: the rule's io vector after the call; ``drive_mode`` names the mode when the
-        drive was not enabled; ``t`` the tick's time; ``solve_ns`` the call's duration."""
+        drive was not enabled; ``solve_ns`` the call's duration."""
         v = io.tolist()
         self._out = v
-        self._t, self._solve_ns = t, solve_ns
+        self._solve_ns = solve_ns
         self._tau: np.ndarray | None = None
         self.torque = (v[IO.TAU], v[IO.TAU + 1])
         """The torque to send, as the pair of floats the write takes."""
@@ -68,7 +55,6 @@ class Decision:
         self.mode = MODE_NAMES[mode] if mode < len(MODE_NAMES) else drive_mode
         """``control`` (the law ran), ``hold`` (stale features: joint damper), ``no_state``, or
         the drive's mode when it is not enabled (``disarmed``, ``fault``, ...)."""
-        self._command: Command | None = None
 
     def __getattr__(self, name: str) -> Any:
         """An output of the rule by its declared name (:data:`~rt_controller.control.state.
@@ -85,33 +71,6 @@ class Decision:
         if self._tau is None:
             self._tau = np.array(self.torque)
         return self._tau
-
-    @property
-    def command(self) -> Command | None:
-        """The law's step when ``mode == "control"``."""
-        if self._command is None and self.mode == "control":
-            m = Measurement(t=self._t, q=self.q_pred, dq=self.dq_pred, f=self.f_pred, xi=self.xi)
-            law = LawOutput(
-                u=self.u,
-                residual=self.residual,
-                iterations=int(self.iterations),
-                fallback=bool(self.fallback),
-                solve_ns=self._solve_ns,
-            )
-            self._command = Command(m, law, self.tau_raw, self.tau, bool(self.tau_saturated))
-        return self._command
-
-    @property
-    def state(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(q, dq) the hold or the law acted on: the joint state brought up to the tick (as
-        measured when its age was not given); ``None`` when neither ran."""
-        return (self.q_pred, self.dq_pred) if self.mode in ("control", "hold") else None
-
-    @property
-    def features(self) -> np.ndarray | None:
-        """f the law acted on: the features brought up to the tick (as measured when their age
-        was not given); ``None`` when the law did not run."""
-        return self.f_pred if self.mode == "control" else None
 
     @property
     def solve_ns(self) -> int:
@@ -223,7 +182,7 @@ class Controller:
         start = time.perf_counter_ns()
         rule.call()
         solve_ns = time.perf_counter_ns() - start
-        return Decision(io, drive_mode, t, solve_ns)
+        return Decision(io, drive_mode, solve_ns)
 
     def warm_up(self) -> None:
         """Run every branch of the per-tick rule once (law, eq. 11, costs, hold, no state, a

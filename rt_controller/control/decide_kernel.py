@@ -1,11 +1,10 @@
 """The per-tick rule as one compiled call: observation numbers in, decision numbers out.
 
-:func:`decide_tick` does in one numba call what
-:meth:`~rt_controller.control.controller.Controller.decide` spells out in Python with the law
-objects: the drive-state and staleness branches, the delay compensation
-(:func:`~rt_controller.control.model_kernels.compensate`), xi and the feedforward of eq. (11),
-the law (eq. 15, eq. 27, or the C/GMRES update of eq. 30 with its residual check and its
-fallback to eq. 27), the torque and its saturation, l and V, and the torque history the next
+:func:`decide_tick` does in one numba call what the test oracle ``tests/support/python_rule.py``
+spells out in Python with the law objects: the drive-state and staleness branches, the delay
+compensation (:func:`~rt_controller.control.model_kernels.compensate`), xi and the feedforward
+of eq. (11), the law (eq. 15, eq. 27, or the C/GMRES update of eq. 30 with its residual check
+and its fallback to eq. 27), the torque and its saturation, l and V, and the torque history the next
 compensation needs. It calls the same compiled kernels in the same order, so it decides what
 the Python rule decides. All its state lives in preallocated arrays (:class:`CompiledRule`);
 nothing is allocated per tick but the kernels' own 2-vectors.
@@ -203,13 +202,12 @@ class CompiledRule:
     def retarget(self, cfg: RigConfig, law: str, params: np.ndarray, solver: object | None) -> None:
         """Decide with this configuration, model and solver from now on; the torque history
         is kept and the law starts again."""
-        c = cfg.controller
         self.p = params
         lim = self.lim
         lim[LIM.TAU_MAX : LIM.TAU_MAX + 2] = cfg.robot.tau_max
         lim[LIM.U_MAX : LIM.U_MAX + 2] = cfg.rhc.u_max
         lim[LIM.LAW] = LAW_CODES[law]
-        lim[LIM.HORIZON] = max(c.state_timeout_s, c.feature_timeout_s)
+        self.limits(cfg)
         lim[LIM.STEP] = STEP_S
         lim[LIM.RES_BOUND] = cfg.rhc.residual_bound
         if solver is None:

@@ -116,21 +116,21 @@ def test_a_law_fed_an_old_state_and_its_age_decides_as_on_the_fresh_state(model,
 
 
 def test_the_decision_carries_the_state_it_acted_on(model):
-    """``Decision.state`` (the record's ``q_pred``/``dq_pred``): the predicted state for the law
-    and for the hold (its damper opposes that velocity), none when the drive is off."""
+    """The record's ``q_pred``/``dq_pred``: the predicted state for the law and for the hold
+    (its damper opposes that velocity), NaN when the drive is off."""
     cfg = RigConfig()
     ctl = Controller(cfg)
     q, dq, f = np.array(cfg.scenario.q0), np.array([0.5, -2.0]), np.array(cfg.scenario.f0)
     ctl.decide(0.0, q, dq, f, f_stale=False, state_stale=False)
     d = ctl.decide(0.02, q, dq, f, f_stale=False, state_stale=False, state_age_s=0.015)
     want = ctl.predictor.predict(0.02, q, dq, 0.015)  # same history: the 0.02 torque is later
-    assert d.mode == "control" and not np.allclose(d.state[1], dq)
-    assert np.allclose(d.state[0], want[0]) and np.allclose(d.state[1], want[1])
+    assert d.mode == "control" and not np.allclose(d.dq_pred, dq)
+    assert np.allclose(d.q_pred, want[0]) and np.allclose(d.dq_pred, want[1])
     h = ctl.decide(0.04, q, dq, f, f_stale=True, state_stale=False, state_age_s=0.015)
-    assert h.mode == "hold" and np.all(h.tau * h.state[1] <= 0.0)
-    assert not np.allclose(h.state[1], dq)
+    assert h.mode == "hold" and np.all(h.tau * h.dq_pred <= 0.0)
+    assert not np.allclose(h.dq_pred, dq)
     off = ctl.decide(0.06, q, dq, f, f_stale=False, state_stale=False, drive_mode="fault")
-    assert off.state is None
+    assert np.all(np.isnan(off.q_pred)) and np.all(np.isnan(off.dq_pred))
 
 
 def test_a_static_target_seen_from_another_pose_is_what_the_camera_model_sees_there(model):

@@ -104,7 +104,7 @@ class PythonRule:
         else:
             solve_ns = self._act(io, t, now, (q, dq, f), f_stale, (state_age_s, feature_age_s))
         self.predictor.sent(now, io[IO.TAU : IO.TAU + 2].copy())
-        return Decision(io, drive_mode, t, solve_ns)
+        return Decision(io, drive_mode, solve_ns)
 
     def _act(self, io, t, now, qdqf, f_stale, ages) -> int:
         """The hold or the law on the state (and features) brought up to the tick; the law's

@@ -1,30 +1,23 @@
 """One C/GMRES tick (Ohtsuka 2004) as one compiled call, :func:`rhc_tick`, on preallocated arrays.
 
 Everything a tick needs runs inside the single call :func:`rhc_tick` on preallocated arrays:
-
-* ``F(U, x, T)``: Euler forward sweep ``x_{r+1} = x_r + h f(x_r, u_k)`` (S substeps of
-  ``h = dtau / S`` per stage, S = 1 unless ``T/N`` is too long for the plant's ~40 /s modes),
-  backward sweep ``lam = phi_x(x_N)``, ``lam_r = lam_{r+1} + h H_x(x_r, u_k, lam_{r+1})``, and per
-  stage ``(mean H_u + 2 mu u, -r_v + 2 mu v, u^2 + v^2 - umax^2)``. ``F = 0`` are the KKT
-  conditions of the discretised problem (``dtau`` times the first rows is its exact gradient).
-* One linear solve per tick: Ohtsuka's ``F_U Udot = -zeta F - F_x xdot - F_t`` at the *measured*
-  state, its two right-hand sides kept apart in one block Krylov basis (:func:`block_gmres`):
-  ``d1 = -c F_U^-1 F`` (``c = min(zeta dt, 1)``, the correction to the measured state) and
-  ``d2 = -dt F_U^-1 (F_x xdot + F_t)`` (the prediction, by one forward difference). The input
-  applied at this tick is the first one of ``U + d1``; the next tick starts from
-  ``U + d1 + d2``. F is evaluated kmax + 3 times per tick (the two-solve tick it replaces took 14
-  for kmax = 5, at the same closed-loop cost J).
+one linear solve per tick, Ohtsuka's ``F_U Udot = -zeta F - F_x xdot - F_t`` at the *measured*
+state (``F(U, x, T)`` = 0 are the KKT conditions of the discretised problem,
+:func:`~rt_controller.control.rhc.residual.eval_F`), its two right-hand sides kept apart in one
+block Krylov basis (:func:`~rt_controller.control.rhc.gmres.block_gmres`): ``d1 = -c F_U^-1 F``
+(``c = min(zeta dt, 1)``, the correction to the measured state) and
+``d2 = -dt F_U^-1 (F_x xdot + F_t)`` (the prediction, by one forward difference). The input
+applied at this tick is the first one of ``U + d1``; the next tick starts from ``U + d1 + d2``.
+F is evaluated kmax + 3 times per tick (the two-solve tick it replaces took 14 for kmax = 5, at
+the same closed-loop cost J).
 
 Applying the corrected input rather than the predicted one matters for a loop sampled at 50 Hz:
 the plant's fast modes are ~40 /s, comparable to 1 / period.
 
-Each GMRES solve runs (at most) ``kmax`` iterations with forward-difference products
-``(F(U + h v) - F(U)) / h`` and Givens rotations, right-preconditioned by a per-stage block
-inverse (:func:`precond_setup`): the dummy/multiplier rows are eliminated exactly, the input block
-uses ``2 R^-1 + 4 dtau M^-1`` (the Hessian of the cost-to-go 4V). After every update the dummy
-inputs are put back on their circles with ``v >= vmin`` (:func:`clip_dummies`) and bounds whose
-multiplier turned negative are restarted inside the box (:func:`release_bounds`). The initial
-solution (first tick, and after a fallback) is found by Newton-GMRES with backtracking.
+After every update the dummy inputs are put back on their circles with ``v >= vmin``
+(:func:`clip_dummies`) and bounds whose multiplier turned negative are restarted inside the box
+(:func:`release_bounds`). The initial solution (first tick, and after a fallback) is found by
+Newton-GMRES with backtracking.
 
 The kernels are split by concern: the OCP's functions (:mod:`~rt_controller.control.rhc.
 dynamics`, documented in :mod:`~rt_controller.control.rhc.problem`), F and what works on U

@@ -32,7 +32,9 @@ class RecedingHorizonLaw:
     is never applied: that tick gets the inverse-optimal law u = -2 R xi (eq. 27) clipped to the
     bounds ``rhc.u_max`` (zeros if xi itself is not finite), and the solver solves from scratch
     (Newton-GMRES) at the next tick. The applied u always satisfies |u_i| <= umax_i.
-    The solver is compiled (or loaded from numba's cache) here, before the first tick.
+    The product decides with the compiled rule on this solver's arrays (warmed up by
+    :meth:`~rt_controller.control.controller.Controller.warm_up`); this call is the test
+    oracle's spelling.
     """
 
     name = "rhc"
@@ -42,11 +44,7 @@ class RecedingHorizonLaw:
     ) -> None:
         self.model = model
         self.cfg = cfg
-        if solver is None:
-            compiled = CGMRESSolver(model, cfg)
-            compiled.warm_up()
-            solver = compiled
-        self.solver: Solver = solver
+        self.solver: Solver = CGMRESSolver(model, cfg) if solver is None else solver
         self._x = np.zeros(NX)
         self._umax = np.asarray(cfg.rhc.u_max, dtype=float)
         self._t0: float | None = None
