@@ -84,6 +84,19 @@ class _Outbox(bytearray):
         pass
 
 
+def _demote(pid: int) -> None:
+    """Best effort, before the child has imported anything: it must not compete with a
+    SCHED_FIFO loop that started it (a later run of a plan: the policy and a single-CPU
+    affinity are inherited)."""
+    try:
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+        cpus, everything = os.sched_getaffinity(pid), set(range(os.cpu_count() or 1))
+        if len(cpus) == 1 and len(everything) > 1:
+            os.sched_setaffinity(pid, everything - cpus)
+    except OSError:
+        pass
+
+
 class RecorderProcess(Recorder):
     """One run's log ``path`` of ``cfg``, written by a child process (see the module
     docstring), with :class:`CycleRecorder`'s arguments and counters: this process's until
@@ -129,6 +142,7 @@ class RecorderProcess(Recorder):
             env={"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD), **os.environ},
         )
         self.pid = self._child.pid
+        _demote(self.pid)
         self._pipe = self._child.stdin.fileno()
         with contextlib.suppress(OSError):
             fcntl.fcntl(self._pipe, fcntl.F_SETPIPE_SZ, 1 << 20)  # Linux's unprivileged maximum
@@ -329,24 +343,9 @@ class _LogCopy:
         return {**rec.as_dict(), "finished": rec.finished, "error": error}
 
 
-def _demote() -> None:
-    """Best effort: the recorder must not compete with a SCHED_FIFO loop that started it (the
-    policy and a single-CPU affinity are inherited)."""
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        cpus = os.sched_getaffinity(0)
-        everything = set(range(os.cpu_count() or 1))
-        if len(cpus) == 1 and len(everything) > 1:
-            os.sched_setaffinity(0, everything - cpus)
-    except (AttributeError, OSError):
-        pass
-
-
 def serve(how: str) -> None:
     """The child's program: the log's MCAP stream from standard input into the file, then the
     log's counters as one JSON line on standard output. Warnings go to stderr."""
-    _demote()
     copy = _LogCopy(json.loads(how))
     pipe = _PipeInput(copy.idle)
     try:
