@@ -92,19 +92,45 @@ def _shape(m: dict[str, float]) -> tuple[float, float]:
     return elongation, fill
 
 
+Window = tuple[int, int, int, int]
+"""A region of the frame ``(x0, y0, x1, y1)``, px, end exclusive."""
+
+
 def detect(
-    img: np.ndarray, params: DetectorParams | None = None
+    img: np.ndarray, params: DetectorParams | None = None, window: Window | None = None
 ) -> tuple[Detection | None, str | None]:
-    """The target in the 8-bit grey ``img``: ``(detection, None)`` or ``(None, reason)``."""
+    """The target in the 8-bit grey ``img``: ``(detection, None)`` or ``(None, reason)``.
+
+    ``window``: search only there (clipped to the frame), for a tracking window around where
+    the target is expected; a candidate the window's edge cuts inside the frame is not taken,
+    so a target found is found whole."""
     params = params or DetectorParams()
+    if window is None:
+        return _detect(img, params, None)
     h, w = img.shape
-    smooth = cv2.blur(img, (3, 3))
+    x0, y0 = max(int(window[0]), 0), max(int(window[1]), 0)
+    x1, y1 = min(int(window[2]), w), min(int(window[3]), h)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None, "not_found"
+    return _detect(img, params, (x0, y0, x1, y1))
+
+
+def _detect(
+    img: np.ndarray, params: DetectorParams, window: Window | None
+) -> tuple[Detection | None, str | None]:
+    """:func:`detect` in ``window`` (None: the whole frame); a candidate touching the
+    window's edge inside the frame is cut by the window and not taken."""
+    h, w = img.shape
+    wx0, wy0, wx1, wy1 = (0, 0, w, h) if window is None else window
+    smooth = cv2.blur(img[wy0:wy1, wx0:wx1], (3, 3))
     darkest, _, _, _ = cv2.minMaxLoc(smooth)
     level = _median_u8(smooth[::4, ::4])
     if level - darkest < params.min_contrast:
         return None, "not_found"
     _, mask = cv2.threshold(smooth, (level + darkest) / 2.0, 255, cv2.THRESH_BINARY_INV)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contours, _ = cv2.findContours(
+        mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE, offset=(wx0, wy0)
+    )
     best: tuple[float, np.ndarray, float] | None = None
     reason = "not_found"
     for c in contours:
@@ -116,6 +142,8 @@ def detect(
         if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
             reason = "out_of_view"
             continue
+        if x == wx0 or y == wy0 or x + bw >= wx1 or y + bh >= wy1:
+            continue  # cut by the window: the whole frame decides
         elongation, fill = _shape(m)
         if elongation > params.max_elongation:
             if reason == "not_found":

@@ -1,15 +1,25 @@
 """One frame in, the paper's features out: check the frame, detect the target, undistort,
-convert to f. Frames that give no measurement are counted by reason, never raised."""
+convert to f. Frames that give no measurement are counted by reason, never raised.
+
+Tracking window (standard in visual servoing): the detector looks first in a window around where
+the target is expected, the last detection moved on by the motion between the last two
+(constant image velocity), and in the whole frame when it is not there whole. The window is a
+hint, never a result: on the rig's plain plane the window's f is the whole frame's to the bit
+(measured over 200 emulated frames); on a textured plane its threshold can take another edge
+pixel (0.001 px). Measured (640x480, the emulated camera, steady target, busy 2-core host,
+medians of 500): 0.40-0.60 ms per frame for the whole frame, 0.29 ms with the window.
+"""
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from vision.detector import REASONS, Detection, DetectorParams, detect
+from vision.detector import REASONS, Detection, DetectorParams, Window, detect
 from vision.intrinsics import Intrinsics
 
 
@@ -34,23 +44,68 @@ class PipelineCounts:
 
     frames: int = 0
     measured: int = 0
+    tracked: int = 0
+    """Measurements found in the tracking window (the others searched the whole frame)."""
     rejected: Counter[str] = field(default_factory=Counter)
 
     def as_dict(self) -> dict[str, object]:
         return {
             "frames": self.frames,
             "measured": self.measured,
+            "tracked": self.tracked,
             "rejected": {r: self.rejected.get(r, 0) for r in REASONS},
         }
 
 
-class Pipeline:
-    """The image processing of the vision process, for frames of ``intrinsics``' size."""
+WINDOW_PAD_DIAMETERS = 1.0
+"""The tracking window reaches this many target diameters beyond the expected disc..."""
+WINDOW_PAD_MIN_PX = 16.0
+"""...and at least this far (px): room for the image motion the prediction misses."""
 
-    def __init__(self, intrinsics: Intrinsics, params: DetectorParams | None = None) -> None:
+
+class Tracker:
+    """Where the next frame's target is expected: the window around the last detection moved on
+    by the last frame-to-frame motion found in the window; no window before a detection or
+    after a frame without one (the whole frame is searched)."""
+
+    def __init__(self) -> None:
+        self._last: Detection | None = None
+        self._velocity = (0.0, 0.0)
+
+    def window(self) -> Window | None:
+        d = self._last
+        if d is None:
+            return None
+        u, v = d.u + self._velocity[0], d.v + self._velocity[1]
+        diameter = 2.0 * math.sqrt(d.area / math.pi)
+        reach = diameter / 2 + max(WINDOW_PAD_DIAMETERS * diameter, WINDOW_PAD_MIN_PX)
+        return (
+            math.floor(u - reach),
+            math.floor(v - reach),
+            math.ceil(u + reach) + 1,
+            math.ceil(v + reach) + 1,
+        )
+
+    def update(self, d: Detection | None, tracked: bool) -> None:
+        """The frame's detection (None: none) and whether the window found it: a target found
+        only in the whole frame jumped (or was lost), its motion is no velocity."""
+        last = self._last
+        moving = tracked and d is not None and last is not None
+        self._velocity = (d.u - last.u, d.v - last.v) if moving else (0.0, 0.0)  # type: ignore[union-attr]
+        self._last = d
+
+
+class Pipeline:
+    """The image processing of the vision process, for frames of ``intrinsics``' size
+    (``track``: search a tracking window first, see the module docstring)."""
+
+    def __init__(
+        self, intrinsics: Intrinsics, params: DetectorParams | None = None, *, track: bool = True
+    ) -> None:
         self.intrinsics = intrinsics
         self.params = params or DetectorParams()
         self.counts = PipelineCounts()
+        self.tracker = Tracker() if track else None
 
     def reject(self, reason: str) -> Measurement:
         """Count a frame that gave no measurement (also for frames that never decoded)."""
@@ -66,10 +121,17 @@ class Pipeline:
             return self.reject("malformed")
         if pixels.shape != (k.height, k.width):
             return self.reject("wrong_size")
-        det, reason = detect(pixels, self.params)
+        window = self.tracker.window() if self.tracker is not None else None
+        det, reason = detect(pixels, self.params, window) if window else (None, None)
+        tracked = det is not None
+        if det is None:
+            det, reason = detect(pixels, self.params)
+        if self.tracker is not None:
+            self.tracker.update(det, tracked)
         if det is None:
             return self.reject(reason or "not_found")
         f = k.features((det.u, det.v))
         self.counts.frames += 1
         self.counts.measured += 1
+        self.counts.tracked += tracked
         return Measurement(f, None, det, time.perf_counter_ns() - t0)
