@@ -247,6 +247,7 @@ class CameraNode:
     def start(self) -> CameraNode:
         """Compile and warm the renderer (the first frame would otherwise be late by the JIT
         time), then start the worker thread."""
+        self.sensor.warm_up()
         self.sensor.render(lambda t: CameraPose(0.0, 0.0, 0.0), 0.0)
         sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
         self._thread = threading.Thread(target=self._run, name="hil-camera", daemon=True)

@@ -194,3 +194,34 @@ def test_a_frame_rendered_on_its_prepared_background_has_the_whole_frames_pixels
     np.testing.assert_array_equal(
         s.render(lambda t: p0, 0.0, frame=0), fresh.render(lambda t: p0, 0.0, frame=0)
     )
+
+
+class _AnyTexture:
+    """A texture the sensor knows only through the PlaneTexture protocol (its numpy path)."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.background = inner.background
+
+    def support(self):
+        return self.inner.support()
+
+    def sample(self, x, y, footprint):
+        return self.inner.sample(x, y, footprint)
+
+    def __eq__(self, other):
+        return isinstance(other, _AnyTexture) and other.inner == self.inner
+
+
+@pytest.mark.parametrize("lens", [LensDistortion(), LENS], ids=["pinhole", "distorted"])
+def test_the_compiled_disc_exposure_matches_the_texture_sampled_by_numpy(lens):
+    cfg = RigConfig()
+    q0 = np.array(cfg.scenario.q0)
+    disc = sensor(lens=lens, exposure=0.004)
+    generic = sensor(lens=lens, exposure=0.004, scene=lambda t: _AnyTexture(disc.scene(t)))
+    for dq in [(0.0, 0.0), (1.2, 8.3), (-0.4, 2.0)]:
+        pose_at = lambda t, dq=dq: camera_pose(cfg.robot, q0 + np.array(dq) * t)  # noqa: E731
+        assert (len(disc.subexposures(pose_at, 0.0)) > 1) == (dq != (0.0, 0.0))  # blurred
+        a, b = disc.irradiance(pose_at, 0.0), generic.irradiance(pose_at, 0.0)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+        assert (a < 0.5).any()  # the disc is in the frame
