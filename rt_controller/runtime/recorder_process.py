@@ -250,9 +250,11 @@ class RecorderProcess(Recorder):
             self._die(f"the recorder process exited ({how})")
             return
         final = json.loads(out.splitlines()[-1])
-        self.counts = Counter({k: final[t] for k, t in TOPICS.items()})
-        self.dropped += final["dropped"]
-        self.finished, self.error = final["finished"], self.error or final["error"]
+        self.error = self.error or final["error"]
+        if "written" in final:  # the child wrote the log: its counts replace what was sent
+            self.counts = Counter({k: final[t] for k, t in TOPICS.items()})
+            self.dropped += final["dropped"]
+            self.finished = final["finished"]
 
 
 class _PipeInput:

@@ -202,6 +202,42 @@ def test_the_recorder_finishes_the_log_of_a_sigkilled_controller(tmp_path):
     assert json.loads(log.recorder_info.get("written", "0")) == 200
 
 
+_FULL_AT_START = textwrap.dedent(
+    """
+    import resource, signal, sys
+    from hal.config import RigConfig
+    from rt_controller.runtime.counters import run_problems
+    from rt_controller.runtime.recorder_process import RecorderProcess
+    from tests.controller.test_recorder import cycle
+
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # inherited: past the limit a write fails
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64, 64))  # the log's first records do not fit
+    rec = RecorderProcess(sys.argv[1], RigConfig())
+    for i in range(20):
+        rec.record_cycle(cycle(i))
+    rec.close()
+    print(rec.finished, run_problems({"recorder": rec.as_dict(), "log_error": rec.error}))
+    """
+)
+
+
+def test_a_log_the_recorder_cannot_start_is_reported_never_raised(tmp_path):
+    """The controller could create the file, the recorder process cannot write it (a full
+    disk): the close reports the log incomplete and why."""
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run(
+        [sys.executable, "-c", _FULL_AT_START, str(tmp_path / "run.mcap")],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"},
+    )
+    assert proc.returncode == 0, proc.stderr
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("False") and "the MCAP log is incomplete: cannot create" in last, last
+
+
 def test_a_record_that_cannot_be_encoded_is_counted_and_the_rest_kept(tmp_path, cfg):
     with RecorderProcess(tmp_path / "run.mcap", cfg) as rec:
         rec.record_vision(b"ok", 1)
