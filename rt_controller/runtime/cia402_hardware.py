@@ -1,6 +1,7 @@
 """The ``cia402`` profile of the hardware seam (:class:`hal.hardware_interface.HardwareInterface`):
 two CiA 402 drives in cyclic synchronous torque over CANopen (:mod:`hal.cia402_master`, on the
-``canopen`` library), the image features over zenoh (:class:`FeatureLink`).
+``canopen`` library), the image features over zenoh (:class:`FeatureLink`; with the rest of
+:class:`~rt_controller.runtime.hardware_base.HardwareBase`).
 
 Per period the bus carries RPDO(k-1) -> SYNC k -> TPDOs(k): the drives latch the torque at the
 SYNC and answer it with their statusword, position, velocity and torque. In lockstep
@@ -22,32 +23,28 @@ from collections import Counter
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
-
 from hal.bus import open_bus
 from hal.cia402_master.master import Cia402Master, JointState
 from hal.config import RigConfig
-from hal.drive_state import MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
+from hal.drive_state import MODE_ENABLED, MODE_FAULT
 from hal.hardware_interface import InputJudge, Observation, StopFlag
 from hal.zenoh_session import open_session
 from rt_controller.errors import ControllerError
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.feature_link import FeatureLink
+from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, HardwareBase
+from rt_controller.runtime.pacers import LOCKSTEP_FEATURE_TIMEOUT_S
 from rt_controller.sample_stats import percentile
 
-ENABLE_TIMEOUT_S = 5.0
-"""How long arming may take until every drive reports *operation enabled*."""
 ZENOH_WAIT_S = 20.0
 """How long start-up waits for the zenoh hub (the emulator's)."""
 LOCKSTEP_TPDO_TIMEOUT_S = 1.0
 """Lockstep: how long a SYNC may wait for every drive's TPDOs."""
-LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
-"""Lockstep: how long a step waits for the features answering its period's pose."""
 ENABLED = "OPERATION ENABLED"
 DISARMED = "READY TO SWITCH ON"
 
 
-class Cia402Hardware:
+class Cia402Hardware(HardwareBase):
     """The CANopen drives and the zenoh features of one run, from the control thread."""
 
     def __init__(
@@ -61,20 +58,14 @@ class Cia402Hardware:
     ) -> None:
         """``record_raw``: every CANopen frame sent and received goes to the log's
         ``/hal/can/tx`` and ``/hal/can/rx``, from the boot on (as the DSP profile's)."""
-        self.ctx = ctx
-        self.record_raw = record_raw
+        super().__init__(ctx, features, lockstep=lockstep, record_raw=record_raw)
         self.master = master
-        self.features = features
-        self.lockstep = lockstep
         self.target: str | None = ENABLED
         """Where the controlwords steer: *operation enabled* (armed), *ready to switch on*
         (the operator disarmed), None (a fault: hold, no automatic reset)."""
-        self._enable_by: int | None = None
-        self._seen_sync = 0
         self._faults_seen: Counter[str] = Counter()
         self.deactivation: list[tuple[str, tuple[str, ...]]] = []
         """The steps of :meth:`deactivate` with the states the drives answered."""
-        self.last_tau = (0.0, 0.0)
         self._pending: int | None = None
         self._k0: int | None = None
         """Lockstep: the SYNC whose TPDOs found every drive enabled: period 0 of the run."""
@@ -86,10 +77,7 @@ class Cia402Hardware:
         """Boot the drives (NMT, SDO, PDO maps, CST read back, NMT start, the controller's
         heartbeat) and subscribe to the features. The first features are awaited while arming
         (:meth:`activate`): the emulated world publishes its camera pose only on SYNC."""
-        if self.record_raw:
-            rec, now, tap = self.ctx.recorder, self.ctx.clock.now_ns, self.master.tap
-            tap.rx_hook = lambda m: rec.record_can(m, now(), "rx")
-            tap.tx_hook = lambda m: rec.record_can(m, now(), "tx")
+        self._hook_raw_can(self.master.tap)
         self.master.boot(stop)
         self.features.attach()
 
@@ -102,7 +90,7 @@ class Cia402Hardware:
         clock = self.ctx.clock
         if self._enable_by is None:
             self.master.watch_controller()  # the drives fault if this process stops from now on
-            self._enable_by = clock.now_ns() + round(ENABLE_TIMEOUT_S * 1e9)
+            self._start_arming()
         self.features.poll(clock.now_ns())
         enabled = self.master.steer(ENABLED)
         have_features = self.lockstep or self.features.features.latest is not None
@@ -128,14 +116,11 @@ class Cia402Hardware:
             self.ctx.counters.arming_ticks += 1
         return False
 
-    def deactivate(self) -> None:
+    def _disarm(self) -> None:
         """Quick stop, disable operation, NMT pre-operational, the controller's heartbeat
-        off (:meth:`Cia402Master.deactivate`); the features' subscription ended."""
-        if self._enable_by is not None:
-            period_s = self.ctx.cfg.rates.control_period_ns / 1e9
-            self.deactivation = self.master.deactivate(max(3 * period_s, 0.1))
-            self._enable_by = None
-        self.features.detach()
+        off (:meth:`Cia402Master.deactivate`)."""
+        period_s = self.ctx.cfg.rates.control_period_ns / 1e9
+        self.deactivation = self.master.deactivate(max(3 * period_s, 0.1))
 
     # --- pacing -----------------------------------------------------------------------------
     def wait_inputs(self, until_ns: int) -> None:
@@ -174,31 +159,15 @@ class Cia402Hardware:
         self._count_faults()
         if mode == MODE_FAULT and self.target == ENABLED:
             self.target = None
-        state_new = js is not None and js.sync != self._seen_sync
-        if js is not None:
-            self._seen_sync = js.sync
+        state_new = js is not None and self._arrived(js.sync)
         age_ms = math.nan if js is None else (now_ns - js.sync_ns) / 1e6
-        stale = js is None or age_ms > judge.state_limit_s * 1e3
         limit = judge.status_limit_s
-        if mode == MODE_ENABLED and (js is None or (limit is not None and age_ms > limit * 1e3)):
-            mode = MODE_NO_STATUS  # silent drives: their last word no longer counts
-        if mode != MODE_ENABLED:
-            self.ctx.counters.drive_ticks[mode] += 1
-        f, f_age_ms, f_stale, f_valid = self.features.latest(now_ns, judge)
-        return Observation(
-            q=np.full(2, math.nan) if stale else np.array(js.q),
-            dq=np.zeros(2) if stale else np.array(js.dq),
-            f=f,
-            state_ns=None if stale else js.sync_ns,
-            state_age_ms=age_ms,
-            state_stale=stale,
-            f_age_ms=f_age_ms,
-            f_stale=f_stale,
-            f_valid=f_valid,
-            drive_mode=mode,
-            state_new=state_new,
-            actuation_delay_ms=self._actuation_delay_ms(),
-            drives=self._drive_fields(js),
+        silent = js is None or (limit is not None and age_ms > limit * 1e3)
+        mode = self._tick_mode(mode, mode == MODE_ENABLED and silent)
+        stale = js is None or age_ms > judge.state_limit_s * 1e3
+        state, state_ns = (None, None) if stale else (js, js.sync_ns)
+        return self._observation(
+            now_ns, judge, state, state_ns, age_ms, mode, state_new, drives=self._drive_fields(js)
         )
 
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:

@@ -91,10 +91,11 @@ class HardwareBase:
         age_ms: float,
         mode: str,
         state_new: bool,
+        **extra: Any,
     ) -> Observation:
         """The tick's observation: ``state`` (its ``q``, ``dq``; None when stale: NaN
         positions, zero velocities) sampled at ``state_ns``, ``age_ms`` old; the newest
-        features judged by ``judge``; the profile's actuation delay."""
+        features judged by ``judge``; the profile's actuation delay; ``extra`` fields."""
         stale = state is None
         f, f_age_ms, f_stale, f_valid = self.features.latest(now_ns, judge)
         return Observation(
@@ -110,6 +111,7 @@ class HardwareBase:
             drive_mode=mode,
             state_new=state_new,
             actuation_delay_ms=self._actuation_delay_ms(),
+            **extra,
         )
 
     def _actuation_delay_ms(self) -> float:
