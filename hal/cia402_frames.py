@@ -63,7 +63,8 @@ _LAYOUTS = {("tpdo", n): _pdo_layout(objs) for n, objs in TPDO_MAP.items()} | {
 def decode(cob_id: int, data: bytes) -> dict[str, Any]:
     """The frame's ``kind`` (``nmt``, ``sync``, ``emcy``, ``tpdo1``, ``tpdo2``, ``rpdo1``,
     ``sdo_request``, ``sdo_response``, ``heartbeat``, ``other``), its ``node`` (None for
-    NMT and SYNC) and the kind's fields; ``error`` when the payload does not fit."""
+    NMT and SYNC) and the kind's fields (each field name has one type over all kinds: the
+    log's tables mix the kinds); ``error`` when the payload does not fit."""
     if cob_id == NMT_ID:
         if len(data) < 2:
             return {"kind": "nmt", "node": None, "error": f"{len(data)} bytes, NMT needs 2"}
@@ -80,9 +81,9 @@ def decode(cob_id: int, data: bytes) -> dict[str, Any]:
     if base in _PDO_BASES:
         return _pdo(*_PDO_BASES[base], node, data)
     if base == 0x580:
-        return {"kind": "sdo_response", "node": node, "command": data[0] if data else None}
+        return {"kind": "sdo_response", "node": node, "sdo_command": data[0] if data else None}
     if base == 0x600:
-        return {"kind": "sdo_request", "node": node, "command": data[0] if data else None}
+        return {"kind": "sdo_request", "node": node, "sdo_command": data[0] if data else None}
     if base == 0x700:
         if not data:
             return {"kind": "heartbeat", "node": node, "error": "no payload"}

@@ -191,9 +191,13 @@ class Run:
     def _can_arrays(self) -> dict[str, np.ndarray]:
         from hal.can_database import load_database
 
-        db = load_database().db
         frames = [("rx", f) for f in self.log.can_rx] + [("tx", f) for f in self.log.can_tx]
         frames.sort(key=lambda df: df[1].get("t_ns") or 0)  # stable: rx before tx on a tie
+        cfg = self.log.config
+        if cfg is not None and cfg.hardware.profile == "cia402":
+            rows = [_canopen_decoded(direction, frame) for direction, frame in frames]
+            return self._with_time(columns(rows))
+        db = load_database().db
         rows = [_decoded(db, direction, frame) for direction, frame in frames]
         cols = self._with_time(columns(rows))
         order = [*_CAN_LEADING, "decode_error"]
@@ -231,8 +235,44 @@ class Run:
         """Every raw CAN frame (``/hal/can/rx`` and ``/hal/can/tx``) in time order: ``t_ns``,
         ``time_s``, ``direction`` (rx/tx), ``frame_id``, ``message`` (DBC name, None for an
         unknown id), ``dlc``, ``data`` (hex), ``is_fd``, then one column per DBC signal
-        (physical values; an enumerated signal also has ``SIGNAL_name``, its label)."""
+        (physical values; an enumerated signal also has ``SIGNAL_name``, its label). A
+        ``cia402`` log's CANopen frames are decoded by COB-ID instead: ``message`` is the
+        kind (``nmt``, ``sync``, ``emcy``, ``tpdo1``, ``tpdo2``, ``rpdo1``, ``sdo_request``,
+        ``sdo_response``, ``heartbeat``), ``node``, then ``statusword``, ``state``,
+        ``position_actual``, ``velocity_actual``, ``torque_actual``, ``controlword``,
+        ``target_torque`` (raw object values), EMCY ``code`` / ``register`` / ``text``,
+        NMT ``command`` / ``target``, heartbeat ``nmt_state``."""
         return self.frame("can")
+
+
+def _canopen_decoded(direction: str, frame: dict[str, Any]) -> dict[str, Any]:
+    """One CANopen frame record of a cia402 log as a table row: ``message`` is its kind
+    (``sync``, ``tpdo1``, ``emcy``, ...), ``node``, then its decoded fields
+    (:func:`hal.cia402_frames.decode`; ``decode_error`` for a payload that does not fit)."""
+    from hal.cia402_frames import decode
+
+    fid = frame.get("arbitration_id")
+    data = frame.get("data") or ""
+    try:
+        payload = bytes.fromhex(data)
+    except ValueError:
+        payload = b""
+    fields = decode(int(fid), payload) if isinstance(fid, int) else {"kind": None, "node": None}
+    error = fields.pop("error", None)
+    row: dict[str, Any] = {
+        "t_ns": frame.get("t_ns"),
+        "direction": direction,
+        "frame_id": fid,
+        "message": fields.pop("kind"),
+        "node": fields.pop("node"),
+        "dlc": frame.get("dlc"),
+        "data": data,
+        "is_fd": frame.get("is_fd"),
+        **fields,
+    }
+    if error is not None:
+        row["decode_error"] = error
+    return row
 
 
 def _decoded(db: Any, direction: str, frame: dict[str, Any]) -> dict[str, Any]:

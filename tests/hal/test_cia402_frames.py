@@ -67,3 +67,27 @@ def test_emcy_code_register_and_error_reset():
 def test_a_frame_too_short_for_its_kind_is_marked_not_raised(cob_id, data):
     out = decode(cob_id, data)
     assert "error" in out and out["kind"] in ("tpdo1", "tpdo2", "rpdo1", "emcy", "nmt")
+
+
+def test_each_field_name_has_one_type_over_all_kinds():
+    """The log's frame table mixes the kinds in one column per field name (``hil export
+    --format parquet`` needs one type per column: an NMT ``command`` is a string, so the SDO
+    command byte has a name of its own)."""
+    frames = [
+        (0x000, bytes([0x01, 0x00])),
+        (0x080, b""),
+        (0x081, struct.pack("<HB5s", 0x8700, 0x11, bytes(5))),
+        (0x181, struct.pack("<Hi", 0x0637, 5)),
+        (0x281, struct.pack("<ih", 5, 5)),
+        (0x201, struct.pack("<Hh", 0x0F, 5)),
+        (0x581, bytes([0x60]) + bytes(7)),
+        (0x601, bytes([0x2B]) + bytes(7)),
+        (0x701, b"\x05"),
+    ]
+    types: dict[str, set[type]] = {}
+    for cob_id, data in frames:
+        for name, value in decode(cob_id, data).items():
+            if value is not None:
+                types.setdefault(name, set()).add(type(value))
+    mixed = {name: t for name, t in types.items() if len(t) > 1}
+    assert not mixed, mixed

@@ -129,3 +129,18 @@ def test_each_tick_records_the_drives_states_and_pdo_values(cia402_log):
         assert r["drive_torque_actual"] == r["drive_target_torque"], r
     syncs = [r["drive_sync"] for r in ran]
     assert syncs == list(range(syncs[0], syncs[0] + len(syncs)))  # one SYNC per tick
+
+
+def test_the_analysis_api_decodes_a_cia402_logs_frames_by_cob_id(cia402_log, tmp_path):
+    pytest.importorskip("pandas")
+    from rt_controller.logs import load
+
+    cfg, log, _summary = cia402_log
+    df = load(log).can_frames
+    assert {"nmt", "sync", "rpdo1", "tpdo1", "tpdo2", "heartbeat"} <= set(df["message"])
+    tpdo1 = df[df["message"] == "tpdo1"]
+    assert set(tpdo1["node"]) == {cfg.cia402.node_id_1, cfg.cia402.node_id_2}
+    assert "OPERATION ENABLED" in set(tpdo1["state"])
+    assert "decode_error" not in df.columns
+    pytest.importorskip("pyarrow")
+    df.to_parquet(tmp_path / "can.parquet")  # as `hil export`: one type per column
