@@ -245,11 +245,12 @@ class RecorderProcess(Recorder):
             out, _ = self._child.communicate()
             self._die(f"the recorder process did not finish the log in {timeout:g} s")
         status = self._child.returncode
-        if not out.strip():
+        results = [line for line in out.splitlines() if line.startswith(b"{")]
+        if not results:  # it died before the end of its input
             how = f"killed by signal {-status}" if status < 0 else f"status {status}"
             self._die(f"the recorder process exited ({how})")
             return
-        final = json.loads(out.splitlines()[-1])
+        final = json.loads(results[-1])
         self.error = self.error or final["error"]
         if "written" in final:  # the child wrote the log: its counts replace what was sent
             self.counts = Counter({k: final[t] for k, t in TOPICS.items()})
