@@ -173,7 +173,6 @@ class Cia402Hardware(HardwareBase):
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:
         """The tick's torque in RPDO1 with the controlword of the run's target; realtime: the
         SYNC that latches it, at once."""
-        self.last_tau = tau
         if self.target is not None:
             self.master.steer(self.target)
         self.master.send(tau)

@@ -69,6 +69,8 @@ class DspHardware(HardwareBase):
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
         self._arming_sent = 0
         self._last_sync: int | None = None
+        self.last_tau = (0.0, 0.0)
+        """Lockstep: the last torque sent, sent again when the DSP re-sends its Sync."""
 
     # --- lifecycle --------------------------------------------------------------------------
     def configure(self, stop: StopFlag) -> None:

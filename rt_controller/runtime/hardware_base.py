@@ -34,7 +34,6 @@ class HardwareBase:
         self.features = features
         self.lockstep = lockstep
         self.record_raw = record_raw
-        self.last_tau = (0.0, 0.0)
         self._enable_by: int | None = None
         """Arming: when the drive must report *operation enabled* (None: not activated)."""
         self._hooked: Any = None
