@@ -184,7 +184,7 @@ class Run:
                 row[f"{name}_level"] = status.get("level")
                 row[f"{name}_message"] = status.get("message")
                 for key, value in (status.get("values") or {}).items():
-                    row[f"{name}_{identifier(key)}"] = value
+                    row[f"{name}_{identifier(key)}"] = _scalar(value)
             rows.append(row)
         return self._with_time(columns(rows))
 
@@ -243,6 +243,15 @@ class Run:
         ``target_torque`` (raw object values), EMCY ``code`` / ``register`` / ``text``,
         NMT ``command`` / ``target``, heartbeat ``nmt_state``."""
         return self.frame("can")
+
+
+def _scalar(value: Any) -> Any:
+    """A diagnostics value as one table cell: a list or dict (the cia402 profile's drives,
+    fault events, deactivation steps) as its compact JSON text, so every column holds one
+    type and the tables export (parquet refuses a column of lists)."""
+    if isinstance(value, dict | list):
+        return json.dumps(value, separators=(",", ":"), sort_keys=True)
+    return value
 
 
 def _canopen_decoded(direction: str, frame: dict[str, Any]) -> dict[str, Any]:

@@ -143,4 +143,10 @@ def test_the_analysis_api_decodes_a_cia402_logs_frames_by_cob_id(cia402_log, tmp
     assert "OPERATION ENABLED" in set(tpdo1["state"])
     assert "decode_error" not in df.columns
     pytest.importorskip("pyarrow")
-    df.to_parquet(tmp_path / "can.parquet")  # as `hil export`: one type per column
+    from rt_controller.logs.export import export, plan_outputs
+
+    # every table of the log exports: one type per column (the profile's diagnostics hold
+    # lists and dicts: their JSON text)
+    files = plan_outputs(log, "parquet", ("cycle", "diagnostics", "can"), tmp_path)
+    written = export(load(log), "parquet", files)
+    assert len(written) == 3 and all(p.stat().st_size > 0 for p in files.values())
