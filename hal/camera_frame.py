@@ -28,14 +28,16 @@ lossy codec changes what the detector sees; raw mono8 is what a GigE Vision came
 MAC (as on the other zenoh links) costs about 0.2 ms per 640x480 frame and keeps a rogue or
 another rig's camera out. :func:`decode_frame` gives a zero-copy numpy view of the pixels.
 
-Why not zenoh's shared memory (measured with ``scripts/bench_frame_shm.py``, hub to client on
-loopback as in the rig, busy 2-core host, zenoh 1.10): for a 640x480 frame it cuts the
-put-to-callback latency from 0.49-0.71 ms to 0.32-0.43 ms median and the publisher's CPU per
-put from 130-190 us to 120-150 us, a few percent of the render-detect pipeline, while every
-session would need shared memory enabled, it only works on one host, the frame is copied into
-the SHM buffer anyway (zenoh-python's ``ZShmMut`` has no buffer protocol to render into) and the
-grabber reads bytes for the MAC. At 1280x1024 it pays (1.6 -> 0.47 ms, 474 -> 232 us CPU): the
-place to add it is the camera's publisher and the sessions' ``transport.shared_memory``.
+Zenoh's shared memory: the frames already use it. The rig's sessions run zenoh's defaults there
+(``transport.shared_memory`` enabled, with its transport optimisation: a put over 3 kB goes
+through a 16 MB shared-memory pool between processes of one host, by itself). Measured
+(``scripts/bench_frame_shm.py``'s loop, hub to client on loopback, 640x480 frames, busy 2-core
+host, zenoh 1.10, medians of 180): put to callback (``to_bytes`` included) 0.40-0.45 ms with the
+rig's config, 0.75-0.89 ms with shared memory off, 0.38 ms through an explicit
+``zenoh.shm.ShmProvider`` buffer; so an explicit provider (a copy into its buffer anyway:
+``ZShmMut`` has no buffer protocol to render into) buys nothing measurable. (The received
+payload does not report itself as shared memory, ``as_shm()`` is None; the halved time is the
+evidence.) A config that turns ``transport.shared_memory`` off doubles the frame's transport.
 """
 
 from __future__ import annotations
