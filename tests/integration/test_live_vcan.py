@@ -52,25 +52,41 @@ def simulate_f(law: str, duration_s: float) -> np.ndarray:
     return trace.array("f")
 
 
-@pytest.mark.parametrize("law", ["pbc", "ioc", "rhc"])
-def test_hil_up_lockstep_on_vcan_converges_before_and_after_the_jump(tmp_path, law):
+CAN = f"socketcan:{VCAN_CHANNEL}"
+
+
+ANALYTIC_CAMERA = '[camera]\nmodel = "analytic"\n'
+"""The CAN transport is what these tests are about: features from eq. (6), because user-mode
+Linux renders and detects images so slowly that a lockstep period's features can miss their
+wait (``pacers.LOCKSTEP_FEATURE_TIMEOUT_S``), seen as camera outages. Image runs:
+``test_up_images.py``."""
+
+
+def up_on_vcan(log: Path, *args: str) -> dict:
+    """``hil up --lockstep`` on vcan0 with ``args`` and the analytic camera, logging to
+    ``log``: exit 0 and its summary (no process of the rig left behind)."""
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
-    log = tmp_path / f"vcan-{law}.mcap"
-    can = f"socketcan:{VCAN_CHANNEL}"
-    args = ["up", "--lockstep", "--can", can, "--law", law, "--json"]
-    args += ["--duration", f"{DURATION_S[law]:g}", "--zenoh-endpoint", ep, "--log", str(log)]
+    config = log.with_suffix(".toml")
+    config.write_text(ANALYTIC_CAMERA, encoding="utf-8")
+    cmd = ["up", "--lockstep", "--can", CAN, "--json", "--zenoh-endpoint", ep, "--log", str(log)]
+    cmd += ["--config", str(config)]
     t0 = time.monotonic()
     try:
-        proc = run_hil(args, RUN_TIMEOUT_S)
+        proc = run_hil([*cmd, *args], RUN_TIMEOUT_S)
     finally:
         deadline = time.monotonic() + 30
         while processes_mentioning(ep) and time.monotonic() < deadline:
             time.sleep(0.2)
         assert not processes_mentioning(ep), "rig processes left running"
-    wall_s = time.monotonic() - t0
-    print(f"hil up --lockstep --can {can} --law {law}: {wall_s:.1f} s wall")
+    print(f"hil up --lockstep --can {CAN} {' '.join(args)}: {time.monotonic() - t0:.1f} s wall")
     assert proc.returncode == 0, proc.stderr
-    s = json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("law", ["pbc", "ioc", "rhc"])
+def test_hil_up_lockstep_on_vcan_converges_before_and_after_the_jump(tmp_path, law):
+    log = tmp_path / f"vcan-{law}.mcap"
+    s = up_on_vcan(log, "--law", law, "--duration", f"{DURATION_S[law]:g}")
     assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
     assert s["law"] == law and s["ticks"] == round(DURATION_S[law] * RATE_HZ)
     assert s["stale_features"] == 0 and s["missed_periods"] == 0
@@ -81,7 +97,7 @@ def test_hil_up_lockstep_on_vcan_converges_before_and_after_the_jump(tmp_path, l
 
     loaded = read_log(log, raw=False)
     assert not loaded.truncated and loaded.n_cycles == s["ticks"]
-    assert loaded.run_info["can"] == can and loaded.run_info["clock"] == "lockstep"
+    assert loaded.run_info["can"] == CAN and loaded.run_info["clock"] == "lockstep"
     c = loaded.cycles
     t, f = c["sim_time_s"], np.hypot(*c["f"].T)
     before = f[(t >= JUMP_S - 0.1 - 1e-9) & (t < JUMP_S - 1e-9)]
@@ -95,20 +111,8 @@ def test_hil_up_lockstep_on_vcan_converges_before_and_after_the_jump(tmp_path, l
 def test_hil_up_lockstep_cia402_on_vcan(tmp_path):
     """The cia402 profile's whole rig on SocketCAN: the controller's canopen master boots both
     emulated drives, paces the world by SYNC and leaves them switched off, all in lockstep."""
-    ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     log = tmp_path / "vcan-cia402.mcap"
-    can = f"socketcan:{VCAN_CHANNEL}"
-    args = ["up", "--lockstep", "--profile", "cia402", "--can", can, "--law", "ioc", "--json"]
-    args += ["--duration", "3", "--zenoh-endpoint", ep, "--log", str(log)]
-    try:
-        proc = run_hil(args, RUN_TIMEOUT_S)
-    finally:
-        deadline = time.monotonic() + 30
-        while processes_mentioning(ep) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert not processes_mentioning(ep), "rig processes left running"
-    assert proc.returncode == 0, proc.stderr
-    s = json.loads(proc.stdout.strip().splitlines()[-1])
+    s = up_on_vcan(log, "--profile", "cia402", "--law", "ioc", "--duration", "3")
     assert s["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
     assert s["problems"] == [] and s["ticks"] == round(3 * RATE_HZ)
     assert s["stale_states"] == 0 and s["missed_periods"] == 0 and s["stale_features"] == 0
@@ -117,6 +121,6 @@ def test_hil_up_lockstep_cia402_on_vcan(tmp_path):
     assert dsp["drive_state"] == "switch_on_disabled", dsp  # deactivated in order
     loaded = read_log(log, raw=False)
     assert not loaded.truncated and loaded.n_cycles == s["ticks"]
-    assert loaded.run_info["can"] == can
+    assert loaded.run_info["can"] == CAN
     f = np.hypot(*loaded.cycles["f"].T)
     assert f[-1] < f[0] / 10  # it servoed: the image error fell by an order of magnitude
