@@ -112,13 +112,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
-    """``cfg`` with the clock and transport options of the command line (config overrides:
-    ``controller.clock``, ``transport.*``)."""
+    """``cfg`` with the clock, profile and transport options of the command line (config
+    overrides: ``controller.clock``, ``hardware.profile``, ``transport.*``)."""
     from rt_controller.config_rules import apply_overrides
 
     return apply_overrides(
         cfg,
         clock=args.clock,
+        profile=args.profile,
         can=args.can,
         zenoh_endpoint=args.zenoh_endpoint,
         zenoh_config=args.zenoh_config,
@@ -160,6 +161,12 @@ def run_plan_command(args: argparse.Namespace) -> int:
             raise ControllerConfigError(
                 "--plan runs lockstep only (a scenario reset rewinds the emulated arm); "
                 "set controller.clock = lockstep or pass --clock lockstep"
+            )
+        if cfg.hardware.profile != "dsp":
+            raise ControllerConfigError(
+                f"--plan runs on the dsp profile only (the scenario reset between runs is the "
+                f"emulated DSP's), not {cfg.hardware.profile}: start the rig for each run "
+                "(hil up --lockstep --config RUN.toml)"
             )
         return cfg
 

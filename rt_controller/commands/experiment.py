@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hal.arguments import bounded_float, bounded_int, duration
+from rt_controller.commands.common import add_profile_option
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -24,7 +25,9 @@ real-time runs) and every run logs to MCAP. Lockstep runs that share the emulato
 configuration (all but the controller's sections) run on one set of processes: the controller
 resets the emulated DSP's scenario between them (on the simulator-control channel, zenoh
 hil/sim/control), which starts each run exactly as fresh processes would. --fresh-processes
-starts the rig anew for every run.
+starts the rig anew for every run. --profile (hardware.profile) picks the hardware behind the
+controller's seam: dsp (the default) or cia402 (CANopen CiA 402 drives; its runs always start
+the rig anew, the scenario reset being the emulated DSP's); report.md and results.json name it.
 
   fig3    RHC (T = 0.02 s) vs inverse-optimal vs passivity-based control: f, xi, u over time
           (solid RHC, dashed IOC, dash-dot PBC) and J of each law
@@ -85,6 +88,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--realtime", action="store_true", help="real-time runs instead of lockstep")
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
+    add_profile_option(p)
     p.add_argument(
         "--can",
         metavar="INTERFACE[:CHANNEL]",
@@ -136,6 +140,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
         parts.append("--realtime")
     if args.config:
         parts += ["--config", args.config]
+    if args.profile:
+        parts += ["--profile", args.profile]
     if args.can:
         parts += ["--can", args.can]
     if args.jobs is not None:
@@ -175,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
         jobs=args.jobs,
         scheduler=args.scheduler,
         fresh_processes=args.fresh_processes,
+        profile=args.profile,
     )
     settings.validate()
     output_dir(out, "--out")  # before any run: a file or an unwritable place is one line
@@ -186,7 +193,8 @@ def run(args: argparse.Namespace) -> int:
     at_once = f", {jobs} at a time" if jobs > 1 else ""
     if settings.scheduler:
         at_once = f", on {settings.scheduler}" if settings.parallel() else ", one at a time"
-    err.print(f"hil experiment {args.which}: {len(runs)} runs ({settings.clock}{at_once}) -> {out}")
+    what = f"{settings.clock}, {settings.hardware_profile()} profile{at_once}"
+    err.print(f"hil experiment {args.which}: {len(runs)} runs ({what}) -> {out}")
     interrupted: RigInterrupted | None = None
     try:
         with supervised():

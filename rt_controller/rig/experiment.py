@@ -99,6 +99,9 @@ class Settings:
     fresh_processes: bool = False
     """``--fresh-processes``: start the rig anew for every lockstep run instead of running
     the runs that share an emulator configuration on one set of processes (:func:`batches`)."""
+    profile: str | None = None
+    """``--profile``: the hardware profile of every run (``hardware.profile``); None: the
+    config's (:meth:`hardware_profile`)."""
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
@@ -158,6 +161,16 @@ class Settings:
     @property
     def clock(self) -> str:
         return "realtime" if self.realtime else "lockstep"
+
+    def hardware_profile(self) -> str:
+        """The hardware profile every run uses: ``--profile``, else the config's."""
+        return self.profile or load_config(self.config).hardware.profile
+
+    def shares_processes(self) -> bool:
+        """Whether lockstep runs may share one set of processes as a plan
+        (``hil controller --plan``): the plan resets the emulated DSP's scenario, which only
+        the ``dsp`` profile has; ``cia402`` runs start the rig anew for every run."""
+        return not (self.realtime or self.fresh_processes) and self.hardware_profile() == "dsp"
 
 
 @dataclass
@@ -240,7 +253,12 @@ def run_config(settings: Settings, spec: RunSpec) -> RigConfig:
 
     When only the horizon is given, N = max(rhc.steps, ceil(T / 0.05)) (T = 1.0 s -> N = 20).
     """
-    cfg = apply_overrides(load_config(settings.config), law=spec.law, horizon=spec.horizon_s)
+    cfg = apply_overrides(
+        load_config(settings.config),
+        law=spec.law,
+        horizon=spec.horizon_s,
+        profile=settings.profile,
+    )
     return cfg.with_overrides(
         {
             "camera.noise_px": spec.noise_px,
@@ -329,10 +347,10 @@ def batches(
     sections) share one set: the controller runs them as a plan, resetting the emulated DSP's
     scenario between them, which starts each exactly as fresh processes would. While there are
     fewer batches than rigs may run at once (``jobs``, default ``settings.effective_jobs()``),
-    the largest is split in two. Real-time runs,
-    and all runs with ``fresh_processes``, are batches of one.
+    the largest is split in two. Real-time runs, all runs with ``fresh_processes`` and
+    runs of the ``cia402`` profile (:meth:`Settings.shares_processes`) are batches of one.
     """
-    if settings.realtime or settings.fresh_processes:
+    if not settings.shares_processes():
         return [[r] for r in runs]
     from rt_controller.runtime.plan import world_of
 

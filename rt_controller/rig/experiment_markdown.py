@@ -28,6 +28,20 @@ def _scenario_text(sc: dict[str, Any]) -> str:
     return text
 
 
+_LOCKSTEP_TEXT = {
+    "dsp": "(the emulated DSP clocks every tick with Sync frames: deterministic, faster than "
+    "real time).",
+    "cia402": "(the controller's CANopen SYNC steps the emulated drives' world by one period: "
+    "deterministic, faster than real time).",
+}
+_PROFILE_TEXT = {
+    "dsp": "(our DSP behind `hal/hil.dbc`, CAN FD with E2E and SecOC).",
+    "cia402": "(two CANopen CiA 402 drives in cyclic synchronous torque; not authenticated; "
+    "every run on a fresh set of processes).",
+}
+"""What report.md says of each clock and hardware profile (``hardware.profile``)."""
+
+
 def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
     """``report.md``: what was run, the J tables, the figures, the comparison with the paper."""
     md: list[str] = [f"# hil experiment: {', '.join(res['experiments'])}", ""]
@@ -38,11 +52,12 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
         "",
         f"- Clock: **{res['clock']}** "
         + (
-            "(the emulated DSP clocks every tick with Sync frames: deterministic, faster than "
-            "real time)."
+            _LOCKSTEP_TEXT[res.get("profile", "dsp")]
             if res["clock"] == "lockstep"
             else "(monotonic deadlines at the control rate: timing jitter makes runs differ)."
         ),
+        f"- Hardware profile: **{res.get('profile', 'dsp')}** "
+        + _PROFILE_TEXT[res.get("profile", "dsp")],
         f"- Each run: `hil emulator`, `hil vision`, `hil controller` as separate processes for "
         f"{res['duration_s']:g} s of plant time at a control rate of {res['rate_hz']:g} Hz; "
         + _scenario_text(res["scenario"])

@@ -420,3 +420,34 @@ def test_the_runs_go_as_tasks_to_an_existing_cluster_with_scheduler(tmp_path, mo
         assert main([*argv, *at, "--json"]) == 0
     assert got == {"rhc-T0.02": ("ok", 1.0), "ioc": ("ok", 2.0), "pbc": ("ok", 3.0)}
     assert sorted(seen) == [("ioc", True), ("pbc", True), ("rhc", True)]
+
+
+def test_the_profile_reaches_every_run_and_cia402_runs_start_their_own_rig(tmp_path):
+    """--profile cia402 (or the config's hardware.profile) is each run's hardware.profile;
+    its lockstep runs are batches of one: the plan's scenario reset is the emulated DSP's."""
+    cia = settings(tmp_path / "p", ("fig3",), profile="cia402", jobs=1)
+    _, runs = ex.prepare(cia)
+    assert {r.config.hardware.profile for r in runs.values()} == {"cia402"}
+    assert {load_config(r.config_file).hardware.profile for r in runs.values()} == {"cia402"}
+    assert [len(b) for b in ex.batches(list(runs.values()), cia)] == [1, 1, 1]
+    cfg = tmp_path / "cia402.toml"
+    cfg.write_text('[hardware]\nprofile = "cia402"\n', encoding="utf-8")
+    by_config = settings(tmp_path / "c", ("fig3",), config=str(cfg), jobs=1)
+    assert (by_config.hardware_profile(), by_config.shares_processes()) == ("cia402", False)
+    dsp = settings(tmp_path / "d", ("fig3",), config=str(cfg), profile="dsp", jobs=1)
+    _, runs = ex.prepare(dsp)
+    assert {r.config.hardware.profile for r in runs.values()} == {"dsp"}
+    assert [len(b) for b in ex.batches(list(runs.values()), dsp)] == [3]
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_fig3_runs_on_the_cia402_profile_and_the_report_names_it(tmp_path, capsys):
+    out = tmp_path / "fig3-cia402"
+    argv = ["experiment", "fig3", "--duration", "2", "--profile", "cia402", "--jobs", "1"]
+    assert main([*argv, "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["profile"] == "cia402" and "--profile cia402" in res["command"]
+    assert {r["profile"] for r in res["runs"]} == {"cia402"}
+    assert all(math.isfinite(j) and j > 0 for j in res["fig3"]["J"].values())
+    assert "Hardware profile: **cia402**" in (out / "report.md").read_text()

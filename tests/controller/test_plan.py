@@ -121,6 +121,9 @@ def test_the_command_line_refuses_a_plan_with_per_run_options_or_realtime(tmp_pa
     argv = ["controller", "--plan", str(plan), "--clock", "realtime", "--no-rt"]
     assert main(argv) == 2
     assert "lockstep only" in capsys.readouterr().err
+    argv = ["controller", "--plan", str(plan), "--clock", "lockstep", "--profile", "cia402"]
+    assert main([*argv, "--no-rt"]) == 2  # not a wait for a joint state that never comes
+    assert "--plan runs on the dsp profile only" in capsys.readouterr().err
     # the first run runs on the processes as started: its seed must be theirs
     seeded = load_config(None).with_overrides({"controller.clock": "lockstep", "camera.seed": 3})
     plan = write(tmp_path, {"runs": [run_entry(tmp_path, "s3", seeded)]}, "seeded.json")
