@@ -26,6 +26,7 @@ class Durations:
         self.clipped = 0
 
     def add(self, ns: int) -> None:
+        ns = int(ns)
         if ns < 0 or ns > HIGHEST_NS:
             self.clipped += 1
             ns = min(max(ns, 0), HIGHEST_NS)

@@ -4,16 +4,15 @@
 from __future__ import annotations
 
 import math
-from array import array
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from hal.durations import Durations
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.host_steal import DISTURBED_STEAL_PERCENT
-from rt_controller.sample_stats import percentile
 
 ENDED_FULL = ("duration", "stopped")
 """End reasons of a run that is not short for a fault: its duration reached, or told to stop."""
@@ -177,11 +176,11 @@ class RunCounters:
     """Why the loop ended: ``duration``, ``stopped`` (a stop request) or a short phrase (the
     DSP fell silent, ...); anything but :data:`ENDED_FULL` before ``planned_ticks`` makes the
     run not clean."""
-    solve_us: array[float] = field(default_factory=lambda: array("d"))
-    """Per-tick samples for the summary's percentiles, 8 bytes each (a Python float in a list
-    takes about 32: 17 MB/h at 50 Hz for the three, the controller's RSS growth in a soak)."""
-    lateness_us: array[float] = field(default_factory=lambda: array("d"))
-    cycle_us: array[float] = field(default_factory=lambda: array("d"))
+    solve: Durations = field(default_factory=Durations)
+    """Per-tick times for the summary's percentiles, in fixed memory however long the run:
+    the rule's decide (read to solve), the wake-up's lateness and the cycle (wake to write)."""
+    lateness: Durations = field(default_factory=Durations)
+    cycle: Durations = field(default_factory=Durations)
     outages: OutageTracker = field(default_factory=OutageTracker)
     """Camera outages (thresholds: ``controller.outage_warn_periods``, ``outage_max_share``)."""
     period_s: float = 0.02
@@ -202,8 +201,7 @@ class RunCounters:
         return {n: getattr(self, n) for n in names}
 
     def as_dict(self) -> dict[str, Any]:
-        """The summary's counters (sample lists as median and p99)."""
-        pct = percentile
+        """The summary's counters (per-tick times as median and p99)."""
         return {
             **self.controller_block(),
             "J": self.J,
@@ -220,12 +218,17 @@ class RunCounters:
             "spin_s": self.spin_s,
             "host_steal_percent": self.host_steal_percent,
             "stopped_before_arming": self.stopped_before_arming,
-            "solve_us_median": pct(self.solve_us, 50),
-            "solve_us_p99": pct(self.solve_us, 99),
-            "lateness_us_p99": pct(self.lateness_us, 99),
-            "cycle_us_p99": pct(self.cycle_us, 99),
+            "solve_us_median": _us(self.solve, 50),
+            "solve_us_p99": _us(self.solve, 99),
+            "lateness_us_p99": _us(self.lateness, 99),
+            "cycle_us_p99": _us(self.cycle, 99),
             "outages": self.outages.as_dict(self.period_s),
         }
+
+
+def _us(durations: Durations, q: float) -> float:
+    """The ``q``-th percentile in us; NaN before the first tick."""
+    return durations.percentile_us(q) if len(durations) else math.nan
 
 
 def run_problems(summary: dict[str, Any]) -> list[str]:

@@ -120,11 +120,11 @@ class ControlLoop:
             self._follow_features(obs.f, release.t_s)
         st.ticks += 1
         st.missed_periods += release.missed
+        st.solve.add(t_solve - t_read)
+        st.lateness.add(lateness_ns)
+        st.cycle.add(t_write - wake_ns)
         solve_us = (t_solve - t_read) / 1e3
         cycle_us = (t_write - wake_ns) / 1e3
-        st.solve_us.append(solve_us)
-        st.lateness_us.append(lateness_ns / 1e3)
-        st.cycle_us.append(cycle_us)
         return cycle_record(
             tick=release.index,
             t_ns=wake_ns,
