@@ -159,8 +159,10 @@ def write_report(out: Path, spec: Spec) -> Path:
         f"{_fmt(float(ok['J'].quantile(0.95)) if len(ok) else math.nan)}",
         f"- run wall time: sum {df['wall_s'].sum():.1f} s, median {df['wall_s'].median():.3g} s",
         f"- version {', '.join(sorted(set(df['version'])))}",
-        "",
     ]
+    if "rig" in set(df["engine"]):  # the simulate engine drives no hardware
+        lines.append(f"- hardware profile: {', '.join(spec.hardware_profiles())}")
+    lines.append("")
     plots = out / "plots"
     plots.mkdir(exist_ok=True)
     grid_keys = [a.key for a in spec.axes if a.grid]

@@ -160,6 +160,13 @@ class Spec:
     def axis_keys(self) -> list[str]:
         return [a.key for a in self.axes]
 
+    def hardware_profiles(self) -> list[str]:
+        """The hardware profiles (``hardware.profile``) the runs of the rig engine drive."""
+        profiles = {
+            point_config(self.base, v, p).hardware.profile for p, v in enumerate(self.points)
+        }
+        return sorted(profiles)
+
     @property
     def runs(self) -> int:
         return len(self.points) * self.study.repetitions
@@ -172,6 +179,12 @@ class Spec:
         out = []
         for p, values in enumerate(self.points):
             cfg = point_config(self.base, values, p)
+            if engine == "simulate" and cfg.hardware.profile != "dsp":
+                raise SweepSpecError(
+                    f"point {p}: hardware.profile = {cfg.hardware.profile!r} needs the rig "
+                    "engine (--engine rig): the simulate engine runs the law in-process on "
+                    "no hardware, so a profile would change nothing"
+                )
             for rep in range(self.study.repetitions):
                 seed = run_seed(self.spec_hash, p, rep)
                 run_cfg = cfg.with_overrides({"camera.seed": seed}).to_dict()

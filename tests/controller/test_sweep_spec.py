@@ -162,3 +162,19 @@ def test_spec_file_with_a_base_config(tmp_path: Path):
     spec = load_spec(tmp_path / "s.toml")
     assert spec.base.controller.law == "pbc" and spec.base.camera.noise_px == 0.25
     assert spec.runs == 1 and math.isclose(spec.study.duration_s, 0.5)
+
+
+def test_a_hardware_profile_runs_on_the_rig_engine_only():
+    """hardware.profile (an axis or the base's key) reaches each rig run's config; the
+    simulate engine drives no hardware, so a cia402 point is refused there, in one line."""
+    axis = {"axes": [{"key": "hardware.profile", "values": ["dsp", "cia402"]}]}
+    spec = spec_from_dict(axis)
+    assert [t.config["hardware"]["profile"] for t in spec.tasks("rig")] == ["dsp", "cia402"]
+    assert spec.hardware_profiles() == ["cia402", "dsp"]
+    with pytest.raises(SweepSpecError, match=r"point 1: hardware\.profile = 'cia402' needs"):
+        spec.tasks("simulate")
+    base = spec_from_dict({"base": {"hardware": {"profile": "cia402"}}})
+    assert base.hardware_profiles() == ["cia402"]
+    with pytest.raises(SweepSpecError, match="--engine rig"):
+        base.tasks()
+    assert len(spec_from_dict({}).tasks("simulate")) == 1  # the default dsp profile

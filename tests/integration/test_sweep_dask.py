@@ -218,3 +218,22 @@ def test_the_same_point_gives_the_same_J_on_simulate_and_rig(tmp_path: Path):
     # the rig adds encoder quantisation and the DSP's velocity filter: close, not equal
     assert rig["J"] == pytest.approx(sim["J"], rel=0.02)
     assert (tmp_path / "rig" / "logs" / f"{rig['run_key']}.mcap").exists()
+
+
+def test_the_rig_engine_runs_both_hardware_profiles(tmp_path: Path):
+    """hardware.profile as an axis of a rig sweep: the dsp and the cia402 profile run the
+    same lockstep point clean, with J within 1 % (issue 39's target for the cia402 profile)."""
+    spec = tmp_path / "profiles.toml"
+    spec.write_text(
+        '[study]\nengine = "rig"\nduration_s = 3.0\n[base.controller]\nlaw = "rhc"\n'
+        '[[axes]]\nkey = "hardware.profile"\nvalues = ["dsp", "cia402"]\n'
+    )
+    outcome = run_sweep(spec, tmp_path / "out", "--workers", "1")
+    assert outcome["ran"] == 2 and outcome["failed"] == 0
+    by = {r["hardware.profile"]: r for r in rows(tmp_path / "out")}
+    for r in by.values():
+        assert r["status"] == "ok" and r["problems"] == "" and r["dsp_faults"] == 0, r
+        assert r["ticks"] == 150 and r["deadline_misses"] == 0
+    assert by["cia402"]["J"] == pytest.approx(by["dsp"]["J"], rel=0.01)
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "- hardware profile: cia402, dsp" in report
