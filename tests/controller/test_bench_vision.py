@@ -32,7 +32,7 @@ def test_bench_vision_reports_every_figure(capsys):
     for size in ("640x480", "1280x1024"):
         fig = out["sizes"][size]
         assert fig["frames"] == 9
-        assert set(fig) >= {"render_us", "detect_us", "detect_cpu_us"}
+        assert set(fig) >= {"render_us", "detect_us", "detect_cpu_us", "detect_tracked_us"}
         assert set(fig["detect_us"]) == {"median", "p99"}
     assert out["accuracy"]["no_noise"]["rms_px"] <= 0.05
     assert out["accuracy"]["default_noise"]["rms_px"] <= 0.3
