@@ -23,6 +23,7 @@ from plant_emulator.world import World
 from rt_controller.sweep.engines import run_task
 from rt_controller.sweep.spec import load_spec
 from tests.support.netns import ADDRS, veth_namespaces
+from tests.support.proc import stop_all
 
 pytestmark = pytest.mark.integration
 
@@ -55,18 +56,6 @@ def _dask(ns: str, *args: str, log: Path) -> subprocess.Popen:
         stderr=log.open("wb"),
         env=env,
     )
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for proc in reversed(procs):
-        if proc.poll() is None:
-            proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 def test_sweep_runs_on_a_worker_in_another_namespace(namespaces, tmp_path: Path):
@@ -127,7 +116,7 @@ def test_sweep_runs_on_a_worker_in_another_namespace(namespaces, tmp_path: Path)
         assert outcome["workers"] == 1 and outcome["scheduler"] == address
         assert outcome["ran"] == 4 and outcome["failed"] == 0
     finally:
-        _stop(procs)
+        stop_all(procs)
     table = pq.read_table(out / "results.parquet").to_pylist()
     tasks = load_spec(spec).tasks()
     assert [r["run_key"] for r in table] == [t.key for t in tasks]

@@ -70,3 +70,17 @@ def reaped(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
+
+
+def stop_all(procs: list[subprocess.Popen], timeout_s: float = 20.0) -> None:
+    """SIGTERM to each of ``procs`` still running (last started first), then wait for each;
+    one that outlives ``timeout_s`` is killed. Every one is reaped."""
+    for proc in reversed(procs):
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
