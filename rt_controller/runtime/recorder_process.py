@@ -63,6 +63,11 @@ MMAP_THRESHOLD = 128 << 10
 are mapped and given back when freed. Left to glibc, the threshold grows to the largest buffer
 freed, and the heap keeps about 2 MB more after the first minutes (an in-process recorder fed
 600 s of the soak's records: +2.7 MB against +0.5 MB)."""
+START_TIMEOUT_S = 60.0
+"""How long the log's start waits for the child to have opened the file (its imports included:
+seconds on a slow host such as user-mode Linux)."""
+READY = b"ready\n"
+"""The child's line once the log is open (or failed to open): the run may start."""
 IDLE_S = 0.25
 """How often the waiting child looks whether the log is due for a flush."""
 
@@ -163,6 +168,24 @@ class RecorderProcess(Recorder):
         w.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
         w.add_metadata(RUN_METADATA, run_metadata(cfg, run_info))  # this process's pid, argv
         self._send(wait=True)
+        self._printed = self._await_start()
+
+    def _await_start(self) -> bytes:
+        """Wait for the child's :data:`READY`: its start-up (imports, the file opened) is then
+        behind it, not inside the run, where a lockstep tick would wait on a pipe nobody reads
+        yet. What the child printed (the result comes later on the same pipe)."""
+        fd, printed = self._child.stdout.fileno(), b""
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while READY not in printed and self.dead is None:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self._die(f"the recorder process did not start in {START_TIMEOUT_S:g} s")
+            elif select.select([fd], [], [], min(left, 0.1))[0]:
+                data = os.read(fd, 4096)
+                if not data:
+                    self._die("the recorder process exited before it opened the log")
+                printed += data
+        return printed
 
     def add(self, kind: int, t_ns: int, data: bytes, obj: Any = None, final: bool = False) -> bool:
         """Put one encoded record into the stream; a cycle or diagnostics record sends the
@@ -245,7 +268,7 @@ class RecorderProcess(Recorder):
             out, _ = self._child.communicate()
             self._die(f"the recorder process did not finish the log in {timeout:g} s")
         status = self._child.returncode
-        results = [line for line in out.splitlines() if line.startswith(b"{")]
+        results = [line for line in (self._printed + out).splitlines() if line.startswith(b"{")]
         if not results:  # it died before the end of its input
             how = f"killed by signal {-status}" if status < 0 else f"status {status}"
             self._die(f"the recorder process exited ({how})")
@@ -304,6 +327,8 @@ class _LogCopy:
                 self.rec = self.open(config_from_json(self.cfg_json), record.metadata)
             except Exception as exc:  # the stream is still read to its end
                 self.error = str(exc) or type(exc).__name__
+            with contextlib.suppress(OSError):
+                os.write(1, READY)
 
     def open(self, cfg: RigConfig, info: dict[str, str]) -> CycleRecorder:
         scene = None
