@@ -448,3 +448,16 @@ class FramePublisher:
         """Undeclare the publisher (the session stays open). Idempotent."""
         with contextlib.suppress(zenoh.ZError):
             self._pub.undeclare()
+
+
+def start_camera(
+    cfg: RigConfig, session: ZenohSession, stack: contextlib.ExitStack, key: bytes
+) -> tuple[CameraNode, FramePublisher]:
+    """The emulated camera of ``cfg`` on ``session``: its frame publisher and its node, started;
+    both closed by ``stack`` (the emulator's, DSP and CiA 402 profiles alike)."""
+    frames = FramePublisher(session)
+    stack.callback(frames.close)
+    camera = CameraNode(cfg, frames.put, key=key, watched=frames.has_subscribers)
+    stack.callback(camera.close)
+    camera.start()
+    return camera, frames

@@ -247,17 +247,11 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             listening = publisher.has_subscribers
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
             if args.camera and cfg.camera.model == "image":
-                from plant_emulator.camera_node import CameraNode, FramePublisher
+                from plant_emulator.camera_node import start_camera
 
-                frames = FramePublisher(session)
-                stack.callback(frames.close)
-                link.camera = CameraNode(
-                    cfg, frames.put, key=rig_key(cfg), watched=frames.has_subscribers
-                )
+                link.camera, frames = start_camera(cfg, session, stack, rig_key(cfg))
                 poses_seen = publisher.has_subscribers
                 listening = lambda: frames.has_subscribers() or poses_seen()  # noqa: E731
-                stack.callback(link.camera.close)
-                link.camera.start()
                 c = cfg.camera
                 zenoh_where += f", camera frames {c.width_px}x{c.height_px}"
         node = make_dsp(

@@ -113,15 +113,9 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             poses = _Poses(publisher)
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
             if args.camera and cfg.camera.model == "image":
-                from plant_emulator.camera_node import CameraNode, FramePublisher
+                from plant_emulator.camera_node import start_camera
 
-                frames = FramePublisher(session)
-                stack.callback(frames.close)
-                poses.camera = CameraNode(
-                    cfg, frames.put, key=rig_key(cfg), watched=frames.has_subscribers
-                )
-                stack.callback(poses.camera.close)
-                poses.camera.start()
+                poses.camera, _frames = start_camera(cfg, session, stack, rig_key(cfg))
                 zenoh_where += f", camera frames {cfg.camera.width_px}x{cfg.camera.height_px}"
         network = canopen.Network(bus)
         network.connect()  # the notifier on our bus (closed by open_bus's context)
