@@ -218,10 +218,11 @@ def canopen_timing(
 
 def log_timing(log: Any) -> dict[str, Any] | None:
     """:func:`canopen_timing` of a :class:`~rt_controller.logtools.reader.LoadedLog`: the
-    period and node ids from its configuration, the window from one period before its first
-    tick (a lockstep tick's SYNC precedes it) to the end of its last tick's write (a realtime
-    tick sends its SYNC there; deactivation's come after), times from the first tick. None
-    for a log without CANopen frames."""
+    period and node ids from its configuration, times from the first tick, and the window
+    from the first tick's start to the end of its last tick's write. The arming's SYNCs
+    precede the window; a lockstep tick's SYNC falls between the tick before and its own
+    start (period 0's is the arming's last), a realtime tick sends its SYNC at its write;
+    deactivation's come after. None for a log without CANopen frames."""
     cfg = log.config
     if cfg is None or cfg.hardware.profile != "cia402" or not (log.can_rx or log.can_tx):
         return None
@@ -233,7 +234,7 @@ def log_timing(log: Any) -> dict[str, Any] | None:
         t0 = int(t[0])
         cycle_us = log.cycles.get("cycle_us")
         write_ns = int(cycle_us[-1] * 1e3) + 1_000 if cycle_us is not None else period_ns
-        window = (t0 - period_ns, int(t[-1]) + write_ns)
+        window = (t0, int(t[-1]) + write_ns)
     return canopen_timing(
         log.can_rx,
         log.can_tx,
