@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 from hal.config.values import Mat2, Vec2
 
 LAW_NAMES = ("pbc", "ioc", "rhc")
-"""Control-law names (``controller.law``, ``--law``); rt_controller's law table has one entry
-per name (``rt_controller.control.law_table.LAWS``, checked by a test)."""
+"""Control-law names (``controller.law``, ``--law``); the compiled rule has one code per name
+(``rt_controller.control.decide_kernel.LAW_CODES``, checked by a test)."""
 
 if TYPE_CHECKING:  # numpy is imported where used: `hil --help` does not need it
     import numpy as np

@@ -13,13 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from hal.config import RigConfig
+from hal.config import LAW_NAMES, RigConfig
 from rt_controller.control import decide_kernel as dk
-from rt_controller.control.law_table import make_law
-from rt_controller.control.laws import ControlLaw
 from rt_controller.control.model import NominalModel
+from rt_controller.control.rhc.solver import CGMRESSolver
 from rt_controller.control.state import IO, MODE_NAMES, OUTPUTS, pack_params
-from rt_controller.control.state_predictor import StatePredictor
+from rt_controller.errors import ControllerConfigError
 
 _RECORD = tuple(
     ("law" if f.record == "law" else f.name, IO.offset(f.name), f.record)
@@ -104,18 +103,18 @@ class Controller:
         self.cfg = cfg
         self.model = NominalModel.from_config(cfg)
         self._p = pack_params(self.model)
-        name = cfg.controller.law if law is None else law
-        self.law: ControlLaw = make_law(name, self.model, cfg)
-        """The law by name (its C/GMRES solver's arrays are the compiled rule's, for rhc)."""
-        self.rule = dk.CompiledRule(cfg, name, self._p, getattr(self.law, "solver", None))
+        self.law = cfg.controller.law if law is None else law
+        """The law's name (one of :data:`hal.config.LAW_NAMES`)."""
+        self.rule = dk.CompiledRule(cfg, self.law, self._p, self._solver())
         """The compiled per-tick rule: its arrays and the call."""
 
-    @property
-    def predictor(self) -> StatePredictor:
-        """The torques sent and the motion of the nominal arm under them: a view of the
-        compiled rule's history as of now."""
-        r = self.rule
-        return StatePredictor(self._p, r.horizon_s, history=(r.hist_t, r.hist_tau, len(r)))
+    def _solver(self) -> CGMRESSolver | None:
+        """The C/GMRES solver whose arrays the compiled rule advances (rhc), else None."""
+        if self.law not in dk.LAW_CODES:
+            raise ControllerConfigError(
+                f"unknown law {self.law!r} (choose from {', '.join(LAW_NAMES)})"
+            )
+        return CGMRESSolver(self.model, self.cfg) if self.law == "rhc" else None
 
     def reconfigure(self, cfg: RigConfig, *, law_changed: bool = True) -> None:
         """Run from now on with ``cfg``, which differs from the current configuration only in
@@ -129,14 +128,12 @@ class Controller:
         if law_changed:
             self.model = NominalModel.from_config(cfg)
             self._p = pack_params(self.model)
-            self.law = make_law(cfg.controller.law, self.model, cfg)
-            solver = getattr(self.law, "solver", None)
-            self.rule.retarget(cfg, cfg.controller.law, self._p, solver)
+            self.law = cfg.controller.law
+            self.rule.retarget(cfg, self.law, self._p, self._solver())
         self.rule.limits(cfg)
 
     def reset(self) -> None:
         """As new: the law starts again, no torque sent, not holding."""
-        self.law.reset()
         self.rule.reset()
 
     def decide(
@@ -164,7 +161,7 @@ class Controller:
         Otherwise the law and eq. (11). Never returns NaN torque.
 
         ``state_age_s``: how long before ``now_s`` the joint state was sampled; a positive age
-        is compensated (:class:`~rt_controller.control.state_predictor.StatePredictor`: the
+        is compensated (:func:`~rt_controller.control.model_kernels.compensate`: the
         nominal model under the torques this method returned meanwhile) before the hold or the
         law sees the state. ``feature_age_s``: how long before ``now_s`` the features were
         captured; a positive age is compensated by seeing the (static) target from the
@@ -209,11 +206,5 @@ class Controller:
                 state_age_s=0.0005 * i,  # the prediction too
                 feature_age_s=0.0007 * i,
             )
-            d.record_fields(self.law.name)
+            d.record_fields(self.law)
         self.reset()
-
-
-def warm_up(ctl: Controller, cfg: RigConfig | None = None) -> None:
-    """:meth:`Controller.warm_up` (``cfg`` is the controller's own; kept for the callers'
-    spelling)."""
-    ctl.warm_up()

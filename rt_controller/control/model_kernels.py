@@ -1,10 +1,9 @@
 """Compiled per-tick terms of the nominal model: xi, the feedforward of eq. (11), l and V.
 
 The loop calls these once per tick instead of a few dozen small NumPy operations. They compute
-exactly what :class:`~rt_controller.control.model.NominalModel` computes (the tests compare the
-two); the NumPy model stays the readable reference. Their parameter vector ``p`` is the model's
-part of :data:`~rt_controller.control.state.PAR` (:func:`~rt_controller.control.state.
-pack_params`).
+exactly what the NumPy model of ``tests/support/nominal_model.py`` computes (the tests compare
+the two). Their parameter vector ``p`` is the model's part of
+:data:`~rt_controller.control.state.PAR` (:func:`~rt_controller.control.state.pack_params`).
 """
 
 from __future__ import annotations

@@ -156,4 +156,4 @@ def run_closed_loop(
         tr.fallback.append(rec["fallback"])
         tr.solve_ns.append(d.solve_ns)
         plant.hold(d.tau, substeps)
-    return SimResult(controller.law.name, rate, duration, tr)
+    return SimResult(controller.law, rate, duration, tr)

@@ -35,7 +35,7 @@ from numba import njit
 
 from hal.config import RigConfig
 from rt_controller.control import decide_kernel as dk
-from rt_controller.control.controller import Controller, warm_up
+from rt_controller.control.controller import Controller
 from rt_controller.control.state import IO
 from rt_controller.sample_stats import summary_stats
 
@@ -157,7 +157,7 @@ def bench_decide(cfg: RigConfig, updates: int, plant_step: Any, episode_s: float
     """The ``decide`` figures for ``cfg`` (its law: run ``rhc`` for the C/GMRES figures), the
     scenario restarting every ``episode_s`` seconds with a cold law."""
     ctl = Controller(cfg)
-    warm_up(ctl, cfg)
+    ctl.warm_up()
     rule = ctl.rule
     assert rule is not None
     s, period = cfg.scenario, 1.0 / cfg.rates.control_hz

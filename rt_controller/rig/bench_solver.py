@@ -4,8 +4,8 @@ The solver runs in closed loop with a plant: by default the nominal model's eq. 
 by RK4 at ``rates.physics_hz`` with u held over each control period (the target jump is
 ignored); the scenario restarts every :data:`EPISODE_S` seconds with a cold solver, so the
 updates cover the transient and not only the rest state. Each update is timed with
-``time.perf_counter_ns`` around :meth:`CGMRESSolver.update` (what the law reports as
-``solve_ns``); the first tick of an episode is the Newton-GMRES initial solve and is reported
+``time.perf_counter_ns`` around :meth:`CGMRESSolver.update` (the compiled tick and its Python
+wrapper); the first tick of an episode is the Newton-GMRES initial solve and is reported
 apart (``init_us``). What compiling buys (the plain-NumPy reference solver, a test oracle, on
 the same loop) is a test-side benchmark: ``python -m tests.support.bench_reference``.
 
@@ -41,7 +41,10 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
+from rt_controller.control.model_kernels import prepare
+from rt_controller.control.rhc import dynamics
 from rt_controller.control.rhc.kernel import rhc_tick, sweep_probe
+from rt_controller.control.rhc.problem import pack_params
 from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
 from rt_controller.control.state import ST
 from rt_controller.rig.bench_decide import bench_decide
@@ -62,24 +65,26 @@ PACED_TICKS = 100
 
 
 def nominal_plant_step(model: NominalModel, cfg: RigConfig) -> PlantStep:
-    """Eq. (12) of the nominal model by RK4 at ``rates.physics_hz``, u held over the period."""
+    """Eq. (12) of the nominal model (the solver's own, :func:`~rt_controller.control.rhc.
+    dynamics.rhs`) by RK4 at ``rates.physics_hz``, u held over the period."""
     h = 1.0 / cfg.rates.physics_hz
     substeps = cfg.rates.substeps
+    P, _ = pack_params(model, cfg)
 
     def rhs(s: np.ndarray, u: np.ndarray) -> np.ndarray:
-        dq, xid, fd = model.closed_loop_rhs(s[0:2], s[2:4], s[4:6], u)
-        return np.concatenate([dq, xid, fd])
+        out = np.empty(6)
+        dynamics.rhs(P, s, u, out)
+        return out
 
     def step(q: np.ndarray, dq: np.ndarray, f: np.ndarray, u: np.ndarray):
-        s = pack_state(q, model.xi(q, dq, f), f)
+        s = pack_state(q, prepare(P, q, dq, f)[0], f)
         for _ in range(substeps):
             k1 = rhs(s, u)
             k2 = rhs(s + 0.5 * h * k1, u)
             k3 = rhs(s + 0.5 * h * k2, u)
             k4 = rhs(s + h * k3, u)
             s = s + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        q, xi, f = s[0:2], s[2:4], s[4:6]
-        return q, xi + model.alpha @ model.eta(q, f), f
+        return s[0:2], rhs(s, u)[0:2], s[4:6]
 
     return step
 
@@ -102,6 +107,7 @@ def run_updates(solver, model, cfg, plant_step, updates: int) -> dict[str, Any]:
     init = np.zeros(updates, dtype=bool)
     bad = np.zeros(updates, dtype=bool)
     umax = np.asarray(cfg.rhc.u_max, dtype=float)
+    P, _ = pack_params(model, cfg)
     x = np.zeros(6)
     q = dq = f = np.zeros(2)
     compiled = isinstance(solver, CGMRESSolver)
@@ -116,7 +122,7 @@ def run_updates(solver, model, cfg, plant_step, updates: int) -> dict[str, Any]:
                 dq = np.array(s.dq0, dtype=float)
                 f = np.array(s.f0, dtype=float)
                 solver.reset()
-            xi = model.xi(q, dq, f)
+            xi, _ = prepare(P, q, dq, f)
             pack_state(q, xi, f, x)
             t = (k % episode) * period
             if compiled and k % every == 0 and not solver.needs_init:

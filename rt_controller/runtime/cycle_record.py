@@ -99,7 +99,7 @@ def write_schema(path: Path = SCHEMA_FILE) -> bool:
 def decision_fields(ctl: Controller, d: Decision) -> dict[str, Any]:
     """The output fields of one tick (the state acted on, u, xi, tau, law, solver report, cost,
     V) from the per-tick rule's :class:`Decision`; zeros / NaN when the law did not run."""
-    return d.record_fields(ctl.law.name)
+    return d.record_fields(ctl.law)
 
 
 def cycle_record(

@@ -31,7 +31,7 @@ from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import ZenohSession, open_session
 from rt_controller.calibration.link import ParameterServer
 from rt_controller.calibration.parameters import ParameterService
-from rt_controller.control.controller import Controller, warm_up
+from rt_controller.control.controller import Controller
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
 from rt_controller.runtime.cia402_hardware import Cia402Hardware, open_cia402_links
@@ -215,7 +215,7 @@ class ControllerDaemon:
         """Warm up, configure the hardware (the peer answers), lock memory, then the loop
         (which activates it); deactivated at the end."""
         cfg = self.cfg
-        warm_up(self.controller, cfg)  # every branch of the tick, before the DSP is armed
+        self.controller.warm_up()  # every branch of the tick, before the DSP is armed
         hw.configure(self.stop)
         if self.stop.is_set():
             self.counters.stopped_before_arming = True
@@ -245,7 +245,7 @@ class ControllerDaemon:
     def _summary(self, rec: RecorderProcess) -> dict[str, Any]:
         rec.close()
         out = {**self.what_runs(), **self.counters.as_dict()}
-        out.update(law=self.controller.law.name, log=str(self.log_path), recorder=rec.as_dict())
+        out.update(law=self.controller.law, log=str(self.log_path), recorder=rec.as_dict())
         if rec.error is not None:
             out["log_error"] = str(rec.error)
         final = self._final_diagnostics or {}

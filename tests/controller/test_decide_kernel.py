@@ -73,7 +73,7 @@ def test_the_compiled_rule_decides_what_the_python_rule_decides(law: str):
         modes.add(a.mode)
     assert modes == {"control", "hold", "no_state", "disarmed"}
     assert worst <= SAME
-    assert len(compiled.predictor) == len(python.predictor) == 300
+    assert len(compiled.rule) == len(python.predictor) == 300
 
 
 def test_a_fallback_and_a_law_switch_match_too():
@@ -88,7 +88,7 @@ def test_a_fallback_and_a_law_switch_match_too():
             new = ioc if k == 40 else cfg
             compiled.reconfigure(new)
             python.reconfigure(new)  # a new law object
-            assert python.law.name == new.controller.law
+            assert python.law == new.controller.law
         a, b = compiled.decide(t, q, dq, f, **kw), python.decide(t, q, dq, f, **kw)
         assert diff(a, b) <= SAME
         if a.mode == "control" and a.fallback:
@@ -103,7 +103,7 @@ def test_a_reset_forgets_the_warm_start_and_the_history():
     runs = []
     for _ in range(2):
         runs.append([ctl.decide(t, q, dq, f, **kw).tau for t, q, dq, f, kw in scenario(cfg, 60)])
-        assert len(ctl.predictor) == 60
+        assert len(ctl.rule) == 60
         ctl.reset()
-        assert len(ctl.predictor) == 0
+        assert len(ctl.rule) == 0
     assert np.array_equal(np.array(runs[0]), np.array(runs[1]))  # one machine: bit-identical

@@ -47,10 +47,24 @@ def test_dependency_directions(package: str):
     assert not offenders, offenders
 
 
+def test_product_code_never_imports_the_tests():
+    """The test oracles (the Python rule, the NumPy solver) live in tests/support/ only."""
+    offenders = [
+        path.relative_to(ROOT).as_posix()
+        for package in sorted(FORBIDDEN)
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if "tests" in imported_packages(path)
+    ]
+    assert not offenders, offenders
+
+
 def test_the_checker_sees_imports(tmp_path: Path):
     probe = tmp_path / "probe.py"
-    probe.write_text("import plant_emulator.world\nfrom rt_controller.control.model import X\n")
-    assert imported_packages(probe) == {"plant_emulator", "rt_controller"}
+    probe.write_text(
+        "import plant_emulator.world\nfrom rt_controller.control.model import X\n"
+        "from tests.support.python_rule import PythonRule\n"
+    )
+    assert imported_packages(probe) == {"plant_emulator", "rt_controller", "tests"}
 
 
 # ------------------------------------------------------------ rt_controller's own layers
@@ -238,11 +252,12 @@ def test_the_top_level_checker_skips_functions_and_type_checking(tmp_path: Path)
     assert top_level_imports(probe) == {"typing", "scipy"}
 
 
-def test_law_table_matches_the_config_names():
+def test_law_codes_match_the_config_names():
     from hal.config import LAW_NAMES
-    from rt_controller.control.law_table import LAWS
+    from rt_controller.control.decide_kernel import LAW_CODES
+    from tests.support.python_laws import LAWS
 
-    assert tuple(LAWS) == LAW_NAMES
+    assert tuple(LAW_CODES) == tuple(LAWS) == LAW_NAMES
 
 
 def test_sweep_package_uses_no_cli_modules():

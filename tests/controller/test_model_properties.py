@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 
 from hal.config import RigConfig
-from rt_controller.control.laws import inverse_optimal, passivity_based
-from rt_controller.control.model import NominalModel
+from tests.support.nominal_model import NumpyModel
+from tests.support.python_laws import inverse_optimal, passivity_based
 
 RNG = np.random.default_rng(20261122)
 SAMPLES = 200
 
 
 @pytest.fixture
-def model(cfg: RigConfig) -> NominalModel:
-    return NominalModel.from_config(cfg)
+def model(cfg: RigConfig) -> NumpyModel:
+    return NumpyModel.from_config(cfg)
 
 
 def random_states(n: int = SAMPLES):
@@ -149,7 +149,7 @@ def test_compiled_tick_terms_equal_the_numpy_model(cfg: RigConfig, gravity: floa
     cfg = cfg.with_overrides(
         {"robot.gravity": gravity, "gains.alpha": [[0.05, 0.01], [0.01, 0.15]]}
     )
-    model = NominalModel.from_config(cfg)
+    model = NumpyModel.from_config(cfg)
     p = pack_params(model)
     for q, dq, f, u in random_states(100):
         xi, tau_ff = model_kernels.prepare(p, q, dq, f)

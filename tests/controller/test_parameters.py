@@ -85,15 +85,15 @@ def test_requests_from_other_threads_are_handed_over():
 
 
 @pytest.mark.parametrize("law", ["rhc", "ioc", "pbc"])
-def test_reconfigure_rebuilds_the_law_and_keeps_the_predictor(law):
+def test_reconfigure_rebuilds_the_law_and_keeps_the_torque_history(law):
     cfg = RigConfig()
     ctl = Controller(cfg)
     q, dq, f = np.array(cfg.scenario.q0), np.zeros(2), np.array(cfg.scenario.f0)
     ctl.decide(0.0, q, dq, f, f_stale=False, state_stale=False)
-    n = len(ctl.predictor)
+    n = len(ctl.rule)
     new = judge(cfg, {"controller.law": law, "gains.kp": 0.2})
     ctl.reconfigure(new)
-    assert ctl.law.name == law and ctl.model.kp == 0.2 and len(ctl.predictor) == n
+    assert ctl.law == law and ctl.model.kp == 0.2 and len(ctl.rule) == n
     d = ctl.decide(0.02, q, dq, f, f_stale=False, state_stale=False)
     fresh = Controller(new).decide(0.02, q, dq, f, f_stale=False, state_stale=False)
     assert np.all(np.isfinite(d.tau)) and np.allclose(d.tau, fresh.tau)

@@ -7,25 +7,24 @@ import pytest
 from scipy.optimize import minimize
 
 from hal.config import RigConfig
-from rt_controller.control.law_table import make_law
-from rt_controller.control.laws import Measurement
-from rt_controller.control.model import NominalModel
-from rt_controller.control.rhc import CGMRESSolver, RecedingHorizonLaw, gmres, kernel, residual
-from rt_controller.control.rhc.solver import pack_state
+from rt_controller.control.rhc import gmres, kernel, residual
+from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
+from tests.support.nominal_model import NumpyModel
+from tests.support.python_laws import Measurement, RecedingHorizonLaw, make_law
 from tests.support.rhc_reference import ReferenceSolver
 
 FROZEN = np.zeros(6)
 
 
-def initial_state(cfg: RigConfig, model: NominalModel) -> np.ndarray:
+def initial_state(cfg: RigConfig, model: NumpyModel) -> np.ndarray:
     q = np.array(cfg.scenario.q0)
     f = np.array(cfg.scenario.f0)
     return pack_state(q, model.xi(q, np.array(cfg.scenario.dq0), f), f)
 
 
-def solver_for(cfg: RigConfig, **overrides) -> tuple[CGMRESSolver, NominalModel, RigConfig]:
+def solver_for(cfg: RigConfig, **overrides) -> tuple[CGMRESSolver, NumpyModel, RigConfig]:
     cfg = cfg.with_overrides(overrides) if overrides else cfg
-    model = NominalModel.from_config(cfg)
+    model = NumpyModel.from_config(cfg)
     return CGMRESSolver(model, cfg), model, cfg
 
 
@@ -95,7 +94,7 @@ def test_dummy_input_bounds_hold_at_convergence(cfg, u_max, at_bound):
         assert abs(rep.u[j]) < 0.95 * umax[j], rep.u
 
 
-def direct_shooting(model: NominalModel, cfg: RigConfig, x0: np.ndarray) -> np.ndarray:
+def direct_shooting(model: NumpyModel, cfg: RigConfig, x0: np.ndarray) -> np.ndarray:
     """The same Euler-discretised problem solved by scipy (L-BFGS-B, box bounds on u).
 
     The dummy inputs are eliminated: v_i = sqrt(umax_i^2 - u_i^2) maximises the dummy reward, so
@@ -174,7 +173,7 @@ def test_compiled_and_numpy_reference_agree_tick_by_tick(cfg):
         x = x + period * np.concatenate([dq, xid, fd])
 
 
-def measurement(model: NominalModel, x: np.ndarray, t: float = 0.0, **replace) -> Measurement:
+def measurement(model: NumpyModel, x: np.ndarray, t: float = 0.0, **replace) -> Measurement:
     q, xi, f = x[0:2], x[2:4], x[4:6]
     dq = xi + model.alpha @ model.eta(q, f)
     fields = {"t": t, "q": q, "dq": dq, "f": f, "xi": xi, **replace}
@@ -182,7 +181,7 @@ def measurement(model: NominalModel, x: np.ndarray, t: float = 0.0, **replace) -
 
 
 def test_make_law_builds_the_rhc_law(cfg):
-    model = NominalModel.from_config(cfg)
+    model = NumpyModel.from_config(cfg)
     law = make_law("rhc", model, cfg)
     assert isinstance(law, RecedingHorizonLaw) and law.name == "rhc"
     out = law(measurement(model, initial_state(cfg, model)))
@@ -191,7 +190,7 @@ def test_make_law_builds_the_rhc_law(cfg):
 
 
 def test_nan_measurement_falls_back_to_inverse_optimal_and_recovers(cfg):
-    model = NominalModel.from_config(cfg)
+    model = NumpyModel.from_config(cfg)
     law = RecedingHorizonLaw(model, cfg)
     x = initial_state(cfg, model)
     assert not law(measurement(model, x)).fallback
@@ -210,7 +209,7 @@ def test_nan_measurement_falls_back_to_inverse_optimal_and_recovers(cfg):
 
 def test_residual_above_the_bound_falls_back_every_tick(cfg):
     cfg = cfg.with_overrides({"rhc.residual_bound": 1e-300, "rhc.u_max": [3.0, 2.0]})
-    model = NominalModel.from_config(cfg)
+    model = NumpyModel.from_config(cfg)
     law = RecedingHorizonLaw(model, cfg)
     x = initial_state(cfg, model)
     for k in range(3):

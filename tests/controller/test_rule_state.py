@@ -50,7 +50,7 @@ def test_a_decision_records_the_declared_fields_with_their_types(law):
     ctl = Controller(cfg)
     q, dq, f = (np.array(v, float) for v in (cfg.scenario.q0, cfg.scenario.dq0, cfg.scenario.f0))
     d = ctl.decide(0.0, q, dq, f, f_stale=False, state_stale=False)
-    rec = d.record_fields(ctl.law.name)
+    rec = d.record_fields(ctl.law)
     schema = cycle_record.decision_schema()
     assert list(rec) == list(schema)
     python_type = {"number": float, "integer": int, "boolean": bool, "string": str}

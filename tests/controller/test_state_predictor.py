@@ -1,4 +1,5 @@
-"""Delay compensation (:mod:`rt_controller.control.state_predictor`): the compiled prediction
+"""Delay compensation (:func:`rt_controller.control.model_kernels.compensate`, through the
+oracle's :mod:`tests.support.state_predictor`): the compiled prediction
 against an accurate integration of the nominal model (eq. 1), the torque history it uses, and
 the property that matters: a law fed an old state and its age decides as on the fresh one."""
 
@@ -11,17 +12,18 @@ from scipy.integrate import solve_ivp
 from hal.config import RigConfig
 from rt_controller.control import model_kernels
 from rt_controller.control.controller import Controller
-from rt_controller.control.model import NominalModel
+from rt_controller.control.decide_kernel import CAPACITY
 from rt_controller.control.state import pack_params
-from rt_controller.control.state_predictor import CAPACITY, StatePredictor
+from tests.support.nominal_model import NumpyModel
+from tests.support.state_predictor import StatePredictor, predictor_of
 
 
 @pytest.fixture(scope="module")
-def model() -> NominalModel:
-    return NominalModel.from_config(RigConfig())
+def model() -> NumpyModel:
+    return NumpyModel.from_config(RigConfig())
 
 
-def _reference(model: NominalModel, q, dq, pieces) -> tuple[np.ndarray, np.ndarray]:
+def _reference(model: NumpyModel, q, dq, pieces) -> tuple[np.ndarray, np.ndarray]:
     """(q, dq) after each (tau, seconds) piece, by an adaptive 8th-order integrator."""
     x = np.r_[q, dq]
 
@@ -123,7 +125,7 @@ def test_the_decision_carries_the_state_it_acted_on(model):
     q, dq, f = np.array(cfg.scenario.q0), np.array([0.5, -2.0]), np.array(cfg.scenario.f0)
     ctl.decide(0.0, q, dq, f, f_stale=False, state_stale=False)
     d = ctl.decide(0.02, q, dq, f, f_stale=False, state_stale=False, state_age_s=0.015)
-    want = ctl.predictor.predict(0.02, q, dq, 0.015)  # same history: the 0.02 torque is later
+    want = predictor_of(ctl).predict(0.02, q, dq, 0.015)  # same history: the 0.02 torque is later
     assert d.mode == "control" and not np.allclose(d.dq_pred, dq)
     assert np.allclose(d.q_pred, want[0]) and np.allclose(d.dq_pred, want[1])
     h = ctl.decide(0.04, q, dq, f, f_stale=True, state_stale=False, state_age_s=0.015)

@@ -48,10 +48,10 @@ def _run(code: str) -> subprocess.CompletedProcess[str]:
             "controller laws",
             """
             from hal.config import load_config
-            from rt_controller.control.controller import Controller, warm_up
+            from rt_controller.control.controller import Controller
             cfg = load_config()
             for law in ("pbc", "ioc", "rhc"):
-                warm_up(Controller(cfg, law), cfg)
+                Controller(cfg, law).warm_up()
             print("ok")
             """,
         ),

@@ -20,11 +20,11 @@ import json, sys
 import numpy as np
 from numba.core import event
 from hal.config import load_config
-from rt_controller.control.controller import Controller, warm_up
+from rt_controller.control.controller import Controller
 
 cfg = load_config().with_overrides({"controller.law": sys.argv[1]})
 ctl = Controller(cfg)
-warm_up(ctl, cfg)
+ctl.warm_up()
 rng = np.random.default_rng(0)
 q0, f0 = np.array(cfg.scenario.q0), np.array(cfg.scenario.f0)
 with event.install_recorder("numba:compile") as rec:
@@ -33,7 +33,7 @@ with event.install_recorder("numba:compile") as rec:
         dq = rng.normal(0, 0.2, 2)
         f = f0 * (1 - k / 60) + rng.normal(0, 1, 2)
         d = ctl.decide(k * 0.02, q, dq, f, f_stale=k % 17 == 5, state_stale=k % 23 == 7)
-        d.record_fields(ctl.law.name)
+        d.record_fields(ctl.law)
 print(json.dumps([str(ev.data.get("dispatcher", ev)) for _, ev in rec.buffer]))
 """
 

@@ -10,8 +10,8 @@ from hal.config import RigConfig
 from plant_emulator.arm import ArmPhysics
 from plant_emulator.camera import camera_pose, project
 from plant_emulator.world import World
-from rt_controller.control.model import NominalModel
 from tests.support import nominal_rk4
+from tests.support.nominal_model import NumpyModel
 
 RNG = np.random.default_rng(7)
 
@@ -19,7 +19,7 @@ RNG = np.random.default_rng(7)
 @pytest.mark.parametrize("gravity", [0.0, 9.81])
 def test_same_torque_sequence_same_motion(cfg: RigConfig, gravity: float):
     cfg = cfg.with_overrides({"robot.gravity": gravity})
-    world, model = World(cfg), NominalModel.from_config(cfg)
+    world, model = World(cfg), NumpyModel.from_config(cfg)
     q, dq = world.q.copy(), world.dq.copy()
     for _ in range(100):  # 2 s of random torques held for 20 ms each
         tau = RNG.uniform(-1, 1, 2) * np.array([5.0, 0.5])
@@ -33,7 +33,7 @@ def test_same_torque_sequence_same_motion(cfg: RigConfig, gravity: float):
 
 def test_dynamics_terms_agree(cfg: RigConfig):
     cfg = cfg.with_overrides({"robot.gravity": 9.81})
-    arm, model = ArmPhysics(cfg.robot), NominalModel.from_config(cfg)
+    arm, model = ArmPhysics(cfg.robot), NumpyModel.from_config(cfg)
     for _ in range(100):
         q, dq = RNG.uniform(-np.pi, np.pi, 2), RNG.normal(0, 3, 2)
         np.testing.assert_allclose(arm.inertia(q), model.M(q), rtol=1e-12)
@@ -42,7 +42,7 @@ def test_dynamics_terms_agree(cfg: RigConfig):
 
 
 def test_camera_agrees_with_eq6(cfg: RigConfig):
-    model = NominalModel.from_config(cfg)
+    model = NumpyModel.from_config(cfg)
     for _ in range(100):
         q, target = RNG.uniform(-np.pi, np.pi, 2), RNG.uniform(-0.5, 0.5, 2)
         f = project(cfg.camera, camera_pose(cfg.robot, q), target)

@@ -154,9 +154,12 @@ def cycles_logged(log: Path) -> int:
 def nominal_rk4(model, q, dq, tau, dt):
     """One classic RK4 step of the controller's nominal model (an implementation independent of
     the emulator's physics, see tests/integration/test_physics_crosscheck.py)."""
+    from tests.support.nominal_model import NumpyModel
+
+    m = NumpyModel.of(model)
 
     def acc(q, dq):
-        return np.linalg.solve(model.M(q), tau - model.C(q, dq) @ dq - model.g(q))
+        return np.linalg.solve(m.M(q), tau - m.C(q, dq) @ dq - m.g(q))
 
     k1q, k1v = dq, acc(q, dq)
     k2q, k2v = dq + 0.5 * dt * k1v, acc(q + 0.5 * dt * k1q, dq + 0.5 * dt * k1v)

@@ -113,8 +113,8 @@ def run_one(out: Path, args: list[str]) -> dict:
     from plant_emulator.world import World
     from rt_controller.control.controller import Controller
     from rt_controller.control.model import NominalModel
-    from rt_controller.control.rhc.law import RecedingHorizonLaw
     from rt_controller.control.simulate import run_closed_loop
+    from tests.support.python_laws import RecedingHorizonLaw
     from tests.support.python_rule import PythonRule
     from tests.support.rhc_reference import ReferenceSolver
 

@@ -5,10 +5,10 @@
 It takes the same inputs as ``Controller.decide`` and answers the same
 :class:`~rt_controller.control.controller.Decision` (written into an io vector of the compiled
 rule's layout), but every branch is plain Python: the drive and staleness gates, the delay
-compensation (:class:`~rt_controller.control.state_predictor.StatePredictor`), the hold, the
-law object (any :class:`~rt_controller.control.laws.ControlLaw`: the built-in laws, the C/GMRES
-law on the NumPy reference solver of :mod:`tests.support.rhc_reference`, a test double), eq. (11)
-and the costs. Product code never imports it.
+compensation (:class:`tests.support.state_predictor.StatePredictor`), the hold, the law object
+(any :class:`tests.support.python_laws.ControlLaw`: the laws of :mod:`tests.support.python_laws`,
+the C/GMRES law on the NumPy reference solver of :mod:`tests.support.rhc_reference`, a test
+double), eq. (11) and the costs. Product code never imports it.
 """
 
 from __future__ import annotations
@@ -21,8 +21,6 @@ import numpy as np
 from hal.config import RigConfig
 from rt_controller.control import model_kernels
 from rt_controller.control.controller import Decision
-from rt_controller.control.law_table import make_law
-from rt_controller.control.laws import ControlLaw, Measurement
 from rt_controller.control.model import NominalModel
 from rt_controller.control.state import (
     IO,
@@ -32,7 +30,8 @@ from rt_controller.control.state import (
     MODE_NO_STATE,
     pack_params,
 )
-from rt_controller.control.state_predictor import StatePredictor
+from tests.support.python_laws import ControlLaw, Measurement, make_law
+from tests.support.state_predictor import StatePredictor
 
 
 def finite2(v: np.ndarray) -> bool:
@@ -42,14 +41,18 @@ def finite2(v: np.ndarray) -> bool:
 
 class PythonRule:
     """``Controller``'s public face (``decide``, ``reconfigure``, ``reset``, ``warm_up``,
-    ``law``, ``model``, ``predictor``) on a law object; ``law`` is a name or an object."""
+    ``law``: the law's name, ``model``) on a law object (``law_object``, built by name or
+    given), plus its ``predictor``."""
 
     def __init__(self, cfg: RigConfig, law: str | ControlLaw | None = None) -> None:
         self.cfg = cfg
         self.model = NominalModel.from_config(cfg)
         self._p = pack_params(self.model)
         name = cfg.controller.law if law is None else law
-        self.law: ControlLaw = make_law(name, self.model, cfg) if isinstance(name, str) else name
+        self.law_object: ControlLaw = (
+            make_law(name, self.model, cfg) if isinstance(name, str) else name
+        )
+        self.law = self.law_object.name
         self.tau_max = np.array(cfg.robot.tau_max, dtype=float)
         self._holding = False
         self.predictor = StatePredictor(self._p, self._horizon(cfg))
@@ -64,11 +67,12 @@ class PythonRule:
         if law_changed:
             self.model = NominalModel.from_config(cfg)
             self._p = pack_params(self.model)
-            self.law = make_law(cfg.controller.law, self.model, cfg)
+            self.law_object = make_law(cfg.controller.law, self.model, cfg)
+            self.law = self.law_object.name
         self.predictor.retarget(self._p, self._horizon(cfg))
 
     def reset(self) -> None:
-        self.law.reset()
+        self.law_object.reset()
         self.predictor.reset()
         self._holding = False
 
@@ -122,13 +126,13 @@ class PythonRule:
             io[IO.TAU : IO.TAU + 2] = hold
             return 0
         if self._holding:
-            self.law.reset()
+            self.law_object.reset()
             self._holding = False
         io[IO.MODE] = MODE_CONTROL
         io[IO.F_PRED : IO.F_PRED + 2] = f
         xi, tau_ff = model_kernels.prepare(self._p, q, dq, f)
         start = time.perf_counter_ns()
-        out = self.law(Measurement(t=t, q=q, dq=dq, f=f, xi=xi))
+        out = self.law_object(Measurement(t=t, q=q, dq=dq, f=f, xi=xi))
         solve_ns = time.perf_counter_ns() - start
         u = np.asarray(out.u, dtype=float)
         tau, raw, saturated = model_kernels.torque(tau_ff, u, self.tau_max)  # eq. (11)

@@ -1,11 +1,11 @@
 """Plain-NumPy reference of the C/GMRES update: the same algorithm, no numba.
 
 It doubles as an independent cross-check of the compiled kernels: the dynamics come from
-:meth:`NominalModel.closed_loop_rhs` and the Hamiltonian gradients are derived in matrix form from
-the model's own M, C, J_b, R_wc and their derivatives (generic in q1 and q2), not from the scalar
-expressions of :mod:`rt_controller.control.rhc.problem`.
-It is slow (Python loops over the horizon); it is
-for tests and for the benchmark's "what compiling buys" ratio.
+:meth:`tests.support.nominal_model.NumpyModel.closed_loop_rhs` and the Hamiltonian gradients are
+derived in matrix form from the model's own M, C, J_b, R_wc and their derivatives (generic in q1
+and q2), not from the scalar expressions of :mod:`rt_controller.control.rhc.problem`. It is slow
+(Python loops over the horizon); it is for tests and for the benchmark's "what compiling buys"
+ratio.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from rt_controller.control.model import NominalModel
 from rt_controller.control.rhc.problem import DUMMY_FLOOR, INIT_KRYLOV, substeps
 from rt_controller.control.rhc.solver import SolveReport
 from rt_controller.control.state import NS, NX
+from tests.support.nominal_model import NumpyModel
 
 _SKEW = np.array([[0.0, -1.0], [1.0, 0.0]])
 _E = np.eye(2)
@@ -28,7 +29,7 @@ class ReferenceProblem:
     """Dynamics, costs and Hamiltonian gradients of eq. (30) in matrix form."""
 
     def __init__(self, model: NominalModel, cfg: RigConfig) -> None:
-        self.m = model
+        self.m = NumpyModel.of(model)
         self.umax = np.asarray(cfg.rhc.u_max, dtype=float)
         self.rv = cfg.rhc.dummy_weight
         self.vmin = DUMMY_FLOOR * self.umax
@@ -108,7 +109,7 @@ class ReferenceSolver:
     def __init__(self, model: NominalModel, cfg: RigConfig) -> None:
         h = cfg.rhc
         self.prob = ReferenceProblem(model, cfg)
-        self.model = model
+        self.model = self.prob.m
         self.N = h.steps
         self.kmax = h.kmax
         self.zeta = h.zeta

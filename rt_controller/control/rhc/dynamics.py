@@ -1,6 +1,6 @@
-"""The optimal control problem of eq. (30) compiled: eq. (12) in (q, xi, f), the costs of eq. (25)
-and (13), and the Hamiltonian's gradients, per horizon stage (the maths is documented in
-:mod:`rt_controller.control.rhc.problem`, which re-exports these functions).
+"""The optimal control problem of eq. (30) compiled: eq. (12) in (q, xi, f), the gradients of
+the terminal cost and of the Hamiltonian, per horizon stage (the maths is documented in
+:mod:`rt_controller.control.rhc.problem`).
 """
 
 from __future__ import annotations
@@ -68,37 +68,6 @@ def rhs(P, x, u, out):
     """Right-hand side of eq. (12) in (q, xi, f) coordinates into ``out`` (6)."""
     aux = np.empty(NAUX)
     stage_forward(P, x, u, aux, out)
-
-
-@njit(**JIT)
-def stage_cost(P, x, u):
-    """l(x, u) of eq. (25) (without the dummy term)."""
-    l1, l2, kp = P[PAR.L1], P[PAR.L2], P[PAR.KP]
-    s2, c2 = math.sin(x[XS.Q + 1]), math.cos(x[XS.Q + 1])
-    xi1, xi2, f1, f2 = x[XS.XI], x[XS.XI + 1], x[XS.F], x[XS.F + 1]
-    e1 = l1 * s2 * f1 + (l1 * c2 + l2) * f2
-    e2 = l2 * f2
-    dq1 = xi1 + P[PAR.ALPHA] * e1 + P[PAR.ALPHA + 1] * e2
-    dq2 = xi2 + P[PAR.ALPHA + 2] * e1 + P[PAR.ALPHA + 3] * e2
-    xrx = xi1 * (P[PAR.R] * xi1 + P[PAR.R + 1] * xi2) + xi2 * (
-        P[PAR.R + 2] * xi1 + P[PAR.R + 3] * xi2
-    )
-    uru = u[0] * (P[PAR.R_INV] * u[0] + P[PAR.R_INV + 1] * u[1]) + u[1] * (
-        P[PAR.R_INV + 2] * u[0] + P[PAR.R_INV + 3] * u[1]
-    )
-    return 4.0 * xrx + 4.0 * kp * (e1 * dq1 + e2 * dq2) + uru
-
-
-@njit(**JIT)
-def terminal_cost(P, x):
-    """phi = 4 V(x) of eq. (13)."""
-    t1, t2, t3 = P[PAR.TH1], P[PAR.TH2], P[PAR.TH3]
-    c2 = math.cos(x[XS.Q + 1])
-    xi1, xi2, f1, f2 = x[XS.XI], x[XS.XI + 1], x[XS.F], x[XS.F + 1]
-    m11 = t1 + t2 + 2.0 * t3 * c2
-    m12 = t2 + t3 * c2
-    xmx = m11 * xi1 * xi1 + 2.0 * m12 * xi1 * xi2 + t2 * xi2 * xi2
-    return 2.0 * xmx + 2.0 * P[PAR.KP] / P[PAR.GAIN] * (f1 * f1 + f2 * f2)
 
 
 @njit(inline="always", **JIT)

@@ -19,12 +19,12 @@ and the costs of eq. (25) and (13)::
 
 The Hamiltonian ``H = l - r_v sum(v) + lam^T x' + mu^T (u^2 + v^2 - umax^2)``. Its gradients
 are derived by hand with ``dq`` and ``eta`` as intermediates (``dynamics.hamiltonian_grad``); the
-tests check them against finite differences of :class:`~rt_controller.control.model.NominalModel`.
+tests check them against finite differences of ``tests/support/nominal_model.py``.
 The gravity term of eq. (1) cancels in eq. (11) and does not appear here.
 
-The compiled functions (``rhs``, ``stage_cost``, ``terminal_cost``, ``terminal_grad``,
-``hamiltonian_grad``, ``horizon_at``) live in :mod:`rt_controller.control.rhc.dynamics`; this
-module packs the model and the ``rhc`` settings into their parameter vectors.
+The compiled functions (``rhs``, ``terminal_grad``, ``hamiltonian_grad``, ``horizon_at``) live
+in :mod:`rt_controller.control.rhc.dynamics`; this module packs the model and the ``rhc``
+settings into their parameter vectors.
 """
 
 from __future__ import annotations

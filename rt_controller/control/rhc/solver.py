@@ -10,6 +10,7 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.model import NominalModel
+from rt_controller.control.model_kernels import prepare
 from rt_controller.control.rhc.kernel import OK, rhc_tick
 from rt_controller.control.rhc.problem import pack_params
 from rt_controller.control.state import NS, NX, ST, work_length
@@ -127,10 +128,9 @@ class CGMRESSolver:
 
     def warm_up(self) -> None:
         """Compile (or load from the numba cache) before the first tick, then reset."""
-        m, s = self.model, self.cfg.scenario
-        q = np.array(s.q0, dtype=float)
-        f = np.array(s.f0, dtype=float)
-        xi = m.xi(q, np.array(s.dq0, dtype=float), f)
+        s = self.cfg.scenario
+        q, dq, f = (np.array(v, dtype=float) for v in (s.q0, s.dq0, s.f0))
+        xi, _ = prepare(self.P, q, dq, f)
         x = pack_state(q, xi, f)
         self.update(x, 0.0)
         self.update(x, 1.0 / self.cfg.rates.control_hz)

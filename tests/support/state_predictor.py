@@ -1,15 +1,7 @@
-"""Delay compensation: a joint state and image features measured before the tick, brought up
-to the tick.
-
-A live loop does not always read the DSP's sample of this period: a DSP process that ran late
-sends it after the controller's release, and the tick then runs on the previous period's state.
-With one whole period of delay the paper's IOC and RHC gains are unstable (``hil simulate --law
-ioc --state-delay 1 --no-predict``). The controller knows what happened since the sample: its
-own nominal model (eq. 1) and the torques it sent. It integrates the one under the other over
-the state's age, the way a Smith predictor removes a known dead time, so the law sees the
-state of now. Image features are older still (capture, vision, zenoh); the camera's pose at
-capture follows from the same trajectory, and a static target seen from there is seen from the
-pose of now by eq. (6).
+"""Delay compensation spelt out in Python: the oracle's history of the torques sent and the
+motion of the nominal arm under them, on the compiled kernels of
+:mod:`rt_controller.control.model_kernels` (why the rule compensates: docs/concepts/clock-modes.md).
+The compiled rule keeps the same history in its own arrays; :func:`predictor_of` views them.
 """
 
 from __future__ import annotations
@@ -17,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from rt_controller.control import model_kernels
+from rt_controller.control.controller import Controller
 from rt_controller.control.decide_kernel import CAPACITY, STEP_S, record_sent
 from rt_controller.control.state import KS
 
@@ -115,3 +108,10 @@ class StatePredictor:
             self.horizon_s,
             STEP_S,
         )
+
+
+def predictor_of(ctl: Controller) -> StatePredictor:
+    """The torques ``ctl`` sent and the motion of the nominal arm under them: a view of its
+    compiled rule's history as of now."""
+    r = ctl.rule
+    return StatePredictor(r.p, r.horizon_s, history=(r.hist_t, r.hist_tau, len(r)))
