@@ -185,7 +185,6 @@ class CameraSensor:
         corners = np.array([[0, 0], [resolution.width, resolution.height]], dtype=float)
         self._max_radius_px = float(np.max(np.hypot(corners[:, 0] - k.cx, corners[:, 1] - k.cy)))
         self._blank: tuple[tuple[int, int, float], np.ndarray] | None = None
-        self._flat_image: tuple[float, np.ndarray] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -223,7 +222,10 @@ class CameraSensor:
         textures = [self.scene(t) for t in times]
         background = float(textures[0].background)
         # one region for the whole exposure: the union of the first and last sub-exposure's
-        ends = ((poses[0], textures[0]), (poses[-1], textures[-1]))
+        # (a still exposure has one: its region once, not twice)
+        ends = [(poses[0], textures[0])]
+        if len(times) > 1:
+            ends.append((poses[-1], textures[-1]))
         rois = [r for r in (self._roi(p, tex) for p, tex in ends) if r is not None]
         if not rois:
             return background, None, None
@@ -261,7 +263,7 @@ class CameraSensor:
         if ready is not None and ready[0] == key:
             out = ready[1]
         else:
-            out = self.expose(self._flat(background), frame)
+            out = self._expose_flat(background, frame)
         if roi is not None:
             self._expose_into(out, roi, values, frame)
         return out
@@ -273,20 +275,21 @@ class CameraSensor:
         ones = tiny + 1.0
         kernels.disc_mean(tiny, tiny, ones, one, one, one + 1.0, one, 0.0, 0.0, 1.0, 0.0, 1.0, tiny)
         self._expose_into(np.zeros(self.shape, np.uint8), (slice(0, 2), slice(0, 2)), tiny, 0)
-        self.expose(tiny, 0)
+        self.expose(tiny, 0)  # also the plain plane's (a one-element reflectance)
 
     def prepare(self, frame: int, background: float) -> None:
         """Make ahead the part of frame ``frame`` that no pose changes (the plane's
         ``background`` reflectance with the frame's noise), so :meth:`render` only exposes the
         target's region: a camera renders the next frame's background while it waits for the
         pose. Kept for one :meth:`render` of that frame (same seed, same background)."""
-        blank = self.expose(self._flat(background), frame)
+        blank = self._expose_flat(background, frame)
         self._blank = ((self.seed, int(frame), float(background)), blank)
 
-    def _flat(self, background: float) -> np.ndarray:
-        if self._flat_image is None or self._flat_image[0] != background:
-            self._flat_image = (background, np.full(self.shape, background))
-        return self._flat_image[1]
+    def _expose_flat(self, background: float, frame: int) -> np.ndarray:
+        """:meth:`expose` of the plain plane (``background`` everywhere), the same pixels."""
+        out = np.empty(self.shape, dtype=np.uint8)
+        kernels.expose(np.full(1, float(background)), out.ravel(), *self._noise_args(frame))
+        return out
 
     def _noise_args(self, frame: int) -> tuple[float, float, float, np.uint64, np.uint64]:
         n = self.noise
