@@ -1,10 +1,12 @@
 """One CANopen frame of the ``cia402`` profile's bus, decoded by its COB-ID (CiA 301's
 predefined connection set) and the profile's PDO maps (:mod:`hal.cia402_master.boot`): NMT,
 SYNC, EMCY, the TPDOs (statusword and power state, position, velocity, torque actual), the
-RPDO (controlword, target torque), SDO and heartbeat.
+RPDO (controlword, target torque), SDO (service, object, expedited value, abort code) and
+heartbeat.
 
-Offline tools (``hil report``, the log's tables) read the raw ``/hal/can/*`` frames with this;
-it never raises on a frame: one too short for its kind is returned with an ``error``.
+The recorder writes the log's ``/hal/canopen`` topic with this, offline tools (``hil report``,
+the log's tables) read the raw ``/hal/can/*`` frames with it; it never raises on a frame: one
+too short for its kind is returned with an ``error``.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from typing import Any
 from canopen.emcy import EmcyError
 from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import INTEGER16, INTEGER32, UNSIGNED16
+from canopen.sdo.constants import EXPEDITED, SDO_STRUCT, SIZE_SPECIFIED
+from canopen.sdo.exceptions import SdoAbortedError
 
 from hal.cia402_master.boot import RPDO_MAP, TPDO_MAP, TYPES
 from hal.cia402_master.watch import state_of
@@ -41,6 +45,31 @@ FIELD_NAMES = {
 _FORMATS = {UNSIGNED16: "H", INTEGER16: "h", INTEGER32: "i"}
 _PDO_BASES = {0x180: ("tpdo", 1), 0x280: ("tpdo", 2), 0x200: ("rpdo", 1)}
 """Function code -> the PDO it carries on the predefined connection set."""
+_SDO_SERVICES = {
+    "sdo_request": {
+        0: "download segment",
+        1: "initiate download",
+        2: "initiate upload",
+        3: "upload segment",
+        4: "abort",
+        5: "block upload",
+        6: "block download",
+    },
+    "sdo_response": {
+        0: "upload segment",
+        1: "download segment",
+        2: "initiate upload",
+        3: "initiate download",
+        4: "abort",
+        5: "block download",
+        6: "block upload",
+    },
+}
+"""The command specifier (the command byte's top 3 bits) of a request (client to drive) and
+of a response (CiA 301, 7.2.4.3)."""
+_SDO_WITH_OBJECT = frozenset({"initiate download", "initiate upload", "abort"})
+_SDO_WITH_VALUE = {"sdo_request": {"initiate download"}, "sdo_response": {"initiate upload"}}
+"""The frames whose expedited payload is the object's value (a write, a read's answer)."""
 _NMT_COMMANDS = {
     1: "start",
     2: "stop",
@@ -81,9 +110,9 @@ def decode(cob_id: int, data: bytes) -> dict[str, Any]:
     if base in _PDO_BASES:
         return _pdo(*_PDO_BASES[base], node, data)
     if base == 0x580:
-        return {"kind": "sdo_response", "node": node, "sdo_command": data[0] if data else None}
+        return _sdo("sdo_response", node, data)
     if base == 0x600:
-        return {"kind": "sdo_request", "node": node, "sdo_command": data[0] if data else None}
+        return _sdo("sdo_request", node, data)
     if base == 0x700:
         if not data:
             return {"kind": "heartbeat", "node": node, "error": "no payload"}
@@ -105,6 +134,31 @@ def _emcy(node: int, data: bytes) -> dict[str, Any]:
         "error_reset": code & 0xFF00 == 0,
         "text": err.get_desc(),
     }
+
+
+def _sdo(kind: str, node: int, data: bytes) -> dict[str, Any]:
+    """An SDO frame: its command byte, the service it names, and for an initiate or an abort
+    the object (``index``, ``subindex``); an expedited value as ``sdo_value`` (unsigned, little
+    endian), an abort's ``abort_code`` and its ``text``. Segments carry no object."""
+    out: dict[str, Any] = {"kind": kind, "node": node, "sdo_command": data[0] if data else None}
+    if not data:
+        return out
+    service = _SDO_SERVICES[kind].get(data[0] >> 5, f"unknown ({data[0] >> 5})")
+    out["sdo_service"] = service
+    if service not in _SDO_WITH_OBJECT:
+        return out
+    if len(data) < 8:
+        out["error"] = f"{len(data)} bytes, SDO {service} needs 8"
+        return out
+    command, out["index"], out["subindex"] = SDO_STRUCT.unpack_from(data)
+    if service == "abort":
+        code = int.from_bytes(data[4:8], "little")
+        out["abort_code"] = code
+        out["text"] = SdoAbortedError.CODES.get(code, "unknown abort code")
+    elif command & EXPEDITED and service in _SDO_WITH_VALUE[kind]:
+        unused = (command >> 2) & 0x3 if command & SIZE_SPECIFIED else 0
+        out["sdo_value"] = int.from_bytes(data[4 : 8 - unused], "little")
+    return out
 
 
 def _pdo(kind: str, number: int, node: int, data: bytes) -> dict[str, Any]:

@@ -5,13 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-TOPIC_NAMES = ("cycle", "diagnostics", "can")
+TOPIC_NAMES = ("cycle", "diagnostics", "can", "canopen")
+DEFAULT_TOPICS = ("cycle", "diagnostics", "can")
 
 DESCRIPTION = """\
 Writes the tables of a controller log (MCAP), as rt_controller.logs.load gives them: cycle (one
 row per tick; vectors as columns q1, q2, dq1, f_x, f_y, tau1, ...), diagnostics (one row per
 /diagnostics record, every counter a column) and can (every raw CAN frame, decoded with the
-DBC: time, direction, frame id, message, one column per signal).
+DBC: time, direction, frame id, message, one column per signal; a cia402 log's CANopen frames
+by COB-ID). canopen, only when asked for: a cia402 log's /hal/canopen topic as recorded (the
+frames decoded by the recorder: kind, node, the decoded fields as columns).
 
 csv and parquet write one file per topic, LOGSTEM.TOPIC.csv (.parquet); mat writes one file,
 LOGSTEM.mat, with a struct per topic (fields: the columns) and a meta struct (the recorded
@@ -43,9 +46,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--topics",
         type=topic_list,
-        default=TOPIC_NAMES,
+        default=DEFAULT_TOPICS,
         metavar="LIST",
-        help=f"comma-separated tables to write (default: {','.join(TOPIC_NAMES)})",
+        help=f"comma-separated tables to write, of {','.join(TOPIC_NAMES)} "
+        f"(default: {','.join(DEFAULT_TOPICS)})",
     )
     p.add_argument("--out", metavar="PATH", help="output directory or file (default: beside LOG)")
     p.add_argument("--json", action="store_true", help="print the files written as JSON")
@@ -64,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         output_dir(args.out, "--out")
     for path in set(files.values()):
         output_file(path, "--out")
-    run_ = load(args.log, raw="can" in args.topics)
+    run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
     written = export(run_, args.format, files)
     if args.json:
         rows = [{"topic": w.topic, "path": str(w.path), "rows": w.rows} for w in written]

@@ -15,6 +15,8 @@ log whose writer was killed) and gives a :class:`Run`:
 - ``run.can_frames``: every raw CAN frame received and sent, decoded with the rig's DBC
   (``hal/hil.dbc``, cantools): time, direction, frame id, message name, one column per signal
   (a ``cia402`` log: CANopen decoded by COB-ID, :mod:`hal.cia402_frames`);
+- ``run.canopen_frames``: a ``cia402`` log's ``/hal/canopen``, the frames as the recorder
+  decoded them (kind, node, one column per decoded field);
 - ``run.config``: the run's configuration as recorded (``hil.config`` metadata);
 - ``run.arrays(topic)``: the same tables as dicts of NumPy columns, without pandas.
 

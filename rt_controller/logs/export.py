@@ -1,10 +1,11 @@
 """``hil export``: a log's tables as CSV (pandas), Parquet (pyarrow) or MATLAB ``.mat`` (scipy).
 
 CSV and Parquet hold one table per file (``STEM.cycle.csv``, ``STEM.diagnostics.csv``,
-``STEM.can.csv``); a ``.mat`` file holds every table, one struct per topic (``cycle``,
-``diagnostics``, ``can``) whose fields are the columns, plus a ``meta`` struct (the log's path,
-the recorded configuration as JSON, its digest and the ``hil.run`` metadata). Column names are
-valid MATLAB identifiers already (``q1``, ``f_x``, ``can_rx_accepted``, ``Tau1``).
+``STEM.can.csv``, ``STEM.canopen.csv``); a ``.mat`` file holds every table, one struct per
+topic (``cycle``, ``diagnostics``, ``can``, ``canopen``) whose fields are the columns, plus
+a ``meta`` struct (the log's path, the recorded configuration as JSON, its digest and the
+``hil.run`` metadata). Column names are valid MATLAB identifiers already (``q1``, ``f_x``,
+``can_rx_accepted``, ``Tau1``).
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 Every table exists twice: as a dict of NumPy columns (:meth:`Run.arrays`, always available) and
 as a pandas DataFrame built from those columns (``cycles``, ``diagnostics``, ``can_frames``,
-only with the ``analysis`` extra). Missing numbers are NaN; a field no record had is no column.
+``canopen_frames``, only with the ``analysis`` extra). Missing numbers are NaN; a field no
+record had is no column.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 
     from hal.config import RigConfig
 
-TOPICS = ("cycle", "diagnostics", "can")
+TOPICS = ("cycle", "diagnostics", "can", "canopen")
 """The tables of a run, by the names ``hil export --topics`` takes."""
 
 VECTOR_SUFFIXES: dict[str, tuple[str, ...]] = {"f": ("_x", "_y"), "f_pred": ("_x", "_y")}
@@ -137,7 +138,11 @@ class Run:
         if topic not in TOPICS:
             raise LogError(f"unknown topic {topic!r}: choose from {', '.join(TOPICS)}")
         if topic not in self._arrays:
-            build = {"cycle": self._cycle_arrays, "diagnostics": self._diag_arrays}
+            build = {
+                "cycle": self._cycle_arrays,
+                "diagnostics": self._diag_arrays,
+                "canopen": self._canopen_arrays,
+            }
             self._arrays[topic] = build.get(topic, self._can_arrays)()
         return self._arrays[topic]
 
@@ -207,6 +212,17 @@ class Run:
         rank = {name: i for i, name in enumerate(dict.fromkeys(order))}
         return {k: cols[k] for k in sorted(cols, key=lambda k: rank.get(k, len(rank)))}
 
+    def _canopen_arrays(self) -> dict[str, np.ndarray]:
+        rows = []
+        for rec in self.log.canopen:
+            row = {k: rec.get(k) for k in ("t_ns", "direction", "cob_id", "kind", "node", "data")}
+            fields = rec.get("fields")
+            row.update(fields if isinstance(fields, dict) else {})
+            if "error" in rec:
+                row["decode_error"] = rec["error"]
+            rows.append(row)
+        return self._with_time(columns(rows))
+
     # --------------------------------------------------------------- pandas DataFrames
 
     def frame(self, topic: str) -> pd.DataFrame:
@@ -241,8 +257,19 @@ class Run:
         ``sdo_response``, ``heartbeat``), ``node``, then ``statusword``, ``state``,
         ``position_actual``, ``velocity_actual``, ``torque_actual``, ``controlword``,
         ``target_torque`` (raw object values), EMCY ``code`` / ``register`` / ``text``,
-        NMT ``command`` / ``target``, heartbeat ``nmt_state``."""
+        NMT ``command`` / ``target``, heartbeat ``nmt_state``, SDO ``sdo_service`` /
+        ``index`` / ``subindex`` / ``sdo_value`` / ``abort_code`` (the spelling of the
+        ``/hal/canopen`` topic: :func:`~rt_controller.runtime.record_encoding.canopen_dict`)."""
         return self.frame("can")
+
+    @cached_property
+    def canopen_frames(self) -> pd.DataFrame:
+        """``/hal/canopen`` as recorded (a ``cia402`` log; empty for others and for logs
+        recorded before the topic existed, whose ``can_frames`` decode the same way): one row
+        per frame in the log's order, ``t_ns``, ``time_s``, ``direction``, ``cob_id``,
+        ``kind``, ``node``, ``data``, then the decoded ``fields`` one column each, and
+        ``decode_error``."""
+        return self.frame("canopen")
 
 
 def _scalar(value: Any) -> Any:
@@ -256,31 +283,25 @@ def _scalar(value: Any) -> Any:
 
 def _canopen_decoded(direction: str, frame: dict[str, Any]) -> dict[str, Any]:
     """One CANopen frame record of a cia402 log as a table row: ``message`` is its kind
-    (``sync``, ``tpdo1``, ``emcy``, ...), ``node``, then its decoded fields
-    (:func:`hal.cia402_frames.decode`; ``decode_error`` for a payload that does not fit)."""
-    from hal.cia402_frames import decode
+    (``sync``, ``tpdo1``, ``emcy``, ...), ``node``, then its decoded fields, as the log's
+    ``/hal/canopen`` spells them (:func:`~rt_controller.runtime.record_encoding.canopen_dict`;
+    ``decode_error`` for a payload that does not fit)."""
+    from rt_controller.runtime.record_encoding import canopen_dict
 
-    fid = frame.get("arbitration_id")
-    data = frame.get("data") or ""
-    try:
-        payload = bytes.fromhex(data)
-    except ValueError:
-        payload = b""
-    fields = decode(int(fid), payload) if isinstance(fid, int) else {"kind": None, "node": None}
-    error = fields.pop("error", None)
+    rec = canopen_dict(direction, frame)
     row: dict[str, Any] = {
         "t_ns": frame.get("t_ns"),
         "direction": direction,
-        "frame_id": fid,
-        "message": fields.pop("kind"),
-        "node": fields.pop("node"),
+        "frame_id": frame.get("arbitration_id"),
+        "message": rec["kind"],
+        "node": rec["node"],
         "dlc": frame.get("dlc"),
-        "data": data,
+        "data": frame.get("data"),
         "is_fd": frame.get("is_fd"),
-        **fields,
+        **rec["fields"],
     }
-    if error is not None:
-        row["decode_error"] = error
+    if "error" in rec:
+        row["decode_error"] = rec["error"]
     return row
 
 

@@ -25,6 +25,7 @@ from rt_controller.errors import LogError, NotAHilLogError
 from rt_controller.runtime.recorder import (
     CAN_RX_TOPIC,
     CAN_TX_TOPIC,
+    CANOPEN_TOPIC,
     CONFIG_METADATA,
     CYCLE_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -56,6 +57,8 @@ class LoadedLog:
     """One column per cycle field: bools, int64, float64 (null -> NaN), (n, k) for vectors."""
     can_rx: list[dict[str, Any]] = field(default_factory=list)
     can_tx: list[dict[str, Any]] = field(default_factory=list)
+    canopen: list[dict[str, Any]] = field(default_factory=list)
+    """``/hal/canopen`` records (a ``cia402`` run's CAN frames decoded by the recorder)."""
     vision: list[dict[str, Any]] = field(default_factory=list)
     diagnostics: list[dict[str, Any]] = field(default_factory=list)
     """``/diagnostics`` records (always kept: about one a second)."""
@@ -156,7 +159,8 @@ def check_file(path: Path) -> None:
 
 
 def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
-    """Read ``path``; ``raw=False`` counts the CAN/vision messages without keeping them.
+    """Read ``path``; ``raw=False`` counts the CAN (raw and decoded) and vision messages
+    without keeping them.
 
     Raises :class:`LogError` (one clear line) for a missing file or a non-MCAP file; any damage
     after the magic (truncation, a half-written chunk) ends the read with ``truncated`` set.
@@ -167,7 +171,12 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
     channels: dict[int, str] = {}
     schema_names: dict[int, str] = {}
     cycle_records: list[dict[str, Any]] = []
-    raw_lists = {CAN_RX_TOPIC: out.can_rx, CAN_TX_TOPIC: out.can_tx, VISION_TOPIC: out.vision}
+    raw_lists = {
+        CAN_RX_TOPIC: out.can_rx,
+        CAN_TX_TOPIC: out.can_tx,
+        CANOPEN_TOPIC: out.canopen,
+        VISION_TOPIC: out.vision,
+    }
     counts: Counter[str] = Counter()
     bad: Counter[str] = Counter()
     footer = False

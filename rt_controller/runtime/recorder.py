@@ -5,13 +5,14 @@
 (:mod:`rt_controller.runtime.recorder_process`); ``hil replay --out`` and tests use it directly.
 
 One JSON topic per record kind (:data:`TOPICS`, each with its JSON Schema; the table is in
-``docs/concepts/logs.md``). ``log_time`` is the record's monotonic time shifted to the Unix
-epoch (the offset is in the ``hil.run`` metadata). ``live`` gets the topic and JSON bytes of
-each cycle and diagnostics record (for zenoh); ``scene`` (:mod:`rt_controller.monitor.scene`)
-draws every ``scene.every``-th cycle on protobuf channels. Metadata: ``hil.config``,
-``hil.run`` and, at a clean close, ``hil.recorder`` (counters). The first record
-``flush_interval_s`` after the last flush closes the chunk and flushes the file to the OS, so
-a SIGKILLed writer loses about that much at most.
+``docs/concepts/logs.md``), and in a ``cia402`` run's log ``/hal/canopen``, the CAN frames
+decoded by the writer itself (:data:`DECODED_TOPICS`). ``log_time`` is the record's monotonic
+time shifted to the Unix epoch (the offset is in the ``hil.run`` metadata). ``live`` gets the
+topic and JSON bytes of each cycle and diagnostics record (for zenoh); ``scene``
+(:mod:`rt_controller.monitor.scene`) draws every ``scene.every``-th cycle on protobuf channels.
+Metadata: ``hil.config``, ``hil.run`` and, at a clean close, ``hil.recorder`` (counters). The
+first record ``flush_interval_s`` after the last flush closes the chunk and flushes the file to
+the OS, so a SIGKILLed writer loses about that much at most.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, BinaryIO, Self
@@ -39,7 +41,14 @@ from rt_controller.calibration.operator import EVENT_SCHEMA
 from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
 from rt_controller.errors import LogError
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
-from rt_controller.runtime.record_encoding import CAN_SCHEMA, VISION_SCHEMA, can_dict, encode_json
+from rt_controller.runtime.record_encoding import (
+    CAN_SCHEMA,
+    CANOPEN_SCHEMA,
+    VISION_SCHEMA,
+    can_dict,
+    canopen_dict,
+    encode_json,
+)
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +59,7 @@ VISION_TOPIC = "/vision/features"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 PARAMETERS_TOPIC = "/controller/parameters"
 EVENTS_TOPIC = "/controller/events"
+CANOPEN_TOPIC = "/hal/canopen"
 CONFIG_METADATA = "hil.config"
 RUN_METADATA = "hil.run"
 RECORDER_METADATA = "hil.recorder"
@@ -71,6 +81,11 @@ TOPICS = {
 IMAGE = 7
 """Record kind of a ``hil/vision/image`` payload (what the camera saw): written as the protobuf
 topics of :mod:`rt_controller.monitor.camera_view`, not as JSON."""
+CANOPEN = 8
+DECODED_TOPICS = {CANOPEN: CANOPEN_TOPIC}
+"""Topics the file's writer derives from the records it is given, never sent by the loop:
+``/hal/canopen``, each ``/hal/can/*`` frame of a ``cia402`` run decoded (:func:`canopen_dict`),
+so the decoding costs the control process nothing."""
 CHUNK_SIZE = 4 << 20
 """Bytes of records a chunk holds before it is closed: more than a second of the rig's records
 (about 2.5 MB with camera images), so chunks are closed by the flushes, one a second. mcap's
@@ -214,6 +229,7 @@ class Recorder:
         """Counters per topic plus ``written``, ``dropped``, ``encode_errors``, ``pending`` and
         ``backlog_bytes``."""
         out = {t: self.counts[k] for k, t in TOPICS.items()}
+        out.update({t: self.counts[k] for k, t in DECODED_TOPICS.items() if k in self.counts})
         out.update(written=self.written, dropped=self.dropped, encode_errors=self.encode_errors)
         out.update(pending=0, backlog_bytes=0 if self.closed else self.backlog_bytes())
         return out
@@ -240,6 +256,9 @@ class CycleRecorder(Recorder):
             each flush closes a chunk.
         chunk_size: a chunk is also closed when it grows past this many bytes.
         live, scene: see the module docstring.
+
+    A ``cia402`` configuration's log also gets ``/hal/canopen``: right after each CAN frame
+    record, the same frame decoded, at the same log time (:data:`DECODED_TOPICS`).
 
     ``record_*`` write at once (True) and never raise: a record that cannot be encoded counts
     in ``encode_errors``, one after :meth:`close` or a write failure (which ends the log and
@@ -270,6 +289,10 @@ class CycleRecorder(Recorder):
         self.scene_written = self.scene_errors = 0
         self.images_written = self.image_errors = 0
         self.counts = dict.fromkeys(TOPICS, 0)
+        self._canopen = cfg.hardware.profile == "cia402"
+        if self._canopen:
+            self.counts[CANOPEN] = 0
+            import_module("hal.cia402_frames")  # canopen's import now, not at the first frame
         self._dirty = False  # messages since the last flush
         info = run_metadata(cfg, run_info)
         self._mono_to_unix = int(info["monotonic_to_unix_ns"])  # the run's, when it gave one
@@ -310,7 +333,11 @@ class CycleRecorder(Recorder):
             k: w.register_schema(n, "jsonschema", encode_json(b)) for k, (n, b) in schemas.items()
         }
         ids[CAN_TX] = ids[CAN_RX]  # one frame schema, two topics
-        return {k: w.register_channel(topic, "json", ids[k]) for k, topic in TOPICS.items()}
+        channels = {k: w.register_channel(topic, "json", ids[k]) for k, topic in TOPICS.items()}
+        if self._canopen:
+            sid = w.register_schema("hil.CanopenFrame", "jsonschema", encode_json(CANOPEN_SCHEMA))
+            channels[CANOPEN] = w.register_channel(CANOPEN_TOPIC, "json", sid)
+        return channels
 
     def _proto_channel(self, topic: str, cls: Any) -> int:
         """The protobuf channel of ``topic`` (registered on first use: a log has the camera's
@@ -337,6 +364,8 @@ class CycleRecorder(Recorder):
         if not self._put(self._channels[kind], log_time, data):
             return False
         self.counts[kind] += 1
+        if self._canopen and kind in (CAN_RX, CAN_TX):
+            self._write_canopen(kind, log_time, data)
         if kind == CYCLE and self._scene is not None:
             self._write_scene(json.loads(data) if obj is None else obj, log_time)
         if kind in (CYCLE, DIAG) and self.live is not None:
@@ -358,6 +387,18 @@ class CycleRecorder(Recorder):
         self._dirty = True
         self.flush_if_due()
         return True
+
+    def _write_canopen(self, kind: int, log_time: int, data: bytes) -> None:
+        """The ``/hal/canopen`` record of the frame record ``data``, at its log time; one that
+        cannot be made counts in ``encode_errors`` (the run is then not clean)."""
+        try:
+            raw = json.loads(data)
+            decoded = encode_json(canopen_dict("rx" if kind == CAN_RX else "tx", raw))
+        except (*_ENCODE_ERRORS, KeyError) as exc:
+            self._count("encode_errors", "cannot decode a CANopen frame record", exc)
+            return
+        if self._put(self._channels[CANOPEN], log_time, decoded):
+            self.counts[CANOPEN] += 1
 
     def _count(self, counter: str, what: str, exc: Exception) -> None:
         """Count a record part that could not be made (the first one is logged)."""

@@ -5,8 +5,9 @@ MCAP message it will be in the log: encoded here, framed by mcap's own ``Writer`
 MCAP stream (unchunked), written to the child's standard input once per tick. The child
 (:func:`serve`, a fresh interpreter) reads it with mcap's ``StreamReader``, writes the file
 with :class:`~rt_controller.runtime.recorder.CycleRecorder` (chunked, compressed, indexed, the
-scene drawn, camera images converted), publishes the live stream, and at the end of its input
-prints the log's counters as one JSON line. No protocol of our own crosses the pipes.
+scene drawn, camera images converted, a ``cia402`` run's CANopen frames decoded), publishes
+the live stream, and at the end of its input prints the log's counters as one JSON line. No
+protocol of our own crosses the pipes.
 
 A realtime tick never blocks on the child: the pipe is non-blocking (1 MiB where the kernel
 allows it), what it cannot take waits in an outbox, and a record that would grow the outbox past
@@ -44,6 +45,7 @@ from rt_controller.errors import LogError
 from rt_controller.runtime.recorder import (
     CONFIG_METADATA,
     CYCLE,
+    DECODED_TOPICS,
     DIAG,
     IMAGE,
     RUN_METADATA,
@@ -277,6 +279,7 @@ class RecorderProcess(Recorder):
         self.error = self.error or final["error"]
         if "written" in final:  # the child wrote the log: its counts replace what was sent
             self.counts = Counter({k: final[t] for k, t in TOPICS.items()})
+            self.counts.update({k: final[t] for k, t in DECODED_TOPICS.items() if t in final})
             self.dropped += final["dropped"]
             self.finished = final["finished"]
 

@@ -1,7 +1,7 @@
 """The EMCYs of a cia402 run, from the frames its log recorded: the profile (record_raw) with
 a real recorder against the emulated drives on a virtual bus; a SYNC loss faults both drives
 (EMCY 0x8700), the operator's arm resets them (EMCY error reset), and ``hil report``'s
-CANopen section lists each with its node, code and time."""
+CANopen section lists each with its node, code and time, as the log's ``/hal/canopen`` does."""
 
 from __future__ import annotations
 
@@ -52,8 +52,16 @@ def test_report_lists_the_emcys_of_a_sync_loss_and_of_the_reset(tmp_path):
         finally:
             hw.deactivate()
             master.close()
-    report = summarize(read_log(path))
+    loaded = read_log(path)
+    report = summarize(loaded)
     co = report["canopen"]
+    decoded = [  # the recorder's /hal/canopen has them too, for Foxglove
+        (r["node"], r["fields"]["code"], r["fields"]["register"])
+        for r in loaded.canopen
+        if r["kind"] == "emcy" and not r["fields"]["error_reset"]
+    ]
+    assert sorted((n, c) for n, c, _reg in decoded) == sorted((n, 0x8700) for n in nodes)
+    assert all(reg for _n, _c, reg in decoded), decoded  # the error register is set
     faults = [(e["node"], e["code"]) for e in co["emcys"] if not e["error_reset"]]
     resets = [e["node"] for e in co["emcys"] if e["error_reset"]]
     assert sorted(faults) == sorted((n, "0x8700") for n in nodes), co["emcys"]

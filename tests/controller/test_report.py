@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from rt_controller.cli import main
 from rt_controller.errors import LogError
 from rt_controller.logtools.deadline_report import summarize
 from rt_controller.logtools.reader import read_log
+from rt_controller.runtime.record_encoding import CANOPEN_SCHEMA
 from rt_controller.runtime.recorder import CycleRecorder, cycle_schema
 
 N = 200
@@ -174,7 +176,7 @@ def test_missing_or_not_mcap_is_one_clear_line(tmp_path, capsys, content):
         read_log(path)
 
 
-def test_foxglove_layout_plots_cycle_fields():
+def test_foxglove_layout_plots_cycle_fields_and_canopen_frames():
     layout = json.loads((ROOT / "foxglove" / "layout.json").read_text(encoding="utf-8"))
     panels = layout["configById"]
 
@@ -190,11 +192,21 @@ def test_foxglove_layout_plots_cycle_fields():
 
     assert set(leaves(layout["layout"])) == set(panels)
     fields = set(cycle_schema()["properties"])
+    frame = CANOPEN_SCHEMA["properties"]
     plotted = set()
     for pid, conf in panels.items():
         for p in conf.get("paths", []):
-            topic, _, path = p["value"].partition(".")
-            assert topic == "/controller/cycle", pid
+            # a message path: topic, filters {field==value}, then the field
+            topic, filters, path = re.fullmatch(
+                r"([^{.]+)((?:\{[^}]*\})*)\.(.+)", p["value"]
+            ).groups()
+            if topic == "/hal/canopen":  # the cia402 bus, one message per frame
+                for name in re.findall(r"\{(\w+)==", filters):
+                    assert name in frame, (pid, name)
+                assert path.split(".")[0] == "fields", (pid, path)
+                assert path.split(".")[1] in frame["fields"]["properties"], (pid, path)
+                continue
+            assert topic == "/controller/cycle" and not filters, pid
             name = path.split("[")[0]
             assert name in fields, (pid, name)
             plotted.add(name)

@@ -53,6 +53,31 @@ def test_sync_nmt_heartbeat_and_sdo():
     assert decode(0x581, bytes(8))["kind"] == "sdo_response"
 
 
+def test_sdo_service_object_value_and_abort():
+    """A write of 0x60C2:01 = 20 (expedited, 1 byte), 0x6061's answer 10, a refused remap."""
+    out = decode(0x602, struct.pack("<BHBI", 0x2F, 0x60C2, 1, 20))
+    assert out == {
+        "kind": "sdo_request",
+        "node": 2,
+        "sdo_command": 0x2F,
+        "sdo_service": "initiate download",
+        "index": 0x60C2,
+        "subindex": 1,
+        "sdo_value": 20,
+    }
+    answer = decode(0x582, struct.pack("<BHBI", 0x4F, 0x6061, 0, 0x0A))
+    assert (answer["sdo_service"], answer["index"], answer["sdo_value"]) == (
+        "initiate upload",
+        0x6061,
+        10,
+    )
+    abort = decode(0x581, struct.pack("<BHBI", 0x80, 0x1A00, 0, 0x06010000))
+    assert abort["sdo_service"] == "abort" and abort["abort_code"] == 0x06010000
+    assert abort["text"] == "Unsupported access to an object"
+    assert "index" not in decode(0x601, bytes([0x60]) + bytes(7))  # an upload segment
+    assert "error" in decode(0x601, bytes([0x2F, 0xC2, 0x60]))  # an initiate cut short
+
+
 def test_emcy_code_register_and_error_reset():
     out = decode(0x082, struct.pack("<HB5s", 0x8700, 0x11, bytes(5)))
     assert out["kind"] == "emcy" and out["node"] == 2
@@ -82,6 +107,9 @@ def test_each_field_name_has_one_type_over_all_kinds():
         (0x201, struct.pack("<Hh", 0x0F, 5)),
         (0x581, bytes([0x60]) + bytes(7)),
         (0x601, bytes([0x2B]) + bytes(7)),
+        (0x581, struct.pack("<BHBI", 0x4F, 0x6061, 0, 10)),
+        (0x581, struct.pack("<BHBI", 0x80, 0x1600, 1, 0x06040043)),
+        (0x601, bytes([0x00]) + bytes(7)),
         (0x701, b"\x05"),
     ]
     types: dict[str, set[type]] = {}
