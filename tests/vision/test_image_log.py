@@ -7,6 +7,7 @@ import threading
 
 import cv2
 import numpy as np
+import pytest
 
 from hal.camera_frame import CameraFrame
 from hal.vision_codec import FeatureMsg
@@ -29,6 +30,23 @@ def msg(f: CameraFrame) -> FeatureMsg:
 def test_png_is_lossless():
     img = frame(1, True).pixels
     np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(png(img), np.uint8), 0), img)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 7), (480, 640)])
+@pytest.mark.parametrize("content", ["noise", "flat", "strided"])
+def test_png_is_an_8_bit_grey_png_of_the_same_pixels(shape, content):
+    rng = np.random.default_rng(7)
+    if content == "noise":
+        img = rng.integers(0, 256, shape, dtype=np.uint8)
+    elif content == "flat":
+        img = np.full(shape, 204, np.uint8)
+    else:  # a view that is not contiguous, as a frame cut from a larger one
+        img = rng.integers(0, 256, (shape[0], 2 * shape[1]), dtype=np.uint8)[:, ::2]
+    data = png(img)
+    assert data.startswith(b"\x89PNG\r\n\x1a\n")
+    out = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert out.dtype == np.uint8 and out.shape == shape
+    np.testing.assert_array_equal(out, img)
 
 
 def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
