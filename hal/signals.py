@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import faulthandler
+import os
 import signal
 import sys
 import threading
@@ -18,7 +19,9 @@ from collections.abc import Callable, Iterator
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 STACKS_AFTER_S = 8.0
 """A process still stopping this long after a stop signal prints every thread's stack to
-stderr, so a stop that hangs (the rig SIGKILLs after 10 s) names where it hung."""
+stderr, so a stop that hangs (the rig SIGKILLs after 10 s) names where it hung. An orphan
+(its parent died before the signal, as when a SIGKILLed ``hil up`` sends its children the
+parent-death signal) then exits with status 1: nobody is left to kill it."""
 
 
 @contextlib.contextmanager
@@ -26,14 +29,17 @@ def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.E
     """Yield an event that SIGTERM or SIGINT sets; restore the previous handlers on exit.
 
     Outside the main thread (where Python cannot install handlers) the event is only set by
-    the caller. A signal also arms :data:`STACKS_AFTER_S`'s stack dump, cancelled on exit.
+    the caller. A signal also arms :data:`STACKS_AFTER_S`'s stack dump (and, in an orphan,
+    exit), cancelled on exit.
     """
     event = threading.Event() if stop is None else stop
     previous: dict[int, object] = {}
+    parent = os.getppid()
 
     def on_signal(*_: object) -> None:
         if not event.is_set():
-            faulthandler.dump_traceback_later(STACKS_AFTER_S, file=sys.stderr)
+            orphaned = os.getppid() != parent
+            faulthandler.dump_traceback_later(STACKS_AFTER_S, exit=orphaned, file=sys.stderr)
         event.set()
 
     if threading.current_thread() is threading.main_thread():

@@ -1,5 +1,7 @@
-"""A process that hangs while stopping says where: every thread's stack on stderr."""
+"""A process that hangs while stopping says where: every thread's stack on stderr; an orphan
+(its parent died first, as a SIGKILLed ``hil up``'s children) then exits by itself."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -17,6 +19,30 @@ CHILD = textwrap.dedent(
         stop.wait()
         if sys.argv[1] == "hang":
             hang_while_stopping()
+        elif sys.argv[1] == "forever":
+            time.sleep(600)  # a stop that never ends
+    """
+)
+
+
+MIDDLE = (
+    "import subprocess, sys; p = subprocess.Popen(sys.argv[1:], stdout=subprocess.PIPE, "
+    "text=True); assert p.stdout.readline() == 'ready\\n'; print(p.pid, flush=True)"
+)
+ORPHANAGE = textwrap.dedent(
+    """
+    import ctypes, os, signal, subprocess, sys
+    CHILD, MIDDLE = sys.argv[1:3]
+    ctypes.CDLL(None).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER: orphans come here
+    middle = subprocess.Popen(  # starts the child, and exits once the child is ready
+        [sys.executable, "-c", MIDDLE, sys.executable, "-c", CHILD, "forever"],
+        stdout=subprocess.PIPE, text=True,
+    )
+    pid = int(middle.stdout.readline())
+    middle.wait()  # the child's parent is gone: it is an orphan, now ours
+    os.kill(pid, signal.SIGTERM)  # as the parent-death signal would
+    _, status = os.waitpid(pid, 0)
+    print("exit", os.waitstatus_to_exitcode(status), flush=True)
     """
 )
 
@@ -46,3 +72,21 @@ def test_a_stop_that_hangs_prints_every_threads_stack():
 
 def test_a_prompt_stop_prints_nothing():
     assert "most recent call first" not in _stop("quick")
+
+
+def test_an_orphan_whose_stop_hangs_exits_after_the_dump():
+    proc = subprocess.Popen(
+        [sys.executable, "-c", ORPHANAGE, CHILD, MIDDLE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # the orphan hung: take it and its keeper down
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert "exit 1" in out, (out, err)
+    assert "most recent call first" in err, err
