@@ -24,6 +24,10 @@ Two modes, chosen per pose by its lockstep flag (or forced with ``lockstep=True/
   ``pose_timeout_s``: the emulator went silent). Frames are published ``latency_s`` of real time
   after capture; ``fps = 0`` captures at every pose.
 
+A frame is stamped with its pose's stamp, the time the arm was in that pose (a camera's
+exposure), never later than its arrival here, and its latency counts from there: stamped on
+arrival, f looked younger than it was by the emulator's step and the link.
+
 A new emulator run (new pose source id, or lockstep sim time going backwards) restarts the frame
 counter, clocks and noise generator, so repeated runs against one vision process are identical.
 The generator starts from the seed the poses name (a scenario reset that carried one, see
@@ -143,6 +147,7 @@ class VisionCore:
             dropouts=[str(d) for d in self.dropouts],
         )
         self._run_key: tuple[int, bool, int | None] | None = None
+        self._last_stamp_ns = 0
         self._new_run()
 
     def _new_run(self, seed: int | None = None) -> None:
@@ -172,10 +177,20 @@ class VisionCore:
             f = f + self.rng.normal(0.0, self.camera.noise_px, size=2)
         return (float(f[0]), float(f[1]))
 
-    def _capture(self, pose: PoseMsg, now_ns: int, t_ns: int, lockstep: bool) -> None:
+    def _exposed_ns(self, pose: PoseMsg, now_ns: int) -> int:
+        """When a frame of ``pose`` is exposed: the pose's stamp, when the arm was there (its
+        arrival here is later by the emulator's step and the link, and a frame stamped then
+        looks younger than it is); never after ``now_ns`` (a clock ahead of this one) nor
+        before the previous frame's (the receiver refuses stamps going backwards)."""
+        return min(now_ns, max(pose.stamp_ns, self._last_stamp_ns))
+
+    def _capture(self, pose: PoseMsg, stamp_ns: int, t_ns: int, lockstep: bool) -> None:
+        """A frame of ``pose`` exposed at ``stamp_ns``, delivered ``latency_s`` after ``t_ns``
+        on the delay line's clock."""
+        self._last_stamp_ns = max(self._last_stamp_ns, stamp_ns)
         msg = FeatureMsg(
             self.frame,
-            now_ns,
+            stamp_ns,
             pose.sim_time_ns,
             pose.seq,
             self.measure(pose),
@@ -233,19 +248,21 @@ class VisionCore:
                     if paused:
                         self.stats.dropout_frames += 1
                     else:
-                        self._capture(pose, now_ns, now_ns, False)
+                        exposed = self._exposed_ns(pose, now_ns)
+                        self._capture(pose, exposed, exposed, False)
                 return self._deliver(now_ns, pose.sim_time_ns)
             if paused:
                 self.stats.dropout_frames += 1
             else:
-                self._capture(pose, now_ns, now_ns, False)
+                exposed = self._exposed_ns(pose, now_ns)
+                self._capture(pose, exposed, exposed, False)
             return self._deliver(now_ns, pose.sim_time_ns)
         t = pose.sim_time_ns
         if self.sim_clock.due(t):
             if paused:
                 self.stats.dropout_frames += 1
             else:
-                self._capture(pose, now_ns, t, True)
+                self._capture(pose, self._exposed_ns(pose, now_ns), t, True)
         self._deliver(t, t)
         self.stats.answers += 1
         d = self.delivered

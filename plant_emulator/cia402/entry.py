@@ -59,14 +59,17 @@ class _Poses:
         if self.camera is not None:
             self.camera.new_run(seed)
 
-    def __call__(self, syncs: int, world: World) -> None:
+    def __call__(self, syncs: int, world: World, stamp_ns: int) -> None:
+        """The pose after SYNC ``syncs``, stamped ``stamp_ns`` (the SYNC's arrival: when the
+        arm was there, which the features' age counts from). The emulated camera, in this
+        process, stamps the pose when offered, right after the step."""
         from hal.errors import HalTransportError
 
         sim_time_ns, pose = round(world.t * 1e9), world.pose()
         if self.camera is not None:
             self.camera.offer(syncs, sim_time_ns, pose, True)
         try:
-            self.publisher.publish(syncs, sim_time_ns, pose, True)
+            self.publisher.publish(syncs, sim_time_ns, pose, True, stamp_ns)
         except HalTransportError as exc:
             self.errors += 1
             if self.errors == 1:

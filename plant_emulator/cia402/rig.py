@@ -6,8 +6,9 @@ controlword and target torque), takes its joint's state and sends its TPDOs. The
 starts once every drive is in OPERATION ENABLED (:attr:`Cia402Rig.running`), as the emulated DSP
 holds its period 0 until it is armed: the arming SYNCs do not move the scenario. So the TPDOs
 after SYNC k carry q(t_k), dq(t_k) and the torque applied over [t_k, t_k+1], and a command that
-reaches a drive between SYNCs acts from the next SYNC on. A monitor thread polls the drives'
-SYNC and heartbeat watchdogs (tests poll with their own clock instead).
+reaches a drive between SYNCs acts from the next SYNC on. The step listener (the camera's
+poses) hears the SYNC's arrival as the time the stepped world is valid for. A monitor thread
+polls the drives' SYNC and heartbeat watchdogs (tests poll with their own clock instead).
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ SYNC_COB_ID = 0x80
 MONITOR_POLLS_PER_PERIOD = 10
 """How often per control period the monitor thread checks the watchdogs."""
 
-StepListener = Callable[[int, World], None]
-"""Called after each SYNC's world step with the SYNC count and the world (camera poses)."""
+StepListener = Callable[[int, World, int], None]
+"""Called after each SYNC's world step with the SYNC count, the world (camera poses) and the
+SYNC's arrival on the rig's clock (ns): the time the stepped world's state is valid for."""
 
 
 def drive_parameters(cfg: RigConfig, joint: int, tau_max_nm: float) -> DriveParameters:
@@ -143,7 +145,9 @@ class Cia402Rig:
                 j = drive.joint
                 drive.on_sync(self.syncs, now, float(self.world.q[j]), float(self.world.dq[j]))
         if self.on_step is not None:
-            self.on_step(self.syncs, self.world)
+            # the world after SYNC k is the arm at the SYNC, as a drive samples its position
+            # there: its stamp is the SYNC's, not the end of the step and the TPDOs after it
+            self.on_step(self.syncs, self.world, round(now * 1e9))
 
     def _check_limits(self) -> None:
         """At the end of each control period, as the emulated DSP: a drive with operation

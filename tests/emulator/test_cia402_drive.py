@@ -233,6 +233,24 @@ def test_the_world_holds_until_every_drive_is_enabled_then_every_sync_steps_it()
         assert bench.rig.world.t == pytest.approx(0.06)
 
 
+def test_each_step_is_stamped_with_its_sync_the_time_its_state_is_valid_for():
+    """The world after SYNC k is the arm at that SYNC, where a drive samples its position: the
+    step listener (the camera's poses) hears the SYNC's arrival, not the end of the step and
+    the TPDOs after it (stamped there, f looked younger than the state it goes with)."""
+    with drives_on_virtual_bus() as bench:
+        heard: queue.Queue = queue.Queue()
+        bench.rig.on_step = lambda syncs, world, stamp_ns: heard.put((syncs, world.t, stamp_ns))
+        nodes = [operational(bench, node_id) for node_id in (1, 2)]
+        for k, word in enumerate((SHUTDOWN, SWITCH_ON, ENABLE, ENABLE), start=1):
+            bench.clock.t = 100.0 + 0.02 * k
+            for node in nodes:
+                send_rpdo(node, word, 0)
+            sync_and_wait(bench, *(n.tpdo[1] for n in nodes))
+            syncs, t, stamp_ns = heard.get(timeout=REPLY_TIMEOUT_S)
+            assert syncs == k and stamp_ns == round(bench.clock.t * 1e9)
+        assert t == pytest.approx(0.02)
+
+
 def test_an_rpdo_value_the_drive_refuses_is_counted_and_the_sync_goes_on():
     with drives_on_virtual_bus() as bench:
         node = operational(bench, 1)

@@ -214,6 +214,36 @@ def test_realtime_latency_and_silent_emulator(cfg):
     assert core.stats.skipped_no_pose >= 5
 
 
+def test_frames_are_stamped_when_the_arm_was_in_the_pose_not_on_its_arrival(cfg):
+    """A frame shows the world at its pose's stamp (a camera's exposure): stamped on the pose's
+    arrival instead, 2 ms on its way here, f looked 2 ms younger than it was and the controller
+    brought it forward 2 ms too little (issue 39). The latency counts from the exposure too."""
+    core = VisionCore(camera_cfg(cfg, latency_s=0.005), fps=0.0, lockstep=False)
+    t0 = 5 * 10**9
+    exposed = [t0 + k * PERIOD for k in range(1, 4)]
+    out: list[FeatureMsg] = []
+    for k, stamp in enumerate(exposed, start=1):
+        pose = pose_msg(cfg, k, k * PERIOD, lockstep=False)._replace(stamp_ns=stamp)
+        assert core.on_pose(pose, stamp + 2 * MS) == []
+        out += core.poll(stamp + 5 * MS)
+    assert [m.stamp_ns for m in out] == exposed
+    # lockstep answers carry the pose's stamp too (their age is judged in sim time)
+    step = VisionCore(cfg, fps=0.0, lockstep=True)
+    pose = pose_msg(cfg, 1, PERIOD, lockstep=True)._replace(stamp_ns=t0)
+    assert step.on_pose(pose, t0 + 2 * MS)[0].stamp_ns == t0
+
+
+def test_a_pose_stamped_ahead_of_the_vision_clock_is_stamped_on_arrival(cfg):
+    """Never a stamp from the future, nor one older than the frame before (the controller's
+    decoder refuses stamps going backwards)."""
+    core = VisionCore(cfg, fps=0.0, lockstep=False)
+    t0 = 5 * 10**9
+    ahead = pose_msg(cfg, 1, PERIOD, lockstep=False)._replace(stamp_ns=t0 + 3 * MS)
+    assert core.on_pose(ahead, t0)[0].stamp_ns == t0
+    behind = pose_msg(cfg, 2, 2 * PERIOD, lockstep=False)._replace(stamp_ns=t0 - MS)
+    assert core.on_pose(behind, t0 + MS)[0].stamp_ns == t0
+
+
 def test_realtime_fps_zero_answers_every_pose(cfg):
     core = VisionCore(cfg, fps=0.0, lockstep=False)
     out = [core.on_pose(pose_msg(cfg, k, k * MS, lockstep=False), k * MS) for k in range(5)]
