@@ -7,8 +7,9 @@ starts once every drive is in OPERATION ENABLED (:attr:`Cia402Rig.running`), as 
 holds its period 0 until it is armed: the arming SYNCs do not move the scenario. So the TPDOs
 after SYNC k carry q(t_k), dq(t_k) and the torque applied over [t_k, t_k+1], and a command that
 reaches a drive between SYNCs acts from the next SYNC on. The step listener (the camera's
-poses) hears the SYNC's arrival as the time the stepped world is valid for. A monitor thread
-polls the drives' SYNC and heartbeat watchdogs (tests poll with their own clock instead).
+poses) hears the SYNC's arrival (the bus's receive stamp) as the time the stepped world is
+valid for. A monitor thread polls the drives' SYNC and heartbeat watchdogs (tests poll with
+their own clock instead).
 """
 
 from __future__ import annotations
@@ -44,6 +45,13 @@ StepListener = Callable[[int, World, int], None]
 SYNC's arrival on the rig's clock (ns): the time the stepped world's state is valid for."""
 
 
+def sync_arrival(now_s: float, waited_s: float, period_s: float) -> float:
+    """When a SYNC handled at ``now_s`` arrived: ``waited_s`` earlier (how long it waited since
+    the bus stamped it: the kernel's receive stamp on socketcan and UDP) when that wait is
+    plausible, 0 to one period; else ``now_s`` (a bus without receive stamps, a clock step)."""
+    return now_s - waited_s if 0.0 <= waited_s < period_s else now_s
+
+
 def drive_parameters(cfg: RigConfig, joint: int, tau_max_nm: float) -> DriveParameters:
     """The object-dictionary values of joint ``joint``'s drive from ``[cia402]`` and the rates."""
     c = cfg.cia402
@@ -67,6 +75,7 @@ class Cia402Rig:
         network: canopen.Network,
         *,
         clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
         on_step: StepListener | None = None,
         lockstep: bool = False,
         on_reset: Callable[[int | None], None] | None = None,
@@ -76,6 +85,8 @@ class Cia402Rig:
         self._start_seed = self.world.seed
         self.network = network
         self.clock = clock
+        self.wall_clock = wall_clock
+        """The clock of python-can's frame timestamps (the wall clock)."""
         self.on_step = on_step
         self.on_reset = on_reset
         self.lock = threading.RLock()
@@ -132,7 +143,8 @@ class Cia402Rig:
         for drive in self.drives:
             drive.poll(now)
 
-    def _on_sync(self, _can_id: int, _data: bytearray, _timestamp: float) -> None:
+    def _on_sync(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
+        waited, seen = self.wall_clock() - timestamp, self.clock()
         with self.lock:
             now = self.clock()
             self.running = self.running or all(d.power.torque_enabled for d in self.drives)
@@ -146,8 +158,10 @@ class Cia402Rig:
                 drive.on_sync(self.syncs, now, float(self.world.q[j]), float(self.world.dq[j]))
         if self.on_step is not None:
             # the world after SYNC k is the arm at the SYNC, as a drive samples its position
-            # there: its stamp is the SYNC's, not the end of the step and the TPDOs after it
-            self.on_step(self.syncs, self.world, round(now * 1e9))
+            # there: its stamp is the SYNC's arrival on the bus, not when this thread got to
+            # it, nor the end of the step and the TPDOs after it
+            arrived = sync_arrival(seen, waited, self.period_s)
+            self.on_step(self.syncs, self.world, round(arrived * 1e9))
 
     def _check_limits(self) -> None:
         """At the end of each control period, as the emulated DSP: a drive with operation
