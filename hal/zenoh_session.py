@@ -51,8 +51,11 @@ KEY_FEATURES = "hil/vision/features"
 KEY_CAMERA_POSE = "hil/emulator/camera_pose"
 """Camera pose, emulator -> vision (payload: :mod:`hal.vision_codec` pose v1)."""
 KEY_CAMERA_FRAME = "hil/camera/frame"
-"""Camera frames, camera -> vision's frame grabber (payload: :mod:`hal.camera_frame` v1, raw
-mono8 pixels with the capture stamp)."""
+"""Camera frames, camera -> vision's frame grabber (payload: :mod:`hal.camera_frame` v2, raw
+mono8 pixels, whole or a region of interest, with the capture stamp)."""
+KEY_CAMERA_ROI = "hil/camera/roi"
+"""The region of interest the frame grabber wants in the camera's next frame, vision -> camera
+(payload: :mod:`hal.camera_frame` ROI request v1)."""
 KEY_VISION_IMAGE = "hil/vision/image"
 """What the camera saw, vision -> log and live views: every ``camera.image_log_fps``-th second a
 frame as PNG with its detection (payload: :mod:`hal.vision_image` v1)."""

@@ -79,24 +79,26 @@ def expose_window(
     out: np.ndarray,
     row0: int,
     col0: int,
+    width: int,
     full_scale: float,
     shot_var_per_dn: float,
     read_var: float,
     seed: np.uint64,
     frame: np.uint64,
 ) -> None:  # pragma: no cover - compiled
-    """:func:`expose` of a window (``reflectance``, rows x cols) into the whole frame ``out``
-    at ``(row0, col0)``: each pixel draws the noise of its index in the whole frame."""
+    """:func:`expose` of ``out`` (rows x cols: a window of a frame, or a view into one), the
+    window at ``(row0, col0)`` of a frame ``width`` px wide: each pixel draws the noise of its
+    index in the whole frame, so a window is the same pixels as that region of the whole frame.
+    ``reflectance`` is rows x cols, or 1 x 1 for that reflectance everywhere."""
     noisy = shot_var_per_dn > 0.0 or read_var > 0.0
     base = noise_base(seed, frame)
-    width = out.shape[1]
-    rows, cols = reflectance.shape
+    rows, cols = out.shape
+    flat = reflectance.size == 1
     for r in range(rows):
         for c in range(cols):
             i = (row0 + r) * width + col0 + c
-            out[row0 + r, col0 + c] = _grey_level(
-                reflectance[r, c] * full_scale, i, base, shot_var_per_dn, read_var, noisy
-            )
+            dn = reflectance[0, 0] if flat else reflectance[r, c]
+            out[r, c] = _grey_level(dn * full_scale, i, base, shot_var_per_dn, read_var, noisy)
 
 
 @njit(cache=True, fastmath=False, nogil=True)

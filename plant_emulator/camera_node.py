@@ -19,6 +19,20 @@ camera is bolted to a real one: the DSP node hands it every camera pose it publi
   keep up with are skipped and counted, never bunched. While the world holds its initial state
   (sim time 0) frames come on a monotonic clock at the same rate from the newest pose.
 
+* **region of interest** — the frame grabber names the region of the next frame it will read
+  (:class:`hal.camera_frame.RoiRequest` on ``hil/camera/roi``, :meth:`CameraNode.request`) and
+  the camera renders, authenticates and sends only it (:meth:`CameraSensor.render_window`: the
+  whole frame's pixels there), with its offset in the header. Whole frames: when no region was
+  asked for (the grabber has no tracking window), for the first frame of each image-log slot
+  (``camera.image_log_fps``, the rule of :mod:`vision.image_log` on the same simulation times:
+  the log and the live views show whole frames), and a frame sent as a region again whole when
+  the grabber asks (its target was not in the region). In lockstep, once the grabber asks, the
+  camera waits for the request of each frame (sent right after the features that lead to
+  the next pose, it is normally there first; :data:`ROI_WAIT_S` at most, then the whole frame,
+  counted ``roi_late``), so which frames are regions is the same on every run. A request that
+  is malformed, unauthentic or for another camera is counted and dropped; a window outside the
+  frame is clamped to it.
+
 A new emulator run (a scenario reset: new pose source id; or sim time going backwards) restarts
 the frame counter and the noise with the seed the reset named (else ``camera.seed``), under a
 new frame source id (the grabber takes the restarted counter as a new camera).
@@ -46,11 +60,11 @@ from dataclasses import asdict, dataclass
 
 import zenoh
 
-from hal.camera_frame import encode_frame
+from hal.camera_frame import RoiRequest, decode_roi_request, encode_frame
 from hal.config import RigConfig, plant_view
 from hal.errors import HalError, HalTransportError
 from hal.fifo import fifo_thread
-from hal.zenoh_session import KEY_CAMERA_FRAME, ZenohSession
+from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_CAMERA_ROI, ZenohSession
 from plant_emulator.camera import CameraPose
 from plant_emulator.camera_sensor import (
     CameraSensor,
@@ -73,6 +87,10 @@ renderer's Python holds the GIL while the DSP thread, woken by the controller's 
 it to announce the next period. Measured (lockstep, 5 s of ioc with images, three pairs of
 runs on a host at load 8-9): the DSP-and-CAN part of the period 2.9, 3.0, 3.1 ms median with
 5 ms, 2.3, 2.5, 1.4 ms with 0.5 ms."""
+ROI_WAIT_S = 0.05
+"""Lockstep: how long the camera waits for the grabber's region request of a frame."""
+ROI_KEEP = 8
+"""Region requests kept (by frame), newest first."""
 
 
 def target_scene(cfg: RigConfig) -> Scene:
@@ -99,6 +117,13 @@ def sensor_from_config(
         z_wo=c.z_wo,
         scene=target_scene(cfg) if scene is None else scene,
     )
+
+
+@dataclass(frozen=True)
+class _WholeAgain:
+    """The grabber asks frame ``seq`` (sent as a region) again whole."""
+
+    seq: int
 
 
 @dataclass(frozen=True)
@@ -177,6 +202,20 @@ class CameraStats:
     printed on stderr)."""
     render_ms_max: float = 0.0
     render_ms_sum: float = 0.0
+    roi_frames: int = 0
+    """Frames sent as a region of interest."""
+    whole_again: int = 0
+    """Frames sent as a region and then again whole, asked for by the grabber."""
+    roi_requests: int = 0
+    """Region requests accepted."""
+    roi_rejected: int = 0
+    """Region requests malformed or not authentic (dropped)."""
+    roi_other: int = 0
+    """Region requests for another camera or run, or a frame no longer at hand (dropped)."""
+    roi_clamped: int = 0
+    """Requested windows reaching outside the frame (clamped to it; none inside: whole)."""
+    roi_late: int = 0
+    """Lockstep frames sent whole because their request did not come in time."""
 
     def as_dict(self) -> dict[str, float]:
         d = asdict(self)
@@ -216,14 +255,23 @@ class CameraNode:
         self._clock = clock
         self._watched = watched
         self._cond = threading.Condition()
-        self._queue: deque[tuple[PoseSample, bool] | tuple[None, int | None]] = deque()
-        """Offered poses (and lockstep flags) in order, and scenario resets (None, seed)."""
+        self._queue: deque[tuple[PoseSample, bool] | tuple[None, int | _WholeAgain | None]] = (
+            deque()
+        )
+        """Offered poses (and lockstep flags) in order, scenario resets (None, seed) and frames
+        asked again whole (None, _WholeAgain)."""
         self._history = PoseHistory(round(HISTORY_S * 1e9))
         self._thread: threading.Thread | None = None
         self._lockstep = False
         """Whether the newest pose was a lockstep one (then no realtime frame clock runs)."""
         self._stop = threading.Event()
         self._fifo_asked = False
+        self._requests: dict[int, RoiRequest] = {}
+        """Region requests of this run's frames, by frame (under ``_cond``)."""
+        self._asked = False
+        """Whether the grabber asks for regions (this run): lockstep then waits for them."""
+        fps_log = cfg.camera.image_log_fps
+        self._log_period_ns = round(1e9 / fps_log) if fps_log > 0 else 0
         self._new_run(None)
 
     # -- feeding (the DSP's thread) --------------------------------------------------------
@@ -241,6 +289,30 @@ class CameraNode:
         with self._cond:
             self._queue.append((None, seed))
             self._cond.notify()
+
+    def request(self, payload: bytes) -> None:
+        """A region request from the frame grabber (zenoh's callback thread); never raises."""
+        try:
+            req = decode_roi_request(payload, self.key)
+        except HalError:
+            self.stats.roi_rejected += 1
+            return
+        with self._cond:
+            if req.source != self.source:
+                self.stats.roi_other += 1
+                return
+            self.stats.roi_requests += 1
+            if req.seq < self._frame:  # a frame already made: asked again whole?
+                if req.window is None:
+                    self._queue.append((None, _WholeAgain(req.seq)))
+                else:
+                    self.stats.roi_other += 1
+            else:
+                self._requests[req.seq] = req
+                for old in sorted(self._requests)[:-ROI_KEEP]:
+                    del self._requests[old]
+                self._asked = True
+            self._cond.notify_all()
 
     # -- the worker ------------------------------------------------------------------------
 
@@ -306,10 +378,22 @@ class CameraNode:
         self._last_lockstep: tuple[int, bytes] | None = None
         self._next_slot = 0
         self._hold_next_ns: int | None = None
+        with self._cond:
+            self._requests.clear()
+            self._asked = False
+        self._log_slot: int | None = None
+        self._last_mid: float | None = None
+        self._made: tuple[int, float, int, bool, int] | None = None
+        """The newest frame sent as a region: (frame, t_mid, period, lockstep, stamp_ns)."""
         self.stats.runs += 1
 
-    def _step(self, batch: list[tuple[PoseSample, bool] | tuple[None, int | None]]) -> None:
+    def _step(
+        self, batch: list[tuple[PoseSample, bool] | tuple[None, int | _WholeAgain | None]]
+    ) -> None:
         for sample, flag in batch:
+            if isinstance(flag, _WholeAgain):
+                self._whole_again(flag.seq)
+                continue
             if sample is None:
                 self._new_run(flag)
                 continue
@@ -336,7 +420,9 @@ class CameraNode:
         payload = self._render(t_mid, sample.seq, True, sample.stamp_ns - self.exposure_ns // 2)
         self._last_lockstep = (sample.seq, payload)
         self._send(payload)
-        self._prepare_next(t_mid)
+        step = t_mid - self._last_mid if self._last_mid is not None else 0.0
+        self._last_mid = t_mid
+        self._prepare_next(t_mid, t_mid + step)
 
     def _realtime_frames(self) -> None:
         newest = self._history.newest
@@ -365,7 +451,7 @@ class CameraNode:
             t_mid = due * self.period_ns * 1e-9
             stamp = self._history.stamp_at(t_mid)
             self._send(self._render(t_mid, newest.seq, False, stamp))
-            self._prepare_next(t_mid)
+            self._prepare_next(t_mid, t_mid + self.period_ns * 1e-9)
 
     def _watching(self) -> bool:
         if self._watched is None or self._watched():
@@ -374,11 +460,73 @@ class CameraNode:
         return False
 
     def _render(self, t_mid: float, period: int, lockstep: bool, stamp_ns: int) -> bytes:
+        """The next frame, whole or the region the grabber asked for."""
+        window = self._window(round(t_mid * 1e9), lockstep)
+        payload = self._encode(self._frame, t_mid, period, lockstep, stamp_ns, window)
+        self._made = (self._frame, t_mid, period, lockstep, stamp_ns) if window else None
+        self._frame += 1
+        return payload
+
+    def _window(self, sim_ns: int, lockstep: bool) -> tuple[int, int, int, int] | None:
+        """The region to send of the next frame (None: whole); see the module docstring."""
+        slot = sim_ns // self._log_period_ns if self._log_period_ns else None
+        first_of_slot = slot is not None and (self._log_slot is None or slot > self._log_slot)
+        if slot is not None and (self._log_slot is None or slot >= self._log_slot):
+            self._log_slot = slot
+        with self._cond:
+            n = self._frame
+            waiting = lockstep and self._asked and n not in self._requests
+            if waiting and not self._cond.wait_for(
+                lambda: n in self._requests or self._stop.is_set(), ROI_WAIT_S
+            ):
+                self.stats.roi_late += 1
+            req = self._requests.pop(n, None)
+            if req is None and not lockstep:  # realtime: the grabber may be a frame behind
+                older = [k for k in self._requests if n - 2 <= k < n]
+                req = self._requests[max(older)] if older else None
+        if req is None or first_of_slot:
+            return None
+        h, w = self.sensor.shape
+        window = req.clamped(w, h)
+        if window is not None and window != req.window:
+            self.stats.roi_clamped += 1
+        return window
+
+    def _whole_again(self, seq: int) -> None:
+        """The grabber asks frame ``seq``, sent as a region, again whole."""
+        made = self._made
+        if made is None or made[0] != seq:
+            self.stats.roi_other += 1
+            return
+        self._made = None
+        frame, t_mid, period, lockstep, stamp_ns = made
+        payload = self._encode(frame, t_mid, period, lockstep, stamp_ns, None)
+        self.stats.whole_again += 1
+        if lockstep and self._last_lockstep is not None and self._last_lockstep[0] == period:
+            self._last_lockstep = (period, payload)  # a re-sent pose gets the whole frame
+        self._send(payload)
+
+    def _encode(
+        self,
+        frame: int,
+        t_mid: float,
+        period: int,
+        lockstep: bool,
+        stamp_ns: int,
+        window: tuple[int, int, int, int] | None,
+    ) -> bytes:
         t0 = time.perf_counter()
-        pixels = self.sensor.render(self._history.pose_at, t_mid, frame=self._frame)
+        if window is None:
+            pixels = self.sensor.render(self._history.pose_at, t_mid, frame=frame)
+            x0 = y0 = 0
+        else:
+            pixels = self.sensor.render_window(self._history.pose_at, t_mid, window, frame=frame)
+            x0, y0 = window[0], window[1]
+            self.stats.roi_frames += 1
+        h, w = self.sensor.shape
         payload = encode_frame(
             pixels,
-            seq=self._frame,
+            seq=frame,
             stamp_ns=stamp_ns,
             sim_time_ns=round(t_mid * 1e9),
             exposure_ns=self.exposure_ns,
@@ -386,9 +534,11 @@ class CameraNode:
             lockstep=lockstep,
             source=self.source,
             key=self.key,
+            x0=x0,
+            y0=y0,
+            sensor_size=(w, h),
         )
         ms = (time.perf_counter() - t0) * 1e3
-        self._frame += 1
         self.stats.frames += 1
         self.stats.render_ms_sum += ms
         self.stats.render_ms_max = max(self.stats.render_ms_max, ms)
@@ -409,12 +559,22 @@ class CameraNode:
                 flush=True,
             )
 
-    def _prepare_next(self, t: float) -> None:
+    def _prepare_next(self, t: float, t_next: float) -> None:
         """While the next pose is awaited: the next frame's background and noise, which no
         pose changes (lockstep: the controller and the DSP work meanwhile; the pose of the
         next period is not known before its torque is), so only the target's region is
-        rendered once the pose is there (:meth:`CameraSensor.prepare`; same pixels)."""
+        rendered once the pose is there (:meth:`CameraSensor.prepare`; same pixels). Not while
+        the grabber asks for regions, unless the next frame starts an image-log slot (sent
+        whole; ``t_next``: its mid-exposure, about)."""
+        if self._asked and not self._starts_slot(t_next):
+            return
         self.sensor.prepare(self._frame, self.sensor.scene(t).background)
+
+    def _starts_slot(self, t: float) -> bool:
+        if not self._log_period_ns:
+            return False
+        slot = round(t * 1e9) // self._log_period_ns
+        return self._log_slot is None or slot > self._log_slot
 
     def _send(self, payload: bytes) -> None:
         try:
@@ -460,4 +620,11 @@ def start_camera(
     camera = CameraNode(cfg, frames.put, key=key, watched=frames.has_subscribers)
     stack.callback(camera.close)
     camera.start()
+    requests = session.subscribe(KEY_CAMERA_ROI, camera.request)
+
+    def undeclare() -> None:
+        with contextlib.suppress(zenoh.ZError):
+            requests.undeclare()
+
+    stack.callback(undeclare)
     return camera, frames

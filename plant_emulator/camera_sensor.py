@@ -275,6 +275,7 @@ class CameraSensor:
         ones = tiny + 1.0
         kernels.disc_mean(tiny, tiny, ones, one, one, one + 1.0, one, 0.0, 0.0, 1.0, 0.0, 1.0, tiny)
         self._expose_into(np.zeros(self.shape, np.uint8), (slice(0, 2), slice(0, 2)), tiny, 0)
+        self.render_window(lambda t: CameraPose(0.0, 0.0, 0.0), 0.0, (0, 0, 2, 2))
         self.expose(tiny, 0)  # also the plain plane's (a one-element reflectance)
 
     def prepare(self, frame: int, background: float) -> None:
@@ -317,11 +318,47 @@ class CameraSensor:
         rows, cols = roi
         kernels.expose_window(
             np.ascontiguousarray(values, dtype=np.float64),
-            out,
+            out[roi],
             rows.start,
             cols.start,
+            self.resolution.width,
             *self._noise_args(frame),
         )
+
+    def render_window(
+        self,
+        pose_at: Callable[[float], CameraPose],
+        t_mid: float,
+        window: tuple[int, int, int, int],
+        *,
+        frame: int = 0,
+    ) -> np.ndarray:
+        """The region ``window = (x0, y0, x1, y1)`` (px, end exclusive, inside the frame) of
+        :meth:`render`'s frame, the same pixels (noise keyed by the pixel's place in the whole
+        frame), rendered and exposed there only: a camera's region-of-interest readout."""
+        x0, y0, x1, y1 = window
+        h, w = self.shape
+        if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
+            raise CameraSensorError(f"window {window} is not inside the {w}x{h} frame")
+        background, roi, values = self.exposed_region(pose_at, t_mid)
+        out = np.empty((y1 - y0, x1 - x0), dtype=np.uint8)
+        noise = self._noise_args(frame)
+        kernels.expose_window(np.full((1, 1), float(background)), out, y0, x0, w, *noise)
+        if roi is not None:
+            rs, cs = roi
+            r0, r1 = max(rs.start, y0), min(rs.stop, y1)
+            c0, c1 = max(cs.start, x0), min(cs.stop, x1)
+            if r0 < r1 and c0 < c1:
+                part = values[r0 - rs.start : r1 - rs.start, c0 - cs.start : c1 - cs.start]
+                kernels.expose_window(
+                    np.ascontiguousarray(part, dtype=np.float64),
+                    out[r0 - y0 : r1 - y0, c0 - x0 : c1 - x0],
+                    r0,
+                    c0,
+                    w,
+                    *noise,
+                )
+        return out
 
     def render_view(
         self, pose: CameraPose, placement: Placement, texture: PlaneTexture, *, frame: int = 0

@@ -107,32 +107,51 @@ Window = tuple[int, int, int, int]
 
 
 def detect(
-    img: np.ndarray, params: DetectorParams | None = None, window: Window | None = None
+    img: np.ndarray,
+    params: DetectorParams | None = None,
+    window: Window | None = None,
+    *,
+    region: Window | None = None,
 ) -> tuple[Detection | None, str | None]:
     """The target in the 8-bit grey ``img``: ``(detection, None)`` or ``(None, reason)``.
 
     ``window``: search only there (clipped to the frame), for a tracking window around where
     the target is expected; a candidate the window's edge cuts inside the frame is not taken,
-    so a target found is found whole."""
+    so a target found is found whole. ``region = (x0, y0, width, height)``: ``img`` is only the
+    region at ``(x0, y0)`` of a ``width`` x ``height`` frame (a camera's region of interest),
+    coordinates stay the frame's; the window must then lie in it with ``params.margin`` to
+    spare, else nothing is found (the same detection as in the whole frame, or none)."""
     params = params or DetectorParams()
+    ox, oy, w, h = (0, 0, img.shape[1], img.shape[0]) if region is None else region
     if window is None:
-        return _detect(img, params, None)
-    h, w = img.shape
+        if region is not None and img.shape != (h, w):
+            return None, "not_found"
+        return _detect(img, params, None, (0, 0, w, h))
     x0, y0 = max(int(window[0]), 0), max(int(window[1]), 0)
     x1, y1 = min(int(window[2]), w), min(int(window[3]), h)
     if x1 - x0 < 8 or y1 - y0 < 8:
         return None, "not_found"
-    return _detect(img, params, (x0, y0, x1, y1))
+    m = params.margin
+    rh, rw = img.shape
+    if not (
+        ox <= max(x0 - m, 0)
+        and oy <= max(y0 - m, 0)
+        and min(x1 + m, w) <= ox + rw
+        and min(y1 + m, h) <= oy + rh
+    ):
+        return None, "not_found"  # the region does not hold the window: the frame decides
+    return _detect(img, params, (x0, y0, x1, y1), (ox, oy, w, h))
 
 
 def _detect(
-    img: np.ndarray, params: DetectorParams, window: Window | None
+    img: np.ndarray, params: DetectorParams, window: Window | None, frame: Window
 ) -> tuple[Detection | None, str | None]:
-    """:func:`detect` in ``window`` (None: the whole frame); a candidate touching the
-    window's edge inside the frame is cut by the window and not taken."""
-    h, w = img.shape
+    """:func:`detect` in ``window`` (None: the whole frame) of ``img``, the region at
+    ``frame[:2]`` of a ``frame[2]`` x ``frame[3]`` frame; a candidate touching the window's
+    edge inside the frame is cut by the window and not taken."""
+    ox, oy, w, h = frame
     wx0, wy0, wx1, wy1 = (0, 0, w, h) if window is None else window
-    smooth = cv2.blur(img[wy0:wy1, wx0:wx1], (3, 3))
+    smooth = cv2.blur(img[wy0 - oy : wy1 - oy, wx0 - ox : wx1 - ox], (3, 3))
     darkest, _, _, _ = cv2.minMaxLoc(smooth)
     level = _median_u8(smooth[::4, ::4])
     if level - darkest < params.min_contrast:
@@ -170,7 +189,7 @@ def _detect(
     m = params.margin
     x0, y0 = max(x - m, 0), max(y - m, 0)
     x1, y1 = min(x + bw + m, w), min(y + bh + m, h)
-    win = img[y0:y1, x0:x1].astype(np.float64)
+    win = img[y0 - oy : y1 - oy, x0 - ox : x1 - ox].astype(np.float64)
     inside = np.zeros(win.shape, np.uint8)
     cv2.drawContours(inside, [contour], 0, 1, thickness=cv2.FILLED, offset=(-x0, -y0))
     support = cv2.dilate(inside, _KERNEL3).astype(bool)

@@ -6,6 +6,14 @@ every period is answered; a frame without a measurement is answered with ``valid
 reason counted), and the controller's hold logic applies. A lockstep frame sent again (the
 DSP re-announced the period) is answered again with the same message, without a second
 detection.
+
+Region of interest: once a frame's features have left, the grabber asks the camera for the region
+of its next frame that the pipeline will read (:meth:`vision.pipeline.Pipeline.roi`; the whole
+frame when it has no tracking window: at the start, after a frame without the target), on the
+source's ``request_roi`` (a source that cannot read out a region ignores it). A region that does
+not hold the target is not answered: the grabber asks for the same frame whole and measures
+that, so the features are those of whole frames, whatever the camera sent. In lockstep the
+request is a function of the frames before it, the same on every run.
 """
 
 from __future__ import annotations
@@ -17,7 +25,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from hal.camera_frame import CameraFrame
+from hal.camera_frame import CameraFrame, RoiRequest
 from hal.durations import Durations
 from hal.errors import HalConfigError
 from hal.fifo import fifo_thread
@@ -25,6 +33,7 @@ from hal.vision_codec import FeatureMsg
 from vision.pipeline import Measurement, Pipeline
 
 Publish = Callable[[FeatureMsg], None]
+RequestRoi = Callable[[RoiRequest], None]
 
 
 @dataclass(frozen=True)
@@ -72,6 +81,12 @@ class GrabberStats:
     invalid: int = 0
     reanswers: int = 0
     """Lockstep frames sent again, answered again unchanged."""
+    roi_frames: int = 0
+    """Frames that came as a region of interest and were measured in it."""
+    roi_misses: int = 0
+    """Regions of interest without the target whole in their window: the frame asked again
+    whole."""
+    roi_request_errors: int = 0
     publish_errors: int = 0
     dropouts: list[str] = field(default_factory=list)
     """Fault injection: the windows ``START:DURATION`` (s of simulation time) without features."""
@@ -117,8 +132,11 @@ class Grabber:
         clock: Callable[[], int] = time.monotonic_ns,
         dropouts: Sequence[Dropout] = (),
         rt_priority: int = 0,
+        request_roi: RequestRoi | None = None,
     ) -> None:
         self.pipeline = pipeline
+        self.request_roi = request_roi
+        """Where the region of interest of the next frame is asked for (None: nowhere)."""
         self.rt_priority = rt_priority
         """Realtime frames are measured on SCHED_FIFO threads of this priority (0: normal)."""
         self._fifo_threads: set[int] = set()
@@ -161,7 +179,16 @@ class Grabber:
             delivered_ns = frame.sim_time_ns + frame.exposure_ns // 2  # the exposure's end
             if any(d.contains(delivered_ns) for d in self.dropouts):
                 return self._dropout(frame, ident)
-            m = self.pipeline.process(frame.pixels)
+            if frame.is_roi:
+                region = self.pipeline.process_region(frame.pixels, frame.x0, frame.y0)
+                if region is None:  # only the whole frame can tell: ask for it again whole
+                    self.stats.roi_misses += 1
+                    self._ask(RoiRequest(frame.source, frame.seq, None))
+                    return None
+                self.stats.roi_frames += 1
+                m = region
+            else:
+                m = self.pipeline.process(frame.pixels)
             f = m.f if m.f is not None else (0.0, 0.0)
             msg = FeatureMsg(
                 frame.seq,
@@ -180,6 +207,7 @@ class Grabber:
                 self.stats.invalid += 1
             self._last = (ident, msg)
             self._send(msg)
+            self._ask(RoiRequest(frame.source, frame.seq + 1, self.pipeline.roi()))
             self._detect_ns.add(m.detect_ns)
             if not frame.lockstep:
                 self._latency_ns.add(self.clock() - frame.stamp_ns)
@@ -216,7 +244,20 @@ class Grabber:
         self.stats.invalid += 1
         self._last = (ident, msg)
         self._send(msg)
+        self._ask(RoiRequest(frame.source, frame.seq + 1, self.pipeline.roi()))
         return msg
+
+    def _ask(self, req: RoiRequest) -> None:
+        """Ask the source for a region of interest (right after the features leave, off their
+        path: in lockstep the next period's pose follows the features' hop to the controller,
+        its tick and the torque over CAN); a failed request is counted (the camera then sends
+        the whole frame)."""
+        if self.request_roi is None:
+            return
+        try:
+            self.request_roi(req)
+        except Exception:
+            self.stats.roi_request_errors += 1
 
     def _send(self, msg: FeatureMsg) -> None:
         try:

@@ -1,7 +1,9 @@
 """The decimated image stream: every ``1 / image_log_fps`` of capture time, a frame as PNG with
 what the detector made of it, on ``hil/vision/image`` (:mod:`hal.vision_image`) for the log
 and live views. Slots are in the frames' simulation time, so a lockstep run logs the same
-frames every time.
+frames every time. Only whole frames are logged: the emulated camera sends the first frame of
+each slot whole (the others may be a region of interest, :mod:`hal.camera_frame`), by the same
+rule on the same simulation times.
 
 The PNG is made on a thread of its own, never on the grabber's: a frame's features leave
 before its PNG is made, and the next frame does not wait for it. A realtime frame that finds
@@ -61,7 +63,7 @@ class ImageLog:
         self.period_ns = round(1e9 / fps) if fps > 0 else 0
         self.publish = publish
         self.source_id = source_id
-        self.sent = self.errors = self.dropped = 0
+        self.sent = self.errors = self.dropped = self.regions = 0
         self._next_ns: int | None = None
         self._last_ns: int | None = None
         self._queue: queue.Queue[tuple[CameraFrame, Measurement] | None] = queue.Queue(backlog)
@@ -70,6 +72,9 @@ class ImageLog:
 
     def __call__(self, frame: CameraFrame, m: Measurement, msg: FeatureMsg) -> None:
         if self.period_ns <= 0 or self._closed:
+            return
+        if frame.is_roi:  # the log and the live views show whole frames only (the camera
+            self.regions += 1  # sends the first frame of each slot whole)
             return
         t = frame.sim_time_ns
         if self._last_ns is not None and t < self._last_ns:
@@ -90,8 +95,14 @@ class ImageLog:
             self.dropped += 1
 
     def counters(self) -> dict[str, int]:
-        """Frames logged, not logged for a full backlog, and failed to encode or publish."""
-        return {"sent": self.sent, "dropped": self.dropped, "errors": self.errors}
+        """Frames logged, not logged for a full backlog, failed to encode or publish, and
+        regions of interest passed over (not whole frames)."""
+        return {
+            "sent": self.sent,
+            "dropped": self.dropped,
+            "errors": self.errors,
+            "regions": self.regions,
+        }
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Log the frames still queued, then stop the thread. Idempotent."""

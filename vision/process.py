@@ -86,6 +86,7 @@ def run_live(
                 lambda img: image_pub.put(encode_vision_image(img, key)),
                 source_id,
             )
+        source = open_source(spec, session=session, key=key, live=True)
         grabber = Grabber(
             Pipeline(intrinsics_from_config(cfg)),
             lambda msg: pub.put(encode_features(msg, key)),
@@ -93,8 +94,8 @@ def run_live(
             observer=observer,
             dropouts=dropouts,
             rt_priority=rt_priority,
+            request_roi=source.request_roi,
         )
-        source = open_source(spec, session=session, key=key, live=True)
         if duration_s > 0:
             timer = threading.Timer(duration_s, stop_event.set)
             timer.daemon = True

@@ -28,7 +28,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from hal.camera_frame import CameraFrame, FrameDecoder
+from hal.camera_frame import CameraFrame, FrameDecoder, RoiRequest, encode_roi_request
 from hal.durations import Durations
 from hal.errors import HalConfigError, HalTransportError
 
@@ -47,6 +47,11 @@ class FrameSource(Protocol):
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
         """Push frames until the source ends (a file, a log) or ``stop`` is set."""
+        ...  # pragma: no cover
+
+    def request_roi(self, req: RoiRequest) -> None:
+        """Ask for a region of interest of a coming frame (a source that cannot read out a
+        region ignores it and sends whole frames)."""
         ...  # pragma: no cover
 
 
@@ -83,12 +88,21 @@ class EmulatedSource:
 
     def __init__(self, session: object, key: bytes) -> None:
         self.session = session
+        self.key = key
         self.decoder = FrameDecoder(key=key)
         self.pipeline_ns = Durations()
         self.arrival_ns = Durations()
+        self._roi_pub: object = None
+
+    def request_roi(self, req: RoiRequest) -> None:
+        """Send the request to the camera on ``hil/camera/roi`` (while :meth:`run` runs)."""
+        if self._roi_pub is not None:
+            self._roi_pub.put(encode_roi_request(req, self.key))  # type: ignore[attr-defined]
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
-        from hal.zenoh_session import KEY_CAMERA_FRAME
+        from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_CAMERA_ROI
+
+        self._roi_pub = self.session.publisher(KEY_CAMERA_ROI)  # type: ignore[attr-defined]
 
         def feed(payload: bytes) -> None:
             t0 = time.monotonic_ns()
@@ -108,6 +122,8 @@ class EmulatedSource:
             stop.wait()
         finally:
             sub.undeclare()
+            pub, self._roi_pub = self._roi_pub, None
+            pub.undeclare()  # type: ignore[attr-defined]
 
 
 class CaptureSource:
@@ -118,6 +134,9 @@ class CaptureSource:
         self.kind, self.target = kind, target
         self.pace = pace and kind == "file"
         """A file played at its own frame rate (as if live), not as fast as it decodes."""
+
+    def request_roi(self, req: RoiRequest) -> None:
+        """VideoCapture reads whole frames: the request is ignored."""
 
     def open(self) -> cv2.VideoCapture:
         if self.kind == "file" and "://" not in self.target and not Path(self.target).is_file():
@@ -162,6 +181,9 @@ class LogSource:
     def __init__(self, path: str, topic: str = LOG_IMAGE_TOPIC) -> None:
         self.name = f"log:{path}"
         self.path, self.topic = Path(path), topic
+
+    def request_roi(self, req: RoiRequest) -> None:
+        """A log holds whole frames: the request is ignored."""
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
         from mcap.exceptions import McapError

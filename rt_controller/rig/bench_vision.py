@@ -282,8 +282,25 @@ def lockstep_profile(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dic
         "frame_to_features_us": _pair(v, "pipeline"),
         "detect_us": _pair(v, "detect"),
         "image_log": v.get("image_log"),
+        "roi": {
+            "camera": {k: cam.get(k) for k in _CAMERA_ROI_COUNTERS},
+            "grabber": {k: v.get(k) for k in ("roi_frames", "roi_misses", "roi_request_errors")},
+        },
         "vision_tail": run["vision_tail"],
     }
+
+
+_CAMERA_ROI_COUNTERS = (
+    "frames",
+    "roi_frames",
+    "whole_again",
+    "roi_late",
+    "roi_requests",
+    "roi_rejected",
+    "roi_other",
+    "roi_clamped",
+)
+"""The emulated camera's region-of-interest counters (``hil emulator --json``'s camera)."""
 
 
 def realtime_pipeline(

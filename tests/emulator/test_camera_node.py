@@ -1,11 +1,12 @@
 """The emulated network camera: one frame per lockstep period, its own frame clock in realtime,
-bit-exact for a seed, restarts with a scenario reset."""
+bit-exact for a seed, restarts with a scenario reset; region-of-interest readout for the frame
+grabber."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from hal.camera_frame import decode_frame
+from hal.camera_frame import RoiRequest, decode_frame
 from hal.config import RigConfig
 from plant_emulator.camera import CameraPose, camera_pose
 from plant_emulator.camera_node import CameraNode
@@ -199,3 +200,118 @@ def test_a_frame_that_cannot_be_made_is_counted_and_the_camera_goes_on(capsys):
     assert [decode_frame(b).period for b in out] == [0, 1, 3, 4]
     assert node.stats.render_errors == 1
     assert "camera: frame lost: ValueError: texture unavailable" in capsys.readouterr().err
+
+
+def roi_lockstep_run(periods: int = 16, ask=True, corner_at: int | None = None):
+    """Lockstep camera and a real frame grabber (pipeline, image log) in process, the grabber's
+    region requests fed back to the camera (``ask``); ``corner_at``: that frame's request is
+    replaced by a region in a corner, without the target. Returns the node, the payloads sent,
+    the features published, the image log's frames and the grabber."""
+    from hal.camera_frame import FrameDecoder, encode_roi_request
+    from hal.vision_image import VisionImage
+    from vision.grabber import Grabber
+    from vision.image_log import ImageLog
+    from vision.intrinsics import intrinsics_from_config
+    from vision.pipeline import Pipeline
+
+    cfg = RigConfig()
+    out: list[bytes] = []
+    node = CameraNode(cfg, out.append, key=KEY, clock=FakeClock())
+    decoder = FrameDecoder(key=KEY)
+    logged: list[VisionImage] = []
+    log = ImageLog(cfg.camera.image_log_fps, logged.append, 1)
+    features = []
+    grabber = Grabber(
+        Pipeline(intrinsics_from_config(cfg)),
+        features.append,
+        source_id=1,
+        observer=log,
+        request_roi=(lambda req: node.request(encode_roi_request(req, KEY))) if ask else None,
+    )
+    sent: list[bytes] = []
+    for k in range(periods):
+        if k == corner_at:
+            node.request(encode_roi_request(RoiRequest(node.source, k, (0, 0, 40, 40)), KEY))
+        sim = k * PERIOD_NS
+        node.offer(k, sim, moving_pose(cfg, sim * 1e-9), True)
+        node.drain()
+        while out:
+            payload = out.pop(0)
+            sent.append(payload)
+            frame = decoder.feed(payload)
+            assert frame is not None
+            grabber.on_frame(frame)
+            node.drain()  # a frame asked again whole
+    log.close()
+    return node, sent, features, logged, grabber
+
+
+def test_lockstep_regions_are_the_whole_frames_pixels_and_give_the_same_features():
+    """With noise, motion blur and the lens on (the defaults): frames sent as regions of interest
+    hold the whole frames' pixels there, the features are those of whole frames bit for bit, the
+    first frame of each image-log slot is whole and the log gets only whole frames, and two
+    runs send the same bytes."""
+    node, sent, features, logged, grabber = roi_lockstep_run()
+    _, whole_sent, whole_features, whole_logged, _ = roi_lockstep_run(ask=False)
+    assert features == whole_features and len(features) == 16
+    frames = [decode_frame(b) for b in sent]
+    regions = [f for f in frames if f.is_roi]
+    # whole: 0 (nothing asked yet, image-log slot -1: exposed around -2 ms), then the first
+    # frame of each 100 ms slot, 1 (18 ms), 6 (118 ms), 11 (218 ms)
+    assert node.stats.roi_frames == len(regions) == 12
+    assert [f.seq for f in frames if not f.is_roi] == [0, 1, 6, 11]
+    for f in regions:
+        whole = decode_frame(whole_sent[f.seq]).pixels
+        np.testing.assert_array_equal(
+            f.pixels, whole[f.y0 : f.y0 + f.height, f.x0 : f.x0 + f.width]
+        )
+        assert f.width * f.height < 640 * 480 / 8
+    assert len(logged) == len(whole_logged) == 4
+    assert [x.png for x in logged] == [x.png for x in whole_logged]
+    assert grabber.snapshot().roi_frames == 12
+    _, again, *_ = roi_lockstep_run()
+
+    def content(payloads):  # all but the random source id (and so the MAC)
+        return [
+            (f.seq, f.period, f.sim_time_ns, f.x0, f.y0, f.pixels.tobytes())
+            for f in map(decode_frame, payloads)
+        ]
+
+    assert content(again) == content(sent)
+
+
+def test_a_region_without_the_target_is_sent_again_whole():
+    node, sent, features, _, grabber = roi_lockstep_run(periods=8, corner_at=3)
+    _, _, whole_features, _, _ = roi_lockstep_run(periods=8, ask=False)
+    assert features == whole_features
+    assert (node.stats.whole_again, grabber.snapshot().roi_misses) == (1, 1)
+    three = [decode_frame(b) for b in sent if decode_frame(b).seq == 3]
+    assert [(f.is_roi, f.x0, f.width) for f in three] == [(True, 0, 40), (False, 0, 640)]
+
+
+def test_bad_region_requests_are_counted_and_never_crash():
+    from hal.camera_frame import encode_roi_request
+
+    cfg = RigConfig().with_overrides({"camera.image_log_fps": 0})  # no slot sent whole
+    out: list[bytes] = []
+    node = CameraNode(cfg, out.append, key=KEY, clock=FakeClock())
+    good = encode_roi_request(RoiRequest(node.source, 0, (600, 450, 700, 520)), KEY)
+    for bad in (
+        b"",
+        b"junk" * 10,
+        good[:-1],
+        encode_roi_request(RoiRequest(1, 0, None), b"x" * 32),
+    ):
+        node.request(bad)
+    node.request(encode_roi_request(RoiRequest(node.source ^ 1, 0, (0, 0, 50, 50)), KEY))
+    node.request(good)  # reaches outside the frame: clamped
+    node.offer(0, 0, moving_pose(cfg, 0.0), True)
+    node.drain()
+    f = decode_frame(out[0])
+    assert (f.x0, f.y0, f.width, f.height) == (600, 450, 40, 30)
+    s = node.stats
+    assert (s.roi_rejected, s.roi_other, s.roi_requests, s.roi_clamped) == (4, 1, 1, 1)
+    node.request(encode_roi_request(RoiRequest(node.source, 0, (0, 0, 5, 5)), KEY))  # too late
+    node.request(encode_roi_request(RoiRequest(node.source, 7, None), KEY))  # not made yet
+    node.drain()
+    assert node.stats.roi_other == 2 and len(out) == 1

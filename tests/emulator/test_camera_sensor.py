@@ -225,3 +225,34 @@ def test_the_compiled_disc_exposure_matches_the_texture_sampled_by_numpy(lens):
         a, b = disc.irradiance(pose_at, 0.0), generic.irradiance(pose_at, 0.0)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
         assert (a < 0.5).any()  # the disc is in the frame
+
+
+def test_a_region_of_interest_has_the_whole_frames_pixels_there():
+    """Region-of-interest readout (:meth:`render_window`): over several poses, still and
+    blurred, with noise and a lens, windows around the target, cutting it, at the frame's
+    corners and without it give exactly the whole frame's pixels of that region."""
+    cfg = RigConfig()
+    p0 = camera_pose(cfg.robot, np.array(cfg.scenario.q0))
+    rng = np.random.default_rng(7)
+    s = sensor(noise=SensorNoise(40.0, 0.5), lens=LENS, exposure=0.004, seed=5)
+    windows = [(0, 0, 640, 480), (0, 0, 1, 1), (639, 479, 640, 480), (500, 10, 640, 200)]
+    for frame in range(8):
+        dx, dy, dphi = rng.normal(0.0, 0.03, 3)
+        v = rng.normal(0.0, 0.5, 2) if frame % 2 else np.zeros(2)
+
+        def pose_at(t, dx=dx, dy=dy, dphi=dphi, v=v):
+            return CameraPose(p0.x + dx + v[0] * t, p0.y + dy + v[1] * t, p0.phi + dphi)
+
+        whole = s.render(pose_at, 0.0, frame=frame)
+        ys, xs = np.nonzero(whole < 100)  # the target's dark disc
+        u, v0 = int(xs.mean()), int(ys.mean())
+        around = [(u - 60, v0 - 60, u + 61, v0 + 61), (u - 5, v0 - 70, u + 3, v0 + 2)]
+        for x0, y0, x1, y1 in windows + [
+            (max(a, 0), max(b, 0), min(c, 640), min(d, 480)) for a, b, c, d in around
+        ]:
+            np.testing.assert_array_equal(
+                s.render_window(pose_at, 0.0, (x0, y0, x1, y1), frame=frame),
+                whole[y0:y1, x0:x1],
+            )
+    with pytest.raises(CameraSensorError):
+        s.render_window(lambda t: p0, 0.0, (600, 0, 641, 10))

@@ -1,4 +1,5 @@
-"""Wire format of camera frames: round trip, malformed and mis-sized frames rejected and counted."""
+"""Wire format of camera frames: round trip, malformed and mis-sized frames rejected and counted;
+regions of interest (their offset authenticated) and the grabber's region requests."""
 
 from __future__ import annotations
 
@@ -9,9 +10,13 @@ import pytest
 
 from hal.camera_frame import (
     HEADER_SIZE,
+    ROI_SIZE,
     FrameDecoder,
+    RoiRequest,
     decode_frame,
+    decode_roi_request,
     encode_frame,
+    encode_roi_request,
     frame_size,
 )
 from hal.errors import HalCodecError
@@ -76,7 +81,13 @@ def test_decoder_accepts_authentic_frames_in_order():
         (lambda b: b[:3] + b"\x80" + b[4:], "bad_flags"),
         (lambda b: b[:52] + b"\x07" + b[53:], "bad_value"),
         (lambda b: b[:48] + struct.pack("<H", 0) + b[50:], "bad_value"),
-        (lambda b: b[:48] + struct.pack("<H", 65) + b[50:], "bad_size"),
+        (
+            lambda b: b[:48] + struct.pack("<H", 65) + b[50:60] + struct.pack("<H", 65) + b[62:],
+            "bad_size",
+        ),
+        (lambda b: b[:48] + struct.pack("<H", 65) + b[50:], "bad_value"),  # wider than the sensor
+        (lambda b: b[:56] + struct.pack("<H", 1) + b[58:], "bad_value"),  # offset: outside
+        (lambda b: b[:60] + struct.pack("<H", 0) + b[62:], "bad_value"),
         (lambda b: b[:32] + struct.pack("<q", -1) + b[40:], "bad_value"),
         (
             lambda b: b[: HEADER_SIZE + 5] + bytes([b[HEADER_SIZE + 5] ^ 1]) + b[HEADER_SIZE + 6 :],
@@ -155,3 +166,64 @@ def test_fuzzed_payloads_never_raise():
     c = dec.counters()
     assert c["received"] == 300
     assert c["accepted"] + c["resent"] + c["rejected"] == 300
+
+
+def test_a_region_round_trips_with_its_offset():
+    img = pixels(640, 480, seed=2)
+    buf = frame(img=img[100:231, 200:331], x0=200, y0=100, sensor_size=(640, 480))
+    assert len(buf) == frame_size(131, 131)
+    out = decode_frame(buf)
+    assert (out.x0, out.y0, out.sensor_size, out.is_roi) == (200, 100, (640, 480), True)
+    np.testing.assert_array_equal(out.pixels, img[100:231, 200:331])
+    whole = decode_frame(frame(img=img))
+    assert (whole.x0, whole.y0, whole.sensor_size, whole.is_roi) == (0, 0, (640, 480), False)
+    with pytest.raises(HalCodecError, match="not inside"):
+        frame(img=img[:10, :10], x0=635, y0=0, sensor_size=(640, 480))
+
+
+@pytest.mark.parametrize("field", [56, 58, 60, 62])
+def test_a_tampered_region_offset_or_sensor_size_is_rejected_and_counted(field):
+    """The offset and the sensor's size are authenticated like the rest of the header: a frame
+    whose region was moved (still inside the sensor) fails the MAC."""
+    buf = frame(img=pixels(40, 30), x0=200, y0=100, sensor_size=(640, 480))
+    (value,) = struct.unpack_from("<H", buf, field)
+    bad = buf[:field] + struct.pack("<H", value + 1) + buf[field + 2 :]
+    assert decode_frame(bad).sensor_size is not None  # well formed...
+    dec = FrameDecoder(key=KEY)
+    assert dec.feed(bad) is None  # ...but not authentic
+    c = dec.counters()
+    assert (c["bad_mac"], c["rejected"], c["accepted"]) == (1, 1, 0)
+
+
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_a_region_then_the_same_frame_whole_are_both_accepted(lockstep):
+    dec = FrameDecoder(key=KEY)
+    img = pixels(64, 48)
+    roi = frame(seq=5, period=5, lockstep=lockstep, img=img[:20, :30], sensor_size=(64, 48))
+    assert dec.feed(roi) is not None
+    whole = dec.feed(frame(seq=5, period=5, lockstep=lockstep, img=img))
+    assert whole is not None and not whole.is_roi
+    again = dec.feed(roi)  # the region again: lockstep re-sends are returned, realtime is stale
+    assert (again is not None) == lockstep
+    c = dec.counters()
+    assert (c["accepted"], c["resent"], c["stale_order"]) == (2, int(lockstep), int(not lockstep))
+
+
+def test_region_requests_round_trip_and_bad_ones_are_refused():
+    for req in (RoiRequest(7, 12, (1, 2, 131, 132)), RoiRequest(7, 13, None)):
+        buf = encode_roi_request(req, KEY)
+        assert len(buf) == ROI_SIZE
+        assert decode_roi_request(buf, KEY) == req
+    good = encode_roi_request(RoiRequest(7, 12, (1, 2, 131, 132)), KEY)
+    with pytest.raises(HalCodecError, match="bad_mac"):
+        decode_roi_request(good, b"x" * 32)
+    with pytest.raises(HalCodecError, match="bad_mac"):
+        decode_roi_request(good[:16] + struct.pack("<H", 9) + good[18:], KEY)  # moved window
+    for bad in (good[:-1], b"", good[:2] + b"\x02" + good[3:], 42):
+        with pytest.raises(HalCodecError, match="malformed"):
+            decode_roi_request(bad, KEY)
+    for window in ((5, 5, 5, 9), (0, 0, 70000, 10), (-1, 0, 5, 5)):
+        with pytest.raises(HalCodecError):
+            encode_roi_request(RoiRequest(7, 1, window), KEY)
+    assert RoiRequest(1, 1, (-5, 470, 30, 500)).clamped(640, 480) == (0, 470, 30, 480)
+    assert RoiRequest(1, 1, (700, 0, 720, 10)).clamped(640, 480) is None

@@ -66,7 +66,7 @@ def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
     feeder.join(5.0)
     log.close()
     assert got == list(range(0, 40, 5))
-    assert log.counters() == {"sent": 8, "dropped": 0, "errors": 0}
+    assert log.counters() == {"sent": 8, "dropped": 0, "errors": 0, "regions": 0}
 
 
 def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
@@ -85,3 +85,20 @@ def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
     c = log.counters()
     assert c["sent"] + c["dropped"] == 8 and c["dropped"] >= 5  # one in the encoder, two queued
     assert got == sorted(got) and got[0] == 0
+
+
+def test_regions_of_interest_are_never_logged_the_slot_takes_the_next_whole_frame():
+    got = []
+    log = ImageLog(10.0, got.append, 1)
+    for f in (frame(i, True) for i in range(12)):
+        if f.seq in (0, 5, 6):  # regions of the sensor's frame, as the camera may send
+            f = CameraFrame(
+                f.seq, f.stamp_ns, f.sim_time_ns, 0, f.seq, f.pixels[:10, :20], True, 0,
+                "mono8", 4, 4, (64, 48),
+            )  # fmt: skip
+        log(f, NO_F, msg(f))
+    log.close()
+    assert [img.frame for img in got] == [1, 7, 10]
+    shapes = {cv2.imdecode(np.frombuffer(img.png, np.uint8), 0).shape for img in got}
+    assert shapes == {(48, 64)}
+    assert log.counters()["regions"] == 3

@@ -97,10 +97,17 @@ class FakeSession:
 
     def __init__(self) -> None:
         self.callback = None
+        self.sent: list[bytes] = []
 
     def subscribe(self, key, cb):
         self.callback = cb
         return self
+
+    def publisher(self, key, **kw):
+        return self
+
+    def put(self, payload: bytes) -> None:
+        self.sent.append(payload)
 
     def undeclare(self) -> None:
         pass
