@@ -282,10 +282,7 @@ def lockstep_profile(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dic
         "frame_to_features_us": _pair(v, "pipeline"),
         "detect_us": _pair(v, "detect"),
         "image_log": v.get("image_log"),
-        "roi": {
-            "camera": {k: cam.get(k) for k in _CAMERA_ROI_COUNTERS},
-            "grabber": {k: v.get(k) for k in ("roi_frames", "roi_misses", "roi_request_errors")},
-        },
+        "roi": _roi_counters(cam, v),
         "vision_tail": run["vision_tail"],
     }
 
@@ -303,14 +300,23 @@ _CAMERA_ROI_COUNTERS = (
 """The emulated camera's region-of-interest counters (``hil emulator --json``'s camera)."""
 
 
+def _roi_counters(camera: dict[str, Any], vision: dict[str, Any]) -> dict[str, Any]:
+    """Region-of-interest readout in a rig: the camera's counters and the grabber's (regions
+    measured, regions asked for again whole, failed requests)."""
+    return {
+        "camera": {k: camera.get(k) for k in _CAMERA_ROI_COUNTERS},
+        "grabber": {k: vision.get(k) for k in ("roi_frames", "roi_misses", "roi_request_errors")},
+    }
+
+
 def realtime_pipeline(
     cfg: RigConfig, duration_s: float, fps: float = 60.0, law: str = "ioc"
 ) -> dict[str, Any]:
     """The pipeline's time per frame while a realtime rig with images runs (the processes of
     ``hil up``, the camera at ``fps``): frame in to features out at the grabber (decode, MAC,
     detect, undistort, publish) and the detection alone, median / p99 (us); frames the camera
-    rendered, skipped (it fell behind) and the grabber measured; the controller's deadline
-    misses."""
+    rendered, skipped (it fell behind) and the grabber measured, the region-of-interest
+    counters; the controller's deadline misses."""
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="hil-bench-vision-realtime-") as work:
@@ -342,6 +348,7 @@ def realtime_pipeline(
         "missed_periods": ctl.get("missed_periods"),
         "stale_features": ctl.get("stale_features"),
         "vision_scheduling": v.get("scheduling"),
+        "roi": _roi_counters(cam, v),
         "J": ctl.get("J"),
         "problems": ctl.get("problems", []),
         "vision_reported": bool(v),
