@@ -98,3 +98,41 @@ def decode_vision_image(buf: bytes, key: bytes | None = None) -> VisionImage:
     png = bytes(buf[HEADER_SIZE:body])
     return VisionImage(frame, stamp, sim, bool(flags & FLAG_VALID), reason, (u, v), (fx, fy), png,
                        source)  # fmt: skip
+
+
+class ImageSlots:
+    """Which frames the decimated image stream takes: the first frame at or after each slot of
+    ``1 / fps`` of simulation time (so a lockstep run takes the same frames every time); a
+    frame earlier than the last one seen starts a new run. One rule for both ends: the image
+    log takes those frames, and the emulated camera sends them whole (the others may be a
+    region of interest). ``fps <= 0``: no frame."""
+
+    def __init__(self, fps: float) -> None:
+        self.period_ns = round(1e9 / fps) if fps > 0 else 0
+        self._next_ns: int | None = None
+        self._last_ns: int | None = None
+
+    def take(self, sim_time_ns: int) -> bool:
+        """Whether the frame of ``sim_time_ns`` is taken (then the next slot is awaited)."""
+        if self.period_ns <= 0:
+            return False
+        t = sim_time_ns
+        if self._last_ns is not None and t < self._last_ns:
+            self._next_ns = None  # a new run (the emulator's time went back)
+        self._last_ns = t
+        if self._next_ns is not None and t < self._next_ns:
+            return False
+        self._next_ns = (t // self.period_ns + 1) * self.period_ns
+        return True
+
+    def due(self, sim_time_ns: int) -> bool:
+        """Whether :meth:`take` would take a frame of ``sim_time_ns`` (nothing changes)."""
+        if self.period_ns <= 0:
+            return False
+        if self._last_ns is not None and sim_time_ns < self._last_ns:
+            return True
+        return self._next_ns is None or sim_time_ns >= self._next_ns
+
+    def reset(self) -> None:
+        """A new run: the next frame is taken."""
+        self._next_ns = self._last_ns = None

@@ -24,14 +24,14 @@ camera is bolted to a real one: the DSP node hands it every camera pose it publi
   the camera renders, authenticates and sends only it (:meth:`CameraSensor.render_window`: the
   whole frame's pixels there), with its offset in the header. Whole frames: when no region was
   asked for (the grabber has no tracking window), for the first frame of each image-log slot
-  (``camera.image_log_fps``, the rule of :mod:`vision.image_log` on the same simulation times:
-  the log and the live views show whole frames), and a frame sent as a region again whole when
-  the grabber asks (its target was not in the region). In lockstep, once the grabber asks, the
-  camera waits for the request of each frame (sent right after the features that lead to
-  the next pose, it is normally there first; :data:`ROI_WAIT_S` at most, then the whole frame,
-  counted ``roi_late``), so which frames are regions is the same on every run. A request that
-  is malformed, unauthentic or for another camera is counted and dropped; a window outside the
-  frame is clamped to it.
+  (``camera.image_log_fps``, the image log's own rule on the same simulation times,
+  :class:`hal.vision_image.ImageSlots`: the log and the live views show whole frames), and a
+  frame sent as a region again whole when the grabber asks (its target was not in the
+  region). In lockstep, once the grabber asks, the camera waits for the request of each frame
+  (sent right after the features that lead to the next pose, it is normally there first;
+  :data:`ROI_WAIT_S` at most, then the whole frame, counted ``roi_late``), so which frames are
+  regions is the same on every run. A request that is malformed, unauthentic or for another
+  camera is counted and dropped; a window outside the frame is clamped to it.
 
 A new emulator run (a scenario reset: new pose source id; or sim time going backwards) restarts
 the frame counter and the noise with the seed the reset named (else ``camera.seed``), under a
@@ -64,6 +64,7 @@ from hal.camera_frame import RoiRequest, decode_roi_request, encode_frame
 from hal.config import RigConfig, plant_view
 from hal.errors import HalError, HalTransportError
 from hal.fifo import fifo_thread
+from hal.vision_image import ImageSlots
 from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_CAMERA_ROI, ZenohSession
 from plant_emulator.camera import CameraPose
 from plant_emulator.camera_sensor import (
@@ -270,8 +271,8 @@ class CameraNode:
         """Region requests of this run's frames, by frame (under ``_cond``)."""
         self._asked = False
         """Whether the grabber asks for regions (this run): lockstep then waits for them."""
-        fps_log = cfg.camera.image_log_fps
-        self._log_period_ns = round(1e9 / fps_log) if fps_log > 0 else 0
+        self._log_slots = ImageSlots(cfg.camera.image_log_fps)
+        """The image log's frames (its own rule, :class:`hal.vision_image.ImageSlots`): whole."""
         self._new_run(None)
 
     # -- feeding (the DSP's thread) --------------------------------------------------------
@@ -381,7 +382,7 @@ class CameraNode:
         with self._cond:
             self._requests.clear()
             self._asked = False
-        self._log_slot: int | None = None
+        self._log_slots.reset()
         self._last_mid: float | None = None
         self._made: tuple[int, float, int, bool, int] | None = None
         """The newest frame sent as a region: (frame, t_mid, period, lockstep, stamp_ns)."""
@@ -469,10 +470,7 @@ class CameraNode:
 
     def _window(self, sim_ns: int, lockstep: bool) -> tuple[int, int, int, int] | None:
         """The region to send of the next frame (None: whole); see the module docstring."""
-        slot = sim_ns // self._log_period_ns if self._log_period_ns else None
-        first_of_slot = slot is not None and (self._log_slot is None or slot > self._log_slot)
-        if slot is not None and (self._log_slot is None or slot >= self._log_slot):
-            self._log_slot = slot
+        first_of_slot = self._log_slots.take(sim_ns)
         with self._cond:
             n = self._frame
             waiting = lockstep and self._asked and n not in self._requests
@@ -566,15 +564,9 @@ class CameraNode:
         rendered once the pose is there (:meth:`CameraSensor.prepare`; same pixels). Not while
         the grabber asks for regions, unless the next frame starts an image-log slot (sent
         whole; ``t_next``: its mid-exposure, about)."""
-        if self._asked and not self._starts_slot(t_next):
+        if self._asked and not self._log_slots.due(round(t_next * 1e9)):
             return
         self.sensor.prepare(self._frame, self.sensor.scene(t).background)
-
-    def _starts_slot(self, t: float) -> bool:
-        if not self._log_period_ns:
-            return False
-        slot = round(t * 1e9) // self._log_period_ns
-        return self._log_slot is None or slot > self._log_slot
 
     def _send(self, payload: bytes) -> None:
         try:

@@ -3,7 +3,7 @@ what the detector made of it, on ``hil/vision/image`` (:mod:`hal.vision_image`) 
 and live views. Slots are in the frames' simulation time, so a lockstep run logs the same
 frames every time. Only whole frames are logged: the emulated camera sends the first frame of
 each slot whole (the others may be a region of interest, :mod:`hal.camera_frame`), by the same
-rule on the same simulation times.
+rule on the same simulation times (:class:`hal.vision_image.ImageSlots`).
 
 The PNG is made on a thread of its own, never on the grabber's: a frame's features leave
 before its PNG is made, and the next frame does not wait for it. A realtime frame that finds
@@ -21,7 +21,7 @@ import cv2
 
 from hal.camera_frame import CameraFrame
 from hal.vision_codec import FeatureMsg
-from hal.vision_image import VisionImage
+from hal.vision_image import ImageSlots, VisionImage
 from vision.pipeline import Measurement
 
 PNG_PARAMS = [
@@ -60,12 +60,11 @@ class ImageLog:
         *,
         backlog: int = BACKLOG,
     ):
-        self.period_ns = round(1e9 / fps) if fps > 0 else 0
+        self.slots = ImageSlots(fps)
+        self.period_ns = self.slots.period_ns
         self.publish = publish
         self.source_id = source_id
         self.sent = self.errors = self.dropped = self.regions = 0
-        self._next_ns: int | None = None
-        self._last_ns: int | None = None
         self._queue: queue.Queue[tuple[CameraFrame, Measurement] | None] = queue.Queue(backlog)
         self._thread: threading.Thread | None = None
         self._closed = False
@@ -76,13 +75,8 @@ class ImageLog:
         if frame.is_roi:  # the log and the live views show whole frames only (the camera
             self.regions += 1  # sends the first frame of each slot whole)
             return
-        t = frame.sim_time_ns
-        if self._last_ns is not None and t < self._last_ns:
-            self._next_ns = None  # a new run (the emulator's time went back)
-        self._last_ns = t
-        if self._next_ns is not None and t < self._next_ns:
+        if not self.slots.take(frame.sim_time_ns):
             return
-        self._next_ns = (t // self.period_ns + 1) * self.period_ns
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="hil-image-log", daemon=True)
             self._thread.start()
