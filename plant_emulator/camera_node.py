@@ -277,9 +277,17 @@ class CameraNode:
 
     # -- feeding (the DSP's thread) --------------------------------------------------------
 
-    def offer(self, seq: int, sim_time_ns: int, pose: CameraPose, lockstep: bool) -> None:
-        """A camera pose the emulator publishes (the pose sink's signature); returns at once."""
-        sample = PoseSample(seq, sim_time_ns, self._clock(), pose)
+    def offer(
+        self,
+        seq: int,
+        sim_time_ns: int,
+        pose: CameraPose,
+        lockstep: bool,
+        stamp_ns: int | None = None,
+    ) -> None:
+        """A camera pose the emulator publishes (the pose sink's signature); returns at once.
+        ``stamp_ns``: when the arm was in the pose (a SYNC-stepped world's SYNC), else now."""
+        sample = PoseSample(seq, sim_time_ns, self._clock() if stamp_ns is None else stamp_ns, pose)
         with self._cond:
             self._queue.append((sample, lockstep))
             self._cond.notify()

@@ -61,13 +61,13 @@ class _Poses:
 
     def __call__(self, syncs: int, world: World, stamp_ns: int) -> None:
         """The pose after SYNC ``syncs``, stamped ``stamp_ns`` (the SYNC's arrival: when the
-        arm was there, which the features' age counts from). The emulated camera, in this
-        process, stamps the pose when offered, right after the step."""
+        arm was there, which the features' age counts from), to the vision process and to
+        the emulated camera in this process alike."""
         from hal.errors import HalTransportError
 
         sim_time_ns, pose = round(world.t * 1e9), world.pose()
         if self.camera is not None:
-            self.camera.offer(syncs, sim_time_ns, pose, True)
+            self.camera.offer(syncs, sim_time_ns, pose, True, stamp_ns)
         try:
             self.publisher.publish(syncs, sim_time_ns, pose, True, stamp_ns)
         except HalTransportError as exc:

@@ -54,6 +54,21 @@ def test_lockstep_gives_one_frame_per_period_stamped_mid_exposure():
     assert node.stats.frames == 6 and node.stats.resent == 0
 
 
+def test_a_pose_stamped_when_the_arm_was_there_gives_a_frame_stamped_from_it():
+    """A SYNC-stepped world (the cia402 emulator) offers each pose with its SYNC's time: the
+    frame's capture stamp is mid-exposure before it, not the moment the pose was offered."""
+    cfg = RigConfig()
+    out: list[bytes] = []
+    clock = FakeClock()
+    node = CameraNode(cfg, out.append, key=KEY, clock=clock)
+    sync_ns = clock.now - 3_000_000  # the step and the TPDOs took 3 ms
+    node.offer(0, 0, moving_pose(cfg, 0.0), True, sync_ns)
+    node.offer(1, PERIOD_NS, moving_pose(cfg, 0.02), True)  # no stamp: offered now
+    node.drain()
+    stamps = [decode_frame(b).stamp_ns for b in out]
+    assert stamps == [sync_ns - node.exposure_ns // 2, clock.now - node.exposure_ns // 2]
+
+
 def test_lockstep_is_bit_exact_for_a_seed_and_differs_across_seeds():
     _, a = lockstep_run(seed=3)
     _, b = lockstep_run(seed=3)
