@@ -14,7 +14,7 @@ import numpy as np
 
 from hal.config import RigConfig
 from plant_emulator.camera import camera_pose
-from plant_emulator.camera_node import sensor_from_config
+from plant_emulator.camera_rig import sensor_from_config
 from plant_emulator.camera_sensor import Placement
 from plant_emulator.camera_textures import GridTexture
 

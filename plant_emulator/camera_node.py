@@ -47,9 +47,6 @@ emulator + ``hil vision`` + controller on a busy 2-core host): the DSP loop's la
 
 from __future__ import annotations
 
-import bisect
-import contextlib
-import math
 import secrets
 import sys
 import threading
@@ -58,25 +55,15 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-import zenoh
-
 from hal.camera_frame import RoiRequest, decode_roi_request, encode_frame
-from hal.config import RigConfig, plant_view
-from hal.errors import HalError, HalTransportError
+from hal.config import RigConfig
+from hal.errors import HalError
 from hal.fifo import fifo_thread
 from hal.vision_image import ImageSlots
-from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_CAMERA_ROI, ZenohSession
 from plant_emulator.camera import CameraPose
-from plant_emulator.camera_sensor import (
-    CameraSensor,
-    Intrinsics,
-    LensDistortion,
-    Resolution,
-    Scene,
-    SensorNoise,
-)
-from plant_emulator.camera_textures import marker_texture
-from plant_emulator.scenario import paper_target
+from plant_emulator.camera_poses import PoseHistory, PoseSample
+from plant_emulator.camera_rig import sensor_from_config
+from plant_emulator.camera_sensor import CameraSensor
 
 DEFAULT_FPS = 60.0
 """Realtime frame rate when ``camera.frame_rate_hz`` is 0 (the XC-HR57's)."""
@@ -94,94 +81,11 @@ ROI_KEEP = 8
 """Region requests kept (by frame), newest first."""
 
 
-def target_scene(cfg: RigConfig) -> Scene:
-    """The paper's scene: the rig's target marker where the scenario puts it (the jump included)."""
-    target = paper_target(plant_view(cfg))
-    return lambda t: marker_texture(target.position(t))
-
-
-def sensor_from_config(
-    cfg: RigConfig, scene: Scene | None = None, seed: int | None = None
-) -> CameraSensor:
-    """The emulated camera of ``cfg`` (the plant's: :func:`hal.config.plant_view`), looking at
-    ``scene`` (default: :func:`target_scene`)."""
-    c = plant_view(cfg).camera
-    fx, fy = c.true_focal_px
-    cx, cy = c.true_principal_point_px
-    return CameraSensor(
-        Intrinsics(fx, fy, cx, cy),
-        LensDistortion(*c.true_lens),
-        Resolution(c.width_px, c.height_px),
-        SensorNoise(c.electrons_per_dn, c.read_noise_dn),
-        c.exposure_s,
-        c.seed if seed is None else seed,
-        z_wo=c.z_wo,
-        scene=target_scene(cfg) if scene is None else scene,
-    )
-
-
 @dataclass(frozen=True)
 class _WholeAgain:
     """The grabber asks frame ``seq`` (sent as a region) again whole."""
 
     seq: int
-
-
-@dataclass(frozen=True)
-class PoseSample:
-    seq: int
-    sim_ns: int
-    stamp_ns: int
-    pose: CameraPose
-
-
-class PoseHistory:
-    """Recent camera poses of one run; :meth:`pose_at` interpolates linearly in sim time."""
-
-    def __init__(self, keep_ns: int) -> None:
-        self.keep_ns = keep_ns
-        self.samples: list[PoseSample] = []
-        self._times: list[int] = []
-
-    def add(self, s: PoseSample) -> None:
-        if self.samples and s.sim_ns <= self._times[-1]:
-            self.samples[-1] = s  # a holding world re-publishes time 0: keep the newest pose
-            self._times[-1] = s.sim_ns
-        else:
-            self.samples.append(s)
-            self._times.append(s.sim_ns)
-        old = bisect.bisect_left(self._times, s.sim_ns - self.keep_ns) - 1
-        if old > 0:
-            del self.samples[:old], self._times[:old]
-
-    def clear(self) -> None:
-        self.samples.clear()
-        self._times.clear()
-
-    @property
-    def newest(self) -> PoseSample | None:
-        return self.samples[-1] if self.samples else None
-
-    def _bracket(self, t_ns: float) -> tuple[PoseSample, PoseSample, float]:
-        s = self.samples
-        i = bisect.bisect_left(self._times, t_ns)
-        if i == 0:
-            return s[0], s[0], 0.0
-        if i == len(s):
-            return s[-1], s[-1], 0.0
-        a, b = s[i - 1], s[i]
-        return a, b, (t_ns - a.sim_ns) / (b.sim_ns - a.sim_ns)
-
-    def pose_at(self, t_s: float) -> CameraPose:
-        a, b, w = self._bracket(t_s * 1e9)
-        pa, pb = a.pose, b.pose
-        dphi = math.remainder(pb.phi - pa.phi, 2 * math.pi)
-        return CameraPose(pa.x + w * (pb.x - pa.x), pa.y + w * (pb.y - pa.y), pa.phi + w * dphi)
-
-    def stamp_at(self, t_s: float) -> int:
-        """The monotonic time at sim time ``t_s`` (interpolated between the poses' stamps)."""
-        a, b, w = self._bracket(t_s * 1e9)
-        return round(a.stamp_ns + w * (b.stamp_ns - a.stamp_ns))
 
 
 @dataclass
@@ -581,50 +485,3 @@ class CameraNode:
             self.publish(payload)
         except HalError:  # a broken link is counted, never fatal to the arm
             self.stats.publish_errors += 1
-
-
-class FramePublisher:
-    """``hil/camera/frame`` on a zenoh session. Priority ``INTERACTIVE_HIGH``, below the
-    ``REAL_TIME`` of the rig's small messages (poses, features), so a 300 kB frame never
-    queues ahead of them; blocking (late, never lost: a lost lockstep frame stalls a period)."""
-
-    def __init__(self, session: ZenohSession) -> None:
-        self._pub = session.publisher(KEY_CAMERA_FRAME, priority=zenoh.Priority.INTERACTIVE_HIGH)
-
-    def put(self, payload: bytes) -> None:
-        try:
-            self._pub.put(payload)
-        except zenoh.ZError as exc:
-            raise HalTransportError(f"zenoh: cannot publish a camera frame: {exc}") from exc
-
-    def has_subscribers(self) -> bool:
-        """Whether a frame grabber (the vision process) currently listens."""
-        try:
-            return bool(self._pub.matching_status.matching)
-        except zenoh.ZError:
-            return False
-
-    def close(self) -> None:
-        """Undeclare the publisher (the session stays open). Idempotent."""
-        with contextlib.suppress(zenoh.ZError):
-            self._pub.undeclare()
-
-
-def start_camera(
-    cfg: RigConfig, session: ZenohSession, stack: contextlib.ExitStack, key: bytes
-) -> tuple[CameraNode, FramePublisher]:
-    """The emulated camera of ``cfg`` on ``session``: its frame publisher and its node, started;
-    both closed by ``stack`` (the emulator's, DSP and CiA 402 profiles alike)."""
-    frames = FramePublisher(session)
-    stack.callback(frames.close)
-    camera = CameraNode(cfg, frames.put, key=key, watched=frames.has_subscribers)
-    stack.callback(camera.close)
-    camera.start()
-    requests = session.subscribe(KEY_CAMERA_ROI, camera.request)
-
-    def undeclare() -> None:
-        with contextlib.suppress(zenoh.ZError):
-            requests.undeclare()
-
-    stack.callback(undeclare)
-    return camera, frames

@@ -247,7 +247,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             listening = publisher.has_subscribers
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
             if args.camera and cfg.camera.model == "image":
-                from plant_emulator.camera_node import start_camera
+                from plant_emulator.camera_link import start_camera
 
                 link.camera, frames = start_camera(cfg, session, stack, rig_key(cfg))
                 poses_seen = publisher.has_subscribers

@@ -116,7 +116,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             poses = _Poses(publisher)
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
             if args.camera and cfg.camera.model == "image":
-                from plant_emulator.camera_node import start_camera
+                from plant_emulator.camera_link import start_camera
 
                 poses.camera, _frames = start_camera(cfg, session, stack, rig_key(cfg))
                 zenoh_where += f", camera frames {cfg.camera.width_px}x{cfg.camera.height_px}"

@@ -58,7 +58,7 @@ def emulated_camera() -> tuple[Any, Any]:
 
     from hal.config import RigConfig, plant_view
     from plant_emulator.camera import camera_pose, project
-    from plant_emulator.camera_node import sensor_from_config
+    from plant_emulator.camera_rig import sensor_from_config
     from plant_emulator.scenario import paper_target
 
     sensor = functools.lru_cache(maxsize=8)(sensor_from_config)

@@ -144,7 +144,7 @@ def test_frames_reach_a_frame_grabber_over_zenoh_authenticated():
 
     from hal.camera_frame import FrameDecoder
     from hal.zenoh_session import KEY_CAMERA_FRAME, free_loopback_port, open_session
-    from plant_emulator.camera_node import FramePublisher
+    from plant_emulator.camera_link import FramePublisher
     from plant_emulator.pose_link import wait_until
 
     cfg = RigConfig()
@@ -189,7 +189,7 @@ def test_a_frame_that_cannot_be_made_is_counted_and_the_camera_goes_on(capsys):
     worker keeps answering the next periods."""
     import time
 
-    from plant_emulator.camera_node import target_scene
+    from plant_emulator.camera_rig import target_scene
 
     cfg = RigConfig()
     good = target_scene(cfg)
@@ -200,7 +200,7 @@ def test_a_frame_that_cannot_be_made_is_counted_and_the_camera_goes_on(capsys):
             raise ValueError("texture unavailable")
         return good(t)
 
-    from plant_emulator.camera_node import sensor_from_config
+    from plant_emulator.camera_rig import sensor_from_config
 
     out: list[bytes] = []
     node = CameraNode(cfg, out.append, key=KEY, sensor=sensor_from_config(cfg, scene)).start()
