@@ -17,6 +17,11 @@ import threading
 from collections.abc import Callable, Iterator
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+STACKS_SIGNAL = signal.SIGUSR1
+"""While inside :func:`stop_on_signals`, this signal prints every thread's stack to stderr at
+once, from faulthandler's C handler: it needs neither the GIL nor the main thread, so it names
+a hang that keeps the Python handlers from running (a thread blocked with the GIL held). A
+supervisor sends it to a child that did not stop in time, before SIGKILL."""
 STACKS_AFTER_S = 8.0
 """A process still stopping this long after a stop signal prints every thread's stack to
 stderr, so a stop that hangs (the rig SIGKILLs after 10 s) names where it hung. An orphan
@@ -30,7 +35,7 @@ def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.E
 
     Outside the main thread (where Python cannot install handlers) the event is only set by
     the caller. A signal also arms :data:`STACKS_AFTER_S`'s stack dump (and, in an orphan,
-    exit), cancelled on exit.
+    exit), cancelled on exit; :data:`STACKS_SIGNAL` dumps the stacks at any time inside.
     """
     event = threading.Event() if stop is None else stop
     previous: dict[int, object] = {}
@@ -45,11 +50,13 @@ def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.E
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
             previous[sig] = signal.signal(sig, on_signal)
+        faulthandler.register(STACKS_SIGNAL, file=sys.stderr, all_threads=True)
     try:
         yield event
     finally:
         if previous:
             faulthandler.cancel_dump_traceback_later()
+            faulthandler.unregister(STACKS_SIGNAL)
         for sig, handler in previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
 

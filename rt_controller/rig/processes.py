@@ -43,7 +43,12 @@ from rt_controller.rig.failures import (
 )
 from rt_controller.rig.kernel_cache import prepare_kernels
 from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, private_default_bus
-from rt_controller.rig.supervise import PARENT_ENV, RigInterrupted, signals_deferred
+from rt_controller.rig.supervise import (
+    PARENT_ENV,
+    RigInterrupted,
+    kill_with_stacks,
+    signals_deferred,
+)
 
 STOP_TIMEOUT_S = 10.0
 LOCKSTEP_MISSING_PERIOD_S = 0.5
@@ -312,8 +317,7 @@ class Rig:
                         try:
                             c.proc.wait(STOP_TIMEOUT_S)
                         except subprocess.TimeoutExpired:
-                            c.proc.kill()
-                            c.proc.wait()
+                            kill_with_stacks(c.proc)
                     codes[c.name] = c.proc.returncode
             if self.children:
                 group = self.children[0].proc.pid

@@ -16,15 +16,19 @@ import contextlib
 import ctypes
 import os
 import signal
+import subprocess
 import sys
 import threading
 from collections.abc import Iterator
 
+from hal.signals import STACKS_SIGNAL
 from rt_controller.errors import ControllerError
 
 PARENT_ENV = "HIL_SUPERVISOR_PID"
 """Set in each child's environment to the supervisor's pid (see :func:`follow_parent`)."""
 SUPERVISED_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+STACKS_WAIT_S = 1.0
+"""How long a hung child gets to print its stacks before SIGKILL (the dump is immediate)."""
 _PR_SET_PDEATHSIG = 1
 
 
@@ -56,6 +60,19 @@ def follow_parent() -> None:
     libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
     if os.getppid() != int(parent):
         os.kill(os.getpid(), signal.SIGTERM)
+
+
+def kill_with_stacks(proc: subprocess.Popen, dump_wait_s: float = STACKS_WAIT_S) -> None:
+    """End a child that did not stop when told: :data:`hal.signals.STACKS_SIGNAL` first, so its
+    stderr ends in every thread's stack (where it hung), then SIGKILL; reaped."""
+    if proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(STACKS_SIGNAL)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(dump_wait_s)  # a child without the dump ends on the signal itself
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
 
 
 @contextlib.contextmanager

@@ -7,6 +7,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 CHILD = textwrap.dedent(
     """
     import sys, time
@@ -21,6 +23,18 @@ CHILD = textwrap.dedent(
             hang_while_stopping()
         elif sys.argv[1] == "forever":
             time.sleep(600)  # a stop that never ends
+    """
+)
+GIL_HELD = textwrap.dedent(
+    """
+    import ctypes, threading, time
+    import hal.signals as s
+    def hold_the_gil():
+        ctypes.PyDLL(None).sleep(600)  # blocked in C with the GIL: no Python handler runs
+    with s.stop_on_signals() as stop:
+        print("ready", flush=True)
+        threading.Thread(target=hold_the_gil, daemon=True).start()
+        stop.wait()
     """
 )
 
@@ -47,16 +61,22 @@ ORPHANAGE = textwrap.dedent(
 )
 
 
-def _stop(mode: str) -> str:
-    """Start the child, SIGTERM it once ready, and return its stderr once it has exited."""
+def _ready(script: str, *args: str) -> subprocess.Popen:
+    """A child running ``script``, once it said it is ready (its handlers are in)."""
     proc = subprocess.Popen(
-        [sys.executable, "-c", CHILD, mode],
+        [sys.executable, "-c", script, *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+    assert proc.stdout.readline() == "ready\n"
+    return proc
+
+
+def _stop(mode: str) -> str:
+    """Start the child, SIGTERM it once ready, and return its stderr once it has exited."""
+    proc = _ready(CHILD, mode)
     try:
-        assert proc.stdout.readline() == "ready\n"
         proc.send_signal(signal.SIGTERM)
         return proc.communicate(timeout=60)[1]
     finally:
@@ -90,3 +110,23 @@ def test_an_orphan_whose_stop_hangs_exits_after_the_dump():
             proc.communicate()
     assert "exit 1" in out, (out, err)
     assert "most recent call first" in err, err
+
+
+def test_a_child_hung_with_the_gil_held_is_killed_with_its_stacks():
+    """The stop signal's Python handler never runs (another thread holds the GIL in C), so
+    no timed dump either: the supervisor's stack signal still names where it hangs."""
+    from rt_controller.rig.supervise import kill_with_stacks
+
+    proc = _ready(GIL_HELD)
+    try:
+        proc.send_signal(signal.SIGTERM)
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.wait(1.0)  # the stop hangs
+        kill_with_stacks(proc)
+        err = proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert "most recent call first" in err and "hold_the_gil" in err, err
