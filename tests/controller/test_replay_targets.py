@@ -77,7 +77,9 @@ def test_the_run_info_records_this_process_target_and_versions():
     info = default_run_info(RigConfig(), 0, 0)
     target = ct.recorded(info)
     assert target == ct.this_process()
-    assert target.enabled and target.triple  # a real CPU's features and triple
+    assert target.triple
+    # a real CPU's features; the portable target (NUMBA_CPU_NAME=generic) names none
+    assert target.enabled or target.cpu_name == "generic"
     for key in ct.VERSION_KEYS:
         assert info[key] and info[key] != "unknown", key
     assert ct.version_changes(info) == []
