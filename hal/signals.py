@@ -44,19 +44,22 @@ def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.E
     def on_signal(*_: object) -> None:
         if not event.is_set():
             orphaned = os.getppid() != parent
-            faulthandler.dump_traceback_later(STACKS_AFTER_S, exit=orphaned, file=sys.stderr)
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                faulthandler.dump_traceback_later(STACKS_AFTER_S, exit=orphaned, file=sys.stderr)
         event.set()
 
     if threading.current_thread() is threading.main_thread():
         for sig in STOP_SIGNALS:
             previous[sig] = signal.signal(sig, on_signal)
-        faulthandler.register(STACKS_SIGNAL, file=sys.stderr, all_threads=True)
+        # a stderr without a file descriptor (captured in-process) gets no dump
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            faulthandler.register(STACKS_SIGNAL, file=sys.stderr, all_threads=True)
     try:
         yield event
     finally:
         if previous:
             faulthandler.cancel_dump_traceback_later()
-            faulthandler.unregister(STACKS_SIGNAL)
+            faulthandler.unregister(STACKS_SIGNAL)  # False if it was never registered
         for sig, handler in previous.items():
             signal.signal(sig, handler)  # type: ignore[arg-type]
 
