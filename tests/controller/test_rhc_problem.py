@@ -66,8 +66,9 @@ def test_dynamics_match_the_model(model, params):
 def test_hamiltonian_gradients_against_finite_differences(model, params, cfg, case):
     P, _ = params
     x, u, lam = states()[case]
-    hx, hu = np.zeros(6), np.zeros(6)
-    dyn.hamiltonian_grad(P, x, u, lam, hx, hu)
+    hx, hu, aux = np.zeros(6), np.zeros(6), np.zeros(state.NAUX)
+    dyn.stage_forward(P, x, u, aux, np.zeros(6))
+    dyn.stage_adjoint(P, x, u, lam, aux, hx, hu)
     fd_x = central(lambda z: model_H(model, z, u, lam), x)
     fd_u = central(lambda z: model_H(model, x, z, lam), u)
     scale_x = np.abs(fd_x).max()

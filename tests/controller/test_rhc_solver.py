@@ -240,7 +240,7 @@ def test_block_gmres_with_one_right_hand_side_is_gmres(cfg):
     b, zero = -F, np.zeros_like(U)
     d1, d2, ref = np.zeros_like(U), np.ones_like(U), np.zeros_like(U)
     k = gmres.block_gmres(P, N, U, x1, T, F, b, zero, d1, d2, 5, pre, ws, sw)
-    kg = gmres.fd_gmres(P, N, U, x1, T, F, b.copy(), ref, False, 5, 0.0, pre, ws, sw)
+    kg = gmres.fd_gmres(P, N, U, x1, T, F, b.copy(), ref, 5, 0.0, pre, ws, sw)
     assert k == kg == 5
     np.testing.assert_allclose(d1, ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
     assert np.all(d2 == 0.0)

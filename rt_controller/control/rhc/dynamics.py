@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
-from rt_controller.control.state import AUX, NAUX, NX, PAR, XS
+from rt_controller.control.state import AUX, NAUX, PAR, XS
 
 JIT = {"cache": True, "error_model": "numpy", "fastmath": {"nsz", "arcp", "contract", "reassoc"}}
 """numba options of every C/GMRES kernel: cached, IEEE NaN/inf semantics kept (the fallback
@@ -87,9 +87,10 @@ def terminal_grad(P, x, out):
     out[XS.F + 1] = c * x[XS.F + 1]
 
 
-@njit(**JIT)
-def hamiltonian_grad(P, x, u, lam, hx, hu):
-    """H_x (6) into ``hx`` and the cost-plus-dynamics part of H_u (2) into ``hu``.
+@njit(inline="always", **JIT)
+def stage_adjoint(P, x, u, lam, aux, hx, hu):
+    """H_x (6) into ``hx`` and the cost-plus-dynamics part of H_u (2) into ``hu``, from the
+    intermediates ``aux`` of :func:`stage_forward` at the same ``x`` and ``u``.
 
     With z = M^-1 lam_xi, y = xi', sigma = lam_f1 f2 - lam_f2 f1 and dq, eta as intermediates:
     G = dH/ddq = 4 kp eta + lam_q - g A^T lam_f + sigma (1, 1) - d(z^T C(dq) xi)/ddq,
@@ -98,15 +99,6 @@ def hamiltonian_grad(P, x, u, lam, hx, hu):
     H_q2 = -z^T M' y - z^T C' xi - g lam_f^T A' dq + f^T A' E,  H_q1 = 0,
     H_u = (R^-1 + R^-T) u + z   (the bound term 2 mu u is added by the caller).
     """
-    aux = np.empty(NAUX)
-    xd = np.empty(NX)
-    stage_forward(P, x, u, aux, xd)
-    stage_adjoint(P, x, u, lam, aux, hx, hu)
-
-
-@njit(inline="always", **JIT)
-def stage_adjoint(P, x, u, lam, aux, hx, hu):
-    """:func:`hamiltonian_grad` from the intermediates ``aux`` of :func:`stage_forward`."""
     t3, l1, l2, g, kp = P[PAR.TH3], P[PAR.L1], P[PAR.L2], P[PAR.GAIN], P[PAR.KP]
     s2, c2, e1, e2 = aux[AUX.S2], aux[AUX.C2], aux[AUX.E1], aux[AUX.E2]
     dq1, dq2, y1, y2 = aux[AUX.DQ1], aux[AUX.DQ2], aux[AUX.Y1], aux[AUX.Y2]

@@ -52,32 +52,41 @@ def _orthogonalise(v, Vb, nv, coef, col):
             v[p] -= sdot * vi[p]
 
 
+@njit(inline="always", **JIT)
+def _solution(N, pre, Vb, Hs, g, y, k, z, out):
+    """GMRES's least-squares solution ``out = P^-1 V_k y``: ``y`` solves the k x k upper
+    triangular system ``H y = g`` by back substitution (a zero pivot gives a zero component),
+    ``z`` receives ``V_k y``."""
+    for i in range(k - 1, -1, -1):
+        s = g[i]
+        for p in range(i + 1, k):
+            s -= Hs[i, p] * y[p]
+        y[i] = s / Hs[i, i] if Hs[i, i] != 0.0 else 0.0
+    n = z.shape[0]
+    for p in range(n):
+        z[p] = 0.0
+    for i in range(k):
+        vi = Vb[i]
+        for p in range(n):
+            z[p] += y[i] * vi[p]
+    precond_apply(N, pre, z, out)
+
+
 @njit(**JIT)
-def fd_gmres(P, N, U, x0, T, F0, b, sol, use_guess, m, tol, pre, ws, sw):
+def fd_gmres(P, N, U, x0, T, F0, b, sol, m, tol, pre, ws, sw):
     """Solve F_U(U, x0, T) sol = b by right-preconditioned GMRES(m), forward-difference products.
 
-    ``sol`` is the initial guess when ``use_guess`` (else it starts at 0) and receives the
-    solution. Stops after ``m`` iterations, at breakdown, or when the residual falls to
-    ``tol * ||b - F_U sol0||`` (``tol = 0``: always ``m`` iterations). ``pre`` holds the factors of
-    :func:`precond_setup`; ``ws`` is the GMRES work tuple of :func:`~rt_controller.control.rhc.
-    kernel.rhc_tick`. Returns the iteration count.
+    ``sol`` receives the solution (GMRES starts from 0). Stops after ``m`` iterations, at
+    breakdown, or when the residual falls to ``tol * ||b||`` (``tol = 0``: always ``m``
+    iterations). ``pre`` holds the factors of :func:`precond_setup`; ``ws`` is the GMRES work
+    tuple of :func:`~rt_controller.control.rhc.kernel.rhc_tick`. Returns the iteration count.
     """
     Vb, Hs, cs, sn, g, y, Ut, z, zz, _G, _Ys = ws
     n = U.shape[0]
     r = Vb[0]
-    if use_guess:
-        sn2 = norm(sol)
-        if sn2 > 0.0:
-            _jvp(P, N, U, x0, T, F0, sol, 1.0 / sn2, r, Ut, sw)
-            for i in range(n):
-                r[i] = b[i] - r[i]
-        else:
-            for i in range(n):
-                r[i] = b[i]
-    else:
-        for i in range(n):
-            sol[i] = 0.0
-            r[i] = b[i]
+    for i in range(n):
+        sol[i] = 0.0
+        r[i] = b[i]
     beta = norm(r)
     if not (beta > 0.0) or not math.isfinite(beta):
         return 0
@@ -115,19 +124,7 @@ def fd_gmres(P, N, U, x0, T, F0, b, sol, use_guess, m, tol, pre, ws, sw):
             break
         for p in range(n):
             w[p] /= hnext
-    # Back substitution of the k x k triangular system, then sol += P^-1 V_k y.
-    for i in range(k - 1, -1, -1):
-        s = g[i]
-        for p in range(i + 1, k):
-            s -= Hs[i, p] * y[p]
-        y[i] = s / Hs[i, i]
-    for p in range(n):
-        z[p] = 0.0
-    for i in range(k):
-        vi = Vb[i]
-        for p in range(n):
-            z[p] += y[i] * vi[p]
-    precond_apply(N, pre, z, zz)
+    _solution(N, pre, Vb, Hs, g, y, k, z, zz)
     for p in range(n):
         sol[p] += zz[p]
     return k
@@ -206,20 +203,7 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
                 G[c, q] = cs * a0 + sn * a1
                 G[i, q] = -sn * a0 + cs * a1
     for q in range(2):
-        d = d1 if q == 0 else d2
-        for i in range(k - 1, -1, -1):
-            sacc = G[i, q]
-            for p in range(i + 1, k):
-                sacc -= Hs[i, p] * Ys[q, p]
-            Ys[q, i] = sacc / Hs[i, i] if Hs[i, i] != 0.0 else 0.0
-        for p in range(n):
-            z[p] = 0.0
-        for i in range(k):
-            vi = Vb[i]
-            yi = Ys[q, i]
-            for p in range(n):
-                z[p] += yi * vi[p]
-        precond_apply(N, pre, z, d)
+        _solution(N, pre, Vb, Hs, G[:, q], Ys[q], k, z, d1 if q == 0 else d2)
     return k
 
 
@@ -239,7 +223,7 @@ def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
         precond_setup(P, N, U, X, T, pre)
         for i in range(n):
             Ftry[i] = -F[i]
-        iters += fd_gmres(P, N, U, x0, T, F, Ftry, dU, False, m, 1e-6, pre, ws, sw)
+        iters += fd_gmres(P, N, U, x0, T, F, Ftry, dU, m, 1e-6, pre, ws, sw)
         step = 1.0
         accepted = False
         for _ls in range(30):
@@ -272,7 +256,7 @@ def correct(P, N, kmax, c, U, x0, T, F, b, dU, pre, ws, sw):
     n = U.shape[0]
     for i in range(n):
         b[i] = -c * F[i]
-    k = fd_gmres(P, N, U, x0, T, F, b, dU, False, kmax, 0.0, pre, ws, sw)
+    k = fd_gmres(P, N, U, x0, T, F, b, dU, kmax, 0.0, pre, ws, sw)
     for i in range(n):
         U[i] += dU[i]
     clip_dummies(P, N, U)

@@ -18,11 +18,11 @@ and the costs of eq. (25) and (13)::
     phi = 4 V = 2 xi^T M xi + 2 kp / g f^T f
 
 The Hamiltonian ``H = l - r_v sum(v) + lam^T x' + mu^T (u^2 + v^2 - umax^2)``. Its gradients
-are derived by hand with ``dq`` and ``eta`` as intermediates (``dynamics.hamiltonian_grad``); the
+are derived by hand with ``dq`` and ``eta`` as intermediates (``dynamics.stage_adjoint``); the
 tests check them against finite differences of ``tests/support/nominal_model.py``.
 The gravity term of eq. (1) cancels in eq. (11) and does not appear here.
 
-The compiled functions (``rhs``, ``terminal_grad``, ``hamiltonian_grad``, ``horizon_at``) live
+The compiled functions (``rhs``, ``terminal_grad``, ``stage_adjoint``, ``horizon_at``) live
 in :mod:`rt_controller.control.rhc.dynamics`; this module packs the model and the ``rhc``
 settings into their parameter vectors.
 """

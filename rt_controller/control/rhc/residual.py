@@ -103,6 +103,21 @@ def norm(a):
     return math.sqrt(s)
 
 
+@njit(inline="always", **JIT)
+def _inside(P, U, j, i, u):
+    """Input ``i`` of the stage at ``j`` in U set to ``u`` (0 if not finite) clipped to 90 % of
+    its bound, with its dummy input and multiplier on the central path (``u^2 + v^2 = umax^2``,
+    ``mu = r_v / (2 v)``)."""
+    lim = 0.9 * P[PAR.U_MAX + i]
+    if not math.isfinite(u):
+        u = 0.0
+    u = min(max(u, -lim), lim)
+    v = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - u * u)
+    U[j + STAGE.U + i] = u
+    U[j + STAGE.V + i] = v
+    U[j + STAGE.MU + i] = P[PAR.RV] / (2.0 * v)
+
+
 @njit(**JIT)
 def release_bounds(P, N, U, F):
     """Restart the bounds whose multiplier turned negative; returns how many.
@@ -123,15 +138,7 @@ def release_bounds(P, N, U, F):
                 continue
             ui = U[j + STAGE.U + i]
             g = F[j + STAGE.U + i] - 2.0 * mu * ui
-            un = ui - g / (2.0 * P[PAR.R_INV + 3 * i])
-            lim = 0.9 * P[PAR.U_MAX + i]
-            if not math.isfinite(un):
-                un = 0.0
-            un = min(max(un, -lim), lim)
-            vn = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - un * un)
-            U[j + STAGE.U + i] = un
-            U[j + STAGE.V + i] = vn
-            U[j + STAGE.MU + i] = P[PAR.RV] / (2.0 * vn)
+            _inside(P, U, j, i, ui - g / (2.0 * P[PAR.R_INV + 3 * i]))
             count += 1
     return count
 
@@ -162,16 +169,8 @@ def initial_guess(P, N, U, x0, T, X, xd):
         j = NS * k
         ua = -gain * (rw0 * xk[XS.XI] + rw1 * xk[XS.XI + 1])
         ub = -gain * (rw2 * xk[XS.XI] + rw3 * xk[XS.XI + 1])
-        for i in range(2):
-            lim = 0.9 * P[PAR.U_MAX + i]
-            ui = ua if i == 0 else ub
-            if not math.isfinite(ui):
-                ui = 0.0
-            ui = min(max(ui, -lim), lim)
-            vi = math.sqrt(P[PAR.U_MAX + i] * P[PAR.U_MAX + i] - ui * ui)
-            U[j + STAGE.U + i] = ui
-            U[j + STAGE.V + i] = vi
-            U[j + STAGE.MU + i] = P[PAR.RV] / (2.0 * vi)
+        _inside(P, U, j, 0, ua)
+        _inside(P, U, j, 1, ub)
         for s in range(S):
             r = k * S + s
             rhs(P, X[r], U[j + STAGE.U : j + STAGE.U + 2], xd)
