@@ -66,10 +66,10 @@ def enable(m: Cia402Master) -> int:
 def test_boot_configures_and_maps_every_drive(bench, master):
     master.boot()
     for node_id in IDS:  # the controller's heartbeat is consumed from arming on
-        assert bench.remote(node_id).sdo[0x1016][1].raw == 0
+        assert bench.drive(node_id).sdo[0x1016][1].raw == 0
     master.watch_controller()
     for node_id in IDS:
-        node = bench.remote(node_id)
+        node = bench.drive(node_id)  # what the master wrote, read without the bus
         assert node.sdo[0x1017].raw == HEARTBEAT_MS
         assert node.sdo[0x1016][1].raw == (0x7F << 16) | CONSUMER_PERIODS * HEARTBEAT_MS
         assert (node.sdo[0x60C2][1].raw, node.sdo[0x60C2][2].raw) == (20, -3)
@@ -95,7 +95,7 @@ def test_boot_configures_and_maps_every_drive(bench, master):
         assert master.limits[j] == math.floor(
             CFG.robot.tau_max[j] / CFG.cia402.rated_torque[j] * 1000
         )
-        assert bench.remote(IDS[j]).sdo[0x6072].raw == master.limits[j]
+        assert bench.drive(IDS[j]).sdo[0x6072].raw == master.limits[j]
 
 
 def test_the_walk_enables_and_torque_reaches_the_joints(bench, master):
@@ -148,7 +148,7 @@ def test_deactivate_quick_stops_disables_and_leaves_operational(bench, master):
     assert bench.rig.torques() == (0.0, 0.0)
     # the drives no longer consume the controller's heartbeat: its end faults nobody
     for node_id in IDS:
-        assert bench.remote(node_id).sdo[0x1016][1].raw == 0
+        assert bench.drive(node_id).sdo[0x1016][1].raw == 0
     bench.rig.poll(bench.clock.t + 10.0)
     assert [d.power.state.name for d in bench.rig.drives] == ["SWITCH_ON_DISABLED"] * 2
 

@@ -20,6 +20,7 @@ import canopen
 
 from hal.cia402_od import EDS_PATH
 from hal.config import RigConfig
+from plant_emulator.cia402.drive import EmulatedDrive
 from plant_emulator.cia402.rig import Cia402Rig
 
 _channels = itertools.count()
@@ -49,6 +50,15 @@ class Bench:
         self.master.add_node(node)
         node.sdo.RESPONSE_TIMEOUT = REPLY_TIMEOUT_S
         return node
+
+    def drive(self, node_id: int) -> EmulatedDrive:
+        """The emulated drive itself, to read what its object dictionary holds without the bus.
+
+        A test that checks what a master under test wrote reads here, not by SDO: the
+        test's SDO client shares the node's SDO COB-IDs with that master, and its network
+        thread may hand it a late copy of the master's last answer ("Unexpected response
+        0x60" under load)."""
+        return next(d for d in self.rig.drives if d.id == node_id)
 
 
 @contextmanager
