@@ -9,32 +9,15 @@ and every part sees it from the next read on; no part keeps a copy.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING
 
 from hal.config import RigConfig
 from hal.hardware_interface import StopFlag
 from rt_controller.runtime.cadence import Clock
 from rt_controller.runtime.counters import RunCounters
 
-
-class Recorder(Protocol):
-    """What the loop and the hardware hand the run's recorder (the log and the live stream)."""
-
-    def record_can(self, msg: Any, t_ns: int, direction: str) -> Any: ...
-
-    def record_vision(self, payload: bytes, t_ns: int) -> Any: ...
-
-    def write(self, topic: str, t_ns: int, payload: bytes) -> Any: ...
-
-    def record_cycle(self, cycle: dict[str, Any]) -> Any: ...
-
-    def record_diagnostics(self, diag: dict[str, Any], final: bool = False) -> Any: ...
-
-    def record_parameters(self, record: dict[str, Any]) -> Any: ...
-
-    def record_event(self, record: dict[str, Any]) -> Any: ...
-
-    def as_dict(self) -> dict[str, Any]: ...
+if TYPE_CHECKING:
+    from rt_controller.runtime.recorder import Recorder
 
 
 @dataclass
@@ -50,11 +33,11 @@ class RunContext:
     counters: RunCounters
     """The run's totals (the summary and ``/diagnostics``)."""
     recorder: Recorder
-    """The run's log."""
+    """The run's log (its ``record_*`` calls, ``write`` and ``as_dict``; the live stream)."""
 
     def pause(self, ns: int) -> None:
         """Wait ``ns`` on the loop's clock (start-up, arming in lockstep)."""
         self.clock.sleep_until(self.clock.now_ns() + ns)
 
 
-__all__ = ["Recorder", "RunContext"]
+__all__ = ["RunContext"]

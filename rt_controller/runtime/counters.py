@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -93,8 +93,7 @@ class OutageTracker:
     def as_dict(self, period_s: float) -> dict[str, Any]:
         """The summary's ``outages`` block, the open stretch counted as ended (on a copy: the
         run may go on)."""
-        done = OutageTracker(self.warn_periods, self.max_share, self.ticks, self.bad_ticks)
-        done.count, done.listed, done.longest = self.count, list(self.listed), self.longest
+        done = replace(self, listed=list(self.listed))
         if self.current is not None:
             done._close(self.current)
         return {
@@ -133,21 +132,26 @@ def outage_words(o: dict[str, Any]) -> str:
     )
 
 
+DIAGNOSTICS = {"diagnostics": True}
+"""Metadata of a :class:`RunCounters` field that is also in the ``/diagnostics`` record."""
+
+
 @dataclass
 class RunCounters:
-    """Running totals of one run."""
+    """Running totals of one run. Every field is in the summary (:meth:`as_dict`); those
+    marked :data:`DIAGNOSTICS` also in the ``/diagnostics`` record (:meth:`controller_block`)."""
 
-    ticks: int = 0
-    J: float = 0.0
-    deadline_misses: int = 0
-    missed_periods: int = 0
-    stale_features: int = 0
-    stale_states: int = 0
-    fallbacks: int = 0
-    watchdog_trips: int = 0
-    late_states: int = 0
+    ticks: int = field(default=0, metadata=DIAGNOSTICS)
+    deadline_misses: int = field(default=0, metadata=DIAGNOSTICS)
+    missed_periods: int = field(default=0, metadata=DIAGNOSTICS)
+    stale_features: int = field(default=0, metadata=DIAGNOSTICS)
+    stale_states: int = field(default=0, metadata=DIAGNOSTICS)
+    late_states: int = field(default=0, metadata=DIAGNOSTICS)
     """Realtime ticks whose period's joint state had not arrived at the release: they used the
     previous period's state (its age is compensated, ``controller.predict_state``)."""
+    fallbacks: int = field(default=0, metadata=DIAGNOSTICS)
+    watchdog_trips: int = field(default=0, metadata=DIAGNOSTICS)
+    J: float = 0.0
     drive_ticks: Counter[str] = field(default_factory=Counter)
     """Ticks run while the DSP was not in *operation enabled*, by mode (no law ran in them)."""
     dsp_faults: Counter[str] = field(default_factory=Counter)
@@ -183,47 +187,32 @@ class RunCounters:
     cycle: Durations = field(default_factory=Durations)
     outages: OutageTracker = field(default_factory=OutageTracker)
     """Camera outages (thresholds: ``controller.outage_warn_periods``, ``outage_max_share``)."""
-    period_s: float = 0.02
+    period_s: float = field(default=0.02, metadata={"summary": False})
     """The control period (the length in seconds of an outage's last tick)."""
 
     def controller_block(self) -> dict[str, int]:
         """The counters of the ``/diagnostics`` record's ``controller`` component."""
-        names = (
-            "ticks",
-            "deadline_misses",
-            "missed_periods",
-            "stale_features",
-            "stale_states",
-            "late_states",
-            "fallbacks",
-            "watchdog_trips",
-        )
-        return {n: getattr(self, n) for n in names}
+        return {
+            f.name: getattr(self, f.name) for f in fields(self) if f.metadata.get("diagnostics")
+        }
 
     def as_dict(self) -> dict[str, Any]:
-        """The summary's counters (per-tick times as median and p99)."""
-        return {
-            **self.controller_block(),
-            "J": self.J,
-            "f_final": self.f_final,
-            "f_final_norm": float(np.hypot(*self.f_final)),
-            "f_first": self.f_first,
-            "jump_seen_s": self.jump_seen_s,
-            "planned_ticks": self.planned_ticks,
-            "end_reason": self.end_reason,
-            "drive_ticks": dict(self.drive_ticks),
-            "dsp_faults": dict(self.dsp_faults),
-            "rearms": self.rearms,
-            "arming_ticks": self.arming_ticks,
-            "spin_s": self.spin_s,
-            "host_steal_percent": self.host_steal_percent,
-            "stopped_before_arming": self.stopped_before_arming,
-            "solve_us_median": _us(self.solve, 50),
-            "solve_us_p99": _us(self.solve, 99),
-            "lateness_us_p99": _us(self.lateness, 99),
-            "cycle_us_p99": _us(self.cycle, 99),
-            "outages": self.outages.as_dict(self.period_s),
-        }
+        """The summary's counters: the fields (counts by kind as plain dicts), the per-tick
+        times as median and p99, the outages as their block."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.metadata.get("summary", True) and not isinstance(value, Durations | OutageTracker):
+                out[f.name] = dict(value) if isinstance(value, Counter) else value
+        out.update(
+            f_final_norm=float(np.hypot(*self.f_final)),
+            solve_us_median=_us(self.solve, 50),
+            solve_us_p99=_us(self.solve, 99),
+            lateness_us_p99=_us(self.lateness, 99),
+            cycle_us_p99=_us(self.cycle, 99),
+            outages=self.outages.as_dict(self.period_s),
+        )
+        return out
 
 
 def _us(durations: Durations, q: float) -> float:
@@ -244,7 +233,7 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     if planned is not None and ticks < planned and reason not in ENDED_FULL:
         out.append(f"the run ended after {ticks} of {planned} ticks: {reason}")
     rec = summary.get("recorder") or {}
-    lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))
+    lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))  # pending: an older log
     if lost:
         out.append(f"{lost} log record(s) lost")
     if rec.get("encode_errors"):

@@ -8,7 +8,7 @@ Pure: no I/O, so the control layer (``simulate``) may use it.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -16,17 +16,6 @@ from rt_controller.control.state import OUTPUTS
 
 if TYPE_CHECKING:
     from rt_controller.control.controller import Controller, Decision
-
-TIMING_FIELDS = (
-    "lateness_us",
-    "read_us",
-    "solve_us",
-    "law_us",
-    "write_us",
-    "cycle_us",
-    "e2e_us",
-)
-"""Loop-timing fields of a cycle record (zero in a replayed log)."""
 
 
 def vec2(a: Any) -> list[float]:
@@ -51,8 +40,17 @@ class Timing:
     missed_periods: int = 0
 
 
+TIMING_FIELDS = tuple(f.name for f in fields(Timing) if f.name.endswith("_us"))
+"""Loop-timing fields of a cycle record (zero in a replayed log)."""
+
+
 SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
 """The JSON Schema of the record; its decision part is generated (:func:`decision_schema`)."""
+
+
+def cycle_schema() -> dict[str, Any]:
+    """The JSON Schema of ``/controller/cycle`` (:data:`SCHEMA_FILE`)."""
+    return json.loads(SCHEMA_FILE.read_text(encoding="utf-8"))
 
 
 def _property(record: str, doc: str) -> dict[str, Any]:
@@ -131,15 +129,7 @@ def cycle_record(
         "tick": tick,
         "t_ns": t_ns,
         "sim_time_s": sim_time_s,
-        "lateness_us": timing.lateness_us,
-        "read_us": timing.read_us,
-        "solve_us": timing.solve_us,
-        "law_us": timing.law_us,
-        "write_us": timing.write_us,
-        "cycle_us": timing.cycle_us,
-        "e2e_us": timing.e2e_us,
-        "deadline_miss": timing.deadline_miss,
-        "missed_periods": timing.missed_periods,
+        **vars(timing),  # its fields, in their order
         "q": vec2(q),
         "dq": vec2(dq),
         "f": vec2(f),

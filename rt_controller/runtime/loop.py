@@ -164,15 +164,12 @@ class ControlLoop:
     def diagnostics(self, final: bool = False) -> dict[str, Any]:
         """The ``/diagnostics`` record of this moment (:mod:`rt_controller.runtime.diagnostics`)."""
         ctx = self.ctx
-        recorder = ctx.recorder.as_dict()
-        if final:
-            recorder.pop("pending", None)  # the final record is itself still queued
         return diagnostics.build(
             t_ns=ctx.clock.now_ns(),
             tick=ctx.counters.ticks,
             **self.hw.diagnostics(),
             controller=ctx.counters.controller_block(),
-            recorder=recorder,
+            recorder=ctx.recorder.as_dict(),
             final=final,
             parameters=self.params.counters.as_dict(),
         )

@@ -40,6 +40,7 @@ from rt_controller import compile_target
 from rt_controller.calibration.operator import EVENT_SCHEMA
 from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
 from rt_controller.errors import LogError
+from rt_controller.runtime.cycle_record import cycle_schema
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
 from rt_controller.runtime.record_encoding import (
     CAN_SCHEMA,
@@ -92,25 +93,17 @@ CHUNK_SIZE = 4 << 20
 writer keeps an index of about 1 kB per chunk until the end of the log (the soak's RSS)."""
 DIRECTIONS = {"rx": CAN_RX, "tx": CAN_TX}
 """The record kind of a CAN frame by its direction (``record_can``)."""
-_SCHEMA_FILE = Path(__file__).with_name("cycle_schema.json")
 _ENCODE_ERRORS = (TypeError, ValueError, AttributeError, RecursionError)
 
 
-def cycle_schema() -> dict[str, Any]:
-    """The JSON Schema of ``/controller/cycle`` (``rt_controller/runtime/cycle_schema.json``)."""
-    return json.loads(_SCHEMA_FILE.read_text(encoding="utf-8"))
-
-
 def encode_record(kind: int, t_ns: int, obj: Any) -> bytes:
-    """The JSON message of one record item (a cycle without ``t_ns`` gets the item's)."""
+    """The JSON message of one record item."""
     if kind == VISION:
         data = bytes(obj)
         b64 = base64.b64encode(data).decode("ascii")
         return encode_json({"t_ns": t_ns, "size": len(data), "data": b64})
     if kind in (CAN_RX, CAN_TX):
         return encode_json(can_dict(t_ns, obj))
-    if kind == CYCLE and "t_ns" not in obj:
-        obj = {**obj, "t_ns": t_ns}
     return encode_json(obj)
 
 
@@ -167,8 +160,6 @@ class Recorder:
     dropped = encode_errors = 0
     """Records refused (after :meth:`close`, a write failure, a full outbox...) and records
     that could not be encoded: counted, never raised into the tick."""
-    pending = 0
-    """Records not written yet: always 0 (a record is written, or dropped and counted)."""
     counts: dict[int, int]
     """Messages written per record kind of :data:`TOPICS`."""
     add: Callable[..., bool]
@@ -176,34 +167,39 @@ class Recorder:
     was not (counted; ``final``: the run's last)."""
     close: Callable[[], None]
 
-    def write(self, kind: int, t_ns: int, obj: Any, final: bool = False) -> bool:
-        """Encode and record one item (``kind`` one of :data:`TOPICS`, or :data:`IMAGE`)."""
+    def write(self, kind: int, t_ns: Any, obj: Any, final: bool = False) -> bool:
+        """Encode and record one item (``kind`` one of :data:`TOPICS`, or :data:`IMAGE`; a
+        record without an integer ``t_ns`` counts in ``encode_errors``)."""
         try:
             t_ns = int(t_ns)
             data = bytes(obj) if kind == IMAGE else encode_record(kind, t_ns, obj)
         except _ENCODE_ERRORS as exc:
-            self.encode_errors += 1
-            if self.encode_errors == 1:
-                log.warning("recorder: cannot encode a %s record: %s", TOPICS.get(kind), exc)
+            self._count("encode_errors", f"cannot encode a {TOPICS.get(kind)} record", exc)
             return False
         return self.add(kind, t_ns, data, obj, final)
 
+    def _count(self, counter: str, what: str, exc: Exception) -> None:
+        """Count a record, or a part of one, that could not be made (the first is logged)."""
+        n = getattr(self, counter) + 1
+        setattr(self, counter, n)
+        if n == 1:
+            log.warning("recorder: %s: %s", what, exc)
+
     def record_cycle(self, record: dict[str, Any]) -> bool:
         """One tick (a dict with the fields of ``cycle_schema.json``)."""
-        t_ns = record.get("t_ns")
-        return self.write(CYCLE, time.monotonic_ns() if t_ns is None else t_ns, record)
+        return self.write(CYCLE, record.get("t_ns"), record)
 
     def record_diagnostics(self, record: dict[str, Any], *, final: bool = False) -> bool:
         """One ``/diagnostics`` record (``final``: the run's last, with its totals)."""
-        return self.write(DIAG, int(record["t_ns"]), record, final)
+        return self.write(DIAG, record.get("t_ns"), record, final)
 
     def record_parameters(self, record: dict[str, Any]) -> bool:
         """One online parameter change (``/controller/parameters``)."""
-        return self.write(PARAMS, int(record["t_ns"]), record)
+        return self.write(PARAMS, record.get("t_ns"), record)
 
     def record_event(self, record: dict[str, Any]) -> bool:
         """One operator action, done or refused (``/controller/events``)."""
-        return self.write(EVENTS, int(record["t_ns"]), record)
+        return self.write(EVENTS, record.get("t_ns"), record)
 
     def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
         """A python-can ``Message`` received (``"rx"``) or sent (``"tx"``) at ``t_ns``."""
@@ -226,12 +222,12 @@ class Recorder:
         return 0
 
     def as_dict(self) -> dict[str, int]:
-        """Counters per topic plus ``written``, ``dropped``, ``encode_errors``, ``pending`` and
+        """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and
         ``backlog_bytes``."""
         out = {t: self.counts[k] for k, t in TOPICS.items()}
         out.update({t: self.counts[k] for k, t in DECODED_TOPICS.items() if k in self.counts})
         out.update(written=self.written, dropped=self.dropped, encode_errors=self.encode_errors)
-        out.update(pending=0, backlog_bytes=0 if self.closed else self.backlog_bytes())
+        out.update(backlog_bytes=0 if self.closed else self.backlog_bytes())
         return out
 
     def __enter__(self) -> Self:
@@ -348,10 +344,6 @@ class CycleRecorder(Recorder):
             self._proto[topic] = self._writer.register_channel(topic, "protobuf", sid)
         return self._proto[topic]
 
-    def set_live(self, sink: Callable[[str, bytes], Any] | None) -> None:
-        """Attach (or detach with None) the ``live`` sink."""
-        self.live = sink
-
     def add(self, kind: int, t_ns: int, data: bytes, obj: Any = None, final: bool = False) -> bool:
         """Write one record already encoded (``data``: its message bytes, or an image's payload;
         ``obj``: the cycle the scene is drawn from, decoded from ``data`` when not given)."""
@@ -399,13 +391,6 @@ class CycleRecorder(Recorder):
             return
         if self._put(self._channels[CANOPEN], log_time, decoded):
             self.counts[CANOPEN] += 1
-
-    def _count(self, counter: str, what: str, exc: Exception) -> None:
-        """Count a record part that could not be made (the first one is logged)."""
-        n = getattr(self, counter) + 1
-        setattr(self, counter, n)
-        if n == 1:
-            log.warning("recorder: %s: %s", what, exc)
 
     def _write_scene(self, record: dict[str, Any], log_time: int) -> None:
         tick = record.get("tick")

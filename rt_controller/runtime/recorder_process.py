@@ -349,7 +349,7 @@ class _LogCopy:
 
             try:
                 self.session = open_session(cfg, listen=False, wait_s=5.0)
-                rec.set_live(LivePublisher(self.session))
+                rec.live = LivePublisher(self.session)
             except HalError as exc:
                 print(f"hil controller: warning: no live stream: {exc}", file=sys.stderr)
         return rec

@@ -75,7 +75,7 @@ def test_recorder_sends_the_logged_bytes_live_and_draws_the_scene(tmp_path: Path
     sent: list[tuple[str, bytes]] = []
     path = tmp_path / "run.mcap"
     with CycleRecorder(path, cfg, scene=SceneBuilder(cfg), live=None) as rec:
-        rec.set_live(lambda topic, data: sent.append((topic, data)))
+        rec.live = lambda topic, data: sent.append((topic, data))
         for k in range(60):
             rec.record_cycle(_cycle(k))
         rec.record_diagnostics({"t_ns": 5, "tick": 60, "status": []}, final=True)

@@ -64,7 +64,7 @@ def test_the_process_writes_the_log_a_recorder_here_writes(tmp_path, cfg):
     with RecorderProcess(tmp_path / "process.mcap", cfg, run_info={"law": "rhc"}) as remote:
         _feed(remote, 300)
     assert remote.finished and remote.error is None
-    assert remote.as_dict() == rec.as_dict()  # every topic, written, dropped, pending
+    assert remote.as_dict() == rec.as_dict()  # every topic, written, dropped
     assert _contents(tmp_path / "process.mcap") == _contents(tmp_path / "here.mcap")
     info = read_log(tmp_path / "process.mcap").run_info
     assert info["law"] == "rhc" and info["pid"] == str(os.getpid())  # the controller's, not its
@@ -113,7 +113,7 @@ def test_a_stalled_recorder_costs_a_realtime_tick_counted_drops_never_a_wait(tmp
         dropped = 20_000 - kept
         assert dropped > 0  # the pipe and the outbox filled up: later ticks were dropped
     counts = rec.as_dict()
-    assert counts["dropped"] == dropped and counts["pending"] == 0
+    assert counts["dropped"] == dropped
     assert counts["/controller/cycle"] == kept == read_log(tmp_path / "run.mcap").n_cycles
     assert run_problems({"recorder": counts}) == [f"{dropped} log record(s) lost"]
 
