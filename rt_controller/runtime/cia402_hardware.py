@@ -16,19 +16,14 @@ profile's SecOC has no counterpart here); see docs/tutorials/cia402-drive.md.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from collections import Counter
-from collections.abc import Iterator
 from typing import Any
 
-from hal.bus import open_bus
 from hal.cia402_master.master import Cia402Master, JointState
-from hal.config import RigConfig
 from hal.drive_state import MODE_ENABLED, MODE_FAULT
 from hal.hardware_interface import InputJudge, Observation, StopFlag
-from hal.zenoh_session import open_session
 from rt_controller.errors import ControllerError
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.feature_link import FeatureLink
@@ -36,8 +31,6 @@ from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, HardwareBase
 from rt_controller.runtime.pacers import LOCKSTEP_FEATURE_TIMEOUT_S
 from rt_controller.sample_stats import percentile
 
-ZENOH_WAIT_S = 20.0
-"""How long start-up waits for the zenoh hub (the emulator's)."""
 LOCKSTEP_TPDO_TIMEOUT_S = 1.0
 """Lockstep: how long a SYNC may wait for every drive's TPDOs."""
 ENABLED = "OPERATION ENABLED"
@@ -254,20 +247,4 @@ class Cia402Hardware(HardwareBase):
         return [(n, drives[str(n.id)]) for n in self.master.nodes]
 
 
-@contextlib.contextmanager
-def open_cia402_links(cfg: RigConfig, stop: Any) -> Iterator[tuple[Cia402Master, Any]]:
-    """The cia402 profile's links: the CANopen master on ``transport.can`` (its own receive
-    thread: canopen's) and the zenoh session. The bus first, so a bad ``transport.can`` is
-    reported at once; both closed at the end."""
-    master = Cia402Master.from_config(cfg, open_bus(cfg.transport.can))
-    try:
-        session = open_session(cfg, listen=False, wait_s=ZENOH_WAIT_S, stop_event=stop)
-        try:
-            yield master, session
-        finally:
-            session.close()
-    finally:
-        master.close()
-
-
-__all__ = ["Cia402Hardware", "open_cia402_links"]
+__all__ = ["Cia402Hardware"]

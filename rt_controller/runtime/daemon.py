@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from hal.bus import open_bus
 from hal.cia402_master.master import Cia402Master
 from hal.config import RigConfig
 from hal.errors import HalStopped
@@ -34,7 +35,7 @@ from rt_controller.calibration.parameters import ParameterService
 from rt_controller.control.controller import Controller
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.cadence import Clock, MonotonicClock
-from rt_controller.runtime.cia402_hardware import Cia402Hardware, open_cia402_links
+from rt_controller.runtime.cia402_hardware import Cia402Hardware
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import (
     OutageTracker,
@@ -46,7 +47,7 @@ from rt_controller.runtime.feature_link import FeatureLink
 from rt_controller.runtime.hardware import STARTUP_TIMEOUT_S, DspHardware
 from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
 from rt_controller.runtime.loop import ControlLoop
-from rt_controller.runtime.pacers import ClockMode, LockstepPacer, Pacer, RealtimePacer
+from rt_controller.runtime.pacers import LockstepPacer, Pacer, RealtimePacer
 from rt_controller.runtime.realtime import GcPaused, apply_realtime
 from rt_controller.runtime.recorder_process import RecorderProcess
 
@@ -72,19 +73,40 @@ class DaemonOptions:
     ``controller.spin_us`` before each release); tests pass a fake one."""
 
 
+CanLink = JointClient | Cia402Master
+"""The CAN side of a run, by ``hardware.profile``."""
+
+
 @contextlib.contextmanager
-def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[JointClient, ZenohSession]]:
-    """The controller's links: the CAN client in poll mode (the control thread reads the bus
-    itself, no receive thread) and the zenoh session, both on ``cfg.transport``. The bus
-    first: a bad ``transport.can`` is
-    reported at once, not after waiting for zenoh. :class:`HalStopped` when ``stop`` is set
-    while waiting for zenoh."""
-    with JointClient.open(None, cfg) as dsp:
+def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[CanLink, ZenohSession]]:
+    """The controller's links on ``cfg.transport``: the CAN side of ``hardware.profile`` (the
+    DSP's client in poll mode: the control thread reads the bus itself, no receive thread; or
+    the ``cia402`` profile's CANopen master, whose receive thread is canopen's) and the zenoh
+    session, both closed at the end. The bus first: a bad ``transport.can`` is reported at
+    once, not after waiting for zenoh. :class:`HalStopped` when ``stop`` is set while waiting
+    for zenoh."""
+    with contextlib.ExitStack() as links:
+        can: CanLink
+        if cfg.hardware.profile == "cia402":
+            can = Cia402Master.from_config(cfg, open_bus(cfg.transport.can))
+            links.callback(can.close)
+        else:
+            can = links.enter_context(JointClient.open(None, cfg))
         session = open_session(cfg, listen=False, wait_s=STARTUP_TIMEOUT_S, stop_event=stop)
-        try:
-            yield dsp, session
-        finally:
-            session.close()
+        links.callback(session.close)
+        yield can, session
+
+
+def build_hardware(
+    ctx: RunContext, can: CanLink, session: Any, features: FeatureDecoder, *, record_raw: bool
+) -> HardwareInterface:
+    """The run's hardware profile on its open links (the profile of the ``can`` link given),
+    with the features of ``session`` decoded by ``features``."""
+    lockstep = ctx.cfg.controller.clock == "lockstep"
+    link = FeatureLink(ctx, session, features, by_callback=lockstep, record_raw=record_raw)
+    if isinstance(can, Cia402Master):
+        return Cia402Hardware(ctx, can, link, lockstep=lockstep, record_raw=record_raw)
+    return DspHardware(ctx, can, link, lockstep=lockstep, record_raw=record_raw)
 
 
 class ControllerDaemon:
@@ -94,7 +116,8 @@ class ControllerDaemon:
         self.cfg = cfg
         self.opts = options
         self.stop = stop
-        self.mode = ClockMode(cfg.controller.clock)
+        self.lockstep = cfg.controller.clock == "lockstep"
+        """The world's steps pace the run (``controller.clock``), not the monotonic clock."""
         self.clock: Clock = options.clock or MonotonicClock(
             spin_ns=round(cfg.controller.spin_us * 1e3)
         )
@@ -111,7 +134,6 @@ class ControllerDaemon:
         stamp = time.strftime("%Y%m%d-%H%M%S")
         default_log = Path(cfg.controller.log_dir) / f"run-{stamp}-{cfg.controller.law}.mcap"
         self.log_path = options.log_path or default_log
-        self.loop: ControlLoop | None = None
         self._final_diagnostics: dict[str, Any] | None = None
 
     def what_runs(self) -> dict[str, Any]:
@@ -119,7 +141,7 @@ class ControllerDaemon:
         cfg = self.cfg
         rhc = cfg.controller.law == "rhc"
         return {
-            "clock": self.mode.value,
+            "clock": cfg.controller.clock,
             "rate_hz": cfg.rates.control_hz,
             "duration_s": self.opts.duration_s or None,
             "law": cfg.controller.law,
@@ -134,76 +156,44 @@ class ControllerDaemon:
         live stream on ``cfg.transport``)."""
         cfg, transport = self.cfg, self.cfg.transport
         run_info = {
-            "clock": self.mode.value,
+            "clock": cfg.controller.clock,
             "can": transport.can,
             "zenoh": transport.zenoh_config or transport.zenoh_endpoint,
             "recorder": "process (spawn)",
         }
-        paced_by_sync = self.mode is ClockMode.LOCKSTEP  # no deadline: wait for a busy recorder
         return RecorderProcess(
             self.log_path,
             cfg,
             run_info=run_info,
             scene=self.opts.scene,
             live=self.opts.live,
-            backpressure=paced_by_sync,
+            backpressure=self.lockstep,  # no deadline: wait for a busy recorder
         )
 
-    def run(self) -> dict[str, Any]:
-        """Open the recorder and the links, run until stopped; the summary. The recorder is
-        finished on every exit."""
+    def run(self, links: tuple[CanLink, Any] | None = None) -> dict[str, Any]:
+        """Open the recorder and the links, run until stopped; the summary. ``links``: a CAN
+        link and zenoh session that outlive the run (``hil controller --plan``, tests), left as
+        found; else :func:`open_links`. The recorder is finished on every exit."""
         rec = self._open_recorder()
+        opened = contextlib.nullcontext(links) if links else open_links(self.cfg, self.stop)
         try:
-            if self.cfg.hardware.profile == "cia402":
-                with open_cia402_links(self.cfg, self.stop) as (master, session):
-                    self._run_with(None, session, rec, master=master)
-            else:
-                with open_links(self.cfg, self.stop) as (dsp, session):
-                    self._run_with(dsp, session, rec)
+            with opened as (can, session):
+                self._run_with(can, session, rec)
         except HalStopped:  # told to stop while waiting for zenoh
             self.counters.stopped_before_arming = True
         finally:
             rec.close()
         return self._summary(rec)
 
-    def run_on(self, dsp: JointClient, session: Any) -> dict[str, Any]:
-        """One run on links that outlive it (``hil controller --plan``, tests: a poll-mode
-        client, an open session); the summary. Leaves them as it found them."""
-        rec = self._open_recorder()
-        try:
-            self._run_with(dsp, session, rec)
-        finally:
-            rec.close()
-        return self._summary(rec)
-
-    def _run_with(
-        self,
-        dsp: JointClient | None,
-        session: Any,
-        rec: RecorderProcess,
-        *,
-        master: Cia402Master | None = None,
-    ) -> None:
-        """The run on open links (the DSP's client, or the cia402 profile's CANopen
-        ``master``): the parts, the live stream, the loop."""
-        cfg, opts = self.cfg, self.opts
+    def _run_with(self, can: CanLink, session: Any, rec: RecorderProcess) -> None:
+        """The run on open links (:func:`open_links`): the parts, the live stream, the loop."""
+        cfg = self.cfg
         ctx = RunContext(cfg, self.clock, self.stop, self.counters, rec)
-        lockstep = self.mode is ClockMode.LOCKSTEP
-        hw: HardwareInterface
-        if master is not None:
-            link = FeatureLink(
-                ctx, session, self.features, by_callback=lockstep, record_raw=opts.record_raw
-            )
-            hw = Cia402Hardware(ctx, master, link, lockstep=lockstep, record_raw=opts.record_raw)
-        else:
-            assert dsp is not None
-            hw = DspHardware(
-                ctx, dsp, session, self.features, lockstep=lockstep, record_raw=opts.record_raw
-            )
+        hw = build_hardware(ctx, can, session, self.features, record_raw=self.opts.record_raw)
         pacer: Pacer = (
-            LockstepPacer(ctx, hw.step) if lockstep else RealtimePacer(ctx, hw.wait_inputs)
+            LockstepPacer(ctx, hw.step) if self.lockstep else RealtimePacer(ctx, hw.wait_inputs)
         )
-        loop = self.loop = ControlLoop(ctx, self.controller, hw, pacer, self.params)
+        loop = ControlLoop(ctx, self.controller, hw, pacer, self.params)
         tuning = ParameterServer(self.params, rig_key(cfg)).attach(session)  # `hil param`
         try:
             self._start_and_loop(hw, loop)
@@ -229,7 +219,7 @@ class ControllerDaemon:
         d = self.opts.duration_s
         max_ticks = math.floor(d * cfg.rates.control_hz + 1e-9) if d > 0 else None
         self.counters.planned_ticks = max_ticks
-        before = cpu_ticks() if self.mode is ClockMode.REALTIME else None
+        before = None if self.lockstep else cpu_ticks()
         try:
             with GcPaused():
                 loop.run(max_ticks)
@@ -243,7 +233,6 @@ class ControllerDaemon:
             loop.ctx.recorder.record_diagnostics(self._final_diagnostics, final=True)
 
     def _summary(self, rec: RecorderProcess) -> dict[str, Any]:
-        rec.close()
         out = {**self.what_runs(), **self.counters.as_dict()}
         out.update(law=self.controller.law, log=str(self.log_path), recorder=rec.as_dict())
         if rec.error is not None:
@@ -261,4 +250,4 @@ class ControllerDaemon:
         return out
 
 
-__all__ = ["ControllerDaemon", "DaemonOptions", "open_links", "run_problems"]
+__all__ = ["ControllerDaemon", "DaemonOptions", "build_hardware", "open_links", "run_problems"]

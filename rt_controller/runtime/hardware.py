@@ -20,7 +20,6 @@ from hal.drive_state import MODE_ENABLED, DriveEvent, DriveMonitor, DriveUpdate,
 from hal.errors import HalTimeoutError
 from hal.hardware_interface import InputJudge, Observation, StopFlag
 from hal.joint_client import JointClient
-from hal.vision_receivers import FeatureDecoder
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.context import RunContext
@@ -51,16 +50,13 @@ class DspHardware(HardwareBase):
         self,
         ctx: RunContext,
         dsp: JointClient,
-        session: Any,
-        features: FeatureDecoder,
+        features: FeatureLink,
         *,
         lockstep: bool,
         record_raw: bool,
     ) -> None:
-        """``session``: the run's zenoh session (``subscribe``, ``subscribe_ring``);
-        ``lockstep``: the DSP's Sync paces (features by callback, no cyclic arming)."""
-        link = FeatureLink(ctx, session, features, by_callback=lockstep, record_raw=record_raw)
-        super().__init__(ctx, link, lockstep=lockstep, record_raw=record_raw)
+        """``lockstep``: the DSP's Sync paces (features by callback, no cyclic arming)."""
+        super().__init__(ctx, features, lockstep=lockstep, record_raw=record_raw)
         self.dsp = dsp
         self.monitor = DriveMonitor()
         self.held_off = False

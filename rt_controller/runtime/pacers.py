@@ -12,7 +12,6 @@ says how inputs are aged in its mode (it is the hardware's
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -36,13 +35,6 @@ ARMING_POLL_NS = 1_000_000
 """Lockstep: arming steps this far apart (the world does not step before it is armed)."""
 
 
-class ClockMode(enum.Enum):
-    """What paces the loop: the host's monotonic clock, or the world's steps."""
-
-    REALTIME = "realtime"
-    LOCKSTEP = "lockstep"
-
-
 @dataclass(frozen=True)
 class Release(Tick):
     """One tick's start, as its pacer gives it (``index``: realtime, periods since the first
@@ -56,8 +48,6 @@ class Release(Tick):
 
 class RealtimePacer:
     """Hard cadence on the loop's clock (see the module docstring)."""
-
-    mode = ClockMode.REALTIME
 
     def __init__(self, ctx: RunContext, idle: Idle) -> None:
         """``idle``: the work of the wait for a release (the hardware's ``wait_inputs``)."""
@@ -81,15 +71,9 @@ class RealtimePacer:
         return feature_age_ns(wake_ns, feat.stamp_ns, recv_ns) / 1e6
 
     def prediction_ms(self, obs: Observation) -> tuple[float, float]:
-        """How far the joint state and features are brought forward: their ages, when fresh
-        (``controller.predict_state``, ``controller.predict_features``)."""
-        ctl, delay = self.ctx.cfg.controller, obs.actuation_delay_ms
-        state = obs.state_age_ms + delay if ctl.predict_state and not obs.state_stale else 0.0
-        feats = obs.f_age_ms + delay if ctl.predict_features and not obs.f_stale else 0.0
-        return (
-            state if math.isfinite(state) and state > 0 else 0.0,
-            feats if math.isfinite(feats) and feats > 0 else 0.0,
-        )
+        """How far the joint state and features are brought forward: their ages and the
+        hardware's actuation delay, when fresh."""
+        return _prediction_ms(self.ctx, obs, obs.state_age_ms, obs.f_age_ms)
 
     def arming(self) -> Iterator[int]:
         """One arming step per period on the cadence (the command stream is cyclic from the
@@ -123,7 +107,6 @@ class RealtimePacer:
 class LockstepPacer:
     """One tick per step of the world (see the module docstring)."""
 
-    mode = ClockMode.LOCKSTEP
     state_limit_s = LOCKSTEP_SYNC_TIMEOUT_S + LOCKSTEP_FEATURE_TIMEOUT_S
     """The world announces the state with every step, so its wall-clock age only reflects how
     long this tick waited (for features); a silent world ends the run instead."""
@@ -146,10 +129,7 @@ class LockstepPacer:
     def prediction_ms(self, obs: Observation) -> tuple[float, float]:
         """State and features are sampled at the tick: only the hardware's actuation delay
         (CiA 402: one period) is brought forward, by the same switches as in realtime."""
-        ctl, delay = self.ctx.cfg.controller, obs.actuation_delay_ms
-        state = delay if ctl.predict_state and not obs.state_stale else 0.0
-        feats = delay if ctl.predict_features and not obs.f_stale else 0.0
-        return state, feats
+        return _prediction_ms(self.ctx, obs, 0.0, 0.0)
 
     def overran(self, release: Release) -> bool:
         """No deadlines: the world waits for the tick."""
@@ -199,6 +179,21 @@ class LockstepPacer:
         return None
 
 
+def _prediction_ms(
+    ctx: RunContext, obs: Observation, state_age_ms: float, f_age_ms: float
+) -> tuple[float, float]:
+    """The state's and the features' ages plus the actuation delay, each where its switch is
+    on (``controller.predict_state``, ``controller.predict_features``) and the input fresh;
+    0 where that is not a positive number."""
+    ctl, delay = ctx.cfg.controller, obs.actuation_delay_ms
+    state = state_age_ms + delay if ctl.predict_state and not obs.state_stale else 0.0
+    feats = f_age_ms + delay if ctl.predict_features and not obs.f_stale else 0.0
+    return (
+        state if math.isfinite(state) and state > 0 else 0.0,
+        feats if math.isfinite(feats) and feats > 0 else 0.0,
+    )
+
+
 Pacer = RealtimePacer | LockstepPacer
 
-__all__ = ["ClockMode", "LockstepPacer", "Pacer", "RealtimePacer", "Release"]
+__all__ = ["LockstepPacer", "Pacer", "RealtimePacer", "Release"]

@@ -189,7 +189,7 @@ def run_plan(
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
                 run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)
                 daemon = ControllerDaemon(cfg, run_opts, stop)
-                summary = daemon.run_on(dsp, session)
+                summary = daemon.run((dsp, session))
                 summary.update(run=run.name, wall_s=time.monotonic() - t0)
                 out.append(summary)
                 emit(summary)

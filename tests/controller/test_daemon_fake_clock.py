@@ -112,7 +112,7 @@ def run_daemon(
     dsp_stalls: frozenset[int] = frozenset(),
     on_tick=None,
 ):
-    """Run the daemon (:meth:`ControllerDaemon.run_on`, its log written by a recorder
+    """Run the daemon (:meth:`ControllerDaemon.run` on given links, its log written by a recorder
     process) for ``duration_s`` of fake time;
     ``slow_ticks`` maps a tick number to extra nanoseconds its decide phase takes; for each
     tick in ``dsp_stalls`` the DSP gets no CPU from 4 ms before the next release to 2 ms after
@@ -151,7 +151,7 @@ def run_daemon(
         daemon.controller.decide = slow_decide
         with JointClient.open(spec, cfg) as dsp:
             clock.client = dsp
-            summary = daemon.run_on(dsp, NoZenoh())
+            summary = daemon.run((dsp, NoZenoh()))
     return summary, read_log(log), node
 
 

@@ -18,6 +18,7 @@ from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import RunCounters
+from rt_controller.runtime.feature_link import FeatureLink
 from rt_controller.runtime.hardware import DspHardware
 from tests.support.fake_clock import FakeClock
 
@@ -66,7 +67,8 @@ def test_a_feature_message_delivered_after_deactivate_reaches_neither_decoder_no
     stopped.set()  # configure subscribes, then returns at once (no DSP answers here)
     ctx = RunContext(cfg, clock, stopped, RunCounters(), rec)
     with JointClient.open(isolated_spec("virtual"), cfg) as dsp:
-        hw = DspHardware(ctx, dsp, session, decoder, lockstep=True, record_raw=True)
+        link = FeatureLink(ctx, session, decoder, by_callback=True, record_raw=True)
+        hw = DspHardware(ctx, dsp, link, lockstep=True, record_raw=True)
         hw.configure(stopped)
         session.callback(_payload(cfg, 1, clock.now_ns()))
         assert len(rec.vision) == 1 and decoder.latest is not None

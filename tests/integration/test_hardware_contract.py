@@ -41,11 +41,10 @@ from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerError
 from rt_controller.runtime import hardware as dsp_profile
 from rt_controller.runtime.cadence import MonotonicClock
-from rt_controller.runtime.cia402_hardware import Cia402Hardware, open_cia402_links
+from rt_controller.runtime.cia402_hardware import Cia402Hardware
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import RunCounters
-from rt_controller.runtime.daemon import open_links
-from rt_controller.runtime.feature_link import FeatureLink
+from rt_controller.runtime.daemon import build_hardware, open_links
 from rt_controller.runtime.hardware import DspHardware
 from rt_controller.runtime.pacers import LockstepPacer
 from tests.support.proc import stop_all
@@ -105,26 +104,16 @@ def emulated_rig(cfg_file: Path, key: Path) -> Iterator[None]:
 
 @contextlib.contextmanager
 def profile_seam(cfg: RigConfig, stop: threading.Event) -> Iterator[HardwareInterface]:
-    """The configured profile on its links, built as ``ControllerDaemon._run_with`` builds it
-    (lockstep, no raw log); deactivated and its links closed at the end."""
+    """The configured profile on its links, as the daemon builds it (:func:`build_hardware`;
+    lockstep, no raw log); deactivated and its links closed at the end."""
     ctx = RunContext(cfg, MonotonicClock(), stop, RunCounters(), None)
     features = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
-    hw: HardwareInterface
-    if cfg.hardware.profile == "cia402":
-        with open_cia402_links(cfg, stop) as (master, session):
-            link = FeatureLink(ctx, session, features, by_callback=True, record_raw=False)
-            hw = Cia402Hardware(ctx, master, link, lockstep=True)
-            try:
-                yield hw
-            finally:
-                hw.deactivate()
-    else:
-        with open_links(cfg, stop) as (dsp, session):
-            hw = DspHardware(ctx, dsp, session, features, lockstep=True, record_raw=False)
-            try:
-                yield hw
-            finally:
-                hw.deactivate()
+    with open_links(cfg, stop) as (can, session):
+        hw = build_hardware(ctx, can, session, features, record_raw=False)
+        try:
+            yield hw
+        finally:
+            hw.deactivate()
 
 
 def arm(hw: HardwareInterface) -> int:
