@@ -26,6 +26,7 @@ from hal.config import RigConfig
 from rt_controller.control import model_kernels as mk
 from rt_controller.control import numba_cache  # noqa: F401  (before any cached kernel)
 from rt_controller.control.rhc import kernel as rk
+from rt_controller.control.rhc.solver import CGMRESSolver, compiled_entry
 from rt_controller.control.state import (
     IO,
     KS,
@@ -55,20 +56,14 @@ def record_sent(hist_t, hist_tau, ks, t, tau0, tau1, horizon):
     n = int(ks[KS.N])
     cap = hist_t.shape[0]
     if n == cap:
-        first = 0
-        for i in range(n):
+        first = 1  # the oldest goes in any case
+        for i in range(1, n):
             if hist_t[i] <= t - horizon:
                 first = i
-        keep = n - first
-        for i in range(keep):
+        n -= first
+        for i in range(n):
             hist_t[i] = hist_t[first + i]
             hist_tau[i, 0], hist_tau[i, 1] = hist_tau[first + i, 0], hist_tau[first + i, 1]
-        n = keep
-        if keep == cap:
-            for i in range(cap - 1):
-                hist_t[i] = hist_t[i + 1]
-                hist_tau[i, 0], hist_tau[i, 1] = hist_tau[i + 1, 0], hist_tau[i + 1, 1]
-            n -= 1
     hist_t[n] = t
     hist_tau[n, 0], hist_tau[n, 1] = tau0, tau1
     ks[KS.N] = n + 1
@@ -95,10 +90,8 @@ def law_input(io, p, lim, ks, xi, P, st, work, iP):
     x[XS.F], x[XS.F + 1] = io[IO.F_PRED], io[IO.F_PRED + 1]
     st[ST.T] = t - ks[KS.T0]
     st[ST.MODEL_XDOT] = 1.0
-    rk.rhc_tick(P, iP, st, work)
-    ok = st[ST.STATUS] == rk.OK and st[ST.RES] <= lim[LIM.RES_BOUND]
-    st[ST.INIT] = 0.0 if ok else 1.0  # a failed solve starts from scratch next tick
-    if ok:
+    rk.rhc_tick(P, iP, st, work)  # a solve it does not accept starts from scratch next tick
+    if st[ST.INIT] == 0.0:
         return st[ST.U], st[ST.U + 1], False
     ks[KS.FALLBACKS] += 1.0
     if not (math.isfinite(u0) and math.isfinite(u1)):
@@ -108,21 +101,19 @@ def law_input(io, p, lim, ks, xi, P, st, work, iP):
 
 
 @njit(cache=True, fastmath=False)
-def reset_law(ks, st, n_u):
-    """Forget the law's warm start (U and Udot, the ``n_u`` numbers after the solver state's
-    head) and its horizon-growth clock: the next solve starts from scratch."""
+def reset_law(ks, st):
+    """Forget the law's warm start (U and Udot, all after the solver state's head; nothing for
+    pbc and ioc) and its horizon-growth clock: the next solve starts from scratch."""
     ks[KS.T0] = np.nan
     ks[KS.FALLBACKS] = 0.0
-    for i in range(n_u):
-        st[ST.HEAD + i] = 0.0
+    for i in range(ST.HEAD, st.shape[0]):
+        st[i] = 0.0
     st[ST.INIT] = 1.0
 
 
 @njit(cache=True, fastmath=False)
-def decide_tick(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
-    """One tick of the per-tick rule (see the module docstring); writes the io's outputs.
-
-    ``n_u``: the length of the solver's U and Udot at the end of ``st`` (0 for pbc, ioc)."""
+def decide_tick(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work):
+    """One tick of the per-tick rule (see the module docstring); writes the io's outputs."""
     for k in range(IO.OUTPUTS, IO.SIZE):
         io[k] = np.nan
     io[IO.TAU], io[IO.TAU + 1] = 0.0, 0.0
@@ -135,12 +126,12 @@ def decide_tick(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
     elif io[IO.STATE_STALE] != 0.0:
         io[IO.MODE] = MODE_NO_STATE
     else:
-        _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u)
+        _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work)
     record_sent(hist_t, hist_tau, ks, now, io[IO.TAU], io[IO.TAU + 1], horizon)
 
 
 @njit(cache=True, fastmath=False)
-def _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
+def _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work):
     """The hold or the law on the state (and features) brought up to the tick."""
     q, dq, f = io[IO.Q : IO.Q + 2], io[IO.DQ : IO.DQ + 2], io[IO.F : IO.F + 2]
     state_age, f_age = io[IO.STATE_AGE], io[IO.F_AGE]
@@ -161,7 +152,7 @@ def _act(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
         io[IO.TAU], io[IO.TAU + 1] = min(max(h0, -tm0), tm0), min(max(h1, -tm1), tm1)
         return
     if ks[KS.HOLDING] != 0.0:  # features are back: the law starts again
-        reset_law(ks, st, n_u)
+        reset_law(ks, st)
         ks[KS.HOLDING] = 0.0
     io[IO.MODE] = MODE_CONTROL
     io[IO.F_PRED], io[IO.F_PRED + 1] = f[0], f[1]
@@ -190,7 +181,9 @@ class CompiledRule:
     (``None`` for pbc and ioc), whose state vector and work array the call advances in place.
     """
 
-    def __init__(self, cfg: RigConfig, law: str, params: np.ndarray, solver: object | None) -> None:
+    def __init__(
+        self, cfg: RigConfig, law: str, params: np.ndarray, solver: CGMRESSolver | None
+    ) -> None:
         self.io = np.zeros(IO.SIZE)
         self.ks = np.zeros(KS.SIZE)
         self.ks[KS.T0] = np.nan
@@ -199,7 +192,9 @@ class CompiledRule:
         self.lim = np.zeros(LIM.SIZE)
         self.retarget(cfg, law, params, solver)
 
-    def retarget(self, cfg: RigConfig, law: str, params: np.ndarray, solver: object | None) -> None:
+    def retarget(
+        self, cfg: RigConfig, law: str, params: np.ndarray, solver: CGMRESSolver | None
+    ) -> None:
         """Decide with this configuration, model and solver from now on; the torque history
         is kept and the law starts again."""
         self.p = params
@@ -209,18 +204,15 @@ class CompiledRule:
         lim[LIM.LAW] = LAW_CODES[law]
         self.limits(cfg)
         lim[LIM.STEP] = STEP_S
-        lim[LIM.RES_BOUND] = cfg.rhc.residual_bound
         if solver is None:
             self.P, self.iP = np.zeros(1), np.zeros(1, dtype=np.int64)
-            self.st, self.work, self.n_u = np.zeros(ST.HEAD), np.zeros(1), 0
+            self.st, self.work = np.zeros(ST.HEAD), np.zeros(1)
         else:
-            s = solver
-            self.P, self.iP, self.st, self.work = s.P, s.iP, s.st, s.work  # type: ignore[attr-defined]
-            self.n_u = 2 * s.U.size  # type: ignore[attr-defined]
+            self.P, self.iP, self.st, self.work = solver.P, solver.iP, solver.st, solver.work
         self.call: Callable[[], None] = self._first_call
         """Decide on the inputs in :attr:`io` (filling its outputs): after the first call, the
         compiled overload itself with the arrays bound (:meth:`bind`)."""
-        reset_law(self.ks, self.st, self.n_u)  # a new law starts; holding stays as it was
+        reset_law(self.ks, self.st)  # a new law starts; holding stays as it was
 
     @property
     def horizon_s(self) -> float:
@@ -233,7 +225,7 @@ class CompiledRule:
 
     def reset(self) -> None:
         """As new: the law starts again, not holding, and the torque history is empty."""
-        reset_law(self.ks, self.st, self.n_u)
+        reset_law(self.ks, self.st)
         self.ks[KS.HOLDING] = 0.0
         self.ks[KS.N] = 0.0
 
@@ -244,10 +236,10 @@ class CompiledRule:
 
     @property
     def arguments(self) -> tuple:
-        """What :func:`decide_tick` is called with: this rule's arrays and ``n_u``."""
+        """What :func:`decide_tick` is called with: this rule's arrays."""
         return (
             self.io, self.p, self.lim, self.hist_t, self.hist_tau, self.ks,
-            self.P, self.iP, self.st, self.work, self.n_u,
+            self.P, self.iP, self.st, self.work,
         )  # fmt: skip
 
     def _first_call(self) -> None:
@@ -257,7 +249,5 @@ class CompiledRule:
     def bind(self) -> None:
         """From now on, :attr:`call` is the compiled overload with this rule's arrays bound:
         one C-level call, past the dispatcher and the attribute loads."""
-        from rt_controller.control.rhc.solver import compiled_entry
-
         args = self.arguments
         self.call = functools.partial(compiled_entry(decide_tick, *args), *args)

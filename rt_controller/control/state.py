@@ -118,7 +118,6 @@ LIM = Block(
         ("law", 1, "LAW_CODES of the law"),
         ("horizon", 1, "oldest measurement worth compensating, s"),
         ("step", 1, "longest Runge-Kutta step of the prediction, s"),
-        ("res_bound", 1, "largest C/GMRES residual applied"),
     ),
 )
 KS = Block(
@@ -158,6 +157,7 @@ PAR = Block(
         ("tf", 1, "final horizon, s"),
         ("growth", 1, "a of T(t) = Tf (1 - exp(-a t))"),
         ("init_tol", 1, "residual target of the initial Newton solve"),
+        ("res_bound", 1, "largest residual of a solution applied"),
     ),
 )
 # --- the solver's state vector (U and Udot follow the head) ---------------------------------------
@@ -169,13 +169,12 @@ ST = Block(
         ("xdot", 6, "given state motion, used when model_xdot is 0"),
         ("u", 2, "out: input to apply"),
         ("t", 1, "solver time, s"),
-        ("init", 1, "1: solve from scratch (Newton-GMRES) first"),
+        ("init", 1, "1: solve from scratch (Newton-GMRES) first; out: 1 if not accepted"),
         ("model_xdot", 1, "1: predict the state motion with eq. (12)"),
         ("res", 1, "out: ||F|| at the applied solution"),
         ("iters", 1, "out: forward-difference products spent in GMRES"),
-        ("status", 1, "out: OK | NOT_FINITE"),
         ("fevals", 1, "out: evaluations of F (sweep pairs) this tick"),
-        ("spare", 3, "room for new head fields without moving U"),
+        ("spare", 4, "room for new head fields without moving U"),
     ),
 )
 ST.HEAD = ST.SIZE

@@ -114,7 +114,7 @@ def _restore(rule: dk.CompiledRule, snap: tuple[np.ndarray, ...]) -> None:
 
 
 @njit(cache=True)
-def _noop(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work, n_u):
+def _noop(io, p, lim, hist_t, hist_tau, ks, P, iP, st, work):
     """The rule's signature, no work: the entry cost alone."""
 
 

@@ -209,7 +209,7 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
 
 @njit(**JIT)
 def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
-    """Newton-GMRES on F(U, x0, T) = 0 with backtracking; returns (||F||, GMRES iterations)."""
+    """Newton-GMRES on F(U, x0, T) = 0 with backtracking; returns the GMRES iterations."""
     N = iP[IP.N]
     n = U.shape[0]
     m = iP[IP.INIT_KRYLOV]
@@ -245,7 +245,7 @@ def newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw):
         if release_bounds(P, N, U, F) > 0:
             eval_F(P, N, U, x0, T, sw, F)
             fn = norm(F)
-    return fn, iters
+    return iters
 
 
 @njit(**JIT)

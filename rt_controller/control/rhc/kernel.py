@@ -44,38 +44,27 @@ from rt_controller.control.rhc.residual import (
 )
 from rt_controller.control.state import CUT, IP, NS, NX, PAR, SMALL, ST, VEC, W
 
-OK = 0
-"""Result code of :func:`rhc_tick` (``ST.STATUS``): a finite solution."""
-NOT_FINITE = 1
-"""Result code: the solution or its residual is not finite."""
-
 
 @njit(inline="always", **JIT)
-def _cut2(iP, work, k):
-    """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (2-D)."""
+def _cut(iP, work, k):
+    """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (2-D; ``[0]`` of a one-row
+    array is the row)."""
     o = IP.WORK + CUT.SIZE * k
     off, rows, cols = iP[o + CUT.OFF], iP[o + CUT.ROWS], iP[o + CUT.COLS]
     return work[off : off + rows * cols].reshape((rows, cols))
 
 
-@njit(inline="always", **JIT)
-def _cut1(iP, work, k):
-    """Work array ``k`` of :data:`~rt_controller.control.state.WORK` (one row)."""
-    o = IP.WORK + CUT.SIZE * k
-    return work[iP[o + CUT.OFF] : iP[o + CUT.OFF] + iP[o + CUT.COLS]]
-
-
 @njit(**JIT)
 def _views(iP, work):
     """The arrays of one tick cut out of ``work`` (:data:`~rt_controller.control.state.WORK`)."""
-    X, Lam, Aux = _cut2(iP, work, W.X), _cut2(iP, work, W.LAM), _cut2(iP, work, W.AUX)
-    Vb, Hs, small = _cut2(iP, work, W.VB), _cut2(iP, work, W.HS), _cut2(iP, work, W.SMALL)
-    G, Ys, vecs = _cut2(iP, work, W.G), _cut2(iP, work, W.YS), _cut2(iP, work, W.VECS)
-    hx, hu, cnt = _cut1(iP, work, W.HX), _cut1(iP, work, W.HU), _cut1(iP, work, W.CNT)
+    X, Lam, Aux = _cut(iP, work, W.X), _cut(iP, work, W.LAM), _cut(iP, work, W.AUX)
+    Vb, Hs, small = _cut(iP, work, W.VB), _cut(iP, work, W.HS), _cut(iP, work, W.SMALL)
+    G, Ys, vecs = _cut(iP, work, W.G), _cut(iP, work, W.YS), _cut(iP, work, W.VECS)
+    hx, hu, cnt = _cut(iP, work, W.HX)[0], _cut(iP, work, W.HU)[0], _cut(iP, work, W.CNT)[0]
     sw = (X, Lam, Aux, hx, hu, cnt)
     cs, sn, g, y = small[SMALL.CS], small[SMALL.SN], small[SMALL.G], small[SMALL.Y]
     ws = (Vb, Hs, cs, sn, g, y, vecs[VEC.UT], vecs[VEC.Z], vecs[VEC.ZZ], G, Ys)
-    return sw, ws, vecs, _cut1(iP, work, W.PRE), _cut1(iP, work, W.XS)
+    return sw, ws, vecs, _cut(iP, work, W.PRE)[0], _cut(iP, work, W.XS)[0]
 
 
 @njit(**JIT)
@@ -106,7 +95,8 @@ def _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2):
 
 @njit(**JIT)
 def rhc_tick(P, iP, st, work):
-    """One C/GMRES tick; inputs and outputs in the state vector ``st`` (see ``ST_*``).
+    """One C/GMRES tick; inputs and outputs in the state vector ``st`` (layout
+    :data:`~rt_controller.control.state.ST`).
 
     Continuation tick (one linear solve, Ohtsuka's ``F_U U' = -zeta F - F_x x' - F_t`` at the
     measured state x0, split into its two right-hand sides that share one Krylov basis):
@@ -122,6 +112,8 @@ def rhc_tick(P, iP, st, work):
 
     F is evaluated kmax + 3 times (8 for kmax = 5; the previous two-solve tick took 14). With
     ``init`` the solution is first found by Newton-GMRES and only the prediction is solved for.
+    A solution that is not finite or whose residual exceeds ``rhc.residual_bound`` sets ``init``:
+    it is not applied, and the next tick solves from scratch.
     """
     N = iP[IP.N]
     kmax = iP[IP.KMAX]
@@ -142,18 +134,9 @@ def rhc_tick(P, iP, st, work):
     iters = 0
     if st[ST.INIT] != 0.0:
         initial_guess(P, N, U, x0, T, X, hx)
-        fn, iters = newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw)
+        iters = newton(P, iP, U, x0, T, F, dU, Utry, Ftry, pre, ws, sw)
         eval_F(P, N, U, x0, T, sw, F)
-        fn = norm(F)
-        ok = _apply_input(P, U, st) and math.isfinite(fn)
-        if ok:
-            precond_setup(P, N, U, X, T, pre)
-            if model_xdot:
-                rhs(P, x0, st[ST.U : ST.U + 2], xdot)
-            _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
-            for i in range(n):
-                b[i] = 0.0
-            iters += block_gmres(P, N, U, x0, T, F, b, b2, dU, d2, kmax, pre, ws, sw)
+        predict_alone = True  # the solution is U: only the prediction is solved for
     else:
         if model_xdot:
             _apply_input(P, U, st)
@@ -169,34 +152,32 @@ def rhc_tick(P, iP, st, work):
             U[i] += dU[i]
         clip_dummies(P, N, U)
         eval_F(P, N, U, x0, T, sw, F)
-        released = release_bounds(P, N, U, F) > 0
-        if released:
+        # A released bound is corrected once more; the prediction d2 belongs to the bounds
+        # as they were: it is solved again (rare).
+        predict_alone = release_bounds(P, N, U, F) > 0
+        if predict_alone:
             eval_F(P, N, U, x0, T, sw, F)
             iters += correct(P, N, kmax, 1.0, U, x0, T, F, b, dU, pre, ws, sw)
-        fn = norm(F)
-        ok = _apply_input(P, U, st) and math.isfinite(fn)
-        if ok and released:
-            # The prediction d2 belongs to the bounds as they were: solve it again (rare).
-            precond_setup(P, N, U, X, T, pre)
-            if model_xdot:
-                rhs(P, x0, st[ST.U : ST.U + 2], xdot)
-            _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
-            for i in range(n):
-                b[i] = 0.0
-            iters += block_gmres(P, N, U, x0, T, F, b, b2, dU, d2, kmax, pre, ws, sw)
+    fn = norm(F)
+    ok = _apply_input(P, U, st) and math.isfinite(fn)
+    if ok and predict_alone:
+        precond_setup(P, N, U, X, T, pre)
+        if model_xdot:
+            rhs(P, x0, st[ST.U : ST.U + 2], xdot)
+        _prediction_rhs(P, N, U, x0, t, T, xdot, F, sw, xs, Fs, b2)
+        for i in range(n):
+            b[i] = 0.0
+        iters += block_gmres(P, N, U, x0, T, F, b, b2, dU, d2, kmax, pre, ws, sw)
     st[ST.RES] = fn
     st[ST.ITERS] = iters
-    if not ok:
-        st[ST.STATUS] = NOT_FINITE
-        st[ST.FEVALS] = cnt[0]
-        return
-    inv_dt = 1.0 / dt
-    for i in range(n):
-        U[i] += d2[i]
-        Udot[i] = d2[i] * inv_dt
-    clip_dummies(P, N, U)
-    st[ST.STATUS] = OK
+    st[ST.INIT] = 0.0 if ok and fn <= P[PAR.RES_BOUND] else 1.0
     st[ST.FEVALS] = cnt[0]
+    if ok:
+        inv_dt = 1.0 / dt
+        for i in range(n):
+            U[i] += d2[i]
+            Udot[i] = d2[i] * inv_dt
+        clip_dummies(P, N, U)
 
 
 @njit(**JIT)

@@ -71,6 +71,7 @@ def pack_params(model: NominalModel, cfg: RigConfig) -> tuple[np.ndarray, np.nda
     P[PAR.TF] = h.horizon
     P[PAR.GROWTH] = h.horizon_growth
     P[PAR.INIT_TOL] = h.init_tol
+    P[PAR.RES_BOUND] = h.residual_bound
     iP = np.zeros(IP.SIZE, dtype=np.int64)
     iP[IP.N] = h.steps
     iP[IP.KMAX] = h.kmax
