@@ -222,10 +222,10 @@ def _us(durations: Durations, q: float) -> float:
 
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
-    ended short for another reason than a stop request, lost or could not encode log records,
-    tripped the DSP's watchdog, saw a DSP fault, received a stream of frames or messages that
-    failed authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without
-    an enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
+    ended short for another reason than a stop request, lost or could not encode log records
+    or camera images, tripped the DSP's watchdog, saw a DSP fault, received a stream of frames
+    or messages that failed authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran
+    ticks without an enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
     planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
@@ -238,6 +238,8 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         out.append(f"{lost} log record(s) lost")
     if rec.get("encode_errors"):
         out.append(f"{rec['encode_errors']} log record(s) could not be encoded")
+    if rec.get("image_errors"):
+        out.append(f"{rec['image_errors']} camera image(s) could not be written to the log")
     if summary.get("log_error"):
         out.append(f"the MCAP log is incomplete: {summary['log_error']}")
     if summary.get("watchdog_trips"):
@@ -290,12 +292,18 @@ def outage_warnings(outages: dict[str, Any]) -> list[str]:
 
 def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
-    nothing): camera outages (:func:`outage_warnings`), and a realtime run during which the
-    hypervisor took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT` or more
-    of the CPUs' time. The run is still clean (its exit status says so); its J is not the
+    nothing): camera outages (:func:`outage_warnings`), scene drawings or live records the
+    recorder could not make (the cycles themselves are logged), and a realtime run during
+    which the hypervisor took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT`
+    or more of the CPUs' time. The run is still clean (its exit status says so); its J is not the
     lockstep one's.
     """
     out = outage_warnings(summary.get("outages") or {})
+    rec = summary.get("recorder") or {}
+    if rec.get("scene_errors"):
+        out.append(f"{rec['scene_errors']} cycle(s) without their 3D scene in the log")
+    if rec.get("live_errors"):
+        out.append(f"{rec['live_errors']} record(s) did not reach the live view")
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

@@ -148,6 +148,11 @@ def default_run_info(cfg: RigConfig, mono_ns: int, unix_ns: int) -> dict[str, st
     }
 
 
+WRITER_COUNTERS = ("images_written", "image_errors", "scene_errors", "live_errors")
+"""What the file's writer counts besides the topics' messages: camera images logged and those
+that could not be, scene drawings that failed, records the live stream refused."""
+
+
 class Recorder:
     """What both recorders share: the ``record_*`` calls of the loop, each one record item
     ``(kind, t_ns, obj)`` that :meth:`write` encodes for ``add``, the counters, and the context
@@ -160,6 +165,8 @@ class Recorder:
     dropped = encode_errors = 0
     """Records refused (after :meth:`close`, a write failure, a full outbox...) and records
     that could not be encoded: counted, never raised into the tick."""
+    images_written = image_errors = scene_errors = live_errors = 0
+    """The writer's counters beyond the topics' (:data:`WRITER_COUNTERS`)."""
     counts: dict[int, int]
     """Messages written per record kind of :data:`TOPICS`."""
     add: Callable[..., bool]
@@ -222,11 +229,12 @@ class Recorder:
         return 0
 
     def as_dict(self) -> dict[str, int]:
-        """Counters per topic plus ``written``, ``dropped``, ``encode_errors`` and
-        ``backlog_bytes``."""
+        """Counters per topic plus ``written``, ``dropped``, ``encode_errors``, the
+        :data:`WRITER_COUNTERS` and ``backlog_bytes``."""
         out = {t: self.counts[k] for k, t in TOPICS.items()}
         out.update({t: self.counts[k] for k, t in DECODED_TOPICS.items() if k in self.counts})
         out.update(written=self.written, dropped=self.dropped, encode_errors=self.encode_errors)
+        out.update({k: getattr(self, k) for k in WRITER_COUNTERS})
         out.update(backlog_bytes=0 if self.closed else self.backlog_bytes())
         return out
 
@@ -279,11 +287,10 @@ class CycleRecorder(Recorder):
         self.flush_interval_s = float(flush_interval_s)
         self.live = live
         """The live sink (None: none); its exceptions are counted, never propagated."""
-        self.live_sent = self.live_errors = 0
+        self.live_sent = 0
         self._scene = scene
         self._scene_every = max(1, int(getattr(scene, "every", 1)))
-        self.scene_written = self.scene_errors = 0
-        self.images_written = self.image_errors = 0
+        self.scene_written = 0
         self.counts = dict.fromkeys(TOPICS, 0)
         self._canopen = cfg.hardware.profile == "cia402"
         if self._canopen:

@@ -50,6 +50,7 @@ from rt_controller.runtime.recorder import (
     IMAGE,
     RUN_METADATA,
     TOPICS,
+    WRITER_COUNTERS,
     CycleRecorder,
     Recorder,
     run_metadata,
@@ -281,6 +282,8 @@ class RecorderProcess(Recorder):
             self.counts = Counter({k: final[t] for k, t in TOPICS.items()})
             self.counts.update({k: final[t] for k, t in DECODED_TOPICS.items() if t in final})
             self.dropped += final["dropped"]
+            for key in WRITER_COUNTERS:
+                setattr(self, key, int(final.get(key, 0)))
             self.finished = final["finished"]
 
 

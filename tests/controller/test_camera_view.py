@@ -36,3 +36,20 @@ def test_image_records_become_frames_and_detections(tmp_path):
     assert np.array_equal(decode_compressed_image(images[0].data), pixels)  # lossless
     assert b"detected f = (-3.00, 4.00) px" in detections[0].data
     assert b"no target: out_of_view" in detections[1].data
+
+
+def test_an_image_the_recorder_process_cannot_log_is_in_the_summary_and_a_problem(tmp_path):
+    from rt_controller.runtime.counters import run_problems
+    from rt_controller.runtime.recorder_process import RecorderProcess
+
+    pixels = np.zeros((48, 64), np.uint8)
+    ok, png = cv2.imencode(".png", pixels)
+    assert ok
+    good = VisionImage(5, 10**9, 2 * 10**9, True, None, (35.5, 15.5), (-3.0, 4.0), png.tobytes())
+    with RecorderProcess(tmp_path / "run.mcap", RigConfig()) as rec:
+        assert rec.write(IMAGE, 0, encode_vision_image(good))
+        assert rec.write(IMAGE, 0, b"HV\x01 not an image")  # sent: the child finds it bad
+    counts = rec.as_dict()
+    assert (counts["images_written"], counts["image_errors"]) == (1, 1)
+    problems = run_problems({"recorder": counts})
+    assert problems == ["1 camera image(s) could not be written to the log"]

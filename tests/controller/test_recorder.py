@@ -159,6 +159,10 @@ def test_each_record_is_written_before_its_call_returns(tmp_path, cfg):
         "written": 6,
         "dropped": 0,
         "encode_errors": 0,
+        "images_written": 0,
+        "image_errors": 0,
+        "scene_errors": 0,
+        "live_errors": 0,
         "backlog_bytes": 0,
     }
 
