@@ -27,7 +27,6 @@ class NominalModel:
     """s·lambda / z_wo, px/m."""
     kp: float
     alpha: np.ndarray
-    K: np.ndarray
     R: np.ndarray
     R_inv: np.ndarray
     gravity1: float = 0.0
@@ -40,7 +39,6 @@ class NominalModel:
         r = cfg.robot
         t1, t2, t3 = r.theta
         alpha = np.array(cfg.gains.alpha, dtype=float)
-        K = np.array(cfg.gains.K, dtype=float)
         R = cfg.gains.R
         return cfg_cls(
             theta1=t1,
@@ -51,7 +49,6 @@ class NominalModel:
             gain=cfg.camera.gain,
             kp=cfg.gains.kp,
             alpha=alpha,
-            K=K,
             R=R,
             R_inv=np.linalg.inv(R),
             gravity1=(r.m1 * r.lc1 + r.m2 * r.l1) * r.gravity,

@@ -96,18 +96,18 @@ def costs(p, q, xi, f, u):
     ff = eta0 * aeta0 + eta1 * aeta1
     uru = u[0] * (ri[0] * u[0] + ri[1] * u[1]) + u[1] * (ri[2] * u[0] + ri[3] * u[1])
     cost = 4.0 * (xrx + kp * cross + kp * ff) + uru
-    c = np.cos(q[1])
-    m00 = p[PAR.TH1] + p[PAR.TH2] + 2 * p[PAR.TH3] * c
-    m01 = p[PAR.TH2] + p[PAR.TH3] * c
+    m00 = p[PAR.TH1] + p[PAR.TH2] + 2 * p[PAR.TH3] * c2
+    m01 = p[PAR.TH2] + p[PAR.TH3] * c2
     m11 = p[PAR.TH2]
     V = 0.5 * (m00 * xi[0] ** 2 + 2 * m01 * xi[0] * xi[1] + m11 * xi[1] ** 2)
     V += kp / (2.0 * g) * (f[0] ** 2 + f[1] ** 2)
     return cost, V
 
 
-@njit(cache=True, fastmath=False)
-def _accel(p, q0, q1, dq0, dq1, tau0, tau1):
-    """ddq of the nominal arm, M(q) ddq + C(q, dq) dq + g(q) = tau (eq. 1)."""
+@njit(cache=True, fastmath=False, inline="always")
+def _rhs(p, q0, q1, dq0, dq1, tau0, tau1):
+    """d/dt (q, dq) of the nominal arm under the torque (tau0, tau1), as four scalars: ddq from
+    M(q) ddq + C(q, dq) dq + g(q) = tau (eq. 1)."""
     c2, s2 = np.cos(q1), np.sin(q1)
     m00 = p[PAR.TH1] + p[PAR.TH2] + 2 * p[PAR.TH3] * c2
     m01 = p[PAR.TH2] + p[PAR.TH3] * c2
@@ -118,14 +118,7 @@ def _accel(p, q0, q1, dq0, dq1, tau0, tau1):
     r0 = tau0 + h * dq1 * dq0 + h * w * dq1 - p[PAR.G1] * np.cos(q0) - p[PAR.G2] * c12
     r1 = tau1 - h * dq0 * dq0 - p[PAR.G2] * c12
     det = m00 * m11 - m01 * m01
-    return (m11 * r0 - m01 * r1) / det, (m00 * r1 - m01 * r0) / det
-
-
-@njit(cache=True, fastmath=False, inline="always")
-def _rhs(p, x0, x1, x2, x3, tau0, tau1):
-    """d/dt (q, dq) of the nominal arm under the torque (tau0, tau1), as four scalars."""
-    a0, a1 = _accel(p, x0, x1, x2, x3, tau0, tau1)
-    return x2, x3, a0, a1
+    return dq0, dq1, (m11 * r0 - m01 * r1) / det, (m00 * r1 - m01 * r0) / det
 
 
 @njit(cache=True, fastmath=False)

@@ -15,7 +15,6 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.controller import Controller
-from rt_controller.runtime.cycle_record import decision_fields
 from rt_controller.sample_stats import percentile
 
 
@@ -140,20 +139,19 @@ def run_closed_loop(
             state_age_s=age,
             feature_age_s=f_age,
         )
-        rec = decision_fields(controller, d)
         held = d.mode != "control"
         tr.t.append(t)
         tr.q.append(q)
         tr.dq.append(dq)
         tr.f.append(f)
-        tr.xi.append(np.full(2, np.nan) if held else np.asarray(rec["xi"]))
-        tr.u.append(np.asarray(rec["u"]))
+        tr.xi.append(np.full(2, np.nan) if held else d.xi)
+        tr.u.append(d.u)
         tr.tau.append(d.tau)
-        tr.cost.append(0.0 if held else rec["cost"])
-        tr.V.append(rec["V"])
-        tr.residual.append(rec["residual"])
-        tr.iterations.append(rec["iterations"])
-        tr.fallback.append(rec["fallback"])
+        tr.cost.append(0.0 if held else d.cost)
+        tr.V.append(d.V)
+        tr.residual.append(d.residual)
+        tr.iterations.append(int(d.iterations))
+        tr.fallback.append(d.fallback != 0.0)
         tr.solve_ns.append(d.solve_ns)
         plant.hold(d.tau, substeps)
     return SimResult(controller.law, rate, duration, tr)

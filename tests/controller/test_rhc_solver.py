@@ -75,7 +75,7 @@ def test_dummy_input_bounds_hold_at_convergence(cfg, u_max, at_bound):
     for _ in range(10):
         rep = solver.update(x, 0.0, xdot=FROZEN)
     assert rep.residual < 1e-6
-    S = solver.stages
+    S = solver.U.reshape(-1, 6)
     umax = np.array(u_max)
     u, v, mu = S[:, 0:2], S[:, 2:4], S[:, 4:6]
     assert np.all(np.abs(u) <= umax)
@@ -152,7 +152,7 @@ def test_first_input_agrees_with_an_independent_nlp_solution(cfg, horizon, u_max
     solver, model, cfg = solver_for(cfg, **{"rhc.horizon": horizon, "rhc.u_max": list(u_max)})
     x = initial_state(cfg, model)
     rep = solver.update(x, 0.0, xdot=FROZEN)
-    U = solver.stages[:, 0:2].copy()
+    U = solver.U.reshape(-1, 6)[:, 0:2].copy()
     nlp = direct_shooting(model, cfg, x)
     np.testing.assert_allclose(rep.u, nlp[0], rtol=1e-3)
     np.testing.assert_allclose(U, nlp, rtol=1e-3)
@@ -309,7 +309,7 @@ def test_compiled_and_numpy_reference_agree_on_one_tick(cfg, overrides):
     # Agreement to the forward differences' rounding (step 1e-8), as tick by tick above.
     np.testing.assert_allclose(a.u, b.u, rtol=1e-6)
     assert a.residual == pytest.approx(b.residual, rel=1e-3, abs=1e-8)
-    A, B = solver.stages, ref.U.reshape(-1, 6)
+    A, B = solver.U.reshape(-1, 6), ref.U.reshape(-1, 6)
     np.testing.assert_allclose(A[:, 0:4], B[:, 0:4], rtol=1e-5, atol=1e-6 * np.abs(B).max())
     # Multipliers of active bounds (mu = r_v / 2v, v ~ 0) are the most sensitive unknowns.
     np.testing.assert_allclose(A[:, 4:6], B[:, 4:6], rtol=1e-4, atol=1e-6 * np.abs(B).max())

@@ -63,11 +63,9 @@ class CGMRESSolver:
     """
 
     def __init__(self, model: NominalModel, cfg: RigConfig) -> None:
-        self.model = model
         self.cfg = cfg
         self.P, self.iP = pack_params(model, cfg)
         self.N = cfg.rhc.steps
-        self.kmax = cfg.rhc.kmax
         n = NS * self.N
         self.st = np.zeros(ST.HEAD + 2 * n)
         self.U = self.st[ST.HEAD : ST.HEAD + n]
@@ -93,11 +91,6 @@ class CGMRESSolver:
         self.U[:] = 0.0
         self.Udot[:] = 0.0
         self.needs_init = True
-
-    @property
-    def stages(self) -> np.ndarray:
-        """View of U as (N, 6) rows (u1, u2, v1, v2, mu1, mu2)."""
-        return self.U.reshape(self.N, NS)
 
     @property
     def last_fevals(self) -> int:
