@@ -1,10 +1,12 @@
 """SCHED_FIFO for the calling thread, best effort: the rig's time-critical threads that are not
 the controller's loop (the emulated camera, the frame grabber) ask for it once, from the thread
-itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only)."""
+itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only). The other
+way, a thread off every deadline's path lowers its own priority (:func:`nice_thread`)."""
 
 from __future__ import annotations
 
 import os
+import threading
 
 
 def fifo_thread(priority: int) -> str | None:
@@ -17,3 +19,14 @@ def fifo_thread(priority: int) -> str | None:
     except (OSError, AttributeError) as exc:
         return f"SCHED_FIFO {priority} refused ({exc})"
     return None
+
+
+def nice_thread(by: int) -> None:
+    """Raise the calling thread's nice value by ``by`` (at most to 19): it then leaves a core to
+    the threads at the default priority while they want one. Linux keeps a nice value per
+    thread; lowering one's own priority needs no privilege. Best effort, never raises."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + by, 19))
+    except (OSError, AttributeError):
+        pass
