@@ -203,7 +203,7 @@ class Cia402Hardware(HardwareBase):
             block[f"{name}_p99"] = percentile(samples, 99)
         return {
             "can_rx": {"authenticated": False, "syncs_sent": m.sync_count},
-            "features": self.features.features.counts.as_dict(),
+            "features": self.features.counts(),
             "dsp": block,
         }
 

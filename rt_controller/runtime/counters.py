@@ -220,6 +220,12 @@ def _us(durations: Durations, q: float) -> float:
     return durations.percentile_us(q) if len(durations) else math.nan
 
 
+def _images_refused(rejections: dict[str, Any]) -> int:
+    """Camera images the controller refused to log (:class:`~rt_controller.runtime.
+    feature_link.FeatureLink`), from a summary's ``rejections``."""
+    return int((rejections.get("features") or {}).get("images_rejected", 0))
+
+
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
     ended short for another reason than a stop request, lost or could not encode log records
@@ -253,6 +259,9 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         if sum(auth.values()) >= diagnostics.AUTH_FAULT_MIN:
             reasons = ", ".join(f"{k} {v}" for k, v in auth.items() if v)
             out.append(f"{sum(auth.values())} {what} failed authentication ({reasons})")
+    images = _images_refused(rejections)
+    if images >= diagnostics.AUTH_FAULT_MIN:
+        out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
     dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
     if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")
@@ -293,7 +302,8 @@ def outage_warnings(outages: dict[str, Any]) -> list[str]:
 def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
     nothing): camera outages (:func:`outage_warnings`), scene drawings or live records the
-    recorder could not make (the cycles themselves are logged), and a realtime run during
+    recorder could not make (the cycles themselves are logged), a few camera images refused for
+    the log (a stream of them is a problem), and a realtime run during
     which the hypervisor took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT`
     or more of the CPUs' time. The run is still clean (its exit status says so); its J is not the
     lockstep one's.
@@ -304,6 +314,9 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
         out.append(f"{rec['scene_errors']} cycle(s) without their 3D scene in the log")
     if rec.get("live_errors"):
         out.append(f"{rec['live_errors']} record(s) did not reach the live view")
+    images = _images_refused(summary.get("rejections") or {})
+    if 0 < images < diagnostics.AUTH_FAULT_MIN:
+        out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

@@ -44,8 +44,8 @@ class FeatureLink:
         self._ring: PayloadRing | None = None
         self._subscriber: Any = None
         self._image_subscriber: Any = None
-        self.images_recorded = self.images_rejected = 0
-        """``hil/vision/image`` payloads logged, and refused (not authentic or malformed)."""
+        self.images_rejected = 0
+        """``hil/vision/image`` payloads refused for the log (not authentic or malformed)."""
         self._feeding = threading.Lock()
         self._attached = False
 
@@ -71,6 +71,10 @@ class FeatureLink:
         self._subscriber = self._image_subscriber = None
         with self._feeding:
             self._attached = False
+
+    def counts(self) -> dict[str, int]:
+        """The feature decoder's counters plus ``images_rejected`` (the run's diagnostics)."""
+        return {**self.features.counts.as_dict(), "images_rejected": self.images_rejected}
 
     def poll(self, now_ns: int) -> None:
         """Realtime: the messages waiting in the ring into the decoder, stamped ``now_ns``."""
@@ -110,7 +114,6 @@ class FeatureLink:
             except HalCodecError:
                 self.images_rejected += 1
                 return
-            self.images_recorded += 1
             self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
 
 

@@ -230,7 +230,7 @@ class DspHardware(HardwareBase):
         status = self.dsp.status
         return {
             "can_rx": diagnostics.since(self.can_base, self.dsp.stats.e2e.as_dict()),
-            "features": self.features.features.counts.as_dict(),
+            "features": self.features.counts(),
             "dsp": {
                 "status_received": status is not None,
                 "mode": self.monitor.mode,
