@@ -5,6 +5,7 @@ way, a thread off every deadline's path lowers its own priority (:func:`nice_thr
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 
@@ -25,8 +26,11 @@ def nice_thread(by: int) -> None:
     """Raise the calling thread's nice value by ``by`` (at most to 19): it then leaves a core to
     the threads at the default priority while they want one. Linux keeps a nice value per
     thread; lowering one's own priority needs no privilege. Best effort, never raises."""
-    try:
-        tid = threading.get_native_id()
+    raise_nice(threading.get_native_id(), by)
+
+
+def raise_nice(tid: int, by: int) -> None:
+    """:func:`nice_thread` for thread (or single-threaded process) ``tid``, e.g. a child
+    process just started (the threads it starts inherit the value). Best effort."""
+    with contextlib.suppress(OSError, AttributeError):
         os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + by, 19))
-    except (OSError, AttributeError):
-        pass

@@ -41,6 +41,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import IndexType, Writer
 
 from hal.config import RigConfig, config_from_json
+from hal.fifo import raise_nice
 from rt_controller.errors import LogError
 from rt_controller.runtime.recorder import (
     CONFIG_METADATA,
@@ -71,6 +72,13 @@ START_TIMEOUT_S = 60.0
 seconds on a slow host such as user-mode Linux)."""
 READY = b"ready\n"
 """The child's line once the log is open (or failed to open): the run may start."""
+LOCKSTEP_NICE = 10
+"""Lockstep (``backpressure``): the recorder process's nice value is raised by this much. A
+Sync-paced period is a chain through the emulator, the vision process and the controller that
+waits for nothing else; the log (0.6 ms of CPU a period with images, most of it zstd on the
+chunks) is off that chain and, at the same priority, took a core from it on a 2-core host. It
+still has every idle moment of a core, and the tick waits for it when the pipe is full, so
+nothing is lost. Realtime keeps the default: there a starved recorder would drop records."""
 IDLE_S = 0.25
 """How often the waiting child looks whether the log is due for a flush."""
 
@@ -92,10 +100,13 @@ class _Outbox(bytearray):
         pass
 
 
-def _demote(pid: int) -> None:
+def _demote(pid: int, nice: int = 0) -> None:
     """Best effort, before the child has imported anything: it must not compete with a
     SCHED_FIFO loop that started it (a later run of a plan: the policy and a single-CPU
-    affinity are inherited)."""
+    affinity are inherited); ``nice``: raise its nice value by that much (its threads
+    inherit it)."""
+    if nice > 0:
+        raise_nice(pid, nice)
     try:
         os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
         cpus, everything = os.sched_getaffinity(pid), set(range(os.cpu_count() or 1))
@@ -150,7 +161,7 @@ class RecorderProcess(Recorder):
             env={"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD), **os.environ},
         )
         self.pid = self._child.pid
-        _demote(self.pid)
+        _demote(self.pid, LOCKSTEP_NICE if backpressure else 0)
         self._pipe = self._child.stdin.fileno()
         with contextlib.suppress(OSError):
             fcntl.fcntl(self._pipe, fcntl.F_SETPIPE_SZ, 1 << 20)  # Linux's unprivileged maximum

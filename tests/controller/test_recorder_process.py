@@ -272,3 +272,18 @@ def test_lockstep_logs_of_the_same_records_hold_the_same_bytes(tmp_path, cfg):
         assert rec.dropped == 0 and rec.error is None
     a, b = (_messages(p) for p in paths)
     assert len(a) == 801 and a == b == _messages(tmp_path / "here.mcap")
+
+
+@pytest.mark.parametrize("backpressure", [True, False])
+def test_a_lockstep_log_is_written_at_a_lower_priority_a_realtime_one_at_ours(
+    tmp_path, cfg, backpressure
+):
+    """Lockstep: the recorder leaves the cores to the Sync-paced chain (nice +10; the tick
+    waits for it when the pipe is full); realtime: our priority, a starved recorder would drop
+    records."""
+    ours = os.getpriority(os.PRIO_PROCESS, 0)
+    with RecorderProcess(tmp_path / "run.mcap", cfg, backpressure=backpressure) as rec:
+        nice = os.getpriority(os.PRIO_PROCESS, rec.pid)
+        _feed(rec, 5)
+    assert nice == (min(ours + 10, 19) if backpressure else ours)
+    assert read_log(tmp_path / "run.mcap").n_cycles == 5
