@@ -317,6 +317,11 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     images = _images_refused(summary.get("rejections") or {})
     if 0 < images < diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
+    missing = int(
+        ((summary.get("rejections") or {}).get("features") or {}).get("images_missing", 0)
+    )
+    if missing:
+        out.append(f"{missing} camera image(s) of the last frames did not reach the log in time")
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

@@ -17,7 +17,7 @@ import numpy as np
 
 from hal.errors import HalCodecError
 from hal.hardware_interface import InputJudge
-from hal.vision_image import decode_vision_image
+from hal.vision_image import ImageSlots, decode_vision_image
 from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE, PayloadRing
 from rt_controller.runtime.context import RunContext
@@ -46,6 +46,16 @@ class FeatureLink:
         self._image_subscriber: Any = None
         self.images_rejected = 0
         """``hil/vision/image`` payloads refused for the log (not authentic or malformed)."""
+        camera = ctx.cfg.camera
+        self._slots = ImageSlots(camera.image_log_fps if camera.model == "image" else 0.0)
+        """Lockstep: the frames whose image the vision process logs (its own rule), from the
+        features received."""
+        self._images = threading.Condition()
+        self._images_due: list[int] = []
+        """Lockstep: simulation times of the frames whose image is still to come (newer than
+        the newest logged: an image follows its features, so each older one had its turn)."""
+        self._image_seen_ns = -1
+        """Simulation time of the newest image logged."""
         self._feeding = threading.Lock()
         self._attached = False
 
@@ -73,8 +83,22 @@ class FeatureLink:
             self._attached = False
 
     def counts(self) -> dict[str, int]:
-        """The feature decoder's counters plus ``images_rejected`` (the run's diagnostics)."""
-        return {**self.features.counts.as_dict(), "images_rejected": self.images_rejected}
+        """The feature decoder's counters plus ``images_rejected`` and, in lockstep,
+        ``images_missing`` (images of received frames not logged; the run's diagnostics)."""
+        with self._images:
+            missing = len(self._images_due)
+        return {
+            **self.features.counts.as_dict(),
+            "images_rejected": self.images_rejected,
+            "images_missing": missing,
+        }
+
+    def settle_images(self, timeout_s: float) -> bool:
+        """Lockstep: wait until the camera images of the frames received so far are in the
+        log (the vision process sends each after its features, so the run's last ones may
+        still be on their way), at most ``timeout_s``. True when none is missing."""
+        with self._images:
+            return self._images.wait_for(lambda: not self._images_due, timeout_s)
 
     def poll(self, now_ns: int) -> None:
         """Realtime: the messages waiting in the ring into the decoder, stamped ``now_ns``."""
@@ -103,6 +127,11 @@ class FeatureLink:
             self.features.feed(payload, now)
             if self.record_raw:
                 self.ctx.recorder.record_vision(payload, now)
+            latest = self.features.latest
+            if self.by_callback and latest is not None and self._slots.take(latest.sim_time_ns):
+                with self._images:
+                    if latest.sim_time_ns > self._image_seen_ns:
+                        self._images_due.append(latest.sim_time_ns)
 
     def _on_image(self, payload: bytes) -> None:
         """What the camera saw (``hil/vision/image``, authenticated) into the log."""
@@ -110,11 +139,15 @@ class FeatureLink:
             if not self._attached:
                 return
             try:
-                decode_vision_image(payload, self.features.key)
+                image = decode_vision_image(payload, self.features.key)
             except HalCodecError:
                 self.images_rejected += 1
                 return
             self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
+        with self._images:
+            seen = self._image_seen_ns = max(self._image_seen_ns, image.sim_time_ns)
+            self._images_due = [t for t in self._images_due if t > seen]
+            self._images.notify_all()
 
 
 __all__ = ["FeatureLink"]

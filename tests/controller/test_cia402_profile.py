@@ -41,6 +41,9 @@ class Features:
     def counts(self) -> dict[str, int]:
         return {}
 
+    def settle_images(self, timeout_s: float) -> bool:
+        return True
+
     def poll(self, now_ns: int) -> None:
         pass
 

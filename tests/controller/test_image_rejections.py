@@ -11,7 +11,7 @@ from hal.config import RigConfig
 from hal.secoc import rig_key
 from hal.vision_image import VisionImage, encode_vision_image
 from hal.vision_receivers import FeatureDecoder
-from hal.zenoh_session import KEY_VISION_IMAGE
+from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import RunCounters, run_problems, run_warnings
 from rt_controller.runtime.diagnostics import AUTH_FAULT_MIN
@@ -79,4 +79,39 @@ def test_refused_images_are_counted_and_said_in_the_summary() -> None:
         f"{AUTH_FAULT_MIN} camera image(s) refused for the log (not authentic or malformed)"
     ]
     assert not any("camera image" in w for w in run_warnings(summary))
+    link.detach()
+
+
+def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
+    """The vision process sends a frame's image after its features: the end of a lockstep run
+    waits for the images of the frames it received (10 fps of simulation time: the frames at
+    0 and 0.1 s of these six), so the log holds them all."""
+    from hal.vision_codec import FeatureMsg, encode_features
+
+    cfg = RigConfig()
+    assert cfg.camera.model == "image" and cfg.camera.image_log_fps == 10.0
+    key = rig_key(cfg)
+    rec, session = ImageRecorder(), Session()
+    ctx = RunContext(cfg, FakeClock(10**9), threading.Event(), RunCounters(), rec)
+    decoder = FeatureDecoder.from_config(cfg.controller, key=key)
+    link = FeatureLink(ctx, session, decoder, by_callback=True, record_raw=False)
+    link.attach()
+    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
+
+    def image(k: int) -> bytes:
+        msg = VisionImage(k, 10**9, k * 20_000_000, True, None, (1.0, 2.0), (3.0, 4.0), b"png")
+        return encode_vision_image(msg, key=key)
+
+    for k in range(6):  # frames every 20 ms of simulation time
+        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
+        on_features(encode_features(msg, key=key))
+    assert decoder.latest is not None and decoder.latest.frame == 5
+    on_image(image(0))
+    assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
+    assert not link.settle_images(0.01)
+    late = threading.Timer(0.05, on_image, args=(image(5),))
+    late.start()
+    assert link.settle_images(10.0)
+    late.join()
+    assert link.counts()["images_missing"] == 0 and len(rec.images) == 2
     link.detach()
