@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
@@ -27,6 +28,25 @@ STACKS_AFTER_S = 8.0
 stderr, so a stop that hangs (the rig SIGKILLs after 10 s) names where it hung. An orphan
 (its parent died before the signal, as when a SIGKILLed ``hil up`` sends its children the
 parent-death signal) then exits with status 1: nobody is left to kill it."""
+
+
+STOP_POLL_S = 0.1
+"""How often a main thread waiting for the stop wakes (:func:`wait_for_stop`)."""
+
+
+def wait_for_stop(
+    stop: threading.Event, timeout_s: float | None = None, poll_s: float = STOP_POLL_S
+) -> bool:
+    """Block until ``stop`` is set (True) or ``timeout_s`` passed (False; None: no limit),
+    waking every ``poll_s``. The kernel may deliver a stop signal to any thread (zenoh's,
+    canopen's); that does not interrupt the main thread's untimed wait, and Python runs the
+    handler that sets ``stop`` only in the main thread, when it next wakes. A long
+    ``stop.wait()`` there can therefore sleep through the signal."""
+    end = None if timeout_s is None else time.monotonic() + timeout_s
+    while not stop.wait(poll_s if end is None else max(0.0, min(poll_s, end - time.monotonic()))):
+        if end is not None and time.monotonic() >= end:
+            return False
+    return True
 
 
 @contextlib.contextmanager

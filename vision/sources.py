@@ -31,6 +31,7 @@ import numpy as np
 from hal.camera_frame import CameraFrame, FrameDecoder, RoiRequest, encode_roi_request
 from hal.durations import Durations
 from hal.errors import HalConfigError, HalTransportError
+from hal.signals import wait_for_stop
 
 FrameSink = Callable[[CameraFrame], None]
 """Receives each frame."""
@@ -119,7 +120,7 @@ class EmulatedSource:
 
         sub = self.session.subscribe(KEY_CAMERA_FRAME, feed)  # type: ignore[attr-defined]
         try:
-            stop.wait()
+            wait_for_stop(stop)  # a stop signal may reach a zenoh thread, not this one
         finally:
             sub.undeclare()
             pub, self._roi_pub = self._roi_pub, None

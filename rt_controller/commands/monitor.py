@@ -8,6 +8,7 @@ import os
 import sys
 
 from hal.arguments import add_key_option, duration
+from hal.signals import wait_for_stop
 from rt_controller.commands.common import add_config_option
 
 
@@ -126,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"hil monitor:   parameters {_mode_line(args, mode)}", file=sys.stderr)
                 for topic, schema in bridge.channels().items():
                     print(f"hil monitor:   {topic}  [{schema}]", file=sys.stderr)
-                stop.wait(args.duration or None)
+                wait_for_stop(stop, args.duration or None)
             finally:
                 clean = bridge.close()
                 counts = dict(bridge.counts)
