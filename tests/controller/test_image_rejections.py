@@ -49,15 +49,23 @@ def _image(key: bytes) -> bytes:
     return encode_vision_image(msg, key=key)
 
 
+def _lockstep_link(
+    cfg: RigConfig,
+) -> tuple[FeatureLink, FeatureDecoder, ImageRecorder, Session]:
+    """A lockstep run's feature link, attached, on a session that keeps its callbacks."""
+    rec, session = ImageRecorder(), Session()
+    ctx = RunContext(cfg, FakeClock(10**9), threading.Event(), RunCounters(), rec)
+    decoder = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
+    link = FeatureLink(ctx, session, decoder, by_callback=True, record_raw=False)
+    link.attach()
+    return link, decoder, rec, session
+
+
 def test_refused_images_are_counted_and_said_in_the_summary() -> None:
     cfg = RigConfig()
     assert cfg.camera.image_log_fps > 0  # the default logs images
     key = rig_key(cfg)
-    rec, session = ImageRecorder(), Session()
-    ctx = RunContext(cfg, FakeClock(10**9), threading.Event(), RunCounters(), rec)
-    decoder = FeatureDecoder.from_config(cfg.controller, key=key)
-    link = FeatureLink(ctx, session, decoder, by_callback=True, record_raw=False)
-    link.attach()
+    link, _, rec, session = _lockstep_link(cfg)
     on_image = session.callbacks[KEY_VISION_IMAGE]
 
     on_image(_image(key))
@@ -91,11 +99,7 @@ def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
     cfg = RigConfig()
     assert cfg.camera.model == "image" and cfg.camera.image_log_fps == 10.0
     key = rig_key(cfg)
-    rec, session = ImageRecorder(), Session()
-    ctx = RunContext(cfg, FakeClock(10**9), threading.Event(), RunCounters(), rec)
-    decoder = FeatureDecoder.from_config(cfg.controller, key=key)
-    link = FeatureLink(ctx, session, decoder, by_callback=True, record_raw=False)
-    link.attach()
+    link, decoder, rec, session = _lockstep_link(cfg)
     on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
 
     def image(k: int) -> bytes:
