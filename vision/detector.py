@@ -80,14 +80,29 @@ def _median(a: np.ndarray) -> float:
     return float((p[k - 1] + p[k]) / 2)
 
 
-def _plane(win: np.ndarray, xs: np.ndarray, ys: np.ndarray, ring: np.ndarray) -> np.ndarray:
-    """The plane's grey level under the window: a linear fit to the ring around the region
-    (removes the texture's gradient, which would pull the centroid)."""
-    if ring.sum() < 3:
+def _plane(win: np.ndarray, ring: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The plane's grey level under the window: a least-squares linear fit to the ring around
+    the region (removes the texture's gradient, which would pull the centroid). ``x`` (a row)
+    and ``y`` (a column) are the window's pixel coordinates about its centre: the 3x3 normal
+    equations of centred coordinates are well conditioned, solved in closed form."""
+    rows, cols = np.nonzero(ring)
+    if rows.size < 3:
         return np.full(win.shape, float(win.max()))
-    a = np.stack([np.ones(int(ring.sum())), xs[ring], ys[ring]], axis=1).astype(np.float64)
-    coef, *_ = np.linalg.lstsq(a, win[ring], rcond=None)
-    return coef[0] + coef[1] * xs + coef[2] * ys
+    xr, yr, z = x[cols], y[rows, 0], win[rows, cols]
+    n, sx, sy, sz = float(rows.size), float(xr.sum()), float(yr.sum()), float(z.sum())
+    sxx, sxy, syy = float(xr @ xr), float(xr @ yr), float(yr @ yr)
+    sxz, syz = float(xr @ z), float(yr @ z)
+    # Cramer's rule on [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] (c0, cx, cy) = (sz, sxz, syz)
+    m0 = sxx * syy - sxy * sxy
+    m1 = sx * syy - sxy * sy
+    m2 = sx * sxy - sxx * sy
+    det = n * m0 - sx * m1 + sy * m2
+    if abs(det) <= 1e-9 * n * (sxx + syy) ** 2:  # the ring on one line: no slope across it
+        return np.full(win.shape, sz / n)
+    c0 = (sz * m0 - sx * (sxz * syy - sxy * syz) + sy * (sxz * sxy - sxx * syz)) / det
+    cx = (n * (sxz * syy - sxy * syz) - sz * m1 + sy * (sx * syz - sxz * sy)) / det
+    cy = (n * (sxx * syz - sxz * sxy) - sx * (sx * syz - sxz * sy) + sz * m2) / det
+    return c0 + cx * x + cy * y
 
 
 def _shape(m: dict[str, float]) -> tuple[float, float]:
@@ -194,15 +209,18 @@ def _detect(
     cv2.drawContours(inside, [contour], 0, 1, thickness=cv2.FILLED, offset=(-x0, -y0))
     support = cv2.dilate(inside, _KERNEL3).astype(bool)
     ring = cv2.dilate(inside, _KERNEL5).astype(bool) & ~support
-    ys, xs = np.mgrid[y0:y1, x0:x1]
-    bg = _plane(win, xs, ys, ring)
+    xc, yc = (x0 + x1 - 1) / 2.0, (y0 + y1 - 1) / 2.0
+    x = np.arange(x1 - x0, dtype=np.float64)[None, :] + (x0 - xc)
+    y = np.arange(y1 - y0, dtype=np.float64)[:, None] + (y0 - yc)
+    bg = _plane(win, ring, x[0], y)
     core = cv2.erode(inside, _KERNEL3).astype(bool)
     fg = _median(win[core]) if core.any() else float(win.min())
     depth = bg - fg
     if not ring.any() or _median(depth[support]) < params.min_contrast:
         return None, "not_found"
-    weight = np.where(support, np.clip((bg - win) / depth, 0.0, 1.0), 0.0)
+    weight = np.clip((bg - win) / depth, 0.0, 1.0)
+    weight[~support] = 0.0
     total = weight.sum()
-    u = float((weight * xs).sum() / total)
-    v = float((weight * ys).sum() / total)
+    u = xc + float(weight.sum(axis=0) @ x[0]) / total
+    v = yc + float(weight.sum(axis=1) @ y[:, 0]) / total
     return Detection(u, v, area, elongation), None
