@@ -1,12 +1,13 @@
 """SCHED_FIFO for the calling thread, best effort: the rig's time-critical threads that are not
 the controller's loop (the emulated camera, the frame grabber) ask for it once, from the thread
 itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only). The other
-way, a process off every deadline's path gets a lower priority (:func:`raise_nice`)."""
+way, a thread off every deadline's path lowers its own priority (:func:`nice_thread`)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import threading
 
 
 def fifo_thread(priority: int) -> str | None:
@@ -21,10 +22,15 @@ def fifo_thread(priority: int) -> str | None:
     return None
 
 
+def nice_thread(by: int) -> None:
+    """Raise the calling thread's nice value by ``by`` (at most to 19): it then leaves a core to
+    the threads at the default priority while they want one. Linux keeps a nice value per
+    thread; lowering one's own priority needs no privilege. Best effort, never raises."""
+    raise_nice(threading.get_native_id(), by)
+
+
 def raise_nice(tid: int, by: int) -> None:
-    """Raise the nice value of thread (or single-threaded process) ``tid`` by ``by`` (at most to
-    19), e.g. of a child process just started (the threads it starts inherit the value): it
-    then leaves a core to the threads at the default priority while they want one. Lowering a
-    priority needs no privilege. Best effort, never raises."""
+    """:func:`nice_thread` for thread (or single-threaded process) ``tid``, e.g. a child
+    process just started (the threads it starts inherit the value). Best effort."""
     with contextlib.suppress(OSError, AttributeError):
         os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + by, 19))

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import cv2
 
 from hal.camera_frame import CameraFrame
+from hal.fifo import nice_thread
 from hal.vision_codec import FeatureMsg
 from hal.vision_image import ImageSlots, VisionImage
 from vision.pipeline import Measurement
@@ -38,6 +39,12 @@ and its filtered rows compress no better. Measured at 640x480 with the default n
 level 1 with libpng's adaptive filters (0.3 ms and 308 kB stored, uncompressed)."""
 BACKLOG = 4
 """Frames waiting for their PNG at most (realtime; lockstep frames wait for room)."""
+LOCKSTEP_NICE = 10
+"""Lockstep: how much the PNG thread lowers its own priority (nice) once it has a lockstep
+frame. A period's chain (render, detect, tick, DSP) runs in four processes on a host that may
+have only two cores; the PNG is off that chain, and at the same priority it took a core from it
+(the scheduler cannot tell which thread the next period waits for). Realtime frames keep the
+default priority: there a starved thread would drop frames (``dropped``)."""
 
 
 def png(pixels) -> bytes:
@@ -108,7 +115,11 @@ class ImageLog:
         self._thread = None
 
     def _run(self) -> None:
+        niced = False
         while (item := self._queue.get()) is not None:
+            if not niced and item[0].lockstep:
+                niced = True
+                nice_thread(LOCKSTEP_NICE)
             self._send(*item)
 
     def _send(self, frame: CameraFrame, m: Measurement) -> None:

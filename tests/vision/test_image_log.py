@@ -102,3 +102,24 @@ def test_regions_of_interest_are_never_logged_the_slot_takes_the_next_whole_fram
     shapes = {cv2.imdecode(np.frombuffer(img.png, np.uint8), 0).shape for img in got}
     assert shapes == {(48, 64)}
     assert log.counters()["regions"] == 3
+
+
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_lockstep_pngs_are_made_at_a_lower_priority_realtime_ones_at_the_default(lockstep):
+    """Lockstep: the PNG thread is off the period's chain and leaves the cores to it (nice +10);
+    realtime frames keep the default priority (a starved thread would drop them). The
+    grabber's thread is never touched."""
+    import os
+
+    def nice() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    seen: list[int] = []
+    log = ImageLog(10.0, lambda image: seen.append(nice()), 1)
+    before = nice()
+    for i in range(10):  # 0.2 s at 50 Hz: frames 0 and 5 are logged
+        f = frame(i, lockstep)
+        log(f, NO_F, msg(f))
+    log.close()
+    assert nice() == before
+    assert seen == [min(before + 10, 19) if lockstep else before] * 2
