@@ -1,13 +1,21 @@
 """SCHED_FIFO for the calling thread, best effort: the rig's time-critical threads that are not
 the controller's loop (the emulated camera, the frame grabber) ask for it once, from the thread
 itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only). The other
-way, a thread off every deadline's path lowers its own priority (:func:`nice_thread`)."""
+way, a thread off every deadline's path lowers its own priority (:func:`nice_thread`); and a
+process whose threads share the GIL hands it over sooner (:func:`short_gil_switch`)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import threading
+
+GIL_SWITCH_S = 0.0005
+"""The GIL switch interval of a rig process whose deadline thread shares the GIL with a busy one
+(Python's default is 5 ms: a thread that wants the GIL may wait that long for a thread running
+Python). The emulator (the DSP thread beside the camera's renderer) and the vision process (the
+frame grabber beside the image log's PNG thread) use it; figures in docs/benchmarks.md."""
 
 
 def fifo_thread(priority: int) -> str | None:
@@ -34,3 +42,8 @@ def raise_nice(tid: int, by: int) -> None:
     process just started (the threads it starts inherit the value). Best effort."""
     with contextlib.suppress(OSError, AttributeError):
         os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + by, 19))
+
+
+def short_gil_switch() -> None:
+    """Lower this process's GIL switch interval to :data:`GIL_SWITCH_S` (never raise it)."""
+    sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_S))

@@ -58,7 +58,7 @@ from dataclasses import asdict, dataclass
 from hal.camera_frame import RoiRequest, decode_roi_request, encode_frame
 from hal.config import RigConfig
 from hal.errors import HalError
-from hal.fifo import fifo_thread
+from hal.fifo import fifo_thread, short_gil_switch
 from hal.vision_image import ImageSlots
 from plant_emulator.camera import CameraPose
 from plant_emulator.camera_poses import PoseHistory, PoseSample
@@ -69,12 +69,6 @@ DEFAULT_FPS = 60.0
 """Realtime frame rate when ``camera.frame_rate_hz`` is 0 (the XC-HR57's)."""
 HISTORY_S = 0.25
 """Realtime: how much pose history the renderer keeps for a frame's exposure."""
-SWITCH_INTERVAL_S = 0.0005
-"""The emulator's GIL switch interval once the camera runs (Python's default is 5 ms): the
-renderer's Python holds the GIL while the DSP thread, woken by the controller's torque, wants
-it to announce the next period. Measured (lockstep, 5 s of ioc with images, three pairs of
-runs on a host at load 8-9): the DSP-and-CAN part of the period 2.9, 3.0, 3.1 ms median with
-5 ms, 2.3, 2.5, 1.4 ms with 0.5 ms."""
 ROI_WAIT_S = 0.05
 """Lockstep: how long the camera waits for the grabber's region request of a frame."""
 ROI_KEEP = 8
@@ -234,7 +228,7 @@ class CameraNode:
         time), then start the worker thread."""
         self.sensor.warm_up()
         self.sensor.render(lambda t: CameraPose(0.0, 0.0, 0.0), 0.0)
-        sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
+        short_gil_switch()  # the renderer's Python holds the GIL the DSP thread wants
         self._thread = threading.Thread(target=self._run, name="hil-camera", daemon=True)
         self._thread.start()
         return self

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import cv2
 
 from hal.camera_frame import CameraFrame
-from hal.fifo import nice_thread
+from hal.fifo import nice_thread, short_gil_switch
 from hal.vision_codec import FeatureMsg
 from hal.vision_image import ImageSlots, VisionImage
 from vision.pipeline import Measurement
@@ -85,6 +85,7 @@ class ImageLog:
         if not self.slots.take(frame.sim_time_ns):
             return
         if self._thread is None:
+            short_gil_switch()  # the PNG thread's Python holds the GIL the grabber wants
             self._thread = threading.Thread(target=self._run, name="hil-image-log", daemon=True)
             self._thread.start()
         if frame.lockstep:

@@ -123,3 +123,22 @@ def test_lockstep_pngs_are_made_at_a_lower_priority_realtime_ones_at_the_default
     log.close()
     assert nice() == before
     assert seen == [min(before + 10, 19) if lockstep else before] * 2
+
+
+def test_the_png_thread_shortens_the_gil_switch_interval():
+    """The PNG thread's Python competes with the grabber for the GIL: once it runs, the
+    process hands the GIL over after GIL_SWITCH_S, not Python's 5 ms."""
+    import sys
+
+    from hal.fifo import GIL_SWITCH_S
+
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(0.005)
+    try:
+        log = ImageLog(10.0, lambda image: None, 1)
+        f = frame(0, True)
+        log(f, NO_F, msg(f))
+        log.close()
+        assert sys.getswitchinterval() == GIL_SWITCH_S
+    finally:
+        sys.setswitchinterval(before)
