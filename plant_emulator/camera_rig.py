@@ -4,14 +4,8 @@ the scenario puts it) and the sensor (the "true" lens, noise and exposure of ``[
 from __future__ import annotations
 
 from hal.config import RigConfig, plant_view
-from plant_emulator.camera_sensor import (
-    CameraSensor,
-    Intrinsics,
-    LensDistortion,
-    Resolution,
-    Scene,
-    SensorNoise,
-)
+from plant_emulator.camera_lens import Intrinsics, LensDistortion
+from plant_emulator.camera_sensor import CameraSensor, Resolution, Scene, SensorNoise
 from plant_emulator.camera_textures import marker_texture
 from plant_emulator.scenario import paper_target
 

@@ -8,15 +8,8 @@ import pytest
 
 from hal.config import RigConfig
 from plant_emulator.camera import CameraPose, camera_pose, project
-from plant_emulator.camera_sensor import (
-    CameraSensor,
-    Intrinsics,
-    LensDistortion,
-    Resolution,
-    SensorNoise,
-    distort,
-    undistort,
-)
+from plant_emulator.camera_lens import Intrinsics, LensDistortion, distort, undistort
+from plant_emulator.camera_sensor import CameraSensor, Resolution, SensorNoise
 from plant_emulator.camera_textures import GridTexture, marker_texture
 from plant_emulator.errors import CameraSensorError
 from plant_emulator.scenario import paper_target

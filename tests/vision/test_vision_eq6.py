@@ -9,13 +9,8 @@ import pytest
 
 from hal.config import RigConfig
 from plant_emulator.camera import camera_pose, project
-from plant_emulator.camera_sensor import (
-    CameraSensor,
-    Intrinsics,
-    LensDistortion,
-    Resolution,
-    SensorNoise,
-)
+from plant_emulator.camera_lens import Intrinsics, LensDistortion
+from plant_emulator.camera_sensor import CameraSensor, Resolution, SensorNoise
 from plant_emulator.camera_textures import marker_texture
 from plant_emulator.scenario import paper_target
 from vision.intrinsics import Intrinsics as VisionIntrinsics
