@@ -125,11 +125,19 @@ class CameraSensor:
     def project(self, pose: CameraPose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Pixel coordinates ``(..., 2)`` (u, v) of world points on the plane, through the lens."""
         c, s = math.cos(pose.phi), math.sin(pose.phi)
-        dx, dy = np.asarray(x, dtype=float) - pose.x, np.asarray(y, dtype=float) - pose.y
+        u, v = self._pixels(
+            pose.x, pose.y, c, s, np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        )
+        return np.stack([u, v], axis=-1)
+
+    def _pixels(self, px, py, c, s, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project` for a camera at ``(px, py)`` turned by ``(c, s) = (cos, sin)`` of its
+        heading: scalars, or columns for one pose a row of ``x`` and ``y``."""
+        dx, dy = x - px, y - py
         xn, yn = (c * dx + s * dy) / self.z_wo, (-s * dx + c * dy) / self.z_wo
         xd, yd = distort(xn, yn, self.distortion)
         k = self.intrinsics
-        return np.stack([k.cx + k.fx * xd, k.cy + k.fy * yd], axis=-1)
+        return k.cx + k.fx * xd, k.cy + k.fy * yd
 
     def subexposures(self, pose_at: Callable[[float], CameraPose], t_mid: float) -> np.ndarray:
         """Times (s) of the sub-exposures of a frame exposed around ``t_mid``."""
@@ -328,15 +336,14 @@ class CameraSensor:
             return [whole]
         bx = np.stack([o[0] for o in outlines])  # type: ignore[index]
         by = np.stack([o[1] for o in outlines])  # type: ignore[index]
-        px = np.array([[p.x] for p, _ in ends])
-        py = np.array([[p.y] for p, _ in ends])
-        c = np.array([[math.cos(p.phi)] for p, _ in ends])
-        sn = np.array([[math.sin(p.phi)] for p, _ in ends])
-        dx, dy = bx - px, by - py
-        xn, yn = (c * dx + sn * dy) / self.z_wo, (-sn * dx + c * dy) / self.z_wo
-        xd, yd = distort(xn, yn, self.distortion)
-        k = self.intrinsics
-        u, v = k.cx + k.fx * xd, k.cy + k.fy * yd
+        u, v = self._pixels(
+            np.array([[p.x] for p, _ in ends]),
+            np.array([[p.y] for p, _ in ends]),
+            np.array([[math.cos(p.phi)] for p, _ in ends]),
+            np.array([[math.sin(p.phi)] for p, _ in ends]),
+            bx,
+            by,
+        )
         lo_u = np.floor(u.min(axis=1)) - _ROI_PAD_PX
         lo_v = np.floor(v.min(axis=1)) - _ROI_PAD_PX
         hi_u = np.ceil(u.max(axis=1)) + _ROI_PAD_PX + 1
