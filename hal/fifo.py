@@ -1,15 +1,15 @@
 """SCHED_FIFO for the calling thread, best effort: the rig's time-critical threads that are not
 the controller's loop (the emulated camera, the frame grabber) ask for it once, from the thread
 itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only). The other
-way, a thread off every deadline's path lowers its own priority (:func:`nice_thread`); and a
-process whose threads share the GIL hands it over sooner (:func:`short_gil_switch`)."""
+way, a thread off every deadline's path takes only idle CPU (:func:`idle_thread`), a child
+process lowers its priority (:func:`raise_nice`); and a process whose threads share the GIL
+hands it over sooner (:func:`short_gil_switch`)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import sys
-import threading
 
 GIL_SWITCH_S = 0.0005
 """The GIL switch interval of a rig process whose deadline thread shares the GIL with a busy one
@@ -30,16 +30,20 @@ def fifo_thread(priority: int) -> str | None:
     return None
 
 
-def nice_thread(by: int) -> None:
-    """Raise the calling thread's nice value by ``by`` (at most to 19): it then leaves a core to
-    the threads at the default priority while they want one. Linux keeps a nice value per
-    thread; lowering one's own priority needs no privilege. Best effort, never raises."""
-    raise_nice(threading.get_native_id(), by)
+def idle_thread() -> None:
+    """Put the calling thread on SCHED_IDLE: it runs only on a core nothing else wants, and a
+    thread of the default policy that wakes takes the core at once (a nice value only weighs
+    the shares: a niced thread still delays a woken one). Moving to it needs no privilege.
+    Best effort, never raises."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 def raise_nice(tid: int, by: int) -> None:
-    """:func:`nice_thread` for thread (or single-threaded process) ``tid``, e.g. a child
-    process just started (the threads it starts inherit the value). Best effort."""
+    """Raise the nice value of thread (or single-threaded process) ``tid`` by ``by`` (at most
+    to 19), e.g. a child process just started (the threads it starts inherit the value): it
+    then leaves a core to the threads at the default priority while they want one. Best
+    effort, never raises."""
     with contextlib.suppress(OSError, AttributeError):
         os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + by, 19))
 

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import cv2
 
 from hal.camera_frame import CameraFrame
-from hal.fifo import nice_thread, short_gil_switch
+from hal.fifo import idle_thread, short_gil_switch
 from hal.vision_codec import FeatureMsg
 from hal.vision_image import ImageSlots, VisionImage
 from vision.pipeline import Measurement
@@ -39,12 +39,6 @@ and its filtered rows compress no better. Measured at 640x480 with the default n
 level 1 with libpng's adaptive filters (0.3 ms and 308 kB stored, uncompressed)."""
 BACKLOG = 4
 """Frames waiting for their PNG at most (realtime; lockstep frames wait for room)."""
-LOCKSTEP_NICE = 10
-"""Lockstep: how much the PNG thread lowers its own priority (nice) once it has a lockstep
-frame. A period's chain (render, detect, tick, DSP) runs in four processes on a host that may
-have only two cores; the PNG is off that chain, and at the same priority it took a core from it
-(the scheduler cannot tell which thread the next period waits for). Realtime frames keep the
-default priority: there a starved thread would drop frames (``dropped``)."""
 
 
 def png(pixels) -> bytes:
@@ -116,11 +110,18 @@ class ImageLog:
         self._thread = None
 
     def _run(self) -> None:
-        niced = False
+        """Lockstep: once it has a lockstep frame, the thread takes only idle CPU
+        (:func:`hal.fifo.idle_thread`). A period's chain (render, detect, tick, DSP) runs in
+        four processes on a host that may have only two cores; the PNG (2 ms a frame) is off
+        that chain, and even at nice +10 it delayed the chain's next wake-up. It cannot starve:
+        when it falls :data:`BACKLOG` frames behind, the grabber waits and the cores idle.
+        Realtime frames keep the default policy: there a starved thread would drop frames
+        (``dropped``)."""
+        idle = False
         while (item := self._queue.get()) is not None:
-            if not niced and item[0].lockstep:
-                niced = True
-                nice_thread(LOCKSTEP_NICE)
+            if not idle and item[0].lockstep:
+                idle = True
+                idle_thread()
             self._send(*item)
 
     def _send(self, frame: CameraFrame, m: Measurement) -> None:

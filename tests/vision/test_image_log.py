@@ -105,24 +105,24 @@ def test_regions_of_interest_are_never_logged_the_slot_takes_the_next_whole_fram
 
 
 @pytest.mark.parametrize("lockstep", [True, False])
-def test_lockstep_pngs_are_made_at_a_lower_priority_realtime_ones_at_the_default(lockstep):
-    """Lockstep: the PNG thread is off the period's chain and leaves the cores to it (nice +10);
-    realtime frames keep the default priority (a starved thread would drop them). The
-    grabber's thread is never touched."""
+def test_lockstep_pngs_are_made_on_idle_cpu_realtime_ones_at_the_default_policy(lockstep):
+    """Lockstep: the PNG thread is off the period's chain and takes only idle CPU
+    (SCHED_IDLE); realtime frames keep the default policy (a starved thread would drop them).
+    The grabber's thread is never touched."""
     import os
 
-    def nice() -> int:
-        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    def policy() -> int:
+        return os.sched_getscheduler(0)
 
     seen: list[int] = []
-    log = ImageLog(10.0, lambda image: seen.append(nice()), 1)
-    before = nice()
+    log = ImageLog(10.0, lambda image: seen.append(policy()), 1)
+    before = policy()
     for i in range(10):  # 0.2 s at 50 Hz: frames 0 and 5 are logged
         f = frame(i, lockstep)
         log(f, NO_F, msg(f))
     log.close()
-    assert nice() == before
-    assert seen == [min(before + 10, 19) if lockstep else before] * 2
+    assert policy() == before == os.SCHED_OTHER
+    assert seen == [os.SCHED_IDLE if lockstep else os.SCHED_OTHER] * 2
 
 
 def test_the_png_thread_shortens_the_gil_switch_interval():
