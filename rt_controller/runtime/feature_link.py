@@ -48,12 +48,12 @@ class FeatureLink:
         """``hil/vision/image`` payloads refused for the log (not authentic or malformed)."""
         camera = ctx.cfg.camera
         self._slots = ImageSlots(camera.image_log_fps if camera.model == "image" else 0.0)
-        """Lockstep: the frames whose image the vision process logs (its own rule), from the
-        features received."""
+        """The frames whose image the vision process logs (its own rule), from the features
+        received."""
         self._images = threading.Condition()
         self._images_due: list[int] = []
-        """Lockstep: simulation times of the frames whose image is still to come (newer than
-        the newest logged: an image follows its features, so each older one had its turn)."""
+        """Simulation times of the frames whose image is still to come (newer than the newest
+        logged: an image follows its features, so each older one had its turn)."""
         self._image_seen_ns = -1
         """Simulation time of the newest image logged."""
         self._feeding = threading.Lock()
@@ -83,8 +83,8 @@ class FeatureLink:
             self._attached = False
 
     def counts(self) -> dict[str, int]:
-        """The feature decoder's counters plus ``images_rejected`` and, in lockstep,
-        ``images_missing`` (images of received frames not logged; the run's diagnostics)."""
+        """The feature decoder's counters plus ``images_rejected`` and ``images_missing``
+        (images of received frames not logged; the run's diagnostics)."""
         with self._images:
             missing = len(self._images_due)
         return {
@@ -94,9 +94,9 @@ class FeatureLink:
         }
 
     def settle_images(self, timeout_s: float) -> bool:
-        """Lockstep: wait until the camera images of the frames received so far are in the
-        log (the vision process sends each after its features, so the run's last ones may
-        still be on their way), at most ``timeout_s``. True when none is missing."""
+        """Wait until the camera images of the frames received so far are in the log (the
+        vision process sends each after its features, so the run's last ones may still be on
+        their way), at most ``timeout_s``. True when none is missing."""
         with self._images:
             return self._images.wait_for(lambda: not self._images_due, timeout_s)
 
@@ -128,7 +128,7 @@ class FeatureLink:
             if self.record_raw:
                 self.ctx.recorder.record_vision(payload, now)
             latest = self.features.latest
-            if self.by_callback and latest is not None and self._slots.take(latest.sim_time_ns):
+            if latest is not None and self._slots.take(latest.sim_time_ns):
                 with self._images:
                     if latest.sim_time_ns > self._image_seen_ns:
                         self._images_due.append(latest.sim_time_ns)

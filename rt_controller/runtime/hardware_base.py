@@ -17,7 +17,7 @@ from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.feature_link import FeatureLink
 
 IMAGES_SETTLE_S = 2.0
-"""Lockstep: how long the end of a run waits for the camera images of its last frames."""
+"""How long the end of a run waits for the camera images of its last frames."""
 ENABLE_TIMEOUT_S = 5.0
 """How long arming may take until the drive reports *operation enabled*."""
 
@@ -49,8 +49,7 @@ class HardwareBase:
         if self._enable_by is not None:
             self._disarm()
             self._enable_by = None
-        if self.lockstep:  # the log of a lockstep run holds every image of its frames
-            self.features.settle_images(IMAGES_SETTLE_S)
+        self.features.settle_images(IMAGES_SETTLE_S)  # the images of its last frames
         self.features.detach()
         if self._hooked is not None:
             link, self._hooked = self._hooked, None

@@ -119,3 +119,57 @@ def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
     late.join()
     assert link.counts()["images_missing"] == 0 and len(rec.images) == 2
     link.detach()
+
+
+class _Ring:
+    """What ``subscribe_ring`` gives a realtime run: payloads the control thread drains."""
+
+    def __init__(self) -> None:
+        self.payloads: list[bytes] = []
+
+    def drain(self) -> list[bytes]:
+        out, self.payloads = self.payloads, []
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_realtime_run_counts_the_images_of_its_last_frames_that_did_not_come() -> None:
+    """Realtime features are drained by the control thread, not fed by a callback; the images
+    of the frames it received are still owed to the log, and the ones that never came are
+    counted (``images_missing``) instead of lost unsaid."""
+    from hal.vision_codec import FeatureMsg, encode_features
+
+    cfg = RigConfig()
+    key = rig_key(cfg)
+    rec, ring = ImageRecorder(), _Ring()
+
+    class RingSession(Session):
+        def subscribe_ring(self, key: str) -> _Ring:
+            return ring
+
+    session = RingSession()
+    clock = FakeClock(10**9)
+    ctx = RunContext(cfg, clock, threading.Event(), RunCounters(), rec)
+    decoder = FeatureDecoder.from_config(cfg.controller, key=key)
+    link = FeatureLink(ctx, session, decoder, by_callback=False, record_raw=False)
+    link.attach()
+    on_image = session.callbacks[KEY_VISION_IMAGE]
+
+    def image(k: int) -> bytes:
+        msg = VisionImage(k, 10**9, k * 20_000_000, True, None, (1.0, 2.0), (3.0, 4.0), b"png")
+        return encode_vision_image(msg, key=key)
+
+    for k in range(6):  # frames every 20 ms of simulation time; logged: those of 0 and 0.1 s
+        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
+        ring.payloads.append(encode_features(msg, key=key))
+    link.poll(clock.now_ns())
+    assert decoder.latest is not None and decoder.latest.frame == 5
+    on_image(image(0))
+    assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
+    assert not link.settle_images(0.01)
+    on_image(image(5))
+    assert link.settle_images(0.01)
+    assert link.counts()["images_missing"] == 0 and len(rec.images) == 2
+    link.detach()
