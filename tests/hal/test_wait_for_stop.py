@@ -4,12 +4,17 @@ the stop: :func:`hal.signals.wait_for_stop` wakes to let Python run the handler.
 process's main thread sat in an untimed ``stop.wait()`` and was SIGKILLed at the end of a run
 about one time in fifteen."""
 
+import platform
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
+
+FUTEX = {"x86_64": 202, "aarch64": 98}.get(platform.machine())
+"""The futex system call's number: a thread blocked on a Python lock sleeps in it."""
 
 CHILD = textwrap.dedent(
     """
@@ -35,6 +40,7 @@ def _stop(how: str, timeout_s: float) -> tuple[str, int | None]:
     child = subprocess.Popen([sys.executable, "-c", CHILD, how], stdout=subprocess.PIPE, text=True)
     try:
         assert child.stdout is not None and child.stdout.readline() == "ready\n"
+        _await_main_thread_blocked(child.pid)
         child.send_signal(signal.SIGTERM)
         try:
             out, _ = child.communicate(timeout=timeout_s)
@@ -45,6 +51,24 @@ def _stop(how: str, timeout_s: float) -> tuple[str, int | None]:
         if child.poll() is None:
             child.kill()
             child.wait()
+
+
+def _await_main_thread_blocked(pid: int, limit_s: float = 30.0) -> None:
+    """Until the child's main thread sleeps in its wait (a futex), so the signal cannot meet it
+    still running Python between "ready" and the wait, where it would take the handler at once
+    (a loaded host made the untimed wait pass that way). A hang, not a speed: ``limit_s``."""
+    if FUTEX is None:
+        pytest.skip(f"no futex number known for {platform.machine()}")
+    end = time.monotonic() + limit_s
+    while time.monotonic() < end:
+        try:
+            with open(f"/proc/{pid}/syscall") as f:
+                if f.read().split()[0] == str(FUTEX):
+                    return
+        except (OSError, IndexError):
+            pass
+        time.sleep(0.001)
+    raise AssertionError(f"the child's main thread did not block within {limit_s} s")
 
 
 def test_a_stop_signal_taken_by_another_thread_still_stops_the_wait():
