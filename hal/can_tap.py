@@ -1,9 +1,11 @@
-"""A python-can bus that shows every frame it sends and receives to hooks: how a CANopen
-master (canopen's :class:`~canopen.Network`, which owns its bus) lets the run's log see the raw
-frames, as the DSP client's ``rx_hook`` / ``tx_hook`` do.
+"""A python-can bus that shows every frame it sends and receives to hooks: how the run's log
+sees the raw frames of either hardware profile. The DSP client
+(:class:`~hal.joint_client.JointClient`) reads and writes its bus through one, and so does a
+CANopen master (canopen's :class:`~canopen.Network`, which owns its bus).
 
 The hooks run where the frame passes: ``tx_hook`` on the sender's thread just before the
-frame goes out, ``rx_hook`` on the receive thread (canopen's notifier) as it comes in. A hook
+frame goes out, ``rx_hook`` on the receive thread (the control loop's, or canopen's notifier)
+as it comes in, before any check. A hook
 that raises is counted in :attr:`FrameTap.hook_errors` and never stops the frame. Frames that
 python-can sends by itself (``send_periodic``, the controller's heartbeat) do not pass here.
 """
@@ -29,18 +31,17 @@ class FrameTap:
         self.hook_errors = 0
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._show(self.tx_hook, msg)
+        if (hook := self.tx_hook) is not None:
+            self._show(hook, msg)
         self.bus.send(msg, timeout)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         msg = self.bus.recv(timeout)
-        if msg is not None:
-            self._show(self.rx_hook, msg)
+        if msg is not None and (hook := self.rx_hook) is not None:
+            self._show(hook, msg)
         return msg
 
-    def _show(self, hook: Hook | None, msg: can.Message) -> None:
-        if hook is None:
-            return
+    def _show(self, hook: Hook, msg: can.Message) -> None:
         try:
             hook(msg)
         except Exception:  # the log never stops a frame

@@ -42,6 +42,7 @@ from hal.can_frames import (
     JointVelocity,
     Sync,
 )
+from hal.can_tap import FrameTap
 from hal.config import RigConfig
 from hal.drive_state import DriveState
 from hal.e2e import DEFAULT_REINIT_AFTER_NS, E2EStats
@@ -59,8 +60,6 @@ DRAIN_MAX_FRAMES = 1024
 1 kHz): a bus that never runs dry (a flood, or a reader slower than the sender) ends the drain
 here instead of never, and the rest waits for the next one."""
 
-FrameHook = Callable[[can.Message], None]
-
 
 @dataclass
 class ClientStats:
@@ -76,8 +75,6 @@ class ClientStats:
     statuses: int = 0
     transport_errors: int = 0
     """Receive calls that raised (a driver error), counted and read as "no frame"."""
-    hook_errors: int = 0
-    """Exceptions raised by ``rx_hook`` (logged once, swallowed)."""
     drains_cut: int = 0
     """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (the bus had not run dry)."""
 
@@ -85,11 +82,10 @@ class ClientStats:
 class JointClient:
     """Latest joint state, DSP status and Sync tick; torque and enable/disable commands.
 
-    :param bus: an open python-can bus (see :func:`hal.bus.open_bus`).
+    :param bus: an open python-can bus (see :func:`hal.bus.open_bus`); the client reads and
+        writes it through a :class:`~hal.can_tap.FrameTap` (:attr:`bus`), whose hooks show
+        every raw frame, e.g. to the run's log.
     :param cfg: rig configuration (``controller.state_timeout_s`` is the default staleness limit).
-    :param rx_hook: called with every raw frame as it is read, before validation (e.g. to
-        log it to MCAP); it must be quick; its exceptions are swallowed.
-    :param tx_hook: called with every frame after it was sent (quick).
     :param owns_bus: shut ``bus`` down on :meth:`close`.
     :param key: the rig key (default: ``cfg.transport.key_file``, loaded and checked, else this
         process's ephemeral key; see :mod:`hal.secoc`).
@@ -100,16 +96,12 @@ class JointClient:
         bus: can.BusABC,
         cfg: RigConfig | None = None,
         *,
-        rx_hook: FrameHook | None = None,
-        tx_hook: FrameHook | None = None,
         owns_bus: bool = False,
         reinit_after_s: float | None = DEFAULT_REINIT_AFTER_NS * 1e-9,
         key: bytes | None = None,
     ) -> None:
         self.cfg = cfg if cfg is not None else RigConfig()
-        self.bus = bus
-        self.rx_hook = rx_hook
-        self.tx_hook = tx_hook
+        self.bus = FrameTap(bus)
         self._owns_bus = owns_bus
         self._key = key if key is not None else rig_key(self.cfg)
         self._codec = ControllerCodec(reinit_after_s=reinit_after_s, key=self._key)
@@ -181,8 +173,6 @@ class JointClient:
         except (can.CanError, OSError) as exc:
             where = self.bus.channel_info
             raise HalTransportError(f"CAN send on {where} failed: {exc}") from exc
-        if self.tx_hook is not None:
-            self.tx_hook(msg)
 
     def send_torque(
         self,
@@ -300,18 +290,9 @@ class JointClient:
         return DRAIN_MAX_FRAMES
 
     def process_frame(self, msg: can.Message, t_ns: int | None = None) -> None:
-        """The receive path of every frame read: hook, E2E check, decode, update. Never
-        raises."""
+        """The receive path of every frame read: E2E check, decode, update. Never raises."""
         now = time.monotonic_ns() if t_ns is None else t_ns
         self._n.frames += 1
-        hook = self.rx_hook
-        if hook is not None:
-            try:
-                hook(msg)
-            except Exception as exc:
-                self._n.hook_errors += 1
-                if self._n.hook_errors == 1:
-                    log.warning("rx_hook raised (further errors are only counted): %r", exc)
         frame = self._codec.decode(msg, now)
         if frame is None:
             return

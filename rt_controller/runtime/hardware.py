@@ -74,7 +74,7 @@ class DspHardware(HardwareBase):
         the raw CAN log, then wait for the DSP's first joint state (and, read by ring, the
         first features)."""
         self.features.attach()
-        self._hook_raw_can(self.dsp)
+        self._hook_raw_can(self.dsp.bus)
         self._wait_ready(stop, features=not self.lockstep)
 
     def activate(self, now_ns: int) -> bool:

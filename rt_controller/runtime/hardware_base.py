@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from hal.can_tap import FrameTap
 from hal.drive_state import MODE_ENABLED, MODE_NO_STATUS
 from hal.hardware_interface import InputJudge, Observation
 from rt_controller.runtime.context import RunContext
@@ -38,7 +39,7 @@ class HardwareBase:
         self.record_raw = record_raw
         self._enable_by: int | None = None
         """Arming: when the drive must report *operation enabled* (None: not activated)."""
-        self._hooked: Any = None
+        self._hooked: FrameTap | None = None
         """The link whose ``rx_hook`` and ``tx_hook`` log the raw frames."""
         self._marker = 0
 
@@ -56,7 +57,7 @@ class HardwareBase:
             link.rx_hook = link.tx_hook = None
 
     # --- for the profiles -------------------------------------------------------------------
-    def _hook_raw_can(self, link: Any) -> None:
+    def _hook_raw_can(self, link: FrameTap) -> None:
         """With ``record_raw``, ``link``'s ``rx_hook`` and ``tx_hook`` log every frame it
         receives and sends (unhooked by :meth:`deactivate`)."""
         if self.record_raw:

@@ -111,7 +111,7 @@ def test_watchdog_trips_within_three_periods_and_latches(cfg: RigConfig, transpo
     limit_ns = round(cfg.dsp.watchdog_periods * period_ms * MS)
     with rig(cfg, transport) as (node, client):
         raw: list[can.Message] = []
-        client.rx_hook = raw.append
+        client.bus.rx_hook = raw.append
         clock = FakeClock(node)
         enable(clock, client)
         for _ in range(5):

@@ -313,7 +313,8 @@ def test_bad_frames_on_the_wire_are_counted_and_hooked(spec: str, dsp_bus: can.B
         can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False),
         can.Message(arbitration_id=good_pos.arbitration_id, data=bytes(4), is_extended_id=False),
     ]
-    with JointClient.open(spec, rx_hook=seen.append) as client:
+    with JointClient.open(spec) as client:
+        client.bus.rx_hook = seen.append  # every raw frame, before any check
         dsp_bus.send(good_pos)
         for msg in bad:
             dsp_bus.send(msg)
