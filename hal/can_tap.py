@@ -6,8 +6,9 @@ CANopen master (canopen's :class:`~canopen.Network`, which owns its bus).
 The hooks run where the frame passes: ``tx_hook`` on the sender's thread just before the
 frame goes out, ``rx_hook`` on the receive thread (the control loop's, or canopen's notifier)
 as it comes in, before any check. A hook that raises is counted in
-:attr:`FrameTap.hook_errors` and never stops the frame. Frames that python-can sends by itself
-(``send_periodic``, the controller's heartbeat) do not pass here.
+:attr:`FrameTap.hook_errors` and never stops the frame (the run counts such a frame as a lost
+log record). Frames that python-can sends by itself (``send_periodic``, the controller's
+heartbeat) do not pass here.
 """
 
 from __future__ import annotations

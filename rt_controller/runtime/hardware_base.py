@@ -41,12 +41,14 @@ class HardwareBase:
         """Arming: when the drive must report *operation enabled* (None: not activated)."""
         self._hooked: FrameTap | None = None
         """The link whose ``rx_hook`` and ``tx_hook`` log the raw frames."""
+        self._hook_errors_before = 0
         self._marker = 0
 
     # --- lifecycle --------------------------------------------------------------------------
     def deactivate(self) -> None:
         """Disarm when armed (``_disarm``); end the feeds and hooks of this run, so no callback
-        of the links touches it afterwards."""
+        of the links touches it afterwards. Frames the hooks failed to log count in the
+        recorder's ``dropped``."""
         if self._enable_by is not None:
             self._disarm()
             self._enable_by = None
@@ -55,6 +57,8 @@ class HardwareBase:
         if self._hooked is not None:
             link, self._hooked = self._hooked, None
             link.rx_hook = link.tx_hook = None
+            # a frame whose hook raised is not in the log: a lost record (the run not clean)
+            self.ctx.recorder.dropped += link.hook_errors - self._hook_errors_before
 
     # --- for the profiles -------------------------------------------------------------------
     def _hook_raw_can(self, link: FrameTap) -> None:
@@ -64,7 +68,7 @@ class HardwareBase:
             rec, now = self.ctx.recorder, self.ctx.clock.now_ns
             link.rx_hook = lambda m: rec.record_can(m, now(), "rx")
             link.tx_hook = lambda m: rec.record_can(m, now(), "tx")
-            self._hooked = link
+            self._hooked, self._hook_errors_before = link, link.hook_errors
 
     def _start_arming(self) -> None:
         """The first arming step: the drive must be enabled ``ENABLE_TIMEOUT_S`` from now."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 import threading
 from typing import Any
 
+import can
+
 from hal.bus import isolated_spec
 from hal.config import RigConfig
 from hal.joint_client import JointClient
@@ -44,6 +46,8 @@ class LateSession:
 
 
 class ListRecorder:
+    dropped = 0
+
     def __init__(self) -> None:
         self.vision: list[bytes] = []
 
@@ -81,3 +85,32 @@ def test_a_feature_message_delivered_after_deactivate_reaches_neither_decoder_no
 
     assert len(rec.vision) == 1
     assert decoder.latest == first
+
+
+class FailingCanRecorder(ListRecorder):
+    """A recorder whose raw-frame call raises, as a bug in the log path would."""
+
+    def record_can(self, msg: Any, t_ns: int, direction: str) -> bool:
+        raise RuntimeError("the log path broke")
+
+
+def test_raw_frames_the_log_hook_could_not_record_count_as_lost_log_records() -> None:
+    """A raw-frame hook that raises never stops the frame (:class:`hal.can_tap.FrameTap`), and
+    the frame it could not log is a lost log record in the run's summary, so such a run is not
+    clean (it was counted only on the tap, where no summary looks)."""
+    cfg = RigConfig()
+    clock = FakeClock(1_000_000_000)
+    decoder = FeatureDecoder.from_config(cfg.controller, key=rig_key(cfg))
+    rec = FailingCanRecorder()
+    stopped = threading.Event()
+    stopped.set()
+    ctx = RunContext(cfg, clock, stopped, RunCounters(), rec)
+    with JointClient.open(isolated_spec("virtual"), cfg) as dsp:
+        link = FeatureLink(ctx, LateSession(), decoder, by_callback=True, record_raw=False)
+        hw = DspHardware(ctx, dsp, link, lockstep=True, record_raw=True)
+        hw.configure(stopped)
+        for _ in range(3):
+            dsp.bus.send(can.Message(arbitration_id=0x7FF, data=b"\x01", is_extended_id=False))
+        hw.deactivate()
+        dsp.bus.send(can.Message(arbitration_id=0x7FF, data=b"\x02", is_extended_id=False))
+    assert rec.dropped == 3  # the frame after the deactivation is not this run's
