@@ -101,7 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=5.0,
         metavar="S",
-        help="simulated seconds of the lockstep rigs with images and analytic (0 = skip)",
+        help="simulated seconds of the lockstep rigs: images, images with no image log, "
+        "analytic (0 = skip)",
     )
     vp.add_argument(
         "--realtime-duration",

@@ -19,8 +19,9 @@ Figures (times in us, errors in px, median and p99 where a distribution):
   mid-exposure);
 * ``latency``: capture stamp to the features message published, through a loopback zenoh hub,
   frames at ``fps`` in realtime (zenoh transport of the raw frame included);
-* ``lockstep``: a lockstep rig run with images and one with the analytic camera: speed against
-  real time (``speedup_loop``: the ticks' own wall time) and the period's profile.
+* ``lockstep``: lockstep rig runs with images, with images but no image log, and with the
+  analytic camera: speed against real time (``speedup_loop``: the ticks' own wall time) and
+  the period's profile.
 """
 
 from __future__ import annotations
@@ -357,20 +358,27 @@ def realtime_pipeline(
     }
 
 
+LOCKSTEP_RUNS = {
+    "image": {"camera.model": "image"},
+    "image_no_log": {"camera.model": "image", "camera.image_log_fps": 0.0},
+    "analytic": {"camera.model": "analytic"},
+}
+"""The lockstep runs compared: images (with the configured image log), images with no image
+log (what logging what the camera saw costs), the analytic camera."""
+
+
 def lockstep_speed(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[str, Any]:
-    """A lockstep rig run with images and one with the analytic camera (``hil bench loop``'s
-    lockstep measurement): speed against real time, the period's wall time and where it goes."""
+    """A lockstep rig run of each of :data:`LOCKSTEP_RUNS` (``hil bench loop``'s lockstep
+    measurement): speed against real time, the period's wall time and where it goes."""
     import tempfile
 
     from rt_controller.rig.bench_loop import bench_lockstep
 
     out: dict[str, Any] = {}
-    for model in ("image", "analytic"):
-        with tempfile.TemporaryDirectory(prefix=f"hil-bench-vision-{model}-") as work:
-            run = bench_lockstep(
-                cfg.with_overrides({"camera.model": model}), duration_s, law, Path(work)
-            )
-        out[model] = {
+    for name, overrides in LOCKSTEP_RUNS.items():
+        with tempfile.TemporaryDirectory(prefix=f"hil-bench-vision-{name}-") as work:
+            run = bench_lockstep(cfg.with_overrides(overrides), duration_s, law, Path(work))
+        out[name] = {
             k: run[k] for k in ("sim_s", "ticks", "speedup_loop", "speedup_total", "period_us", "J")
         }
     return out
@@ -414,7 +422,7 @@ def bench_vision(
         progress("latency over zenoh")
         out["latency"] = latency(cfg, render, latency_frames, fps)
     if lockstep_s > 0:
-        progress(f"lockstep rigs of {lockstep_s:g} s, with images and analytic")
+        progress(f"lockstep rigs of {lockstep_s:g} s: images, images unlogged, analytic")
         out["lockstep"] = lockstep_speed(cfg, lockstep_s)
         progress(f"lockstep rig of {lockstep_s:g} s with images: where a period goes")
         out["lockstep_profile"] = lockstep_profile(cfg, lockstep_s)
