@@ -8,7 +8,9 @@ rule on the same simulation times (:class:`hal.vision_image.ImageSlots`).
 The PNG is made on a thread of its own, never on the grabber's: a frame's features leave
 before its PNG is made, and the next frame does not wait for it. A realtime frame that finds
 :data:`BACKLOG` frames still waiting is not logged (counted ``dropped``); a lockstep frame
-waits for room, so a lockstep run's log holds the same frames every time.
+waits for room, and its image is published with ``lockstep`` set (``hil vision`` then blocks
+on a congested link instead of dropping it), so a lockstep run's log holds the same frames
+every time.
 """
 
 from __future__ import annotations
@@ -49,14 +51,14 @@ def png(pixels) -> bytes:
 
 
 class ImageLog:
-    """A grabber observer that hands every ``1 / fps``-th frame, as PNG, to ``publish`` from
-    its own thread (started on the first frame; :meth:`close` logs what is queued and stops
-    it)."""
+    """A grabber observer that hands every ``1 / fps``-th frame, as PNG, to
+    ``publish(image, lockstep)`` from its own thread (started on the first frame;
+    :meth:`close` logs what is queued and stops it)."""
 
     def __init__(
         self,
         fps: float,
-        publish: Callable[[VisionImage], None],
+        publish: Callable[[VisionImage, bool], None],
         source_id: int,
         *,
         backlog: int = BACKLOG,
@@ -138,7 +140,8 @@ class ImageLog:
                     m.f if m.f is not None else (0.0, 0.0),
                     png(frame.pixels),
                     self.source_id,
-                )
+                ),
+                frame.lockstep,
             )
             self.sent += 1
         except Exception:  # a view never stops the measurements: counted

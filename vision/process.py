@@ -10,6 +10,7 @@ from __future__ import annotations
 import secrets
 import threading
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import zenoh
 
@@ -76,14 +77,18 @@ def run_live(
     try:
         pub = session.publisher(KEY_FEATURES)
         source_id = secrets.randbits(32)
-        image_pub = image_log = None
+        image_pubs: dict[bool, Any] = {}
+        image_log = None
         if observer is None and cfg.camera.image_log_fps > 0:
-            image_pub = session.publisher(
-                KEY_VISION_IMAGE, block=False, priority=zenoh.Priority.DATA_LOW
-            )
+            image_pubs = {  # lockstep: never lost; realtime: never delays the features
+                lockstep: session.publisher(
+                    KEY_VISION_IMAGE, block=lockstep, priority=zenoh.Priority.DATA_LOW
+                )
+                for lockstep in (True, False)
+            }
             observer = image_log = ImageLog(
                 cfg.camera.image_log_fps,
-                lambda img: image_pub.put(encode_vision_image(img, key)),
+                lambda img, lockstep: image_pubs[lockstep].put(encode_vision_image(img, key)),
                 source_id,
             )
         source = open_source(spec, session=session, key=key, live=True)
@@ -109,7 +114,7 @@ def run_live(
             pub.undeclare()
             if image_log is not None:
                 image_log.close()
-            if image_pub is not None:
+            for image_pub in image_pubs.values():
                 image_pub.undeclare()
         stats = grabber.snapshot()
         if image_log is not None:

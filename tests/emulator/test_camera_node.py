@@ -234,7 +234,7 @@ def roi_lockstep_run(periods: int = 16, ask=True, corner_at: int | None = None):
     node = CameraNode(cfg, out.append, key=KEY, clock=FakeClock())
     decoder = FrameDecoder(key=KEY)
     logged: list[VisionImage] = []
-    log = ImageLog(cfg.camera.image_log_fps, logged.append, 1)
+    log = ImageLog(cfg.camera.image_log_fps, lambda image, lockstep: logged.append(image), 1)
     features = []
     grabber = Grabber(
         Pipeline(intrinsics_from_config(cfg)),

@@ -50,11 +50,12 @@ def test_png_is_an_8_bit_grey_png_of_the_same_pixels(shape, content):
 
 
 def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
-    gate, got = threading.Event(), []
+    gate, got, how = threading.Event(), [], set()
 
-    def publish(image) -> None:
+    def publish(image, lockstep: bool) -> None:
         gate.wait(5.0)
         got.append(image.frame)
+        how.add(lockstep)
 
     log = ImageLog(10.0, publish, 1, backlog=2)
     frames = [frame(i, True) for i in range(40)]  # 0.8 s at 50 Hz: every 5th frame is logged
@@ -66,15 +67,17 @@ def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
     feeder.join(5.0)
     log.close()
     assert got == list(range(0, 40, 5))
+    assert how == {True}  # published to be waited for, never dropped on the way
     assert log.counters() == {"sent": 8, "dropped": 0, "errors": 0, "regions": 0}
 
 
 def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
-    gate, got = threading.Event(), []
+    gate, got, how = threading.Event(), [], set()
 
-    def publish(image) -> None:
+    def publish(image, lockstep: bool) -> None:
         gate.wait(5.0)
         got.append(image.frame)
+        how.add(lockstep)
 
     log = ImageLog(10.0, publish, 1, backlog=2)
     for i in range(40):  # never blocks
@@ -85,11 +88,12 @@ def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
     c = log.counters()
     assert c["sent"] + c["dropped"] == 8 and c["dropped"] >= 5  # one in the encoder, two queued
     assert got == sorted(got) and got[0] == 0
+    assert how == {False}
 
 
 def test_regions_of_interest_are_never_logged_the_slot_takes_the_next_whole_frame():
     got = []
-    log = ImageLog(10.0, got.append, 1)
+    log = ImageLog(10.0, lambda image, lockstep: got.append(image), 1)
     for f in (frame(i, True) for i in range(12)):
         if f.seq in (0, 5, 6):  # regions of the sensor's frame, as the camera may send
             f = CameraFrame(
@@ -115,7 +119,7 @@ def test_lockstep_pngs_are_made_on_idle_cpu_realtime_ones_at_the_default_policy(
         return os.sched_getscheduler(0)
 
     seen: list[int] = []
-    log = ImageLog(10.0, lambda image: seen.append(policy()), 1)
+    log = ImageLog(10.0, lambda image, lockstep: seen.append(policy()), 1)
     before = policy()
     for i in range(10):  # 0.2 s at 50 Hz: frames 0 and 5 are logged
         f = frame(i, lockstep)
@@ -135,7 +139,7 @@ def test_the_png_thread_shortens_the_gil_switch_interval():
     before = sys.getswitchinterval()
     sys.setswitchinterval(0.005)
     try:
-        log = ImageLog(10.0, lambda image: None, 1)
+        log = ImageLog(10.0, lambda image, lockstep: None, 1)
         f = frame(0, True)
         log(f, NO_F, msg(f))
         log.close()
