@@ -49,6 +49,12 @@ def _image(key: bytes) -> bytes:
     return encode_vision_image(msg, key=key)
 
 
+def _frame_image(key: bytes, k: int) -> bytes:
+    """The logged image of frame ``k`` (one every 20 ms of simulation time)."""
+    msg = VisionImage(k, 10**9, k * 20_000_000, True, None, (1.0, 2.0), (3.0, 4.0), b"png")
+    return encode_vision_image(msg, key=key)
+
+
 def _lockstep_link(
     cfg: RigConfig,
 ) -> tuple[FeatureLink, FeatureDecoder, ImageRecorder, Session]:
@@ -102,18 +108,14 @@ def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
     link, decoder, rec, session = _lockstep_link(cfg)
     on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
 
-    def image(k: int) -> bytes:
-        msg = VisionImage(k, 10**9, k * 20_000_000, True, None, (1.0, 2.0), (3.0, 4.0), b"png")
-        return encode_vision_image(msg, key=key)
-
     for k in range(6):  # frames every 20 ms of simulation time
         msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
         on_features(encode_features(msg, key=key))
     assert decoder.latest is not None and decoder.latest.frame == 5
-    on_image(image(0))
+    on_image(_frame_image(key, 0))
     assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
     assert not link.settle_images(0.01)
-    late = threading.Timer(0.05, on_image, args=(image(5),))
+    late = threading.Timer(0.05, on_image, args=(_frame_image(key, 5),))
     late.start()
     assert link.settle_images(10.0)
     late.join()
@@ -157,19 +159,15 @@ def test_a_realtime_run_counts_the_images_of_its_last_frames_that_did_not_come()
     link.attach()
     on_image = session.callbacks[KEY_VISION_IMAGE]
 
-    def image(k: int) -> bytes:
-        msg = VisionImage(k, 10**9, k * 20_000_000, True, None, (1.0, 2.0), (3.0, 4.0), b"png")
-        return encode_vision_image(msg, key=key)
-
     for k in range(6):  # frames every 20 ms of simulation time; logged: those of 0 and 0.1 s
         msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
         ring.payloads.append(encode_features(msg, key=key))
     link.poll(clock.now_ns())
     assert decoder.latest is not None and decoder.latest.frame == 5
-    on_image(image(0))
+    on_image(_frame_image(key, 0))
     assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
     assert not link.settle_images(0.01)
-    on_image(image(5))
+    on_image(_frame_image(key, 5))
     assert link.settle_images(0.01)
     assert link.counts()["images_missing"] == 0 and len(rec.images) == 2
     link.detach()
@@ -187,15 +185,11 @@ def test_an_image_that_never_came_mid_run_is_counted_and_fails_a_lockstep_run() 
     link, _, rec, session = _lockstep_link(cfg)
     on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
 
-    def image(k: int) -> bytes:
-        msg = VisionImage(k, 10**9, k * 20_000_000, True, None, (1.0, 2.0), (3.0, 4.0), b"png")
-        return encode_vision_image(msg, key=key)
-
     for k in range(11):  # frames every 20 ms; logged: those of 0, 0.1 and 0.2 s
         msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
         on_features(encode_features(msg, key=key))
         if k in (0, 10):
-            on_image(image(k))
+            on_image(_frame_image(key, k))
     assert link.settle_images(0.01)  # nothing more is on its way
     counts = link.counts()
     assert counts["images_missing"] == 1 and len(rec.images) == 2
