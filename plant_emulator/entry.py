@@ -42,9 +42,7 @@ from typing import TYPE_CHECKING, Any
 from hal.arguments import add_key_option, bounded_float, duration
 
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
-    from plant_emulator.camera import CameraPose
-    from plant_emulator.camera_node import CameraNode
-    from plant_emulator.pose_link import PosePublisher
+    from plant_emulator.pose_link import PoseLink
 
 DEFAULT_VISION_WAIT_S = 10.0
 """Lockstep: how long to wait for the vision process to subscribe before period 0."""
@@ -123,43 +121,6 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-class _PoseLink:
-    """The DSP's pose sink: publishes on zenoh; a broken session is counted, never fatal."""
-
-    def __init__(self, publisher: PosePublisher) -> None:
-        self.publisher = publisher
-        self.errors = 0
-        self.camera: CameraNode | None = None
-        """The emulated camera, offered every pose published (``camera.model = "image"``)."""
-
-    def __call__(self, seq: int, sim_time_ns: int, pose: CameraPose, lockstep: bool) -> None:
-        from hal.errors import HalTransportError
-
-        if self.camera is not None:
-            self.camera.offer(seq, sim_time_ns, pose, lockstep)
-        try:
-            self.publisher.publish(seq, sim_time_ns, pose, lockstep)
-        except HalTransportError as exc:
-            self.errors += 1
-            if self.errors == 1:
-                print(
-                    f"hil emulator: warning: {exc} (further errors only counted)", file=sys.stderr
-                )
-
-    def new_run(self, seed: int | None) -> None:
-        """A scenario reset: later poses carry a new source id, so the vision process starts a
-        new run (frame counter, clocks, noise generator) as for a new emulator, and the seed the
-        reset named (None: the vision process's own ``camera.seed``)."""
-        import secrets
-
-        old = self.publisher.source
-        while self.publisher.source == old:
-            self.publisher.source = secrets.randbits(32)
-        self.publisher.seed = seed
-        if self.camera is not None:
-            self.camera.new_run(seed)
-
-
 def _config(args: argparse.Namespace) -> Any:
     from hal.config import load_config
     from hal.errors import HalConfigError
@@ -223,7 +184,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     mode = "lockstep" if lockstep else "realtime"
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(open_bus(spec))
-        link: _PoseLink | None = None
+        link: PoseLink | None = None
         listening: Callable[[], bool] | None = None
         """Whether the process lockstep waits for before period 0 is there."""
         zenoh_where = ""
@@ -231,7 +192,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
         if args.vision_link:
             from hal.secoc import rig_key
             from hal.zenoh_session import open_session
-            from plant_emulator.pose_link import PosePublisher, wait_until
+            from plant_emulator.pose_link import PoseLink, PosePublisher, wait_until
 
             session = stack.enter_context(
                 open_session(
@@ -243,7 +204,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             )
             publisher = PosePublisher(session, key=rig_key(cfg))
             stack.callback(publisher.close)
-            link = _PoseLink(publisher)
+            link = PoseLink(publisher)
             listening = publisher.has_subscribers
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
             if args.camera and cfg.camera.model == "image":

@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import contextlib
 import secrets
+import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import zenoh
 
@@ -27,6 +29,9 @@ from hal.errors import HalTransportError
 from hal.vision_codec import PoseMsg, encode_pose
 from hal.zenoh_session import KEY_CAMERA_POSE, ZenohSession
 from plant_emulator.camera import CameraPose
+
+if TYPE_CHECKING:
+    from plant_emulator.camera_node import CameraNode
 
 
 class PosePublisher:
@@ -94,6 +99,46 @@ class PosePublisher:
         """Undeclare the publisher (the session stays open). Idempotent."""
         with contextlib.suppress(zenoh.ZError):
             self._pub.undeclare()
+
+
+class PoseLink:
+    """An emulator's pose sink (both profiles): each pose to the emulated camera in this
+    process, if any, and on zenoh; a broken session is counted, never fatal."""
+
+    def __init__(self, publisher: PosePublisher) -> None:
+        self.publisher = publisher
+        self.errors = 0
+        self.camera: CameraNode | None = None
+        """The emulated camera (``camera.model = "image"``), offered every pose."""
+
+    def __call__(
+        self,
+        seq: int,
+        sim_time_ns: int,
+        pose: CameraPose,
+        lockstep: bool,
+        stamp_ns: int | None = None,
+    ) -> None:
+        """One pose (:meth:`PosePublisher.publish`'s arguments)."""
+        if self.camera is not None:
+            self.camera.offer(seq, sim_time_ns, pose, lockstep, stamp_ns)
+        try:
+            self.publisher.publish(seq, sim_time_ns, pose, lockstep, stamp_ns)
+        except HalTransportError as exc:
+            self.errors += 1
+            if self.errors == 1:
+                print(f"hil emulator: warning: {exc} (further errors counted)", file=sys.stderr)
+
+    def new_run(self, seed: int | None) -> None:
+        """A scenario reset: later poses carry a new source id, so the vision process starts a
+        new run (frame counter, clocks, noise generator) as for a new emulator, and the seed the
+        reset named (None: the vision process's own ``camera.seed``)."""
+        old = self.publisher.source
+        while self.publisher.source == old:
+            self.publisher.source = secrets.randbits(32)
+        self.publisher.seed = seed
+        if self.camera is not None:
+            self.camera.new_run(seed)
 
 
 def wait_until(

@@ -28,52 +28,23 @@ from hal import cia402_od as cia
 
 if TYPE_CHECKING:
     from hal.config import RigConfig
-    from plant_emulator.camera_node import CameraNode
     from plant_emulator.cia402.drive import EmulatedDrive
-    from plant_emulator.cia402.rig import Cia402Rig
-    from plant_emulator.pose_link import PosePublisher
+    from plant_emulator.cia402.rig import Cia402Rig, StepListener
+    from plant_emulator.pose_link import PoseLink
     from plant_emulator.world import World
 
 WAIT_SLICE_S = 0.05
 """How often the main thread looks at the stop flag and the simulated time."""
 
 
-class _Poses:
-    """After each SYNC: the camera pose on zenoh; a broken session is counted, never fatal."""
+def _after_sync(poses: PoseLink) -> StepListener:
+    """After each SYNC: the stepped world's camera pose, stamped with the SYNC's arrival (when
+    the arm was there, which the features' age counts from)."""
 
-    def __init__(self, publisher: PosePublisher) -> None:
-        self.publisher = publisher
-        self.errors = 0
-        self.camera: CameraNode | None = None
-        """The emulated camera (``camera.model = "image"``), offered every pose published."""
+    def step(syncs: int, world: World, stamp_ns: int) -> None:
+        poses(syncs, round(world.t * 1e9), world.pose(), True, stamp_ns)
 
-    def new_run(self, seed: int | None) -> None:
-        """A scenario reset: later poses carry a new source id and the reset's seed, so the
-        vision process starts a new run (as for the emulated DSP)."""
-        import secrets
-
-        old = self.publisher.source
-        while self.publisher.source == old:
-            self.publisher.source = secrets.randbits(32)
-        self.publisher.seed = seed
-        if self.camera is not None:
-            self.camera.new_run(seed)
-
-    def __call__(self, syncs: int, world: World, stamp_ns: int) -> None:
-        """The pose after SYNC ``syncs``, stamped ``stamp_ns`` (the SYNC's arrival: when the
-        arm was there, which the features' age counts from), to the vision process and to
-        the emulated camera in this process alike."""
-        from hal.errors import HalTransportError
-
-        sim_time_ns, pose = round(world.t * 1e9), world.pose()
-        if self.camera is not None:
-            self.camera.offer(syncs, sim_time_ns, pose, True, stamp_ns)
-        try:
-            self.publisher.publish(syncs, sim_time_ns, pose, True, stamp_ns)
-        except HalTransportError as exc:
-            self.errors += 1
-            if self.errors == 1:
-                print(f"hil emulator: warning: {exc} (further errors counted)", file=sys.stderr)
+    return step
 
 
 def _config(args: argparse.Namespace) -> RigConfig:
@@ -96,7 +67,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
 
     spec = args.can or cfg.transport.can
     where = str(resolve_spec(spec))  # HalConfigError for a malformed spec
-    poses: _Poses | None = None
+    poses: PoseLink | None = None
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(open_bus(spec))
         zenoh_where = ""
@@ -104,7 +75,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         if args.vision_link:
             from hal.secoc import rig_key
             from hal.zenoh_session import open_session
-            from plant_emulator.pose_link import PosePublisher
+            from plant_emulator.pose_link import PoseLink, PosePublisher
 
             session = stack.enter_context(
                 open_session(
@@ -113,7 +84,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             )
             publisher = PosePublisher(session, key=rig_key(cfg))
             stack.callback(publisher.close)
-            poses = _Poses(publisher)
+            poses = PoseLink(publisher)
             zenoh_where = f", camera poses on zenoh {session.endpoint}"
             if args.camera and cfg.camera.model == "image":
                 from plant_emulator.camera_link import start_camera
@@ -125,7 +96,8 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         stack.callback(network.notifier.stop)
         lockstep = bool(args.lockstep) or cfg.controller.clock == "lockstep"
         new_run = None if poses is None else poses.new_run
-        rig = Cia402Rig(cfg, network, on_step=poses, lockstep=lockstep, on_reset=new_run)
+        on_step = None if poses is None else _after_sync(poses)
+        rig = Cia402Rig(cfg, network, on_step=on_step, lockstep=lockstep, on_reset=new_run)
         stack.callback(rig.close)
         for drive in rig.drives:
             drive.on_fault = _say_fault
@@ -178,7 +150,7 @@ def _say_fault(node_id: int, code: int) -> None:
     )
 
 
-def _summary(rig: Cia402Rig, where: str, wall_s: float, poses: _Poses | None) -> dict[str, Any]:
+def _summary(rig: Cia402Rig, where: str, wall_s: float, poses: PoseLink | None) -> dict[str, Any]:
     with rig.lock:
         return {
             "transport": where,
