@@ -95,12 +95,17 @@ class FeatureLink:
             "images_missing": missing,
         }
 
-    def settle_images(self, timeout_s: float) -> bool:
+    def settle_images(self, quiet_s: float) -> bool:
         """Wait until the camera images of the frames received so far are in the log (the
         vision process sends each after its features, so the run's last ones may still be on
-        their way), at most ``timeout_s``. True when none is missing."""
+        their way), as long as each comes within ``quiet_s`` of the one before. True when
+        none is missing."""
         with self._images:
-            return self._images.wait_for(lambda: not self._images_due, timeout_s)
+            while self._images_due:
+                seen = self._image_seen_ns
+                if not self._images.wait_for(lambda s=seen: self._image_seen_ns != s, quiet_s):
+                    return False
+            return True
 
     def poll(self, now_ns: int) -> None:
         """Realtime: the messages waiting in the ring into the decoder, stamped ``now_ns``."""

@@ -17,9 +17,9 @@ from hal.hardware_interface import InputJudge, Observation
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.feature_link import FeatureLink
 
-IMAGES_SETTLE_S = {False: 2.0, True: 30.0}
-"""How long the end of a realtime and of a lockstep run waits for the camera images of its
-last frames (a lockstep log must hold them all; the vision process may be far behind)."""
+IMAGES_SETTLE_S = 2.0
+"""How long the end of a run waits for the next camera image of its last frames (it waits on
+while they keep coming: the vision process may be far behind)."""
 ENABLE_TIMEOUT_S = 5.0
 """How long arming may take until the drive reports *operation enabled*."""
 
@@ -53,7 +53,7 @@ class HardwareBase:
         if self._enable_by is not None:
             self._disarm()
             self._enable_by = None
-        self.features.settle_images(IMAGES_SETTLE_S[self.lockstep])  # of its last frames
+        self.features.settle_images(IMAGES_SETTLE_S)  # the images of its last frames
         self.features.detach()
         if self._hooked is not None:
             link, self._hooked = self._hooked, None

@@ -199,3 +199,38 @@ def test_an_image_that_never_came_mid_run_is_counted_and_fails_a_lockstep_run() 
     assert run_problems(realtime) == []
     assert "1 camera image(s) did not reach the log" in run_warnings(realtime)
     link.detach()
+
+
+def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None:
+    """A vision process far behind still sends the last frames' images one after another: the
+    end of the run waits on while each comes within ``quiet_s`` of the one before, however long
+    all of them take (here 1.2 s against a ``quiet_s`` of 1 s), and gives up once one does not
+    come."""
+    from hal.vision_codec import FeatureMsg, encode_features
+
+    cfg = RigConfig()
+    key = rig_key(cfg)
+    link, _, rec, session = _lockstep_link(cfg)
+    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
+    for k in range(65):  # logged: the frames of 0, 0.1, ... 1.2 s (every fifth)
+        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
+        on_features(encode_features(msg, key=key))
+    assert link.counts()["images_missing"] == 13
+    stop = threading.Event()
+
+    def send() -> None:
+        for k in range(0, 60, 5):  # one image every 0.1 s; the frame of 1.2 s never comes
+            if stop.wait(0.1):
+                return
+            on_image(_frame_image(key, k))
+
+    sender = threading.Thread(target=send)
+    sender.start()
+    try:
+        assert not link.settle_images(1.0)
+        assert len(rec.images) == 12  # all that came, not only those of its first second
+    finally:
+        stop.set()
+        sender.join()
+    assert link.counts()["images_missing"] == 1
+    link.detach()
