@@ -226,18 +226,12 @@ def _images_refused(rejections: dict[str, Any]) -> int:
     return int((rejections.get("features") or {}).get("images_rejected", 0))
 
 
-def _images_missing(summary: dict[str, Any]) -> int:
-    """Camera images of received frames that are not in the log, from a summary."""
-    return int(((summary.get("rejections") or {}).get("features") or {}).get("images_missing", 0))
-
-
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
     ended short for another reason than a stop request, lost or could not encode log records
-    or camera images (a lockstep log misses none), tripped the DSP's watchdog, saw a DSP
-    fault, received a stream of frames or messages that failed authentication
-    (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without an enabled DSP.
-    ``summary``: a run's summary, also as rebuilt from a log.
+    or camera images, tripped the DSP's watchdog, saw a DSP fault, received a stream of frames
+    or messages that failed authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran
+    ticks without an enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
     planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
@@ -268,9 +262,6 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     images = _images_refused(rejections)
     if images >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
-    missing = _images_missing(summary)
-    if missing and summary.get("clock") == "lockstep":
-        out.append(f"{missing} camera image(s) missing from the lockstep log")
     dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
     if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")
@@ -312,10 +303,10 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
     nothing): camera outages (:func:`outage_warnings`), scene drawings or live records the
     recorder could not make (the cycles themselves are logged), a few camera images refused for
-    the log (a stream of them is a problem), realtime camera images that did not reach the log,
-    and a realtime run during which the hypervisor took
-    :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT` or more of the CPUs' time.
-    The run is still clean (its exit status says so); its J is not the lockstep one's.
+    the log (a stream of them is a problem), and a realtime run during
+    which the hypervisor took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT`
+    or more of the CPUs' time. The run is still clean (its exit status says so); its J is not the
+    lockstep one's.
     """
     out = outage_warnings(summary.get("outages") or {})
     rec = summary.get("recorder") or {}
@@ -326,9 +317,11 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     images = _images_refused(summary.get("rejections") or {})
     if 0 < images < diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
-    missing = _images_missing(summary)
-    if missing and summary.get("clock") != "lockstep":
-        out.append(f"{missing} camera image(s) did not reach the log")
+    missing = int(
+        ((summary.get("rejections") or {}).get("features") or {}).get("images_missing", 0)
+    )
+    if missing:
+        out.append(f"{missing} camera image(s) of the last frames did not reach the log in time")
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

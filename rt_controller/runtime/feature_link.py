@@ -54,8 +54,6 @@ class FeatureLink:
         self._images_due: list[int] = []
         """Simulation times of the frames whose image is still to come (newer than the newest
         logged: an image follows its features, so each older one had its turn)."""
-        self._images_skipped = 0
-        """Images due that a later image overtook: they never reached the log."""
         self._image_seen_ns = -1
         """Simulation time of the newest image logged."""
         self._feeding = threading.Lock()
@@ -86,9 +84,9 @@ class FeatureLink:
 
     def counts(self) -> dict[str, int]:
         """The feature decoder's counters plus ``images_rejected`` and ``images_missing``
-        (images of received frames not logged, skipped or still due; the run's diagnostics)."""
+        (images of received frames not logged; the run's diagnostics)."""
         with self._images:
-            missing = self._images_skipped + len(self._images_due)
+            missing = len(self._images_due)
         return {
             **self.features.counts.as_dict(),
             "images_rejected": self.images_rejected,
@@ -153,7 +151,6 @@ class FeatureLink:
             self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
         with self._images:
             seen = self._image_seen_ns = max(self._image_seen_ns, image.sim_time_ns)
-            self._images_skipped += sum(t < seen for t in self._images_due)
             self._images_due = [t for t in self._images_due if t > seen]
             self._images.notify_all()
 

@@ -173,34 +173,6 @@ def test_a_realtime_run_counts_the_images_of_its_last_frames_that_did_not_come()
     link.detach()
 
 
-def test_an_image_that_never_came_mid_run_is_counted_and_fails_a_lockstep_run() -> None:
-    """The images of 0 and 0.2 s reach the log, the one of 0.1 s never does (zenoh dropped
-    it, say): it stays counted in ``images_missing`` after the later image came, and a
-    lockstep run, whose log must hold every image, is then not clean (a realtime one is
-    warned)."""
-    from hal.vision_codec import FeatureMsg, encode_features
-
-    cfg = RigConfig()
-    key = rig_key(cfg)
-    link, _, rec, session = _lockstep_link(cfg)
-    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
-
-    for k in range(11):  # frames every 20 ms; logged: those of 0, 0.1 and 0.2 s
-        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
-        on_features(encode_features(msg, key=key))
-        if k in (0, 10):
-            on_image(_frame_image(key, k))
-    assert link.settle_images(0.01)  # nothing more is on its way
-    counts = link.counts()
-    assert counts["images_missing"] == 1 and len(rec.images) == 2
-    lockstep = {"clock": "lockstep", "rejections": {"features": counts}}
-    assert run_problems(lockstep) == ["1 camera image(s) missing from the lockstep log"]
-    realtime = {"clock": "realtime", "rejections": {"features": counts}}
-    assert run_problems(realtime) == []
-    assert "1 camera image(s) did not reach the log" in run_warnings(realtime)
-    link.detach()
-
-
 def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None:
     """A vision process far behind still sends the last frames' images one after another: the
     end of the run waits on while each comes within ``quiet_s`` of the one before, however long
