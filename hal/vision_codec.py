@@ -12,7 +12,9 @@ Features v2 — key ``hil/vision/features``, 72 bytes, little-endian (``<2sBBIQq
     off size type  field
       0    2 bytes magic        b"HF"
       2    1 u8    version      2
-      3    1 u8    flags        bit0 valid (f holds a measurement), bit1 lockstep; others 0
+      3    1 u8    flags        bit0 valid (f holds a measurement), bit1 lockstep, bit2 image
+                                (this frame's camera image follows on hil/vision/image, for
+                                the log); others 0
       4    4 u32   source       random id of the publishing vision process (restart detection)
       8    8 u64   frame        frame counter of the image (0, 1, ...)
      16    8 i64   stamp_ns     CLOCK_MONOTONIC at capture on the vision host (on one host this
@@ -50,7 +52,8 @@ speak; their ordering and staleness checks then stop replays of authentic messag
 key is gone). v1 (no MAC) is refused as ``bad_version``, and so is a v2 camera pose (no seed).
 
 Compatibility: a receiver accepts exactly the versions it knows; any change of layout or meaning
-bumps the version byte. Reserved flag bits must be zero.
+bumps the version byte. Reserved flag bits must be zero, so a receiver that predates a flag
+refuses a message that sets it (``bad_flags``) rather than misread it.
 """
 
 from __future__ import annotations
@@ -74,9 +77,10 @@ FEATURES_LABEL = "hil/zenoh/features"
 POSE_LABEL = "hil/zenoh/camera_pose"
 FLAG_VALID = 0x01
 FLAG_LOCKSTEP = 0x02
+FLAG_IMAGE = 0x04
 POSE_FLAG_LOCKSTEP = 0x01
 POSE_FLAG_SEED = 0x02
-_FEATURE_FLAGS = FLAG_VALID | FLAG_LOCKSTEP
+_FEATURE_FLAGS = FLAG_VALID | FLAG_LOCKSTEP | FLAG_IMAGE
 _POSE_FLAGS = POSE_FLAG_LOCKSTEP | POSE_FLAG_SEED
 _FEAT = struct.Struct("<2sBBIQqqQdd")
 _POSE = struct.Struct("<2sBBIQqqdddQ")
@@ -113,6 +117,8 @@ class FeatureMsg(NamedTuple):
     valid: bool = True
     lockstep: bool = False
     source: int = 0
+    image: bool = False
+    """The camera image of this frame follows for the log (the receiver can count it lost)."""
 
     def as_dict(self) -> dict[str, object]:
         """Plain dict for JSON logs (``f`` as a list)."""
@@ -142,7 +148,11 @@ def encode_features(msg: FeatureMsg, key: bytes | None = None) -> bytes:
     fx, fy = msg.f
     if not (_isfinite(fx) and _isfinite(fy)):
         raise HalCodecError(f"features: f must be finite, got {msg.f}")
-    flags = (FLAG_VALID if msg.valid else 0) | (FLAG_LOCKSTEP if msg.lockstep else 0)
+    flags = (
+        (FLAG_VALID if msg.valid else 0)
+        | (FLAG_LOCKSTEP if msg.lockstep else 0)
+        | (FLAG_IMAGE if msg.image else 0)
+    )
     try:
         body = _FEAT.pack(
             FEATURES_MAGIC,
@@ -211,6 +221,7 @@ def parse_features(buf: bytes) -> FeatureMsg | str:
         bool(flags & FLAG_VALID),
         bool(flags & FLAG_LOCKSTEP),
         source,
+        bool(flags & FLAG_IMAGE),
     )
 
 

@@ -14,6 +14,10 @@ source's ``request_roi`` (a source that cannot read out a region ignores it). A 
 not hold the target is not answered: the grabber asks for the same frame whole and measures
 that, so the features are those of whole frames, whatever the camera sent. In lockstep the
 request is a function of the frames before it, the same on every run.
+
+Image log: a frame whose image the log will get (:meth:`vision.image_log.ImageLog.claim`) says
+so in its features (``image``), so the controller counts an image that never reaches the log
+exactly; the frame goes to the log's queue after its features left.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from hal.durations import Durations
 from hal.errors import HalConfigError
 from hal.fifo import fifo_thread
 from hal.vision_codec import FeatureMsg
+from vision.image_log import ImageLog
 from vision.pipeline import Measurement, Pipeline
 
 Publish = Callable[[FeatureMsg], None]
@@ -133,8 +138,11 @@ class Grabber:
         dropouts: Sequence[Dropout] = (),
         rt_priority: int = 0,
         request_roi: RequestRoi | None = None,
+        image_log: ImageLog | None = None,
     ) -> None:
         self.pipeline = pipeline
+        self.image_log = image_log
+        """Where the frames whose image is logged go (None: no image log)."""
         self.request_roi = request_roi
         """Where the region of interest of the next frame is asked for (None: nowhere)."""
         self.rt_priority = rt_priority
@@ -190,6 +198,8 @@ class Grabber:
             else:
                 m = self.pipeline.process(frame.pixels)
             f = m.f if m.f is not None else (0.0, 0.0)
+            log = self.image_log
+            image = log is not None and log.claim(frame)
             msg = FeatureMsg(
                 frame.seq,
                 frame.stamp_ns,
@@ -199,6 +209,7 @@ class Grabber:
                 m.valid,
                 frame.lockstep,
                 self.source_id,
+                image,
             )
             self.stats.frames += 1
             if m.valid:
@@ -211,6 +222,8 @@ class Grabber:
             self._detect_ns.add(m.detect_ns)
             if not frame.lockstep:
                 self._latency_ns.add(self.clock() - frame.stamp_ns)
+            if log is not None and image:
+                log.put(frame, m)
             if self.observer is not None:
                 self.observer(frame, m, msg)
             return msg

@@ -23,7 +23,6 @@ import cv2
 
 from hal.camera_frame import CameraFrame
 from hal.fifo import idle_thread, short_gil_switch
-from hal.vision_codec import FeatureMsg
 from hal.vision_image import ImageSlots, VisionImage
 from vision.pipeline import Measurement
 
@@ -51,8 +50,8 @@ def png(pixels) -> bytes:
 
 
 class ImageLog:
-    """A grabber observer that hands every ``1 / fps``-th frame, as PNG, to
-    ``publish(image, lockstep)`` from its own thread (started on the first frame;
+    """Hands every ``1 / fps``-th frame the grabber claims (:meth:`claim`, :meth:`put`), as
+    PNG, to ``publish(image, lockstep)`` from its own thread (started on the first frame;
     :meth:`close` logs what is queued and stops it)."""
 
     def __init__(
@@ -72,25 +71,32 @@ class ImageLog:
         self._thread: threading.Thread | None = None
         self._closed = False
 
-    def __call__(self, frame: CameraFrame, m: Measurement, msg: FeatureMsg) -> None:
+    def claim(self, frame: CameraFrame) -> bool:
+        """Whether ``frame``'s image will follow: a whole frame that opens its slot, with room
+        for it (a realtime frame that finds :data:`BACKLOG` frames waiting is not logged,
+        counted ``dropped``). The grabber asks before the frame's features leave, so they can
+        say so (:attr:`hal.vision_codec.FeatureMsg.image`), and then hands a claimed frame to
+        :meth:`put`."""
         if self.period_ns <= 0 or self._closed:
-            return
+            return False
         if frame.is_roi:  # the log and the live views show whole frames only (the camera
             self.regions += 1  # sends the first frame of each slot whole)
-            return
+            return False
         if not self.slots.take(frame.sim_time_ns):
-            return
+            return False
+        if not frame.lockstep and self._queue.full():
+            self.dropped += 1
+            return False
+        return True
+
+    def put(self, frame: CameraFrame, m: Measurement) -> None:
+        """Queue a claimed frame for its PNG (a lockstep frame waits for room; a realtime one
+        has the room its claim found: only the grabber's thread puts)."""
         if self._thread is None:
             short_gil_switch()  # the PNG thread's Python holds the GIL the grabber wants
             self._thread = threading.Thread(target=self._run, name="hil-image-log", daemon=True)
             self._thread.start()
-        if frame.lockstep:
-            self._queue.put((frame, m))
-            return
-        try:
-            self._queue.put_nowait((frame, m))
-        except queue.Full:
-            self.dropped += 1
+        self._queue.put((frame, m))
 
     def counters(self) -> dict[str, int]:
         """Frames logged, not logged for a full backlog, failed to encode or publish, and

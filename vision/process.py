@@ -20,7 +20,7 @@ from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.vision_image import encode_vision_image
 from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, KEY_VISION_IMAGE, open_session
-from vision.grabber import Dropout, Grabber, GrabberStats, Observer
+from vision.grabber import Dropout, Grabber, GrabberStats
 from vision.image_log import ImageLog
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
@@ -55,7 +55,6 @@ def run_live(
     listen: bool | None = False,
     wait_s: float = DEFAULT_WAIT_S,
     ready: threading.Event | None = None,
-    observer: Observer | None = None,
     dropouts: Sequence[Dropout] = (),
     rt_priority: int = 0,
 ) -> GrabberStats:
@@ -79,14 +78,14 @@ def run_live(
         source_id = secrets.randbits(32)
         image_pubs: dict[bool, Any] = {}
         image_log = None
-        if observer is None and cfg.camera.image_log_fps > 0:
+        if cfg.camera.image_log_fps > 0:
             image_pubs = {  # lockstep: never lost; realtime: never delays the features
                 lockstep: session.publisher(
                     KEY_VISION_IMAGE, block=lockstep, priority=zenoh.Priority.DATA_LOW
                 )
                 for lockstep in (True, False)
             }
-            observer = image_log = ImageLog(
+            image_log = ImageLog(
                 cfg.camera.image_log_fps,
                 lambda img, lockstep: image_pubs[lockstep].put(encode_vision_image(img, key)),
                 source_id,
@@ -96,10 +95,10 @@ def run_live(
             Pipeline(intrinsics_from_config(cfg)),
             lambda msg: pub.put(encode_features(msg, key)),
             source_id=source_id,
-            observer=observer,
             dropouts=dropouts,
             rt_priority=rt_priority,
             request_roi=source.request_roi,
+            image_log=image_log,
         )
         if duration_s > 0:
             timer = threading.Timer(duration_s, stop_event.set)

@@ -226,12 +226,20 @@ def _images_refused(rejections: dict[str, Any]) -> int:
     return int((rejections.get("features") or {}).get("images_rejected", 0))
 
 
+def _images_missing(summary: dict[str, Any]) -> int:
+    """Camera images the features announced that did not reach the log (a realtime link may
+    drop one; a lockstep one waits, so there one missing means the log is incomplete)."""
+    rejections = summary.get("rejections") or {}
+    return int((rejections.get("features") or {}).get("images_missing", 0))
+
+
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
     ended short for another reason than a stop request, lost or could not encode log records
-    or camera images, tripped the DSP's watchdog, saw a DSP fault, received a stream of frames
-    or messages that failed authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran
-    ticks without an enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
+    or camera images (in lockstep, also an announced image that never came), tripped the DSP's
+    watchdog, saw a DSP fault, received a stream of frames or messages that failed
+    authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without an
+    enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
     planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
@@ -262,6 +270,9 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     images = _images_refused(rejections)
     if images >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
+    missing = _images_missing(summary)
+    if missing and summary.get("clock") == "lockstep":
+        out.append(f"{missing} camera image(s) announced by their features are not in the log")
     dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
     if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")
@@ -317,11 +328,9 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     images = _images_refused(summary.get("rejections") or {})
     if 0 < images < diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
-    missing = int(
-        ((summary.get("rejections") or {}).get("features") or {}).get("images_missing", 0)
-    )
-    if missing:
-        out.append(f"{missing} camera image(s) of the last frames did not reach the log in time")
+    missing = _images_missing(summary)
+    if missing and summary.get("clock") != "lockstep":
+        out.append(f"{missing} camera image(s) announced by their features are not in the log")
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

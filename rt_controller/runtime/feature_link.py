@@ -17,7 +17,7 @@ import numpy as np
 
 from hal.errors import HalCodecError
 from hal.hardware_interface import InputJudge
-from hal.vision_image import ImageSlots, decode_vision_image
+from hal.vision_image import decode_vision_image
 from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import KEY_FEATURES, KEY_VISION_IMAGE, PayloadRing
 from rt_controller.runtime.context import RunContext
@@ -46,16 +46,15 @@ class FeatureLink:
         self._image_subscriber: Any = None
         self.images_rejected = 0
         """``hil/vision/image`` payloads refused for the log (not authentic or malformed)."""
-        camera = ctx.cfg.camera
-        self._slots = ImageSlots(camera.image_log_fps if camera.model == "image" else 0.0)
-        """The frames whose image the vision process logs (its own rule), from the features
-        received."""
         self._images = threading.Condition()
         self._images_due: list[int] = []
-        """Simulation times of the frames whose image is still to come (newer than the newest
-        logged: an image follows its features, so each older one had its turn)."""
+        """Simulation times of the frames received whose features said their image follows
+        (``FeatureMsg.image``), still to come, oldest first."""
         self._image_seen_ns = -1
         """Simulation time of the newest image logged."""
+        self._images_lost = 0
+        """Images due that a newer image overtook: the vision process sends them in order on
+        one publisher, so an image overtaken never comes (a realtime link dropped it)."""
         self._feeding = threading.Lock()
         self._attached = False
 
@@ -84,9 +83,10 @@ class FeatureLink:
 
     def counts(self) -> dict[str, int]:
         """The feature decoder's counters plus ``images_rejected`` and ``images_missing``
-        (images of received frames not logged; the run's diagnostics)."""
+        (images the received features announced that are not in the log: overtaken by a
+        newer one, or still to come; the run's diagnostics)."""
         with self._images:
-            missing = len(self._images_due)
+            missing = self._images_lost + len(self._images_due)
         return {
             **self.features.counts.as_dict(),
             "images_rejected": self.images_rejected,
@@ -94,10 +94,10 @@ class FeatureLink:
         }
 
     def settle_images(self, quiet_s: float) -> bool:
-        """Wait until the camera images of the frames received so far are in the log (the
-        vision process sends each after its features, so the run's last ones may still be on
-        their way), as long as each comes within ``quiet_s`` of the one before. True when
-        none is missing."""
+        """Wait until the camera images announced by the features received so far are in the
+        log (the vision process sends each after its features, so the run's last ones may
+        still be on their way), as long as each comes within ``quiet_s`` of the one before.
+        True when none is still to come."""
         with self._images:
             while self._images_due:
                 seen = self._image_seen_ns
@@ -129,14 +129,14 @@ class FeatureLink:
             if not self._attached:
                 return
             now = self.ctx.clock.now_ns() if now_ns is None else now_ns
-            self.features.feed(payload, now)
+            msg = self.features.feed(payload, now)
             if self.record_raw:
                 self.ctx.recorder.record_vision(payload, now)
-            latest = self.features.latest
-            if latest is not None and self._slots.take(latest.sim_time_ns):
+            if msg is not None and msg.image:
                 with self._images:
-                    if latest.sim_time_ns > self._image_seen_ns:
-                        self._images_due.append(latest.sim_time_ns)
+                    due = self._images_due
+                    if msg.sim_time_ns > max(self._image_seen_ns, due[-1] if due else -1):
+                        due.append(msg.sim_time_ns)
 
     def _on_image(self, payload: bytes) -> None:
         """What the camera saw (``hil/vision/image``, authenticated) into the log."""
@@ -151,7 +151,9 @@ class FeatureLink:
             self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
         with self._images:
             seen = self._image_seen_ns = max(self._image_seen_ns, image.sim_time_ns)
-            self._images_due = [t for t in self._images_due if t > seen]
+            due = self._images_due
+            self._images_lost += sum(1 for t in due if t < image.sim_time_ns)
+            self._images_due = [t for t in due if t > seen]
             self._images.notify_all()
 
 

@@ -55,6 +55,16 @@ def _frame_image(key: bytes, k: int) -> bytes:
     return encode_vision_image(msg, key=key)
 
 
+def _features(key: bytes, k: int, image: bool | None = None) -> bytes:
+    """The lockstep features of frame ``k`` (every 20 ms of simulation time); ``image``: they
+    announce the frame's image (default: every fifth frame, as the 10 fps image log takes)."""
+    from hal.vision_codec import FeatureMsg, encode_features
+
+    image = k % 5 == 0 if image is None else image
+    msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7, image)
+    return encode_features(msg, key=key)
+
+
 def _lockstep_link(
     cfg: RigConfig,
 ) -> tuple[FeatureLink, FeatureDecoder, ImageRecorder, Session]:
@@ -100,8 +110,6 @@ def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
     """The vision process sends a frame's image after its features: the end of a lockstep run
     waits for the images of the frames it received (10 fps of simulation time: the frames at
     0 and 0.1 s of these six), so the log holds them all."""
-    from hal.vision_codec import FeatureMsg, encode_features
-
     cfg = RigConfig()
     assert cfg.camera.model == "image" and cfg.camera.image_log_fps == 10.0
     key = rig_key(cfg)
@@ -109,8 +117,7 @@ def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
     on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
 
     for k in range(6):  # frames every 20 ms of simulation time
-        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
-        on_features(encode_features(msg, key=key))
+        on_features(_features(key, k))
     assert decoder.latest is not None and decoder.latest.frame == 5
     on_image(_frame_image(key, 0))
     assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
@@ -141,8 +148,6 @@ def test_a_realtime_run_counts_the_images_of_its_last_frames_that_did_not_come()
     """Realtime features are drained by the control thread, not fed by a callback; the images
     of the frames it received are still owed to the log, and the ones that never came are
     counted (``images_missing``) instead of lost unsaid."""
-    from hal.vision_codec import FeatureMsg, encode_features
-
     cfg = RigConfig()
     key = rig_key(cfg)
     rec, ring = ImageRecorder(), _Ring()
@@ -160,8 +165,7 @@ def test_a_realtime_run_counts_the_images_of_its_last_frames_that_did_not_come()
     on_image = session.callbacks[KEY_VISION_IMAGE]
 
     for k in range(6):  # frames every 20 ms of simulation time; logged: those of 0 and 0.1 s
-        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
-        ring.payloads.append(encode_features(msg, key=key))
+        ring.payloads.append(_features(key, k))
     link.poll(clock.now_ns())
     assert decoder.latest is not None and decoder.latest.frame == 5
     on_image(_frame_image(key, 0))
@@ -178,15 +182,12 @@ def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None
     end of the run waits on while each comes within ``quiet_s`` of the one before, however long
     all of them take (here 1.2 s against a ``quiet_s`` of 1 s), and gives up once one does not
     come."""
-    from hal.vision_codec import FeatureMsg, encode_features
-
     cfg = RigConfig()
     key = rig_key(cfg)
     link, _, rec, session = _lockstep_link(cfg)
     on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
     for k in range(65):  # logged: the frames of 0, 0.1, ... 1.2 s (every fifth)
-        msg = FeatureMsg(k, 10**9, k * 20_000_000, k, (-120.0, -160.0), True, True, 7)
-        on_features(encode_features(msg, key=key))
+        on_features(_features(key, k))
     assert link.counts()["images_missing"] == 13
     stop = threading.Event()
 
@@ -206,3 +207,50 @@ def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None
         sender.join()
     assert link.counts()["images_missing"] == 1
     link.detach()
+
+
+def test_an_image_overtaken_by_a_newer_one_is_counted_at_once() -> None:
+    """The vision process sends its images in order on one publisher: an announced image that a
+    newer one overtook never comes (a realtime link dropped it). It is counted missing at once,
+    and the end of the run does not wait for it."""
+    cfg = RigConfig()
+    key = rig_key(cfg)
+    link, _, rec, session = _lockstep_link(cfg)
+    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
+    for k in range(11):  # announced: the images of frames 0, 5 and 10
+        on_features(_features(key, k))
+    on_image(_frame_image(key, 0))
+    on_image(_frame_image(key, 10))  # the image of frame 5 was dropped on the way
+    assert link.counts()["images_missing"] == 1
+    assert link.settle_images(0.01)  # nothing still to come
+    assert len(rec.images) == 2
+    link.detach()
+
+
+def test_only_announced_images_are_expected() -> None:
+    """Features that do not announce an image (a frame the vision process did not log: a region
+    of interest, a dropout, a full backlog, or the first frame of a slot the controller received
+    when the vision process logged an earlier one) leave nothing owed to the log."""
+    cfg = RigConfig()
+    key = rig_key(cfg)
+    link, _, rec, session = _lockstep_link(cfg)
+    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
+    for k in range(1, 5):  # the controller subscribed after frame 0, whose image was logged
+        on_features(_features(key, k, image=False))
+    on_features(_features(key, 5))
+    assert link.counts()["images_missing"] == 1
+    on_image(_frame_image(key, 5))
+    assert link.counts()["images_missing"] == 0
+    assert link.settle_images(0.01) and len(rec.images) == 1
+    link.detach()
+
+
+def test_an_image_missing_makes_a_lockstep_run_not_clean_and_a_realtime_one_warned() -> None:
+    """Lockstep images wait on a congested link, so one missing means the log is incomplete;
+    a realtime link drops an image rather than delay the features: a warning."""
+    summary = {"rejections": {"features": {"images_missing": 2}}}
+    said = "2 camera image(s) announced by their features are not in the log"
+    assert run_problems({**summary, "clock": "lockstep"}) == [said]
+    assert said not in run_warnings({**summary, "clock": "lockstep"})
+    assert run_problems({**summary, "clock": "realtime"}) == []
+    assert said in run_warnings({**summary, "clock": "realtime"})

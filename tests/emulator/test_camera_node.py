@@ -240,7 +240,7 @@ def roi_lockstep_run(periods: int = 16, ask=True, corner_at: int | None = None):
         Pipeline(intrinsics_from_config(cfg)),
         features.append,
         source_id=1,
-        observer=log,
+        image_log=log,
         request_roi=(lambda req: node.request(encode_roi_request(req, KEY))) if ask else None,
     )
     sent: list[bytes] = []
@@ -282,6 +282,7 @@ def test_lockstep_regions_are_the_whole_frames_pixels_and_give_the_same_features
         )
         assert f.width * f.height < 640 * 480 / 8
     assert len(logged) == len(whole_logged) == 4
+    assert [m.frame for m in features if m.image] == [x.frame for x in logged]  # announced
     assert [x.png for x in logged] == [x.png for x in whole_logged]
     assert grabber.snapshot().roi_frames == 12
     _, again, *_ = roi_lockstep_run()

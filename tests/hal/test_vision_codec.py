@@ -40,11 +40,20 @@ def feat(frame: int = 1, pose_seq: int = 1, **kw) -> FeatureMsg:
     return FeatureMsg(**base)
 
 
-def test_features_round_trip_is_bit_exact():
-    msg = feat(frame=2**40, pose_seq=2**63, f=(math.pi, -1e-300), lockstep=True, source=2**32 - 1)
+@pytest.mark.parametrize(("image", "flags"), [(False, 0x03), (True, 0x07)])
+def test_features_round_trip_is_bit_exact(image, flags):
+    """Bit2 says the frame's camera image follows for the log."""
+    msg = feat(
+        frame=2**40,
+        pose_seq=2**63,
+        f=(math.pi, -1e-300),
+        lockstep=True,
+        source=2**32 - 1,
+        image=image,
+    )
     buf = encode_features(msg)
     assert len(buf) == FEATURES_SIZE == 72
-    assert buf[:4] == b"HF\x02\x03"
+    assert buf[:4] == b"HF\x02" + bytes([flags])
     assert decode_features(buf) == msg
     assert msg.as_dict()["f"] == [math.pi, -1e-300]
 
@@ -211,7 +220,7 @@ def _mutate(rng: random.Random, good: bytes) -> tuple[bytes, str]:
     if kind == 3:
         return good[:2] + bytes([rng.choice([0, 1, *range(3, 256)])]) + good[3:], "bad_version"
     if kind == 4:
-        return good[:3] + bytes([rng.randrange(4, 256)]) + good[4:], "bad_flags"
+        return good[:3] + bytes([rng.randrange(8, 256)]) + good[4:], "bad_flags"
     if kind == 5:
         bad = rng.choice([math.nan, math.inf, -math.inf])
         off = rng.choice([40, 48])

@@ -1,5 +1,6 @@
 """The decimated image stream (vision.image_log): PNGs made off the grabber's thread, lockstep
-frames never dropped, realtime frames dropped and counted when the backlog is full."""
+frames never dropped, realtime frames dropped and counted when the backlog is full, and a
+frame's claim (made before its features leave) exactly the frames logged."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ import numpy as np
 import pytest
 
 from hal.camera_frame import CameraFrame
-from hal.vision_codec import FeatureMsg
 from vision.image_log import ImageLog, png
 from vision.pipeline import Measurement
 
@@ -23,8 +23,12 @@ def frame(seq: int, lockstep: bool) -> CameraFrame:
     return CameraFrame(seq, t, t, 0, seq, pixels, lockstep)
 
 
-def msg(f: CameraFrame) -> FeatureMsg:
-    return FeatureMsg(f.seq, f.stamp_ns, f.sim_time_ns, f.period, (0.0, 0.0), False, f.lockstep, 1)
+def offer(log: ImageLog, f: CameraFrame) -> bool:
+    """As the grabber does: claim the frame before its features leave, then queue it."""
+    claimed = log.claim(f)
+    if claimed:
+        log.put(f, NO_F)
+    return claimed
 
 
 def test_png_is_lossless():
@@ -59,7 +63,7 @@ def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
 
     log = ImageLog(10.0, publish, 1, backlog=2)
     frames = [frame(i, True) for i in range(40)]  # 0.8 s at 50 Hz: every 5th frame is logged
-    feeder = threading.Thread(target=lambda: [log(f, NO_F, msg(f)) for f in frames])
+    feeder = threading.Thread(target=lambda: [offer(log, f) for f in frames])
     feeder.start()
     feeder.join(0.5)
     assert feeder.is_alive()  # blocked on the full backlog, not dropping
@@ -80,14 +84,12 @@ def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
         how.add(lockstep)
 
     log = ImageLog(10.0, publish, 1, backlog=2)
-    for i in range(40):  # never blocks
-        f = frame(i, False)
-        log(f, NO_F, msg(f))
+    claimed = [i for i in range(40) if offer(log, frame(i, False))]  # never blocks
     gate.set()
     log.close()
     c = log.counters()
     assert c["sent"] + c["dropped"] == 8 and c["dropped"] >= 5  # one in the encoder, two queued
-    assert got == sorted(got) and got[0] == 0
+    assert got == claimed  # a frame refused at its claim, before its features left, only
     assert how == {False}
 
 
@@ -100,7 +102,7 @@ def test_regions_of_interest_are_never_logged_the_slot_takes_the_next_whole_fram
                 f.seq, f.stamp_ns, f.sim_time_ns, 0, f.seq, f.pixels[:10, :20], True, 0,
                 "mono8", 4, 4, (64, 48),
             )  # fmt: skip
-        log(f, NO_F, msg(f))
+        offer(log, f)
     log.close()
     assert [img.frame for img in got] == [1, 7, 10]
     shapes = {cv2.imdecode(np.frombuffer(img.png, np.uint8), 0).shape for img in got}
@@ -123,7 +125,7 @@ def test_lockstep_pngs_are_made_on_idle_cpu_realtime_ones_at_the_default_policy(
     before = policy()
     for i in range(10):  # 0.2 s at 50 Hz: frames 0 and 5 are logged
         f = frame(i, lockstep)
-        log(f, NO_F, msg(f))
+        offer(log, f)
     log.close()
     assert policy() == before == os.SCHED_OTHER
     assert seen == [os.SCHED_IDLE if lockstep else os.SCHED_OTHER] * 2
@@ -141,7 +143,7 @@ def test_the_png_thread_shortens_the_gil_switch_interval():
     try:
         log = ImageLog(10.0, lambda image, lockstep: None, 1)
         f = frame(0, True)
-        log(f, NO_F, msg(f))
+        offer(log, f)
         log.close()
         assert sys.getswitchinterval() == GIL_SWITCH_S
     finally:
