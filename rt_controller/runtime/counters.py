@@ -220,17 +220,13 @@ def _us(durations: Durations, q: float) -> float:
     return durations.percentile_us(q) if len(durations) else math.nan
 
 
-def _images_refused(rejections: dict[str, Any]) -> int:
-    """Camera images the controller refused to log (:class:`~rt_controller.runtime.
-    feature_link.FeatureLink`), from a summary's ``rejections``."""
-    return int((rejections.get("features") or {}).get("images_rejected", 0))
-
-
-def _images_missing(summary: dict[str, Any]) -> int:
-    """Camera images the features announced that did not reach the log (a realtime link may
-    drop one; a lockstep one waits, so there one missing means the log is incomplete)."""
+def _image_count(summary: dict[str, Any], name: str) -> int:
+    """A camera-image counter of the controller's feature link (:class:`~rt_controller.runtime.
+    feature_link.FeatureLink`) from a summary: ``images_rejected`` (refused for the log) or
+    ``images_missing`` (announced by their features, not in the log: a realtime link may drop
+    one; a lockstep one waits, so there one missing means the log is incomplete)."""
     rejections = summary.get("rejections") or {}
-    return int((rejections.get("features") or {}).get("images_missing", 0))
+    return int((rejections.get("features") or {}).get(name, 0))
 
 
 def run_problems(summary: dict[str, Any]) -> list[str]:
@@ -267,10 +263,10 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         if sum(auth.values()) >= diagnostics.AUTH_FAULT_MIN:
             reasons = ", ".join(f"{k} {v}" for k, v in auth.items() if v)
             out.append(f"{sum(auth.values())} {what} failed authentication ({reasons})")
-    images = _images_refused(rejections)
+    images = _image_count(summary, "images_rejected")
     if images >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
-    missing = _images_missing(summary)
+    missing = _image_count(summary, "images_missing")
     if missing and summary.get("clock") == "lockstep":
         out.append(f"{missing} camera image(s) announced by their features are not in the log")
     dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
@@ -325,10 +321,10 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
         out.append(f"{rec['scene_errors']} cycle(s) without their 3D scene in the log")
     if rec.get("live_errors"):
         out.append(f"{rec['live_errors']} record(s) did not reach the live view")
-    images = _images_refused(summary.get("rejections") or {})
+    images = _image_count(summary, "images_rejected")
     if 0 < images < diagnostics.AUTH_FAULT_MIN:
         out.append(f"{images} camera image(s) refused for the log (not authentic or malformed)")
-    missing = _images_missing(summary)
+    missing = _image_count(summary, "images_missing")
     if missing and summary.get("clock") != "lockstep":
         out.append(f"{missing} camera image(s) announced by their features are not in the log")
     steal = summary.get("host_steal_percent")
