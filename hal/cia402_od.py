@@ -3,7 +3,7 @@
 Both sides of the ``cia402`` profile read it: the emulated drives build their
 :class:`canopen.ObjectDictionary` from it (:func:`build_od`), and the shipped EDS
 (``hal/cia402_drive.eds``, :data:`EDS_PATH`) is generated from it with :func:`canopen.export_od`
-(:func:`write_eds`; ``python scripts/gen_docs.py`` keeps it current), so a master that only
+(:func:`eds_text`; ``python scripts/gen_docs.py`` keeps it current), so a master that only
 knows the EDS (canopen's ``BaseNode402``, a PLC, CANopen tools) sees the same objects.
 
 Units (CiA 402): positions in increments (:func:`increments_per_rad` from the encoder resolution
@@ -276,15 +276,6 @@ def eds_text() -> str:
     out = io.StringIO()
     canopen.export_od(od, out, doc_type="eds")
     return _DATES.sub("", out.getvalue())
-
-
-def write_eds(path: Path = EDS_PATH) -> bool:
-    """Write the EDS if it differs; True when the file changed."""
-    text = eds_text()
-    if path.exists() and path.read_text() == text:
-        return False
-    path.write_text(text)
-    return True
 
 
 def interpolation_time(period_s: float) -> tuple[int, int]:

@@ -29,10 +29,6 @@ class TargetMarker:
     paper: float = 0.8
     """Reflectance of the plane around it, 0..1."""
 
-    def diameter_px(self, gain_px_per_m: float) -> float:
-        """Apparent diameter in px on an ideal pinhole with ``s·λ / z_wo`` = ``gain_px_per_m``."""
-        return self.diameter_m * gain_px_per_m
-
 
 TARGET_MARKER = TargetMarker()
 """The rig's target marker."""

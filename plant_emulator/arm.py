@@ -193,16 +193,9 @@ class ArmPhysics:
     def gravity(self, q: np.ndarray) -> np.ndarray:
         return gravity_kernel(self.params, np.asarray(q, dtype=float))
 
-    def friction(self, dq: np.ndarray) -> np.ndarray:
-        return friction_kernel(self.params, np.asarray(dq, dtype=float))
-
     def saturate(self, tau: np.ndarray) -> np.ndarray:
         """Amplifier limits."""
         return saturate_kernel(self.params, np.asarray(tau, dtype=float))
-
-    def acceleration(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """qdd for an already saturated torque."""
-        return acceleration_kernel(self.params, q, dq, np.asarray(tau, dtype=float))
 
     def integrate(
         self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, dt: float, steps: int = 1
@@ -245,6 +238,3 @@ class ArmPhysics:
         if not (np.all(np.isfinite(q_next)) and np.all(np.isfinite(dq_next))):
             raise PhysicsError(f"arm state diverged (q={q_next}, dq={dq_next}, tau={tau})")
         return q_next, dq_next
-
-    def kinetic_energy(self, q: np.ndarray, dq: np.ndarray) -> float:
-        return float(0.5 * dq @ self.inertia(q) @ dq)

@@ -16,10 +16,6 @@ class OutputPathError(ControllerConfigError):
     the path and why); raised before the command starts its work."""
 
 
-class SolverError(ControllerError, ArithmeticError):
-    """The receding-horizon solver could not produce a usable solution."""
-
-
 class LogError(ControllerError, OSError):
     """An MCAP log could not be written or read."""
 
