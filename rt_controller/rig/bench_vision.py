@@ -19,9 +19,10 @@ Figures (times in us, errors in px, median and p99 where a distribution):
   mid-exposure);
 * ``latency``: capture stamp to the features message published, through a loopback zenoh hub,
   frames at ``fps`` in realtime (zenoh transport of the raw frame included);
-* ``lockstep``: lockstep rig runs with images, with images but no image log, and with the
-  analytic camera: speed against real time (``speedup_loop``: the ticks' own wall time) and
-  the period's profile.
+* ``lockstep``: lockstep rig runs (:data:`LOCKSTEP_RUNS`) with images, with images of a clean
+  camera, with images but no image log, and with the analytic camera: speed against real time
+  (``speedup_loop``: the ticks' own wall time), the period's profile and J; the clean camera's
+  also ``J_vs_analytic``, its J's relative difference from the analytic camera's.
 """
 
 from __future__ import annotations
@@ -45,6 +46,14 @@ Truth = Callable[[RigConfig, np.ndarray], tuple[float, float]]
 PEAK_DQ = (1.2, 8.3)
 """The paper scenario's peak joint speeds in live runs, rad/s (``dsp.dq_max``'s docstring)."""
 SIZES = ((640, 480), (1280, 1024))
+NO_NOISE = {"camera.electrons_per_dn": 0.0, "camera.read_noise_dn": 0.0, "camera.exposure_s": 0.0}
+"""A still sensor: no shot or read noise, no exposure (so no motion blur)."""
+CLEAN_CAMERA = {
+    **NO_NOISE,
+    **{f"camera.lens_{c}": 0.0 for c in ("k1", "k2", "p1", "p2", "k3")},
+}
+"""A still sensor behind an ideal lens: the images whose f is eq. (6)'s to the detector's
+sub-pixel error, so a lockstep run on them has the analytic camera's J."""
 
 
 def pose_grid(cfg: RigConfig, n: int) -> list[np.ndarray]:
@@ -360,11 +369,13 @@ def realtime_pipeline(
 
 LOCKSTEP_RUNS = {
     "image": {"camera.model": "image"},
+    "image_clean": {"camera.model": "image", **CLEAN_CAMERA},
     "image_no_log": {"camera.model": "image", "camera.image_log_fps": 0.0},
     "analytic": {"camera.model": "analytic"},
 }
-"""The lockstep runs compared: images (with the configured image log), images with no image
-log (what logging what the camera saw costs), the analytic camera."""
+"""The lockstep runs compared: images (with the configured image log), images of a clean camera
+(:data:`CLEAN_CAMERA`, the image log on), images with no image log (what logging what the
+camera saw costs), the analytic camera."""
 
 
 def lockstep_speed(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[str, Any]:
@@ -381,6 +392,8 @@ def lockstep_speed(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[
         out[name] = {
             k: run[k] for k in ("sim_s", "ticks", "speedup_loop", "speedup_total", "period_us", "J")
         }
+    clean, analytic = out["image_clean"]["J"], out["analytic"]["J"]
+    out["image_clean"]["J_vs_analytic"] = clean / analytic - 1.0 if analytic else None
     return out
 
 
@@ -404,9 +417,7 @@ def bench_vision(
         sized = cfg.with_overrides({"camera.width_px": w, "camera.height_px": h})
         out["sizes"][f"{w}x{h}"] = timing(sized, render, poses)
     still = np.zeros(2)
-    clean = cfg.with_overrides(
-        {"camera.electrons_per_dn": 0.0, "camera.read_noise_dn": 0.0, "camera.exposure_s": 0.0}
-    )
+    clean = cfg.with_overrides(NO_NOISE)
     progress("accuracy")
     out["accuracy"] = {
         "no_noise": accuracy(clean, render, truth, poses, still),
@@ -422,7 +433,7 @@ def bench_vision(
         progress("latency over zenoh")
         out["latency"] = latency(cfg, render, latency_frames, fps)
     if lockstep_s > 0:
-        progress(f"lockstep rigs of {lockstep_s:g} s: images, images unlogged, analytic")
+        progress(f"lockstep rigs of {lockstep_s:g} s: images, clean, unlogged, analytic")
         out["lockstep"] = lockstep_speed(cfg, lockstep_s)
         progress(f"lockstep rig of {lockstep_s:g} s with images: where a period goes")
         out["lockstep_profile"] = lockstep_profile(cfg, lockstep_s)

@@ -1,7 +1,7 @@
 """``hil bench vision``'s rig sections: a lockstep rig with images profiled period by period
 (its J is the plain lockstep rig's, bit for bit: same seed, and so is the run's without the
-image log), and the pipeline timed while a realtime rig runs at 60 fps. Times are reported,
-never asserted."""
+image log), a clean camera's lockstep J against the analytic camera's, and the pipeline timed
+while a realtime rig runs at 60 fps. Times are reported, never asserted."""
 
 from __future__ import annotations
 
@@ -38,6 +38,9 @@ def test_rig_sections_report_the_pipeline_while_rigs_run():
     assert prof["ticks"] == 50 and prof["J"] == out["lockstep"]["image"]["J"]
     # logging what the camera saw does not touch the loop: the same J without the image log
     assert out["lockstep"]["image_no_log"]["J"] == out["lockstep"]["image"]["J"]
+    # noise, blur and lens off: the analytic camera's J to 0.5 % (+0.010 % over this 1 s)
+    clean = out["lockstep"]["image_clean"]
+    assert clean["ticks"] == 50 and abs(clean["J_vs_analytic"]) <= 0.005
     for key in ("pose_to_frame_us", "frame_to_features_us", "detect_us"):
         assert 0 < prof[key]["median"] <= prof[key]["p99"]
     assert prof["image_log"]["sent"] >= 10 and prof["image_log"]["dropped"] == 0
