@@ -417,10 +417,10 @@ def bench_vision(
         sized = cfg.with_overrides({"camera.width_px": w, "camera.height_px": h})
         out["sizes"][f"{w}x{h}"] = timing(sized, render, poses)
     still = np.zeros(2)
-    clean = cfg.with_overrides(NO_NOISE)
+    noiseless = cfg.with_overrides(NO_NOISE)
     progress("accuracy")
     out["accuracy"] = {
-        "no_noise": accuracy(clean, render, truth, poses, still),
+        "no_noise": accuracy(noiseless, render, truth, poses, still),
         "default_noise": accuracy(cfg, render, truth, poses, still),
     }
     progress("blur at peak speed")
