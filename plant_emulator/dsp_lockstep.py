@@ -64,6 +64,7 @@ class LockstepDsp(DspNode):
         self.sync_tick = 0
         self._awaiting_controller = wait_for_controller
         self._start_seed = self.world.seed
+        self._missing_since_command = 0  # missing periods not yet followed by a command
         self._reset_request: tuple[int | None] | None = None
         """A scenario reset asked for (its camera noise seed; None: the seed at start), applied
         between periods (:meth:`reset_scenario`); set by :meth:`request_reset` on any thread."""
@@ -156,6 +157,10 @@ class LockstepDsp(DspNode):
             if stop.is_set():
                 return False
             self.stats.missing_periods += 1
+            self._missing_since_command += 1
+        else:
+            self.stats.skipped_periods += self._missing_since_command
+            self._missing_since_command = 0
         self.check_watchdog(self._sim_ns())
         self.advance_period()
         self.sync_tick += 1
@@ -201,6 +206,7 @@ class LockstepDsp(DspNode):
         self.last_cmd_ns = None
         self.last_cmd_tick = -1
         self.sync_tick = 0
+        self._missing_since_command = 0
         self.pose_seq = 0
         self._last_pose = None
         self._awaiting_controller = True

@@ -76,6 +76,11 @@ class DspStats:
     """Lockstep: commands answering another Sync than the current one (ignored)."""
     missing_periods: int = 0
     """Lockstep: periods with no command before the reply timeout."""
+    skipped_periods: int = 0
+    """Lockstep: the missing periods that a later command of the run followed: the physics
+    advanced with the held torque while the controller was still running (a host too slow
+    for the reply timeout), so the run is not the deterministic one. Those after the run's
+    last command (it had ended, or died: the watchdog tells) are not in it."""
     send_errors: int = 0
     drains_cut: int = 0
     """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (a bus that had not run dry: a

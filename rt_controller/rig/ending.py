@@ -74,8 +74,10 @@ def log_path_said(controller_stderr: str) -> Path | None:
 def dsp_report(emulator_stdout: str) -> dict[str, Any]:
     """The DSP's watchdog account from the emulator's ``--json`` counters: trips, how long the
     torque stayed on after the last valid command (``torque_off_after_ms``), the scenario
-    times of that command and of the trip, the drive state it ended in. ``reported`` False
-    when the emulator printed no counters (it died itself)."""
+    times of that command and of the trip, the drive state it ended in, and in lockstep the
+    periods of the run it advanced with the held torque, no command within its reply timeout
+    (``skipped_periods``). ``reported`` False when the emulator printed no counters (it died
+    itself)."""
     stats = None
     for line in emulator_stdout.splitlines():
         if line.startswith("{"):
@@ -97,6 +99,7 @@ def dsp_report(emulator_stdout: str) -> dict[str, Any]:
         "drive_state": stats.get("drive_state"),
         "fault_reason": stats.get("fault_reason"),
         "last_fault": stats.get("last_fault"),
+        "skipped_periods": stats.get("skipped_periods", 0),
     }
 
 

@@ -49,6 +49,7 @@ from rt_controller.rig.supervise import (
     kill_with_stacks,
     signals_deferred,
 )
+from rt_controller.runtime.counters import run_problems
 
 STOP_TIMEOUT_S = 10.0
 LOCKSTEP_MISSING_PERIOD_S = 0.5
@@ -437,6 +438,8 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
                 ]
         emulator = rig.child("emulator")
         summary["dsp"] = dsp_report(emulator.output()) if emulator else {"reported": False}
+        had = summary.get("problems", [])  # the controller's, without the DSP's report
+        summary["problems"] = [*had, *(p for p in run_problems(summary) if p not in had)]
         summary["exit_codes"] = codes
         mon = next((c for c in rig.children if c.name == "monitor"), None)
         if mon is not None and codes.get("monitor") not in (0, None):

@@ -234,8 +234,10 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     ended short for another reason than a stop request, lost or could not encode log records
     or camera images (in lockstep, also an announced image that never came), tripped the DSP's
     watchdog, saw a DSP fault, received a stream of frames or messages that failed
-    authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), or ran ticks without an
-    enabled DSP. ``summary``: a run's summary, also as rebuilt from a log.
+    authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), ran ticks without an
+    enabled DSP, or (lockstep, as the emulator's report in ``dsp`` says) had periods the DSP
+    advanced without their command, which makes it another run than the deterministic one.
+    ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
     planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
@@ -254,6 +256,12 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         out.append(f"the MCAP log is incomplete: {summary['log_error']}")
     if summary.get("watchdog_trips"):
         out.append(f"{summary['watchdog_trips']} DSP watchdog trip(s)")
+    unanswered = (summary.get("dsp") or {}).get("skipped_periods")
+    if unanswered and summary.get("clock") == "lockstep":
+        out.append(
+            f"the DSP advanced {unanswered} lockstep period(s) with the held torque (no command "
+            f"within its reply timeout): not the deterministic run"
+        )
     faults = {k: v for k, v in (summary.get("dsp_faults") or {}).items() if k != "watchdog"}
     if faults:
         out.append("DSP fault(s): " + ", ".join(f"{k} {v}" for k, v in faults.items()))

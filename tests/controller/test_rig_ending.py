@@ -16,6 +16,7 @@ from rt_controller.rig.ending import (
     log_path_said,
     summary_after,
 )
+from rt_controller.runtime.counters import run_problems
 
 STATS = {
     "watchdog_trips": 1,
@@ -50,6 +51,24 @@ def test_the_dsp_report_is_the_last_whole_json_line():
     assert "torque off 60.8 ms after the last command" in dsp_words(dsp)
     assert dsp_report("")["reported"] is False
     assert dsp_words(dsp_report("")) == "the emulator printed no counters"
+
+
+def test_lockstep_periods_the_dsp_advanced_unanswered_make_the_run_not_clean():
+    """A lockstep run is the deterministic one only if the DSP had every period's command
+    before its reply timeout; a period it advanced with the held torque (a host too slow)
+    changes J silently unless the run says so."""
+    out = json.dumps({**STATS, "watchdog_trips": 0, "skipped_periods": 2}) + "\n"
+    dsp = dsp_report(out)
+    assert dsp["skipped_periods"] == 2
+    lockstep = {"clock": "lockstep", "dsp": dsp}
+    assert run_problems(lockstep) == [
+        "the DSP advanced 2 lockstep period(s) with the held torque (no command within its "
+        "reply timeout): not the deterministic run"
+    ]
+    assert run_problems({**lockstep, "dsp": {**dsp, "skipped_periods": 0}}) == []
+    # realtime has no such periods, and an emulator that printed nothing is said elsewhere
+    assert run_problems({"clock": "realtime", "dsp": dsp}) == []
+    assert run_problems({"clock": "lockstep", "dsp": dsp_report("")}) == []
 
 
 def test_a_log_that_is_not_there_is_said_so(tmp_path):

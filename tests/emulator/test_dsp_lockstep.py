@@ -98,6 +98,7 @@ def test_lockstep_ignores_late_and_wrong_tick_commands(cfg: RigConfig, transport
         assert node.lockstep_period(stop)
         assert node.stats.late_commands == 2
         assert node.stats.missing_periods == 1
+        assert node.stats.skipped_periods == 0  # not yet: the controller may have ended
         assert node.stats.sync_resends >= 1
         assert node.world.step_index == steps + node.substeps  # still one period per Sync
         assert np.allclose(node.tau_cmd, (4.0, 0.4)), "a late command changed the torque"
@@ -105,8 +106,12 @@ def test_lockstep_ignores_late_and_wrong_tick_commands(cfg: RigConfig, transport
         client.send_torque(1.0, 0.1, tick=2)
         assert node.lockstep_period(stop)
         assert node.stats.missing_periods == 1
+        assert node.stats.skipped_periods == 1  # a command followed: the run went on without it
         assert np.allclose(node.tau_cmd, (1.0, 0.1))
         assert node.last_cmd_tick == 2
+        # Period 3 unanswered, and nothing after it: the run's end, not a skipped period.
+        assert node.lockstep_period(stop)
+        assert (node.stats.missing_periods, node.stats.skipped_periods) == (2, 1)
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
