@@ -1,9 +1,9 @@
 """SCHED_FIFO for the calling thread, best effort: the rig's time-critical threads that are not
 the controller's loop (the emulated camera, the frame grabber) ask for it once, from the thread
 itself (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread only). The other
-way, a thread off every deadline's path takes only idle CPU (:func:`idle_thread`), a child
-process lowers its priority (:func:`raise_nice`); and a process whose threads share the GIL
-hands it over sooner (:func:`short_gil_switch`)."""
+way, a thread or a child process off every deadline's path lowers its priority
+(:func:`raise_nice`); and a process whose threads share the GIL hands it over sooner
+(:func:`short_gil_switch`)."""
 
 from __future__ import annotations
 
@@ -30,19 +30,11 @@ def fifo_thread(priority: int) -> str | None:
     return None
 
 
-def idle_thread() -> None:
-    """Put the calling thread on SCHED_IDLE: it runs only on a core nothing else wants, and a
-    thread of the default policy that wakes takes the core at once (a nice value only weighs
-    the shares: a niced thread still delays a woken one). Moving to it needs no privilege.
-    Best effort, never raises."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-
-
 def raise_nice(tid: int, by: int) -> None:
     """Raise the nice value of thread (or single-threaded process) ``tid`` by ``by`` (at most
-    to 19), e.g. a child process just started (the threads it starts inherit the value): it
-    then leaves a core to the threads at the default priority while they want one. Best
+    to 19), e.g. a child process just started (the threads it starts inherit the value) or a
+    thread of this process (``threading.get_native_id()``): it then leaves most of a core to
+    the threads at the default priority while they want one, and still has its share. Best
     effort, never raises."""
     with contextlib.suppress(OSError, AttributeError):
         os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + by, 19))

@@ -22,7 +22,7 @@ from collections.abc import Callable
 import cv2
 
 from hal.camera_frame import CameraFrame
-from hal.fifo import idle_thread, short_gil_switch
+from hal.fifo import raise_nice, short_gil_switch
 from hal.vision_image import ImageSlots, VisionImage
 from vision.pipeline import Measurement
 
@@ -40,6 +40,9 @@ and its filtered rows compress no better. Measured at 640x480 with the default n
 level 1 with libpng's adaptive filters (0.3 ms and 308 kB stored, uncompressed)."""
 BACKLOG = 4
 """Frames waiting for their PNG at most (realtime; lockstep frames wait for room)."""
+LOCKSTEP_NICE = 10
+"""Lockstep: how much the PNG thread lowers its own priority (nice) once it has a lockstep
+frame, so the period's chain of processes gets the cores first (see :meth:`ImageLog._run`)."""
 
 
 def png(pixels) -> bytes:
@@ -118,18 +121,19 @@ class ImageLog:
         self._thread = None
 
     def _run(self) -> None:
-        """Lockstep: once it has a lockstep frame, the thread takes only idle CPU
-        (:func:`hal.fifo.idle_thread`). A period's chain (render, detect, tick, DSP) runs in
-        four processes on a host that may have only two cores; the PNG (2 ms a frame) is off
-        that chain, and even at nice +10 it delayed the chain's next wake-up. It cannot starve:
-        when it falls :data:`BACKLOG` frames behind, the grabber waits and the cores idle.
-        Realtime frames keep the default policy: there a starved thread would drop frames
-        (``dropped``)."""
-        idle = False
+        """Lockstep: once it has a lockstep frame, the thread runs at :data:`LOCKSTEP_NICE`. A
+        period's chain (render, detect, tick, DSP) runs in four processes on a host that may
+        have only two cores; the PNG (2 ms a frame) is off that chain, so it takes a smaller
+        share of the cores, but a share: when it falls :data:`BACKLOG` frames behind the
+        grabber waits for it, and on a host busy with other work an idle-class thread
+        (SCHED_IDLE) got so little that periods outlasted the DSP's reply timeout and the run
+        left its deterministic schedule. Realtime frames keep the default priority: there a
+        starved thread would drop frames (``dropped``)."""
+        niced = False
         while (item := self._queue.get()) is not None:
-            if not idle and item[0].lockstep:
-                idle = True
-                idle_thread()
+            if not niced and item[0].lockstep:
+                niced = True
+                raise_nice(threading.get_native_id(), LOCKSTEP_NICE)
             self._send(*item)
 
     def _send(self, frame: CameraFrame, m: Measurement) -> None:
