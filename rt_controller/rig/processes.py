@@ -363,7 +363,9 @@ def run_rig_plan(
 ) -> tuple[list[dict[str, Any]], RigProcessError | None]:
     """:func:`run_rig` for a plan of ``runs`` lockstep runs (``opts.plan``): the summaries of
     the runs that ended, in order, and why the rest did not (None when all did). A run that
-    is not clean has a summary with its problems; it does not stop the plan.
+    is not clean has a summary with its problems; it does not stop the plan. Periods the DSP
+    skipped (``skipped_periods``) are counted over the whole plan, so they make every run of
+    it not clean.
     """
     if opts.plan is None or not opts.lockstep:
         raise ControllerError("run_rig_plan needs RigOptions.plan and lockstep")
@@ -397,8 +399,16 @@ def run_rig_plan(
             error = RigProcessError(
                 f"controller printed {len(summaries)} of {runs} summaries:\n{ctl.tail()}"
             )
+        emulator = rig.child("emulator")
+        skipped = (dsp_report(emulator.output()) if emulator else {}).get("skipped_periods")
         for summary in summaries:
             summary["exit_codes"] = codes
+            if skipped:  # counted over the plan's runs: each may be the one that skipped
+                summary["problems"] = [
+                    *summary.get("problems", []),
+                    f"the DSP advanced {skipped} lockstep period(s) with the held torque over "
+                    f"this plan's runs (which run's is not known): not the deterministic run",
+                ]
         return summaries, error
 
 

@@ -111,3 +111,29 @@ def test_a_watchdog_trip_fails_the_run(tmp_path):
     rc, summary, err = _finish(proc, ep)
     assert summary["watchdog_trips"] >= 1, err
     assert rc == 1 and "DSP watchdog trip(s)" in err.strip().splitlines()[-1], err
+
+
+@pytest.mark.integration
+def test_a_lockstep_period_the_dsp_skipped_fails_the_run(tmp_path):
+    """Freeze the lockstep controller for 1.2 s mid-run: the DSP advances the period it waits
+    on with the held torque after its 0.5 s reply timeout (more may follow), and the run, no
+    longer the deterministic one, says so (it said nothing when no watchdog trip followed)."""
+    ep = f"tcp/127.0.0.1:{free_loopback_port()}"
+    log = tmp_path / "run.mcap"
+    proc = start_hil_up(ep, log, "--json", "--lockstep", "--duration", "120")
+    deadline = time.monotonic() + WAIT_S
+    controller = []
+    while not controller and time.monotonic() < deadline:
+        controller = [p for p in processes_mentioning(ep) if " controller " in p]
+        time.sleep(0.05)
+    assert controller, "the controller never started"
+    pid = int(controller[0].split(":")[0])
+    while time.monotonic() < deadline and cycles_logged(log) < 100:
+        time.sleep(0.05)
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(1.2)  # fault injection: any freeze past the DSP's 0.5 s skips a period
+    os.kill(pid, signal.SIGCONT)
+    rc, summary, err = _finish(proc, ep)
+    assert summary["dsp"]["skipped_periods"] >= 1, err
+    assert rc == 1, err
+    assert any("lockstep period(s) with the held torque" in p for p in summary["problems"]), err

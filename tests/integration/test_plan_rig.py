@@ -75,3 +75,51 @@ def test_a_run_after_a_faulted_one_is_the_run_fresh_processes_give(tmp_path):
         b = read_log(Path(summary["log"]), raw=False).cycles
         for col in ("q", "dq", "f", "tau", "cost"):
             assert a[col].tobytes() == b[col].tobytes(), (name, col)
+
+
+def test_a_period_the_dsp_skipped_in_a_plan_fails_its_runs(tmp_path):
+    """Freeze the controller for 1.2 s in the first run of a two-run plan: the DSP advances
+    the period it waits on with the held torque. Its count covers the whole plan, so every
+    run of the plan is reported not the deterministic one (before, none was)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from hal.zenoh_session import free_loopback_port
+    from tests.support import cycles_logged
+    from tests.support.proc import processes_mentioning
+
+    ep = f"tcp/127.0.0.1:{free_loopback_port()}"
+    config = _config(tmp_path, "ioc")
+    doc = [
+        {"name": n, "config": str(config), "law": "ioc", "duration_s": 60.0,
+         "log": str(tmp_path / f"{n}.mcap")}
+        for n in ("frozen", "next")
+    ]  # fmt: skip
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"runs": doc}), encoding="utf-8")
+    froze = threading.Event()
+
+    def freeze() -> None:
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and cycles_logged(Path(doc[0]["log"])) < 100:
+            time.sleep(0.05)
+        pids = [int(p.split(":")[0]) for p in processes_mentioning(ep) if " controller " in p]
+        if pids:
+            os.kill(pids[0], signal.SIGSTOP)
+            time.sleep(1.2)  # fault injection: any freeze past the DSP's 0.5 s skips a period
+            os.kill(pids[0], signal.SIGCONT)
+            froze.set()
+
+    injector = threading.Thread(target=freeze, daemon=True)
+    injector.start()
+    opts = RigOptions(
+        config=str(config), duration_s=120.0, lockstep=True, plan=plan, zenoh_endpoint=ep
+    )
+    summaries, error = run_rig_plan(opts, 2)
+    injector.join(5)
+    assert froze.is_set() and error is None
+    assert [s["run"] for s in summaries] == ["frozen", "next"]
+    for s in summaries:
+        assert any("over this plan's runs" in p for p in s["problems"]), s["problems"]
