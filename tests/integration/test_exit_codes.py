@@ -18,8 +18,8 @@ import pytest
 
 from hal.zenoh_session import free_loopback_port
 from rt_controller.runtime.counters import run_problems
-from tests.support import cycles_logged, start_hil_up
-from tests.support.proc import processes_mentioning
+from tests.support import start_hil_up
+from tests.support.proc import processes_mentioning, running_controller
 
 REPO = Path(__file__).resolve().parents[2]
 WAIT_S = 180.0
@@ -52,19 +52,6 @@ def _finish(proc: subprocess.Popen, ep: str) -> tuple[int, dict, str]:
     assert not processes_mentioning(ep)
     lines = [ln for ln in out.splitlines() if ln.startswith("{")]
     return proc.returncode, json.loads(lines[-1]) if lines else {}, err
-
-
-def _controller_pid(ep: str, log: Path, cycles: int = 100) -> int:
-    """The pid of the rig's controller on endpoint ``ep``, once ``log`` holds ``cycles``."""
-    deadline = time.monotonic() + WAIT_S
-    controller = []
-    while not controller and time.monotonic() < deadline:
-        controller = [p for p in processes_mentioning(ep) if " controller " in p]
-        time.sleep(0.05)
-    assert controller, "the controller never started"
-    while time.monotonic() < deadline and cycles_logged(log) < cycles:
-        time.sleep(0.05)
-    return int(controller[0].split(":")[0])
 
 
 @pytest.fixture
@@ -109,7 +96,7 @@ def test_a_watchdog_trip_fails_the_run(tmp_path):
     rig = tmp_path / "rig.toml"
     rig.write_text("[dsp]\ndq_max = [80.0, 80.0]\n")
     proc = start_hil_up(ep, log, "--json", "--duration", "10", "--config", str(rig))
-    pid = _controller_pid(ep, log)  # running for 2 s: the transient is over
+    pid = running_controller(ep, log, timeout_s=WAIT_S)  # running for 2 s: the transient is over
     os.kill(pid, signal.SIGSTOP)
     time.sleep(0.5)  # fault injection, not a timing assertion: any freeze > 60 ms trips it
     os.kill(pid, signal.SIGCONT)
@@ -126,7 +113,7 @@ def test_a_lockstep_period_the_dsp_skipped_fails_the_run(tmp_path):
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     log = tmp_path / "run.mcap"
     proc = start_hil_up(ep, log, "--json", "--lockstep", "--duration", "120")
-    pid = _controller_pid(ep, log)
+    pid = running_controller(ep, log, timeout_s=WAIT_S)
     os.kill(pid, signal.SIGSTOP)
     time.sleep(1.2)  # fault injection: any freeze past the DSP's 0.5 s skips a period
     os.kill(pid, signal.SIGCONT)

@@ -5,15 +5,21 @@ processes give, also after a run that faulted the DSP; every run keeps its own l
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
+import time
 from pathlib import Path
 
 import pytest
 
 from hal.config import load_config
+from hal.zenoh_session import free_loopback_port
 from rt_controller.config_rules import config_toml
 from rt_controller.logtools.reader import read_log
 from rt_controller.rig.options import RigOptions
 from rt_controller.rig.processes import run_rig, run_rig_plan
+from tests.support.proc import running_controller
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -81,15 +87,6 @@ def test_a_period_the_dsp_skipped_in_a_plan_fails_its_runs(tmp_path):
     """Freeze the controller for 1.2 s in the first run of a two-run plan: the DSP advances
     the period it waits on with the held torque. Its count covers the whole plan, so every
     run of the plan is reported not the deterministic one (before, none was)."""
-    import os
-    import signal
-    import threading
-    import time
-
-    from hal.zenoh_session import free_loopback_port
-    from tests.support import cycles_logged
-    from tests.support.proc import processes_mentioning
-
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     config = _config(tmp_path, "ioc")
     doc = [
@@ -102,15 +99,11 @@ def test_a_period_the_dsp_skipped_in_a_plan_fails_its_runs(tmp_path):
     froze = threading.Event()
 
     def freeze() -> None:
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline and cycles_logged(Path(doc[0]["log"])) < 100:
-            time.sleep(0.05)
-        pids = [int(p.split(":")[0]) for p in processes_mentioning(ep) if " controller " in p]
-        if pids:
-            os.kill(pids[0], signal.SIGSTOP)
-            time.sleep(1.2)  # fault injection: any freeze past the DSP's 0.5 s skips a period
-            os.kill(pids[0], signal.SIGCONT)
-            froze.set()
+        pid = running_controller(ep, Path(doc[0]["log"]))
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(1.2)  # fault injection: any freeze past the DSP's 0.5 s skips a period
+        os.kill(pid, signal.SIGCONT)
+        froze.set()
 
     injector = threading.Thread(target=freeze, daemon=True)
     injector.start()

@@ -27,6 +27,24 @@ def processes_mentioning(token: str) -> list[str]:
     return found
 
 
+def running_controller(token: str, log: Path, cycles: int = 100, timeout_s: float = 180.0) -> int:
+    """The pid of the rig's controller whose command line holds ``token`` (its zenoh
+    endpoint), once its ``log`` holds ``cycles`` cycles (or ``timeout_s`` passed)."""
+    import time
+
+    from tests.support import cycles_logged
+
+    deadline = time.monotonic() + timeout_s
+    controller: list[str] = []
+    while not controller and time.monotonic() < deadline:
+        controller = [p for p in processes_mentioning(token) if " controller " in p]
+        time.sleep(0.05)
+    assert controller, "the controller never started"
+    while time.monotonic() < deadline and cycles_logged(log) < cycles:
+        time.sleep(0.05)
+    return int(controller[0].split(":")[0])
+
+
 def alive(pid: int) -> bool:
     """Whether ``pid`` runs (exists and is not a zombie)."""
     try:
