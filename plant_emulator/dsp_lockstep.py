@@ -160,6 +160,7 @@ class LockstepDsp(DspNode):
             self._missing_since_command += 1
         else:
             self.stats.skipped_periods += self._missing_since_command
+            self.stats.skipped_by_run[-1] += self._missing_since_command
             self._missing_since_command = 0
         self.check_watchdog(self._sim_ns())
         self.advance_period()
@@ -215,6 +216,7 @@ class LockstepDsp(DspNode):
             self.session = secrets.randbelow(0xFFFF) + 1
         self.stats.session = self.session
         self.stats.scenario_resets += 1
+        self.stats.skipped_by_run.append(0)
         if self.on_reset is not None:
             self.on_reset(seed)
         self.send_status()

@@ -81,6 +81,9 @@ class DspStats:
     advanced with the held torque while the controller was still running (a host too slow
     for the reply timeout), so the run is not the deterministic one. Those after the run's
     last command (it had ended, or died: the watchdog tells) are not in it."""
+    skipped_by_run: list[int] = field(default_factory=lambda: [0])
+    """Lockstep: ``skipped_periods`` by run of a plan, the first run's first (one entry per
+    scenario: a reset starts the next), so a plan names the run that was not deterministic."""
     send_errors: int = 0
     drains_cut: int = 0
     """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (a bus that had not run dry: a

@@ -76,8 +76,8 @@ def dsp_report(emulator_stdout: str) -> dict[str, Any]:
     torque stayed on after the last valid command (``torque_off_after_ms``), the scenario
     times of that command and of the trip, the drive state it ended in, and in lockstep the
     periods of the run it advanced with the held torque, no command within its reply timeout
-    (``skipped_periods``). ``reported`` False when the emulator printed no counters (it died
-    itself)."""
+    (``skipped_periods``; ``skipped_by_run`` for each run of a plan). ``reported`` False when
+    the emulator printed no counters (it died itself)."""
     stats = None
     for line in emulator_stdout.splitlines():
         if line.startswith("{"):
@@ -100,6 +100,7 @@ def dsp_report(emulator_stdout: str) -> dict[str, Any]:
         "fault_reason": stats.get("fault_reason"),
         "last_fault": stats.get("last_fault"),
         "skipped_periods": stats.get("skipped_periods", 0),
+        "skipped_by_run": stats.get("skipped_by_run", []),
     }
 
 

@@ -363,9 +363,8 @@ def run_rig_plan(
 ) -> tuple[list[dict[str, Any]], RigProcessError | None]:
     """:func:`run_rig` for a plan of ``runs`` lockstep runs (``opts.plan``): the summaries of
     the runs that ended, in order, and why the rest did not (None when all did). A run that
-    is not clean has a summary with its problems; it does not stop the plan. Periods the DSP
-    skipped (``skipped_periods``) are counted over the whole plan, so they make every run of
-    it not clean.
+    is not clean has a summary with its problems; it does not stop the plan. Each summary's
+    ``dsp`` holds the periods the DSP skipped in that run (``skipped_periods``).
     """
     if opts.plan is None or not opts.lockstep:
         raise ControllerError("run_rig_plan needs RigOptions.plan and lockstep")
@@ -400,15 +399,12 @@ def run_rig_plan(
                 f"controller printed {len(summaries)} of {runs} summaries:\n{ctl.tail()}"
             )
         emulator = rig.child("emulator")
-        skipped = (dsp_report(emulator.output()) if emulator else {}).get("skipped_periods")
-        for summary in summaries:
+        by_run = (dsp_report(emulator.output()) if emulator else {}).get("skipped_by_run") or []
+        for summary, skipped in zip(summaries, [*by_run, *[0] * len(summaries)], strict=False):
             summary["exit_codes"] = codes
-            if skipped:  # counted over the plan's runs: each may be the one that skipped
-                summary["problems"] = [
-                    *summary.get("problems", []),
-                    f"the DSP advanced {skipped} lockstep period(s) with the held torque over "
-                    f"this plan's runs (which run's is not known): not the deterministic run",
-                ]
+            summary["dsp"] = {"skipped_periods": skipped}  # this run's (a reset starts the next)
+            had = summary.get("problems", [])
+            summary["problems"] = [*had, *(p for p in run_problems(summary) if p not in had)]
         return summaries, error
 
 

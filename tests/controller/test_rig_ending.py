@@ -57,9 +57,9 @@ def test_lockstep_periods_the_dsp_advanced_unanswered_make_the_run_not_clean():
     """A lockstep run is the deterministic one only if the DSP had every period's command
     before its reply timeout; a period it advanced with the held torque (a host too slow)
     changes J silently unless the run says so."""
-    out = json.dumps({**STATS, "watchdog_trips": 0, "skipped_periods": 2}) + "\n"
-    dsp = dsp_report(out)
-    assert dsp["skipped_periods"] == 2
+    out = json.dumps({**STATS, "watchdog_trips": 0, "skipped_periods": 2, "skipped_by_run": [0, 2]})
+    dsp = dsp_report(out + "\n")
+    assert dsp["skipped_periods"] == 2 and dsp["skipped_by_run"] == [0, 2]
     lockstep = {"clock": "lockstep", "dsp": dsp}
     assert run_problems(lockstep) == [
         "the DSP advanced 2 lockstep period(s) with the held torque (no command within its "

@@ -112,6 +112,11 @@ def test_lockstep_ignores_late_and_wrong_tick_commands(cfg: RigConfig, transport
         # Period 3 unanswered, and nothing after it: the run's end, not a skipped period.
         assert node.lockstep_period(stop)
         assert (node.stats.missing_periods, node.stats.skipped_periods) == (2, 1)
+        # A scenario reset starts the next run of a plan: its skipped periods count apart.
+        node.request_reset()
+        assert node.lockstep_period(stop)
+        assert node.stats.scenario_resets == 1
+        assert (node.stats.skipped_periods, node.stats.skipped_by_run) == (1, [1, 0])
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
