@@ -223,6 +223,12 @@ class LoopbackMulticastBus(can.BusABC):
         """
         return self._kernel_drops
 
+    @property
+    def sender(self) -> socket.socket | None:
+        """The sending socket (None once shut down): its multicast TTL and interface are what
+        keeps the bus on this host."""
+        return self._tx
+
     # ---------------------------------------------------------------------------- sockets
 
     def _setup_rx(self, rx: socket.socket) -> None:
