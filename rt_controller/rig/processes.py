@@ -135,7 +135,10 @@ class Rig:
             out += ["--config", self.opts.config]
         return out
 
-    def _start(self, name: str, args: list[str]) -> Child:
+    def spawn(self, name: str, args: list[str]) -> Child:
+        """Start ``args`` as the rig's child ``name``: in the rig's process group, its output
+        kept for the summary, stopped and cleaned up with the rig (also a process started
+        again after a fault)."""
         err = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
         out = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
         env = {**os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())}
@@ -161,17 +164,17 @@ class Rig:
         emu = _cli("emulator", *can, *self._common(), "--json", *o.extra_emulator)
         if o.lockstep:
             emu.append("--lockstep")
-        self._start("emulator", emu)
+        self.spawn("emulator", emu)
         # the emulator is the zenoh hub: on a slow host it may take a while to come up
         vision = _cli("vision", *self._common(), "--wait", f"{STARTUP_MARGIN_S:g}")
-        self._start("vision", vision + o.extra_vision)
+        self.spawn("vision", vision + o.extra_vision)
         if o.monitor:
             mon = _cli("monitor", *self._common())
             if o.monitor_host:
                 mon += ["--host", o.monitor_host]
             if o.monitor_port is not None:
                 mon += ["--port", str(o.monitor_port)]
-            self._start("monitor", mon + o.extra_monitor)
+            self.spawn("monitor", mon + o.extra_monitor)
         ctl = _cli("controller", *can, *self._common(), "--json")
         ctl += ["--clock", "lockstep" if o.lockstep else "realtime"]
         if o.plan is not None:
@@ -182,7 +185,7 @@ class Rig:
             ctl += ["--law", o.law]
         if o.log and o.plan is None:
             ctl += ["--log", str(o.log)]
-        self._start("controller", ctl + o.extra_controller)
+        self.spawn("controller", ctl + o.extra_controller)
 
     def _check_alive(self, but: str) -> None:
         for c in self.children:

@@ -112,7 +112,7 @@ def test_emulator_killed_and_restarted_is_reported_and_never_rearmed(tmp_path):
         emulator.proc.send_signal(signal.SIGKILL)
         emulator.proc.wait()
         _wait_cycles(log, cycles_logged(log) + 25, rig)  # the loop goes on without a DSP
-        rig._start("emulator", list(emulator.proc.args))  # a new DSP process (new session)
+        rig.spawn("emulator", list(emulator.proc.args))  # a new DSP process (new session)
         _wait_law(log, "dsp_restarted", rig)
         _child(rig, "controller").proc.send_signal(signal.SIGTERM)
         rc, summary, err = _controller_result(rig)

@@ -19,6 +19,7 @@ from hal.can_frames import DspStatus
 from hal.config import RigConfig
 from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
+from hal.secoc import rig_key
 from plant_emulator.dsp import make_dsp
 from plant_emulator.dsp_lockstep import LockstepDsp
 from plant_emulator.dsp_node import DspNode
@@ -137,7 +138,9 @@ class Responder:
             tau = pd_torque(state.q, state.dq)
             if k in self.spoil:
                 self.spoil.discard(k)
-                msg = client._codec.encode_torque(*tau, enable=True, tick=k)
+                msg = ControllerCodec(key=rig_key(client.cfg)).encode_torque(
+                    *tau, enable=True, tick=k
+                )
                 msg.data[0] ^= 0x5A  # corrupted: the DSP rejects it (bad MAC)
                 client.bus.send(msg)
                 continue

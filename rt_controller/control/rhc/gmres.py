@@ -26,7 +26,7 @@ from rt_controller.control.state import IP, PAR
 
 
 @njit(**JIT)
-def _jvp(P, N, U, x0, T, F0, v, scale, out, Ut, sw):
+def jvp(P, N, U, x0, T, F0, v, scale, out, Ut, sw):
     """out = (F(U + h v, x0, T) - F0) / h, a forward-difference Jacobian-vector product."""
     h = P[PAR.HFD] * scale
     n = U.shape[0]
@@ -102,7 +102,7 @@ def fd_gmres(P, N, U, x0, T, F0, b, sol, m, tol, pre, ws, sw):
         zn = norm(z)
         if not (zn > 0.0) or not math.isfinite(zn):
             break
-        _jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
+        jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
         _orthogonalise(w, Vb, j + 1, Hs, j)
         hnext = norm(w)
         Hs[j + 1, j] = hnext
@@ -171,7 +171,7 @@ def block_gmres(P, N, U, x0, T, F0, b1, b2, d1, d2, m, pre, ws, sw):
         if not (zn > 0.0) or not math.isfinite(zn):
             break
         w = Vb[nv]
-        _jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
+        jvp(P, N, U, x0, T, F0, z, 1.0 / zn, w, Ut, sw)
         wn0 = norm(w)
         _orthogonalise(w, Vb, nv, Hs, j)
         hnext = norm(w)

@@ -55,7 +55,7 @@ def _cut(iP, work, k):
 
 
 @njit(**JIT)
-def _views(iP, work):
+def work_views(iP, work):
     """The arrays of one tick cut out of ``work`` (:data:`~rt_controller.control.state.WORK`)."""
     X, Lam, Aux = _cut(iP, work, W.X), _cut(iP, work, W.LAM), _cut(iP, work, W.AUX)
     Vb, Hs, small = _cut(iP, work, W.VB), _cut(iP, work, W.HS), _cut(iP, work, W.SMALL)
@@ -118,7 +118,7 @@ def rhc_tick(P, iP, st, work):
     N = iP[IP.N]
     kmax = iP[IP.KMAX]
     n = NS * N
-    sw, ws, vecs, pre, xs = _views(iP, work)
+    sw, ws, vecs, pre, xs = work_views(iP, work)
     X, _Lam, _Aux, hx, _hu, cnt = sw
     cnt[0] = 0.0
     F, Fs, b, dU = vecs[VEC.F], vecs[VEC.FS], vecs[VEC.B], vecs[VEC.DU]
@@ -185,7 +185,7 @@ def sweep_probe(P, iP, st, work, reps):
     """Evaluate F at the state's U, x and T(t) ``reps`` times (for the benchmark's profile)."""
     N = iP[IP.N]
     n = NS * N
-    sw, _ws, vecs, _pre, _xs = _views(iP, work)
+    sw, _ws, vecs, _pre, _xs = work_views(iP, work)
     U = st[ST.HEAD : ST.HEAD + n]
     x0 = st[ST.X : ST.X + NX]
     T = horizon_at(P, st[ST.T])

@@ -77,6 +77,12 @@ class CGMRESSolver:
         self._tick: Callable = rhc_tick
 
     @property
+    def dispatch_free(self) -> bool:
+        """Whether a tick calls the compiled entry directly, skipping numba's dispatcher (after
+        :meth:`warm_up`)."""
+        return self._tick is not rhc_tick
+
+    @property
     def needs_init(self) -> bool:
         """The next update solves from scratch (kept in the state vector, so the compiled
         per-tick rule that advances this solver's arrays shares it)."""
