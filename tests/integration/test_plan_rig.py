@@ -90,9 +90,9 @@ def test_a_period_the_dsp_skipped_in_a_plan_fails_that_run(tmp_path):
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"
     config = _config(tmp_path, "ioc")
     doc = [
-        {"name": n, "config": str(config), "law": "ioc", "duration_s": 60.0,
+        {"name": n, "config": str(config), "law": "ioc", "duration_s": d,
          "log": str(tmp_path / f"{n}.mcap")}
-        for n in ("frozen", "next")
+        for n, d in (("frozen", 60.0), ("next", DURATION_S))
     ]  # fmt: skip
     plan = tmp_path / "plan.json"
     plan.write_text(json.dumps({"runs": doc}), encoding="utf-8")
