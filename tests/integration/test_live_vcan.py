@@ -1,13 +1,14 @@
 """``hil up --lockstep`` on a real SocketCAN ``vcan0`` with each control law.
 
-Marked ``vcan``: run with ``.venv/bin/python scripts/vcan_pytest.py -- tests/test_live_vcan.py``
+Marked ``vcan``: run with
+``.venv/bin/python scripts/vcan_pytest.py -- tests/integration/test_live_vcan.py``
 (a native vcan0 if the host has one, else user-mode Linux). Lockstep keeps the run deterministic
 however slow the machine (UML is about 10x slower than the host), so the same claims hold as in
-``test_live_service.py`` over ``udp_multicast``: |f| below 1 px just before the target jump
+``test_live_lockstep.py`` over ``udp_multicast``: |f| below 1 px just before the target jump
 at t = 3 s and again at the end, and the run tracks the transport-free simulation.
 
 PBC: with the paper's gains it cannot be below 1 px at t = 3 s (2.2 px even in the transport-free
-simulation, see ``test_live_service.py``); it runs 8 s and its pre-jump |f| is bounded by
+simulation, see ``test_live_lockstep.py``); it runs 8 s and its pre-jump |f| is bounded by
 the physics instead. The durations are the shortest that reach |f| < 1 px at the end.
 """
 

@@ -1,8 +1,9 @@
-"""The ``hil emulator`` process against test clients, on a real SocketCAN vcan0 and natively.
+"""The ``hil emulator`` process against test clients, on a real SocketCAN vcan0 and natively:
+commands and joint state, the watchdog when a client is killed, shutdown on a signal, and an
+unavailable transport. (Lockstep with candump: ``test_emulator_lockstep_candump.py``.)
 
 * ``socketcan`` cases are marked ``vcan``: run them with ``scripts/vcan_pytest.py`` (a native
-  vcan0, else user-mode Linux); ``candump`` from can-utils runs in the same kernel and its frames
-  must decode with the DBC (the decoded lines are printed: run with ``-s`` to see them).
+  vcan0, else user-mode Linux).
 * ``udp_multicast`` cases (host-local, isolated port) are marked ``integration`` and run natively
   everywhere; that variant also checks the camera poses the emulator publishes on zenoh.
 
@@ -24,38 +25,31 @@ import json
 import os
 import queue
 import signal
-import subprocess
 import sys
 import threading
 import time
-from collections import defaultdict
 from collections.abc import Callable, Iterator
-from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-import cantools
 import pytest
 
-from hal.bus import isolated_spec
-from hal.can_database import DBC_PATH
 from hal.can_frames import RAD_PER_COUNT, DspStatus
 from hal.config import RigConfig
-from hal.errors import HalTimeoutError
 from hal.joint_client import JointClient
-from tests import support
-from tests.support import e2e_crc_reference
+from tests.support.emulator_proc import (
+    IN_UML,
+    RECV_TIMEOUT_S,
+    SLOW,
+    START_TIMEOUT_S,
+    STOP_TIMEOUT_S,
+    TEST_TIMEOUT_S,
+    Proc,
+    emulator,
+    stop_emulator,
+    wait_until,
+)
 from tests.support.joint import TripRearm, next_state, read_for, read_until
-from tests.support.vcan import VCAN_CHANNEL, candump_available, requires_vcan, vcan_required
 
-REPO = Path(__file__).resolve().parents[2]
-IN_UML = os.environ.get("HIL_IN_UML", "") == "1"
-SLOW = 10.0 if IN_UML else 1.0
-START_TIMEOUT_S = 30.0 * SLOW
-"""Python + numba + python-can start-up of the emulator process."""
-RECV_TIMEOUT_S = 5.0 * SLOW
-STOP_TIMEOUT_S = 60.0 * SLOW
-"""Generous: a loaded 2-core host (load average > 10 seen) can take many seconds to run the
-emulator's last periods and exit; only a hang should hit this."""
 EVENT_TIMEOUT_S = 60.0 * SLOW
 """Waiting for an event the DSP must report (a trip after SIGKILL): bounds a wait only."""
 STATE_HZ = 250 if IN_UML else 1000
@@ -66,145 +60,11 @@ one state per control period to the controller's commands, see tests/emulator/te
 Under user-mode Linux (one slow CPU) three Python processes decoding 2000 frames/s each cannot
 keep up, so the state goes out at 250 Hz there; natively at 1 kHz."""
 
-TRANSPORTS = [
-    pytest.param("socketcan", id="socketcan", marks=[pytest.mark.vcan, requires_vcan]),
-    pytest.param("udp_multicast", id="udp_multicast", marks=[pytest.mark.integration]),
-]
 
-pytestmark = pytest.mark.timeout(600 if IN_UML else 120)
-
-
-@pytest.fixture(params=TRANSPORTS)
-def can_spec(request: pytest.FixtureRequest) -> str:
-    if request.param == "socketcan":
-        return f"socketcan:{VCAN_CHANNEL}"
-    return isolated_spec(request.param)
+pytestmark = pytest.mark.timeout(TEST_TIMEOUT_S)
 
 
 # ---------------------------------------------------------------------------------- helpers
-
-
-def _pump(stream: IO[str], sink: queue.Queue[str], lines: list[str]) -> None:
-    for line in iter(stream.readline, ""):
-        line = line.rstrip("\n")
-        lines.append(line)
-        sink.put(line)
-
-
-class Proc:
-    """A child process whose stdout/stderr lines are collected by reader threads."""
-
-    def __init__(self, argv: list[str]) -> None:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("CAN_")}
-        env["PYTHONUNBUFFERED"] = "1"
-        self.popen = subprocess.Popen(
-            argv,
-            cwd=REPO,
-            env=env,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        self.out: list[str] = []
-        self.err: list[str] = []
-        self.out_q: queue.Queue[str] = queue.Queue()
-        self.err_q: queue.Queue[str] = queue.Queue()
-        self.readers = [
-            threading.Thread(target=_pump, args=(s, q, ls), name=f"reader-{n}", daemon=True)
-            for n, s, q, ls in (
-                ("out", self.popen.stdout, self.out_q, self.out),
-                ("err", self.popen.stderr, self.err_q, self.err),
-            )
-        ]
-        for t in self.readers:
-            t.start()
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def wait_line(self, q: queue.Queue[str], pred: Callable[[str], bool], timeout: float) -> str:
-        deadline = time.monotonic() + timeout
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                pytest.fail(f"no expected line within {timeout:g} s; stderr: {self.err[-20:]}")
-            try:
-                line = q.get(timeout=min(remaining, 0.2))
-            except queue.Empty:
-                if self.popen.poll() is not None and q.empty():
-                    time.sleep(0.2)  # let the readers drain the pipes
-                    if q.empty():
-                        pytest.fail(
-                            f"process exited ({self.popen.returncode}) before the expected "
-                            f"line; stdout: {self.out[-20:]}; stderr: {self.err[-20:]}"
-                        )
-                continue
-            if pred(line):
-                return line
-
-    def signal(self, sig: int) -> int:
-        """Send ``sig`` and wait for the exit status."""
-        self.popen.send_signal(sig)
-        return self.popen.wait(timeout=STOP_TIMEOUT_S)
-
-    def close(self) -> None:
-        """Terminate (then kill) if still running, wait, join the readers. Idempotent."""
-        p = self.popen
-        if p.poll() is None:
-            p.terminate()
-            try:
-                p.wait(timeout=STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=STOP_TIMEOUT_S)
-        for t in self.readers:
-            t.join(timeout=STOP_TIMEOUT_S)
-        for s in (p.stdout, p.stderr):
-            if s is not None:
-                s.close()
-
-
-@contextlib.contextmanager
-def emulator(spec: str, *extra: str) -> Iterator[Proc]:
-    """``hil emulator --can SPEC --json ...`` as a child process, ready to serve."""
-    argv = [sys.executable, "-m", "rt_controller.cli", "emulator", "--can", spec, "--json"]
-    proc = Proc([*argv, *extra])
-    try:
-        line = proc.wait_line(proc.err_q, lambda s: "serving the arm on" in s, START_TIMEOUT_S)
-        print(f"\n{line}")
-        yield proc
-    finally:
-        proc.close()
-
-
-def stop_emulator(proc: Proc, sig: int = signal.SIGTERM) -> dict[str, Any]:
-    """Signal the emulator, check it exits 0 without a traceback; its JSON summary."""
-    rc = proc.signal(sig)
-    proc.close()
-    assert rc == 0, f"exit status {rc}; stderr: {proc.err}"
-    assert not any("Traceback" in line for line in proc.err), proc.err
-    summary = json.loads(proc.out[-1])
-    return summary
-
-
-def wait_until(
-    cond: Callable[[], bool],
-    what: str,
-    timeout: float = RECV_TIMEOUT_S,
-    reading: JointClient | None = None,
-) -> float:
-    """Poll ``cond`` every millisecond, reading the bus of the client ``reading`` meanwhile (a
-    client has no thread of its own; the one :func:`streaming` runs reads it while it runs);
-    the monotonic time at which ``cond`` became true."""
-    if reading is not None:
-        ok = read_until(reading, cond, timeout)
-    else:
-        ok = support.wait_until(cond, timeout, poll_s=0.001)
-    if not ok:
-        pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
-    return time.monotonic()
 
 
 def any_status(client: JointClient, pred: Callable[[DspStatus], bool]) -> Callable[[], bool]:
@@ -520,115 +380,3 @@ def test_unavailable_transport_is_one_line_and_exit_2() -> None:
     assert len(proc.err) == 1, proc.err
     assert proc.err[0].startswith("hil emulator: error: cannot open CAN interface socketcan:vcan9")
     print(proc.err[0])
-
-
-# ---------------------------------------------------------------- lockstep with candump
-
-DB = cantools.database.load_file(str(DBC_PATH))
-DATA_IDS = {m.frame_id: int(m.dbc.attributes["E2EDataID"].value) for m in DB.messages}
-
-
-def decode_candump_line(line: str) -> tuple[str, dict[str, Any]] | None:
-    """``(1700000000.123456) vcan0 180#A1B2...`` -> (message name, signals), None if not ours."""
-    parts = line.split()
-    if len(parts) != 3 or "#" not in parts[2]:
-        return None
-    ident, _, data_hex = parts[2].partition("#")
-    if data_hex.startswith("#"):  # CAN FD: "ID##<flags nibble><data>"
-        data_hex = data_hex[2:]
-    frame_id = int(ident, 16)
-    if len(ident) > 3 or frame_id not in DATA_IDS:
-        return None
-    data = bytes.fromhex(data_hex)
-    msg = DB.get_message_by_frame_id(frame_id)
-    assert len(data) == 16, line  # CAN FD: E2E bytes 0..7, freshness, truncated MAC
-    assert e2e_crc_reference(DATA_IDS[frame_id], data[:8]) == data[0], f"bad E2E CRC: {line}"
-    return msg.name, msg.decode(data, decode_choices=False)
-
-
-def lockstep_process_run(cfg: RigConfig, spec: str, periods: int) -> dict[str, Any]:
-    """``hil emulator --lockstep --duration`` answered by a JointClient (PD law); its summary."""
-    duration = periods / cfg.rates.control_hz
-    with (
-        emulator(spec, "--no-vision-link", "--lockstep", "--duration", f"{duration}") as emu,
-        JointClient.open(spec, cfg) as client,
-    ):
-        client.enable()
-        answered: set[int] = set()
-        while len(answered) < periods:
-            try:
-                k = client.wait_sync(timeout=RECV_TIMEOUT_S)
-            except HalTimeoutError:
-                pytest.fail(f"no Sync after {sorted(answered)}; stderr {emu.err}")
-            if k in answered:
-                continue  # a re-sent Sync(k): already answered
-            state = client.latest_state(max_age_s=1e9)
-            tau1 = 20.0 * (0.9 - state.q[0]) - 2.0 * state.dq[0]
-            client.send_torque(tau1, 0.5, tick=k)
-            answered.add(k)
-        rc = emu.popen.wait(timeout=STOP_TIMEOUT_S)  # --duration: it ends by itself
-        client.disable()
-        emu.close()
-    assert rc == 0, emu.err
-    summary = json.loads(emu.out[-1])
-    assert summary["mode"] == "lockstep"
-    substeps = round(cfg.rates.physics_hz / cfg.rates.control_hz)
-    assert summary["physics_steps"] == periods * substeps
-    assert summary["missing_periods"] == 0
-    assert summary["rejected"]["rejected"] == 0
-    return summary
-
-
-def test_lockstep_emulator_process(cfg: RigConfig, can_spec: str) -> None:
-    """Lockstep over a real transport, twice: bit-identical runs. On vcan0, candump (same
-    kernel) records the run and every frame must decode with the DBC and pass the E2E CRC."""
-    periods = 20
-    socketcan = can_spec.startswith("socketcan")
-    dump: Proc | None = None
-    if socketcan:
-        if not candump_available():
-            if vcan_required():
-                pytest.fail("candump not found: the vcan tests need can-utils")
-            pytest.skip("candump not found (sudo apt-get install can-utils)")
-        dump = Proc(["candump", "-L", VCAN_CHANNEL])
-    try:
-        if dump is not None:
-            # candump gives no ready signal; start it well before the emulator's first frame.
-            time.sleep(0.5 * SLOW)
-            assert dump.popen.poll() is None, f"candump exited: {dump.err}"
-        first = lockstep_process_run(cfg, can_spec, periods)
-        if dump is not None:
-            time.sleep(0.5 * SLOW)  # let candump print the last frames
-    finally:
-        if dump is not None:
-            dump.close()
-    second = lockstep_process_run(cfg, can_spec, periods)
-    print(f"lockstep: q after {periods} periods {first['q']} (run 1) {second['q']} (run 2)")
-    assert first["q"] == second["q"] and first["dq"] == second["dq"]
-    assert first["q"][0] > cfg.scenario.q0[0]
-    if dump is None:
-        return
-    decoded: list[tuple[str, str, dict[str, Any]]] = []
-    for line in dump.out:
-        got = decode_candump_line(line)
-        if got is not None:
-            decoded.append((line, *got))
-    decoded.sort(key=lambda d: d[0])  # by candump's timestamp
-    print(f"candump -L {VCAN_CHANNEL}: {len(dump.out)} lines, decoded with {DBC_PATH.name}:")
-    shown = decoded[:14]  # the start of the run, plus one frame of every other message
-    for name in sorted({d[1] for d in decoded} - {d[1] for d in shown}):
-        shown.append(next(d for d in decoded if d[1] == name))
-    for line, name, signals in shown:
-        text = ", ".join(
-            f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in signals.items()
-        )
-        print(f"  {line}\n      {name}: {text}")
-    by_name: dict[str, list[dict[str, Any]]] = defaultdict(list)
-    for _, name, signals in decoded:
-        by_name[name].append(signals)
-    assert len(decoded) == len(dump.out), "candump printed frames that are not in the DBC"
-    for name in ("Sync", "TorqueCommand", "DspControl", "JointPosition", "JointVelocity",
-                 "DspStatus"):  # fmt: skip
-        assert by_name[name], f"candump saw no {name}"
-    assert sorted({s["Tick"] for s in by_name["Sync"]}) == list(range(periods))
-    assert {s["Tick"] for s in by_name["TorqueCommand"]} >= set(range(periods))
