@@ -44,6 +44,7 @@ from foxglove.websocket import (
     Client,
     MessageSchema,
     Parameter,
+    ServerListener,
     Service,
     ServiceRequest,
     ServiceSchema,
@@ -102,8 +103,9 @@ def _like(new: Any, old: Any) -> Any:
     return new
 
 
-class TuningFrontEnd:
-    """The Parameters listener and the services of one monitor. ``session`` is an open
+class TuningFrontEnd(ServerListener):
+    """The server listener (the SDK's defaults for the callbacks it does not need) and the
+    services of one monitor. ``session`` is an open
     :class:`~hal.zenoh_session.ZenohSession` (anything with ``session.get`` as zenoh's), ``key``
     the rig key, ``gate`` who may change the rig (default: every client, the plain loopback
     server's rule). ``timeout_s`` bounds the wait for an answer the controller gives at once;

@@ -14,6 +14,7 @@ from hal.config import RigConfig
 from hal.zenoh_session import free_loopback_port
 from rt_controller.monitor.bridge import MonitorBridge
 from rt_controller.monitor.tuning import ADVERTISED, TuningFrontEnd
+from rt_controller.runtime.recorder import CYCLE_TOPIC, DIAGNOSTICS_TOPIC
 from tests.support.foxglove_ws import FoxgloveClient
 from tests.support.param_link import KEY, TICK, LoopbackLink
 
@@ -137,3 +138,17 @@ def test_layout_calibration_panels_name_advertised_parameters():
     tab = next(t for t in panels["Tab!main"]["tabs"] if t["title"].startswith("Calibration"))
     text = json.dumps(tab["layout"])
     assert params in text and all(k in text for k in sliders)
+
+
+def test_a_client_subscribing_to_channels_raises_nothing_in_the_listener(serve, capfd, caplog):
+    """The SDK calls every listener callback (subscribe, unsubscribe, ...) on the tuning front
+    end, not only the Parameters ones; a missing one is an error line per channel and client."""
+    _link, client, _tuning = serve(allow_tuning=False)
+    topics = {CYCLE_TOPIC, DIAGNOSTICS_TOPIC}
+    client.wait_channels(topics)
+    client.subscribe(sorted(client.channels))
+    client.get_parameters(["gains.kp"])  # answered after the subscribe was handled
+    client.close()
+    time.sleep(0.5)  # the server sees the disconnect (unsubscribe) on its own thread
+    said = capfd.readouterr().err + caplog.text
+    assert "Callback failed" not in said, said
