@@ -165,6 +165,11 @@ class ParameterServer:
         return session.session.declare_queryable(KEY_CONTROLLER_PARAMETERS, on_query)
 
 
+EARLY_END = 0.9
+"""A query zenoh ended before this fraction of its timeout had no one to answer it (no
+queryable, or the controller's refused it unanswered): said as such, not as a timeout."""
+
+
 def request(
     session: Any,
     key: bytes,
@@ -190,12 +195,20 @@ def request(
     elif op == "action":
         body.update(action=action, note=note, at_tick=at_tick)
     payload = seal(body, key, REQUEST_LABEL)
+    start = time.monotonic()
     for r in session.session.get(KEY_CONTROLLER_PARAMETERS, payload=payload, timeout=timeout_s):
         if r.ok is None:
             continue
         out = unseal(r.ok.payload.to_bytes(), key, REPLY_LABEL)
         if out is not None and out.get("nonce") == nonce:
             return out
+    took = time.monotonic() - start
+    if took < EARLY_END * timeout_s:  # zenoh ended the query: nobody answers it
+        raise ParameterLinkError(
+            f"no answer from the controller on {KEY_CONTROLLER_PARAMETERS}: the request ended "
+            f"unanswered after {took:.1f} s (no controller on this zenoh endpoint yet, or one "
+            "that refused it: the same rig key?)"
+        )
     raise ParameterLinkError(
         f"no answer from the controller on {KEY_CONTROLLER_PARAMETERS} within {timeout_s:g} s "
         "(is it running, on this zenoh endpoint, with the same rig key?)"

@@ -86,7 +86,7 @@ class RecordingSession:
 def test_a_request_for_a_later_tick_waits_for_that_tick_not_for_an_immediate_answer():
     s = RecordingSession()
     for kw in ({}, {"at_tick": 2400}):
-        with pytest.raises(ParameterLinkError, match="within"):
+        with pytest.raises(ParameterLinkError, match="ended unanswered"):
             request(s, KEY, "set", changes={"gains.kp": 0.3}, **kw)
     with pytest.raises(ParameterLinkError):
         request(s, KEY, "action", action="mark", at_tick=7)
@@ -103,3 +103,22 @@ def test_hil_param_help_names_the_waits_request_uses(capsys):
         main(["param", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert f"default {ANSWER_TIMEOUT_S:g} s; with --at-tick {SCHEDULED_TIMEOUT_S:g} s" in text
+
+
+class SlowSession(RecordingSession):
+    """zenoh's ``session.get`` that ends its query at the timeout without an answer."""
+
+    def get(self, _key, payload, timeout):
+        time.sleep(timeout)
+        return super().get(_key, payload, timeout)
+
+
+def test_no_answer_says_whether_the_query_timed_out_or_ended_unanswered():
+    """A query zenoh ends at once had nobody to answer it (no controller on the endpoint, or
+    one that refused a request of another rig key); only one that ran out its time is a
+    timeout."""
+    with pytest.raises(ParameterLinkError, match="ended unanswered after") as early:
+        request(RecordingSession(), KEY, "get")
+    assert "within" not in str(early.value)
+    with pytest.raises(ParameterLinkError, match=r"within 0\.05 s"):
+        request(SlowSession(), KEY, "get", timeout_s=0.05)
