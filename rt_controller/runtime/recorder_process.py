@@ -212,6 +212,7 @@ class RecorderProcess(Recorder):
                 return False
             self._writer.add_message(self._channels[kind], t_ns, data, t_ns)
             self.counts[kind] += 1
+            self.images_written += kind == IMAGE  # sent, as the topics' counts, until close
             self._queued += 1
             if kind in (CYCLE, DIAG):
                 self._send(wait)

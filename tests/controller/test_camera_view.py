@@ -49,6 +49,7 @@ def test_an_image_the_recorder_process_cannot_log_is_in_the_summary_and_a_proble
     with RecorderProcess(tmp_path / "run.mcap", RigConfig()) as rec:
         assert rec.write(IMAGE, 0, encode_vision_image(good))
         assert rec.write(IMAGE, 0, b"HV\x01 not an image")  # sent: the child finds it bad
+        assert rec.as_dict()["images_written"] == 2  # in the run: sent to be written
     counts = rec.as_dict()
     assert (counts["images_written"], counts["image_errors"]) == (1, 1)
     problems = run_problems({"recorder": counts})
