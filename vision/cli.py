@@ -99,6 +99,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             f"{stats.invalid} without the target ("
             + ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
             + f"), detection p99 {stats.detect_us_p99:.0f} us",
+            file=sys.stderr if getattr(args, "frames", False) else sys.stdout,  # JSON lines out
             flush=True,
         )
     return 0

@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--frames",
         action="store_true",
-        help="with --source log:...: print each frame's measurement as a JSON line",
+        help="with --source log:...: print each frame's measurement as a JSON line (the "
+        "summary line then goes to stderr)",
     )
     p.set_defaults(handler=_run)
 

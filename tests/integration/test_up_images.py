@@ -53,6 +53,12 @@ def test_lockstep_on_images_is_bit_exact_and_replays_exactly(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     rerun = json.loads(proc.stdout.strip().splitlines()[-1])
     assert rerun["frames"] == rerun["valid"] == 41
+    # --frames: one JSON line a frame on stdout, a JSON-lines stream (the summary on stderr)
+    proc = run_hil(["vision", "--source", f"log:{a['log_path']}", "--frames"], timeout_s=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    frames = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert len(frames) == 41 and all(f["valid"] for f in frames)
+    assert "41 frames from" in proc.stderr
 
 
 def test_clean_images_give_the_analytic_j(tmp_path):
