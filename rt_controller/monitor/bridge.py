@@ -166,6 +166,7 @@ class MonitorBridge:
             "poses": 0,
             "images": 0,
             "bad": 0,
+            "images_refused": 0,
         }
         self._side_period_ns = round(1e9 / SIDE_MAX_HZ)
         self._last_side: dict[str, int] = {}
@@ -306,8 +307,15 @@ class MonitorBridge:
         now = self.clock()
         try:
             img = decode_vision_image(payload, rig_key(self.cfg))
-        except HalCodecError:
+        except HalCodecError as exc:
             self.counts["bad"] += 1
+            self.counts["images_refused"] += 1
+            if self.counts["images_refused"] == 1:  # most often a monitor given another key
+                log.warning(
+                    "hil monitor: camera images refused (%s): they are shown only with the "
+                    "rig's key (--key-file: the key hil up was given)",
+                    exc,
+                )
             return
         for topic, msg in view_messages(img, now):
             self._channels[topic].log(msg.encode(), log_time=now)

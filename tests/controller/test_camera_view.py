@@ -4,11 +4,15 @@ time; a payload that is no vision image is counted, never raised."""
 
 from __future__ import annotations
 
+import time
+from typing import Any
+
 import cv2
 import numpy as np
 from mcap.reader import make_reader
 
 from hal.config import RigConfig
+from hal.secoc import rig_key
 from hal.vision_image import VisionImage, encode_vision_image
 from rt_controller.runtime.recorder import IMAGE, CycleRecorder
 from vision.sources import decode_compressed_image
@@ -54,3 +58,50 @@ def test_an_image_the_recorder_process_cannot_log_is_in_the_summary_and_a_proble
     assert (counts["images_written"], counts["image_errors"]) == (1, 1)
     problems = run_problems({"recorder": counts})
     assert problems == ["1 camera image(s) could not be written to the log"]
+
+
+class _Rings:
+    """``subscribe_ring`` of a zenoh session: camera image payloads, once; nothing else."""
+
+    def __init__(self, images: list[bytes]) -> None:
+        self.images = images
+
+    def subscribe_ring(self, key: str, capacity: int) -> Any:
+        from hal.zenoh_session import KEY_VISION_IMAGE
+
+        payloads = self.images if key == KEY_VISION_IMAGE else []
+
+        class Ring:
+            def drain(self) -> list[bytes]:
+                out = list(payloads)
+                payloads.clear()
+                return out
+
+            def close(self) -> None:
+                pass
+
+        return Ring()
+
+
+def test_a_monitor_with_another_key_than_the_rig_s_says_why_it_shows_no_image(caplog):
+    """``hil monitor`` shows a camera image only if the rig key authenticates it; given
+    another key it would show none and say nothing. It warns once and counts them."""
+    from hal.zenoh_session import free_loopback_port
+    from rt_controller.monitor.bridge import MonitorBridge
+
+    _ok, png = cv2.imencode(".png", np.zeros((48, 64), np.uint8))
+    msg = VisionImage(5, 10**9, 2 * 10**9, True, None, (35.5, 15.5), (-3.0, 4.0), png.tobytes())
+    cfg = RigConfig()
+    theirs = [encode_vision_image(msg, key=bytes(32)) for _ in range(3)]
+    ours = encode_vision_image(msg, key=rig_key(cfg))
+    bridge = MonitorBridge(cfg, _Rings([*theirs, ours]), port=free_loopback_port()).start()
+    try:
+        deadline = time.monotonic() + 30.0  # a hang guard, not a timing claim
+        while bridge.counts["images"] + bridge.counts["images_refused"] < 4:
+            assert time.monotonic() < deadline, bridge.counts
+            time.sleep(0.01)
+    finally:
+        bridge.close()
+    assert (bridge.counts["images"], bridge.counts["images_refused"]) == (1, 3)
+    warnings = [r.getMessage() for r in caplog.records if "camera images refused" in r.getMessage()]
+    assert len(warnings) == 1 and "--key-file" in warnings[0], warnings
