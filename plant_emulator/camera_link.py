@@ -8,8 +8,8 @@ import contextlib
 
 import zenoh
 
-from hal.config import RigConfig
-from hal.errors import HalTransportError
+from hal.config import RigConfig, image_noise_error
+from hal.errors import HalConfigError, HalTransportError
 from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_CAMERA_ROI, ZenohSession
 from plant_emulator.camera_node import CameraNode
 
@@ -45,7 +45,12 @@ def start_camera(
     cfg: RigConfig, session: ZenohSession, stack: contextlib.ExitStack, key: bytes
 ) -> tuple[CameraNode, FramePublisher]:
     """The emulated camera of ``cfg`` on ``session``: its frame publisher and its node, started;
-    both closed by ``stack`` (the emulator's, DSP and CiA 402 profiles alike)."""
+    both closed by ``stack`` (the emulator's, DSP and CiA 402 profiles alike).
+    :class:`~hal.errors.HalConfigError` when ``cfg`` asks for a pixel noise it cannot apply
+    (:func:`~hal.config.image_noise_error`)."""
+    problem = image_noise_error(cfg)
+    if problem is not None:
+        raise HalConfigError(problem)
     frames = FramePublisher(session)
     stack.callback(frames.close)
     camera = CameraNode(cfg, frames.put, key=key, watched=frames.has_subscribers)

@@ -25,7 +25,7 @@ from hal.config.rig import (
     config_from_json,
     load_config,
 )
-from hal.config.validation import validate
+from hal.config.validation import image_noise_error, validate
 from hal.config.values import Mat2, Vec2
 
 __all__ = [
@@ -50,6 +50,7 @@ __all__ = [
     "VisionConfig",
     "config_from_dict",
     "config_from_json",
+    "image_noise_error",
     "load_config",
     "plant_view",
     "validate",

@@ -53,7 +53,9 @@ class CameraConfig:
     z_wo: float = 0.9
     """Depth of the target plane, m."""
     noise_px: float = 0.0
-    """Standard deviation of Gaussian pixel noise on each feature; 0 = off."""
+    """The analytic camera's Gaussian pixel noise on each feature (std); 0 = off. A rig on the
+    rendering camera refuses it: there the noise is the sensor's (``read_noise_dn``,
+    ``electrons_per_dn``)."""
     frame_rate_hz: float = 0.0
     """Camera frame rate; 0 = the default: 60 fps (the XC-HR57's) for ``hil vision`` and the
     emulated camera in realtime and the analytic vision process in lockstep, a fresh image

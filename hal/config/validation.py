@@ -176,3 +176,19 @@ def _check_plant(cfg: RigConfig) -> None:
             f"{getattr(p, key)!r} (with plant.theta3 {p.theta3!r}) leaves the plant's link "
             f"inertia I{key[-1]} at {inertia:.4g} kg·m², not positive",
         )
+
+
+def image_noise_error(cfg: RigConfig) -> str | None:
+    """Why ``cfg`` cannot run on the rendering camera, or None: ``camera.noise_px`` is the
+    analytic camera's Gaussian pixel noise (``camera.model = "analytic"``, ``hil simulate``);
+    a rendered frame's features are as noisy as its sensor makes them, and a pixel noise
+    that nothing applies must not be reported as the run's."""
+    c = cfg.camera
+    if c.model != "image" or c.noise_px == 0:
+        return None
+    return (
+        f"camera.noise_px = {c.noise_px:g} is the analytic camera's pixel noise, and this "
+        "camera renders images (camera.model = image): their noise is the sensor's "
+        "(camera.read_noise_dn, camera.electrons_per_dn, seeded by camera.seed); set "
+        "camera.noise_px = 0, or camera.model = analytic"
+    )

@@ -37,10 +37,12 @@ the rig anew, the scenario reset being the emulated DSP's); report.md and result
   all     the three (a run shared by fig3 and fig4 runs once)
 
 When only the horizon T is set, N = max(rhc.steps, ceil(T / 0.05 s)) steps (T = 1.0 s -> 20),
-as with `hil controller --horizon T`. Repetitions of table1 differ by the vision noise seed
-(repetition i uses seed i). The embedded config has no camera noise, which would make every
-lockstep repetition identical, so table1 uses --noise, else camera.noise_px of the config, else
-0.5 px. fig3 and fig4 use --noise, else the config's camera noise (0 by default) and seed.
+as with `hil controller --horizon T`. Repetitions of table1 differ by the camera noise seed
+(repetition i uses seed i). The default camera renders images: the seed draws its sensor's
+noise, and --noise (camera.noise_px, the analytic camera's pixel noise) is refused. With
+camera.model = analytic, table1 uses --noise, else camera.noise_px of the config, else 0.5 px
+(with no noise every lockstep repetition would be identical); fig3 and fig4 use --noise, else
+the config's (0 by default).
 
 The output folder (default experiments/<timestamp>/) gets logs/*.mcap, configs/*.toml (each
 run's full configuration: `hil up --config ...` repeats it), PNG figures, report.md (what was run,
@@ -83,8 +85,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--noise",
         type=bounded_float(0.0, 1000.0, lo_inclusive=True, what="pixel noise"),
         metavar="PX",
-        help="camera pixel noise std for every run (default: the config's; table1: 0.5 px if "
-        "the config's is 0)",
+        help="camera.model = analytic: pixel noise std for every run (default: the config's; "
+        "table1: 0.5 px if the config's is 0); refused with the rendering camera",
     )
     p.add_argument("--realtime", action="store_true", help="real-time runs instead of lockstep")
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
@@ -342,6 +344,8 @@ def print_tables(res: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from rt_controller.rig.experiment import noise_words
+
     console = Console()
     for exp, key_title in (("fig3", "law"), ("fig4", "T (s)")):
         if exp in res:
@@ -353,7 +357,8 @@ def print_tables(res: dict[str, Any]) -> None:
             console.print(table)
     if "table1" in res:
         t1 = res["table1"]
-        console.print(f"Table I (J, {t1['noise_px']:g} px noise, seeds {t1['seeds']}):")
+        noise = noise_words(t1["noise_px"], res.get("camera_model", "analytic"))
+        console.print(f"Table I (J, {noise}, seeds {t1['seeds']}):")
         console.print(t1["markdown"], markup=False, highlight=False)
     console.print(f"report: {res['report']}", markup=False, highlight=False)
     sys.stdout.flush()

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from hal.config import RigConfig, load_config
+from hal.config import RigConfig, image_noise_error, load_config
 from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
-from rt_controller.errors import ControllerError
+from rt_controller.errors import ControllerConfigError, ControllerError
 from rt_controller.rig.failures import RigCancelled
 from rt_controller.rig.options import RigOptions, private_default_bus
 from rt_controller.rig.processes import run_rig, run_rig_plan
@@ -40,7 +40,8 @@ FIG3_LAWS = ("rhc", "ioc", "pbc")
 FIG3_HORIZON_S = 0.02
 HORIZONS_S = (0.02, 0.1, 1.0)
 TABLE1_DEFAULT_NOISE_PX = 0.5
-"""``table1`` camera noise when neither ``--noise`` nor the config sets one (reps must differ)."""
+"""``table1``'s pixel noise on the analytic camera when neither ``--noise`` nor the config sets
+one (repetitions must differ). The rendering camera's repetitions differ by its sensor's noise."""
 STEADY_FROM_S = 4.0
 """The paper compares the steady state "after t = 4 s"; J over [4 s, end) is reported too."""
 
@@ -56,24 +57,29 @@ class RunSpec:
     noise_px: float
     seed: int
     rep: int | None = None
-    """Repetition index for ``table1`` runs (their name always carries noise and seed)."""
+    """Repetition index for ``table1`` runs (their name always carries the seed)."""
 
     @property
     def name(self) -> str:
-        """File-name-safe identity, e.g. ``rhc-T0.02`` or ``rhc-T0.1-noise0.5-seed3``."""
+        """File-name-safe identity, e.g. ``rhc-T0.02``, ``rhc-T0.1-seed3`` or (pixel noise on
+        the analytic camera) ``rhc-T0.1-noise0.5-seed3``."""
         out = self.law if self.horizon_s is None else f"{self.law}-T{fmt_t(self.horizon_s)}"
+        if self.noise_px > 0:
+            out += f"-noise{self.noise_px:g}"
         if self.noise_px > 0 or self.rep is not None:
-            out += f"-noise{self.noise_px:g}-seed{self.seed}"
+            out += f"-seed{self.seed}"
         return out
 
     @property
     def label(self) -> str:
-        """Human label: ``RHC T = 0.1 s, noise 0.5 px, seed 3``."""
+        """Human label: ``RHC T = 0.1 s, seed 3`` or ``RHC T = 0.1 s, noise 0.5 px, seed 3``."""
         out = self.law.upper() + (
             "" if self.horizon_s is None else f" T = {fmt_t(self.horizon_s)} s"
         )
+        if self.noise_px > 0:
+            out += f", noise {self.noise_px:g} px"
         if self.noise_px > 0 or self.rep is not None:
-            out += f", noise {self.noise_px:g} px, seed {self.seed}"
+            out += f", seed {self.seed}"
         return out
 
 
@@ -105,8 +111,6 @@ class Settings:
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
-        from rt_controller.errors import ControllerConfigError
-
         bad = [e for e in self.experiments if e not in EXPERIMENTS]
         if bad or not self.experiments:
             raise ControllerConfigError(f"unknown experiment(s) {bad}; known: {EXPERIMENTS}")
@@ -209,6 +213,13 @@ def default_jobs(settings: Settings) -> int:
     return max(1, min(os.cpu_count() or 1, MAX_JOBS))
 
 
+def noise_words(noise_px: float, model: str) -> str:
+    """The camera noise of runs: ``0.5 px pixel noise``, or the rendering camera's sensor."""
+    if model == "image":
+        return "the camera sensor's noise"
+    return f"{noise_px:g} px pixel noise"
+
+
 def fmt_t(horizon_s: float) -> str:
     """A horizon as the paper writes it: 0.02, 0.1, 1.0."""
     text = f"{horizon_s:g}"
@@ -217,15 +228,23 @@ def fmt_t(horizon_s: float) -> str:
 
 # ------------------------------------------------------------------------------------- plan
 def table1_noise(settings: Settings, base: RigConfig) -> float:
-    """``--noise``, else the config's camera noise, else 0.5 px when that is 0."""
+    """``--noise``, else the config's camera noise, else on the analytic camera 0.5 px when
+    that is 0 (the rendering camera: 0, its sensor's noise makes the repetitions differ)."""
     if settings.noise_px is not None:
         return settings.noise_px
-    return base.camera.noise_px if base.camera.noise_px > 0 else TABLE1_DEFAULT_NOISE_PX
+    if base.camera.noise_px > 0 or base.camera.model == "image":
+        return base.camera.noise_px
+    return TABLE1_DEFAULT_NOISE_PX
 
 
 def plan(settings: Settings, base: RigConfig) -> dict[str, list[RunSpec]]:
-    """The runs of each requested experiment, in order."""
+    """The runs of each requested experiment, in order. :class:`ControllerConfigError` for a
+    pixel noise the configured camera cannot apply (:func:`~hal.config.image_noise_error`)."""
     fig_noise = base.camera.noise_px if settings.noise_px is None else settings.noise_px
+    problem = image_noise_error(base.with_overrides({"camera.noise_px": fig_noise}))
+    if problem is not None:
+        where = "--noise" if settings.noise_px else "the config"
+        raise ControllerConfigError(f"{where}: {problem}")
     seed = base.camera.seed
     out: dict[str, list[RunSpec]] = {}
     for exp in EXPERIMENTS:

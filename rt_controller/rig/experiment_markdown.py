@@ -8,6 +8,7 @@ from typing import Any
 from rt_controller.rig.experiment import (
     TABLE1_DEFAULT_NOISE_PX,
     fmt_t,
+    noise_words,
 )
 from rt_controller.rig.experiment_results import LAW_NAMES, PAPER_TABLE1, paper_table1_markdown
 
@@ -44,6 +45,7 @@ _PROFILE_TEXT = {
 
 def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
     """``report.md``: what was run, the J tables, the figures, the comparison with the paper."""
+    model = _model(res)
     md: list[str] = [f"# hil experiment: {', '.join(res['experiments'])}", ""]
     md += [
         f"Created {res['created']} by `{res['command']}`.",
@@ -62,8 +64,9 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
         f"{res['duration_s']:g} s of plant time at a control rate of {res['rate_hz']:g} Hz; "
         + _scenario_text(res["scenario"])
         + ".",
-        f"- Config: {res['config']} (camera.noise_px = {res['config_noise_px']:g}). Each run's "
-        "full configuration is in `configs/`, its MCAP log in `logs/`.",
+        f"- Config: {res['config']} (camera.model = {model}, camera.noise_px = "
+        f"{res['config_noise_px']:g}). Each run's full configuration is in `configs/`, its MCAP "
+        "log in `logs/`.",
         "- RHC horizon steps N (when only T is given, N = max(rhc.steps, ceil(T / 0.05 s)), "
         "as `hil controller --horizon T` does): "
         + ", ".join(
@@ -74,19 +77,24 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
     md.append(f"- CAN bus: {_bus_text(res['runs'])}.")
     for exp in ("fig3", "fig4"):
         if exp in res:
-            same = res[exp]["noise_px"] == res["config_noise_px"]
+            same = res[exp]["noise_px"] == res["config_noise_px"] or model == "image"
             source = "the config's" if same else "--noise"
             md.append(
-                f"- {exp}: camera noise {res[exp]['noise_px']:g} px ({source}), "
+                f"- {exp}: {noise_words(res[exp]['noise_px'], model)} ({source}), "
                 f"seed {res[exp]['seed']}."
             )
     if "table1" in res:
         t1 = res["table1"]
+        why = (
+            "the rendering camera's sensor noise, drawn from the seed"
+            if model == "image"
+            else f"pixel noise {t1['noise_px']:g} px (`--noise`, else the config's "
+            f"camera.noise_px, else {TABLE1_DEFAULT_NOISE_PX:g} px when that is 0: with no "
+            "noise every lockstep repetition would be identical)"
+        )
         md.append(
-            f"- table1: {t1['reps']} repetitions per horizon that differ by the vision noise seed "
-            f"(repetition i uses seed i: {t1['seeds']}); camera noise {t1['noise_px']:g} px "
-            f"(`--noise`, else the config's camera.noise_px, else {TABLE1_DEFAULT_NOISE_PX:g} px "
-            "when that is 0 — with no noise every lockstep repetition would be identical)."
+            f"- table1: {t1['reps']} repetitions per horizon that differ by the camera noise seed "
+            f"(repetition i uses seed i: {t1['seeds']}); {why}."
         )
     md += ["", "### Runs", "", "| run | law | T (s) | N | noise (px) | seed | J | J(t ≥ 4 s) | "
            "misses | fallbacks | wall (s) | status |", "|---|---|---:|---:|---:|---:|---:|---:|"
@@ -149,7 +157,7 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
             "## Table I: values of the objective function",
             "",
             f"J of each repetition, sorted ascending per row as in the paper, and the average "
-            f"({t1['noise_px']:g} px camera noise, seeds {t1['seeds']}):",
+            f"({noise_words(t1['noise_px'], model)}, seeds {t1['seeds']}):",
             "",
             t1["markdown"],
             "",
@@ -191,6 +199,15 @@ def _bus_text(runs: list[dict[str, Any]]) -> str:
     return ", ".join(f"`{b}`" for b in buses)
 
 
+_SEEDED = {"image": "the camera sensor's noise", "analytic": "Gaussian pixel noise"}
+"""What the seed of a repetition draws, by camera model."""
+
+
+def _model(res: dict[str, Any]) -> str:
+    """The runs' camera model (results written before it was recorded: analytic)."""
+    return res.get("camera_model", "analytic")
+
+
 def _noise_note(res: dict[str, Any]) -> list[str]:
     """How the repetitions' spread compares with the paper's (table1 only)."""
     if "table1" not in res:
@@ -205,8 +222,8 @@ def _noise_note(res: dict[str, Any]) -> list[str]:
     )
     return [
         "**Repetitions.** The paper's runs differ by real camera noise, friction and timing; "
-        "ours differ only by the seed of Gaussian pixel noise on an emulated, friction-free arm "
-        f"({res['clock']} clock). Spread (max - min) / average per row, ours: "
+        f"ours differ only by the seed of {_SEEDED[_model(res)]} on an emulated, friction-free "
+        f"arm ({res['clock']} clock). Spread (max - min) / average per row, ours: "
         f"{', '.join(ours) or '—'}; the paper's: {paper}.",
         "",
     ]

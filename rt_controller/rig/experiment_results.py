@@ -156,6 +156,7 @@ def build_results(
         "duration_s": settings.duration_s,
         "config": settings.config or "embedded default",
         "config_noise_px": base.camera.noise_px,
+        "camera_model": base.camera.model,
         "rate_hz": base.rates.control_hz,
         "scenario": base.to_dict()["scenario"],
         "steps": {f"{fmt_t(h)}": None for h in HORIZONS_S},

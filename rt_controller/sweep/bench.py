@@ -24,7 +24,10 @@ def bench_tasks(engine: str, runs: int, duration_s: float, law: str) -> list[Run
     spec = spec_from_dict(
         {
             "study": {"duration_s": duration_s, "repetitions": runs, "timeout_s": 600.0},
-            "base": {"controller": {"law": law}, "camera": {"noise_px": 0.5}},
+            "base": {  # the rig's rendering camera's noise is its sensor's, seeded per run
+                "controller": {"law": law},
+                "camera": {"noise_px": 0.5} if engine == "simulate" else {},
+            },
         }
     )
     return spec.tasks(engine)

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hal.config import RigConfig, config_from_dict, load_config
+from hal.config import RigConfig, config_from_dict, image_noise_error, load_config
 from hal.errors import HalConfigError
 from rt_controller.config_rules import apply_overrides
 from rt_controller.errors import ControllerConfigError
@@ -185,6 +185,9 @@ class Spec:
                     "engine (--engine rig): the simulate engine runs the law in-process on "
                     "no hardware, so a profile would change nothing"
                 )
+            problem = image_noise_error(cfg) if engine == "rig" else None
+            if problem is not None:  # the simulate engine's camera is the analytic one
+                raise SweepSpecError(f"point {p} on the rig engine: {problem}")
             for rep in range(self.study.repetitions):
                 seed = run_seed(self.spec_hash, p, rep)
                 run_cfg = cfg.with_overrides({"camera.seed": seed}).to_dict()

@@ -52,20 +52,38 @@ def test_plan_runs_each_experiment_with_the_papers_laws_and_horizons(tmp_path):
     assert [(s.horizon_s, s.seed) for s in plan["table1"]] == [
         (h, rep) for h in (0.02, 0.1, 1.0) for rep in range(2)
     ]
-    # The embedded config has no camera noise: figures stay noise-free, table1 gets 0.5 px.
-    assert {s.noise_px for s in plan["fig3"] + plan["fig4"]} == {0.0}
-    assert {s.noise_px for s in plan["table1"]} == {ex.TABLE1_DEFAULT_NOISE_PX}
+    # The embedded config's camera renders images: no pixel noise anywhere; the table1
+    # repetitions differ by the seed of its sensor's noise.
+    assert {s.noise_px for specs in plan.values() for s in specs} == {0.0}
     # fig3's RHC run is fig4's T = 0.02 s run: `all` runs it once.
     assert plan["fig3"][0].name == plan["fig4"][0].name == "rhc-T0.02"
+    assert plan["table1"][3].name == "rhc-T0.1-seed1"
+    assert plan["table1"][3].label == "RHC T = 0.1 s, seed 1"
+
+
+def test_noise_option_and_config_noise_on_the_analytic_camera(tmp_path):
+    analytic = load_config().with_overrides({"camera.model": "analytic"})
+    plan = ex.plan(settings(tmp_path, reps=2), analytic)
+    assert {s.noise_px for s in plan["fig3"] + plan["fig4"]} == {0.0}
+    assert {s.noise_px for s in plan["table1"]} == {ex.TABLE1_DEFAULT_NOISE_PX}
     assert plan["table1"][3].name == "rhc-T0.1-noise0.5-seed1"
-
-
-def test_noise_option_and_config_noise(tmp_path):
-    plan = ex.plan(settings(tmp_path, noise_px=0.2), load_config())
+    plan = ex.plan(settings(tmp_path, noise_px=0.2), analytic)
     assert {s.noise_px for specs in plan.values() for s in specs} == {0.2}
-    noisy = load_config().with_overrides({"camera.noise_px": 0.3})
+    noisy = analytic.with_overrides({"camera.noise_px": 0.3})
     plan = ex.plan(settings(tmp_path), noisy)
     assert {s.noise_px for specs in plan.values() for s in specs} == {0.3}
+
+
+def test_pixel_noise_on_the_rendering_camera_is_refused_not_reported(tmp_path):
+    """camera.noise_px is the analytic camera's; the rendering camera never applied it, yet the
+    runs were named and reported with it (fig3 --noise 5 gave the noise-free J)."""
+    from rt_controller.errors import ControllerConfigError
+
+    with pytest.raises(ControllerConfigError, match=r"--noise: camera\.noise_px = 0\.2 is"):
+        ex.plan(settings(tmp_path, noise_px=0.2), load_config())
+    noisy = load_config().with_overrides({"camera.noise_px": 0.3})
+    with pytest.raises(ControllerConfigError, match=r"the config: .*camera\.model = analytic"):
+        ex.plan(settings(tmp_path), noisy)
 
 
 def test_run_config_uses_the_cli_step_rule_and_reads_back(tmp_path):
@@ -210,7 +228,7 @@ def test_runs_sharing_an_emulator_config_share_processes(tmp_path):
     sets than jobs; fig3 + fig4 likewise; realtime and --fresh-processes: one run each."""
     _, runs = ex.prepare(settings(tmp_path, ("table1",), reps=2, jobs=2))
     got = [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), settings(tmp_path))]
-    names = [f"rhc-T{h}-noise0.5-seed{seed}" for h in ("0.02", "0.1", "1.0") for seed in (0, 1)]
+    names = [f"rhc-T{h}-seed{seed}" for h in ("0.02", "0.1", "1.0") for seed in (0, 1)]
     assert got == [names[:3], names[3:]]
     single = settings(tmp_path, ("table1",), reps=2, jobs=1)
     assert [[r.spec.name for r in b] for b in ex.batches(list(runs.values()), single)] == [names]
@@ -271,16 +289,16 @@ def test_table1_writes_report_results_and_logs(table1):
     assert [r["steps"] for r in rows] == [10, 10, 20]
     for r in rows:
         assert len(r["J"]) == 2 and all(math.isfinite(j) and j > 0 for j in r["J"])
-        assert r["J"][0] != r["J"][1], "repetitions must differ by their noise seed"
+        assert r["J"][0] != r["J"][1], "repetitions must differ by their sensor noise seed"
         assert r["seeds"] == [0, 1]
         assert r["average"] == pytest.approx(sum(r["J"]) / 2)
-    assert res["table1"]["noise_px"] == ex.TABLE1_DEFAULT_NOISE_PX
+    assert res["table1"]["noise_px"] == 0.0 and res["camera_model"] == "image"
     assert res["clock"] == "lockstep" and not res["failures"]
     for run in res["runs"]:
         log = read_log(out / run["log"], raw=False)
         assert log.n_cycles == 200 and not log.truncated  # 4 s at 50 Hz
         assert log.config.camera.seed == run["seed"]
-        assert log.config.camera.noise_px == 0.5
+        assert log.config.camera.noise_px == 0.0
     assert (out / "table1_J.png").read_bytes()[:8] == PNG_MAGIC
 
 
@@ -302,6 +320,7 @@ def test_table1_markdown_in_report(table1):
         assert a <= b and avg == pytest.approx((a + b) / 2, abs=1e-3)
     assert "| T = 0.02 s | 3352 | 3357 | 3367 | 3477 | 3486 | 3408 |" in report
     assert "seeds [0, 1]" in report and "lockstep" in report
+    assert "the camera sensor's noise, seeds [0, 1]" in report
 
 
 @pytest.mark.integration
@@ -328,7 +347,7 @@ def test_a_failing_daemon_fails_the_experiment_without_leftovers(tmp_path, capsy
     argv = ["experiment", "table1", "--reps", "1", "--duration", "1", "--out", str(out)]
     assert main([*argv, "--can", "socketcan:hil-no-such-bus"]) == 1
     err = capsys.readouterr().err
-    assert "run rhc-T0.02-noise0.5-seed0 (RHC T = 0.02 s, noise 0.5 px, seed 0) failed" in err
+    assert "run rhc-T0.02-seed0 (RHC T = 0.02 s, seed 0) failed" in err
     assert "emulator exited with status 2" in err or "controller exited with status 2" in err
     assert not live_children()
     res = json.loads((out / "results.json").read_text())
@@ -345,7 +364,7 @@ def test_lockstep_results_do_not_depend_on_jobs_or_on_sharing_processes(tmp_path
     got, logs = {}, {}
     for how, extra in (("fresh", ["--fresh-processes"]), ("jobs1", ["--jobs", "1"]), ("jobs2", [])):
         out = tmp_path / how
-        argv = ["experiment", "fig3", "--duration", "1.5", "--noise", "0.5", "--out", str(out)]
+        argv = ["experiment", "fig3", "--duration", "1.5", "--out", str(out)]
         assert main([*argv, *extra, "--json"]) == 0
         res = json.loads(capsys.readouterr().out)
         got[how] = {r["name"]: (r["J"], r["f_final"]) for r in res["runs"]}

@@ -22,6 +22,10 @@ GOOD = {
 }
 
 
+ANALYTIC_NOISE = {"noise_px": 0.5, "model": "analytic"}
+"""Pixel noise on the camera that applies it on both engines."""
+
+
 def test_grid_times_draws_times_repetitions():
     spec = spec_from_dict(GOOD)
     assert len(spec.points) == 3 * 4 and spec.runs == 36
@@ -48,7 +52,8 @@ def test_seeds_and_draws_depend_on_the_spec_only():
     other = spec_from_dict({**GOOD, "study": {"duration_s": 2.0, "repetitions": 3}})
     assert other.spec_hash != a.spec_hash
     # the engine is not part of the spec hash: the same point gets the same seed on both
-    sim, rig = a.tasks("simulate"), a.tasks("rig")
+    c = spec_from_dict({**GOOD, "base": {**GOOD["base"], "camera": ANALYTIC_NOISE}})
+    sim, rig = c.tasks("simulate"), c.tasks("rig")
     assert [t.seed for t in sim] == [t.seed for t in rig]
     assert {t.key for t in sim}.isdisjoint(t.key for t in rig)
 
@@ -178,3 +183,14 @@ def test_a_hardware_profile_runs_on_the_rig_engine_only():
     with pytest.raises(SweepSpecError, match="--engine rig"):
         base.tasks()
     assert len(spec_from_dict({}).tasks("simulate")) == 1  # the default dsp profile
+
+
+def test_pixel_noise_runs_on_the_simulate_engine_or_the_analytic_camera():
+    """camera.noise_px is the analytic camera's: the simulate engine applies it; a rig run on
+    the rendering camera would not, so such a point is refused on the rig engine."""
+    spec = spec_from_dict(GOOD)
+    assert spec.tasks("simulate")[0].config["camera"]["noise_px"] == 0.5
+    with pytest.raises(SweepSpecError, match=r"point 0 on the rig engine: camera\.noise_px"):
+        spec.tasks("rig")
+    analytic = spec_from_dict({**GOOD, "base": {"camera": ANALYTIC_NOISE}})
+    assert len(analytic.tasks("rig")) == len(spec.tasks("simulate"))

@@ -71,6 +71,23 @@ def test_hil_up_reports_a_process_that_cannot_start(tmp_path):
     assert not done.stdout.strip().startswith("{")
 
 
+def test_pixel_noise_the_rendering_camera_cannot_apply_is_refused(tmp_path):
+    """camera.noise_px is the analytic camera's; on the rendering camera nothing applied it and
+    the run went on as if noise-free. The emulator refuses it in one line, and so does hil up."""
+    config = tmp_path / "noisy.toml"
+    config.write_text("[camera]\nnoise_px = 0.5\n", encoding="utf-8")
+    ep = free_endpoint()
+    args = ["up", "--lockstep", "--duration", "1", "--config", str(config), "--json"]
+    args += ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", ep]
+    try:
+        done = run_hil([*args, "--log", str(tmp_path / "noisy.mcap")], 120)
+    finally:
+        assert_nothing_left(ep)
+    assert done.returncode == 2, (done.stdout, done.stderr[-2000:])
+    assert "emulator exited with status 2" in done.stderr, done.stderr
+    assert "camera.noise_px = 0.5 is the analytic camera's pixel noise" in done.stderr
+
+
 def test_run_rig_reports_an_emulator_killed_mid_run(tmp_path):
     log = tmp_path / "emu-killed.mcap"
     opts = rig_options(log, law="ioc", lockstep=True, duration_s=600.0)

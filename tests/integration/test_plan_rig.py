@@ -27,9 +27,7 @@ DURATION_S = 2.0
 
 
 def _config(tmp_path: Path, name: str, **overrides: object) -> Path:
-    cfg = load_config(None).with_overrides(
-        {"controller.clock": "lockstep", "camera.noise_px": 0.5, **overrides}
-    )
+    cfg = load_config(None).with_overrides({"controller.clock": "lockstep", **overrides})
     path = tmp_path / f"{name}.toml"
     path.write_text(config_toml(cfg), encoding="utf-8")
     return path
