@@ -94,11 +94,11 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(json.dumps(stats.__dict__), flush=True)
     else:
         rejected = stats.pipeline.get("rejected", {})
+        why = ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
         print(
             f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
-            f"{stats.invalid} without the target ("
-            + ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
-            + f"), detection p99 {stats.detect_us_p99:.0f} us",
+            f"{stats.invalid} without the target{f' ({why})' if why else ''}, "
+            f"detection p99 {stats.detect_us_p99:.0f} us",
             file=sys.stderr if getattr(args, "frames", False) else sys.stdout,  # JSON lines out
             flush=True,
         )

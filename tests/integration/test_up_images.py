@@ -58,7 +58,7 @@ def test_lockstep_on_images_is_bit_exact_and_replays_exactly(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     frames = [json.loads(line) for line in proc.stdout.splitlines()]
     assert len(frames) == 41 and all(f["valid"] for f in frames)
-    assert "41 frames from" in proc.stderr
+    assert "41 frames from" in proc.stderr and "0 without the target, " in proc.stderr
 
 
 def test_clean_images_give_the_analytic_j(tmp_path):
