@@ -16,6 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from hal.signals import run_standalone
 from rt_controller.errors import ControllerError
@@ -46,10 +47,20 @@ COMMAND_MODULES = (
 """Modules of :mod:`rt_controller.commands`, each with ``register(subparsers)``."""
 
 
+class HilParser(argparse.ArgumentParser):
+    """The parser of ``hil`` and of each of its (sub)commands (argparse makes the subcommands'
+    of the parent's class): each puts itself in the namespace (``usage_parser``), so that an
+    unknown option is reported with the usage of the command it was given to."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.set_defaults(usage_parser=self)
+
+
 def build_parser() -> argparse.ArgumentParser:
     import importlib
 
-    parser = argparse.ArgumentParser(
+    parser = HilParser(
         prog="hil",
         description="Hardware-in-the-loop receding-horizon visual-servo controller.",
     )
@@ -82,7 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     follow_parent()  # a rig child never outlives `hil up`
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        args.usage_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     handler: Handler = args.handler
 
     def body() -> int:

@@ -123,3 +123,21 @@ def test_a_rig_child_exits_at_once_with_its_output_and_status(tmp_path):
     assert json.loads(ok.stdout)["ticks"] == 10
     bad = run("controller", "--plan", str(tmp_path / "none.json"), "--no-rt")
     assert bad.returncode == 2 and "cannot read" in bad.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "command", "unknown"),
+    [
+        (["experiment", "fig3", "--quiet"], "hil experiment", "--quiet"),
+        (["vision", "--can", "virtual"], "hil vision", "--can virtual"),
+        (["bench", "host", "--nope"], "hil bench host", "--nope"),
+    ],
+)
+def test_an_unknown_option_is_reported_with_its_command_s_usage(argv, command, unknown, capsys):
+    """Not with the top-level ``usage: hil [-h] ...``, which lists every command but not the
+    options of the one that was given."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.startswith(f"usage: {command} "), err
+    assert f"{command}: error: unrecognized arguments: {unknown}" in err, err
