@@ -344,7 +344,7 @@ def print_tables(res: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from rt_controller.rig.experiment import noise_words
+    from rt_controller.rig.experiment_markdown import noise_words
 
     console = Console()
     for exp, key_title in (("fig3", "law"), ("fig4", "T (s)")):

@@ -213,13 +213,6 @@ def default_jobs(settings: Settings) -> int:
     return max(1, min(os.cpu_count() or 1, MAX_JOBS))
 
 
-def noise_words(noise_px: float, model: str) -> str:
-    """The camera noise of runs: ``0.5 px pixel noise``, or the rendering camera's sensor."""
-    if model == "image":
-        return "the camera sensor's noise"
-    return f"{noise_px:g} px pixel noise"
-
-
 def fmt_t(horizon_s: float) -> str:
     """A horizon as the paper writes it: 0.02, 0.1, 1.0."""
     text = f"{horizon_s:g}"

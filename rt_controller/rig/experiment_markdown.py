@@ -5,12 +5,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from rt_controller.rig.experiment import (
-    TABLE1_DEFAULT_NOISE_PX,
-    fmt_t,
-    noise_words,
-)
+from rt_controller.rig.experiment import TABLE1_DEFAULT_NOISE_PX, fmt_t
 from rt_controller.rig.experiment_results import LAW_NAMES, PAPER_TABLE1, paper_table1_markdown
+
+
+def noise_words(noise_px: float, model: str) -> str:
+    """The camera noise of runs: ``0.5 px pixel noise``, or the rendering camera's sensor."""
+    if model == "image":
+        return "the camera sensor's noise"
+    return f"{noise_px:g} px pixel noise"
 
 
 # ---------------------------------------------------------------------------------- report

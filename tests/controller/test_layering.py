@@ -321,3 +321,19 @@ def test_the_pose_checker_sees_a_pose(tmp_path: Path):
     probe = tmp_path / "probe.py"
     probe.write_text("from hal.vision_codec import PoseMsg\nx = cfg.scenario.f0\n")
     assert pose_or_truth_names(probe) == {"PoseMsg", "scenario", "f0"}
+
+
+MAX_FILE_LINES = 500
+"""No source file of the project (product, scripts, tests) is longer: a module past it does
+more than one thing and is split by concern."""
+
+
+def test_no_source_file_is_over_500_lines():
+    skip = {".venv", "site", "build", "node_modules"}
+    files = [p for p in ROOT.rglob("*.py") if not skip & set(p.relative_to(ROOT).parts[:1])]
+    long = {
+        str(p.relative_to(ROOT)): n
+        for p in files
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_FILE_LINES
+    }
+    assert len(files) > 300 and not long, long
