@@ -405,7 +405,8 @@ def run_rig_plan(
         by_run = (dsp_report(emulator.output()) if emulator else {}).get("skipped_by_run") or []
         for summary, skipped in zip(summaries, [*by_run, *[0] * len(summaries)], strict=False):
             summary["exit_codes"] = codes
-            summary["dsp"] = {"skipped_periods": skipped}  # this run's (a reset starts the next)
+            # a cut run's summary has the DSP's report already; skipped periods are this run's
+            summary["dsp"] = {**summary.get("dsp", {}), "skipped_periods": skipped}
             had = summary.get("problems", [])
             summary["problems"] = [*had, *(p for p in run_problems(summary) if p not in had)]
         return summaries, error
