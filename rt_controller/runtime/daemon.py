@@ -71,6 +71,10 @@ class DaemonOptions:
     clock: Clock | None = None
     """The loop's clock (default: the monotonic clock, sleeping then spinning
     ``controller.spin_us`` before each release); tests pass a fake one."""
+    images_owed_before: tuple[int, ...] = ()
+    """A plan's run after the first: the camera images the run before was still owed
+    (:meth:`~rt_controller.runtime.feature_link.FeatureLink.images_owed`), kept out of this
+    run's log should they come late."""
 
 
 CanLink = JointClient | Cia402Master
@@ -98,12 +102,21 @@ def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[CanLink,
 
 
 def build_hardware(
-    ctx: RunContext, can: CanLink, session: Any, features: FeatureDecoder, *, record_raw: bool
-) -> HardwareInterface:
+    ctx: RunContext,
+    can: CanLink,
+    session: Any,
+    features: FeatureDecoder,
+    *,
+    record_raw: bool,
+    images_owed_before: tuple[int, ...] = (),
+) -> DspHardware | Cia402Hardware:
     """The run's hardware profile on its open links (the profile of the ``can`` link given),
     with the features of ``session`` decoded by ``features``."""
     lockstep = ctx.cfg.controller.clock == "lockstep"
-    link = FeatureLink(ctx, session, features, by_callback=lockstep, record_raw=record_raw)
+    link = FeatureLink(
+        ctx, session, features, by_callback=lockstep, record_raw=record_raw,
+        owed_before=images_owed_before,
+    )  # fmt: skip
     if isinstance(can, Cia402Master):
         return Cia402Hardware(ctx, can, link, lockstep=lockstep, record_raw=record_raw)
     return DspHardware(ctx, can, link, lockstep=lockstep, record_raw=record_raw)
@@ -135,6 +148,9 @@ class ControllerDaemon:
         default_log = Path(cfg.controller.log_dir) / f"run-{stamp}-{cfg.controller.law}.mcap"
         self.log_path = options.log_path or default_log
         self._final_diagnostics: dict[str, Any] | None = None
+        self.images_owed: tuple[int, ...] = ()
+        """After :meth:`run`: the camera images announced that did not come (the next run of a
+        plan is given them: ``DaemonOptions.images_owed_before``)."""
 
     def what_runs(self) -> dict[str, Any]:
         """What this run is: clock, rate, duration, law (with the horizon for rhc), CAN bus."""
@@ -189,7 +205,10 @@ class ControllerDaemon:
         """The run on open links (:func:`open_links`): the parts, the live stream, the loop."""
         cfg = self.cfg
         ctx = RunContext(cfg, self.clock, self.stop, self.counters, rec)
-        hw = build_hardware(ctx, can, session, self.features, record_raw=self.opts.record_raw)
+        hw = build_hardware(
+            ctx, can, session, self.features, record_raw=self.opts.record_raw,
+            images_owed_before=self.opts.images_owed_before,
+        )  # fmt: skip
         pacer: Pacer = (
             LockstepPacer(ctx, hw.step) if self.lockstep else RealtimePacer(ctx, hw.wait_inputs)
         )
@@ -200,6 +219,7 @@ class ControllerDaemon:
         finally:
             tuning.undeclare()
             hw.deactivate()
+            self.images_owed = hw.features.images_owed()
 
     def _start_and_loop(self, hw: HardwareInterface, loop: ControlLoop) -> None:
         """Warm up, configure the hardware (the peer answers), lock memory, then the loop

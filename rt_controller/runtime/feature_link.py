@@ -4,13 +4,18 @@ images) of one run, fed to one :class:`~hal.vision_receivers.FeatureDecoder`.
 Realtime: a ring the control thread drains (:meth:`FeatureLink.poll`); lockstep: a callback
 feeds each message as it arrives, so a period's tick can wait for the answer to its pose
 (:meth:`FeatureLink.wait_pose`). After :meth:`FeatureLink.detach` no callback touches the run
-(zenoh may deliver a sample after the undeclare returns, and the run's log is closed next)."""
+(zenoh may deliver a sample after the undeclare returns, and the run's log is closed next).
+
+A plan's runs share the vision process, so an image the run before still owed may come in the
+next run: the next run's link is given those (:meth:`FeatureLink.images_owed`) and keeps such
+an image out of its log (``images_of_run_before``)."""
 
 from __future__ import annotations
 
 import contextlib
 import math
 import threading
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -35,7 +40,9 @@ class FeatureLink:
         *,
         by_callback: bool,
         record_raw: bool,
+        owed_before: Iterable[int] = (),
     ) -> None:
+        """``owed_before``: :meth:`images_owed` of the plan's run before this one."""
         self.ctx = ctx
         self.session = session
         self.features = features
@@ -55,6 +62,13 @@ class FeatureLink:
         self._images_lost = 0
         """Images due that a newer image overtook: the vision process sends them in order on
         one publisher, so an image overtaken never comes (a realtime link dropped it)."""
+        self._owed_before = set(owed_before)
+        """Simulation times of the images the run before was owed (:meth:`images_owed`)."""
+        self._newest_ns = -1
+        """Simulation time of the newest features of this run accepted."""
+        self.images_of_run_before = 0
+        """Images the run before was owed that came in this run, before this run's features
+        reached their time: not this run's, so not in its log."""
         self._feeding = threading.Lock()
         self._attached = False
 
@@ -91,7 +105,14 @@ class FeatureLink:
             **self.features.counts.as_dict(),
             "images_rejected": self.images_rejected,
             "images_missing": missing,
+            "images_of_run_before": self.images_of_run_before,
         }
+
+    def images_owed(self) -> tuple[int, ...]:
+        """Simulation times of the images announced by this run's features that are not in
+        its log (for the next run of a plan: ``owed_before``)."""
+        with self._images:
+            return tuple(self._images_due)
 
     def settle_images(self, quiet_s: float) -> bool:
         """Wait until the camera images announced by the features received so far are in the
@@ -132,6 +153,8 @@ class FeatureLink:
             msg = self.features.feed(payload, now)
             if self.record_raw:
                 self.ctx.recorder.record_vision(payload, now)
+            if msg is not None:
+                self._newest_ns = max(self._newest_ns, msg.sim_time_ns)
             if msg is not None and msg.image:
                 with self._images:
                     due = self._images_due
@@ -147,6 +170,11 @@ class FeatureLink:
                 image = decode_vision_image(payload, self.features.key)
             except HalCodecError:
                 self.images_rejected += 1
+                return
+            t = image.sim_time_ns
+            if t in self._owed_before and t > self._newest_ns:  # the run before's, late
+                self._owed_before.discard(t)
+                self.images_of_run_before += 1
                 return
             self.ctx.recorder.write(IMAGE, self.ctx.clock.now_ns(), bytes(payload))
         with self._images:

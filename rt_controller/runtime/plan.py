@@ -177,6 +177,7 @@ def run_plan(
     try:
         with open_links(cfgs[0], stop) as (dsp, session):
             sim = SimControlSender(session, key=rig_key(cfgs[0]))
+            owed: tuple[int, ...] = ()
             for i, (run, cfg) in enumerate(zip(runs, cfgs, strict=True)):
                 if stop.is_set():
                     break
@@ -187,9 +188,12 @@ def run_plan(
                         dsp.await_new_session(RESET_TIMEOUT_S, request)
                     except HalError as exc:
                         raise ControllerError(f"plan run {run.name!r}: {exc}") from exc
-                run_opts = dataclasses.replace(opts, duration_s=run.duration_s, log_path=run.log)
+                run_opts = dataclasses.replace(
+                    opts, duration_s=run.duration_s, log_path=run.log, images_owed_before=owed
+                )
                 daemon = ControllerDaemon(cfg, run_opts, stop)
                 summary = daemon.run((dsp, session))
+                owed = daemon.images_owed  # images that may still come: not the next run's
                 summary.update(run=run.name, wall_s=time.monotonic() - t0)
                 out.append(summary)
                 emit(summary)

@@ -254,3 +254,44 @@ def test_an_image_missing_makes_a_lockstep_run_not_clean_and_a_realtime_one_warn
     assert said not in run_warnings({**summary, "clock": "lockstep"})
     assert run_problems({**summary, "clock": "realtime"}) == []
     assert said in run_warnings({**summary, "clock": "realtime"})
+
+
+def test_a_late_image_of_the_plan_run_before_stays_out_of_the_next_runs_log() -> None:
+    """A plan's runs share the vision process: an image the run before gave up waiting for can
+    come once the next run started. The next run's link is given what the run before was owed;
+    such an image, its time not yet reached by the new run's features, is counted and kept out
+    of the new run's log, and the new run's own images are neither overtaken by it nor
+    refused."""
+    cfg = RigConfig()
+    key = rig_key(cfg)
+    first, _, _, before = _lockstep_link(cfg)
+    for k in range(11):  # announced: the images of frames 0, 5 and 10 (0, 0.1 and 0.2 s)
+        before.callbacks[KEY_FEATURES](_features(key, k))
+    for k in (0, 5):
+        before.callbacks[KEY_VISION_IMAGE](_frame_image(key, k))
+    assert not first.settle_images(0.01)  # the image of frame 10 is late
+    first.detach()
+    assert first.images_owed() == (200_000_000,)
+
+    rec, session = ImageRecorder(), Session()
+    ctx = RunContext(cfg, FakeClock(10**9), threading.Event(), RunCounters(), rec)
+    decoder = FeatureDecoder.from_config(cfg.controller, key=key)
+    link = FeatureLink(
+        ctx, session, decoder, by_callback=True, record_raw=False, owed_before=first.images_owed()
+    )
+    link.attach()
+    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
+    for k in range(6):  # the next run's frames 0-5 (its clock starts at 0 again)
+        on_features(_features(key, k))
+    on_image(_frame_image(key, 10))  # the run before's image of 0.2 s, late
+    assert link.counts()["images_of_run_before"] == 1
+    assert link.counts()["images_missing"] == 2  # this run's 0 and 0.1 s, still to come
+    for k in (0, 5):
+        on_image(_frame_image(key, k))
+    assert link.counts()["images_missing"] == 0 and link.settle_images(0.01)
+    for k in range(6, 11):  # this run reaches 0.2 s: its own image of 0.2 s is logged
+        on_features(_features(key, k))
+    on_image(_frame_image(key, 10))
+    assert len(rec.images) == 3 and link.counts()["images_missing"] == 0
+    assert link.counts()["images_of_run_before"] == 1
+    link.detach()
