@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from hal.arguments import bounded_float, bounded_int, duration
 from rt_controller.commands.common import add_profile_option
+from rt_controller.commands.progress import add_quiet_option
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -117,6 +118,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "scenario between runs on one set of processes (slower, same results)",
     )
     p.add_argument("--json", action="store_true", help="print results.json on stdout")
+    add_quiet_option(p)  # a failed run is still said, after the runs
     p.set_defaults(handler=run)
 
 
@@ -187,8 +189,8 @@ def run(args: argparse.Namespace) -> int:
     )
     settings.validate()
     output_dir(out, "--out")  # before any run: a file or an unwritable place is one line
-    err = Console(stderr=True)
-    progress = Progress("hil experiment", console=err)
+    err = Console(stderr=True, quiet=args.quiet)  # the runs' lines and the progress bar
+    progress = Progress("hil experiment", quiet=args.quiet, console=err)
     with progress.stage(f"writing the runs' configurations into {out}"):
         runs_by_exp, runs = prepare(settings)
     jobs = settings.effective_jobs()

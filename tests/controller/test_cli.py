@@ -128,7 +128,7 @@ def test_a_rig_child_exits_at_once_with_its_output_and_status(tmp_path):
 @pytest.mark.parametrize(
     ("argv", "command", "unknown"),
     [
-        (["experiment", "fig3", "--quiet"], "hil experiment", "--quiet"),
+        (["experiment", "fig3", "--nope"], "hil experiment", "--nope"),
         (["vision", "--can", "virtual"], "hil vision", "--can virtual"),
         (["bench", "host", "--nope"], "hil bench host", "--nope"),
     ],

@@ -153,6 +153,21 @@ def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monke
     assert "## Failures" in (out / "report.md").read_text()
 
 
+def test_quiet_says_only_what_failed(tmp_path, monkeypatch, capsys):
+    """``--quiet``: no plan line, progress bar or per-run line on stderr; a failed run is still
+    said, with its error, after the runs."""
+
+    def broken(opts):
+        raise RigProcessError(f"controller exited with status 3:\nboom in {opts.law}")
+
+    monkeypatch.setattr(ex, "run_rig", broken)
+    argv = ["experiment", "fig3", "--duration", "1", "--out", str(tmp_path / "exp")]
+    assert main([*argv, "--fresh-processes", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "runs (" not in err and "FAILED" not in err and "writing" not in err, err
+    assert "hil experiment: run pbc (PBC) failed: RigProcessError" in err
+
+
 def test_jobs_are_refused_where_runs_would_share_a_bus_or_the_cpu(tmp_path):
     from rt_controller.errors import ControllerConfigError
 
