@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             return exc.exit_code
         except RigHung as exc:
             summary = dict(exc.summary or {})
-            summary["problems"] = [*summary.get("problems", []), f"hung: {exc}"]
+            summary["problems"] = [f"hung: {exc}", *summary.get("problems", [])]
     _print(summary, args.json)
     if summary.get("monitor_error"):
         print(f"hil up: warning: monitor {summary['monitor_error']}", file=sys.stderr)

@@ -250,3 +250,20 @@ def summary_after(
         out["warnings"] = run_warnings(out)
     out.setdefault("warnings", [])
     return out
+
+
+def refused_to_start(end: ProcessEnd, summary: dict[str, Any]) -> bool:
+    """Whether ``end`` is a process that refused to start: exit status 2 (the ``hil`` commands'
+    bad-usage status: a CAN interface that does not exist, no vision process on the zenoh
+    endpoint, ...) before the controller ran a tick. That is reported as an error (exit 2), not
+    as a run that ended short."""
+    return end.returncode == 2 and not summary.get("ticks")
+
+
+def stopped_from_outside(summary: dict[str, Any]) -> str:
+    """The problem of a run whose controller was stopped by a signal the supervisor did not
+    send (``kill``, a shutdown): a stop the supervisor did not ask for is an end like a
+    death, not the run's duration."""
+    ticks, planned = summary.get("ticks"), summary.get("planned_ticks")
+    when = f"after {ticks} of {planned} ticks" if planned else f"after {ticks} ticks"
+    return f"the controller was stopped by a signal the rig did not send, {when}"

@@ -33,7 +33,14 @@ from typing import IO, Any
 from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.errors import ControllerError
-from rt_controller.rig.ending import ProcessEnd, dsp_report, log_path_said, summary_after
+from rt_controller.rig.ending import (
+    ProcessEnd,
+    dsp_report,
+    log_path_said,
+    refused_to_start,
+    stopped_from_outside,
+    summary_after,
+)
 from rt_controller.rig.failures import (
     RigCancelled,
     RigHung,
@@ -46,6 +53,7 @@ from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, private_defa
 from rt_controller.rig.supervise import (
     PARENT_ENV,
     RigInterrupted,
+    group_running,
     kill_with_stacks,
     signals_deferred,
 )
@@ -79,26 +87,6 @@ class Child:
         self.stdout.flush()
         self.stdout.seek(0)
         return self.stdout.read().decode(errors="replace")
-
-
-def group_running(pgid: int) -> bool:
-    """Whether a process of group ``pgid`` still runs (zombies, which only wait to be reaped,
-    do not count). Read from ``/proc``; elsewhere: whether the group can be signalled."""
-    proc = Path("/proc")
-    if not (proc / "self" / "stat").exists():
-        try:
-            os.killpg(pgid, 0)
-        except (ProcessLookupError, PermissionError):
-            return False
-        return True
-    for stat in proc.glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue  # it ended while we looked
-        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
-            return True
-    return False
 
 
 def _cli(*args: str) -> list[str]:
@@ -213,19 +201,64 @@ class Rig:
         """Stop the rig after ``end`` and the run's summary all the same
         (:func:`~rt_controller.rig.ending.summary_after`): the controller's, if it is still
         there to print it (it is stopped first), else its counters from the log; the DSP's
-        watchdog account, waited for when the controller died; what the log holds."""
-        if end.name == "controller":
-            self._await_trip()
+        watchdog account, waited for when the controller died; what the log holds. A stop
+        signal meanwhile waits until the summary is made (:class:`RigInterrupted` carries it)."""
+        out = None
+        try:
+            with signals_deferred():
+                if end.name == "controller":
+                    self._await_trip()
+                out = self._summary_after(end, self.stop())
+        except RigInterrupted as exc:
+            exc.summary = out
+            raise
+        return out
+
+    def finish_hung(self, at_ns: int) -> dict[str, Any]:
+        """After the wall-clock budget ran out (at ``at_ns``): stop the rig (a controller that
+        does not stop is killed, its stacks in the problem) and the run's summary from what
+        is left, as after a death."""
+        codes = self.stop()
+        ctl = self.child("controller")
+        end = ProcessEnd("controller", codes.get("controller") or 0, at_ns)
+        out = self._summary_after(end, codes)
+        if ctl is not None and end.returncode == -signal.SIGKILL:
+            out["problems"].append(with_tail(f"controller {end.how} when stopped", ctl.tail(40)))
+        return out
+
+    def finish_interrupted(self, why: str) -> dict[str, Any]:
+        """After a stop signal to the supervisor (``why``): stop the rig; the controller's
+        summary of the run so far, else (it was still starting) what is left, as after a
+        death."""
+        at_ns = time.monotonic_ns()
         codes = self.stop()
         lines = self.summaries()
-        emulator, controller = self.child("emulator"), self.child("controller")
-        dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
-        log = self.opts.log or (log_path_said(controller.tail(400)) if controller else None)
-        o = self.opts
+        if lines:
+            return {**lines[-1], "exit_codes": codes}
+        if self.child("controller") is None:  # stopped while the rig was being started
+            o = self.opts
+            base = self.what_runs(o.config, o.duration_s, o.law)
+            return {
+                **base,
+                "end_reason": f"{why} before the controller started",
+                "exit_codes": codes,
+            }
+        return self._summary_after(
+            ProcessEnd("controller", codes.get("controller") or 0, at_ns), codes
+        )
+
+    def _summary_after(self, end: ProcessEnd, codes: dict[str, int | None]) -> dict[str, Any]:
+        """The summary after ``end`` on the stopped rig (its exit ``codes``)."""
+        lines, ctl, o = self.summaries(), self.child("controller"), self.opts
+        log = o.log or (log_path_said(ctl.tail(400)) if ctl else None)
         base = self.what_runs(o.config, o.duration_s, o.law)
-        out = summary_after(end, lines[-1] if lines else None, log, dsp, base)
-        out["exit_codes"] = codes
-        dead = self.child(end.name)
+        return {**self._after(end, lines[-1] if lines else None, log, base), "exit_codes": codes}
+
+    def _after(self, end: ProcessEnd, partial: dict | None, log: Path | None, base: dict) -> dict:
+        """:func:`summary_after` with the DSP's report and the dead process's last words."""
+        emulator, dead = self.child("emulator"), self.child(end.name)
+        dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
+        out = summary_after(end, partial, log, dsp, base)
         out["stderr_tail"] = dead.tail(5) if dead else ""
         return out
 
@@ -252,14 +285,8 @@ class Rig:
         assert self.opts.plan is not None
         run = load_plan(self.opts.plan)[index]
         lines = self.summaries()
-        emulator = self.child("emulator")
-        dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
         base = {"run": run.name, **self.what_runs(run.config, run.duration_s, run.law)}
-        partial = lines[index] if len(lines) > index else None
-        out = summary_after(end, partial, run.log, dsp, base)
-        dead = self.child(end.name)
-        out["stderr_tail"] = dead.tail(5) if dead else ""
-        return out
+        return self._after(end, lines[index] if len(lines) > index else None, run.log, base)
 
     def _await_trip(self) -> None:
         """After the controller died: wait (at most its watchdog time and
@@ -279,9 +306,9 @@ class Rig:
 
     def summaries(self) -> list[dict[str, Any]]:
         """Every JSON summary the controller printed so far (one per run of a plan)."""
-        ctl = next(c for c in self.children if c.name == "controller")
-        out = []
-        for line in ctl.output().splitlines():
+        ctl = self.child("controller")
+        out: list[dict[str, Any]] = []
+        for line in ctl.output().splitlines() if ctl else ():
             if line.startswith("{"):
                 with contextlib.suppress(json.JSONDecodeError):  # a line cut by a kill
                     out.append(json.loads(line))
@@ -353,14 +380,6 @@ class Rig:
         self.close()
 
 
-def refused_to_start(end: ProcessEnd, summary: dict[str, Any]) -> bool:
-    """Whether ``end`` is a process that refused to start: exit status 2 (the ``hil`` commands'
-    bad-usage status: a CAN interface that does not exist, no vision process on the zenoh
-    endpoint, ...) before the controller ran a tick. That is reported as an error (exit 2), not
-    as a run that ended short."""
-    return end.returncode == 2 and not summary.get("ticks")
-
-
 def run_rig_plan(
     opts: RigOptions, runs: int
 ) -> tuple[list[dict[str, Any]], RigProcessError | None]:
@@ -408,6 +427,8 @@ def run_rig_plan(
             # a cut run's summary has the DSP's report already; skipped periods are this run's
             summary["dsp"] = {**summary.get("dsp", {}), "skipped_periods": skipped}
             had = summary.get("problems", [])
+            if summary.get("end_reason") == "stopped":  # the plan's runs end on their own
+                had = [*had, stopped_from_outside(summary)]
             summary["problems"] = [*had, *(p for p in run_problems(summary) if p not in had)]
         return summaries, error
 
@@ -418,8 +439,8 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
     Call it inside :func:`supervised` to turn SIGTERM/SIGINT/SIGHUP into an orderly stop.
     """
     with Rig(opts) as rig:
-        rig.start()
         try:
+            rig.start()
             summary = rig.wait_controller()
             rig._check_alive(but="controller")  # one that died as the controller's run ended
         except RigProcessDied as exc:
@@ -427,11 +448,14 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
             if refused_to_start(exc.end, summary):
                 raise  # bad usage: the process's one line and exit 2, as for any command
             return summary
-        except (RigInterrupted, RigHung) as exc:
-            rig.stop()  # the controller first: it turns torque off and prints its summary
-            lines = rig.summaries()
-            exc.summary = lines[-1] if lines else None
+        except RigHung as exc:
+            exc.summary = rig.finish_hung(time.monotonic_ns())
             raise
+        except RigInterrupted as exc:  # the controller is stopped first and says its summary
+            exc.summary = rig.finish_interrupted(str(exc))
+            raise
+        if summary.get("end_reason") == "stopped":  # by a stop signal this rig did not send
+            summary["problems"] = [*summary.get("problems", []), stopped_from_outside(summary)]
         try:
             codes = rig.stop()
         except RigInterrupted as exc:  # a signal deferred while the rig stopped

@@ -4,7 +4,8 @@
   (``PR_SET_PDEATHSIG``), so even a SIGKILLed ``hil up`` leaves nothing running;
 * :func:`supervised`: SIGTERM, SIGINT and SIGHUP to the supervisor become
   :class:`RigInterrupted`, so it stops its children in order before it exits;
-* :func:`signals_deferred`: those signals wait while the children are being stopped.
+* :func:`signals_deferred`: those signals wait while the children are being stopped;
+* :func:`group_running`: whether a process of the children's group still runs.
 
 Light on purpose (no numpy, python-can or zenoh): :mod:`rt_controller.cli` calls
 :func:`follow_parent` before it builds its parser.
@@ -20,6 +21,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 from hal.signals import STACKS_SIGNAL
 from rt_controller.errors import ControllerError
@@ -73,6 +75,26 @@ def kill_with_stacks(proc: subprocess.Popen, dump_wait_s: float = STACKS_WAIT_S)
     if proc.poll() is None:
         proc.kill()
     proc.wait()
+
+
+def group_running(pgid: int) -> bool:
+    """Whether a process of group ``pgid`` still runs (zombies, which only wait to be reaped,
+    do not count). Read from ``/proc``; elsewhere: whether the group can be signalled."""
+    proc = Path("/proc")
+    if not (proc / "self" / "stat").exists():
+        try:
+            os.killpg(pgid, 0)
+        except (ProcessLookupError, PermissionError):
+            return False
+        return True
+    for stat in proc.glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue  # it ended while we looked
+        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+            return True
+    return False
 
 
 @contextlib.contextmanager

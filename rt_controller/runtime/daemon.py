@@ -141,6 +141,8 @@ class ControllerDaemon:
         self.counters = RunCounters(
             outages=OutageTracker.from_config(cfg.controller), period_s=1 / cfg.rates.control_hz
         )
+        d = options.duration_s
+        self.counters.planned_ticks = math.floor(d * cfg.rates.control_hz + 1e-9) if d > 0 else None
         self.params = ParameterService(cfg)
         """Online parameter changes: any thread submits, the loop takes them at a tick
         boundary (:mod:`rt_controller.calibration.parameters`)."""
@@ -197,6 +199,7 @@ class ControllerDaemon:
                 self._run_with(can, session, rec)
         except HalStopped:  # told to stop while waiting for zenoh
             self.counters.stopped_before_arming = True
+            self.counters.end_reason = "stopped"
         finally:
             rec.close()
         return self._summary(rec)
@@ -229,6 +232,7 @@ class ControllerDaemon:
         hw.configure(self.stop)
         if self.stop.is_set():
             self.counters.stopped_before_arming = True
+            self.counters.end_reason = "stopped"
             return  # told to stop during start-up: the DSP is never armed
         if self.opts.realtime_settings:
             # After warm-up and the first inputs: the pages locked are those the tick, the
@@ -236,13 +240,10 @@ class ControllerDaemon:
             rt = apply_realtime(cfg.controller.rt_priority, cfg.controller.cpu)
             for w in rt.warnings:
                 print(f"hil controller: warning: {w}", file=sys.stderr)
-        d = self.opts.duration_s
-        max_ticks = math.floor(d * cfg.rates.control_hz + 1e-9) if d > 0 else None
-        self.counters.planned_ticks = max_ticks
         before = None if self.lockstep else cpu_ticks()
         try:
             with GcPaused():
-                loop.run(max_ticks)
+                loop.run(self.counters.planned_ticks)
         finally:
             self.counters.host_steal_percent = steal_percent(before, cpu_ticks())
             self.counters.spin_s = self.clock.spun_ns / 1e9

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -25,24 +24,11 @@ from rt_controller.rig.failures import RigProcessDied
 from rt_controller.rig.options import RigOptions
 from rt_controller.rig.processes import run_rig_plan
 from tests.support import cycles_logged, start_hil_up
-from tests.support.proc import child_running, processes_mentioning, reaped
+from tests.support.proc import WAIT_S, child_running, processes_mentioning, reaped, wait_for
 
 pytestmark = pytest.mark.integration
 
-WAIT_S = 120.0
-"""Generous bound for a step that normally takes seconds: a hang fails, slowness does not."""
 TICKS_BEFORE_KILL = 50
-
-
-def _wait(cond, what: str, proc: subprocess.Popen) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not cond():
-        if proc.poll() is not None:
-            out, err = proc.communicate()
-            pytest.fail(f"hil up exited ({proc.returncode}) before {what}:\n{out}\n{err}")
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def kill_mid_run(tmp_path: Path, victim: str, *extra: str) -> tuple[int, dict, str, Path, int]:
@@ -50,7 +36,7 @@ def kill_mid_run(tmp_path: Path, victim: str, *extra: str) -> tuple[int, dict, s
     status, the summary printed, stderr, the log path and the ticks logged before the kill."""
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
     with reaped(start_hil_up(ep, log, "--duration", "600", "--json", *extra)) as proc:
-        _wait(lambda: cycles_logged(log) >= TICKS_BEFORE_KILL, "the first ticks", proc)
+        wait_for(lambda: cycles_logged(log) >= TICKS_BEFORE_KILL, "the first ticks", proc)
         seen = cycles_logged(log)
         pid = child_running(proc.pid, victim)
         assert pid is not None, f"no {victim} child"

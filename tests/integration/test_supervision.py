@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -21,24 +20,11 @@ from hal.zenoh_session import free_loopback_port
 from rt_controller.logtools.reader import read_log
 from rt_controller.logtools.republish import can_message
 from tests.support import cycles_logged, start_hil_up
-from tests.support.proc import processes_mentioning
+from tests.support.proc import WAIT_S, processes_mentioning, wait_for
 
 pytestmark = pytest.mark.integration
 
 REPO = Path(__file__).resolve().parents[2]
-WAIT_S = 120.0
-"""Generous bound for a step that normally takes a second: a hang fails, slowness does not."""
-
-
-def _wait(cond, what: str, proc: subprocess.Popen | None = None) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not cond():
-        if proc is not None and proc.poll() is not None:
-            _, err = proc.communicate()
-            pytest.fail(f"hil up exited ({proc.returncode}) before {what}:\n{err}")
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def _children(ep: str) -> list[str]:
@@ -52,7 +38,7 @@ def _finish(proc: subprocess.Popen, ep: str) -> tuple[int, str]:
         if proc.poll() is None:  # pragma: no cover - only on a hang
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
-        _wait(lambda: not processes_mentioning(ep), "every rig process to end")
+        wait_for(lambda: not processes_mentioning(ep), "every rig process to end")
     return proc.returncode, err
 
 
@@ -71,8 +57,8 @@ def last_torque(can_tx: list[dict]) -> tuple[float, float]:
 def test_a_signal_to_hil_up_stops_the_rig_torque_first(tmp_path, sig):
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
     proc = start_hil_up(ep, log, "--duration", "600", "--lockstep")
-    _wait(lambda: len(_children(ep)) == 3, "three children", proc)
-    _wait(lambda: cycles_logged(log) >= 20, "the controller's first ticks", proc)
+    wait_for(lambda: len(_children(ep)) == 3, "three children", proc)
+    wait_for(lambda: cycles_logged(log) >= 20, "the controller's first ticks", proc)
     proc.send_signal(sig)
     rc, err = _finish(proc, ep)
     assert rc == 128 + sig, err
@@ -89,7 +75,7 @@ def test_sigterm_during_start_up_stops_cleanly(tmp_path):
     misleading "no hub" error from a child told to stop while it waited."""
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
     proc = start_hil_up(ep, log, "--duration", "600")
-    _wait(lambda: len(_children(ep)) == 3, "three children", proc)
+    wait_for(lambda: len(_children(ep)) == 3, "three children", proc)
     proc.send_signal(signal.SIGTERM)
     rc, err = _finish(proc, ep)
     assert rc == 143, err
@@ -102,9 +88,9 @@ def test_a_killed_hil_up_leaves_nothing_running(tmp_path):
     (parent-death signal), stop on their own and the controller still finishes its log."""
     ep, log = f"tcp/127.0.0.1:{free_loopback_port()}", tmp_path / "run.mcap"
     proc = start_hil_up(ep, log, "--duration", "600", "--lockstep")
-    _wait(lambda: len(_children(ep)) == 3, "three children", proc)
-    _wait(lambda: cycles_logged(log) >= 20, "the controller's first ticks", proc)
+    wait_for(lambda: len(_children(ep)) == 3, "three children", proc)
+    wait_for(lambda: cycles_logged(log) >= 20, "the controller's first ticks", proc)
     proc.kill()  # only hil up itself, not its process group
     proc.communicate()
-    _wait(lambda: not processes_mentioning(ep), "the orphaned children to stop")
+    wait_for(lambda: not processes_mentioning(ep), "the orphaned children to stop")
     assert not read_log(log).truncated

@@ -7,8 +7,29 @@ import contextlib
 import os
 import signal
 import subprocess
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+
+import pytest
+
+WAIT_S = 120.0
+"""Generous bound for a step that normally takes seconds: a hang fails, slowness does not."""
+
+
+def wait_for(
+    cond: Callable[[], bool], what: str, proc: subprocess.Popen | None = None, poll_s: float = 0.05
+) -> None:
+    """Poll ``cond`` until true; fail the test when ``proc`` (``hil up``) exits first, with its
+    output, or after :data:`WAIT_S`."""
+    deadline = time.monotonic() + WAIT_S
+    while not cond():
+        if proc is not None and proc.poll() is not None:
+            out, err = proc.communicate()
+            pytest.fail(f"hil up exited ({proc.returncode}) before {what}:\n{out}\n{err}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(poll_s)
 
 
 def processes_mentioning(token: str) -> list[str]:
