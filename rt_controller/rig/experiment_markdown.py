@@ -18,7 +18,8 @@ def noise_words(noise_px: float, model: str) -> str:
 
 # ---------------------------------------------------------------------------------- report
 def _j(x: float | None, digits: int = 3) -> str:
-    return "failed" if x is None else f"{x:.{digits}f}"
+    """J, or "—" for a run without one (failed, or not run: its status says which)."""
+    return "—" if x is None else f"{x:.{digits}f}"
 
 
 def _scenario_text(sc: dict[str, Any]) -> str:

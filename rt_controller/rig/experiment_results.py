@@ -84,8 +84,9 @@ def paper_table1_markdown() -> str:
     return "\n".join(lines)
 
 
-def run_record(run: RunResult, out: Path) -> dict[str, Any]:
-    """JSON-ready description of one run (paths relative to the output folder)."""
+def run_record(run: RunResult, out: Path, duration_s: float) -> dict[str, Any]:
+    """JSON-ready description of one run of ``duration_s`` (paths relative to the output
+    folder)."""
     s = run.summary
     return {
         "name": run.spec.name,
@@ -109,7 +110,7 @@ def run_record(run: RunResult, out: Path) -> dict[str, Any]:
         "can": run.can,
         "log": _rel(run.log, out),
         "config": _rel(run.config_file, out),
-        "command": rerun_command(run, out),
+        "command": rerun_command(run, out, duration_s),
     }
 
 
@@ -120,17 +121,16 @@ def _rel(path: Path, out: Path) -> str:
         return str(path)
 
 
-def rerun_command(run: RunResult, out: Path) -> str:
-    """The ``hil up`` command (run inside the output folder) that repeats this run, its code
-    compiled for the CPU target the run's log records (``hil --target-of``) where the host can
-    run it, so a lockstep rerun on another CPU gives the same J."""
+def rerun_command(run: RunResult, out: Path, duration_s: float) -> str:
+    """The ``hil up`` command (run inside the output folder) that repeats this run of
+    ``duration_s`` (also one cut short or never started), its code compiled for the CPU target
+    the run's log records (``hil --target-of``) where the host can run it, so a lockstep rerun
+    on another CPU gives the same J."""
     clock = "" if run.config.controller.clock == "realtime" else " --lockstep"
     can = f" --can {run.can}" if run.can else ""
-    duration = run.summary.get("ticks")
-    dur = f"{duration / run.config.rates.control_hz:g}" if duration else "S"
     log = _rel(run.log, out)
     return (
-        f"hil --target-of {log} up{clock}{can} --law {run.spec.law} --duration {dur} "
+        f"hil --target-of {log} up{clock}{can} --law {run.spec.law} --duration {duration_s:g} "
         f"--config {_rel(run.config_file, out)} --log {log}"
     )
 
@@ -160,7 +160,7 @@ def build_results(
         "rate_hz": base.rates.control_hz,
         "scenario": base.to_dict()["scenario"],
         "steps": {f"{fmt_t(h)}": None for h in HORIZONS_S},
-        "runs": [run_record(r, out) for r in runs.values()],
+        "runs": [run_record(r, out, settings.duration_s) for r in runs.values()],
         "failures": [
             {"run": r.spec.name, "label": r.spec.label, "error": r.error}
             for r in runs.values()

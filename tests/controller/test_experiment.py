@@ -150,7 +150,10 @@ def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monke
     res = json.loads((out / "results.json").read_text())
     assert [f["run"] for f in res["failures"]] == ["rhc-T0.02", "ioc", "pbc"]
     assert res["fig3"]["J"] == {"rhc": None, "ioc": None, "pbc": None}
-    assert "## Failures" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "## Failures" in report and "| inverse optimal (IOC) | — |" in report
+    # each run again, with its planned duration (a run without ticks has no other)
+    assert all(" --duration 1 " in r["command"] for r in res["runs"]), res["runs"]
 
 
 def test_quiet_says_only_what_failed(tmp_path, monkeypatch, capsys):
