@@ -96,6 +96,8 @@ class ControllerConfig:
     cpu: int = -1
     """CPU to pin the loop to; -1 = leave affinity alone."""
     log_dir: str = "logs"
+    """Where a run without ``--log`` logs: ``run-YYYYmmdd-HHMMSS-LAW.mcap`` (``-2``, ``-3``, ...
+    when a run of the same second has the name)."""
     max_clock_skew_s: float = 0.005
     """A feature message stamped further than this in the future (receive clock) is rejected
     (``future_stamp``): its age would come out negative and defeat the stale check."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import sys
 import threading
 import time
@@ -122,6 +123,20 @@ def build_hardware(
     return DspHardware(ctx, can, link, lockstep=lockstep, record_raw=record_raw)
 
 
+def claim_log(folder: Path, stem: str) -> Path:
+    """A new log ``folder/stem.mcap`` (``stem-2.mcap``, ... when taken), created empty at once
+    (``O_EXCL``): two controllers started in the same second never write one file."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path, n = folder / f"{stem}.mcap", 1
+    while True:
+        try:
+            os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+            return path
+        except FileExistsError:
+            n += 1
+            path = folder / f"{stem}-{n}.mcap"
+
+
 class ControllerDaemon:
     """One run: the law, the recorder, the links, the loop; :meth:`run` gives the summary."""
 
@@ -146,9 +161,8 @@ class ControllerDaemon:
         self.params = ParameterService(cfg)
         """Online parameter changes: any thread submits, the loop takes them at a tick
         boundary (:mod:`rt_controller.calibration.parameters`)."""
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        default_log = Path(cfg.controller.log_dir) / f"run-{stamp}-{cfg.controller.law}.mcap"
-        self.log_path = options.log_path or default_log
+        stem = f"run-{time.strftime('%Y%m%d-%H%M%S')}-{cfg.controller.law}"
+        self.log_path = options.log_path or claim_log(Path(cfg.controller.log_dir), stem)
         self._final_diagnostics: dict[str, Any] | None = None
         self.images_owed: tuple[int, ...] = ()
         """After :meth:`run`: the camera images announced that did not come (the next run of a
@@ -271,4 +285,11 @@ class ControllerDaemon:
         return out
 
 
-__all__ = ["ControllerDaemon", "DaemonOptions", "build_hardware", "open_links", "run_problems"]
+__all__ = [
+    "ControllerDaemon",
+    "DaemonOptions",
+    "build_hardware",
+    "claim_log",
+    "open_links",
+    "run_problems",
+]
