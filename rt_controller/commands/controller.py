@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = configure_key(
         with_command_line(config_from_args(args), args), args.key_file, "hil controller"
     )
-    if args.log:
+    if args.log is not None:
         output_file(args.log, "--log")  # before the daemon opens its links
     opts = daemon_options(args)
     with stop_on_signals() as stop:

@@ -80,13 +80,18 @@ def output_dir(path: str | Path, option: str) -> Path:
 
 
 def output_file(path: str | Path, option: str) -> Path:
-    """The file ``path`` given with ``option`` (e.g. ``--out``): not a folder, in a folder that
-    :func:`output_dir` accepts (created if missing). The file itself is not created."""
+    """The file ``path`` given with ``option`` (e.g. ``--out``): not empty, not a folder, a
+    device or a FIFO, in a folder that :func:`output_dir` accepts (created if missing). The
+    file itself is not created."""
     from rt_controller.errors import OutputPathError
 
+    if not str(path):
+        raise OutputPathError(f"{option}: the path is empty")
     out = Path(path)
     if out.is_dir():
         raise OutputPathError(f"{option} {path}: is a directory, not a file")
+    if out.exists() and not out.is_file():  # a device, a FIFO: it would swallow the file
+        raise OutputPathError(f"{option} {path}: is not a regular file")
     parent = out.parent
     if parent.exists() and not parent.is_dir():
         raise OutputPathError(f"{option} {path}: {parent} is not a directory")

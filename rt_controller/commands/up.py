@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hal.arguments import duration
+from hal.arguments import bounded_int, duration
 from rt_controller.commands.common import (
     add_law_options,
     add_profile_option,
@@ -68,7 +68,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also start `hil monitor`: a Foxglove WebSocket live view (ws://127.0.0.1:8765)",
     )
-    p.add_argument("--monitor-port", type=int, metavar="PORT", help="live view port (8765)")
+    p.add_argument(
+        "--monitor-port",
+        type=bounded_int(0, 65535, what="port"),
+        metavar="PORT",
+        help="live view port (8765; 0 = any)",
+    )
     p.add_argument(
         "--allow-tuning",
         action="store_true",
@@ -88,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.rig.processes import run_rig
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
-    if args.log:
+    if args.log is not None:
         output_file(args.log, "--log")
     config = _effective_config(args)
     if args.monitor or args.monitor_port is not None:

@@ -90,6 +90,28 @@ def test_controller_log_unusable_is_refused_before_the_daemon(tmp_path, capsys):
     assert "--log" in line and "/proc/hil-nope" in line
 
 
+@pytest.mark.parametrize("command", ["controller", "up"])
+@pytest.mark.parametrize("what", ["empty", "fifo"])
+def test_a_log_path_that_cannot_hold_a_log_is_refused(tmp_path, capsys, command, what):
+    """An empty ``--log`` (it fell back to the default name) and one that exists as something
+    other than a regular file (a FIFO here, a device such as /dev/null alike: the log would be
+    thrown away by a run called clean) are refused before anything starts."""
+    target = ""
+    if what == "fifo":
+        target = str(tmp_path / "pipe.mcap")
+        os.mkfifo(target)
+    assert main([command, "--log", target, "--duration", "1"]) == 2
+    line = _one_error_line(capsys.readouterr().err, f"hil {command}")
+    assert ("the path is empty" if what == "empty" else "is not a regular file") in line, line
+
+
+def test_a_monitor_port_out_of_range_is_refused(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["up", "--monitor-port", "99999"])
+    assert exit_info.value.code == 2
+    assert "port must be in [0, 65535], got 99999" in capsys.readouterr().err
+
+
 def test_bench_loop_keep_unusable_is_refused_before_measuring(tmp_path):
     target = str(_a_file(tmp_path))
     done = subprocess.run(
