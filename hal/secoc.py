@@ -55,6 +55,7 @@ import os
 import secrets
 import stat
 import struct
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -93,20 +94,37 @@ class HalKeyError(HalConfigError):
 
 def write_key_file(path: str | Path, *, overwrite: bool = False) -> Path:
     """Write a fresh random rig key to ``path`` with mode 0600 (created that way, never
-    widened first); refuses to replace an existing file unless ``overwrite``."""
+    widened first); refuses to replace an existing file unless ``overwrite``, and anything but
+    a regular file always. A replaced key is swapped in whole (a full disk leaves the old one)."""
+    if not str(path):
+        raise HalKeyError("rig key: the path is empty")
     path = Path(path)
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
-    try:
-        fd = os.open(path, flags | getattr(os, "O_NOFOLLOW", 0), 0o600)
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise HalKeyError(f"rig key {path}: not a regular file; not replaced")
+    if path.exists() and not overwrite:
+        raise HalKeyError(f"rig key {path}: already exists (use --force to replace it)")
+    try:  # created 0600 (O_EXCL), never widened first; a replacement beside it, swapped in
+        if overwrite:
+            fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+            target = Path(name)
+        else:
+            fd, target = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), path
     except FileExistsError:
         raise HalKeyError(f"rig key {path}: already exists (use --force to replace it)") from None
     except OSError as exc:
         raise HalKeyError(f"rig key {path}: cannot create: {exc.strerror}") from exc
     try:
-        os.fchmod(fd, 0o600)
-        os.write(fd, (secrets.token_bytes(KEY_BYTES).hex() + "\n").encode())
-    finally:
-        os.close(fd)
+        try:
+            os.fchmod(fd, 0o600)
+            os.write(fd, (secrets.token_bytes(KEY_BYTES).hex() + "\n").encode())
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        if overwrite:
+            os.replace(target, path)
+    except OSError as exc:
+        target.unlink(missing_ok=True)
+        raise HalKeyError(f"rig key {path}: cannot write: {exc.strerror}") from exc
     return path
 
 

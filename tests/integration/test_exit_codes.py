@@ -54,24 +54,6 @@ def _finish(proc: subprocess.Popen, ep: str) -> tuple[int, dict, str]:
     return proc.returncode, json.loads(lines[-1]) if lines else {}, err
 
 
-@pytest.fixture
-def tiny_tmpfs(tmp_path):
-    """A 192 KiB tmpfs: a 10 s run's log does not fit."""
-    mnt = tmp_path / "tiny"
-    mnt.mkdir()
-    done = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=192k", "tmpfs", str(mnt)],
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip()}): disk-full test skipped")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
-
-
 @pytest.mark.integration
 def test_disk_full_for_the_log_fails_the_run(tiny_tmpfs):
     ep = f"tcp/127.0.0.1:{free_loopback_port()}"

@@ -1,0 +1,46 @@
+"""``hil keygen`` writes a key only where a key file can be: never into a device, a FIFO or a
+folder, and a replaced key (``--force``) is swapped in whole, so a full disk leaves the old
+key as it was."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from hal.secoc import HalKeyError, load_key_file, write_key_file
+
+
+@pytest.mark.parametrize("what", ["fifo", "folder"])
+def test_a_target_that_is_not_a_regular_file_is_left_alone(tmp_path, what):
+    target = tmp_path / "rig.key"
+    if what == "fifo":
+        os.mkfifo(target)
+    else:
+        target.mkdir()
+    for overwrite in (False, True):
+        with pytest.raises(HalKeyError, match="not a regular file; not replaced"):
+            write_key_file(target, overwrite=overwrite)
+    assert target.is_fifo() if what == "fifo" else target.is_dir()
+
+
+def test_an_empty_path_is_refused():
+    with pytest.raises(HalKeyError, match="the path is empty"):
+        write_key_file("")
+
+
+def test_a_full_disk_keeps_the_key_being_replaced(tiny_tmpfs):
+    key = write_key_file(tiny_tmpfs / "rig.key")
+    before = load_key_file(key)
+    fd = os.open(tiny_tmpfs / "filler", os.O_WRONLY | os.O_CREAT)
+    try:  # fill the file system to the last block
+        while os.write(fd, b"\0" * 4096):
+            pass
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+    with pytest.raises(HalKeyError, match="No space left on device"):
+        write_key_file(key, overwrite=True)
+    assert load_key_file(key) == before
+    assert sorted(p.name for p in tiny_tmpfs.iterdir()) == ["filler", "rig.key"]
