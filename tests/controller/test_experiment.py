@@ -130,6 +130,10 @@ def test_settings_are_validated(tmp_path):
         main(["experiment", "table1", "--reps", "0", "--out", str(tmp_path / "x")])
     assert exc.value.code == 2
     assert not (tmp_path / "x").exists()
+    # a CAN bus no process could open: refused before any run, no output folder
+    argv = ["experiment", "fig3", "--can", "bogus:x", "--duration", "0.2"]
+    assert main([*argv, "--out", str(tmp_path / "y")]) == 2
+    assert not (tmp_path / "y").exists()
 
 
 def test_failed_runs_are_reported_and_the_exit_status_is_nonzero(tmp_path, monkeypatch, capsys):
