@@ -5,6 +5,7 @@ clean for a stream of them (as for the features themselves)."""
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 from hal.config import RigConfig
@@ -189,23 +190,40 @@ def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None
     for k in range(65):  # logged: the frames of 0, 0.1, ... 1.2 s (every fifth)
         on_features(_features(key, k))
     assert link.counts()["images_missing"] == 13
-    stop = threading.Event()
+    quiet_s, stop = 1.0, threading.Event()
+    spans: list[tuple[float, float]] = []  # each image's (start, end) of delivery, monotonic
 
     def send() -> None:
         for k in range(0, 60, 5):  # one image every 0.1 s; the frame of 1.2 s never comes
             if stop.wait(0.1):
                 return
+            start = time.monotonic()
             on_image(_frame_image(key, k))
+            spans.append((start, time.monotonic()))
 
     sender = threading.Thread(target=send)
     sender.start()
     try:
-        assert not link.settle_images(1.0)
-        assert len(rec.images) == 12  # all that came, not only those of its first second
-    finally:
+        began = time.monotonic()
+        settled = link.settle_images(quiet_s)
+        logged_by_then = len(rec.images)  # at least those it saw (logged before they are seen)
+    except BaseException:
         stop.set()
+        raise
+    finally:
         sender.join()
-    assert link.counts()["images_missing"] == 1
+    assert not settled  # the last image never comes
+    assert len(spans) == len(rec.images) == 12 and link.counts()["images_missing"] == 1
+    # How many it had to wait for follows from when they came, not from how fast the host was:
+    # it waits quiet_s from (at the earliest) the start of the delivery of the last image it saw,
+    # so every image whose delivery ended within quiet_s of the start of the one before (of the
+    # call, for the first) was seen. Half of quiet_s is the margin for the clocks' grain.
+    chain, before = 0, began
+    for start, end in spans:
+        if end - before >= quiet_s / 2:
+            break
+        chain, before = chain + 1, start
+    assert logged_by_then >= chain, (chain, spans, began)  # all that came, not only the first
     link.detach()
 
 

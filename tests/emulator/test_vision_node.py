@@ -328,7 +328,6 @@ def test_end_to_end_realtime_decimation(cfg, endpoint):
             time.sleep(0.001)
             if time.monotonic() - t0 > HANG_S:
                 pytest.fail(f"no realtime frames within {HANG_S:g} s")
-        elapsed = time.monotonic() - t0
     stats: VisionStats = out["stats"]
     # Bounds that hold under any scheduling: at most one frame per 50 ms slot of the monotonic
     # frame clock (which starts at the first pose, after t0) and never more frames than poses.
@@ -336,7 +335,7 @@ def test_end_to_end_realtime_decimation(cfg, endpoint):
     # itself is checked on a fake clock (test_realtime_decimates_to_the_frame_rate).
     slots = 20.0 * (time.monotonic() - t0) + 2  # 50 ms frame slots that have begun so far
     assert 5 <= stats.frames <= min(stats.poses, slots)
-    assert elapsed > 0 and dec.counts.rejected == 0
+    assert dec.counts.rejected == 0
     assert dec.latest is not None and not dec.latest.lockstep
     assert np.allclose(dec.latest.f, (-120.0, -160.0))
 

@@ -85,8 +85,9 @@ def test_missing_file(tmp_path):
 
 
 def test_error_is_also_a_value_error(tmp_path):
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"robot\.m1") as err:
         load_config(write(tmp_path, "[robot]\nm1 = -1\n"))
+    assert isinstance(err.value, HalConfigError)  # the config's own error, caught as ValueError
 
 
 def test_overrides_are_validated(cfg: RigConfig):

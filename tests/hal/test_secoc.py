@@ -62,11 +62,23 @@ def test_missing_unreadable_or_malformed_keys_are_one_line(tmp_path: Path) -> No
         load_key_file(bad)
     with pytest.raises(HalKeyError, match="not a regular file"):
         load_key_file(tmp_path)
-    if os.geteuid() != 0:  # root reads anything
+    if os.geteuid() != 0:  # root reads anything: the symlink below is the case root meets
         locked = write_key_file(tmp_path / "locked.key")
         locked.chmod(0o000)
         with pytest.raises(HalKeyError, match="cannot read"):
             load_key_file(locked)
+
+
+def test_a_symlinked_key_cannot_be_read_even_by_root(tmp_path: Path) -> None:
+    """The key is opened without following a symlink (another user's link could point it at
+    any file): the open fails (ELOOP) for every user, root too, and says so in one line."""
+    key = write_key_file(tmp_path / "real.key")
+    load_key_file(key)  # the file itself is a good key
+    link = tmp_path / "link.key"
+    link.symlink_to(key)
+    with pytest.raises(HalKeyError, match=r"link\.key: cannot read it: \S") as info:
+        load_key_file(link)
+    assert "\n" not in str(info.value)
 
 
 def test_no_configured_key_tells_the_user_to_run_keygen(monkeypatch, capsys) -> None:

@@ -48,14 +48,20 @@ def _pair(spec: str) -> tuple[str, int]:
 # --------------------------------------------------------------------------- refusal at open
 
 
+class DeafSocket(socket.socket):
+    """A socket whose ``sendto`` the kernel seems to take but never delivers (a host that routes
+    the group and does not loop it back): the bus's loop probe cannot come back."""
+
+    def sendto(self, data: bytes, *args: object) -> int:
+        return len(data)
+
+
 def test_a_group_whose_datagrams_do_not_come_back_is_refused_in_one_line(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    # The loop probe is sent to the discard port (nobody listens): it cannot come back.
-    real = LoopbackMulticastBus._dest_for
-    monkeypatch.setattr(LoopbackMulticastBus, "_dest_for", lambda self, port: real(self, 9))
-    monkeypatch.setattr(udp_loopback, "LOOP_PROBE_TIMEOUT_S", 0.05)
     spec = isolated_spec("udp_multicast")
+    monkeypatch.setattr(udp_loopback.socket, "socket", DeafSocket)
+    monkeypatch.setattr(udp_loopback, "LOOP_PROBE_TIMEOUT_S", 0.05)
     with pytest.raises(GroupUnreachableError) as info:
         open_bus(spec)
     text = str(info.value)
@@ -83,19 +89,16 @@ def test_ipv6_group_either_works_end_to_end_or_is_refused_at_open() -> None:
 
 
 def test_refused_bus_leaves_no_socket_open(monkeypatch: pytest.MonkeyPatch) -> None:
+    group, port = _pair(isolated_spec("udp_multicast"))  # its port reservation stays open
     opened: list[socket.socket] = []
-    real_socket = socket.socket
 
-    class Tracking(real_socket):
+    class Tracking(DeafSocket):
         def __init__(self, *args, **kwargs) -> None:
             super().__init__(*args, **kwargs)
             opened.append(self)
 
     monkeypatch.setattr(udp_loopback.socket, "socket", Tracking)
-    real = LoopbackMulticastBus._dest_for
-    monkeypatch.setattr(LoopbackMulticastBus, "_dest_for", lambda self, port: real(self, 9))
     monkeypatch.setattr(udp_loopback, "LOOP_PROBE_TIMEOUT_S", 0.05)
-    group, port = _pair(isolated_spec("udp_multicast"))
     with pytest.raises(GroupUnreachableError):
         LoopbackMulticastBus(group, port=port)
     assert opened and all(sock.fileno() == -1 for sock in opened)
