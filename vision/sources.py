@@ -140,8 +140,8 @@ class CaptureSource:
         """VideoCapture reads whole frames: the request is ignored."""
 
     def open(self) -> cv2.VideoCapture:
-        if self.kind == "file" and "://" not in self.target and not Path(self.target).is_file():
-            raise HalConfigError(f"--source {self.name}: no such file")
+        if self.kind == "file" and "://" not in self.target:
+            _check_is_file(Path(self.target), self.name, "a video or image file")
         api = {"v4l2": cv2.CAP_V4L2, "gst": cv2.CAP_GSTREAMER}.get(self.kind, cv2.CAP_ANY)
         cap = cv2.VideoCapture(self.target, api)
         if not cap.isOpened():
@@ -187,28 +187,52 @@ class LogSource:
         """A log holds whole frames: the request is ignored."""
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
-        from mcap.exceptions import McapError
-        from mcap.reader import make_reader
+        """Re-run the frames with mcap's stream reader, as far as the file goes: a log whose
+        recorder was killed (no summary, a half-written chunk) still gives the frames of its
+        complete chunks, as the other log tools read it."""
+        from mcap.records import Channel, Header, Message
+        from mcap.stream_reader import StreamReader
 
-        if not self.path.is_file():
-            raise HalConfigError(f"--source {self.name}: no such file")
-        seq = 0
+        _check_is_file(self.path, self.name, "an MCAP log")
+        seq, seen, started, topic_ids = 0, 0, False, set()
         with self.path.open("rb") as fh:
+            reader = StreamReader(
+                fh, validate_crcs=True, record_size_limit=max(self.path.stat().st_size, 1)
+            )
             try:
-                messages = make_reader(fh).iter_messages(topics=[self.topic])
-                for _schema, _channel, message in messages:
+                for rec in reader.records:
+                    started = started or isinstance(rec, Header)
+                    if isinstance(rec, Channel) and rec.topic == self.topic:
+                        topic_ids.add(rec.id)
+                    if not isinstance(rec, Message) or rec.channel_id not in topic_ids:
+                        continue
                     if stop.is_set():
                         return
-                    pixels = decode_compressed_image(message.data)
+                    seen += 1
+                    pixels = decode_compressed_image(rec.data)
                     if pixels is None:
                         on_reject("malformed")
                         continue
-                    on_frame(grabbed_frame(seq, pixels, message.log_time))
+                    on_frame(grabbed_frame(seq, pixels, rec.log_time))
                     seq += 1
-            except (McapError, ValueError, EOFError) as exc:
-                raise HalConfigError(
-                    f"--source {self.name}: not a readable MCAP log ({exc})"
-                ) from None
+            except Exception as exc:  # a cut or damaged tail ends the frames; no header: refuse
+                if not started:
+                    raise HalConfigError(
+                        f"--source {self.name}: not a readable MCAP log ({exc})"
+                    ) from None
+        if not seen and not stop.is_set():
+            raise HalConfigError(
+                f"--source {self.name}: the log has no {self.topic} frames (the run recorded "
+                "no camera images, or the log was cut before them)"
+            )
+
+
+def _check_is_file(path: Path, name: str, what: str) -> None:
+    """One line unless ``path`` is a regular file: missing and directory said apart."""
+    if path.is_dir():
+        raise HalConfigError(f"--source {name}: is a directory, not {what}")
+    if not path.is_file():
+        raise HalConfigError(f"--source {name}: no such file")
 
 
 def _varint(buf: bytes, i: int) -> tuple[int, int]:

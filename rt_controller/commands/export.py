@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from rt_controller.commands.output import output_dir, output_file
+    from rt_controller.errors import LogError
     from rt_controller.logs import load
     from rt_controller.logs.export import export, plan_outputs
 
@@ -69,6 +70,10 @@ def run(args: argparse.Namespace) -> int:
     for path in set(files.values()):
         output_file(path, "--out")
     run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
+    if "cycle" in args.topics and run_.log.n_cycles == 0:  # as replay: no empty tables
+        why = f" ({run_.notes[0]})" if run_.notes else ""
+        what = f"no readable /controller/cycle messages{why}, nothing to export"
+        raise LogError(f"{run_.path}: {what}")
     written = export(run_, args.format, files)
     if args.json:
         rows = [{"topic": w.topic, "path": str(w.path), "rows": w.rows} for w in written]

@@ -10,11 +10,15 @@ One controller log (MCAP) at a glance: the run (clock, law, rate, CAN, zenoh, re
 the digest of the recorded configuration, duration, ticks, the laws that ran, deadline misses,
 the problems that make the run not clean (the rule of `hil controller`'s summary, judged on the
 log's final /diagnostics record and recorder counters), and the topics with their message counts.
-A log whose writer was killed is reported as truncated, with what could be read.
+A log whose writer was killed is reported as truncated, with what could be read; a complete log
+without the final /diagnostics record (controller killed, or a cut log made whole by `hil
+recover`) has that as a problem, and a copy made by `hil recover` says where it came from.
 
---json prints one object: log, library, truncated, run, config_digest, duration_s, time_axis,
-ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, problems, topics
-({TOPIC: {messages, schema}}), messages, run_info (all hil.run metadata), notes.
+--json prints one object: log, library, truncated (not all of it was read), damaged (the
+writer finished it, but damaged chunks were skipped), run, config_digest, duration_s, time_axis,
+ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, problems, recovered (null,
+or the hil.recovered record: from, input_bytes, kept_bytes, lost_bytes, skipped_bytes, stopped,
+line), topics ({TOPIC: {messages, schema}}), messages, run_info (all hil.run metadata), notes.
 """
 
 
@@ -52,6 +56,12 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+def _state(info: dict[str, Any]) -> str:
+    if info.get("damaged"):
+        return "DAMAGED (chunks in the middle could not be read and were skipped)"
+    return "TRUNCATED (the writer did not finish it)" if info["truncated"] else "complete"
+
+
 def render(info: dict[str, Any]) -> str:
     """The text of ``hil info``: aligned ``key: value`` lines, then the topics."""
     run = info["run"]
@@ -61,7 +71,7 @@ def render(info: dict[str, Any]) -> str:
     rows = [
         ("log", info["log"]),
         ("library", _fmt(info["library"])),
-        ("state", "TRUNCATED (the writer did not finish it)" if info["truncated"] else "complete"),
+        ("state", _state(info)),
         *((key, _fmt(run[key])) for key in run),
         ("config digest", _fmt(info["config_digest"])),
         ("duration", f"{info['duration_s']:.3f} s ({info['time_axis']})"),
@@ -70,6 +80,7 @@ def render(info: dict[str, Any]) -> str:
         ("deadline misses", f"{_fmt(info['deadline_misses'])} "
          f"({_fmt(info['missed_periods'])} missed periods)"),
         ("problems", "; ".join(info["problems"]) or "none"),
+        *((("recovered", info["recovered"]["line"]),) if info.get("recovered") else ()),
         ("messages", str(info["messages"])),
     ]  # fmt: skip
     width = max(len(k) for k, _ in rows) + 2

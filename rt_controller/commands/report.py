@@ -12,7 +12,8 @@ Deadline-miss report of controller logs, cyclictest-style: ticks, deadline misse
 percentage, tick and time of each), wake-up lateness and cycle time min/median/p99/max (µs), a
 log-scale lateness histogram, solve time and solver residuals, fallbacks, stale inputs, torque
 saturation, final |f| and J (sum of the stage cost / rate). A log whose writer was killed is
-reported as far as it goes, with a note.
+reported as far as it goes, with a note. With several logs, one that cannot be read is named on
+stderr and the others are reported (exit status 2).
 
 --json prints one JSON object for one log, and a JSON list of such objects (in argument order,
 each with its "log" path) for several logs. Keys include: log, truncated, notes, law, clock,
@@ -52,9 +53,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import sys
 
     from rt_controller.commands.output import output_dir
-    from rt_controller.errors import ControllerConfigError
+    from rt_controller.errors import ControllerConfigError, LogError
     from rt_controller.logtools.deadline_report import summarize
     from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.report_plots import write_plots
@@ -64,8 +66,19 @@ def run(args: argparse.Namespace) -> int:
         raise ControllerConfigError(f"--max-list must be non-negative, got {args.max_list}")
     plot_dir = output_dir(args.plot, "--plot") if args.plot else None
     progress = Progress.of(args, "hil report")
+    logs, failed = [], []
     with progress.stage(f"reading {len(args.logs)} log(s)"):
-        logs = [_with_canopen_frames(read_hil_log(path, raw=False)) for path in args.logs]
+        for path in args.logs:
+            try:
+                logs.append(_with_canopen_frames(read_hil_log(path, raw=False)))
+            except LogError as exc:  # one bad log among several: report the others
+                if len(args.logs) == 1:
+                    raise
+                failed.append(exc)
+    if not logs:
+        raise failed[0]
+    for exc in failed:
+        print(f"hil report: error: {exc}", file=sys.stderr)
     reports = [summarize(log, max_list=args.max_list) for log in logs]
     if plot_dir is not None:
         stems: dict[str, int] = {}
@@ -78,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         payload = reports[0] if len(reports) == 1 else reports
         print(json.dumps(_json_safe(payload)))
-        return 0
+        return 2 if failed else 0
     from rich.console import Console
 
     console = Console()
@@ -88,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         render_text(rep, console)
         if rep.get("plots"):
             console.print(f"plots: {', '.join(rep['plots'])}")
-    return 0
+    return 2 if failed else 0
 
 
 def _with_canopen_frames(log: Any) -> Any:

@@ -50,7 +50,13 @@ def logged_summary(run: Run) -> dict[str, Any]:
             "dsp_rejected_frames": int(dsp.get("rejected_frames", 0) or 0),
         },
     }
-    if run.truncated:
+    walk = run.log.walk
+    if walk is not None and walk.footer and walk.skipped:
+        out["log_error"] = (
+            f"{len(walk.skipped)} damaged chunk(s) ({walk.skipped_bytes} bytes) could not be "
+            "read and were skipped"
+        )
+    elif run.truncated:
         out["log_error"] = "the writer did not finish it (truncated)"
     return out
 
@@ -60,6 +66,47 @@ def _int(value: Any) -> int | None:
         return int(value)
     except (TypeError, ValueError):
         return None
+
+
+def log_problems(run: Run, ticks: int) -> list[str]:
+    """What the log itself says is wrong with the run, beyond the counters: the controller
+    always writes a final ``/diagnostics`` record when it ends a run in order, so a complete
+    log without one is of a run killed or cut (a truncated log already says so); a copy that
+    ``hil recover`` made by skipping damaged chunks lost ticks."""
+    out = []
+    by_controller = "replay_of" not in run.info and (
+        bool(run.log.diagnostics) or "recorder" in run.info
+    )  # not a replay's log (``hil replay --out``: no diagnostics)
+    if by_controller and not run.truncated and not (final_diagnostics(run) or {}).get("final"):
+        out.append(
+            "no final /diagnostics record: the run did not end in order (the controller or its "
+            f"recorder was killed, or the log was cut) after {ticks} ticks"
+        )
+    skipped = _int((run.log.recovered_info or {}).get("skipped_bytes"))
+    if skipped:
+        out.append(f"recovered from a damaged log: {skipped} bytes of damaged chunks skipped")
+    return out
+
+
+def recovered_from(run: Run) -> dict[str, Any] | None:
+    """The ``hil.recovered`` record of a copy made by ``hil recover`` (where from, bytes kept
+    and lost, why the read of the input stopped) with a ``line`` for people; None otherwise."""
+    meta = run.log.recovered_info
+    if meta is None:
+        return None
+    out: dict[str, Any] = {"from": meta.get("from"), "stopped": meta.get("stopped")}
+    for key in ("input_bytes", "kept_bytes", "skipped_bytes"):
+        out[key] = _int(meta.get(key))
+    if out["input_bytes"] is not None and out["kept_bytes"] is not None:
+        out["lost_bytes"] = out["input_bytes"] - out["kept_bytes"]
+    lost, skipped = out.get("lost_bytes"), out["skipped_bytes"]
+    out["line"] = (
+        f"recovered by `hil recover` from {out['from']}: kept {out['kept_bytes']} of "
+        f"{out['input_bytes']} bytes, lost {'unknown' if lost is None else lost} "
+        f"({out['stopped'] or 'unknown'}"
+        + (f"; {skipped} bytes of damaged chunks skipped)" if skipped else ")")
+    )
+    return out
 
 
 def log_info(run: Run) -> dict[str, Any]:
@@ -83,14 +130,18 @@ def log_info(run: Run) -> dict[str, Any]:
         topics.setdefault(topic, {"messages": 0, "schema": schema})
     t = run.log.column("tick")
     notes = list(report["notes"])
+    problems = run_problems(logged_summary(run))
     if not run.log.diagnostics:
         notes.append("no /diagnostics records: problems judged on the recorder's counters only")
     elif not (final_diagnostics(run) or {}).get("final"):
         notes.append("no final /diagnostics record: problems judged on the last one")
+    problems += log_problems(run, report["ticks"])
+    recovered = recovered_from(run)
     return {
         "log": str(run.path),
         "library": run.log.library,
         "truncated": run.truncated,
+        "damaged": bool(run.log.walk and run.log.walk.footer and run.log.walk.skipped),
         "run": run_summary,
         "config_digest": run.config_digest,
         "duration_s": report["duration_s"],
@@ -101,7 +152,8 @@ def log_info(run: Run) -> dict[str, Any]:
         "laws": dict(Counter(str(x) for x in laws)) if laws is not None else {},
         "deadline_misses": report["deadline_misses"],
         "missed_periods": report["missed_periods"],
-        "problems": run_problems(logged_summary(run)),
+        "problems": problems,
+        "recovered": recovered,
         "topics": topics,
         "messages": sum(run.topic_counts.values()),
         "run_info": dict(info),

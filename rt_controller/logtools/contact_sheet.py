@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from rt_controller.logtools.reader import LoadedLog
+from rt_controller.logtools.walk import topic_messages
 
 IMAGE_TOPIC = "/camera/image"
 DETECTION_TOPIC = "/camera/detection"
@@ -28,27 +29,26 @@ _LABEL = re.compile(rb"frame \d+: (detected f = \([^)]*\) px|no target: [a-z_]+)
 def frames_around(log: LoadedLog, t_jump_s: float, n: int = FRAMES) -> list[dict[str, Any]]:
     """Up to ``n`` frames around simulation time ``t_jump_s``: ``{"t_s", "pixels", "label"}``
     (``t_s`` in simulation time); empty when the log holds no frames or no cycles."""
-    from mcap.reader import make_reader
-
     from vision.sources import decode_compressed_image
 
     sim = log.cycles.get("sim_time_s")
     t_ns = log.cycles.get("t_ns")
-    offset = log.run_info.get("monotonic_to_unix_ns")
-    if sim is None or t_ns is None or offset is None or len(sim) == 0:
+    try:  # hil.run metadata is text: a damaged or foreign value means no time axis
+        offset = int(log.run_info["monotonic_to_unix_ns"])
+    except (KeyError, TypeError, ValueError):
         return []
-    cyc_log = np.asarray(t_ns, dtype=np.int64) + int(offset)
+    if sim is None or t_ns is None or len(sim) == 0:
+        return []
+    cyc_log = np.asarray(t_ns, dtype=np.int64) + offset
     images: list[tuple[int, bytes]] = []
     labels: dict[int, str] = {}
-    with log.path.open("rb") as fh:
-        for _s, channel, msg in make_reader(fh).iter_messages(
-            topics=[IMAGE_TOPIC, DETECTION_TOPIC]
-        ):
-            if channel.topic == IMAGE_TOPIC:
-                images.append((msg.log_time, msg.data))
-            else:
-                m = _LABEL.search(msg.data)
-                labels[msg.log_time] = m.group(1).decode(errors="replace") if m else ""
+    # the stream reader, as far as the file goes: a log whose writer was killed has no summary
+    for topic, msg in topic_messages(log.path, (IMAGE_TOPIC, DETECTION_TOPIC)):
+        if topic == IMAGE_TOPIC:
+            images.append((msg.log_time, msg.data))
+        else:
+            m = _LABEL.search(msg.data)
+            labels[msg.log_time] = m.group(1).decode(errors="replace") if m else ""
     if not images or not labels:  # no frames, or only an analytic run's blank image plane
         return []
     images.sort(key=lambda item: item[0])

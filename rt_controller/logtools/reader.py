@@ -15,13 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Header, Message, Metadata, Schema
 
 from hal.config import RigConfig, config_from_json
 from hal.errors import HalConfigError
 from rt_controller.errors import LogError, NotAHilLogError
+from rt_controller.logtools.walk import Walk, walk_records
 from rt_controller.runtime.recorder import (
     CAN_RX_TOPIC,
     CAN_TX_TOPIC,
@@ -37,6 +36,9 @@ from rt_controller.runtime.recorder import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
+RECOVERED_METADATA = "hil.recovered"
+"""The metadata record ``hil recover`` adds to its copy: ``from`` (the input's path),
+``input_bytes``, ``kept_bytes``, ``stopped`` (why the read ended), ``skipped_bytes``."""
 MAX_CHANNELS_NAMED = 8
 """How many channels a "not a hil log" message names."""
 
@@ -53,6 +55,8 @@ class LoadedLog:
     """``hil.run`` metadata: law, rate_hz, clock, start time, host, versions, ..."""
     recorder_info: dict[str, str] = field(default_factory=dict)
     """``hil.recorder`` metadata written at a clean close (written/dropped counters)."""
+    recovered_info: dict[str, str] | None = None
+    """``hil.recovered`` metadata: the log is a copy ``hil recover`` made of a cut one."""
     cycles: dict[str, np.ndarray] = field(default_factory=dict)
     """One column per cycle field: bools, int64, float64 (null -> NaN), (n, k) for vectors."""
     can_rx: list[dict[str, Any]] = field(default_factory=list)
@@ -76,7 +80,10 @@ class LoadedLog:
     """The MCAP header's ``library`` (the writer's name, ``hil-rt_controller/VERSION`` for the
     controller's logs); None if the header could not be read."""
     truncated: bool = False
-    """The file has no footer: the writer did not finish it (killed, crashed, cut)."""
+    """Not all of the log was read: no footer (the writer did not finish it: killed, crashed,
+    cut), or damaged chunks in the middle were skipped (``walk.skipped``)."""
+    walk: Walk | None = None
+    """How the read went: where it stopped, the damaged chunks it skipped."""
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -179,59 +186,55 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
     }
     counts: Counter[str] = Counter()
     bad: Counter[str] = Counter()
-    footer = False
+    state = Walk(size=path.stat().st_size)
     with path.open("rb") as fh:
-        size_limit = max(path.stat().st_size, 1)  # a garbage length never allocates more
-        reader = StreamReader(fh, validate_crcs=True, record_size_limit=size_limit)
-        try:
-            for rec in reader.records:
-                if isinstance(rec, Message):
-                    topic = channels.get(rec.channel_id, f"#{rec.channel_id}")
-                    counts[topic] += 1
-                    keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC, PARAMETERS_TOPIC, EVENTS_TOPIC)
-                    if not keep and not (raw and topic in raw_lists):
-                        continue
-                    try:
-                        obj = json.loads(rec.data)
-                    except (ValueError, UnicodeDecodeError):
-                        bad[topic] += 1
-                        continue
-                    if not isinstance(obj, dict):
-                        bad[topic] += 1
-                    elif topic == CYCLE_TOPIC:
-                        cycle_records.append(obj)
-                    elif topic == DIAGNOSTICS_TOPIC:
-                        out.diagnostics.append(obj)
-                    elif topic == PARAMETERS_TOPIC:
-                        out.parameters.append(obj)
-                    elif topic == EVENTS_TOPIC:
-                        out.events.append(obj)
-                    else:
-                        raw_lists[topic].append(obj)
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
-                    if rec.schema_id in schema_names:
-                        out.schemas[rec.topic] = schema_names[rec.schema_id]
-                elif isinstance(rec, Schema):
-                    schema_names[rec.id] = rec.name
-                elif isinstance(rec, Metadata):
-                    _take_metadata(out, rec)
-                elif isinstance(rec, Footer):
-                    footer = True
-                elif isinstance(rec, Header):
-                    out.library = rec.library
-        except Exception as exc:
-            # McapError (EndOfFile...), struct.error, CRC and zstd errors, garbage lengths:
-            # whatever a damaged tail raises, keep what was read and say where it stopped.
-            out.notes.append(_damage_note(exc, counts[CYCLE_TOPIC]))
-            out.truncated = True
-    if not footer:
+        # the walk stops quietly at damage it cannot step over (state says where)
+        for rec in walk_records(fh, state):
+            if isinstance(rec, Message):
+                topic = channels.get(rec.channel_id, f"#{rec.channel_id}")
+                counts[topic] += 1
+                keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC, PARAMETERS_TOPIC, EVENTS_TOPIC)
+                if not keep and not (raw and topic in raw_lists):
+                    continue
+                try:
+                    obj = json.loads(rec.data)
+                except (ValueError, UnicodeDecodeError):
+                    bad[topic] += 1
+                    continue
+                if not isinstance(obj, dict):
+                    bad[topic] += 1
+                elif topic == CYCLE_TOPIC:
+                    cycle_records.append(obj)
+                elif topic == DIAGNOSTICS_TOPIC:
+                    out.diagnostics.append(obj)
+                elif topic == PARAMETERS_TOPIC:
+                    out.parameters.append(obj)
+                elif topic == EVENTS_TOPIC:
+                    out.events.append(obj)
+                else:
+                    raw_lists[topic].append(obj)
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec.topic
+                if rec.schema_id in schema_names:
+                    out.schemas[rec.topic] = schema_names[rec.schema_id]
+            elif isinstance(rec, Schema):
+                schema_names[rec.id] = rec.name
+            elif isinstance(rec, Metadata):
+                _take_metadata(out, rec)
+            elif isinstance(rec, Header):
+                out.library = rec.library
+    out.walk = state
+    if state.skipped:
         out.truncated = True
-        if not out.notes:
-            out.notes.append(_damage_note(None, counts[CYCLE_TOPIC]))
+        out.notes.append(f"log {state.skipped_note()}")
+    if not state.footer:
+        out.truncated = True
+        out.notes.append(_damage_note(state, counts[CYCLE_TOPIC]))
+    elif state.error is not None:
+        out.notes.append(f"log: {state.damage()}: every record was read")
     for topic, n in bad.items():
         out.notes.append(f"{n} {topic} message(s) were not valid JSON objects and were skipped")
-    if out.truncated and not out.recorder_info:
+    if not state.footer and not out.recorder_info:
         out.notes.append("the recorder did not close the file (process killed or crashed?)")
     out.cycles = columns(cycle_records)
     out.topic_counts = dict(counts)
@@ -265,11 +268,11 @@ def require_hil_log(log: LoadedLog) -> LoadedLog:
     )
 
 
-def _damage_note(exc: BaseException | None, n_cycles: int) -> str:
-    if exc is None or isinstance(exc, EndOfFile):
-        what = "ends without a footer (the writer did not finish it)"
+def _damage_note(state: Walk, n_cycles: int) -> str:
+    if state.error is None or state.damage().startswith("ends"):
+        what = f"{state.damage() or 'ends without a footer'} (the writer did not finish it)"
     else:
-        what = f"is damaged near its end ({type(exc).__name__}: {exc})"
+        what = f"is {state.damage()}"
     return f"log {what}: read as far as it goes, {n_cycles} cycle messages in complete chunks"
 
 
@@ -287,3 +290,5 @@ def _take_metadata(out: LoadedLog, rec: Metadata) -> None:
         out.run_info = dict(rec.metadata)
     elif rec.name == RECORDER_METADATA:
         out.recorder_info = dict(rec.metadata)
+    elif rec.name == RECOVERED_METADATA:
+        out.recovered_info = dict(rec.metadata)

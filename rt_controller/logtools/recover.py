@@ -13,12 +13,12 @@ The input is never changed; the copy is written beside its final name and rename
 from __future__ import annotations
 
 import os
+import stat
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import EndOfFile
 from mcap.records import (
     Attachment,
     Channel,
@@ -29,15 +29,11 @@ from mcap.records import (
     Metadata,
     Schema,
 )
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from rt_controller.errors import ControllerConfigError, LogError
-from rt_controller.logtools.reader import CYCLE_TOPIC, MAGIC, check_file
-
-RECOVERED_METADATA = "hil.recovered"
-"""The metadata record ``hil recover`` adds to its copy: ``from`` (the input's path),
-``input_bytes``, ``kept_bytes``, ``stopped`` (why the read ended)."""
+from rt_controller.logtools.reader import CYCLE_TOPIC, MAGIC, RECOVERED_METADATA, check_file
+from rt_controller.logtools.walk import Walk, walk_records
 
 CHUNK_SIZE = 1024 * 1024
 """Chunk size of the copy (mcap's default; the recorder's small chunks only bound its loss)."""
@@ -55,7 +51,10 @@ class Recovery:
     kept_bytes: int = 0
     """Bytes of the input up to the end of its last complete record."""
     lost_bytes: int = 0
-    """Bytes after that: a half-written chunk or record, never readable."""
+    """Bytes not kept: after the last complete record (a half-written chunk or record, never
+    readable) and the damaged chunks skipped."""
+    skipped: list[dict[str, Any]] = field(default_factory=list)
+    """Damaged chunks in the middle stepped over with the chunk index: offset, length, error."""
     stopped: str = ""
     """Why the read ended (``footer``, ``end of file``, or the damage mcap reported)."""
     messages: int = 0
@@ -74,10 +73,17 @@ class Recovery:
 
     def line(self) -> str:
         """One line for people: what was kept and what was lost."""
-        if self.finished:
-            lost = "nothing lost (the log was already finished)"
+        skipped = ""
+        if self.skipped:
+            where = ", ".join(f"{s['length']} B at byte {s['offset']}" for s in self.skipped[:4])
+            skipped = f"; skipped {len(self.skipped)} damaged chunk(s) in the middle ({where})"
+        if self.finished and not self.skipped:
+            magic = "; its closing magic was missing" if self.stopped != "footer" else ""
+            lost = f"nothing lost (the log was already finished{magic})"
+        elif self.finished:
+            lost = f"lost {self.lost_bytes} byte(s){skipped}"
         else:
-            lost = f"lost the last {self.lost_bytes} byte(s) ({self.stopped})"
+            lost = f"lost the last {self.lost_bytes} byte(s) ({self.stopped}){skipped}"
         return (
             f"{self.out}: kept {self.messages} message(s) ({self.cycles} cycles) on "
             f"{self.channels} channel(s), {len(self.metadata)} metadata, {self.attachments} "
@@ -94,6 +100,12 @@ def _check_paths(log: Path, out: Path) -> None:
     check_file(log)
     if out.resolve() == log.resolve() or (out.exists() and os.path.samefile(out, log)):
         raise ControllerConfigError(f"--out {out}: is the input log; recover never overwrites it")
+    if out.exists() and not stat.S_ISREG(out.stat().st_mode):
+        # the copy is renamed into place: that would replace a device node or FIFO
+        raise ControllerConfigError(
+            f"--out {out}: exists and is not a regular file (a device, FIFO or socket); "
+            "recover writes only regular files"
+        )
 
 
 def recover(log: str | Path, out: str | Path | None = None) -> Recovery:
@@ -163,6 +175,7 @@ class _Rewriter:
                 "input_bytes": str(result.input_bytes),
                 "kept_bytes": str(result.kept_bytes),
                 "stopped": result.stopped,
+                "skipped_bytes": str(sum(s["length"] for s in result.skipped)),
             },
         )
         self.writer.finish()
@@ -174,40 +187,45 @@ class _Rewriter:
 
 
 def _copy(src: Any, dst: Any, result: Recovery) -> None:
-    """Read ``src`` record by record into a :class:`_Rewriter` on ``dst`` until the footer or
-    the first record that cannot be read; ``result`` says where and why it stopped."""
-    reader = StreamReader(src, validate_crcs=True, record_size_limit=max(result.input_bytes, 1))
+    """Walk ``src`` (:func:`walk_records`: damaged chunks in the middle of a file with a chunk
+    index are skipped) into a :class:`_Rewriter` on ``dst`` until the footer or the first
+    record that cannot be read; ``result`` says where and why it stopped."""
+    state = Walk(size=result.input_bytes)
     rewriter: _Rewriter | None = None
     data_end = False
     result.kept_bytes = len(MAGIC)
-    try:
-        for rec in reader.records:
-            if isinstance(rec, Header):
-                writer = Writer(dst, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
-                writer.start(profile=rec.profile, library=rec.library)
-                rewriter = _Rewriter(writer, result)
-            elif rewriter is None:
-                raise LogError(f"{result.log}: the first record is not the MCAP header")
-            elif isinstance(rec, Footer):
-                result.finished, result.stopped = True, "footer"
-                break
-            elif data_end:
-                continue  # the summary section repeats what was read; the writer makes its own
-            elif isinstance(rec, DataEnd):
-                data_end, result.stopped = True, "cut in the summary section (all data kept)"
-            else:
-                rewriter.take(rec)
-            if not data_end or isinstance(rec, DataEnd):
-                result.kept_bytes = src.tell()
-    except EndOfFile:  # also at a record boundary: the reader looked for the next record
-        at_boundary = src.tell() == result.kept_bytes
-        result.stopped = result.stopped or ("end of file" if at_boundary else "cut inside a record")
-    except LogError:
-        raise
-    except Exception as exc:  # a damaged tail: CRC, zstd, a garbage length (what mcap raises)
-        result.stopped = result.stopped or f"damaged: {type(exc).__name__}: {exc}".rstrip(": ")
+    for rec in walk_records(src, state):
+        if isinstance(rec, Header):
+            writer = Writer(dst, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+            writer.start(profile=rec.profile, library=rec.library)
+            rewriter = _Rewriter(writer, result)
+        elif rewriter is None:
+            raise LogError(f"{result.log}: the first record is not the MCAP header")
+        elif isinstance(rec, Footer):
+            result.finished, result.stopped = True, "footer"
+            continue  # the walk goes on to check the closing magic
+        elif data_end:
+            continue  # the summary section repeats what was read; the writer makes its own
+        elif isinstance(rec, DataEnd):
+            data_end, result.stopped = True, "cut in the summary section (all data kept)"
+        else:
+            rewriter.take(rec)
+        if not data_end or isinstance(rec, DataEnd):
+            result.kept_bytes = src.tell()
+    if state.footer and state.error is not None:  # the footer read, then the closing magic not
+        result.finished, result.stopped = True, "footer; the closing magic was missing"
+    elif state.error is not None:
+        at_boundary = state.good_end >= result.input_bytes
+        damage = state.damage()
+        if damage.startswith("ends"):
+            damage = "end of file" if at_boundary else "cut inside a record"
+        result.stopped = result.stopped or damage
+    elif not result.finished:
+        result.stopped = result.stopped or "end of file"
+    result.skipped = [asdict(s) for s in state.skipped]
     if rewriter is None:
         raise LogError(f"{result.log}: cut before the end of its MCAP header: nothing to recover")
     if result.finished:
         result.kept_bytes = result.input_bytes
+    result.kept_bytes -= sum(s.length for s in state.skipped)
     rewriter.finish()

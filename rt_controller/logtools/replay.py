@@ -32,6 +32,7 @@ with them, so the new log can itself be replayed or republished.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -376,7 +377,8 @@ def replay_loaded(
     n = log.n_cycles
     if n == 0:
         raise LogError(f"{log.path}: no /controller/cycle messages, nothing to replay")
-    if out is not None and Path(out).resolve() == Path(log.path).resolve():
+    same = out is not None and Path(out).resolve() == Path(log.path).resolve()
+    if same or (out is not None and Path(out).exists() and os.path.samefile(out, log.path)):
         raise LogError(f"--out {out} would overwrite the log being replayed")
     notes = list(log.notes)
     if log.truncated:

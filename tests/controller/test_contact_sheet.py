@@ -50,3 +50,21 @@ def test_no_sheet_without_frames(tmp_path):
     log = _log(tmp_path, images=False)
     assert frames_around(log, 3.0) == []
     assert not write_contact_sheet(log, tmp_path / "sheet.png")
+
+
+def test_a_log_whose_writer_was_killed_still_gives_its_frames(tmp_path):
+    """No footer or summary (the recorder killed): the frames are read as far as the file goes,
+    like the rest of the log, not with mcap's seeking reader (which raised)."""
+    log = _log(tmp_path, images=True)
+    data = log.path.read_bytes()
+    log.path.write_bytes(data[:-30])  # the footer and the end of the summary cut off
+    cut = read_log(log.path)
+    assert cut.truncated
+    assert len(frames_around(cut, 3.0)) == 8
+    assert write_contact_sheet(cut, tmp_path / "sheet.png")
+
+
+def test_a_non_integer_clock_offset_gives_no_sheet(tmp_path):
+    log = _log(tmp_path, images=True)
+    log.run_info["monotonic_to_unix_ns"] = "abc"
+    assert frames_around(log, 3.0) == []

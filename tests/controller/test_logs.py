@@ -86,9 +86,16 @@ def diag(k: int, misses: int, final: bool, watchdog_trips: int, disarmed: int) -
 
 
 def record(
-    path: Path, ticks: int = TICKS, *, watchdog_trips: int = 0, disarmed: int = 0, chunk=4096
+    path: Path,
+    ticks: int = TICKS,
+    *,
+    watchdog_trips: int = 0,
+    disarmed: int = 0,
+    chunk=4096,
+    final: bool = True,
 ) -> Path:
-    """A daemon-shaped log of ``ticks`` ticks (see the module docstring)."""
+    """A daemon-shaped log of ``ticks`` ticks (see the module docstring); ``final=False``: no
+    final /diagnostics record (the controller killed, its recorder closing the file)."""
     cfg = RigConfig().with_overrides({"controller.law": "ioc"})
     dsp, own = DspCodec(), ControllerCodec()
     info = {"clock": "lockstep", "can": "virtual", "zenoh": "tcp/127.0.0.1:1", "recorder": "thread"}
@@ -139,9 +146,9 @@ def record(
             last = k == ticks - 1
             if k % DIAG_EVERY == 0 or last:
                 rec.record_diagnostics(diag(k, misses, False, watchdog_trips, disarmed))
-            if last:
-                final = diag(k + 1, misses, True, watchdog_trips, disarmed)
-                rec.record_diagnostics(final, final=True)
+            if last and final:
+                final_diag = diag(k + 1, misses, True, watchdog_trips, disarmed)
+                rec.record_diagnostics(final_diag, final=True)
     return path
 
 
@@ -339,7 +346,9 @@ def test_export_mat_read_back_with_scipy(log_path, tmp_path, capsys):
     assert list(frames.message[:2]) == ["Sync", "JointPosition"]
     assert json.loads(meta.config_json)["controller"]["law"] == "ioc"
     assert meta.clock == "lockstep"
-    names = [*cycle._fieldnames, *diag._fieldnames, *frames._fieldnames, *meta._fieldnames]
+    records = loadmat(tmp_path / "run.mat")  # structs as records: their fields name the dtype
+    names = [n for k in ("cycle", "diagnostics", "can", "meta") for n in records[k].dtype.names]
+    assert "controller_deadline_misses" in names and "config_json" in names
     assert all(n.isidentifier() and n[0].isalpha() and len(n) <= 63 for n in names)
 
 
@@ -408,6 +417,33 @@ def test_info_on_a_truncated_log(tmp_path, capsys):
     assert run.truncated and len(run.cycles) == info["ticks"]
     assert main(["info", str(cut)]) == 0
     assert "TRUNCATED" in capsys.readouterr().out
+
+
+def test_info_a_killed_controllers_log_is_not_clean(tmp_path, capsys):
+    path = record(tmp_path / "killed.mcap", 60, final=False)
+    assert main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert not info["truncated"] and info["recovered"] is None
+    assert info["problems"] == [
+        "no final /diagnostics record: the run did not end in order (the controller or its "
+        "recorder was killed, or the log was cut) after 60 ticks"
+    ]
+
+
+def test_info_on_a_recovered_log_says_where_it_came_from(tmp_path, capsys):
+    whole = record(tmp_path / "whole.mcap", 400, chunk=2048)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    assert main(["recover", str(cut), "--out", str(tmp_path / "rec.mcap")]) == 0
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "rec.mcap"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    rec = info["recovered"]
+    assert rec["from"] == str(cut) and rec["input_bytes"] == cut.stat().st_size
+    assert 0 < rec["kept_bytes"] < rec["input_bytes"] and rec["lost_bytes"] > 0
+    assert not info["truncated"] and "did not end in order" in info["problems"][0]
+    assert main(["info", str(tmp_path / "rec.mcap")]) == 0
+    assert f"recovered:       recovered by `hil recover` from {cut}" in capsys.readouterr().out
 
 
 def test_info_on_files_hil_did_not_write(tmp_path, capsys):

@@ -209,3 +209,42 @@ def test_a_live_file_plays_at_its_frame_rate(tmp_path: Path):
     # paced at 20 fps: frame k is read no earlier than k / 20 s after the first (a lower bound
     # holds under any scheduling)
     assert len(stamps) == 5 and stamps[-1] - stamps[0] >= 4 * 50_000_000 - 1_000_000
+
+
+def _image_log(path: Path, n: int = len(PATH_F)) -> Path:
+    """A log of ``n`` PNG frames on /camera/image, each in its own chunk."""
+    from foxglove.messages import CompressedImage, Timestamp
+    from mcap.writer import Writer
+
+    with path.open("wb") as fh:
+        w = Writer(fh, chunk_size=1)
+        w.start()
+        sid = w.register_schema(
+            "foxglove.CompressedImage", "protobuf", CompressedImage.get_schema().data
+        )
+        ch = w.register_channel("/camera/image", "protobuf", sid)
+        for i, f in enumerate(PATH_F[:n]):
+            png = cv2.imencode(".png", frame(K, f))[1].tobytes()
+            msg = CompressedImage(timestamp=Timestamp(sec=i), frame_id="c", data=png, format="png")
+            w.add_message(ch, i * 10**8, msg.encode(), i * 10**8)
+        w.finish()
+    return path
+
+
+def test_a_cut_log_gives_the_frames_of_its_complete_chunks(tmp_path: Path):
+    path = _image_log(tmp_path / "run.mcap")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 3 // 4])  # the recorder killed: no summary, no footer
+    sent: list[FeatureMsg] = []
+    g = grabber(sent)
+    open_source(f"log:{path}").run(g.on_frame, g.on_reject, threading.Event())
+    assert 0 < len(sent) < len(PATH_F)
+
+
+def test_a_log_without_frames_and_a_directory_are_refused(tmp_path: Path):
+    path = _image_log(tmp_path / "none.mcap", n=0)
+    g = grabber([])
+    with pytest.raises(HalConfigError, match="has no /camera/image frames"):
+        open_source(f"log:{path}").run(g.on_frame, g.on_reject, threading.Event())
+    with pytest.raises(HalConfigError, match="is a directory"):
+        open_source(f"log:{tmp_path}").run(g.on_frame, g.on_reject, threading.Event())
