@@ -5,18 +5,21 @@ from __future__ import annotations
 import argparse
 
 DESCRIPTION = """\
-Reads LOG.mcap up to its last complete record (mcap's stream reader) and writes every schema,
-channel, message, metadata and attachment again with mcap's writer, with chunk indexes, a
-summary section and the footer: a log whose recorder was SIGKILLed, or a file cut in a copy,
-then opens in mcap's own reader and in Foxglove, and `hil info` calls it complete. A
-hil.recovered metadata record in the copy names the input and what was kept. The input
-is never changed (an --out naming it is refused). Prints one line with what was kept and what
-was lost (the bytes after the last complete record, usually a half-written chunk).
+Reads LOG.mcap up to its last complete record (mcap's stream reader; past a damaged chunk in
+the middle when the file still has its summary, whose chunk index says where the next one
+starts) and writes every schema, channel, message, metadata and attachment again with mcap's
+writer, with chunk indexes, a summary section and the footer: a log whose recorder was
+SIGKILLed, or a file cut or damaged in a copy, then opens in mcap's own reader and in Foxglove.
+A hil.recovered metadata record in the copy names the input and what was kept; `hil info`
+shows it. The input is never changed (an --out naming it, or a device or FIFO, is refused).
+Prints one line with what was kept and what was lost (the bytes after the last complete
+record, usually a half-written chunk, and the damaged chunks skipped).
 
 --json prints one object: log, out, finished (the input already had its footer), input_bytes,
-kept_bytes, lost_bytes, stopped (why the read ended), messages, cycles, schemas, channels,
-metadata (names), attachments, topics ({TOPIC: messages}), orphans (messages without a
-channel record, skipped).
+kept_bytes, lost_bytes, skipped (the damaged chunks stepped over: offset, length, error),
+stopped (why the read ended), messages, cycles, schemas, channels, metadata (names),
+attachments, topics ({TOPIC: messages}), orphans (messages without a channel record,
+skipped).
 """
 
 
