@@ -2,13 +2,15 @@
 
 :func:`stop_on_signals` replaces the install-handlers-then-restore block each long-running
 command needs; :func:`run_standalone` is the one ``main()`` error rule (a :class:`HalError` or a
-subclass of ``errors`` becomes one line on stderr and exit status 2). Lives in ``hal`` because
+subclass of ``errors`` becomes one line on stderr and exit status 2, an ``OSError`` one line
+naming its path). Lives in ``hal`` because
 both ``plant_emulator`` and ``rt_controller`` use it and neither may import the other.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import faulthandler
 import os
 import signal
@@ -29,6 +31,13 @@ stderr, so a stop that hangs (the rig SIGKILLs after 10 s) names where it hung. 
 (its parent died before the signal, as when a SIGKILLed ``hil up`` sends its children the
 parent-death signal) then exits with status 1: nobody is left to kill it."""
 
+
+USAGE_ERRNOS = frozenset(
+    {errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.EACCES, errno.EPERM}
+    | {errno.EROFS, errno.ENAMETOOLONG}
+)
+"""An :class:`OSError` with one of these is a bad path given by the user: exit status 2 (any
+other, such as a full disk, is a failed run: 1)."""
 
 STOP_POLL_S = 0.1
 """How often a main thread waiting for the stop wakes (:func:`wait_for_stop`)."""
@@ -89,7 +98,9 @@ def run_standalone(
 ) -> int:
     """Run ``body``; a :class:`HalError` (or one of ``errors``) is reported as
     ``"<prog>: error: <message>"`` on stderr with exit status 2, Ctrl-C as 130. ``prog``
-    appears once: a message that starts with ``"<prog>: "`` already is not prefixed again."""
+    appears once: a message that starts with ``"<prog>: "`` already is not prefixed again.
+    An :class:`OSError` (a path the user gave: missing, a directory, a full disk) is one line
+    naming the path and the reason: status 2 for :data:`USAGE_ERRNOS`, else 1."""
     from hal.errors import HalError
 
     try:
@@ -100,5 +111,17 @@ def run_standalone(
             message = message[len(prog) + 2 :]
         print(f"{prog}: error: {message}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"{prog}: error: {os_error_line(exc)}", file=sys.stderr)
+        return 2 if exc.errno in USAGE_ERRNOS else 1
     except KeyboardInterrupt:
         return 130
+
+
+def os_error_line(exc: OSError) -> str:
+    """``PATH: reason`` (``reason`` alone when the error names no path), on one line."""
+    reason, name = exc.strerror or str(exc) or type(exc).__name__, exc.filename
+    if isinstance(name, str | bytes):
+        name = os.fsdecode(name)
+    line = reason if name is None else f"{name}: {reason}"
+    return " ".join(line.split())

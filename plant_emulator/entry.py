@@ -39,7 +39,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
-from hal.arguments import add_key_option, bounded_float, duration
+from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, duration
 
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
     from plant_emulator.pose_link import PoseLink
@@ -114,7 +114,7 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--vision-wait",
-        type=float,
+        type=bounded_float(0, MAX_DURATION_S, lo_inclusive=True, what="seconds"),
         default=DEFAULT_VISION_WAIT_S,
         metavar="S",
         help="lockstep: wait up to S seconds for the vision process before period 0 (default 10)",
@@ -125,8 +125,6 @@ def _config(args: argparse.Namespace) -> Any:
     from hal.config import load_config
     from hal.errors import HalConfigError
 
-    if args.vision_wait < 0:
-        raise HalConfigError(f"--vision-wait must be non-negative, got {args.vision_wait}")
     cfg = load_config(args.config)
     if args.state_rate is not None:
         try:

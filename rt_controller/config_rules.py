@@ -65,7 +65,8 @@ def apply_overrides(
         "hardware.profile": profile,
     }
     overrides: dict[str, Any] = {k: v for k, v in pairs.items() if v is not None}
-    if horizon is not None and steps is None:
+    if horizon is not None and steps is None and math.isfinite(horizon) and horizon > 0:
+        # (a NaN, infinite or non-positive horizon gets the range error of with_overrides)
         overrides["rhc.steps"] = max(cfg.rhc.steps, math.ceil(horizon / MAX_PREDICTION_STEP_S))
     if rate is not None:
         if not rate > 0:

@@ -12,6 +12,7 @@ real camera's or the emulated one's views, see ``hil camera calibrate``).
 
 from __future__ import annotations
 
+import contextlib
 import re
 import tomllib
 from collections.abc import Iterable
@@ -21,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from hal.config import RigConfig, load_config
+from hal.config import RigConfig, config_from_dict
 from hal.errors import HalConfigError
 
 MIN_CORNERS = 8
@@ -228,6 +229,8 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     other section stay as they were), or the section is appended. The file is created when
     missing; the result is validated like any config before it replaces the file."""
     p = Path(path)
+    if p.exists() and not p.is_file():
+        raise HalConfigError(f"{p}: not a regular file, not touched")
     text = p.read_text(encoding="utf-8") if p.exists() else ""
     try:
         tomllib.loads(text)
@@ -257,12 +260,13 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
         *others,
     ]
     new_text = "\n".join([*kept, *([""] if kept else []), *block]) + "\n"
+    cfg = config_from_dict(tomllib.loads(new_text), source=str(p))  # validated before writing
     tmp = p.with_name(p.name + ".calibrating")
-    tmp.write_text(new_text, encoding="utf-8")
     try:
-        cfg = load_config(tmp)
-    except HalConfigError:
-        tmp.unlink(missing_ok=True)
-        raise
-    tmp.replace(p)
+        tmp.write_text(new_text, encoding="utf-8")
+        tmp.replace(p)
+    except OSError as exc:  # named by the file asked for, not the temporary one
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise OSError(exc.errno, exc.strerror, str(p)) from None
     return cfg

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import stat
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -176,7 +177,11 @@ def load_config(path: str | Path | None = None) -> RigConfig:
     if path is None:
         return validate(RigConfig())
     p = Path(path)
-    try:
+    try:  # stat first: a FIFO or a device would block or never end (never opened)
+        mode = p.stat().st_mode
+        if not stat.S_ISREG(mode):
+            what = "is a directory" if stat.S_ISDIR(mode) else "not a regular file"
+            raise HalConfigError(f"cannot read config file {p}: {what}")
         raw = p.read_bytes()
     except OSError as exc:
         raise HalConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from None

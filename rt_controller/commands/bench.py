@@ -7,10 +7,13 @@ import json
 import sys
 from collections.abc import Callable
 
-from hal.arguments import bounded_int, duration
+from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration
 from hal.config import LAW_NAMES, PROFILES
 from rt_controller.commands.common import add_config_option, config_from_args
 from rt_controller.commands.progress import Progress, add_quiet_option
+
+SKIPPABLE_S = bounded_float(0, MAX_DURATION_S, lo_inclusive=True, what="seconds")
+"""A duration where 0 skips the measurement."""
 
 
 def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespace], int]) -> None:
@@ -46,13 +49,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     lp.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
     lp.add_argument(
         "--lockstep-duration",
-        type=float,
+        type=SKIPPABLE_S,
         default=10.0,
         help="simulated seconds of the lockstep speed run (0 = skip)",
     )
     lp.add_argument(
         "--monitor-port",
-        type=int,
+        type=bounded_int(0, 65535, what="port"),
         metavar="PORT",
         help="also run `hil monitor` on this port during the real-time runs (connect a client)",
     )
@@ -98,7 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     vp.add_argument(
         "--lockstep-duration",
-        type=float,
+        type=SKIPPABLE_S,
         default=5.0,
         metavar="S",
         help="simulated seconds of the lockstep rigs: images, images with no image log, "
@@ -106,7 +109,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     vp.add_argument(
         "--realtime-duration",
-        type=float,
+        type=SKIPPABLE_S,
         default=10.0,
         metavar="S",
         help="seconds of a realtime rig with images at 60 fps, timing the pipeline per frame "
@@ -277,13 +280,13 @@ def run_soak(args: argparse.Namespace) -> int:
 
 
 def run_tuning(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
+    from rt_controller.commands.output import output_dir
     from rt_controller.rig.bench_tuning import bench_tuning
 
+    workdir = output_dir(args.workdir, "--workdir")  # a bad path before the rig starts
     progress = Progress.of(args, "hil bench tuning")
     with progress.stage(f"a realtime run with {args.requests} parameter sets"):
-        result = bench_tuning(Path(args.workdir), requests=args.requests)
+        result = bench_tuning(workdir, requests=args.requests)
     print(json.dumps(result))
     return 0 if result["rig_exit"] == 0 else 1
 
@@ -315,7 +318,7 @@ def run_loop(args: argparse.Namespace) -> int:
         raise ControllerConfigError(f"--host-probe must be 0..600 s, got {args.host_probe!r}")
     cfg = config_from_args(args)
     keep = output_dir(args.keep, "--keep") if args.keep else None
-    measured = args.host_probe + len(rates) * args.duration + max(0.0, args.lockstep_duration)
+    measured = args.host_probe + len(rates) * args.duration + args.lockstep_duration
     progress = Progress.of(args, "hil bench loop")
     with progress.stage(
         f"running the rig with {args.law} at {', '.join(f'{r:g}' for r in rates)} Hz, "

@@ -14,8 +14,15 @@ import math
 import sys
 from typing import Any
 
+from hal.arguments import bounded_float, bounded_int
+
 TARGETS = {"fx_rel": 0.005, "fy_rel": 0.005, "cx_px": 1.0, "cy_px": 1.0, "k1_rel": 0.05}
 """How close a calibration from emulated views must come to the true lens (issue 38)."""
+MAX_MARKERS = 100
+"""DICT_4X4_100 has 100 markers; a board of X x Y squares needs X*Y // 2 of them."""
+EMULATED_MARKER_MIN = 0.69
+"""The emulated board draws a square as 8 cells and a marker needs 6 (4 bits and a border):
+a smaller marker/square ratio cannot be drawn."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,19 +55,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     src.add_argument("--images", metavar="DIR", help="views: the image files of a folder")
     c.add_argument("--views", type=int, default=20, metavar="N", help="emulated views (20)")
-    c.add_argument("--seed", type=int, default=0, help="emulated views: poses and noise (0)")
+    c.add_argument(
+        "--seed",
+        type=bounded_int(0, 2**32 - 1, what="seed"),
+        default=0,
+        help="emulated views: poses and noise (0)",
+    )
     c.add_argument("--write", metavar="FILE", help="write the result here instead of --config")
     c.add_argument("--save-views", metavar="DIR", help="emulated views: also save them as PNG")
     c.add_argument(
         "--squares",
-        type=int,
+        type=bounded_int(3, 2 * MAX_MARKERS // 3 + 1, what="squares"),
         nargs=2,
         metavar=("X", "Y"),
         default=(14, 10),
         help="board squares across and down (14 10)",
     )
-    c.add_argument("--square-mm", type=float, default=30.0, help="square side, mm (30)")
-    c.add_argument("--marker-mm", type=float, default=22.5, help="marker side, mm (22.5)")
+    c.add_argument(
+        "--square-mm",
+        type=bounded_float(1, 1000, lo_inclusive=True, what="square side in mm"),
+        default=30.0,
+        help="square side, mm (30)",
+    )
+    c.add_argument(
+        "--marker-mm",
+        type=bounded_float(0, 1000, what="marker side in mm"),
+        default=22.5,
+        help="marker side, mm (22.5)",
+    )
     c.add_argument("--k3", action="store_true", help="also fit k3 (default: held at 0)")
     c.add_argument("--tangential", action="store_true", help="also fit p1, p2 (default: held at 0)")
     c.add_argument("--json", action="store_true", help="print one JSON object")
@@ -74,10 +96,20 @@ def _spec(args: argparse.Namespace) -> Any:
     sx, sy = args.squares
     if sx < 3 or sy < 3:
         raise HalConfigError(f"--squares: at least 3 x 3, got {sx} x {sy}")
+    if sx * sy // 2 > MAX_MARKERS:
+        raise HalConfigError(
+            f"--squares {sx} {sy}: a DICT_4X4_100 board has at most {MAX_MARKERS} markers "
+            f"(X * Y up to {2 * MAX_MARKERS + 1} squares), this one needs {sx * sy // 2}"
+        )
     if not (0 < args.marker_mm < args.square_mm):
         raise HalConfigError(
             f"--marker-mm must be positive and below --square-mm ({args.square_mm:g}), "
             f"got {args.marker_mm:g}"
+        )
+    if not args.images and args.marker_mm < EMULATED_MARKER_MIN * args.square_mm:
+        raise HalConfigError(
+            f"--marker-mm {args.marker_mm:g}: the emulated board needs markers of at least "
+            f"{EMULATED_MARKER_MIN:g} of --square-mm ({args.square_mm:g})"
         )
     return CharucoSpec(sx, sy, args.square_mm / 1000.0, args.marker_mm / 1000.0)
 
@@ -102,11 +134,13 @@ def truth_errors(calibration: Any, cfg: Any) -> dict[str, float]:
 def run_calibrate(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.errors import HalConfigError
-    from rt_controller.commands.output import print_summary
+    from rt_controller.commands.output import output_file
     from vision.calibration import calibrate, read_images, write_vision_section
 
     cfg = load_config(args.config)
     spec = _spec(args)
+    if args.write:  # a bad path is refused before the views are taken
+        output_file(args.write, "--write")
     if args.images:
         views = read_images(args.images)
     else:
@@ -141,18 +175,29 @@ def run_calibrate(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     target = args.write or args.config
-    if target:
-        write_vision_section(target, cal)
+    try:
+        if target:
+            write_vision_section(target, cal)
+    except (HalConfigError, OSError):
+        summary["written"] = None  # the calibration is printed before the error: not lost
+        _print(summary, args.json)
+        raise
     summary["written"] = target
-    if args.json:
+    _print(summary, args.json)
+    if not target and not args.json:
+        print("note: not written anywhere; give --config FILE (or --write FILE)")
+    return status
+
+
+def _print(summary: dict[str, Any], as_json: bool) -> None:
+    from rt_controller.commands.output import print_summary
+
+    if as_json:
         print_summary(summary, True, "hil camera calibrate")
     else:
         flat = {k: v for k, v in summary.items() if k != "truth"}
         flat.update({f"truth.{k}": v for k, v in summary.get("truth", {}).items()})
         print_summary(flat, False, "hil camera calibrate")
-        if not target:
-            print("note: not written anywhere; give --config FILE (or --write FILE)")
-    return status
 
 
 def _save(views: list[Any], folder: str) -> None:

@@ -8,7 +8,7 @@ import json
 import sys
 from typing import Any
 
-from hal.arguments import add_key_option
+from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, bounded_int
 from rt_controller.commands.common import add_config_option
 
 ACTION_NAMES = ("arm", "disarm", "mark", "reset_scenario")
@@ -36,16 +36,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--at-tick",
-        type=int,
+        type=bounded_int(0, 2**63 - 1, what="tick"),
         metavar="K",
         help="set/load and the actions: take effect at the first tick >= K",
     )
     p.add_argument(
         "--timeout",
-        type=float,
+        type=bounded_float(0, MAX_DURATION_S, what="timeout in seconds"),
         metavar="S",
         help="answer wait (default 10 s; with --at-tick 600 s, as the answer comes when that "
-        "tick does)",
+        "tick does); also bounds the wait for the zenoh hub (default 10 s)",
     )
     p.add_argument("-o", "--out", metavar="FILE", help="dump: write the TOML here")
     p.add_argument("--json", action="store_true", help="print the answer as JSON")
@@ -65,21 +65,40 @@ def _changes_of_file(path: str, running: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in wanted.items() if running.get(k) != v}
 
 
+def _check_keys(keys: list[str]) -> None:
+    """Refuse ``get`` of keys that are no online parameter, naming them and the known ones
+    (before any wait: ``set`` of such a key is refused too, by the controller)."""
+    from rt_controller.calibration.parameters import TUNABLE
+    from rt_controller.errors import ControllerConfigError
+
+    unknown = [k for k in keys if k not in TUNABLE]
+    if unknown:
+        raise ControllerConfigError(
+            f"get: unknown parameter key(s) {', '.join(map(repr, unknown))} "
+            f"(known: {', '.join(TUNABLE)})"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
     from rt_controller.calibration.link import event_line, outcome_line, request
+    from rt_controller.commands.output import output_file
     from rt_controller.commands.replay import parse_sets
     from rt_controller.errors import ControllerConfigError
 
+    if args.action == "get":
+        _check_keys(args.items)
     cfg = configure_key(load_config(args.config), args.key_file, "hil param")
     if args.action in ("load", "diff") and len(args.items) != 1:
         raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
     if args.action == "set" and not args.items:
         raise ControllerConfigError("hil param set expects KEY=VALUE ...")
+    out_file = output_file(args.out, "--out") if args.out and args.action == "dump" else None
     key = rig_key(cfg)
+    hub_wait = {} if args.timeout is None else {"wait_s": args.timeout}
     with stop_on_signals() as stop:
         session = open_session(
             cfg,
@@ -87,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
             endpoint=args.zenoh_endpoint,
             config_file=args.zenoh_config,
             stop_event=stop,
+            **hub_wait,
         )
         try:
 
@@ -105,9 +125,8 @@ def run(args: argparse.Namespace) -> int:
                 return 0 if out["event"]["accepted"] else 1
             if args.action == "dump":
                 out = ask("dump")
-                if args.out:
-                    with open(args.out, "w", encoding="utf-8") as fh:
-                        fh.write(out["toml"])
+                if out_file is not None:
+                    out_file.write_text(out["toml"], encoding="utf-8")
                 else:
                     sys.stdout.write(out["toml"])
                 return 0

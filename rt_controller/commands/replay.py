@@ -7,6 +7,7 @@ import json
 import sys
 from typing import Any
 
+from hal.arguments import MAX_DURATION_S, bounded_float
 from hal.config import RigConfig
 from rt_controller.commands.progress import Progress, add_quiet_option
 
@@ -39,6 +40,10 @@ original E2E counters and CRCs) and the /vision/features payloads onto zenoh (re
 re-stamped so they arrive as old as they were recorded), at the recorded timing divided by
 --speed (0 = as fast as possible), so a live `hil controller` can be fed a recorded run.
 """
+
+
+SECONDS = bounded_float(0, MAX_DURATION_S, lo_inclusive=True, what="seconds")
+"""A wait of the republisher: 0 or more, finite."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -76,18 +81,21 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--republish", action="store_true", help="play the raw inputs onto CAN and zenoh"
     )
     g.add_argument(
-        "--speed", type=float, default=1.0, help="playback speed factor (0 = as fast as possible)"
+        "--speed",
+        type=bounded_float(0, 1e6, lo_inclusive=True, what="speed factor"),
+        default=1.0,
+        help="playback speed factor (0 = as fast as possible)",
     )
     g.add_argument(
         "--wait-subscriber",
-        type=float,
+        type=SECONDS,
         default=10.0,
         metavar="S",
         help="wait up to S s for a features subscriber before playing (default 10; 0 = no)",
     )
     g.add_argument(
         "--lead-in",
-        type=float,
+        type=SECONDS,
         default=0.5,
         metavar="S",
         help="pause S s after the subscriber appeared before the first message (default 0.5)",
@@ -130,6 +138,10 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import print_summary_with_notes
 
     if args.republish:
+        if args.out:
+            from rt_controller.errors import ControllerConfigError
+
+            raise ControllerConfigError("--out writes a replayed run; --republish writes none")
         return _republish(args)
     from rt_controller.commands.output import output_file
     from rt_controller.logtools.reader import read_hil_log
@@ -181,8 +193,8 @@ def _republish(args: argparse.Namespace) -> int:
             zenoh_endpoint=args.zenoh_endpoint,
             zenoh_config=args.zenoh_config,
             cfg=cfg,
-            wait_subscriber_s=max(0.0, args.wait_subscriber),
-            lead_in_s=max(0.0, args.lead_in),
+            wait_subscriber_s=args.wait_subscriber,
+            lead_in_s=args.lead_in,
             stop=stop,
             key=key,
         )

@@ -48,8 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import print_summary
+    from rt_controller.control.simulate import tick_count, too_short
+    from rt_controller.errors import ControllerConfigError
 
     cfg = config_from_args(args)
+    if tick_count(args.duration, cfg.rates.control_hz) < 1:  # before numba compiles anything
+        raise ControllerConfigError(too_short(args.duration, cfg.rates.control_hz))
     ctl = cfg.controller
     progress = Progress.of(args, "hil simulate")
     with progress.stage(

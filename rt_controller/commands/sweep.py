@@ -66,13 +66,14 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.extras import require_extra
 
     require_extra("sweep", "this command")
-    from rt_controller.commands.output import print_summary
+    from rt_controller.commands.output import output_dir, print_summary
     from rt_controller.sweep.executor import run_sweep
     from rt_controller.sweep.report import write_report
     from rt_controller.sweep.spec import load_spec
 
     spec = load_spec(args.spec)
     out = Path(args.out) if args.out else Path("sweeps") / Path(args.spec).stem
+    output_dir(out, "--out")  # a file there is refused before the cluster starts
     spec.tasks(args.engine)  # every run's config is valid before the cluster starts
     outcome = run_sweep(
         spec,

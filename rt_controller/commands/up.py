@@ -87,7 +87,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import tempfile
 
+    from rt_controller.commands.common import config_from_args
     from rt_controller.commands.output import output_file, verdict
+    from rt_controller.control.simulate import tick_count, too_short
+    from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.failures import RigHung
     from rt_controller.rig.options import RigOptions
     from rt_controller.rig.processes import run_rig
@@ -96,6 +99,9 @@ def run(args: argparse.Namespace) -> int:
     if args.log is not None:
         output_file(args.log, "--log")
     config = _effective_config(args)
+    rate = config_from_args(args).rates.control_hz
+    if tick_count(args.duration, rate) < 1:  # a run of no tick is no run, not a clean one
+        raise ControllerConfigError(too_short(args.duration, rate))
     if args.monitor or args.monitor_port is not None:
         _check_monitor_port(args.monitor_port)
     with tempfile.TemporaryDirectory(prefix="hil-up-") as tmp:

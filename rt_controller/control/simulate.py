@@ -15,6 +15,7 @@ import numpy as np
 
 from hal.config import RigConfig
 from rt_controller.control.controller import Controller
+from rt_controller.errors import ControllerConfigError
 from rt_controller.sample_stats import percentile
 
 
@@ -92,6 +93,19 @@ class SimResult:
         return out
 
 
+def tick_count(duration: float, rate: float) -> int:
+    """Control periods in ``duration`` s at ``rate`` Hz (a partial last period is not run)."""
+    return math.floor(duration * rate + 1e-9)
+
+
+def too_short(duration: float, rate: float) -> str:
+    """Why a run of ``duration`` s at ``rate`` Hz is refused: not one control period."""
+    return (
+        f"--duration {duration:g} s is shorter than one control period ({1 / rate:g} s at "
+        f"{rate:g} Hz): no tick would run"
+    )
+
+
 def run_closed_loop(
     plant: Plant,
     controller: Controller,
@@ -113,7 +127,9 @@ def run_closed_loop(
     controller.warm_up()  # what the daemon and ``hil replay`` do before their first tick
     rate = cfg.rates.control_hz
     substeps = cfg.rates.substeps
-    ticks = math.floor(duration * rate + 1e-9)
+    ticks = tick_count(duration, rate)
+    if ticks < 1:
+        raise ControllerConfigError(too_short(duration, rate))
     tr = Trace()
     states: collections.deque[tuple[np.ndarray, np.ndarray]] = collections.deque(
         maxlen=state_delay + 1

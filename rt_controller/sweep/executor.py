@@ -113,8 +113,11 @@ def open_cluster(
             )
         try:
             client = Client(scheduler, timeout="20s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise ControllerConfigError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+        except Exception as exc:  # also a peer speaking another protocol (MemoryError)
+            why = " ".join(str(exc).split())[:200] or type(exc).__name__
+            raise ControllerConfigError(
+                f"--scheduler {scheduler}: cannot connect (is it a Dask scheduler?): {why}"
+            ) from None
         try:
             client.wait_for_workers(1, timeout=WORKER_WAIT_S)
         except TimeoutError:

@@ -105,6 +105,13 @@ def test_a_log_path_that_cannot_hold_a_log_is_refused(tmp_path, capsys, command,
     assert ("the path is empty" if what == "empty" else "is not a regular file") in line, line
 
 
+def test_a_run_of_no_tick_is_refused(capsys):
+    """Shorter than one control period: no tick would run, and a run of none is no clean run."""
+    assert main(["up", "--lockstep", "--duration", "0.01"]) == 2
+    line = _one_error_line(capsys.readouterr().err, "hil up")
+    assert "shorter than one control period (0.02 s at 50 Hz)" in line, line
+
+
 def test_a_monitor_port_out_of_range_is_refused(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["up", "--monitor-port", "99999"])
