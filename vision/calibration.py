@@ -13,6 +13,7 @@ real camera's or the emulated one's views, see ``hil camera calibrate``).
 from __future__ import annotations
 
 import contextlib
+import math
 import re
 import tomllib
 from collections.abc import Iterable
@@ -28,6 +29,10 @@ from hal.errors import HalConfigError
 MIN_CORNERS = 8
 """A view with fewer identified corners is not used (too little of the board in view)."""
 MIN_VIEWS = 3
+SAME_VIEW_PX = 1.0
+"""Two views whose corners all lie within this of each other are one pose seen twice."""
+MIN_TILT_DEG = 5.0
+"""The board's normal must turn at least this much over the views."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
@@ -179,6 +184,14 @@ def calibrate(
         if found is not None:
             obj_pts.append(found[0])
             img_pts.append(found[1])
+    found_views = len(obj_pts)
+    keep = distinct_views(obj_pts, img_pts)
+    if size is not None and found_views >= MIN_VIEWS > len(keep):
+        raise CalibrationError(
+            f"only {len(keep)} distinct view(s) of {found_views}: the others repeat one (the "
+            f"same corners within {SAME_VIEW_PX:g} px); need {MIN_VIEWS} or more board poses"
+        )
+    obj_pts, img_pts = [obj_pts[i] for i in keep], [img_pts[i] for i in keep]
     if size is None or len(obj_pts) < MIN_VIEWS:
         raise CalibrationError(
             f"only {len(obj_pts)} of {total} view(s) show at least {MIN_CORNERS} board corners; "
@@ -187,9 +200,16 @@ def calibrate(
         )
     flags = (0 if k3 else cv2.CALIB_FIX_K3) | (0 if tangential else cv2.CALIB_ZERO_TANGENT_DIST)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    rms, k, dist, _, _ = cv2.calibrateCamera(
+    rms, k, dist, rvecs, _ = cv2.calibrateCamera(
         obj_pts, img_pts, size, None, None, flags=flags, criteria=crit
     )
+    tilt = tilt_spread_deg(rvecs)
+    if tilt < MIN_TILT_DEG:
+        raise CalibrationError(
+            f"the {len(obj_pts)} views show the board at one orientation (its normal within "
+            f"{tilt:.1f} deg, under {MIN_TILT_DEG:g}): the focal length is not determined; "
+            "tilt the board between views"
+        )
     return Calibration(
         size[0],
         size[1],
@@ -200,6 +220,29 @@ def calibrate(
         total,
         int(sum(len(p) for p in img_pts)),
     )
+
+
+def distinct_views(obj_pts: list[np.ndarray], img_pts: list[np.ndarray]) -> list[int]:
+    """The views that do not repeat an earlier one (the same corners, each within
+    :data:`SAME_VIEW_PX`): a repeated pose adds no constraint, only a false confidence."""
+    keep: list[int] = []
+    for i, (obj, img) in enumerate(zip(obj_pts, img_pts, strict=True)):
+        if not any(
+            obj.shape == obj_pts[j].shape
+            and np.array_equal(obj, obj_pts[j])
+            and float(np.abs(img - img_pts[j]).max()) < SAME_VIEW_PX
+            for j in keep
+        ):
+            keep.append(i)
+    return keep
+
+
+def tilt_spread_deg(rvecs: Iterable[np.ndarray]) -> float:
+    """The largest angle between the board's normals over the views, in degrees (a planar
+    target seen at one orientation leaves the focal length undetermined: Zhang, 2000)."""
+    normals = [cv2.Rodrigues(np.asarray(r, dtype=np.float64))[0][:, 2] for r in rvecs]
+    cos = min((abs(float(a @ b)) for a in normals for b in normals), default=1.0)
+    return math.degrees(math.acos(min(1.0, cos)))
 
 
 def read_images(folder: str | Path) -> list[np.ndarray]:
