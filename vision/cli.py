@@ -37,7 +37,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     from hal.secoc import configure_key
     from vision.grabber import Dropout
     from vision.process import run_live, run_offline
-    from vision.sources import parse_source
+    from vision.sources import check_source, parse_source
 
     given = [f"--{name}" for name in CAMERA_ONLY if getattr(args, name, None) is not None]
     dropouts = [Dropout.parse(text) for text in getattr(args, "dropout", None) or []]
@@ -47,6 +47,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             "the frames it gets (set the emulated camera in the [camera] section)"
         )
     kind, _ = parse_source(args.source)
+    check_source(args.source)  # a missing file or device is told now, not after --wait
     cfg = load_config(args.config)
     if kind != "log":
         cfg = configure_key(cfg, args.key_file, "hil vision")

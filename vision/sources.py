@@ -19,6 +19,8 @@ from 0.
 
 from __future__ import annotations
 
+import os
+import stat
 import threading
 import time
 from collections.abc import Callable
@@ -140,8 +142,7 @@ class CaptureSource:
         """VideoCapture reads whole frames: the request is ignored."""
 
     def open(self) -> cv2.VideoCapture:
-        if self.kind == "file" and "://" not in self.target:
-            _check_is_file(Path(self.target), self.name, "a video or image file")
+        check_source(self.name)
         api = {"v4l2": cv2.CAP_V4L2, "gst": cv2.CAP_GSTREAMER}.get(self.kind, cv2.CAP_ANY)
         cap = cv2.VideoCapture(self.target, api)
         if not cap.isOpened():
@@ -156,7 +157,7 @@ class CaptureSource:
         cap = self.open()
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) if self.pace else 0.0
         period_ns = round(1e9 / fps) if fps > 0 else 0
-        seq, t0 = 0, 0
+        seq, t0, rejected = 0, 0, 0
         try:
             while not stop.is_set():
                 if period_ns and seq:  # frame k at k periods after the first frame was read
@@ -165,9 +166,15 @@ class CaptureSource:
                 stamp = time.monotonic_ns()
                 t0 = t0 or stamp  # the first read (a decoder's start-up) sets the clock
                 if not ok:
+                    if seq == 0 and not rejected and not stop.is_set():
+                        raise HalConfigError(
+                            f"--source {self.name}: OpenCV could not read a frame from it (not "
+                            "a video or image it decodes, or the device gave none)"
+                        )
                     break  # end of the file, or the device went away
                 if img is None or img.size == 0:
                     on_reject("malformed")
+                    rejected += 1
                     continue
                 on_frame(grabbed_frame(seq, img, stamp))
                 seq += 1
@@ -193,7 +200,7 @@ class LogSource:
         from mcap.records import Channel, Header, Message
         from mcap.stream_reader import StreamReader
 
-        _check_is_file(self.path, self.name, "an MCAP log")
+        check_source(self.name)
         seq, seen, started, topic_ids = 0, 0, False, set()
         with self.path.open("rb") as fh:
             reader = StreamReader(
@@ -227,12 +234,46 @@ class LogSource:
             )
 
 
+def check_source(spec: str) -> None:
+    """One line unless ``spec``'s target can be opened at all: a file or log that is a readable
+    regular file, a V4L2 device that is a character device this user may open, a GStreamer
+    pipeline with OpenCV's GStreamer backend. Checked before anything waits (the zenoh hub),
+    so a typo is told at once, not after ``--wait``."""
+    kind, target = parse_source(spec)
+    if kind == "file" and "://" not in target:
+        _check_is_file(Path(target), spec, "a video or image file")
+    elif kind == "log":
+        _check_is_file(Path(target), spec, "an MCAP log")
+    elif kind == "v4l2":
+        _check_device(Path(target), spec)
+    elif kind == "gst" and not cv2.videoio_registry.hasBackend(cv2.CAP_GSTREAMER):
+        raise HalConfigError(f"--source {spec}: this OpenCV was built without GStreamer")
+
+
 def _check_is_file(path: Path, name: str, what: str) -> None:
-    """One line unless ``path`` is a regular file: missing and directory said apart."""
+    """One line unless ``path`` is a readable regular file: missing, directory and unreadable
+    said apart."""
     if path.is_dir():
         raise HalConfigError(f"--source {name}: is a directory, not {what}")
     if not path.is_file():
         raise HalConfigError(f"--source {name}: no such file")
+    if not os.access(path, os.R_OK):
+        raise HalConfigError(f"--source {name}: not readable (permission denied)")
+
+
+def _check_device(path: Path, name: str) -> None:
+    """One line unless ``path`` is a character device this user may read and write (V4L2
+    opens it read-write)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        raise HalConfigError(f"--source {name}: no such device") from None
+    if not stat.S_ISCHR(mode):
+        raise HalConfigError(f"--source {name}: not a video device (a V4L2 device is /dev/videoN)")
+    if not os.access(path, os.R_OK | os.W_OK):
+        raise HalConfigError(
+            f"--source {name}: permission denied (is this user in the device's group, e.g. video?)"
+        )
 
 
 def _varint(buf: bytes, i: int) -> tuple[int, int]:

@@ -61,12 +61,6 @@ def validate(cfg: RigConfig) -> RigConfig:
             f"camera.{key}",
             f"must be (0, 0) (derived) or positive on both axes, got {list(pair)}",
         )
-    cx, cy = c.true_principal_point_px
-    _require(
-        cx < c.width_px and cy < c.height_px,
-        "camera.principal_point_px",
-        f"must lie inside the {c.width_px}x{c.height_px} image, got ({cx:g}, {cy:g})",
-    )
     g = cfg.gains
     _require(g.kp > 0, "gains.kp", "must be positive")
     _check_spd(g.alpha, "gains.alpha")
@@ -135,6 +129,7 @@ def validate(cfg: RigConfig) -> RigConfig:
         f"must be command or free, got {d.state_sync!r}",
     )
     check_ranges(cfg)
+    _check_principal_point(cfg)
     _check_plant(cfg)
     for j in range(2):
         _require(
@@ -150,6 +145,18 @@ def validate(cfg: RigConfig) -> RigConfig:
         )
     _check_cia402(cfg)
     return cfg
+
+
+def _check_principal_point(cfg: RigConfig) -> None:
+    """The principal point inside the image; after the ranges, so that a bad image size is
+    its own key's error, not this one's."""
+    c = cfg.camera
+    cx, cy = c.true_principal_point_px
+    _require(
+        cx < c.width_px and cy < c.height_px,
+        "camera.principal_point_px",
+        f"must lie inside the {c.width_px}x{c.height_px} image, got ({cx:g}, {cy:g})",
+    )
 
 
 def _check_cia402(cfg: RigConfig) -> None:
