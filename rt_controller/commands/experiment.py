@@ -17,7 +17,9 @@ from rt_controller.commands.progress import add_quiet_option
 if TYPE_CHECKING:
     from rich.console import Console
 
+    from rt_controller.commands.progress import Progress
     from rt_controller.rig.experiment import RunResult, Settings
+    from rt_controller.sweep.executor import Cluster
 
 DESCRIPTION = """\
 Reproduces the paper's experiments (Section V) on the emulated rig: `hil emulator`,
@@ -158,21 +160,45 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Body of ``hil experiment``: every option is checked (the config, each run's
+    configuration, the ``--scheduler`` reached) before the output folder is made, so a bad
+    one leaves nothing behind."""
     from rich.console import Console
 
     from rt_controller.extras import require_extra
 
     require_extra("sweep", "this command")  # the runs go as tasks on the sweep's Dask executor
 
-    from rt_controller.commands.output import output_dir
     from rt_controller.commands.progress import Progress
-    from rt_controller.rig.experiment import EXPERIMENTS, Settings, prepare
-    from rt_controller.rig.experiment_report import write_outputs
-    from rt_controller.rig.supervise import RigInterrupted, supervised
+    from rt_controller.sweep.executor import open_cluster
 
     out = Path(args.out) if args.out else default_out()
     if args.scheduler:  # the workers read and write the runs' files by these paths
         out = out.absolute()
+    settings = settings_from_args(args, out)
+    err = Console(stderr=True, quiet=args.quiet)  # the runs' lines and the progress bar
+    progress = Progress("hil experiment", quiet=args.quiet, console=err)
+    local = settings.scheduler is None
+    where = "starting the local Dask cluster" if local else f"connecting to {settings.scheduler}"
+    with progress.stage(where):
+        cl = open_cluster(
+            settings.effective_jobs() if local else None,
+            settings.scheduler,
+            processes=False,
+            workers_option="--jobs",
+        )
+    try:
+        return run_on(cl, args, settings, err, progress)
+    finally:
+        cl.close()
+
+
+def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:
+    """The experiment's settings, validated with every run's configuration (a config file that
+    does not load, a ``--noise`` the camera cannot apply): nothing is written yet."""
+    from hal.config import load_config
+    from rt_controller.rig.experiment import EXPERIMENTS, Settings, plan, run_config
+
     settings = Settings(
         experiments=EXPERIMENTS if args.which == "all" else (args.which,),
         out=out,
@@ -188,9 +214,23 @@ def run(args: argparse.Namespace) -> int:
         profile=args.profile,
     )
     settings.validate()
+    for specs in plan(settings, load_config(settings.config)).values():
+        for spec in specs:
+            run_config(settings, spec)
+    return settings
+
+
+def run_on(
+    cl: Cluster, args: argparse.Namespace, settings: Settings, err: Console, progress: Progress
+) -> int:
+    """Write the runs' configurations, run them on the cluster ``cl`` and write the report."""
+    from rt_controller.commands.output import output_dir
+    from rt_controller.rig.experiment import prepare
+    from rt_controller.rig.experiment_report import write_outputs
+    from rt_controller.rig.supervise import RigInterrupted, supervised
+
+    out = settings.out
     output_dir(out, "--out")  # before any run: a file or an unwritable place is one line
-    err = Console(stderr=True, quiet=args.quiet)  # the runs' lines and the progress bar
-    progress = Progress("hil experiment", quiet=args.quiet, console=err)
     with progress.stage(f"writing the runs' configurations into {out}"):
         runs_by_exp, runs = prepare(settings)
     jobs = settings.effective_jobs()
@@ -202,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
     interrupted: RigInterrupted | None = None
     try:
         with supervised():
-            sweep(runs, settings, err)
+            sweep(cl, runs, settings, err)
     except RigInterrupted as exc:
         interrupted = exc
     finally:  # a partial sweep (failure, signal) is written up as far as it went
@@ -225,9 +265,9 @@ def run(args: argparse.Namespace) -> int:
     return 1 if res["failures"] or any(r.status != "ok" for r in runs.values()) else 0
 
 
-def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> None:
-    """Run every pending run as Dask tasks on the executor of ``hil sweep``
-    (:mod:`rt_controller.sweep.executor`), one task per batch
+def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: Console) -> None:
+    """Run every pending run as Dask tasks on ``cl``, a cluster of the executor of ``hil
+    sweep`` (:mod:`rt_controller.sweep.executor`), one task per batch
     (:func:`~rt_controller.rig.experiment.batches`), at most as many at a time as the cluster
     has workers (one for runs that may not run at once), with a progress bar on stderr.
 
@@ -248,7 +288,7 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
     )
 
     from rt_controller.rig.experiment import batches, run_batch
-    from rt_controller.sweep.executor import Tasks, open_cluster, request_stop, stop_name
+    from rt_controller.sweep.executor import Tasks, request_stop, stop_name
 
     columns = (
         TextColumn("{task.description}"),
@@ -258,50 +298,36 @@ def sweep(runs: dict[str, RunResult], settings: Settings, console: Console) -> N
         TimeRemainingColumn(),
     )
     local = settings.scheduler is None
-    cl = open_cluster(
-        settings.effective_jobs() if local else None,
-        settings.scheduler,
-        processes=False,
-        workers_option="--jobs",
-    )
     prefix = f"hil-experiment-{uuid.uuid4().hex[:12]}"  # unique on a shared cluster
     stop = stop_name(prefix)
-    try:
-        jobs = settings.effective_jobs() if local else cl.workers if settings.parallel() else 1
-        queue = batches(list(runs.values()), settings, jobs)
-        failed_in_a_row = 0
-        with (
-            Progress(*columns, console=console, transient=False) as progress,
-            Tasks(cl, prefix) as tasks,
-        ):
-            task = progress.add_task("runs", total=len(runs))
-            try:
-                while queue or len(tasks):
-                    while (
-                        queue and len(tasks) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES
-                    ):
-                        batch = queue.pop(0)
-                        tasks.submit(
-                            batch, run_batch, batch, settings, stop, key=batch[0].spec.name
-                        )
-                    if not len(tasks):
-                        break
-                    labels = ", ".join(
-                        b[0].spec.label
-                        + (f" (+{len(b) - 1} on its processes)" if len(b) > 1 else "")
-                        for b in tasks.in_flight()
-                    )
-                    progress.update(task, description=labels)
-                    for run in _take(tasks, runs):
-                        progress.advance(task)
-                        failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
-            finally:
-                if len(tasks):  # stopped: the running tasks stop their rigs; wait for them
-                    request_stop(cl, stop)
-                    while len(tasks):
-                        _take(tasks, runs)
-    finally:
-        cl.close()
+    jobs = settings.effective_jobs() if local else cl.workers if settings.parallel() else 1
+    queue = batches(list(runs.values()), settings, jobs)
+    failed_in_a_row = 0
+    with (
+        Progress(*columns, console=console, transient=False) as progress,
+        Tasks(cl, prefix) as tasks,
+    ):
+        task = progress.add_task("runs", total=len(runs))
+        try:
+            while queue or len(tasks):
+                while queue and len(tasks) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES:
+                    batch = queue.pop(0)
+                    tasks.submit(batch, run_batch, batch, settings, stop, key=batch[0].spec.name)
+                if not len(tasks):
+                    break
+                labels = ", ".join(
+                    b[0].spec.label + (f" (+{len(b) - 1} on its processes)" if len(b) > 1 else "")
+                    for b in tasks.in_flight()
+                )
+                progress.update(task, description=labels)
+                for run in _take(tasks, runs):
+                    progress.advance(task)
+                    failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
+        finally:
+            if len(tasks):  # stopped: the running tasks stop their rigs; wait for them
+                request_stop(cl, stop)
+                while len(tasks):
+                    _take(tasks, runs)
 
 
 def _take(tasks: Any, runs: dict[str, RunResult]) -> list[RunResult]:
@@ -355,7 +381,7 @@ def print_tables(res: dict[str, Any]) -> None:
             table.add_column(key_title)
             table.add_column("J", justify="right")
             for k, v in res[exp]["J"].items():
-                table.add_row(k, "failed" if v is None else f"{v:.4f}")
+                table.add_row(k, "—" if v is None else f"{v:.4f}")  # failed or not run
             console.print(table)
     if "table1" in res:
         t1 = res["table1"]
