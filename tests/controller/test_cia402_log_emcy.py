@@ -66,6 +66,7 @@ def test_report_lists_the_emcys_of_a_sync_loss_and_of_the_reset(tmp_path):
     resets = [e["node"] for e in co["emcys"] if e["error_reset"]]
     assert sorted(faults) == sorted((n, "0x8700") for n in nodes), co["emcys"]
     assert sorted(resets) == sorted(nodes), co["emcys"]
+    assert set(co["drive_states"]) == {str(n) for n in nodes}, co["drive_states"]
     for states in co["drive_states"].values():  # enabled, faulted, enabled again
         fault = states.index("FAULT")
         assert "OPERATION ENABLED" in states[:fault] and "OPERATION ENABLED" in states[fault:]

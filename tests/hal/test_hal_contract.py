@@ -67,6 +67,16 @@ def recv_frames(bus: can.BusABC, codec: DspCodec, count: int) -> list[Frame]:
     return frames
 
 
+def sends(bus: can.BusABC) -> bool:
+    """Whether ``bus`` still sends a valid frame: once shut down, a python-can bus refuses
+    with :class:`can.CanOperationError` (the public sign of a closed bus)."""
+    try:
+        bus.send(can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False))
+    except can.CanOperationError:
+        return False
+    return True
+
+
 def send_state(bus: can.BusABC, dsp: DspCodec, q: tuple[float, float], sample: int) -> None:
     for msg in dsp.encode_state(q, (0.5, -0.25), sample):
         bus.send(msg)
@@ -356,7 +366,7 @@ def test_close_disarms_an_armed_dsp_and_is_idempotent(spec: str, dsp_bus: can.Bu
     client.enable()
     client.close()
     client.close()
-    assert client.closed and client.bus._is_shutdown
+    assert client.closed and not sends(client.bus)
     frames = recv_frames(dsp_bus, DspCodec(), 7)
     assert frames == [
         DspControl(DspCommand.FAULT_RESET),
@@ -373,6 +383,6 @@ def test_client_does_not_own_a_bus_it_was_given(spec: str) -> None:
     with open_bus(spec) as bus:
         with JointClient(bus) as client:
             client.send_torque(0.0, 0.0)
-        assert not bus._is_shutdown
+        assert sends(bus)  # still open: the caller's to close
         with pytest.raises(HalError, match="closed"):
             client.send_torque(0.0, 0.0)

@@ -169,7 +169,7 @@ def test_the_decoded_topic_is_the_same_in_a_second_lockstep_run(cia402_log, tmp_
 
 
 def test_report_times_sync_and_pdos_and_lists_no_emcy(cia402_log):
-    _cfg, log, summary = cia402_log
+    cfg, log, summary = cia402_log
     co = summarize(read_log(log))["canopen"]
     assert co is not None
     # lockstep: one SYNC per tick after period 0, each answered by both drives
@@ -180,6 +180,8 @@ def test_report_times_sync_and_pdos_and_lists_no_emcy(cia402_log):
     assert co["sync_to_tpdo_us"]["median"] <= co["pdo_round_trip_us"]["median"]
     assert co["changes"] > 0 and co["never"] == 0, co  # the law's torques took effect
     assert co["emcys"] == []
+    nodes = {str(cfg.cia402.node_id_1), str(cfg.cia402.node_id_2)}
+    assert set(co["drive_states"]) == nodes, co["drive_states"]
     for states in co["drive_states"].values():
         assert "OPERATION ENABLED" in states and "FAULT" not in states, states
 
