@@ -56,7 +56,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="0 = until stopped",
     )
-    p.add_argument("--log", metavar="FILE.mcap", help="log path (default: logs/run-...mcap)")
+    p.add_argument(
+        "--log",
+        metavar="FILE.mcap",
+        help="log path (default: logs/run-...mcap); an existing file is refused unless --force",
+    )
+    p.add_argument("--force", action="store_true", help="replace an existing --log file")
     p.add_argument(
         "--no-rt", action="store_true", help="skip SCHED_FIFO/mlockall/affinity settings"
     )
@@ -93,11 +98,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.plan:
         return run_plan_command(args)
+    if args.log is not None:  # before the daemon opens its links
+        output_file(args.log, "--log", replace=args.force)
     cfg = configure_key(
         with_command_line(config_from_args(args), args), args.key_file, "hil controller"
     )
-    if args.log is not None:
-        output_file(args.log, "--log")  # before the daemon opens its links
     opts = daemon_options(args)
     with stop_on_signals() as stop:
         daemon = ControllerDaemon(cfg, opts, stop)

@@ -19,8 +19,11 @@ frames decoded by the recorder: kind, node, the decoded fields as columns).
 csv and parquet write one file per topic, LOGSTEM.TOPIC.csv (.parquet); mat writes one file,
 LOGSTEM.mat, with a struct per topic (fields: the columns) and a meta struct (the recorded
 configuration as JSON, its digest, the hil.run metadata). --out DIR puts them in DIR (default:
-the log's directory); an --out ending in the format's suffix is the file itself (for csv and
-parquet with one --topics). Needs the analysis extra: pip install 'hil-rhc-visual-servo[analysis]'.
+the log's directory; created if missing); an --out ending in the format's suffix is the file
+itself (for csv and parquet with one --topics). An --out ending in another format's suffix
+(--format mat --out m.csv) is refused: a folder of that name is not what it says. Existing
+files of these names are replaced (an export is made again from its log at any time). Needs
+the analysis extra: pip install 'hil-rhc-visual-servo[analysis]'.
 """
 
 
@@ -32,6 +35,20 @@ def topic_list(text: str) -> tuple[str, ...]:
             f"unknown topic(s) {', '.join(bad) or '(none)'}: choose from {', '.join(TOPIC_NAMES)}"
         )
     return topics
+
+
+def check_not_a_file_name(out: str, fmt: str) -> None:
+    """Refuse a folder ``--out`` named like another format's file (``--format mat --out
+    m.csv`` would make a folder ``m.csv``), unless that folder exists already."""
+    from rt_controller.errors import OutputPathError
+    from rt_controller.logs.export import SUFFIXES
+
+    suffix = Path(out).suffix
+    if suffix in SUFFIXES.values() and not Path(out).is_dir():
+        raise OutputPathError(
+            f"--out {out}: names a {suffix} file, but --format {fmt} writes {SUFFIXES[fmt]} "
+            f"files: give a folder, or a file name ending in {SUFFIXES[fmt]}"
+        )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,7 +68,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"comma-separated tables to write, of {','.join(TOPIC_NAMES)} "
         f"(default: {','.join(DEFAULT_TOPICS)})",
     )
-    p.add_argument("--out", metavar="PATH", help="output directory or file (default: beside LOG)")
+    p.add_argument(
+        "--out",
+        metavar="PATH",
+        help="output directory, or a file ending in the format's suffix (default: beside LOG); "
+        "existing files are replaced",
+    )
     p.add_argument("--json", action="store_true", help="print the files written as JSON")
     p.set_defaults(handler=run)
 
@@ -66,9 +88,10 @@ def run(args: argparse.Namespace) -> int:
 
     files = plan_outputs(args.log, args.format, args.topics, args.out)  # before any work:
     if args.out is not None and not set(files.values()) & {Path(args.out)}:
+        check_not_a_file_name(args.out, args.format)
         output_dir(args.out, "--out")
     for path in set(files.values()):
-        output_file(path, "--out")
+        output_file(path, "--out", replace=True)  # derived from the log: made again at will
     run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
     if "cycle" in args.topics and run_.log.n_cycles == 0:  # as replay: no empty tables
         why = f" ({run_.notes[0]})" if run_.notes else ""

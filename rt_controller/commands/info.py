@@ -12,11 +12,16 @@ the problems that make the run not clean (the rule of `hil controller`'s summary
 log's final /diagnostics record and recorder counters), and the topics with their message counts.
 A log whose writer was killed is reported as truncated, with what could be read; a complete log
 without the final /diagnostics record (controller killed, or a cut log made whole by `hil
-recover`) has that as a problem, and a copy made by `hil recover` says where it came from.
+recover`) has that as a problem, and a copy made by `hil recover` says where it came from. A run
+that ended before its duration ("the run ended after 60 of 250 ticks: stopped", as the final
+/diagnostics record says) and records that could not be read (not JSON objects, or cycle
+records without a tick: counted per topic) are problems too.
 
 --json prints one object: log, library, truncated (not all of it was read), damaged (the
 writer finished it, but damaged chunks were skipped), run, config_digest, duration_s, time_axis,
-ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, problems, recovered (null,
+ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, planned_ticks, end_reason,
+ticks_run (how the run ended, from its final /diagnostics record; null where an older log does
+not say), problems, rejected ({TOPIC: records skipped}), recovered (null,
 or the hil.recovered record: from, input_bytes, kept_bytes, lost_bytes, skipped_bytes, stopped,
 line), topics ({TOPIC: {messages, schema}}), messages, run_info (all hil.run metadata), notes.
 """
@@ -62,6 +67,14 @@ def _state(info: dict[str, Any]) -> str:
     return "TRUNCATED (the writer did not finish it)" if info["truncated"] else "complete"
 
 
+def _ended(info: dict[str, Any]) -> str:
+    """How the run ended: its end reason, the ticks run and those planned."""
+    planned = info.get("planned_ticks")
+    of = f" of {planned} planned" if planned is not None else ""
+    until = "" if planned is not None else " (no duration: run until stopped)"
+    return f"{info['end_reason']}, after {_fmt(info.get('ticks_run'))}{of} ticks{until}"
+
+
 def render(info: dict[str, Any]) -> str:
     """The text of ``hil info``: aligned ``key: value`` lines, then the topics."""
     run = info["run"]
@@ -79,6 +92,7 @@ def render(info: dict[str, Any]) -> str:
         ("laws", laws),
         ("deadline misses", f"{_fmt(info['deadline_misses'])} "
          f"({_fmt(info['missed_periods'])} missed periods)"),
+        *((("ended", _ended(info)),) if info.get("end_reason") else ()),
         ("problems", "; ".join(info["problems"]) or "none"),
         *((("recovered", info["recovered"]["line"]),) if info.get("recovered") else ()),
         ("messages", str(info["messages"])),

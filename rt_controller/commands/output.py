@@ -79,10 +79,14 @@ def output_dir(path: str | Path, option: str) -> Path:
     return out
 
 
-def output_file(path: str | Path, option: str) -> Path:
+def output_file(path: str | Path, option: str, *, replace: bool = True) -> Path:
     """The file ``path`` given with ``option`` (e.g. ``--out``): not empty, not a folder, a
     device or a FIFO, in a folder that :func:`output_dir` accepts (created if missing). The
-    file itself is not created."""
+    file itself is not created.
+
+    ``replace=False`` (a run's log, a log written by replay or recover: data that cannot be
+    made again) also refuses a path that exists, naming ``--force``; derived outputs that
+    are made again from their source (an export, a parameter dump) keep the default."""
     from rt_controller.errors import OutputPathError
 
     if not str(path):
@@ -92,6 +96,8 @@ def output_file(path: str | Path, option: str) -> Path:
         raise OutputPathError(f"{option} {path}: is a directory, not a file")
     if out.exists() and not out.is_file():  # a device, a FIFO: it would swallow the file
         raise OutputPathError(f"{option} {path}: is not a regular file")
+    if not replace and (out.exists() or out.is_symlink()):  # a dangling link: its target
+        raise OutputPathError(f"{option} {path}: exists (pass --force to replace it)")
     parent = out.parent
     if parent.exists() and not parent.is_dir():
         raise OutputPathError(f"{option} {path}: {parent} is not a directory")
@@ -100,6 +106,17 @@ def output_file(path: str | Path, option: str) -> Path:
     except OutputPathError as exc:  # name the file, not only its folder
         raise OutputPathError(f"{option} {path}: {str(exc).split(': ', 1)[1]}") from None
     return out
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether ``a`` and ``b`` name one existing file (also through a link or another
+    spelling of the path)."""
+    import os
+
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either is missing
+        return False
 
 
 def _why(exc: OSError, path: Path) -> str:

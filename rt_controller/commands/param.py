@@ -47,7 +47,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="answer wait (default 10 s; with --at-tick 600 s, as the answer comes when that "
         "tick does); also bounds the wait for the zenoh hub (default 10 s)",
     )
-    p.add_argument("-o", "--out", metavar="FILE", help="dump: write the TOML here")
+    p.add_argument(
+        "-o",
+        "--out",
+        metavar="FILE",
+        help="dump: write the TOML here (an existing FILE is replaced: dump again to remake it)",
+    )
     p.add_argument("--json", action="store_true", help="print the answer as JSON")
     add_config_option(p)
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
@@ -96,7 +101,9 @@ def run(args: argparse.Namespace) -> int:
         raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
     if args.action == "set" and not args.items:
         raise ControllerConfigError("hil param set expects KEY=VALUE ...")
-    out_file = output_file(args.out, "--out") if args.out and args.action == "dump" else None
+    out_file = None
+    if args.out and args.action == "dump":  # a dump is made again from the running set
+        out_file = output_file(args.out, "--out", replace=True)
     key = rig_key(cfg)
     hub_wait = {} if args.timeout is None else {"wait_s": args.timeout}
     with stop_on_signals() as stop:

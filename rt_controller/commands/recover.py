@@ -11,7 +11,8 @@ starts) and writes every schema, channel, message, metadata and attachment again
 writer, with chunk indexes, a summary section and the footer: a log whose recorder was
 SIGKILLed, or a file cut or damaged in a copy, then opens in mcap's own reader and in Foxglove.
 A hil.recovered metadata record in the copy names the input and what was kept; `hil info`
-shows it. The input is never changed (an --out naming it, or a device or FIFO, is refused).
+shows it. The input is never changed (an --out naming it, or a device or FIFO, is refused);
+an existing copy (--out or the default name) is refused unless --force.
 Prints one line with what was kept and what was lost (the bytes after the last complete
 record, usually a half-written chunk, and the damaged chunks skipped).
 
@@ -34,6 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", metavar="NEW.mcap", help="the copy (default: LOG.recovered.mcap beside LOG)"
     )
+    p.add_argument("--force", action="store_true", help="replace an existing copy")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
 
@@ -42,10 +44,14 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from rt_controller.commands.output import output_file
+    from rt_controller.commands.output import output_file, same_file
     from rt_controller.logtools.recover import default_out, recover
 
-    out = output_file(args.out, "--out") if args.out else default_out(Path(args.log))
+    out = Path(args.out) if args.out else default_out(Path(args.log))
+    option = "--out" if args.out else "the default --out"
+    if args.out or Path(args.log).exists():  # no folder made for a missing log's default
+        # the input itself is refused by recover, whatever --force says
+        output_file(out, option, replace=args.force or same_file(out, args.log))
     result = recover(args.log, out)
     print(json.dumps(result.as_dict()) if args.json else result.line())
     return 0

@@ -30,10 +30,12 @@ figures in compile_target); more is a change (exit 1, with the spread in the lin
 --config FILE replaces the log's configuration; --set KEY=VALUE (repeatable, VALUE parsed as
 JSON, else taken as a string) changes single settings on top, e.g. --set gains.kp=0.2 or
 --set rhc.kmax=8: the regression check of a changed solver against yesterday's rig run.
---out NEW.mcap writes the replayed run (replayed u/tau, zero loop-timing fields).
+--out NEW.mcap writes the replayed run (replayed u/tau, zero loop-timing fields); an existing
+NEW.mcap is refused unless --force (the log being replayed, never).
 --json keys: log, law, ticks, max_abs_du, max_abs_dtau, worst_tick, worst_tick_du,
 worst_tick_dtau, ticks_over_tol, law_mismatches, tol, ok, matches, truncated, allow_partial,
-compile_target, cross_target_spread, within_spread, notes (and out).
+skipped_records (cycle records that could not be read: the log is damaged), compile_target,
+cross_target_spread, within_spread (null when no spread was measured), notes (and out).
 
 --republish plays the recorded raw inputs back instead: the /hal/can/rx frames onto CAN (raw,
 original E2E counters and CRCs) and the /vision/features payloads onto zenoh (realtime messages
@@ -60,6 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--tol", type=float, default=1e-9, help="largest |difference| counted as equal (1e-9)"
     )
     p.add_argument("--out", metavar="NEW.mcap", help="write the replayed run to this log")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file")
     p.add_argument(
         "--allow-partial",
         action="store_true",
@@ -143,11 +146,14 @@ def run(args: argparse.Namespace) -> int:
 
             raise ControllerConfigError("--out writes a replayed run; --republish writes none")
         return _republish(args)
-    from rt_controller.commands.output import output_file
+    from rt_controller.commands.output import output_file, same_file
     from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.target_replay import replay_as_recorded
 
-    out = output_file(args.out, "--out") if args.out else None
+    out = None
+    if args.out:  # the log itself is refused by the replay, whatever --force says
+        replace = args.force or same_file(args.out, args.log)
+        out = output_file(args.out, "--out", replace=replace)
     progress = Progress.of(args, "hil replay")
     with progress.stage(f"reading {args.log}"):
         log = read_hil_log(args.log, raw=out is not None)

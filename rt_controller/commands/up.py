@@ -55,7 +55,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: auto)")
     add_profile_option(p)
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
-    p.add_argument("--log", metavar="FILE.mcap", help="controller log path")
+    p.add_argument(
+        "--log",
+        metavar="FILE.mcap",
+        help="controller log path (an existing file is refused unless --force)",
+    )
+    p.add_argument("--force", action="store_true", help="replace an existing --log file")
     p.add_argument(
         "--key-file",
         metavar="FILE",
@@ -97,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
     if args.log is not None:
-        output_file(args.log, "--log")
+        # checked once, here: the rig tells its controller to replace (rig/processes.py)
+        output_file(args.log, "--log", replace=args.force)
     config = _effective_config(args)
     rate = config_from_args(args).rates.control_hz
     if tick_count(args.duration, rate) < 1:  # a run of no tick is no run, not a clean one

@@ -8,6 +8,7 @@ from typing import Any
 
 from rt_controller.logs.run import Run
 from rt_controller.runtime import diagnostics
+from rt_controller.runtime.counters import ENDED_FULL
 
 RUN_KEYS = (
     "clock",
@@ -72,7 +73,9 @@ def log_problems(run: Run, ticks: int) -> list[str]:
     """What the log itself says is wrong with the run, beyond the counters: the controller
     always writes a final ``/diagnostics`` record when it ends a run in order, so a complete
     log without one is of a run killed or cut (a truncated log already says so); a copy that
-    ``hil recover`` made by skipping damaged chunks lost ticks."""
+    ``hil recover`` made by skipping damaged chunks lost ticks; records that could not be read
+    were skipped (``LoadedLog.rejected``); the final record says the run ended early
+    (:func:`ended_early`)."""
     out = []
     by_controller = "replay_of" not in run.info and (
         bool(run.log.diagnostics) or "recorder" in run.info
@@ -85,7 +88,39 @@ def log_problems(run: Run, ticks: int) -> list[str]:
     skipped = _int((run.log.recovered_info or {}).get("skipped_bytes"))
     if skipped:
         out.append(f"recovered from a damaged log: {skipped} bytes of damaged chunks skipped")
-    return out
+    for topic, n in sorted(run.log.rejected.items()):
+        out.append(f"{n} {topic} message(s) could not be read as records and were skipped")
+    early = ended_early(run)
+    return out if early is None else [early, *out]
+
+
+def run_end(run: Run) -> dict[str, Any]:
+    """How the run ended, as its final ``/diagnostics`` record says: ``planned_ticks`` (the
+    ticks its duration asked for; None: until stopped), ``end_reason`` and ``ticks_run``;
+    None each where the log does not say (an older log, or no final record)."""
+    final = final_diagnostics(run) or {}
+    if not final.get("final"):
+        final = {}
+    reason = final.get("end_reason")
+    return {
+        "planned_ticks": _int(final.get("planned_ticks")),
+        "end_reason": reason if isinstance(reason, str) else None,
+        "ticks_run": _int(final.get("tick")) if "end_reason" in final else None,
+    }
+
+
+def ended_early(run: Run) -> str | None:
+    """The problem of a run that ended before its duration (fewer ticks than planned, a stop
+    request included) or for another reason than its duration or a stop; None for a whole run
+    and for a log that does not record how its run ended (older logs)."""
+    end = run_end(run)
+    planned, reason, ticks = end["planned_ticks"], end["end_reason"], end["ticks_run"]
+    short = planned is not None and ticks is not None and ticks < planned
+    if not short and (reason is None or reason in ENDED_FULL):
+        return None
+    when = f"{ticks} of {planned}" if planned is not None else f"{ticks}"
+    why = f": {reason}" if reason and reason != "duration" else ""
+    return f"the run ended after {when} ticks{why}"
 
 
 def recovered_from(run: Run) -> dict[str, Any] | None:
@@ -152,7 +187,9 @@ def log_info(run: Run) -> dict[str, Any]:
         "laws": dict(Counter(str(x) for x in laws)) if laws is not None else {},
         "deadline_misses": report["deadline_misses"],
         "missed_periods": report["missed_periods"],
+        **run_end(run),
         "problems": problems,
+        "rejected": dict(run.log.rejected),
         "recovered": recovered,
         "topics": topics,
         "messages": sum(run.topic_counts.values()),

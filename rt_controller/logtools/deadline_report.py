@@ -215,8 +215,16 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     if out["recorder_dropped"]:
         out["notes"].append(f"the recorder dropped {out['recorder_dropped']} records")
     if n == 0:
-        out["notes"].append(f"no {CYCLE_TOPIC} messages in the log")
+        out["notes"].append(_no_cycles_note(log))
     return out
+
+
+def _no_cycles_note(log: LoadedLog) -> str:
+    """Why the log has no ticks: no cycle messages, or none of them was readable."""
+    found = log.topic_counts.get(CYCLE_TOPIC, 0)
+    if not found:
+        return f"no {CYCLE_TOPIC} messages in the log"
+    return f"none of the {found} {CYCLE_TOPIC} message(s) in the log is a readable cycle record"
 
 
 def _outages(log: LoadedLog, t: np.ndarray, per_us: float | None) -> dict[str, Any] | None:

@@ -72,6 +72,10 @@ class LoadedLog:
     """``/controller/events`` records: operator actions (marks, arm, disarm), done or refused."""
     topic_counts: dict[str, int] = field(default_factory=dict)
     """Messages read per topic (also for raw topics that were not kept)."""
+    rejected: dict[str, int] = field(default_factory=dict)
+    """Messages per topic that were read but skipped, their payload not a record of the topic
+    (not a JSON object; on ``/controller/cycle``, also one without an integer ``tick``): the
+    log is damaged there. Counted only for the topics read (:func:`read_log`'s ``raw``)."""
     schemas: dict[str, str] = field(default_factory=dict)
     """Schema name per topic."""
     channels: list[str] = field(default_factory=list)
@@ -185,7 +189,7 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
         VISION_TOPIC: out.vision,
     }
     counts: Counter[str] = Counter()
-    bad: Counter[str] = Counter()
+    bad: Counter[tuple[str, str]] = Counter()
     state = Walk(size=path.stat().st_size)
     with path.open("rb") as fh:
         # the walk stops quietly at damage it cannot step over (state says where)
@@ -196,13 +200,9 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
                 keep = topic in (CYCLE_TOPIC, DIAGNOSTICS_TOPIC, PARAMETERS_TOPIC, EVENTS_TOPIC)
                 if not keep and not (raw and topic in raw_lists):
                     continue
-                try:
-                    obj = json.loads(rec.data)
-                except (ValueError, UnicodeDecodeError):
-                    bad[topic] += 1
-                    continue
-                if not isinstance(obj, dict):
-                    bad[topic] += 1
+                obj, why = _payload(topic, rec.data)
+                if obj is None:
+                    bad[(topic, why)] += 1
                 elif topic == CYCLE_TOPIC:
                     cycle_records.append(obj)
                 elif topic == DIAGNOSTICS_TOPIC:
@@ -232,8 +232,9 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
         out.notes.append(_damage_note(state, counts[CYCLE_TOPIC]))
     elif state.error is not None:
         out.notes.append(f"log: {state.damage()}: every record was read")
-    for topic, n in bad.items():
-        out.notes.append(f"{n} {topic} message(s) were not valid JSON objects and were skipped")
+    for (topic, why), n in bad.items():
+        out.rejected[topic] = out.rejected.get(topic, 0) + n
+        out.notes.append(f"{n} {topic} message(s) were {why} and were skipped")
     if not state.footer and not out.recorder_info:
         out.notes.append("the recorder did not close the file (process killed or crashed?)")
     out.cycles = columns(cycle_records)
@@ -242,6 +243,21 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
     if out.config is None and out.config_json is None:
         out.notes.append("no hil.config metadata: the run configuration is unknown")
     return out
+
+
+def _payload(topic: str, data: bytes) -> tuple[dict[str, Any] | None, str]:
+    """The record a message holds, or None and why it is none: its payload is not a JSON
+    object, or (a cycle) has no integer ``tick``, the field every tool indexes ticks by."""
+    try:
+        obj = json.loads(data)
+    except (ValueError, UnicodeDecodeError):
+        obj = None
+    if not isinstance(obj, dict):
+        return None, "not valid JSON objects"
+    tick = obj.get("tick")
+    if topic == CYCLE_TOPIC and (not isinstance(tick, int) or isinstance(tick, bool)):
+        return None, "JSON objects without an integer tick (not cycle records)"
+    return obj, ""
 
 
 def read_hil_log(path: str | Path, *, raw: bool = True) -> LoadedLog:

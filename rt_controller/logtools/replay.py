@@ -45,8 +45,9 @@ from rt_controller.calibration.parameters import LAW_KEYS, accepted_changes, jud
 from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log
+from rt_controller.logtools.replay_out import OutLog, cycle_record_at
 from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
-from rt_controller.runtime.recorder import CycleRecorder
+from rt_controller.runtime.recorder import CYCLE_TOPIC
 
 
 @dataclass
@@ -68,6 +69,9 @@ class ReplayResult:
     """Ticks whose mode/law name (``ioc``, ``hold``, ``no_state``...) differs from the log's."""
     truncated: bool = False
     """The log ends early or is damaged: only the ticks before the damage were replayed."""
+    skipped_records: int = 0
+    """``/controller/cycle`` records the log holds but that could not be read (not JSON objects,
+    or without a tick): their ticks were not replayed, so the log is damaged."""
     allow_partial: bool = False
     """Accept a truncated log as a successful replay of what it holds."""
     notes: list[str] = field(default_factory=list)
@@ -91,17 +95,25 @@ class ReplayResult:
         return self.ticks_over_tol == 0
 
     @property
-    def within_spread(self) -> bool:
-        """Not within ``tol``, but within what the compile target's difference explains."""
-        worst = max(self.max_abs_du, self.max_abs_dtau)
-        return self.spread_limit is not None and worst <= self.spread_limit
+    def within_spread(self) -> bool | None:
+        """A replay over ``tol`` on another compile target than the log's: whether the
+        difference is within what the measured cross-target spread explains. None when no
+        spread was measured (the log's own target ran, or the replay was within ``tol``)."""
+        if self.spread_limit is None:
+            return None
+        return max(self.max_abs_du, self.max_abs_dtau) <= self.spread_limit
+
+    @property
+    def partial(self) -> bool:
+        """Not every tick of the log was replayed: it is truncated, or records were skipped."""
+        return self.truncated or self.skipped_records > 0
 
     @property
     def ok(self) -> bool:
         """Every tick matches (or differs by no more than the cross-target spread), and the
         log was whole (or a partial one was allowed)."""
-        same = self.matches or self.within_spread
-        return same and (not self.truncated or self.allow_partial)
+        same = self.matches or bool(self.within_spread)
+        return same and (not self.partial or self.allow_partial)
 
     def as_dict(self) -> dict[str, Any]:
         """The JSON object of ``hil replay --json`` (non-finite values as None)."""
@@ -124,6 +136,7 @@ class ReplayResult:
             "ok": self.ok,
             "matches": self.matches,
             "truncated": self.truncated,
+            "skipped_records": self.skipped_records,
             "allow_partial": self.allow_partial,
             "compile_target": self.compile_target,
             "cross_target_spread": self.cross_target_spread,
@@ -136,13 +149,18 @@ class ReplayResult:
 
     def failure_line(self) -> str:
         """One line saying why the replay failed (for a non-zero exit)."""
-        if self.matches or self.within_spread:
+        if not (self.matches or self.within_spread):
+            return f"replay differs from the log: {self.difference()}{self._why()}"
+        skipped = f"{self.skipped_records} cycle record(s) could not be read and were skipped"
+        if not self.truncated:
+            what = f"{skipped}, {self.ticks} ticks replayed"
+        else:
             first = self.notes[0] if self.notes else "the log ends early"
-            return (
-                f"log is incomplete or damaged: only its first {self.ticks} ticks were replayed "
-                f"({first}); pass --allow-partial to accept a partial replay"
-            )
-        return f"replay differs from the log: {self.difference()}{self._why()}"
+            what = f"only its first {self.ticks} ticks were replayed ({first})"
+            what += f"; {skipped}" if self.skipped_records else ""
+        return (
+            f"log is incomplete or damaged: {what}; pass --allow-partial to accept a partial replay"
+        )
 
     def difference(self) -> str:
         """The largest differences of tau and u, where, and how many ticks are over tol."""
@@ -255,77 +273,12 @@ def _gap_note(log: LoadedLog) -> str | None:
     dropped = log.recorder_info.get("dropped", "0")
     if n == 0 and dropped in ("", "0"):
         return None
+    skipped = log.rejected.get(CYCLE_TOPIC, 0)
+    unread = f", {skipped} unreadable in the log" if skipped else ""
     return (
-        f"{n} cycle record(s) missing between ticks (recorder dropped {dropped or '?'}): "
+        f"{n} cycle record(s) missing between ticks (recorder dropped {dropped or '?'}{unread}): "
         "a law with memory (rhc) may differ after them"
     )
-
-
-def _cycle_record(log: LoadedLog, i: int) -> dict[str, Any]:
-    """Tick ``i`` of the log as a cycle dict (NaN stays NaN; the recorder writes null)."""
-    rec: dict[str, Any] = {}
-    for key, col in log.cycles.items():
-        v = col[i]
-        if col.ndim == 2:
-            rec[key] = [float(x) for x in v]
-        elif col.dtype == bool:
-            rec[key] = bool(v)
-        elif col.dtype.kind == "i":
-            rec[key] = int(v)
-        elif col.dtype.kind == "f":
-            rec[key] = float(v)
-        else:
-            rec[key] = v
-    return rec
-
-
-class _OutLog:
-    """The ``--out`` writer: replayed cycles plus the recorded raw inputs."""
-
-    def __init__(self, path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> None:
-        info: dict[str, Any] = {f"source.{k}": v for k, v in log.run_info.items()}
-        info.update(
-            replay_of=str(log.path),
-            replay_tol=repr(tol),
-            replay_timing="zero (offline replay); tick, t_ns, sim_time_s and inputs as recorded",
-            clock=log.run_info.get("clock", cfg.controller.clock),
-            law=cfg.controller.law,
-        )
-        self.rec = CycleRecorder(path, cfg, run_info=info)
-
-    def _check(self) -> None:
-        rec = self.rec
-        if rec.error is not None:
-            raise LogError(f"cannot write {rec.path}: {rec.error}") from rec.error
-
-    def cycle(self, record: dict[str, Any]) -> None:
-        self.rec.record_cycle(record)
-        self._check()
-
-    def raw_inputs(self, log: LoadedLog) -> None:
-        import base64
-
-        import can
-
-        for r in log.can_rx:
-            msg = can.Message(
-                arbitration_id=int(r["arbitration_id"]),
-                is_extended_id=bool(r.get("is_extended_id", False)),
-                data=bytes.fromhex(r.get("data", "")),
-                is_fd=bool(r.get("is_fd", False)),
-                timestamp=float(r.get("timestamp", 0.0) or 0.0),
-                check=False,
-            )
-            self.rec.record_can(msg, int(r["t_ns"]), "rx")
-            self._check()
-        for r in log.vision:
-            self.rec.record_vision(base64.b64decode(r.get("data", "")), int(r["t_ns"]))
-            self._check()
-
-    def close(self) -> None:
-        self.rec.close()
-        if self.rec.error is not None:
-            raise LogError(f"cannot write {self.rec.path}: {self.rec.error}") from self.rec.error
 
 
 class _ParameterChanges:
@@ -374,9 +327,10 @@ def replay_loaded(
     if cfg is None:
         why = "; ".join(log.notes) or "no hil.config metadata"
         raise LogError(f"{log.path}: the run configuration is unknown ({why}); pass --config")
-    n = log.n_cycles
+    n, skipped = log.n_cycles, log.rejected.get(CYCLE_TOPIC, 0)
     if n == 0:
-        raise LogError(f"{log.path}: no /controller/cycle messages, nothing to replay")
+        why = f" ({skipped} unreadable, skipped)" if skipped else ""
+        raise LogError(f"{log.path}: no /controller/cycle records{why}, nothing to replay")
     same = out is not None and Path(out).resolve() == Path(log.path).resolve()
     if same or (out is not None and Path(out).exists() and os.path.samefile(out, log.path)):
         raise LogError(f"--out {out} would overwrite the log being replayed")
@@ -395,7 +349,7 @@ def replay_loaded(
     u = np.zeros((n, 2))
     tau = np.zeros((n, 2))
     laws: list[str] = []
-    writer = _OutLog(Path(out), cfg, log, tol) if out is not None else None
+    writer = OutLog(Path(out), cfg, log, tol) if out is not None else None
     try:
         for i in range(n):
             changes.apply(ctl, i)
@@ -415,7 +369,7 @@ def replay_loaded(
             u[i], tau[i] = fields["u"], fields["tau"]
             laws.append(fields["law"])
             if writer is not None:
-                record = _cycle_record(log, i)
+                record = cycle_record_at(log, i)
                 record.update(fields)
                 record.update({k: 0.0 for k in TIMING_FIELDS if k in record})
                 record["deadline_miss"] = False
@@ -427,6 +381,7 @@ def replay_loaded(
             writer.close()
     result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
     result.allow_partial = allow_partial
+    result.skipped_records = skipped
     if recorded_law is not None and recorded_law.dtype == object:
         result.law_mismatches = sum(
             str(a) != b for a, b in zip(recorded_law, laws, strict=True) if a is not None

@@ -36,7 +36,7 @@ def bench_tuning(workdir: Path, *, requests: int = 50, gap_s: float = 0.1) -> di
     up = subprocess.Popen(
         [sys.executable, "-m", "rt_controller.cli", "up", "--law", "rhc", "--duration",
          f"{duration:g}", "--zenoh-endpoint", ep, "--key-file", str(key_file), "--log", str(log),
-         "--json"],
+         "--force", "--json"],  # the bench's own log in its workdir, as its key: replaced
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     lat_ns: list[int] = []

@@ -125,13 +125,15 @@ def rerun_command(run: RunResult, out: Path, duration_s: float) -> str:
     """The ``hil up`` command (run inside the output folder) that repeats this run of
     ``duration_s`` (also one cut short or never started), its code compiled for the CPU target
     the run's log records (``hil --target-of``) where the host can run it, so a lockstep rerun
-    on another CPU gives the same J."""
+    on another CPU gives the same J. It logs beside the run's log (``NAME.rerun.mcap``, replaced
+    by the next rerun), which it keeps to compare with."""
     clock = "" if run.config.controller.clock == "realtime" else " --lockstep"
     can = f" --can {run.can}" if run.can else ""
     log = _rel(run.log, out)
+    rerun = _rel(run.log.with_name(f"{run.log.stem}.rerun.mcap"), out)
     return (
         f"hil --target-of {log} up{clock}{can} --law {run.spec.law} --duration {duration_s:g} "
-        f"--config {_rel(run.config_file, out)} --log {log}"
+        f"--config {_rel(run.config_file, out)} --log {rerun} --force"
     )
 
 

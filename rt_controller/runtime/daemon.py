@@ -264,7 +264,9 @@ class ControllerDaemon:
             if self.stop.is_set() and self.counters.end_reason == "duration":
                 self.counters.end_reason = "stopped"
             hw.deactivate()
-            self._final_diagnostics = loop.diagnostics(final=True)
+            self._final_diagnostics = diagnostics.with_run_end(
+                loop.diagnostics(final=True), self.counters.planned_ticks, self.counters.end_reason
+            )
             loop.ctx.recorder.record_diagnostics(self._final_diagnostics, final=True)
 
     def _summary(self, rec: RecorderProcess) -> dict[str, Any]:

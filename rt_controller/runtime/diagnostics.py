@@ -20,6 +20,16 @@ DIAGNOSTICS_SCHEMA: dict[str, Any] = {
         "tick": {"type": "integer", "description": "ticks run so far"},
         "final": {"type": "boolean", "description": "the last record of the run"},
         "level": {"type": "integer", "description": "worst status level: 0 ok, 1 warn, 2 error"},
+        "planned_ticks": {
+            "type": ["integer", "null"],
+            "description": "final record only: the ticks the run's duration asked for (null: "
+            "no duration, run until stopped)",
+        },
+        "end_reason": {
+            "type": "string",
+            "description": "final record only: why the loop ended: duration, stopped (a stop "
+            "request) or a short phrase (no Sync from the DSP, ...)",
+        },
         "status": {
             "type": "array",
             "items": {
@@ -126,6 +136,15 @@ def build(
         "level": max(s["level"] for s in status),
         "status": status,
     }
+
+
+def with_run_end(
+    record: dict[str, Any], planned_ticks: int | None, end_reason: str
+) -> dict[str, Any]:
+    """The run's final record with how the run ended, so its log alone tells a run cut short
+    (``tick`` < ``planned_ticks``, or an ``end_reason`` other than its duration) from a whole
+    one (``hil info``)."""
+    return {**record, "planned_ticks": planned_ticks, "end_reason": end_reason}
 
 
 def values_of(record: dict[str, Any], name: str) -> dict[str, Any]:
