@@ -6,7 +6,8 @@ Spec forms (the ``--can`` option and ``transport.can`` of the rig config):
 * ``udp_multicast`` = ``udp_multicast:239.74.163.2:43113``; ``udp_multicast:GROUP[:PORT]``,
   ``udp_multicast:[ff15::1]:PORT`` for IPv6. Always host-local (:mod:`hal.udp_loopback`):
   pinned to ``lo`` with ``hop_limit=0`` unless ``hop_limit`` is passed explicitly;
-* ``virtual`` (channel ``hil``) or ``virtual:NAME``: python-can's in-process bus;
+* ``virtual`` (channel ``hil``) or ``virtual:NAME``: python-can's in-process bus (tests and
+  in-process tools only: the rig's daemons are separate processes, :func:`process_spec`);
 * any other python-can interface name, passed to :class:`can.Bus` as is;
 * ``auto`` or ``None``: python-can's own configuration when it names an interface
   (``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``/``CAN_CONFIG`` or a ``can.conf`` file,
@@ -48,6 +49,10 @@ def vcan_hint(channel: str = DEFAULT_VCAN) -> str:
         f"sudo modprobe vcan && sudo ip link add dev {channel} type vcan "
         f"&& sudo ip link set {channel} mtu 72 && sudo ip link set up {channel}"
     )
+
+
+SOCKETCAN_HINT = f"--can socketcan:{DEFAULT_VCAN} ({vcan_hint()})"
+"""The other host-local bus between processes, named in hints when udp_multicast fails."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +151,21 @@ def resolve_spec(spec: str | None = None) -> BusSpec:
     return BusSpec("udp_multicast", DEFAULT_GROUP, {}, AUTO)
 
 
+def process_spec(spec: str | None = None) -> BusSpec:
+    """:func:`resolve_spec` for a bus between processes (the rig's daemons, a drive check),
+    refusing python-can's ``virtual`` bus: it joins the threads of one process only, so a
+    daemon on it would wait for peers it can never hear."""
+    resolved = resolve_spec(spec)
+    if resolved.interface == "virtual":
+        origin = "" if resolved.source == "spec" else f" (from {resolved.source})"
+        raise HalConfigError(
+            f"CAN bus {resolved}{origin}: python-can's virtual bus joins the threads "
+            "of one process only, and this command talks to other processes; use "
+            "udp_multicast (this host) or socketcan:CHANNEL"
+        )
+    return resolved
+
+
 def _transport_error(spec: BusSpec, exc: BaseException) -> HalTransportError:
     """One line saying what failed and what to do about it."""
     err = exc if isinstance(exc, OSError) else exc.__cause__ or exc.__context__
@@ -169,7 +189,7 @@ def _transport_error(spec: BusSpec, exc: BaseException) -> HalTransportError:
         if isinstance(exc, can.CanInterfaceNotImplementedError):
             hint = "install msgpack: pip install 'python-can[multicast]'"
         else:
-            hint = "check that loopback is up (sudo ip link set lo up), or use --can virtual"
+            hint = f"check that loopback is up (sudo ip link set lo up), or use {SOCKETCAN_HINT}"
         return HalTransportError(f"cannot open CAN bus {spec}: {exc}; {hint}")
     return HalTransportError(
         f"cannot open CAN bus {spec}: {exc}; check the adapter, its driver and python-can's "
@@ -275,7 +295,7 @@ class _PortReservation:
                 if _unbound(group, self.port):
                     return group, self.port
         raise HalTransportError(  # pragma: no cover - every group on every port taken
-            "no free udp_multicast group/port for an isolated bus; use --can virtual"
+            f"no free udp_multicast group/port for an isolated bus; use {SOCKETCAN_HINT}"
         )
 
 
@@ -293,7 +313,7 @@ def _unbound(group: str, port: int) -> bool:
                 return False
             raise HalTransportError(
                 f"cannot bind a UDP socket to {group}:{port}: {exc}; check that lo is up "
-                "(sudo ip link set lo up), or use --can virtual"
+                f"(sudo ip link set lo up), or use {SOCKETCAN_HINT}"
             ) from exc
     return True
 

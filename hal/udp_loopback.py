@@ -314,7 +314,7 @@ class LoopbackMulticastBus(can.BusABC):
                 f"udp_multicast:{DEFAULT_GROUP}:{self._port}"
             )
         else:
-            hint = "check that lo is up and routes 224.0.0.0/4, or use --can virtual"
+            hint = "check that lo is up and routes 224.0.0.0/4, or use --can socketcan:vcan0"
         family = "IPv6" if self._v6() else "IPv4"
         return GroupUnreachableError(
             f"cannot use {family} multicast group {self._group} port {self._port} on lo: "

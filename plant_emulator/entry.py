@@ -168,7 +168,7 @@ def _profile(args: argparse.Namespace) -> str:
 
 
 def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
-    from hal.bus import open_bus, resolve_spec
+    from hal.bus import open_bus, process_spec
     from plant_emulator.dsp import make_dsp
 
     if _profile(args) == "cia402":
@@ -178,7 +178,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
     cfg = _config(args)
     lockstep = bool(args.lockstep) or cfg.controller.clock == "lockstep"
     spec = args.can or cfg.transport.can
-    where = str(resolve_spec(spec))  # HalConfigError for a malformed spec
+    where = str(process_spec(spec))  # HalConfigError: malformed, or in-process only
     mode = "lockstep" if lockstep else "realtime"
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(open_bus(spec))

@@ -60,13 +60,13 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
     """Serve the drives until ``stop`` or ``args.duration``; returns the exit status."""
     import canopen
 
-    from hal.bus import open_bus, resolve_spec
+    from hal.bus import open_bus, process_spec
     from plant_emulator.cia402.rig import Cia402Rig
 
     cfg = _config(args)
 
     spec = args.can or cfg.transport.can
-    where = str(resolve_spec(spec))  # HalConfigError for a malformed spec
+    where = str(process_spec(spec))  # HalConfigError: malformed, or in-process only
     poses: PoseLink | None = None
     with contextlib.ExitStack() as stack:
         bus = stack.enter_context(open_bus(spec))

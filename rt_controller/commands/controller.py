@@ -91,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.no_rt:
         lean_process()  # before the first thread starts (small stacks, few malloc arenas)
+    from hal.bus import process_spec
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
     from rt_controller.commands.output import output_file, print_summary, verdict
@@ -100,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
         return run_plan_command(args)
     if args.log is not None:  # before the daemon opens its links
         output_file(args.log, "--log", replace=args.force)
-    cfg = configure_key(
-        with_command_line(config_from_args(args), args), args.key_file, "hil controller"
-    )
+    cfg = with_command_line(config_from_args(args), args)
+    process_spec(cfg.transport.can)  # the DSP is another process: not python-can's virtual bus
+    cfg = configure_key(cfg, args.key_file, "hil controller")
     opts = daemon_options(args)
     with stop_on_signals() as stop:
         daemon = ControllerDaemon(cfg, opts, stop)

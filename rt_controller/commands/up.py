@@ -92,6 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import tempfile
 
+    from hal.bus import process_spec
     from rt_controller.commands.common import config_from_args
     from rt_controller.commands.output import output_file, verdict
     from rt_controller.control.simulate import tick_count, too_short
@@ -105,7 +106,9 @@ def run(args: argparse.Namespace) -> int:
         # checked once, here: the rig tells its controller to replace (rig/processes.py)
         output_file(args.log, "--log", replace=args.force)
     config = _effective_config(args)
-    rate = config_from_args(args).rates.control_hz
+    cfg = config_from_args(args)
+    process_spec(args.can or cfg.transport.can)  # three processes: not python-can's virtual bus
+    rate = cfg.rates.control_hz
     if tick_count(args.duration, rate) < 1:  # a run of no tick is no run, not a clean one
         raise ControllerConfigError(too_short(args.duration, rate))
     if args.monitor or args.monitor_port is not None:

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from hal.bus import resolve_spec
+from hal.bus import process_spec
 from hal.config import RigConfig, image_noise_error, load_config
 from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
@@ -112,8 +112,7 @@ class Settings:
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
-        if self.can is not None:
-            resolve_spec(self.can)  # an unknown interface, a bad channel: before any run
+        process_spec(self.can or load_config(self.config).transport.can)  # before any run
         bad = [e for e in self.experiments if e not in EXPERIMENTS]
         if bad or not self.experiments:
             raise ControllerConfigError(f"unknown experiment(s) {bad}; known: {EXPERIMENTS}")

@@ -236,3 +236,32 @@ def test_config_not_a_regular_file(kind, tmp_path, capsys):
 )
 def test_unvalidated_option_refused(argv, names, capsys, nothing_starts):
     refused(argv, capsys, *names)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["up", "--lockstep", "--duration", "1"],
+        ["controller", "--no-rt", "--duration", "1"],
+        ["emulator", "--duration", "0.5"],
+        ["experiment", "fig3", "--reps", "1"],
+    ],
+)
+def test_python_cans_in_process_bus_is_refused_between_processes(
+    argv, tmp_path, capsys, monkeypatch
+):
+    """The rig's daemons are separate processes: on python-can's ``virtual`` bus they would
+    wait for peers they never hear (``hil up`` reported "no joint state" after 20 s)."""
+    import rt_controller.rig.processes
+
+    def started(*_: object, **__: object) -> None:
+        raise AssertionError("a rig was started on an in-process bus")
+
+    monkeypatch.setattr(rt_controller.rig.processes, "run_rig", started)
+    monkeypatch.chdir(tmp_path)
+    assert main(["keygen", "rig.key"]) == 0
+    capsys.readouterr()
+    key = ["--key-file", "rig.key"] if argv[0] in ("controller", "emulator") else []
+    err = refused([*argv, "--can", "virtual", *key], capsys, "virtual", "udp_multicast")
+    assert "one process only" in err
+    assert not list(tmp_path.glob("experiments/*")) and not list(tmp_path.glob("logs/*"))

@@ -12,7 +12,7 @@ import can.util
 import pytest
 
 from hal import bus as hal_bus
-from hal.bus import BusSpec, isolated_spec, open_bus, parse_spec, resolve_spec
+from hal.bus import BusSpec, isolated_spec, open_bus, parse_spec, process_spec, resolve_spec
 from hal.can_codec import DspCodec
 from hal.errors import HalConfigError, HalTransportError
 from hal.udp_loopback import DEFAULT_GROUP, LoopbackMulticastBus
@@ -102,6 +102,20 @@ def test_explicit_spec_wins_over_python_can_config(
 ) -> None:
     monkeypatch.setenv("CAN_INTERFACE", "virtual")
     assert resolve_spec("udp_multicast").interface == "udp_multicast"
+
+
+def test_a_bus_between_processes_is_never_the_in_process_virtual_bus(
+    no_python_can_config: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for spec in ("virtual", "virtual:x", " Virtual:y "):
+        with pytest.raises(HalConfigError, match=r"one process only.*udp_multicast"):
+            process_spec(spec)
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")  # python-can's config naming it: the same
+    with pytest.raises(
+        HalConfigError, match=r"virtual:hil \(from python-can config\).*one process only"
+    ):
+        process_spec("auto")
+    assert process_spec("udp_multicast") == resolve_spec("udp_multicast")
 
 
 def test_invalid_python_can_config_is_a_config_error(
