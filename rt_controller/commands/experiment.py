@@ -73,7 +73,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("which", choices=("fig3", "fig4", "table1", "all"), help="what to run")
-    p.add_argument("--out", metavar="DIR", help="output folder (default experiments/<timestamp>)")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="output folder (default experiments/<timestamp>); one that holds an experiment "
+        "already is refused unless --force",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="run into an --out that holds an experiment"
+    )
     p.add_argument(
         "--reps",
         type=bounded_int(1, 1000, what="repetitions"),
@@ -175,6 +183,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else default_out()
     if args.scheduler:  # the workers read and write the runs' files by these paths
         out = out.absolute()
+    if not args.force:
+        unused(out)
     settings = settings_from_args(args, out)
     err = Console(stderr=True, quiet=args.quiet)  # the runs' lines and the progress bar
     progress = Progress("hil experiment", quiet=args.quiet, console=err)
@@ -191,6 +201,22 @@ def run(args: argparse.Namespace) -> int:
         return run_on(cl, args, settings, err, progress)
     finally:
         cl.close()
+
+
+EXPERIMENT_FILES = ("results.json", "report.md", "logs", "configs")
+"""What an experiment leaves in its folder: any of them there, and it holds one already."""
+
+
+def unused(out: Path) -> None:
+    """Refuse an ``--out`` that holds an experiment: its runs' logs would be replaced."""
+    from rt_controller.errors import ControllerConfigError
+
+    there = [name for name in EXPERIMENT_FILES if (out / name).exists()]
+    if there:
+        raise ControllerConfigError(
+            f"--out {out}: holds an experiment already ({', '.join(there)}); its logs would "
+            "be replaced (pass --force to run into it)"
+        )
 
 
 def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:

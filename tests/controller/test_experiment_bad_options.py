@@ -38,3 +38,21 @@ def test_the_j_table_does_not_call_a_run_that_never_ran_failed(capsys):
     print_tables({"fig3": {"J": {"ioc": 23.9, "rhc": None}}, "report": "report.md"})
     out = capsys.readouterr().out
     assert "23.9000" in out and "failed" not in out and "—" in out
+
+
+def test_an_out_holding_an_experiment_is_refused_unless_force(tmp_path, monkeypatch, capsys):
+    """A second ``hil experiment --out DIR`` replaced the first one's logs without a word."""
+    monkeypatch.chdir(tmp_path)
+    logs = Path("today", "logs")
+    logs.mkdir(parents=True)
+    (logs / "ioc.mcap").write_bytes(b"a run's log")
+    argv = ["experiment", "fig3", "--duration", "0.2", "--out", "today", "--config", "none.toml"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "hil experiment: error: --out today: holds an experiment already (logs)" in err, err
+    assert "--force" in err and (logs / "ioc.mcap").read_bytes() == b"a run's log"
+    assert main([*argv, "--force"]) == 2  # on to the next check: the missing config
+    assert "cannot read config file none.toml" in capsys.readouterr().err
+    Path("empty").mkdir()  # a folder made beforehand, still empty: that is no experiment
+    assert main([*argv[:-4], "--out", "empty", "--config", "none.toml"]) == 2
+    assert "cannot read config file none.toml" in capsys.readouterr().err
