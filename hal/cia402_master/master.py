@@ -33,6 +33,7 @@ from hal.cia402_master.watch import (
     state_of,
 )
 from hal.cia402_od import CONTROLWORD, EDS_PATH, TARGET_TORQUE
+from hal.config.cia402 import CONTROLLER_NODE_ID
 from hal.drive_state import MODE_DISARMED, MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
 from hal.errors import HalDriveError
 
@@ -58,8 +59,6 @@ CONSUMER_PERIODS = 5
 controller's check): 500 ms. The heartbeat is the slow backstop (a thread of a process on a
 loaded host may stall for a few hundred ms, the control thread does not); a controller that
 stops ticking is caught within 3 periods by the drives' SYNC monitoring."""
-CONTROLLER_NODE_ID = 0x7F
-"""The controller's own node id (its heartbeat's COB-ID is 0x700 + it)."""
 TIMING_KEPT = 100_000
 """SYNC intervals and SYNC-to-TPDO latencies kept for the run's statistics."""
 

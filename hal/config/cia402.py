@@ -10,15 +10,19 @@ from dataclasses import dataclass
 
 from hal.config.values import Vec2
 
+CONTROLLER_NODE_ID = 0x7F
+"""The controller's own CANopen node id (its heartbeat's COB-ID is 0x700 + it, and the
+drives' heartbeat consumer 0x1016 watches it): no drive may have it."""
+
 
 @dataclass(frozen=True)
 class Cia402Config:
     """CiA 402 drives (one per joint) on the CAN bus."""
 
     node_id_1: int = 1
-    """CANopen node id of joint 1's drive (1..127)."""
+    """CANopen node id of joint 1's drive (1..126; 127 is the controller's)."""
     node_id_2: int = 2
-    """CANopen node id of joint 2's drive (1..127)."""
+    """CANopen node id of joint 2's drive (1..126; 127 is the controller's)."""
     bitrate: int = 1_000_000
     """CAN bit rate, bit/s (a real bus: set the interface to it, e.g. ``ip link set can0 type
     can bitrate 1000000``; virtual and udp_multicast buses ignore it)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from hal.config.cia402 import CONTROLLER_NODE_ID
 from hal.config.control import LAW_NAMES
 from hal.config.hardware import PROFILES
 from hal.config.plant import plant_robot
@@ -162,6 +163,12 @@ def _check_principal_point(cfg: RigConfig) -> None:
 def _check_cia402(cfg: RigConfig) -> None:
     c = cfg.cia402
     _require(c.node_id_1 != c.node_id_2, "cia402.node_id_2", "must differ from node_id_1")
+    for key, node in (("cia402.node_id_1", c.node_id_1), ("cia402.node_id_2", c.node_id_2)):
+        _require(
+            node != CONTROLLER_NODE_ID,
+            key,
+            f"{node} is the controller's own node id (its heartbeat); give the drive 1..126",
+        )
     for j, rated in enumerate(c.rated_torque):
         _require(
             cfg.robot.tau_max[j] / rated * 1000 <= 32767,
