@@ -222,8 +222,12 @@ def _check_monitor_port(port: int | None) -> None:
     if port == 0:  # any free port
         return
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        # as the monitor's server binds (tokio sets it): a closed client connection's
+        # TIME_WAIT must not refuse the port for a minute, a listener still does
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind(("127.0.0.1", port))
+            sock.listen(1)
         except OSError as exc:
             raise ControllerConfigError(
                 f"--monitor: cannot listen on 127.0.0.1:{port}: {exc.strerror or exc}"
