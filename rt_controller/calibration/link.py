@@ -209,6 +209,14 @@ def request(
             f"unanswered after {took:.1f} s (no controller on this zenoh endpoint yet, or one "
             "that refused it: the same rig key?)"
         )
+    if at_tick is not None:  # answered when its tick comes: it may still be waiting there
+        raise ParameterLinkError(
+            f"no answer from the controller on {KEY_CONTROLLER_PARAMETERS} within "
+            f"{timeout_s:g} s: a {op} for tick {at_tick} is answered when that tick comes, so "
+            "it may still be waiting there and take effect then (the run's log, "
+            "/controller/parameters or /controller/events, will say); else no controller "
+            "answers on this zenoh endpoint with the same rig key"
+        )
     raise ParameterLinkError(
         f"no answer from the controller on {KEY_CONTROLLER_PARAMETERS} within {timeout_s:g} s "
         "(is it running, on this zenoh endpoint, with the same rig key?)"

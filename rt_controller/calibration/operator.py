@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rt_controller.calibration.handover import DueQueue
+from rt_controller.calibration.handover import DueQueue, beyond_end, run_ended
 
 ACTIONS: dict[str, str] = {
     "arm": "arm the DSP (FAULT_RESET + ENABLE)",
@@ -114,6 +114,22 @@ EVENT_SCHEMA: dict[str, Any] = {
 class ActionQueue(DueQueue[Action]):
     """The actions' hand-over: :meth:`submit` from any thread, :meth:`due` in the control
     thread (each action due is to be finished)."""
+
+    def refusal(self, act: Action, tick: int) -> str | None:
+        """Why ``act``, due at ``tick``, is not done: its own :attr:`Action.refusal`, or its
+        tick is past the run's planned end (the only way it is due before its tick)."""
+        if act.at_tick is not None and act.at_tick > tick:
+            return beyond_end(act.at_tick, self.end_tick)
+        return act.refusal
+
+    def end(self, tick: int | None, t_ns: int = 0) -> list[ActionOutcome]:
+        """At the run's end (last tick ``tick``; None: none ran, logged as tick 0): the
+        actions still waiting, refused as not applied (each answered, the records are for
+        the log). Control thread only."""
+        return [
+            act.finish(tick or 0, accepted=False, reason=run_ended(act.at_tick, tick), t_ns=t_ns)
+            for act in self.drain()
+        ]
 
 
 __all__ = [

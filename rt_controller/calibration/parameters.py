@@ -25,7 +25,7 @@ from typing import Any
 
 from hal.config import RigConfig
 from hal.errors import HalConfigError
-from rt_controller.calibration.handover import DueQueue
+from rt_controller.calibration.handover import DueQueue, beyond_end, run_ended
 from rt_controller.calibration.operator import ActionQueue
 
 TUNABLE: dict[str, str] = {
@@ -220,6 +220,20 @@ class ParameterService:
         """Count a request that failed authentication (it never reaches the queue)."""
         self.counters.unauthenticated += 1
 
+    def plan(self, end_tick: int | None) -> None:
+        """The run's planned ticks (None: no planned end): a change set or an action for a tick
+        at or past it is refused at the next tick boundary instead of waiting for ever."""
+        self._queue.end_tick = self.actions.end_tick = end_tick
+
+    def end(self, tick: int | None, t_ns: int = 0) -> list[Outcome]:
+        """At the run's end (last tick ``tick``; None: none ran, logged as tick 0): the
+        change sets still waiting, refused as not applied (each answered and counted; the
+        records are for the log). Control thread only."""
+        outcomes = []
+        for r in self._queue.drain():
+            outcomes.append(self._refuse(r, tick or 0, t_ns, run_ended(r.at_tick, tick)))
+        return outcomes
+
     def due(self, tick: int, t_ns: int = 0) -> tuple[RigConfig | None, list[Outcome]]:
         """Judge the requests due at ``tick`` in arrival order: the new configuration (None when
         nothing was accepted) and one outcome per request judged. Control thread only."""
@@ -228,6 +242,10 @@ class ParameterService:
             return None, []
         changed, outcomes = None, []
         for r in now:
+            if r.at_tick is not None and r.at_tick > tick:  # due only as never reached
+                out = self._refuse(r, tick, t_ns, beyond_end(r.at_tick, self._queue.end_tick))
+                outcomes.append(out)
+                continue
             out = self._judge(r, tick, t_ns)
             if out.accepted:
                 changed = self.cfg
@@ -236,18 +254,33 @@ class ParameterService:
                 r.reply(out)
         return changed, outcomes
 
-    def _judge(self, r: Request, tick: int, t_ns: int) -> Outcome:
-        old = self.cfg
+    def _items(self, r: Request) -> list[dict[str, Any]]:
+        """``{"key", "old", "new"}`` for each key of ``r`` (old None for an unknown key)."""
         items = []
         for key, new in r.changes.items():
             try:
-                before = value_of(old, key)
+                before = value_of(self.cfg, key)
             except AttributeError:
                 before = None
             items.append({"key": key, "old": before, "new": _plain(new)})
+        return items
+
+    def _refuse(self, r: Request, tick: int, t_ns: int, reason: str) -> Outcome:
+        """``r`` refused unjudged with ``reason``: counted and answered."""
+        self.counters.refused += 1
+        out = Outcome(
+            tick, False, self._items(r), r.source, self.param_set, reason, r.request_id,
+            r.at_tick, t_ns,
+        )  # fmt: skip
+        if r.reply is not None:
+            r.reply(out)
+        return out
+
+    def _judge(self, r: Request, tick: int, t_ns: int) -> Outcome:
+        items = self._items(r)
         reason = None
         try:
-            cfg = judge(old, r.changes)
+            cfg = judge(self.cfg, r.changes)
         except ParameterRefused as exc:
             reason = str(exc)
             self.counters.refused += 1

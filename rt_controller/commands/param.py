@@ -84,6 +84,26 @@ def _check_keys(keys: list[str]) -> None:
         )
 
 
+def parse_changes(items: list[str]) -> dict[str, Any]:
+    """The change set of ``hil param set KEY=VALUE ...`` (values as ``hil replay --set``:
+    JSON, else strings); a malformed item or a key given twice is refused, naming it."""
+    from rt_controller.commands.replay import parse_sets
+    from rt_controller.errors import ControllerConfigError
+
+    seen: set[str] = set()
+    for item in items:
+        key, sep, _ = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ControllerConfigError(f"set expects KEY=VALUE (e.g. gains.kp=0.2), got {item!r}")
+        if key in seen:
+            raise ControllerConfigError(
+                f"set: {key} given twice; one change set takes each key once"
+            )
+        seen.add(key)
+    return parse_sets(items)
+
+
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key, rig_key
@@ -91,7 +111,6 @@ def run(args: argparse.Namespace) -> int:
     from hal.zenoh_session import open_session
     from rt_controller.calibration.link import event_line, outcome_line, request
     from rt_controller.commands.output import output_file
-    from rt_controller.commands.replay import parse_sets
     from rt_controller.errors import ControllerConfigError
 
     if args.action == "get":
@@ -99,8 +118,9 @@ def run(args: argparse.Namespace) -> int:
     cfg = configure_key(load_config(args.config), args.key_file, "hil param")
     if args.action in ("load", "diff") and len(args.items) != 1:
         raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
-    if args.action == "set" and not args.items:
-        raise ControllerConfigError("hil param set expects KEY=VALUE ...")
+    changes = parse_changes(args.items) if args.action == "set" else {}
+    if args.action == "set" and not changes:
+        raise ControllerConfigError("set expects KEY=VALUE ...")
     out_file = None
     if args.out and args.action == "dump":  # a dump is made again from the running set
         out_file = output_file(args.out, "--out", replace=True)
@@ -157,8 +177,6 @@ def run(args: argparse.Namespace) -> int:
                 if not changes:
                     print("hil param: nothing to change", file=sys.stderr)
                     return 0
-            else:
-                changes = parse_sets(args.items)
             out = ask(
                 "set", changes=changes, at_tick=args.at_tick, source=f"hil param {args.action}"
             )

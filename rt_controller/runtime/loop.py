@@ -45,17 +45,32 @@ class ControlLoop:
         self._diag_every = max(1, round(ctx.cfg.rates.control_hz))
 
     def run(self, max_ticks: int | None) -> None:
-        """Activate the hardware, then the ticks until ``max_ticks`` or a stop."""
-        if not self.activate():
-            return
-        for release in self.pacer.releases(max_ticks):
-            self.take_parameters(release)
-            self.take_actions(release)
-            cycle = self.tick(release)
-            if self.pacer.overran(release):
-                self.ctx.counters.deadline_misses += 1
-                cycle["deadline_miss"] = True
-            self.record(cycle)
+        """Activate the hardware, then the ticks until ``max_ticks`` or a stop; the requests
+        still waiting then are refused and logged (:meth:`end_requests`)."""
+        self.params.plan(max_ticks)  # a request past the planned end is refused at once
+        last: Release | None = None
+        try:
+            if not self.activate():
+                return
+            for last in self.pacer.releases(max_ticks):
+                self.take_parameters(last)
+                self.take_actions(last)
+                cycle = self.tick(last)
+                if self.pacer.overran(last):
+                    self.ctx.counters.deadline_misses += 1
+                    cycle["deadline_miss"] = True
+                self.record(cycle)
+        finally:
+            self.end_requests(last)
+
+    def end_requests(self, last: Release | None) -> None:
+        """The change sets and actions still waiting when the run ends (after release
+        ``last``; None: no tick ran), refused as not applied, answered and logged."""
+        tick, t_ns = (None, 0) if last is None else (last.index, last.wake_ns)
+        for o in self.params.end(tick, t_ns):
+            self.ctx.recorder.record_parameters(o.record())
+        for out in self.params.actions.end(tick, t_ns):
+            self.ctx.recorder.record_event(out.record())
 
     def activate(self) -> bool:
         """Arm: the hardware's ``activate`` at each of the pacer's arming steps until it
@@ -77,7 +92,8 @@ class ControlLoop:
         """At the tick boundary, after the parameters: the operator actions due
         (:mod:`rt_controller.calibration.operator`), done or refused; each to the log."""
         for act in self.params.actions.due(release.index):
-            reason = act.refusal or self.hw.command(act.action)
+            reason = self.params.actions.refusal(act, release.index)
+            reason = reason or self.hw.command(act.action)
             out = act.finish(
                 release.index, accepted=reason is None, reason=reason, t_ns=release.wake_ns
             )
