@@ -8,8 +8,10 @@ from typing import Any
 DESCRIPTION = """\
 One controller log (MCAP) at a glance: the run (clock, law, rate, CAN, zenoh, recorder, start),
 the digest of the recorded configuration, duration, ticks, the laws that ran, deadline misses,
-the problems that make the run not clean (the rule of `hil controller`'s summary, judged on the
-log's final /diagnostics record and recorder counters), and the topics with their message counts.
+the problems that make the run not clean and the warnings (the rules of `hil controller`'s
+summary, judged on the log's final /diagnostics record, which carries the run's DSP faults,
+ticks without an enabled DSP and camera outages, and the recorder counters; a log without them
+has its outages rebuilt from the cycle records), and the topics with their message counts.
 A log whose writer was killed is reported as truncated, with what could be read; a complete log
 without the final /diagnostics record (controller killed, or a cut log made whole by `hil
 recover`) has that as a problem, and a copy made by `hil recover` says where it came from. A run
@@ -21,9 +23,11 @@ records without a tick: counted per topic) are problems too.
 writer finished it, but damaged chunks were skipped), run, config_digest, duration_s, time_axis,
 ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, planned_ticks, end_reason,
 ticks_run (how the run ended, from its final /diagnostics record; null where an older log does
-not say), problems, rejected ({TOPIC: records skipped}), recovered (null,
-or the hil.recovered record: from, input_bytes, kept_bytes, lost_bytes, skipped_bytes, stopped,
-line), topics ({TOPIC: {messages, schema}}), messages, run_info (all hil.run metadata), notes.
+not say), problems (what makes the run not clean), warnings (what a clean run's summary
+warns of: camera outages, unauthenticated parameter requests refused, ...), rejected ({TOPIC:
+records skipped}), recovered (null, or the hil.recovered record: from, input_bytes,
+kept_bytes, lost_bytes, skipped_bytes, stopped, line), topics ({TOPIC: {messages, schema}}),
+messages, run_info (all hil.run metadata), notes.
 """
 
 
@@ -94,6 +98,7 @@ def render(info: dict[str, Any]) -> str:
          f"({_fmt(info['missed_periods'])} missed periods)"),
         *((("ended", _ended(info)),) if info.get("end_reason") else ()),
         ("problems", "; ".join(info["problems"]) or "none"),
+        *(("warning", w) for w in info.get("warnings") or ()),
         *((("recovered", info["recovered"]["line"]),) if info.get("recovered") else ()),
         ("messages", str(info["messages"])),
     ]  # fmt: skip

@@ -21,8 +21,13 @@ rate_hz, period_us, ticks, duration_s, deadline_misses, miss_pct, missed_periods
 {tick, t_s, lateness_us, cycle_us, missed_periods}, capped by --max-list), lateness_us / cycle_us /
 read_us / solve_us / write_us ({min, median, p99, max, mean}), lateness_histogram (list of
 {lo_us, hi_us, count}), residual, iterations, fallbacks, stale_features, invalid_features,
-stale_state, tau_saturated, f_final, f_final_norm, J, messages, recorder_dropped. Values that
-were not recorded are null.
+stale_state, tau_saturated, f_final, f_final_norm, J, messages, recorder_dropped, outages,
+diagnostics (the last /diagnostics record's counters, parameters among them), problems and
+warnings (the run's verdict as `hil info` gives it: the controller's rule on the log). Values
+that were not recorded are null.
+
+The text starts with the verdict: "run not clean: ..." (the problems) or "problems: none", then
+one line per warning.
 
 --plot DIR writes PNGs named LOGSTEM_{lateness_hist,cycle_time,solve_time,f,xi,u,tau}.png.
 """
@@ -57,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rt_controller.commands.output import output_dir
     from rt_controller.errors import ControllerConfigError, LogError
-    from rt_controller.logtools.deadline_report import summarize
+    from rt_controller.logs.info import judged_report
     from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.report_plots import write_plots
     from rt_controller.logtools.report_text import render_text
@@ -79,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         raise failed[0]
     for exc in failed:
         print(f"hil report: error: {exc}", file=sys.stderr)
-    reports = [summarize(log, max_list=args.max_list) for log in logs]
+    reports = [judged_report(log, max_list=args.max_list) for log in logs]
     if plot_dir is not None:
         stems: dict[str, int] = {}
         with progress.stage(f"drawing the figures into {plot_dir}"):

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
+from hal.drive_state import MODE_ENABLED, MODES
 from rt_controller.logs.run import Run
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.counters import ENDED_FULL
@@ -32,25 +33,41 @@ def final_diagnostics(run: Run) -> dict[str, Any] | None:
 
 
 def logged_summary(run: Run) -> dict[str, Any]:
-    """The controller summary's counters as far as the log has them (the final diagnostics and
-    the ``hil.recorder`` metadata): what :func:`rt_controller.runtime.counters.run_problems`
-    judges. The DSP fault counts of the summary are not in the log."""
+    """The controller summary's counters as far as the log has them: what
+    :func:`rt_controller.runtime.counters.run_problems` and ``run_warnings`` judge. From the
+    final ``/diagnostics`` record (with the run's ``dsp_faults``, ``drive_ticks`` and
+    ``outages``: ``RunCounters.judged``) and the ``hil.recorder`` metadata; where the log has
+    no final record with them (a killed run, an older log) the outages are rebuilt from the
+    cycle records, the ticks without an enabled DSP taken from the ``dsp`` component's
+    ``ticks.*`` (else the cycle records' modes), and no DSP fault is known."""
     last = final_diagnostics(run) or {}
+    final = last if last.get("final") else {}
     ctl, dsp = diagnostics.values_of(last, "controller"), diagnostics.values_of(last, "dsp")
     recorder = {k: _int(v) for k, v in run.recorder.items() if _int(v) is not None}
     if not recorder:  # not closed cleanly: the counters of the last diagnostics, whose
         recorder = diagnostics.values_of(last, "recorder")  # queue was still to be written
         recorder.pop("pending", None)
     out: dict[str, Any] = {
+        "clock": run.info.get("clock"),
         "recorder": recorder,
         "watchdog_trips": ctl.get("watchdog_trips", 0),
-        "drive_ticks": {k[len("ticks.") :]: v for k, v in dsp.items() if k.startswith("ticks.")},
+        "dsp_faults": _counts(final.get("dsp_faults")) or {},
+        "drive_ticks": _counts(final.get("drive_ticks")),
+        "outages": final.get("outages"),
         "rejections": {
             "can_rx": diagnostics.values_of(last, "can_rx"),
             "features": diagnostics.values_of(last, "features"),
             "dsp_rejected_frames": int(dsp.get("rejected_frames", 0) or 0),
         },
+        "parameters": diagnostics.values_of(last, "parameters"),
     }
+    if out["drive_ticks"] is None:  # the dsp profile's counts, else the cycle records'
+        ticks = {k[len("ticks.") :]: v for k, v in dsp.items() if k.startswith("ticks.")}
+        out["drive_ticks"] = ticks or _drive_ticks_of_cycles(run)
+    if not isinstance(out["outages"], dict):
+        from rt_controller.logtools.deadline_report import log_outages
+
+        out["outages"] = log_outages(run.log)
     walk = run.log.walk
     if walk is not None and walk.footer and walk.skipped:
         out["log_error"] = (
@@ -60,6 +77,40 @@ def logged_summary(run: Run) -> dict[str, Any]:
     elif run.truncated:
         out["log_error"] = "the writer did not finish it (truncated)"
     return out
+
+
+def _counts(value: Any) -> dict[str, int] | None:
+    """A ``{name: count}`` block of the final record; None where it is not one."""
+    if not isinstance(value, dict):
+        return None
+    counts = {str(k): _int(v) for k, v in value.items()}
+    return {k: v for k, v in counts.items() if v}
+
+
+def _drive_ticks_of_cycles(run: Run) -> dict[str, int]:
+    """Ticks without an enabled DSP by mode, from the cycle records' ``law`` (the drive's mode
+    in such a tick: ``fault``, ``no_status``, ...)."""
+    laws = run.log.column("law")
+    if laws is None:
+        return {}
+    modes = set(MODES) - {MODE_ENABLED}
+    return dict(Counter(str(x) for x in laws if str(x) in modes))
+
+
+def judge(run: Run, ticks: int) -> tuple[list[str], list[str], list[str]]:
+    """The log's verdict as the controller's rule gives it: its problems (``run_problems`` on
+    :func:`logged_summary`, then :func:`log_problems`), its warnings (``run_warnings``) and
+    notes on what the verdict rests on. ``ticks``: the cycle records read."""
+    from rt_controller.runtime.counters import run_problems, run_warnings
+
+    summary = logged_summary(run)
+    problems = run_problems(summary) + log_problems(run, ticks)
+    notes = []
+    if not run.log.diagnostics:
+        notes.append("no /diagnostics records: problems judged on the recorder's counters only")
+    elif not (final_diagnostics(run) or {}).get("final"):
+        notes.append("no final /diagnostics record: problems judged on the last one")
+    return problems, run_warnings(summary), notes
 
 
 def _int(value: Any) -> int | None:
@@ -144,10 +195,20 @@ def recovered_from(run: Run) -> dict[str, Any] | None:
     return out
 
 
+def judged_report(log: Any, *, max_list: int = 50) -> dict[str, Any]:
+    """``hil report``'s dict of a loaded log (:func:`~rt_controller.logtools.deadline_report.
+    summarize`) with the run's ``problems`` and ``warnings`` as ``hil info`` judges them
+    (:func:`judge`)."""
+    from rt_controller.logtools.deadline_report import summarize
+
+    out = summarize(log, max_list=max_list)
+    out["problems"], out["warnings"], _ = judge(Run(log), log.n_cycles)
+    return out
+
+
 def log_info(run: Run) -> dict[str, Any]:
     """The ``hil info --json`` object of ``run``."""
     from rt_controller.logtools.deadline_report import summarize
-    from rt_controller.runtime.counters import run_problems
 
     report = summarize(run.log, max_list=0)
     laws = run.log.column("law")
@@ -164,13 +225,8 @@ def log_info(run: Run) -> dict[str, Any]:
     for topic, schema in sorted(run.log.schemas.items()):
         topics.setdefault(topic, {"messages": 0, "schema": schema})
     t = run.log.column("tick")
-    notes = list(report["notes"])
-    problems = run_problems(logged_summary(run))
-    if not run.log.diagnostics:
-        notes.append("no /diagnostics records: problems judged on the recorder's counters only")
-    elif not (final_diagnostics(run) or {}).get("final"):
-        notes.append("no final /diagnostics record: problems judged on the last one")
-    problems += log_problems(run, report["ticks"])
+    problems, warnings, judged_notes = judge(run, report["ticks"])
+    notes = list(report["notes"]) + judged_notes
     recovered = recovered_from(run)
     return {
         "log": str(run.path),
@@ -189,6 +245,7 @@ def log_info(run: Run) -> dict[str, Any]:
         "missed_periods": report["missed_periods"],
         **run_end(run),
         "problems": problems,
+        "warnings": warnings,
         "rejected": dict(run.log.rejected),
         "recovered": recovered,
         "topics": topics,

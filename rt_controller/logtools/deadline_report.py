@@ -159,7 +159,8 @@ def _num(col: np.ndarray | None, i: int) -> float | None:
 
 
 def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
-    """The report of one log as a JSON-ready dict (None where a field was not recorded)."""
+    """The report of one log as a JSON-ready dict (None where a field was not recorded); the
+    run's verdict is added by :func:`rt_controller.logs.info.judged_report`."""
     n = log.n_cycles
     t, t_label = time_axis(log)
     per = period_us(log)
@@ -219,6 +220,13 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     return out
 
 
+def log_outages(log: LoadedLog) -> dict[str, Any] | None:
+    """The camera outages of a log rebuilt from its cycle records (``hil report``'s, and the
+    verdict's of a log whose final ``/diagnostics`` record does not carry them)."""
+    t, _ = time_axis(log)
+    return _outages(log, t, period_us(log))
+
+
 def _no_cycles_note(log: LoadedLog) -> str:
     """Why the log has no ticks: no cycle messages, or none of them was readable."""
     found = log.topic_counts.get(CYCLE_TOPIC, 0)
@@ -272,7 +280,8 @@ def _event(rec: dict[str, Any]) -> dict[str, Any]:
 
 def _final_diagnostics(log: LoadedLog) -> dict[str, Any] | None:
     """The counters of the run's last ``/diagnostics`` record: rejections by reason (non-zero
-    ones) per receiver, the DSP's state, the controller's and the recorder's counters."""
+    ones) per receiver, the DSP's state, the controller's, the recorder's and the parameter
+    service's counters (``parameters``: {} where it did not run)."""
     if not log.diagnostics:
         return None
     last = log.diagnostics[-1]
@@ -290,7 +299,7 @@ def _final_diagnostics(log: LoadedLog) -> dict[str, Any] | None:
             or k in ("decode_error",)
             if v
         }
-    for name in ("dsp", "controller", "recorder"):
+    for name in ("dsp", "controller", "recorder", "parameters"):
         out[name] = diagnostics.values_of(last, name)
     return out
 

@@ -7,8 +7,13 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from rich.markup import escape
+
 from rt_controller.logtools.deadline_report import TIMING_FIELDS
 from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC
+
+PARAMETER_COUNTS = ("accepted", "refused", "unauthenticated")
+"""The counters of the ``/diagnostics`` record's ``parameters`` component the report shows."""
 
 
 def _fmt(x: Any, digits: int = 1) -> str:
@@ -44,8 +49,9 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         f"{report['ticks']} ticks over {_fmt(report['duration_s'], 3)} s"
     )
     con.print(head)
+    _verdict(con, report)
     for note in report["notes"]:
-        con.print(f"[yellow]note:[/yellow] {note}")
+        con.print(f"[yellow]note:[/yellow] {escape(note)}")
 
     timing = Table(title="Timing (µs)", title_justify="left")
     for col in ("", "min", "median", "p99", "max"):
@@ -88,6 +94,10 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
                 (label, f"{diag[f'{name}_rejected']}" + (f" ({reasons})" if reasons else ""))
             )
         rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
+        params = diag.get("parameters") or {}
+        if params:
+            rows.append(("parameter requests accepted / refused / unauthenticated",
+                         " / ".join(_fmt(params.get(k)) for k in PARAMETER_COUNTS)))  # fmt: skip
         dsp_rejected = diag["dsp"].get("rejected_frames")
         if dsp_rejected is not None:
             rows.append(("frames the DSP rejected (saturates at 255)", _fmt(dsp_rejected)))
@@ -163,6 +173,20 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         for b in hist:
             ht.add_row(_bucket_label(b), str(b["count"]), _bar(b["count"], top))
         con.print(ht)
+
+
+def _verdict(con: Any, report: dict[str, Any]) -> None:
+    """The run's problems (``run not clean: ...``, as ``hil controller`` says it; ``problems:
+    none``) and its warnings, one line each, as ``hil info`` judges the log."""
+    if "problems" not in report:
+        return
+    problems = report["problems"]
+    if problems:
+        con.print(f"[bold red]run not clean:[/bold red] {escape('; '.join(problems))}")
+    else:
+        con.print("problems: none")
+    for warning in report.get("warnings") or []:
+        con.print(f"[yellow]warning:[/yellow] {escape(warning)}")
 
 
 def _canopen(con: Any, co: dict[str, Any] | None) -> None:

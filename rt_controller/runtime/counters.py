@@ -196,6 +196,17 @@ class RunCounters:
             f.name: getattr(self, f.name) for f in fields(self) if f.metadata.get("diagnostics")
         }
 
+    def judged(self) -> dict[str, Any]:
+        """What :func:`run_problems` judges that only the loop counts: the DSP's faults, the
+        ticks without an enabled DSP and the camera outages. The run's final ``/diagnostics``
+        record carries them (:func:`diagnostics.with_run_end`), so a log is judged as its run
+        was (``hil info``, ``hil report``). Taken once, at the end of the run."""
+        return {
+            "dsp_faults": dict(self.dsp_faults),
+            "drive_ticks": dict(self.drive_ticks),
+            "outages": self.outages.as_dict(self.period_s),
+        }
+
     def as_dict(self) -> dict[str, Any]:
         """The summary's counters: the fields (counts by kind as plain dicts), the per-tick
         times as median and p99, the outages as their block."""
@@ -218,6 +229,14 @@ class RunCounters:
 def _us(durations: Durations, q: float) -> float:
     """The ``q``-th percentile in us; NaN before the first tick."""
     return durations.percentile_us(q) if len(durations) else math.nan
+
+
+def _int0(value: Any) -> int:
+    """A counter read from a summary or a log: 0 where absent or not a number."""
+    try:
+        return int(value or 0)
+    except (TypeError, ValueError):
+        return 0
 
 
 def _image_count(summary: dict[str, Any], name: str) -> int:
@@ -318,8 +337,9 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
     nothing): camera outages (:func:`outage_warnings`), scene drawings or live records the
     recorder could not make (the cycles themselves are logged), a few camera images refused for
-    the log (a stream of them is a problem), and a realtime run during
-    which the hypervisor took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT`
+    the log (a stream of them is a problem), parameter requests refused as unauthenticated
+    (none was applied, but someone sent them), and a realtime run during which the hypervisor
+    took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT`
     or more of the CPUs' time. The run is still clean (its exit status says so); its J is not the
     lockstep one's.
     """
@@ -335,6 +355,12 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     missing = _image_count(summary, "images_missing")
     if missing and summary.get("clock") != "lockstep":
         out.append(f"{missing} camera image(s) announced by their features are not in the log")
+    rogue = _int0((summary.get("parameters") or {}).get("unauthenticated"))
+    if rogue:
+        out.append(
+            f"{rogue} unauthenticated parameter request(s) refused (wrong key, replayed, "
+            "malformed or stale `hil param set`; none applied)"
+        )
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

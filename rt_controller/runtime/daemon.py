@@ -265,7 +265,10 @@ class ControllerDaemon:
                 self.counters.end_reason = "stopped"
             hw.deactivate()
             self._final_diagnostics = diagnostics.with_run_end(
-                loop.diagnostics(final=True), self.counters.planned_ticks, self.counters.end_reason
+                loop.diagnostics(final=True),
+                self.counters.planned_ticks,
+                self.counters.end_reason,
+                self.counters.judged(),
             )
             loop.ctx.recorder.record_diagnostics(self._final_diagnostics, final=True)
 
@@ -282,6 +285,7 @@ class ControllerDaemon:
                 diagnostics.values_of(final, "dsp").get("rejected_frames", 0)
             ),
         }
+        out["parameters"] = diagnostics.values_of(final, "parameters")
         out["problems"] = run_problems(out)
         out["warnings"] = run_warnings(out)
         return out

@@ -30,6 +30,24 @@ DIAGNOSTICS_SCHEMA: dict[str, Any] = {
             "description": "final record only: why the loop ended: duration, stopped (a stop "
             "request) or a short phrase (no Sync from the DSP, ...)",
         },
+        "dsp_faults": {
+            "type": "object",
+            "additionalProperties": {"type": "integer"},
+            "description": "final record only: faults the drive(s) reported in the run, by "
+            "reason (watchdog, position_limit, emcy_8700, heartbeat_lost, ...)",
+        },
+        "drive_ticks": {
+            "type": "object",
+            "additionalProperties": {"type": "integer"},
+            "description": "final record only: ticks run without an enabled drive, by mode "
+            "(fault, no_status, disarmed, dsp_restarted)",
+        },
+        "outages": {
+            "type": "object",
+            "description": "final record only: the run's camera outages as the controller "
+            "counted them (warn_periods, max_share, count, listed, longest, longest_ticks, "
+            "ticks_on_stale_or_invalid, share), the block of its summary",
+        },
         "status": {
             "type": "array",
             "items": {
@@ -139,12 +157,16 @@ def build(
 
 
 def with_run_end(
-    record: dict[str, Any], planned_ticks: int | None, end_reason: str
+    record: dict[str, Any],
+    planned_ticks: int | None,
+    end_reason: str,
+    judged: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The run's final record with how the run ended, so its log alone tells a run cut short
     (``tick`` < ``planned_ticks``, or an ``end_reason`` other than its duration) from a whole
-    one (``hil info``)."""
-    return {**record, "planned_ticks": planned_ticks, "end_reason": end_reason}
+    one (``hil info``), and with ``judged``: the counters of the run's verdict that are nowhere
+    else in the log (``dsp_faults``, ``drive_ticks``, ``outages``: ``RunCounters.judged``)."""
+    return {**record, "planned_ticks": planned_ticks, "end_reason": end_reason, **(judged or {})}
 
 
 def values_of(record: dict[str, Any], name: str) -> dict[str, Any]:
