@@ -24,8 +24,7 @@ Where the command runs, first match wins:
    SocketCAN. The script boots UML with the host filesystem as its root (hostfs), and a generated
    init script mounts /proc, /sys, a tmpfs on /dev/shm (zenoh and multiprocessing need it),
    brings ``lo`` up, loads can, can-raw, can-bcm, can-dev and vcan with ``insmod``, creates
-   ``vcan0``, runs the command from the repository root with a curated environment, records its
-   output and exit
+   ``vcan0``, runs the command with a curated environment, records its output and exit
    status in a temporary directory and powers the virtual machine off. The host streams that
    output while the command runs and exits with the command's exit status. A host-side timeout
    (``--timeout``, default 1200 s) kills the UML process group, so a wedged guest never hangs CI.
@@ -41,6 +40,11 @@ and the command is run again under Debian unstable's UML 7.x, which boots there
 (``uml_newer.py``: installed into ``.uml/`` on first use, checked as apt checks packages). If
 that cannot be installed either, the vcan tests are reported "NOT RUN" with the reason: exit 1
 under ``CI=true`` or ``--exec``, 0 locally.
+
+Where it runs: pytest from the repository root; an ``--exec`` command in the caller's working
+directory, so relative paths (``--key-file rig.key``) and the logs it writes stay there. The UML
+guest sees the host's whole file system at the same paths (hostfs) except /proc, /sys and /dev,
+which it mounts anew: ``--exec`` refuses to start from a directory under those.
 
 In pytest mode, exit status 5 (no tests collected) is an error under ``CI=true`` (the vcan tests
 must run); locally it is reported as a warning and the script exits 0.
@@ -62,6 +66,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 from vcan_host import (
     REPO_ROOT,
@@ -75,7 +80,7 @@ from vcan_host import (
     native_vcan_state,
     uml_missing,
 )
-from vcan_uml import EXIT_UML_CANNOT_BOOT, UML_FP_PANIC, run_uml
+from vcan_uml import EXIT_UML_CANNOT_BOOT, UML_FP_PANIC, guest_hidden_mount, run_uml
 
 ENABLE_HINT = (
     "enable with: sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; "
@@ -90,13 +95,13 @@ EXIT_NO_TESTS = 5
 # --------------------------------------------------------------------------------------------
 
 
-def run_native(cmd: list[str], env: dict[str, str]) -> int:
+def run_native(cmd: list[str], env: dict[str, str], cwd: Path) -> int:
     state = native_vcan_state()
     if state == "down":
         log(f"warning: {VCAN_CHANNEL} exists but is down (sudo ip link set up {VCAN_CHANNEL})")
     log(f"native {VCAN_CHANNEL} found; running: {shlex.join(cmd)}")
     try:
-        return subprocess.run(cmd, cwd=REPO_ROOT, env=env, check=False).returncode
+        return subprocess.run(cmd, cwd=cwd, env=env, check=False).returncode
     except FileNotFoundError as exc:
         log(f"cannot run {cmd[0]!r}: {exc}")
         return 127
@@ -129,7 +134,11 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         "--exec",
         dest="exec_mode",
         action="store_true",
-        help="run the command after `--` instead of pytest (e.g. --exec -- ip link show vcan0)",
+        help=(
+            "run the command after `--` instead of pytest (e.g. --exec -- ip link show vcan0), "
+            "in the current directory (pytest runs in the repository root); user-mode Linux "
+            "sees the host's files except under /proc, /sys and /dev"
+        ),
     )
     parser.add_argument(
         "--timeout",
@@ -173,7 +182,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     return args, unknown + rest
 
 
-def run_newer_uml(cmd: list[str], env: dict[str, str], args: argparse.Namespace) -> int:
+def run_newer_uml(cmd: list[str], env: dict[str, str], args: argparse.Namespace, cwd: Path) -> int:
     """The distribution's UML could not boot on this CPU (AMX tiles: ``uml_newer``): run
     ``cmd`` under Debian unstable's newer UML instead, installed on first use."""
     import uml_newer
@@ -185,7 +194,7 @@ def run_newer_uml(cmd: list[str], env: dict[str, str], args: argparse.Namespace)
         log(f"cannot install a newer user-mode Linux: {exc}")
         return EXIT_UML_CANNOT_BOOT
     kernel = (str(newer.binary), newer.modules_root)
-    return run_uml(cmd, env, args.timeout, args.mem, args.keep, kernel)
+    return run_uml(cmd, env, args.timeout, args.mem, args.keep, kernel, cwd)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -225,14 +234,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"vcan tests skipped: {reason}; {ENABLE_HINT}")
         return 0
 
+    cwd = Path.cwd() if args.exec_mode else REPO_ROOT
+    hidden = guest_hidden_mount(cwd) if mode == "uml" else None
+    if hidden:
+        log(
+            f"error: user-mode Linux cannot see the current directory {cwd} (the guest mounts "
+            f"its own {hidden}); run from another directory"
+        )
+        return 2
     env = build_guest_env(python, args.env, in_uml=(mode == "uml"))
     if mode == "native":
-        rc = run_native(cmd, env)
+        rc = run_native(cmd, env, cwd)
     else:
-        rc = run_uml(cmd, env, args.timeout, args.mem, args.keep)
+        rc = run_uml(cmd, env, args.timeout, args.mem, args.keep, cwd=cwd)
 
     if rc == EXIT_UML_CANNOT_BOOT:
-        rc = run_newer_uml(cmd, env, args)
+        rc = run_newer_uml(cmd, env, args, cwd)
     if rc == EXIT_UML_CANNOT_BOOT:
         log(
             f"{what} NOT RUN: neither the distribution's user-mode Linux nor a newer one "

@@ -25,6 +25,16 @@ UML_FP_PANIC = "ptrace set fp regs failed"
 
 INIT_TEMPLATE_FILE = Path(__file__).with_name("uml_init.sh")
 """The guest's init script; ``@NAME@`` placeholders are filled in by :func:`write_init_script`."""
+GUEST_OWN_MOUNTS = ("/proc", "/sys", "/dev")
+"""Mounted anew inside the guest (uml_init.sh); everything else is the host's, through hostfs."""
+
+
+def guest_hidden_mount(path: Path) -> str | None:
+    """The guest's own mount that hides host ``path`` from the guest, or None if it sees it."""
+    for mount in GUEST_OWN_MOUNTS:
+        if path == Path(mount) or Path(mount) in path.parents:
+            return mount
+    return None
 
 
 def write_init_script(
@@ -33,7 +43,10 @@ def write_init_script(
     env: dict[str, str],
     inner_timeout: int | None,
     modules_root: Path = UML_MODULES_ROOT,
+    cwd: Path = REPO_ROOT,
 ) -> Path:
+    """Fill in the guest's init script in ``workdir``: it runs ``cmd`` in ``cwd`` (a host path,
+    which the guest sees at the same place) with exactly ``env``."""
     timeout_prefix = ""
     if inner_timeout is not None and shutil.which("timeout"):
         # Lets the guest record output and status before the host-side timeout fires.
@@ -43,7 +56,7 @@ def write_init_script(
         "MODULES": " ".join(CAN_MODULES),
         "MODROOT": shlex.quote(str(modules_root)),
         "CHANNEL": VCAN_CHANNEL,
-        "CWD": shlex.quote(str(REPO_ROOT)),
+        "CWD": shlex.quote(str(cwd)),
         "TIMEOUT_PREFIX": timeout_prefix,
         "ENV": " ".join(shlex.quote(f"{k}={v}") for k, v in sorted(env.items())),
         "CMD": shlex.join(cmd),
@@ -124,9 +137,11 @@ def run_uml(
     mem_mib: int,
     keep: bool,
     kernel: tuple[str, Path] | None = None,
+    cwd: Path = REPO_ROOT,
 ) -> int:
     """Boot UML (``kernel``: its binary and module root; default the distribution's) to run
-    ``cmd`` beside a real vcan0; the command's exit status, or this script's own codes."""
+    ``cmd`` in ``cwd`` beside a real vcan0; the command's exit status, or this script's own
+    codes."""
     uml, modules_root = kernel or (find_uml_binary(), UML_MODULES_ROOT)
     if uml is None:
         log("linux.uml not found")
@@ -138,7 +153,7 @@ def run_uml(
     # The guest-side timeout fires first so the guest can still record output and status.
     reserve = min(timeout / 2, max(15.0, timeout * 0.05))
     inner_timeout = max(int(timeout - reserve), 1)
-    init = write_init_script(workdir, cmd, env, inner_timeout, modules_root)
+    init = write_init_script(workdir, cmd, env, inner_timeout, modules_root, cwd)
     boot_log = workdir / "boot.log"
     uml_cmd = [
         uml,
@@ -156,7 +171,7 @@ def run_uml(
     uml_env["HOME"] = os.environ.get("HOME") or str(workdir)
     uml_env["TMPDIR"] = uml_memory_tmpdir(mem_mib, workdir)
     log(f"booting user-mode Linux ({uml}, mem={mem_mib}M) to get a real {VCAN_CHANNEL}")
-    log(f"guest runs: {shlex.join(cmd)}  (cwd {REPO_ROOT}, work dir {workdir})")
+    log(f"guest runs: {shlex.join(cmd)}  (cwd {cwd}, work dir {workdir})")
     tail = _Tail(workdir / "output.log")
     start = time.monotonic()
     ready_at: float | None = None

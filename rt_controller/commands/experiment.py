@@ -48,8 +48,10 @@ camera.model = analytic, table1 uses --noise, else camera.noise_px of the config
 the config's (0 by default).
 
 The output folder (default experiments/<timestamp>/) gets logs/*.mcap, configs/*.toml (each
-run's full configuration: `hil up --config ...` repeats it), PNG figures, report.md (what was run,
-J tables, figures, the paper's Table I for comparison) and results.json (also printed by --json).
+run's full configuration), PNG figures, report.md (what was run, J tables, figures, the paper's
+Table I for comparison, and per run the command that repeats it, run inside the output folder:
+`hil --target-of LOG up --config CONFIG --log NAME.rerun.mcap --force`, on the CPU target its
+log records) and results.json (also printed by --json).
 A failed run is reported with the error of its process; the experiment then exits with status 1
 after the remaining runs (it gives up after three failures in a row).
 

@@ -194,3 +194,17 @@ def test_pixel_noise_runs_on_the_simulate_engine_or_the_analytic_camera():
         spec.tasks("rig")
     analytic = spec_from_dict({**GOOD, "base": {"camera": ANALYTIC_NOISE}})
     assert len(analytic.tasks("rig")) == len(spec.tasks("simulate"))
+
+
+def test_every_shipped_sweep_example_loads_and_its_runs_validate():
+    """The studies under ``examples/`` that the docs run (``hil sweep examples/X.toml``)."""
+    from pathlib import Path
+
+    from rt_controller.sweep.spec import load_spec
+
+    root = Path(__file__).resolve().parents[2] / "examples"
+    studies = [p for p in sorted(root.glob("*.toml")) if "[study]" in p.read_text()]
+    assert {p.name for p in studies} >= {"robustness.toml", "profiles.toml"}
+    for path in studies:
+        spec = load_spec(str(path))
+        assert spec.tasks(), path.name  # every run's config built and validated
