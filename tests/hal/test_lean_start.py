@@ -7,6 +7,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+from hal.bus import isolated_spec
 from tests.support import REPO
 
 
@@ -76,7 +77,7 @@ def test_the_emulator_daemon_runs_its_kernels_without_loading_scipy_linalg(tmp_p
                 "emulator",
                 "--lockstep",
                 "--can",
-                "virtual",
+                isolated_spec("udp_multicast"),  # a bus of its own: no peer is needed
             ],
             cwd=REPO,
             stdout=subprocess.DEVNULL,
