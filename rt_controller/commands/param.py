@@ -84,26 +84,6 @@ def _check_keys(keys: list[str]) -> None:
         )
 
 
-def parse_changes(items: list[str]) -> dict[str, Any]:
-    """The change set of ``hil param set KEY=VALUE ...`` (values as ``hil replay --set``:
-    JSON, else strings); a malformed item or a key given twice is refused, naming it."""
-    from rt_controller.commands.replay import parse_sets
-    from rt_controller.errors import ControllerConfigError
-
-    seen: set[str] = set()
-    for item in items:
-        key, sep, _ = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ControllerConfigError(f"set expects KEY=VALUE (e.g. gains.kp=0.2), got {item!r}")
-        if key in seen:
-            raise ControllerConfigError(
-                f"set: {key} given twice; one change set takes each key once"
-            )
-        seen.add(key)
-    return parse_sets(items)
-
-
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key, rig_key
@@ -111,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from hal.zenoh_session import open_session
     from rt_controller.calibration.link import event_line, outcome_line, request
     from rt_controller.commands.output import output_file
+    from rt_controller.commands.replay import parse_sets
     from rt_controller.errors import ControllerConfigError
 
     if args.action == "get":
@@ -118,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = configure_key(load_config(args.config), args.key_file, "hil param")
     if args.action in ("load", "diff") and len(args.items) != 1:
         raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
-    changes = parse_changes(args.items) if args.action == "set" else {}
+    changes = parse_sets(args.items, "set") if args.action == "set" else {}
     if args.action == "set" and not changes:
         raise ControllerConfigError("set expects KEY=VALUE ...")
     out_file = None

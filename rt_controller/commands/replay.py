@@ -107,20 +107,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def parse_sets(items: list[str]) -> dict[str, Any]:
-    """``["gains.kp=0.2", ...]`` -> ``{"gains.kp": 0.2}``; values are JSON, else strings."""
+def parse_sets(items: list[str], option: str = "--set") -> dict[str, Any]:
+    """``["gains.kp=0.2", ...]`` -> ``{"gains.kp": 0.2}``; values are JSON, else strings. A
+    malformed item or a key given twice is refused, naming ``option`` (what the user typed)."""
     from rt_controller.errors import ControllerConfigError
 
     out: dict[str, Any] = {}
     for item in items:
         key, sep, text = item.partition("=")
-        if not sep or not key.strip():
-            raise ControllerConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        key = key.strip()
+        if not sep or not key:
+            raise ControllerConfigError(
+                f"{option} expects KEY=VALUE (e.g. gains.kp=0.2), got {item!r}"
+            )
+        if key in out:
+            raise ControllerConfigError(f"{option}: {key} given twice; each key once")
         try:
-            value = json.loads(text)
+            out[key] = json.loads(text)
         except ValueError:
-            value = text
-        out[key.strip()] = value
+            out[key] = text
     return out
 
 
@@ -150,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.target_replay import replay_as_recorded
 
+    parse_sets(args.sets)  # a malformed or repeated --set is told before the log is read
     out = None
     if args.out:  # the log itself is refused by the replay, whatever --force says
         replace = args.force or same_file(args.out, args.log)

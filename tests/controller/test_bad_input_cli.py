@@ -265,3 +265,11 @@ def test_python_cans_in_process_bus_is_refused_between_processes(
     err = refused([*argv, "--can", "virtual", *key], capsys, "virtual", "udp_multicast")
     assert "one process only" in err
     assert not list(tmp_path.glob("experiments/*")) and not list(tmp_path.glob("logs/*"))
+
+
+def test_replay_set_takes_each_key_once(tmp_path, capsys):
+    """``hil replay --set gains.kp=0.2 --set gains.kp=0.3`` replayed with 0.3 without a word."""
+    log = tmp_path / "any.mcap"
+    log.write_bytes(b"")  # the sets are refused before the log is read
+    argv = ["replay", str(log), "--set", "gains.kp=0.2", "--set", "gains.kp=0.3"]
+    refused(argv, capsys, "--set: gains.kp given twice")
