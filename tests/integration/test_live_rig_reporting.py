@@ -53,10 +53,11 @@ def test_hil_up_json_from_the_command_line(tmp_path):
 
 
 def test_hil_up_reports_a_process_that_cannot_start(tmp_path):
-    """A bad CAN spec: the emulator (or controller) exits 2; ``hil up`` names it with its exit
-    status and stderr tail, exits non-zero, and leaves nothing running."""
+    """A CAN interface that is not there (the spec itself is sound, so ``hil up`` cannot tell
+    before the processes open it): the emulator (or controller) exits 2; ``hil up`` names it
+    with its exit status and stderr tail, exits non-zero, and leaves nothing running."""
     ep = free_endpoint()
-    args = ["up", "--lockstep", "--duration", "2", "--json", "--can", "udp_multicast:nowhere:1"]
+    args = ["up", "--lockstep", "--duration", "2", "--json", "--can", "socketcan:hilnone0"]
     args += ["--zenoh-endpoint", ep, "--log", str(tmp_path / "bad.mcap")]
     try:
         done = run_hil(args, 120)
