@@ -69,10 +69,11 @@ def recv_frames(bus: can.BusABC, codec: DspCodec, count: int) -> list[Frame]:
 
 def sends(bus: can.BusABC) -> bool:
     """Whether ``bus`` still sends a valid frame: once shut down, a python-can bus refuses
-    with :class:`can.CanOperationError` (the public sign of a closed bus)."""
+    (virtual, udp_multicast: :class:`can.CanOperationError`; socketcan: its closed socket's
+    descriptor, -1, is refused by ``select`` with ValueError), an open one sends."""
     try:
         bus.send(can.Message(arbitration_id=0x7FF, data=bytes(8), is_extended_id=False))
-    except can.CanOperationError:
+    except (can.CanOperationError, ValueError):
         return False
     return True
 
