@@ -232,6 +232,11 @@ class LogSource:
                 f"--source {self.name}: the log has no {self.topic} frames (the run recorded "
                 "no camera images, or the log was cut before them)"
             )
+        if seen and not seq and not stop.is_set():  # as a file OpenCV cannot read
+            raise HalConfigError(
+                f"--source {self.name}: none of its {seen} {self.topic} frames is an image "
+                "OpenCV decodes (damaged frames, or another topic of that name)"
+            )
 
 
 def check_source(spec: str) -> None:

@@ -231,6 +231,24 @@ def _image_log(path: Path, n: int = len(PATH_F)) -> Path:
     return path
 
 
+def test_a_log_whose_frames_none_decodes_is_refused(tmp_path: Path):
+    """As a file OpenCV cannot read: one line, not an exit 0 over 0 measured frames."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "damaged.mcap"
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start()
+        ch = w.register_channel("/camera/image", "protobuf", 0)
+        for i in range(3):
+            w.add_message(ch, i * 10**8, b"\x00garbage", i * 10**8)
+        w.finish()
+    g = grabber([])
+    with pytest.raises(HalConfigError, match="none of its 3 /camera/image frames"):
+        open_source(f"log:{path}").run(g.on_frame, g.on_reject, threading.Event())
+    assert g.snapshot().pipeline["rejected"]["malformed"] == 3
+
+
 def test_a_cut_log_gives_the_frames_of_its_complete_chunks(tmp_path: Path):
     path = _image_log(tmp_path / "run.mcap")
     data = path.read_bytes()
