@@ -139,6 +139,7 @@ def daemon_options(args: argparse.Namespace) -> DaemonOptions:
     return DaemonOptions(
         duration_s=args.duration,
         log_path=Path(args.log) if args.log else None,
+        replace_log=args.force,
         realtime_settings=not args.no_rt,
         record_raw=not args.no_raw,
         live=not args.no_live,

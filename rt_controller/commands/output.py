@@ -108,17 +108,6 @@ def output_file(path: str | Path, option: str, *, replace: bool = True) -> Path:
     return out
 
 
-def same_file(a: str | Path, b: str | Path) -> bool:
-    """Whether ``a`` and ``b`` name one existing file (also through a link or another
-    spelling of the path)."""
-    import os
-
-    try:
-        return os.path.samefile(a, b)
-    except OSError:  # either is missing
-        return False
-
-
 def _why(exc: OSError, path: Path) -> str:
     """The OS's reason, and where: the nearest existing one of ``path`` and its ancestors
     (a file, for ``mkdir -p`` under a file; ``/proc``, which takes no new entries)."""

@@ -44,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from rt_controller.commands.output import output_file, same_file
+    from rt_controller.commands.output import output_file
+    from rt_controller.logtools.reader import same_file
     from rt_controller.logtools.recover import default_out, recover
 
     out = Path(args.out) if args.out else default_out(Path(args.log))

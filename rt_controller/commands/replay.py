@@ -151,8 +151,8 @@ def run(args: argparse.Namespace) -> int:
 
             raise ControllerConfigError("--out writes a replayed run; --republish writes none")
         return _republish(args)
-    from rt_controller.commands.output import output_file, same_file
-    from rt_controller.logtools.reader import read_hil_log
+    from rt_controller.commands.output import output_file
+    from rt_controller.logtools.reader import read_hil_log, same_file
     from rt_controller.logtools.target_replay import replay_as_recorded
 
     parse_sets(args.sets)  # a malformed or repeated --set is told before the log is read

@@ -129,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
                         can=args.can,
                         zenoh_endpoint=args.zenoh_endpoint,
                         log=Path(args.log) if args.log else None,
+                        replace_log=args.force,
                         monitor=args.monitor or args.monitor_port is not None,
                         monitor_port=args.monitor_port,
                         extra_monitor=["--allow-tuning"] if args.allow_tuning else [],

@@ -9,6 +9,7 @@ with a note, never as a crash. Cycle records come back as numpy columns.
 from __future__ import annotations
 
 import json
+import os
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -167,6 +168,17 @@ def check_file(path: Path) -> None:
         raise LogError(f"{path}: cannot read: {exc.strerror or exc}") from exc
     if head != MAGIC:
         raise LogError(f"{path}: not an MCAP file (bad magic)")
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether ``a`` and ``b`` name one file: one existing file through a link or another
+    spelling, or one path spelt twice (``./x`` and ``x``) though it does not exist yet."""
+    if Path(a).resolve() == Path(b).resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # either is missing
+        return False
 
 
 def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:

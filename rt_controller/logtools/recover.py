@@ -32,7 +32,13 @@ from mcap.records import (
 from mcap.writer import CompressionType, Writer
 
 from rt_controller.errors import ControllerConfigError, LogError
-from rt_controller.logtools.reader import CYCLE_TOPIC, MAGIC, RECOVERED_METADATA, check_file
+from rt_controller.logtools.reader import (
+    CYCLE_TOPIC,
+    MAGIC,
+    RECOVERED_METADATA,
+    check_file,
+    same_file,
+)
 from rt_controller.logtools.walk import Walk, walk_records
 
 CHUNK_SIZE = 1024 * 1024
@@ -98,7 +104,7 @@ def default_out(log: Path) -> Path:
 
 def _check_paths(log: Path, out: Path) -> None:
     check_file(log)
-    if out.resolve() == log.resolve() or (out.exists() and os.path.samefile(out, log)):
+    if same_file(out, log):
         raise ControllerConfigError(f"--out {out}: is the input log; recover never overwrites it")
     if out.exists() and not stat.S_ISREG(out.stat().st_mode):
         # the copy is renamed into place: that would replace a device node or FIFO

@@ -32,7 +32,6 @@ with them, so the new log can itself be replayed or republished.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,7 @@ from hal.drive_state import MODE_ENABLED, MODES
 from rt_controller.calibration.parameters import LAW_KEYS, accepted_changes, judge
 from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
-from rt_controller.logtools.reader import LoadedLog, read_log
+from rt_controller.logtools.reader import LoadedLog, read_log, same_file
 from rt_controller.logtools.replay_out import OutLog, cycle_record_at
 from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
 from rt_controller.runtime.recorder import CYCLE_TOPIC
@@ -331,8 +330,7 @@ def replay_loaded(
     if n == 0:
         why = f" ({skipped} unreadable, skipped)" if skipped else ""
         raise LogError(f"{log.path}: no /controller/cycle records{why}, nothing to replay")
-    same = out is not None and Path(out).resolve() == Path(log.path).resolve()
-    if same or (out is not None and Path(out).exists() and os.path.samefile(out, log.path)):
+    if out is not None and same_file(out, log.path):
         raise LogError(f"--out {out} would overwrite the log being replayed")
     notes = list(log.notes)
     if log.truncated:

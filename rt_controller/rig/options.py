@@ -27,6 +27,8 @@ class RigOptions:
     can: str | None = None
     zenoh_endpoint: str | None = None
     log: Path | None = None
+    replace_log: bool = True
+    """Replace an existing ``log`` (``hil up`` without ``--force``: refuse it)."""
     key_file: Path | None = None
     """The rig key of every child; None: a fresh key for this run (private temporary dir)."""
     extra_controller: list[str] = field(default_factory=list)

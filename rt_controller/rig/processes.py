@@ -171,8 +171,8 @@ class Rig:
             ctl += ["--duration", f"{o.duration_s:g}"]
         if o.law and o.plan is None:
             ctl += ["--law", o.law]
-        if o.log and o.plan is None:  # the rig's caller claimed the path (hil up checked it)
-            ctl += ["--log", str(o.log), "--force"]
+        if o.log and o.plan is None:
+            ctl += ["--log", str(o.log), *(["--force"] if o.replace_log else [])]
         self.spawn("controller", ctl + o.extra_controller)
 
     def _check_alive(self, but: str) -> None:

@@ -61,6 +61,8 @@ class DaemonOptions:
     duration_s: float = 0.0
     """0 = until stopped (realtime) or until the Sync frames stop (lockstep)."""
     log_path: Path | None = None
+    replace_log: bool = True
+    """Replace an existing ``log_path`` (False: refuse it, created with ``O_EXCL``)."""
     realtime_settings: bool = True
     record_raw: bool = True
     """Also record every CAN frame and vision payload as received."""
@@ -200,6 +202,7 @@ class ControllerDaemon:
             scene=self.opts.scene,
             live=self.opts.live,
             backpressure=self.lockstep,  # no deadline: wait for a busy recorder
+            replace=self.opts.replace_log or self.opts.log_path is None,  # claim_log made it
         )
 
     def run(self, links: tuple[CanLink, Any] | None = None) -> dict[str, Any]:

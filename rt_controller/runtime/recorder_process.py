@@ -120,7 +120,9 @@ class RecorderProcess(Recorder):
     """One run's log ``path`` of ``cfg``, written by a child process (see the module
     docstring), with :class:`CycleRecorder`'s arguments and counters: this process's until
     :meth:`close`, then the child's final ones plus what this process dropped. ``live``:
-    the child publishes the cycle and diagnostics records on zenoh (``cfg.transport``)."""
+    the child publishes the cycle and diagnostics records on zenoh (``cfg.transport``).
+    ``replace=False`` refuses an existing ``path`` (it is created with ``O_EXCL``: a file made
+    after the command line checked it is not replaced either)."""
 
     outbox_limit = 8 << 20
     """Bytes that may wait for the pipe; a realtime record beyond them is dropped and counted."""
@@ -135,11 +137,16 @@ class RecorderProcess(Recorder):
         live: bool = False,
         backpressure: bool = False,
         flush_interval_s: float = 1.0,
+        replace: bool = True,
     ) -> None:
         self.path = Path(path)
         try:  # a bad path is this process's clear error, before the child starts
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.path.write_bytes(b"")
+            self.path.open("wb" if replace else "xb").close()
+        except FileExistsError:
+            if not self.path.parent.is_dir():
+                raise LogError(f"cannot create MCAP log {path}: not a directory") from None
+            raise LogError(f"{path}: exists (pass --force to replace it)") from None
         except OSError as exc:
             raise LogError(f"cannot create MCAP log {path}: {exc.strerror or exc}") from exc
         self._backpressure = backpressure

@@ -102,6 +102,19 @@ def test_a_bad_log_path_is_a_clear_error(tmp_path, cfg):
     assert read_log(tmp_path / "ok.mcap").n_cycles == 5
 
 
+def test_a_log_made_after_the_command_line_checked_its_path_is_kept(tmp_path, cfg):
+    """``hil up --log X`` without ``--force`` checks X, then starts the rig: a file X made in
+    between (another run) is not replaced by this run's log."""
+    other = tmp_path / "run.mcap"
+    other.write_bytes(b"another run's log")
+    with pytest.raises(LogError, match="exists \\(pass --force"):
+        RecorderProcess(other, cfg, replace=False)
+    assert other.read_bytes() == b"another run's log"
+    with RecorderProcess(other, cfg) as rec:  # --force
+        _feed(rec, 3)
+    assert read_log(other).n_cycles == 3
+
+
 def test_a_stalled_recorder_costs_a_realtime_tick_counted_drops_never_a_wait(tmp_path, cfg):
     with RecorderProcess(tmp_path / "run.mcap", cfg, backpressure=False) as rec:
         rec.outbox_limit = 4096
