@@ -2,7 +2,8 @@
 
 A hardware profile is one class that speaks to one kind of rig: the DSP profile
 (:class:`rt_controller.runtime.hardware.DspHardware`: the emulated or real DSP of ``hil.dbc``
-over CAN, the features over zenoh) and, later, a CiA 402 profile. The controller's runtime
+over CAN, the features over zenoh) and the CiA 402 profile
+(:class:`rt_controller.runtime.cia402_hardware.Cia402Hardware`). The controller's runtime
 drives a profile only through :class:`HardwareInterface`, in this order::
 
     configure(stop)                    open the links, wait until the peer answers
