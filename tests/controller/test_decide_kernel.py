@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hal.config import RigConfig
+from hal.config import LAW_NAMES, RigConfig
 from rt_controller.control.controller import Controller, Decision
 from rt_controller.control.state import OUTPUTS
 from tests.support.python_rule import PythonRule
@@ -59,7 +59,7 @@ def diff(a: Decision, b: Decision) -> float:
     return d
 
 
-@pytest.mark.parametrize("law", ["pbc", "ioc", "rhc"])
+@pytest.mark.parametrize("law", LAW_NAMES)
 def test_the_compiled_rule_decides_what_the_python_rule_decides(law: str):
     cfg = RigConfig()
     compiled, python = Controller(cfg, law), PythonRule(cfg, law)
