@@ -11,10 +11,27 @@ import math
 from typing import Any
 
 from hal.config import RigConfig
+from hal.errors import HalConfigError
 from rt_controller.errors import ControllerConfigError
 
 MAX_PREDICTION_STEP_S = 0.05
 """Largest T/N chosen automatically when only the horizon is given."""
+OPTIONS = {
+    "controller.law": "--law",
+    "rates.control_hz": "--rate",
+    "rhc.horizon": "--horizon",
+    "rhc.steps": "--steps",
+    "rhc.kmax": "--kmax",
+    "rhc.zeta": "--zeta",
+    "camera.seed": "--seed",
+    "scenario.disturbance": "--no-disturbance",
+    "controller.clock": "--clock",
+    "transport.can": "--can",
+    "transport.zenoh_endpoint": "--zenoh-endpoint",
+    "transport.zenoh_config": "--zenoh-config",
+    "hardware.profile": "--profile",
+}
+"""The command-line option of each key :func:`apply_overrides` sets (named in its errors)."""
 
 
 def physics_for_rate(cfg: RigConfig, rate: float) -> float:
@@ -42,12 +59,14 @@ def apply_overrides(
     zenoh_endpoint: str | None = None,
     zenoh_config: str | None = None,
     profile: str | None = None,
+    from_command_line: bool = False,
 ) -> RigConfig:
     """``cfg`` with the given settings changed (None = keep), validated.
 
     Only the horizon given: N = max(rhc.steps, ceil(T / 0.05)) keeps the prediction step small
     enough for the arm's fast modes. A new rate moves the physics rate by
-    :func:`physics_for_rate`.
+    :func:`physics_for_rate`. An error names the key (``rates.control_hz: ...``, as a config
+    file's would); ``from_command_line``: the option too (``rates.control_hz (--rate): ...``).
     """
     pairs = {
         "controller.law": law,
@@ -64,17 +83,49 @@ def apply_overrides(
         "transport.zenoh_config": zenoh_config,
         "hardware.profile": profile,
     }
-    overrides: dict[str, Any] = {k: v for k, v in pairs.items() if v is not None}
-    if horizon is not None and steps is None and math.isfinite(horizon) and horizon > 0:
-        # (a NaN, infinite or non-positive horizon gets the range error of with_overrides)
+    given: dict[str, Any] = {k: v for k, v in pairs.items() if v is not None}
+    try:
+        return _overridden(cfg, given)
+    except (HalConfigError, ControllerConfigError) as exc:
+        named = _naming_the_option(exc, given) if from_command_line else exc
+        if named is exc:
+            raise
+        raise named from None
+
+
+def _overridden(cfg: RigConfig, given: dict[str, Any]) -> RigConfig:
+    """``cfg`` with ``given`` and what follows from it (N from T, physics rate from rate)."""
+    overrides = dict(given)
+    horizon = given.get("rhc.horizon")
+    if horizon is not None and "rhc.steps" not in given and _positive(horizon):
+        # (any other horizon gets the type or range error of with_overrides)
         overrides["rhc.steps"] = max(cfg.rhc.steps, math.ceil(horizon / MAX_PREDICTION_STEP_S))
+    rate = given.get("rates.control_hz")
     if rate is not None:
-        if not rate > 0:
-            raise ControllerConfigError(f"--rate must be positive, got {rate}")
+        if not _positive(rate):  # before physics_for_rate divides by it
+            raise ControllerConfigError(
+                f"rates.control_hz: must be a positive number, got {rate!r}"
+            )
         physics = physics_for_rate(cfg, rate)
         if physics != cfg.rates.physics_hz:
             overrides["rates.physics_hz"] = physics
     return cfg.with_overrides(overrides) if overrides else cfg
+
+
+def _positive(value: Any) -> bool:
+    """A finite number above 0 (not a bool, not a string)."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return number and math.isfinite(value) and value > 0
+
+
+def _naming_the_option(exc: Exception, given: dict[str, Any]) -> Exception:
+    """``exc`` with the option after the key its message starts with (``key (--opt): ...``);
+    ``exc`` itself when it names none of ``given`` (a rule between keys)."""
+    text = str(exc)
+    for key in given:
+        if text.startswith(f"{key}:"):
+            return type(exc)(f"{key} ({OPTIONS[key]}){text[len(key) :]}")
+    return exc
 
 
 def toml_value(value: Any) -> str:

@@ -9,11 +9,24 @@ from collections.abc import Callable
 
 from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration
 from hal.config import LAW_NAMES, PROFILES
+from hal.config.ranges import RANGES
 from rt_controller.commands.common import add_config_option, config_from_args
 from rt_controller.commands.progress import Progress, add_quiet_option
 
 SKIPPABLE_S = bounded_float(0, MAX_DURATION_S, lo_inclusive=True, what="seconds")
 """A duration where 0 skips the measurement."""
+CONTROL_RATE = bounded_float(
+    *RANGES["rates.control_hz"][:2], lo_inclusive=True, what="a control rate in Hz"
+)
+"""One rate of ``--rates``: in rates.control_hz's range (the runs' configs would refuse it)."""
+
+
+def rate_list(text: str) -> tuple[float, ...]:
+    """``--rates``: comma-separated control rates, refused while parsing (before any run)."""
+    rates = tuple(CONTROL_RATE(r) for r in text.split(",") if r.strip())
+    if not rates:
+        raise argparse.ArgumentTypeError(f"expected control rates like 50,200, got {text!r}")
+    return rates
 
 
 def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespace], int]) -> None:
@@ -41,7 +54,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_config_option(lp)
     lp.add_argument(
-        "--rates", default="50,200,500,1000", help="comma-separated control rates in Hz"
+        "--rates",
+        type=rate_list,
+        default="50,200,500,1000",
+        help="comma-separated control rates in Hz",
     )
     lp.add_argument(
         "--duration", type=duration(), default=10.0, help="seconds per rate (default 10)"
@@ -61,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     lp.add_argument(
         "--host-probe",
-        type=float,
+        type=bounded_float(0, 600, lo_inclusive=True, what="seconds"),
         default=5.0,
         metavar="S",
         help="first measure the host's own wake-up lateness for S seconds, as `hil bench host` "
@@ -168,7 +184,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     sk.add_argument(
         "--warmup",
-        type=float,
+        type=SKIPPABLE_S,
         default=60.0,
         metavar="S",
         help="RSS growth is measured from the first sample after S seconds (default 60)",
@@ -254,9 +270,9 @@ def run_soak(args: argparse.Namespace) -> int:
     from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.bench_soak import bench_soak
 
-    if not 0 <= args.warmup < args.duration:  # growth needs samples after the warm-up
+    if args.warmup >= args.duration:  # growth needs samples after the warm-up
         raise ControllerConfigError(
-            f"--warmup must be at least 0 and less than --duration, got {args.warmup!r}"
+            f"--warmup must be less than --duration ({args.duration:g} s), got {args.warmup:g}"
         )
     cfg = config_from_args(args)
     keep = output_dir(args.keep, "--keep") if args.keep else None
@@ -303,19 +319,9 @@ def run_host(args: argparse.Namespace) -> int:
 
 def run_loop(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import output_dir
-    from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.bench_loop import bench_loop
 
-    try:
-        rates = tuple(float(r) for r in args.rates.split(",") if r.strip())
-    except ValueError as exc:
-        raise ControllerConfigError(
-            f"--rates: expected numbers like 50,200, got {args.rates!r}"
-        ) from exc
-    if not rates or min(rates) <= 0:
-        raise ControllerConfigError(f"--rates must be positive, got {args.rates!r}")
-    if not 0 <= args.host_probe <= 600:
-        raise ControllerConfigError(f"--host-probe must be 0..600 s, got {args.host_probe!r}")
+    rates = args.rates  # a tuple, each in range (rate_list)
     cfg = config_from_args(args)
     keep = output_dir(args.keep, "--keep") if args.keep else None
     measured = args.host_probe + len(rates) * args.duration + args.lockstep_duration

@@ -54,7 +54,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="views from the emulated camera, the arm at several poses",
     )
     src.add_argument("--images", metavar="DIR", help="views: the image files of a folder")
-    c.add_argument("--views", type=int, default=20, metavar="N", help="emulated views (20)")
+    c.add_argument(
+        "--views",
+        type=bounded_int(3, 500, what="views"),
+        default=20,
+        metavar="N",
+        help="emulated views (20)",
+    )
     c.add_argument(
         "--seed",
         type=bounded_int(0, 2**32 - 1, what="seed"),
@@ -93,9 +99,7 @@ def _spec(args: argparse.Namespace) -> Any:
     from hal.errors import HalConfigError
     from vision.calibration import CharucoSpec
 
-    sx, sy = args.squares
-    if sx < 3 or sy < 3:
-        raise HalConfigError(f"--squares: at least 3 x 3, got {sx} x {sy}")
+    sx, sy = args.squares  # each at least 3 (its argparse type)
     if sx * sy // 2 > MAX_MARKERS:
         raise HalConfigError(
             f"--squares {sx} {sy}: a DICT_4X4_100 board has at most {MAX_MARKERS} markers "
@@ -144,8 +148,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if args.images:
         views = read_images(args.images)
     else:
-        if not 3 <= args.views <= 500:
-            raise HalConfigError(f"--views must be 3..500, got {args.views}")
         from plant_emulator.calibration_views import board_views
 
         views = board_views(cfg, spec.cells(), spec.cell_m, args.views, seed=args.seed)

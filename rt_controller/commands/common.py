@@ -57,4 +57,5 @@ def config_from_args(args: argparse.Namespace) -> RigConfig:
         seed=getattr(args, "seed", None),
         disturbance=False if getattr(args, "no_disturbance", False) else None,
         profile=getattr(args, "profile", None),
+        from_command_line=True,
     )

@@ -129,6 +129,7 @@ def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
         can=args.can,
         zenoh_endpoint=args.zenoh_endpoint,
         zenoh_config=args.zenoh_config,
+        from_command_line=True,
     )
 
 

@@ -7,7 +7,7 @@ import json
 import os
 import sys
 
-from hal.arguments import add_key_option, duration
+from hal.arguments import add_key_option, bounded_int, duration
 from hal.signals import wait_for_stop
 from rt_controller.commands.common import add_config_option
 
@@ -31,7 +31,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (multi-host)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765; 0 = any)")
+    p.add_argument(
+        "--port",
+        type=bounded_int(0, 65535, what="port"),
+        default=8765,
+        help="WebSocket port (default 8765; 0 = any)",
+    )
     p.add_argument(
         "--allow-remote",
         action="store_true",
@@ -89,7 +94,6 @@ def _access(args: argparse.Namespace) -> tuple[str, object]:
 
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
-    from hal.errors import HalConfigError
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
@@ -102,8 +106,6 @@ def run(args: argparse.Namespace) -> int:
         print(tuning_token(rig_key(cfg)))
         return 0
     mode, tls = _access(args)
-    if not 0 <= args.port <= 65535:
-        raise HalConfigError(f"--port must be in 0..65535, got {args.port}")
     cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
     gate = AccessGate(mode, rig_key(cfg))
     with stop_on_signals() as stop:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from hal.arguments import bounded_int
 from rt_controller.commands.progress import Progress, add_quiet_option
 
 DESCRIPTION = """\
@@ -47,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", metavar="DIR", help="write PNG figures into DIR")
     p.add_argument(
         "--max-list",
-        type=int,
+        type=bounded_int(0, 1_000_000_000, what="misses to list"),
         default=50,
         metavar="N",
         help="list at most N deadline misses per log (default 50)",
@@ -61,14 +62,12 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from rt_controller.commands.output import output_dir
-    from rt_controller.errors import ControllerConfigError, LogError
+    from rt_controller.errors import LogError
     from rt_controller.logs.info import judged_report
     from rt_controller.logtools.reader import read_hil_log
     from rt_controller.logtools.report_plots import write_plots
     from rt_controller.logtools.report_text import render_text
 
-    if args.max_list < 0:
-        raise ControllerConfigError(f"--max-list must be non-negative, got {args.max_list}")
     plot_dir = output_dir(args.plot, "--plot") if args.plot else None
     progress = Progress.of(args, "hil report")
     logs, failed = [], []

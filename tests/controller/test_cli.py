@@ -44,7 +44,7 @@ def test_bad_config_is_one_clear_line(tmp_path, capsys):
 
 def test_bad_config_backed_option(capsys):
     assert main(["simulate", "--rate", "0"]) == 2
-    assert "--rate must be positive" in capsys.readouterr().err
+    assert "rates.control_hz (--rate): must be a positive number" in capsys.readouterr().err
 
 
 def test_bad_option_refused_while_parsing(capsys):
