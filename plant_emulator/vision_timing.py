@@ -1,65 +1,17 @@
-"""The vision process's timing: its frame rate (:func:`resolve_fps`), the frame slots
-(:class:`FrameClock`) and the injected publisher dropouts (:class:`Dropout`, ``--dropout``)."""
+"""The vision process's timing: its frame rate (:func:`resolve_fps`) and the frame slots
+(:class:`FrameClock`). The injected publisher dropouts (``--dropout``) are
+:class:`hal.dropout.Dropout`, the image pipeline's too."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
 
 from hal.config import RigConfig
+from hal.dropout import Dropout, in_dropout
 from hal.errors import HalConfigError
 
 DEFAULT_FPS = 60.0
 """Frame rate of the vision process when neither ``--fps`` nor ``camera.frame_rate_hz`` set one."""
-
-
-@dataclass(frozen=True)
-class Dropout:
-    """A window ``[start_s, start_s + duration_s)`` of simulation time with the publisher paused."""
-
-    start_s: float
-    duration_s: float
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.start_s) and self.start_s >= 0):
-            raise HalConfigError(f"--dropout start must be a non-negative time, got {self.start_s}")
-        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
-            raise HalConfigError(
-                f"--dropout duration must be a positive time, got {self.duration_s}"
-            )
-
-    @property
-    def start_ns(self) -> int:
-        return round(self.start_s * 1e9)
-
-    @property
-    def end_ns(self) -> int:
-        return round((self.start_s + self.duration_s) * 1e9)
-
-    def contains(self, sim_ns: int) -> bool:
-        return self.start_ns <= sim_ns < self.end_ns
-
-    @classmethod
-    def parse(cls, text: str) -> Dropout:
-        """``"START:DURATION"`` in seconds of simulation time, e.g. ``"1.0:0.5"``."""
-        start, sep, duration = text.strip().partition(":")
-        try:
-            if not sep:
-                raise ValueError
-            return cls(float(start), float(duration))
-        except ValueError:
-            raise HalConfigError(
-                f"--dropout must be START:DURATION in seconds (e.g. 1.0:0.5), got {text!r}"
-            ) from None
-
-    def __str__(self) -> str:
-        return f"{self.start_s:g}:{self.duration_s:g}"
-
-
-def in_dropout(dropouts: Sequence[Dropout], sim_ns: int) -> bool:
-    """Whether simulation time ``sim_ns`` falls into one of the ``dropouts``."""
-    return any(d.contains(sim_ns) for d in dropouts)
 
 
 def resolve_fps(cfg: RigConfig, fps: float | None) -> float:
@@ -110,3 +62,6 @@ class FrameClock:
             k += 1
         self.k = k
         return True
+
+
+__all__ = ["DEFAULT_FPS", "Dropout", "FrameClock", "in_dropout", "resolve_fps"]

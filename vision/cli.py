@@ -3,7 +3,8 @@
 The options are the analytic vision process's (``plant_emulator.vision_cli``) plus
 ``--source``; the ones that shape the analytic camera (``--fps``, ``--noise``, ``--latency``,
 ``--seed``) belong to the camera, not to the frame grabber, and are refused here; ``--dropout``
-(fault injection) pauses the grabber's answers as it pauses the analytic process's.
+(fault injection) pauses the grabber's answers as it pauses the analytic process's (one rule,
+:class:`hal.dropout.Dropout`), and is refused with a log, which is re-run offline.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ def add_source_option(p: argparse.ArgumentParser) -> None:
 def run_from_args(args: argparse.Namespace) -> int:
     """Body of ``hil vision --source SPEC``."""
     from hal.config import load_config
+    from hal.dropout import Dropout
     from hal.secoc import configure_key
-    from vision.grabber import Dropout
     from vision.process import run_live, run_offline
     from vision.sources import check_source, parse_source
 
@@ -47,6 +48,11 @@ def run_from_args(args: argparse.Namespace) -> int:
             "the frames it gets (set the emulated camera in the [camera] section)"
         )
     kind, _ = parse_source(args.source)
+    if kind == "log" and dropouts:
+        raise HalConfigError(
+            f"--dropout with --source {args.source}: a log is re-run offline and publishes "
+            "nothing, so there is nothing to pause (use a live source)"
+        )
     check_source(args.source)  # a missing file or device is told now, not after --wait
     cfg = load_config(args.config)
     if kind != "log":
@@ -99,7 +105,12 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(
             f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
             f"{stats.invalid} without the target{f' ({why})' if why else ''}, "
-            f"detection p99 {stats.detect_us_p99:.0f} us",
+            f"detection p99 {stats.detect_us_p99:.0f} us"
+            + (
+                f", {stats.callback_errors} frame(s) lost to errors in zenoh callbacks (a bug)"
+                if stats.callback_errors
+                else ""
+            ),
             file=sys.stderr if getattr(args, "frames", False) else sys.stdout,  # JSON lines out
             flush=True,
         )

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hal.camera_frame import CameraFrame, RoiRequest
+from hal.dropout import Dropout, in_dropout
 from hal.durations import Durations
-from hal.errors import HalConfigError
 from hal.fifo import fifo_thread
 from hal.vision_codec import FeatureMsg
 from vision.image_log import ImageLog
@@ -39,36 +39,6 @@ from vision.pipeline import Measurement, Pipeline
 
 Publish = Callable[[FeatureMsg], None]
 RequestRoi = Callable[[RoiRequest], None]
-
-
-@dataclass(frozen=True)
-class Dropout:
-    """Fault injection: no features for frames delivered (their exposure's end, in simulation
-    time) in ``[start_s, start_s + duration_s)`` (``hil vision --dropout START:DURATION``), as
-    the analytic vision process discards frames delivered in the window."""
-
-    start_s: float
-    duration_s: float
-
-    @classmethod
-    def parse(cls, text: str) -> Dropout:
-        start, sep, length = text.strip().partition(":")
-        try:
-            d = cls(float(start), float(length))
-        except ValueError:
-            d = None
-        if not sep or d is None or not (d.start_s >= 0 and d.duration_s > 0):
-            raise HalConfigError(
-                f"--dropout must be START:DURATION in seconds, START >= 0 and DURATION > 0 "
-                f"(e.g. 1.0:0.5), got {text!r}"
-            )
-        return d
-
-    def contains(self, sim_ns: int) -> bool:
-        return round(self.start_s * 1e9) <= sim_ns < round((self.start_s + self.duration_s) * 1e9)
-
-    def __str__(self) -> str:
-        return f"{self.start_s:g}:{self.duration_s:g}"
 
 
 Observer = Callable[[CameraFrame, Measurement, FeatureMsg], None]
@@ -93,6 +63,9 @@ class GrabberStats:
     whole."""
     roi_request_errors: int = 0
     publish_errors: int = 0
+    callback_errors: int = 0
+    """Frames lost to an exception in the source's zenoh callback (the session's
+    ``callback_errors``: a bug if not zero)."""
     dropouts: list[str] = field(default_factory=list)
     """Fault injection: the windows ``START:DURATION`` (s of simulation time) without features."""
     dropout_answers: int = 0
@@ -185,7 +158,7 @@ class Grabber:
             if self.rt_priority and not frame.lockstep:
                 self._realtime_thread()
             delivered_ns = frame.sim_time_ns + frame.exposure_ns // 2  # the exposure's end
-            if any(d.contains(delivered_ns) for d in self.dropouts):
+            if in_dropout(self.dropouts, delivered_ns):
                 return self._dropout(frame, ident)
             if frame.is_roi:
                 region = self.pipeline.process_region(frame.pixels, frame.x0, frame.y0)

@@ -16,11 +16,12 @@ import zenoh
 
 from hal.camera_frame import CameraFrame
 from hal.config import RigConfig
+from hal.dropout import Dropout
 from hal.secoc import rig_key
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.vision_image import encode_vision_image
 from hal.zenoh_session import DEFAULT_WAIT_S, KEY_FEATURES, KEY_VISION_IMAGE, open_session
-from vision.grabber import Dropout, Grabber, GrabberStats
+from vision.grabber import Grabber, GrabberStats
 from vision.image_log import ImageLog
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
@@ -116,6 +117,7 @@ def run_live(
             for image_pub in image_pubs.values():
                 image_pub.undeclare()
         stats = grabber.snapshot()
+        stats.callback_errors = session.callback_errors  # frames lost in zenoh's callbacks
         if image_log is not None:
             stats.image_log = image_log.counters()
         stats.source = source.name

@@ -251,8 +251,10 @@ def _image_count(summary: dict[str, Any], name: str) -> int:
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
     ended short for another reason than a stop request, lost or could not encode log records
-    or camera images (in lockstep, also an announced image that never came), tripped the DSP's
-    watchdog, saw a DSP fault, received a stream of frames or messages that failed
+    or camera images (in lockstep, also an announced image that never came), lost vision
+    messages or images to an exception in the feature link's zenoh callbacks (the session's
+    ``callback_errors``), tripped the DSP's watchdog, saw a DSP fault, received a stream of
+    frames or messages that failed
     authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), ran ticks without an
     enabled DSP, or (lockstep, as the emulator's report in ``dsp`` says) had periods the DSP
     advanced without their command, which makes it another run than the deterministic one.
@@ -296,6 +298,12 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     missing = _image_count(summary, "images_missing")
     if missing and summary.get("clock") == "lockstep":
         out.append(f"{missing} camera image(s) announced by their features are not in the log")
+    failed = _int0((rejections.get("features") or {}).get("callback_errors"))
+    if failed:
+        out.append(
+            f"{failed} feature-link callback error(s): vision message(s) or camera image(s) "
+            "lost to an exception in a zenoh callback (a bug)"
+        )
     dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
     if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
         out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")

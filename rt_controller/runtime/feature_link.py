@@ -71,10 +71,13 @@ class FeatureLink:
         reached their time: not this run's, so not in its log."""
         self._feeding = threading.Lock()
         self._attached = False
+        self._callback_errors_before = 0
+        """The session's ``callback_errors`` when this run attached (a plan's runs share it)."""
 
     def attach(self) -> None:
         """Subscribe this run to the features (and the camera's images, when logged)."""
         self._attached = True
+        self._callback_errors_before = self._session_callback_errors()
         if self.by_callback:
             self._subscriber = self.session.subscribe(KEY_FEATURES, self._on_features)
         else:
@@ -96,9 +99,11 @@ class FeatureLink:
             self._attached = False
 
     def counts(self) -> dict[str, int]:
-        """The feature decoder's counters plus ``images_rejected`` and ``images_missing``
-        (images the received features announced that are not in the log: overtaken by a
-        newer one, or still to come; the run's diagnostics)."""
+        """The feature decoder's counters plus ``images_rejected``, ``images_missing`` (images
+        the received features announced that are not in the log: overtaken by a newer one, or
+        still to come) and ``callback_errors`` (messages or images lost to an exception in
+        this run's zenoh callbacks, which the session swallows; a bug if not zero): the run's
+        diagnostics."""
         with self._images:
             missing = self._images_lost + len(self._images_due)
         return {
@@ -106,7 +111,13 @@ class FeatureLink:
             "images_rejected": self.images_rejected,
             "images_missing": missing,
             "images_of_run_before": self.images_of_run_before,
+            "callback_errors": self._session_callback_errors() - self._callback_errors_before,
         }
+
+    def _session_callback_errors(self) -> int:
+        """The session's count of exceptions swallowed in its callbacks (0 for a session that
+        keeps none, as a test's stand-in)."""
+        return int(getattr(self.session, "callback_errors", 0))
 
     def images_owed(self) -> tuple[int, ...]:
         """Simulation times of the images announced by this run's features that are not in
