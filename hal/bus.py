@@ -54,6 +54,20 @@ def vcan_hint(channel: str = DEFAULT_VCAN) -> str:
 SOCKETCAN_HINT = f"--can socketcan:{DEFAULT_VCAN} ({vcan_hint()})"
 """The other host-local bus between processes, named in hints when udp_multicast fails."""
 
+NOMINAL_BITRATE = 1_000_000
+"""The bus's bit rate when the opener names none (the dsp profile's; the cia402 profile's
+openers pass ``cia402.bitrate``)."""
+DATA_BITRATE = 2_000_000
+"""The CAN FD data-phase bit rate a real interface is brought up with."""
+
+
+def can_up_hint(channel: str, bitrate: int | None = None) -> str:
+    """The shell line that brings a real SocketCAN interface up for the rig at ``bitrate``
+    (default :data:`NOMINAL_BITRATE`), with CAN FD on: :func:`open_bus` opens SocketCAN for
+    CAN FD frames and refuses an interface of MTU 16."""
+    rate = bitrate or NOMINAL_BITRATE
+    return f"sudo ip link set {channel} up type can bitrate {rate} dbitrate {DATA_BITRATE} fd on"
+
 
 @dataclass(frozen=True)
 class BusSpec:
@@ -166,8 +180,11 @@ def process_spec(spec: str | None = None) -> BusSpec:
     return resolved
 
 
-def _transport_error(spec: BusSpec, exc: BaseException) -> HalTransportError:
-    """One line saying what failed and what to do about it."""
+def _transport_error(
+    spec: BusSpec, exc: BaseException, bitrate: int | None = None
+) -> HalTransportError:
+    """One line saying what failed and what to do about it (``bitrate``: the bus's, named in
+    the line that brings a missing SocketCAN interface up)."""
     err = exc if isinstance(exc, OSError) else exc.__cause__ or exc.__context__
     code = getattr(err, "errno", None)
     name = spec.channel or ""
@@ -178,7 +195,7 @@ def _transport_error(spec: BusSpec, exc: BaseException) -> HalTransportError:
             hint = (
                 f"create it with: {vcan_hint(name)} (or use --can udp_multicast)"
                 if name.startswith("vcan")
-                else f"check the adapter, then: sudo ip link set {name} up type can bitrate 1000000"
+                else f"check the adapter, then: {can_up_hint(name, bitrate)}"
             )
         elif code == errno.ENETDOWN:
             hint = f"bring it up with: sudo ip link set up {name}"
@@ -218,6 +235,9 @@ def open_bus(
     spec: str | None = None, *, receive_own_messages: bool = False, **kwargs: Any
 ) -> can.BusABC:
     """Open the bus named by ``spec`` (see the module docstring); extra ``kwargs`` go to it.
+    python-can's ``bitrate`` (the cia402 profile passes ``cia402.bitrate``) sets the adapters
+    that take one (PCAN, Kvaser, ...); a SocketCAN interface has its own, set by ``ip link``,
+    so there it is the rate the hint for a missing interface names.
 
     Raises :class:`~hal.errors.HalConfigError` for a malformed spec and
     :class:`~hal.errors.HalTransportError` when the transport is unavailable.
@@ -235,7 +255,7 @@ def open_bus(
     except HalTransportError:  # already one line saying what to do (e.g. a refused group)
         raise
     except (can.CanError, OSError, ValueError, ImportError) as exc:
-        raise _transport_error(resolved, exc) from exc
+        raise _transport_error(resolved, exc, options.get("bitrate")) from exc
 
 
 ISOLATED_GROUP_BASE = ipaddress.IPv4Address("239.75.0.0")

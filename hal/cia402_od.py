@@ -96,7 +96,7 @@ class DriveParameters:
     """0x608F.1: increments per motor revolution (20-bit encoder)."""
     interpolation: tuple[int, int] = (20, -3)
     """0x60C2: interpolation time period as (value, index): value * 10**index s (the control
-    period; :func:`interpolation_time` writes one)."""
+    period, as :func:`hal.cia402_master.units.interpolation_period` writes it)."""
 
 
 def pdo_entry(index: int, subindex: int, bits: int) -> int:
@@ -276,18 +276,6 @@ def eds_text() -> str:
     out = io.StringIO()
     canopen.export_od(od, out, doc_type="eds")
     return _DATES.sub("", out.getvalue())
-
-
-def interpolation_time(period_s: float) -> tuple[int, int]:
-    """0x60C2 (value UNSIGNED8, index INTEGER8) closest to ``period_s``: the finest index whose
-    value still fits 1..255 (20 ms -> (200, -4); 1 ms -> (100, -5))."""
-    if not 0 < period_s <= 255:
-        raise ValueError(f"interpolation period {period_s!r} s is outside 0..255 s")
-    for index in range(-6, 3):
-        value = round(period_s / 10.0**index)
-        if 1 <= value <= 255:
-            return value, index
-    raise ValueError(f"interpolation period {period_s!r} s cannot be written to 0x60C2")
 
 
 def interpolation_seconds(value: int, index: int) -> float:

@@ -24,8 +24,10 @@ class Cia402Config:
     node_id_2: int = 2
     """CANopen node id of joint 2's drive (1..126; 127 is the controller's)."""
     bitrate: int = 1_000_000
-    """CAN bit rate, bit/s (a real bus: set the interface to it, e.g. ``ip link set can0 type
-    can bitrate 1000000``; virtual and udp_multicast buses ignore it)."""
+    """CAN bit rate of the drives' bus, bit/s: given to python-can when the cia402 profile opens
+    the bus, so adapters that set their rate (PCAN, Kvaser, ...) run at it; a SocketCAN
+    interface has the rate ``ip link`` gave it (the error for a missing one names this rate in
+    the line that brings it up); virtual and udp_multicast buses ignore it."""
     rated_torque: Vec2 = (10.0, 1.0)
     """Emulated drives: motor rated torque per joint, Nm (object 0x6076; the unit of the target
     and actual torque is its per mille, so INT16 reaches 32.767 times it: keep it above

@@ -12,6 +12,7 @@ from hal.config.plant import plant_robot
 from hal.config.ranges import check_ranges
 from hal.config.values import Mat2
 from hal.errors import HalConfigError
+from hal.zenoh_endpoint import parse_loopback_endpoint
 
 if TYPE_CHECKING:
     from hal.config.rig import RigConfig
@@ -145,6 +146,7 @@ def validate(cfg: RigConfig) -> RigConfig:
             f"must lie within dsp.q_min {d.q_min} .. dsp.q_max {d.q_max}, got {s.q0}",
         )
     _check_cia402(cfg)
+    _check_transport(cfg)
     return cfg
 
 
@@ -162,6 +164,8 @@ def _check_principal_point(cfg: RigConfig) -> None:
 
 def _check_cia402(cfg: RigConfig) -> None:
     c = cfg.cia402
+    if cfg.hardware.profile == "cia402":
+        _check_drive_period(cfg)
     _require(c.node_id_1 != c.node_id_2, "cia402.node_id_2", "must differ from node_id_1")
     for key, node in (("cia402.node_id_1", c.node_id_1), ("cia402.node_id_2", c.node_id_2)):
         _require(
@@ -176,6 +180,30 @@ def _check_cia402(cfg: RigConfig) -> None:
             f"{rated!r} Nm on joint {j + 1}: robot.tau_max {cfg.robot.tau_max[j]!r} Nm would be "
             f"{cfg.robot.tau_max[j] / rated * 1000:.0f} per mille, beyond INT16 (32767)",
         )
+
+
+def _check_transport(cfg: RigConfig) -> None:
+    """The zenoh endpoint with the configuration, not when the first session opens (a run's
+    recorder would have started by then): loopback only, unless a zenoh config file replaces
+    the loopback defaults (empty: the default endpoint)."""
+    t = cfg.transport
+    if t.zenoh_endpoint and not t.zenoh_config:
+        parse_loopback_endpoint(t.zenoh_endpoint)
+
+
+def _check_drive_period(cfg: RigConfig) -> None:
+    """The cia402 profile writes the control period to every drive's 0x60C2 exactly (the
+    emulated drives boot with the same value): a rate it cannot write is refused here, before
+    any process starts, not at the drives' boot."""
+    from hal.cia402_master.units import interpolation_period  # imports canopen: cia402 only
+
+    hz = cfg.rates.control_hz
+    try:
+        interpolation_period(1.0 / hz)
+    except HalConfigError as exc:
+        raise HalConfigError(
+            f"rates.control_hz: {hz:g} Hz with hardware.profile cia402: {exc}"
+        ) from exc
 
 
 def _check_plant(cfg: RigConfig) -> None:

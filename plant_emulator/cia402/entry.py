@@ -48,11 +48,13 @@ def _after_sync(poses: PoseLink) -> StepListener:
 
 
 def _config(args: argparse.Namespace) -> RigConfig:
-    """The configuration; the rig key only when poses go out (CANopen frames carry no MAC)."""
+    """The configuration, its ``hardware.profile`` the one served (so what the cia402 profile
+    refuses, a rate 0x60C2 cannot carry, is refused before anything opens); the rig key only
+    when poses go out (CANopen frames carry no MAC)."""
     from hal.config import load_config
     from hal.secoc import configure_key
 
-    cfg = load_config(args.config)
+    cfg = load_config(args.config).with_overrides({"hardware.profile": "cia402"})
     return configure_key(cfg, args.key_file, "hil emulator") if args.vision_link else cfg
 
 
@@ -69,7 +71,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
     where = str(process_spec(spec))  # HalConfigError: malformed, or in-process only
     poses: PoseLink | None = None
     with contextlib.ExitStack() as stack:
-        bus = stack.enter_context(open_bus(spec))
+        bus = stack.enter_context(open_bus(spec, bitrate=cfg.cia402.bitrate))
         zenoh_where = ""
         session = None
         if args.vision_link:

@@ -21,12 +21,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hal.cia402_od import (
-    EMCY_POSITION_LIMIT,
-    EMCY_VELOCITY_LIMIT,
-    DriveParameters,
-    interpolation_time,
-)
+from hal.cia402_master.units import interpolation_period
+from hal.cia402_od import EMCY_POSITION_LIMIT, EMCY_VELOCITY_LIMIT, DriveParameters
 from plant_emulator.cia402.drive import EmulatedDrive
 from plant_emulator.world import World
 
@@ -53,14 +49,16 @@ def sync_arrival(now_s: float, waited_s: float, period_s: float) -> float:
 
 
 def drive_parameters(cfg: RigConfig, joint: int, tau_max_nm: float) -> DriveParameters:
-    """The object-dictionary values of joint ``joint``'s drive from ``[cia402]`` and the rates."""
+    """The object-dictionary values of joint ``joint``'s drive from ``[cia402]`` and the rates;
+    0x60C2 as the master writes it (:class:`~hal.errors.HalConfigError` for a control period it
+    cannot write exactly)."""
     c = cfg.cia402
     rated_mnm = round(c.rated_torque[joint] * 1000)
     return DriveParameters(
         rated_torque_mnm=rated_mnm,
         max_torque_permille=min(0xFFFF, round(tau_max_nm * 1e6 / rated_mnm)),
         encoder_increments=c.encoder_increments,
-        interpolation=interpolation_time(1.0 / cfg.rates.control_hz),
+        interpolation=interpolation_period(1.0 / cfg.rates.control_hz),
     )
 
 

@@ -22,8 +22,11 @@ and answered by the control thread at the tick it was judged; so is ``action`` (
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import secrets
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -41,6 +44,8 @@ from rt_controller.calibration.parameters import (
 )
 from rt_controller.config_rules import config_toml
 from rt_controller.errors import ControllerError
+
+log = logging.getLogger(__name__)
 
 TAG_SIZE = 32
 FRESHNESS_S = 30.0
@@ -89,6 +94,10 @@ class ParameterServer:
         self.service, self.key, self.wall_ns = service, key, wall_ns
         self._seen: OrderedDict[str, int] = OrderedDict()
         self._seen_max = seen_max
+        self.failed = 0
+        """Requests whose handling raised here (a fault of the controller, not of the request):
+        left unanswered, as the reply has no error form; the first one is logged."""
+        self._failed_lock = threading.Lock()  # zenoh may run queries on several threads
 
     def _fresh(self, body: dict[str, Any]) -> bool:
         nonce, t = body.get("nonce"), body.get("t_unix_ns")
@@ -159,10 +168,26 @@ class ParameterServer:
 
             try:
                 self.handle(query.payload.to_bytes() if query.payload else b"", reply)
-            except Exception:  # never raise into zenoh
-                query.drop()
+            except Exception as exc:  # never raise into zenoh
+                self._failed(exc)
+                with contextlib.suppress(Exception):  # reply() may have dropped it already
+                    query.drop()
 
         return session.session.declare_queryable(KEY_CONTROLLER_PARAMETERS, on_query)
+
+    def _failed(self, exc: Exception) -> None:
+        """Count a request this side failed on; say the first one (later ones are counted)."""
+        with self._failed_lock:
+            self.failed += 1
+            first = self.failed == 1
+        if first:
+            log.error(
+                "parameters: a request on %s failed in the controller and got no answer "
+                "(further failures are counted only): %s: %s",
+                KEY_CONTROLLER_PARAMETERS,
+                type(exc).__name__,
+                exc,
+            )
 
 
 EARLY_END = 0.9
@@ -206,8 +231,8 @@ def request(
     if took < EARLY_END * timeout_s:  # zenoh ended the query: nobody answers it
         raise ParameterLinkError(
             f"no answer from the controller on {KEY_CONTROLLER_PARAMETERS}: the request ended "
-            f"unanswered after {took:.1f} s (no controller on this zenoh endpoint yet, or one "
-            "that refused it: the same rig key?)"
+            f"unanswered after {took:.1f} s (no controller on this zenoh endpoint yet, one "
+            "that refused it: the same rig key?, or one that failed on it: its stderr says why)"
         )
     if at_tick is not None:  # answered when its tick comes: it may still be waiting there
         raise ParameterLinkError(

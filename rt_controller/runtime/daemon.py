@@ -95,7 +95,8 @@ def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[CanLink,
     with contextlib.ExitStack() as links:
         can: CanLink
         if cfg.hardware.profile == "cia402":
-            can = Cia402Master.from_config(cfg, open_bus(cfg.transport.can))
+            bus = open_bus(cfg.transport.can, bitrate=cfg.cia402.bitrate)
+            can = Cia402Master.from_config(cfg, bus)
             links.callback(can.close)
         else:
             can = links.enter_context(JointClient.open(None, cfg))
