@@ -52,16 +52,12 @@ lossy codec changes what the detector sees; raw mono8 is what a GigE Vision came
 MAC (as on the other zenoh links) costs about 0.2 ms per 640x480 frame and keeps a rogue or
 another rig's camera out. :func:`decode_frame` gives a zero-copy numpy view of the pixels.
 
-Zenoh's shared memory: the frames already use it. The rig's sessions run zenoh's defaults there
-(``transport.shared_memory`` enabled, with its transport optimisation: a put over 3 kB goes
-through a 16 MB shared-memory pool between processes of one host, by itself). Measured
-(``scripts/bench_frame_shm.py``'s loop, hub to client on loopback, 640x480 frames, busy 2-core
-host, zenoh 1.10, medians of 180): put to callback (``to_bytes`` included) 0.40-0.45 ms with the
-rig's config, 0.75-0.89 ms with shared memory off, 0.38 ms through an explicit
-``zenoh.shm.ShmProvider`` buffer; so an explicit provider (a copy into its buffer anyway:
-``ZShmMut`` has no buffer protocol to render into) buys nothing measurable. (The received
-payload does not report itself as shared memory, ``as_shm()`` is None; the halved time is the
-evidence.) A config that turns ``transport.shared_memory`` off doubles the frame's transport.
+Zenoh's shared memory carries the frames already: the rig's sessions keep zenoh's default
+``transport.shared_memory``, under which a put over 3 kB goes through a shared-memory pool
+between processes of one host by itself; it halves a frame's transport, and an explicit
+``zenoh.shm.ShmProvider`` buys nothing more. A config that turns it off doubles the frame's
+transport. Figures: ``python scripts/bench_frame_shm.py`` (docs/benchmarks.md, "Design
+choices, measured").
 """
 
 from __future__ import annotations
@@ -69,8 +65,6 @@ from __future__ import annotations
 import functools
 import struct
 import threading
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -268,22 +262,15 @@ class FrameDecoder:
     Thread-safe: zenoh's callback thread feeds, anyone reads :meth:`counters`.
     """
 
-    def __init__(
-        self, *, key: bytes | None = None, clock: Callable[[], int] = time.monotonic_ns
-    ) -> None:
+    def __init__(self, *, key: bytes | None = None) -> None:
         self.counts = RxCounts()
         self.key = rig_key() if key is None else key
-        self._clock = clock
         self._lock = threading.Lock()
         self.last: CameraFrame | None = None
         """Newest accepted frame."""
-        self.last_recv_ns: int | None = None
 
-    def feed(
-        self, payload: bytes | bytearray | memoryview, recv_ns: int | None = None
-    ) -> CameraFrame | None:
+    def feed(self, payload: bytes | bytearray | memoryview) -> CameraFrame | None:
         """Decode one payload: the accepted (or re-sent) frame, or None when it was rejected."""
-        now = self._clock() if recv_ns is None else recv_ns
         try:
             out = _parse(payload)
         except TypeError:
@@ -314,7 +301,6 @@ class FrameDecoder:
                 c.source_changes += 1
             c.accepted += 1
             self.last = out
-            self.last_recv_ns = now
             return out
 
     def counters(self) -> dict[str, int]:

@@ -172,6 +172,7 @@ class SimControlSender:
     def __init__(self, session: Any, *, key: bytes | None = None) -> None:
         self.key = key
         self._last_fv = 0
+        self._session = session
         self._pub = session.publisher(KEY_SIM_CONTROL)
 
     def send(self, msg: SimControl) -> None:
@@ -185,10 +186,7 @@ class SimControlSender:
 
     def has_subscribers(self) -> bool:
         """Whether an emulator listens on ``hil/sim/control`` (a real rig has none)."""
-        try:
-            return bool(self._pub.matching_status.matching)
-        except zenoh.ZError:
-            return False
+        return bool(self._session.has_subscriber(self._pub))
 
     def reset_scenario(self, seed: int | None = None) -> None:
         """Ask the emulator to restart the scenario (camera noise ``seed``; None: unchanged)."""

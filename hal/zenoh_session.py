@@ -8,18 +8,17 @@ Topology: a star on one loopback endpoint (``transport.zenoh_endpoint``, tcp/127
 * Every other process (vision, controller, tools) opens a **client** session (``listen=False``)
   that connects to the endpoint and never listens. The hub forwards between its clients, so
   features go vision -> hub -> controller, one extra loopback hop. Any single hub works
-  (``hil vision --zenoh-role hub`` runs without an emulator); measured on a busy 2-core test
-  machine the lockstep pose -> features round trip was 150-320 µs median with either the
-  emulator or the vision process as hub. ``listen=None`` ("auto": the hub if the port is free,
-  else a client) is for ad-hoc use only: with fixed roles no start order can make two
-  processes fight over the port.
+  (``hil vision --zenoh-role hub`` runs without an emulator) at the same round trip
+  (docs/benchmarks.md, "Design choices, measured"). ``listen=None`` ("auto": the hub if the
+  port is free, else a client) is for ad-hoc use only: with fixed roles no start order can
+  make two processes fight over the port.
 * A client started before its hub keeps retrying for ``wait_s`` (interruptibly, see
   ``stop_event``); once connected, zenoh reconnects it on its own if the hub restarts.
 
 Why not peers: with multicast *and* gossip scouting off (the rule: nothing leaves the host, nothing
-is discovered), zenoh 1.x peers only talk to the nodes they are explicitly connected to. Two peers
-that both connect to a hub never see each other's publications (measured with zenoh 1.10, both
-with a peer and with a router hub), whereas clients are routed by their hub.
+is discovered), zenoh 1.x peers only talk to the nodes they are explicitly connected to: two peers
+that both connect to a hub (peer or router) never see each other's publications, whereas clients
+are routed by their hub.
 
 Defaults are loopback-only: multicast and gossip scouting disabled, IPv4 ``tcp/127.x.x.x:PORT``
 endpoints only (user-mode Linux test machines have no IPv6, and zenoh's own peer default listens
@@ -30,7 +29,6 @@ defaults verbatim; it is the only way to spread the processes over several hosts
 from __future__ import annotations
 
 import contextlib
-import ipaddress
 import json
 import re
 import socket
@@ -45,6 +43,7 @@ import zenoh
 from hal.config import RigConfig
 from hal.errors import HalConfigError, HalStopped, HalTransportError
 from hal.resources import release, track
+from hal.zenoh_endpoint import parse_loopback_endpoint
 
 KEY_FEATURES = "hil/vision/features"
 """Image features, vision -> controller (payload: :mod:`hal.vision_codec` features v1)."""
@@ -77,25 +76,8 @@ DEFAULT_WAIT_S = 10.0
 MODES = ("router", "peer", "client")
 
 _ATTEMPT_S = 0.5
-_LOOPBACK_RE = re.compile(r"^tcp/(127\.\d{1,3}\.\d{1,3}\.\d{1,3}):(\d{1,5})$")
-
-
-def _is_ipv4(host: str) -> bool:
-    try:
-        return ipaddress.IPv4Address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def parse_loopback_endpoint(endpoint: str) -> tuple[str, int]:
-    """``(host, port)`` of a ``tcp/127.x.x.x:PORT`` endpoint, else :class:`HalConfigError`."""
-    m = _LOOPBACK_RE.match(endpoint)
-    if m is None or not 0 < int(m.group(2)) < 65536 or not _is_ipv4(m.group(1)):
-        raise HalConfigError(
-            f"transport.zenoh_endpoint: {endpoint!r} is not an IPv4 loopback endpoint "
-            "tcp/127.0.0.1:PORT; use --zenoh-config FILE for multi-host setups"
-        )
-    return m.group(1), int(m.group(2))
+_POLL_S = 0.005
+"""How often :meth:`ZenohSession.has_subscriber` looks again while it waits."""
 
 
 def free_loopback_port() -> int:
@@ -247,6 +229,33 @@ class ZenohSession:
                 f"zenoh: cannot declare subscriber {key}: {_short(exc)}"
             ) from exc
         return PayloadRing(sub)
+
+    def has_subscriber(
+        self,
+        publisher: zenoh.Publisher,
+        timeout_s: float = 0.0,
+        stop: threading.Event | None = None,
+    ) -> bool:
+        """Whether a subscriber matches ``publisher`` (one of this session's), waiting up to
+        ``timeout_s`` for one (polled every 5 ms; False at once when ``stop`` is set). A closed
+        session or an undeclared publisher has none: zenoh's ``ZError`` never escapes."""
+        deadline = time.monotonic() + timeout_s
+        while not self._matching(publisher):
+            if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+                return False
+            if stop is None:
+                time.sleep(_POLL_S)
+            else:
+                stop.wait(_POLL_S)
+        return True
+
+    def _matching(self, publisher: zenoh.Publisher) -> bool:
+        if self._closed:
+            return False
+        try:
+            return bool(publisher.matching_status.matching)
+        except zenoh.ZError:
+            return False
 
     def close(self) -> None:
         """Close the session (undeclares its publishers and subscribers). Idempotent."""

@@ -20,6 +20,7 @@ class FramePublisher:
     queues ahead of them; blocking (late, never lost: a lost lockstep frame stalls a period)."""
 
     def __init__(self, session: ZenohSession) -> None:
+        self._session = session
         self._pub = session.publisher(KEY_CAMERA_FRAME, priority=zenoh.Priority.INTERACTIVE_HIGH)
 
     def put(self, payload: bytes) -> None:
@@ -30,10 +31,7 @@ class FramePublisher:
 
     def has_subscribers(self) -> bool:
         """Whether a frame grabber (the vision process) currently listens."""
-        try:
-            return bool(self._pub.matching_status.matching)
-        except zenoh.ZError:
-            return False
+        return self._session.has_subscriber(self._pub)
 
     def close(self) -> None:
         """Undeclare the publisher (the session stays open). Idempotent."""

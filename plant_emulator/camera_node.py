@@ -39,10 +39,8 @@ new frame source id (the grabber takes the restarted counter as a new camera).
 
 Why a thread of the emulator and not a process of its own: the camera needs the pose at the
 emulator's own rate and nothing else, ``hil up`` starts it with the arm, and the renderer spends
-its time in numba, numpy and hashing, mostly without the GIL. Measured (realtime, 6 s of ioc,
-emulator + ``hil vision`` + controller on a busy 2-core host): the DSP loop's largest lateness
-4.6 ms with the camera rendering 60 fps (2.1 ms mean, 12 ms max per frame, none skipped) and
-8.9 ms in the analytic run beside it: host noise, not the camera.
+its time in numba, numpy and hashing, mostly without the GIL, so it does not make the DSP loop
+late (docs/benchmarks.md, "Design choices, measured").
 """
 
 from __future__ import annotations

@@ -84,16 +84,13 @@ class PosePublisher:
 
     def has_subscribers(self) -> bool:
         """Whether a vision process currently listens for poses."""
-        try:
-            return bool(self._pub.matching_status.matching)
-        except zenoh.ZError:
-            return False
+        return self.session.has_subscriber(self._pub)
 
     def wait_for_subscribers(
         self, timeout_s: float, stop_event: threading.Event | None = None
     ) -> bool:
         """Wait until a vision process subscribes (call before the first lockstep pose)."""
-        return wait_until(self.has_subscribers, timeout_s, stop_event)
+        return self.session.has_subscriber(self._pub, timeout_s, stop_event)
 
     def close(self) -> None:
         """Undeclare the publisher (the session stays open). Idempotent."""

@@ -45,9 +45,9 @@ class DetectorParams:
     min_fill: float = 0.8
     """Region area over the area of its moment ellipse; a disc is 1."""
     margin: int = 3
+    """Window around the region for the sub-pixel centroid, px."""
     min_contrast: float = 30.0
     """Grey levels between the frame's median and its darkest (3x3 mean) spot."""
-    """Window around the region for the sub-pixel centroid, px."""
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import threading
 from collections.abc import Callable
 
 import cv2
+import numpy as np
 
 from hal.camera_frame import CameraFrame
 from hal.fifo import raise_nice, short_gil_switch
@@ -35,9 +36,8 @@ PNG_PARAMS = [
     cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
 ]
 """No row filter, Huffman coding only: a noisy sensor frame has no repeats for LZ77 to find
-and its filtered rows compress no better. Measured at 640x480 with the default noise (busy
-2-core host, medians of 20, CPU time): 2.9 ms and 129 kB, against 7.5 ms and 166 kB for zlib
-level 1 with libpng's adaptive filters (0.3 ms and 308 kB stored, uncompressed)."""
+and its filtered rows compress no better, so this is less than half the CPU of zlib's level 1
+for a smaller file (docs/benchmarks.md, "Design choices, measured")."""
 BACKLOG = 4
 """Frames waiting for their PNG at most (realtime; lockstep frames wait for room)."""
 LOCKSTEP_NICE = 10
@@ -45,7 +45,8 @@ LOCKSTEP_NICE = 10
 frame, so the period's chain of processes gets the cores first (see :meth:`ImageLog._run`)."""
 
 
-def png(pixels) -> bytes:
+def png(pixels: np.ndarray) -> bytes:
+    """``pixels`` (8-bit grey) as PNG with :data:`PNG_PARAMS`."""
     ok, buf = cv2.imencode(".png", pixels, PNG_PARAMS)
     if not ok:  # pragma: no cover - OpenCV encodes any 8-bit grey image
         raise ValueError("cv2.imencode failed")

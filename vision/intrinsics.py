@@ -64,19 +64,6 @@ class Intrinsics:
         uv, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), self.matrix, self.distortion)
         return (float(uv[0, 0, 0]), float(uv[0, 0, 1]))
 
-    def camera_calibration(self) -> dict[str, object]:
-        """The intrinsics as a ``foxglove.CameraCalibration`` body (no timestamp/frame id)."""
-        k = self.matrix
-        return {
-            "width": self.width,
-            "height": self.height,
-            "distortion_model": "plumb_bob",
-            "D": list(self.dist),
-            "K": [float(v) for v in k.reshape(9)],
-            "R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            "P": [self.fx, 0.0, self.cx, 0.0, 0.0, self.fy, self.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-        }
-
 
 def intrinsics_from_config(cfg: RigConfig) -> Intrinsics:
     """The detector's intrinsics: ``[vision]`` when ``vision.calibrated`` (what ``hil camera

@@ -4,10 +4,10 @@ convert to f. Frames that give no measurement are counted by reason, never raise
 Tracking window (standard in visual servoing): the detector looks first in a window around where
 the target is expected, the last detection moved on by the motion between the last two
 (constant image velocity), and in the whole frame when it is not there whole. The window is a
-hint, never a result: on the rig's plain plane the window's f is the whole frame's to the bit
-(measured over 200 emulated frames); on a textured plane its threshold can take another edge
-pixel (0.001 px). Measured (640x480, the emulated camera, steady target, busy 2-core host,
-medians of 500): 0.40-0.60 ms per frame for the whole frame, 0.29 ms with the window.
+hint, never a result: on the rig's plain plane the window's f is the whole frame's to the bit;
+on a textured plane its threshold can take another edge pixel. It cuts the detection's time
+by about a third (``hil bench vision``: ``detect_us`` against ``detect_tracked_us``;
+docs/benchmarks.md, "Design choices, measured").
 
 Region of interest: the window (with the detector's sub-pixel margin) is also what the grabber
 asks the camera to send of the next frame (:meth:`Pipeline.roi`). A region whose window holds

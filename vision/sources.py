@@ -33,6 +33,7 @@ import numpy as np
 from hal.camera_frame import CameraFrame, FrameDecoder, RoiRequest, encode_roi_request
 from hal.durations import Durations
 from hal.errors import HalConfigError, HalTransportError
+from hal.log_topics import IMAGE_TOPIC
 from hal.signals import wait_for_stop
 
 FrameSink = Callable[[CameraFrame], None]
@@ -40,7 +41,6 @@ FrameSink = Callable[[CameraFrame], None]
 RejectSink = Callable[[str], None]
 """Receives the reason of each payload that was not a frame (``malformed``)."""
 SOURCE_KINDS = ("emulated", "v4l2", "gst", "file", "log")
-LOG_IMAGE_TOPIC = "/camera/image"
 
 
 class FrameSource(Protocol):
@@ -111,7 +111,7 @@ class EmulatedSource:
             t0 = time.monotonic_ns()
             c = self.decoder.counts
             bad = c.malformed + c.bad_mac
-            frame = self.decoder.feed(payload, t0)
+            frame = self.decoder.feed(payload)
             if frame is not None:
                 on_frame(frame)
                 self.pipeline_ns.add(time.monotonic_ns() - t0)
@@ -186,7 +186,7 @@ class LogSource:
     """The camera frames a run recorded (``/camera/image``, PNG or JPEG), in log order; their
     stamps are the log times."""
 
-    def __init__(self, path: str, topic: str = LOG_IMAGE_TOPIC) -> None:
+    def __init__(self, path: str, topic: str = IMAGE_TOPIC) -> None:
         self.name = f"log:{path}"
         self.path, self.topic = Path(path), topic
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -88,7 +88,7 @@ def _what(node: canopen.RemoteNode, index: int, sub: int | None) -> str:
 
 
 @contextmanager
-def sdo_step(node: canopen.RemoteNode, index: int, sub: int | None, doing: str):
+def sdo_step(node: canopen.RemoteNode, index: int, sub: int | None, doing: str) -> Iterator[None]:
     """Turn canopen's SDO errors into one :class:`HalDriveError` line naming the object."""
     try:
         yield

@@ -226,7 +226,9 @@ class EmulatedDrive(canopen.LocalNode):
             node_id, ms = (value >> 16) & 0x7F, value & 0xFFFF
             self._watch_heartbeat((node_id, ms / 1000.0) if node_id and ms else None)
 
-    def set_data(self, index: int, subindex: int, data: bytes, check_writable: bool = False):
+    def set_data(
+        self, index: int, subindex: int, data: bytes, check_writable: bool = False
+    ) -> None:
         super().set_data(index, subindex, data, check_writable)
         self.pdos.after_write(index)
 

@@ -16,11 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from hal.log_topics import DETECTION_TOPIC, IMAGE_TOPIC
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.logtools.walk import topic_messages
 
-IMAGE_TOPIC = "/camera/image"
-DETECTION_TOPIC = "/camera/detection"
 FRAMES = 8
 """Frames on the sheet: the four before the jump and the four from it on."""
 _LABEL = re.compile(rb"frame \d+: (detected f = \([^)]*\) px|no target: [a-z_]+)")

@@ -140,15 +140,6 @@ def playback_events(log: LoadedLog, result: RepublishResult) -> list[tuple[int, 
     return [(t, kind, obj) for t, kind, _, obj in events]
 
 
-def _wait_subscriber(publisher: Any, timeout_s: float, stop: threading.Event) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not publisher.matching_status.matching:
-        if stop.is_set() or time.monotonic() >= deadline:
-            return False
-        stop.wait(0.01)
-    return True
-
-
 def republish_log(
     path: str | Path,
     *,
@@ -204,7 +195,9 @@ def republish_log(
             )
             stack.callback(session.close)
             publisher = session.publisher(KEY_FEATURES, block=True)
-            if wait_subscriber_s > 0 and not _wait_subscriber(publisher, wait_subscriber_s, stop):
+            if wait_subscriber_s > 0 and not session.has_subscriber(
+                publisher, wait_subscriber_s, stop
+            ):
                 result.notes.append(
                     f"no subscriber on {KEY_FEATURES} after {wait_subscriber_s:g} s; "
                     "published anyway"

@@ -40,6 +40,13 @@ import foxglove
 from foxglove import Channel, Schema
 from hal.config import RigConfig
 from hal.errors import HalCodecError
+from hal.log_topics import (
+    CAMERA_POSE_TOPIC,
+    CYCLE_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    EMULATOR_SCENE_TOPIC,
+    FEATURES_DECODED_TOPIC,
+)
 from hal.secoc import rig_key
 from hal.vision_codec import decode_features, decode_pose
 from hal.vision_image import decode_vision_image
@@ -59,20 +66,12 @@ from rt_controller.monitor.camera_view import view_messages
 from rt_controller.monitor.scene import SceneBuilder
 from rt_controller.monitor.tuning import TuningFrontEnd
 from rt_controller.runtime.diagnostics import DIAGNOSTICS_SCHEMA
-from rt_controller.runtime.recorder import (
-    CYCLE_TOPIC,
-    DIAGNOSTICS_TOPIC,
-    cycle_schema,
-    encode_json,
-)
+from rt_controller.runtime.recorder import cycle_schema, encode_json
 
 log = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
-FEATURES_TOPIC = "/vision/features/decoded"
-POSE_TOPIC = "/emulator/camera_pose"
-EMULATOR_SCENE_TOPIC = "/scene/emulator"
 RING_CAPACITY = 4096
 """Samples a zenoh ring keeps for the worker (lockstep runs reach thousands of cycles/s)."""
 SIDE_MAX_HZ = 50.0
@@ -173,8 +172,8 @@ class MonitorBridge:
         self._channels: dict[str, Channel] = {
             CYCLE_TOPIC: _json_channel(CYCLE_TOPIC, cycle_schema()),
             DIAGNOSTICS_TOPIC: _json_channel(DIAGNOSTICS_TOPIC, DIAGNOSTICS_SCHEMA),
-            FEATURES_TOPIC: _json_channel(FEATURES_TOPIC, FEATURES_SCHEMA),
-            POSE_TOPIC: _json_channel(POSE_TOPIC, POSE_SCHEMA),
+            FEATURES_DECODED_TOPIC: _json_channel(FEATURES_DECODED_TOPIC, FEATURES_SCHEMA),
+            CAMERA_POSE_TOPIC: _json_channel(CAMERA_POSE_TOPIC, POSE_SCHEMA),
         }
         for topic, cls in self.builder.schemas().items():
             self._channels[topic] = _proto_channel(topic, cls)
@@ -278,26 +277,26 @@ class MonitorBridge:
 
     def _on_features(self, payload: bytes) -> None:
         now = self.clock()
-        if not self._due(FEATURES_TOPIC, now):
+        if not self._due(FEATURES_DECODED_TOPIC, now):
             return
         try:
             msg = decode_features(payload)
         except HalCodecError:
             self.counts["bad"] += 1
             return
-        self._channels[FEATURES_TOPIC].log(encode_json(msg.as_dict()), log_time=now)
+        self._channels[FEATURES_DECODED_TOPIC].log(encode_json(msg.as_dict()), log_time=now)
         self.counts["features"] += 1
 
     def _on_pose(self, payload: bytes) -> None:
         now = self.clock()
-        if not self._due(POSE_TOPIC, now):
+        if not self._due(CAMERA_POSE_TOPIC, now):
             return
         try:
             pose = decode_pose(payload)
         except HalCodecError:
             self.counts["bad"] += 1
             return
-        self._channels[POSE_TOPIC].log(encode_json(pose._asdict()), log_time=now)
+        self._channels[CAMERA_POSE_TOPIC].log(encode_json(pose._asdict()), log_time=now)
         scene = self.builder.camera_marker((pose.x, pose.y, pose.phi), now)
         self._channels[EMULATOR_SCENE_TOPIC].log(scene.encode(), log_time=now)
         self.counts["poses"] += 1

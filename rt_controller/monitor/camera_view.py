@@ -28,10 +28,9 @@ from foxglove.messages import (
     Timestamp,
 )
 
+from hal.log_topics import DETECTION_TOPIC, IMAGE_TOPIC
 from hal.vision_image import VisionImage, decode_vision_image
 
-IMAGE_TOPIC = "/camera/image"
-DETECTION_TOPIC = "/camera/detection"
 SCHEMAS: dict[str, Any] = {IMAGE_TOPIC: CompressedImage, DETECTION_TOPIC: ImageAnnotations}
 _GREEN = Color(r=0.2, g=0.9, b=0.3, a=1.0)
 _RED = Color(r=0.95, g=0.2, b=0.2, a=1.0)

@@ -12,10 +12,9 @@ import contextlib
 
 import zenoh
 
+from hal.log_topics import CYCLE_TOPIC, DIAGNOSTICS_TOPIC
 from hal.zenoh_session import KEY_CONTROLLER_CYCLE, KEY_CONTROLLER_DIAGNOSTICS, ZenohSession
 
-CYCLE_TOPIC = "/controller/cycle"
-DIAGNOSTICS_TOPIC = "/diagnostics"
 KEY_OF_TOPIC = {CYCLE_TOPIC: KEY_CONTROLLER_CYCLE, DIAGNOSTICS_TOPIC: KEY_CONTROLLER_DIAGNOSTICS}
 """MCAP topic -> zenoh key of the live stream (the payload is the MCAP message's bytes)."""
 

@@ -56,12 +56,13 @@ from foxglove.messages import (
 )
 
 from hal.config import RigConfig
-
-TF_TOPIC = "/tf"
-SCENE_TOPIC = "/scene/arm"
-CALIBRATION_TOPIC = "/camera/calibration"
-ANNOTATIONS_TOPIC = "/camera/annotations"
-IMAGE_TOPIC = "/camera/image"
+from hal.log_topics import (
+    ANNOTATIONS_TOPIC,
+    CALIBRATION_TOPIC,
+    IMAGE_TOPIC,
+    SCENE_TOPIC,
+    TF_TOPIC,
+)
 
 WORLD, LINK1, LINK2, CAMERA = "world", "link1", "link2", "camera"
 SCENE_MAX_HZ = 50.0

@@ -232,6 +232,10 @@ def bench_lockstep(
     }
 
 
+PROFILE_PHASES = {"features_wait": "read_us", "solve": "solve_us", "write": "write_us"}
+"""Figure of :func:`lockstep_period_profile` -> the cycle record's field it is the median of."""
+
+
 def lockstep_period_profile(cycles: dict[str, np.ndarray]) -> dict[str, float]:
     """Where one lockstep period's wall time goes (medians over the run, microseconds), from the
     controller's own cycle records: ``features_wait`` (Sync received until this period's
@@ -244,14 +248,17 @@ def lockstep_period_profile(cycles: dict[str, np.ndarray]) -> dict[str, float]:
         return {}
     period = np.diff(t) / 1e3
     cycle = cycles["cycle_us"][:-1]
+    p = summary_stats(period, ("median", "p99"))
     return {
-        "period": float(np.median(period)),
-        "period_p99": float(np.percentile(period, 99)),
-        "features_wait": float(np.median(cycles["read_us"])),
-        "solve": float(np.median(cycles["solve_us"])),
-        "write": float(np.median(cycles["write_us"])),
-        "dsp_and_can": float(np.median(period - cycle)),
+        "period": p["median"],
+        "period_p99": p["p99"],
+        **{name: _median(cycles[field]) for name, field in PROFILE_PHASES.items()},
+        "dsp_and_can": _median(period - cycle),
     }
+
+
+def _median(values: np.ndarray) -> float:
+    return summary_stats(values, ("median",))["median"]
 
 
 def bench_loop(

@@ -34,7 +34,7 @@ import os
 import platform
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numba
 import numpy as np
@@ -45,7 +45,7 @@ from rt_controller.control.model_kernels import prepare
 from rt_controller.control.rhc import dynamics
 from rt_controller.control.rhc.kernel import rhc_tick, sweep_probe
 from rt_controller.control.rhc.problem import pack_params
-from rt_controller.control.rhc.solver import CGMRESSolver, pack_state
+from rt_controller.control.rhc.solver import CGMRESSolver, SolveReport, pack_state
 from rt_controller.control.state import ST
 from rt_controller.rig.bench_decide import bench_decide
 from rt_controller.sample_stats import summary_stats
@@ -93,7 +93,25 @@ def _stats(us: np.ndarray) -> dict[str, float]:
     return summary_stats(us)
 
 
-def run_updates(solver, model, cfg, plant_step, updates: int) -> dict[str, Any]:
+class UpdatingSolver(Protocol):
+    """What :func:`run_updates` drives: :class:`CGMRESSolver`, or the NumPy reference of the
+    tests, which has its interface."""
+
+    @property
+    def last_fevals(self) -> int: ...
+
+    def reset(self) -> None: ...
+
+    def update(self, x: np.ndarray, t: float) -> SolveReport: ...
+
+
+def run_updates(
+    solver: UpdatingSolver,
+    model: NominalModel,
+    cfg: RigConfig,
+    plant_step: PlantStep,
+    updates: int,
+) -> dict[str, Any]:
     """Closed loop of ``updates`` ticks; per-tick time (ns), residual, iterations, F evaluations,
     flags, and (compiled solver) ``snapshots``: (state vector before the tick, x, t) of up to
     :data:`PROFILE_TICKS` continuation ticks for :func:`_profile`."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import numpy as np
 from hal.secoc import load_key_file, write_key_file
 from hal.zenoh_session import free_loopback_port, open_session
 from rt_controller.calibration.link import request
+from rt_controller.sample_stats import summary_stats
 
 
 def bench_tuning(workdir: Path, *, requests: int = 50, gap_s: float = 0.1) -> dict[str, Any]:
@@ -75,32 +77,34 @@ def bench_tuning(workdir: Path, *, requests: int = 50, gap_s: float = 0.1) -> di
     period_s = 1.0 / loaded.config.rates.control_hz if loaded.config else period_s
     ticks = np.asarray(loaded.cycles["tick"])
     solve = np.asarray(loaded.cycles["solve_us"], dtype=float)
-    at = [int(np.flatnonzero(ticks == k)[0]) for k in switch_ticks]
-    ordinary = np.delete(solve, at)
-    ms = np.asarray(lat_ns, dtype=float) / 1e6
+    figures = tuning_figures(lat_ns, switch_ticks, ticks, solve, period_s)
+    return {**figures, "rig_exit": up.returncode, "log": str(log)}
+
+
+def tuning_figures(
+    lat_ns: Sequence[int],
+    switch_ticks: list[int],
+    ticks: np.ndarray,
+    solve_us: np.ndarray,
+    period_s: float,
+) -> dict[str, Any]:
+    """The bench's figures from its samples: request-to-effect latency (ms and control periods)
+    and the decide phase's time at the law switches against the other ticks; statistics of the
+    finite samples (:mod:`rt_controller.sample_stats`), NaN when there are none."""
+    at = [int(i[0]) for k in switch_ticks if (i := np.flatnonzero(ticks == k)).size]
+    ms = summary_stats(np.asarray(lat_ns, dtype=float) / 1e6)
+    ordinary = summary_stats(np.delete(solve_us, at), ("median", "p99"))
     return {
         "requests": len(lat_ns),
-        "request_to_effect_ms": {
-            "median": float(np.median(ms)),
-            "p99": float(np.percentile(ms, 99)),
-            "max": float(ms.max()),
-        },
-        "request_to_effect_periods": {
-            "median": float(np.median(ms) / 1e3 / period_s),
-            "p99": float(np.percentile(ms, 99) / 1e3 / period_s),
-        },
-        "within_two_periods": bool(np.percentile(ms, 99) / 1e3 <= 2 * period_s),
+        "request_to_effect_ms": ms,
+        "request_to_effect_periods": {k: ms[k] / 1e3 / period_s for k in ("median", "p99")},
+        "within_two_periods": bool(ms["p99"] / 1e3 <= 2 * period_s),
         "law_switch": {
             "ticks": switch_ticks,
-            "decide_us_at_switch": [float(solve[i]) for i in at],
-            "decide_us_ordinary": {
-                "median": float(np.median(ordinary)),
-                "p99": float(np.percentile(ordinary, 99)),
-            },
+            "decide_us_at_switch": [float(solve_us[i]) for i in at],
+            "decide_us_ordinary": ordinary,
         },
-        "rig_exit": up.returncode,
-        "log": str(log),
     }
 
 
-__all__ = ["bench_tuning"]
+__all__ = ["bench_tuning", "tuning_figures"]

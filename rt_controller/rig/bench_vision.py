@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from hal.config import RigConfig
-from rt_controller.sample_stats import percentile
+from rt_controller.sample_stats import summary_stats
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Pipeline
 
@@ -64,8 +64,8 @@ def pose_grid(cfg: RigConfig, n: int) -> list[np.ndarray]:
 
 
 def _us(ns: list[int]) -> dict[str, float]:
-    a = np.array(ns, dtype=float) / 1e3
-    return {"median": round(float(np.median(a)), 1), "p99": round(float(percentile(a, 99)), 1)}
+    stats = summary_stats(np.array(ns, dtype=float) / 1e3, ("median", "p99"))
+    return {k: round(v, 1) for k, v in stats.items()}
 
 
 def _in_view(cfg: RigConfig, f: tuple[float, float], margin_px: float = 25.0) -> bool:

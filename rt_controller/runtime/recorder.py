@@ -36,6 +36,16 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from hal.config import RigConfig
+from hal.log_topics import (
+    CAN_RX_TOPIC,
+    CAN_TX_TOPIC,
+    CANOPEN_TOPIC,
+    CYCLE_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    EVENTS_TOPIC,
+    PARAMETERS_TOPIC,
+    VISION_TOPIC,
+)
 from rt_controller import compile_target
 from rt_controller.calibration.operator import EVENT_SCHEMA
 from rt_controller.calibration.parameters import PARAMETERS_SCHEMA
@@ -53,14 +63,6 @@ from rt_controller.runtime.record_encoding import (
 
 log = logging.getLogger(__name__)
 
-CYCLE_TOPIC = "/controller/cycle"
-CAN_RX_TOPIC = "/hal/can/rx"
-CAN_TX_TOPIC = "/hal/can/tx"
-VISION_TOPIC = "/vision/features"
-DIAGNOSTICS_TOPIC = "/diagnostics"
-PARAMETERS_TOPIC = "/controller/parameters"
-EVENTS_TOPIC = "/controller/events"
-CANOPEN_TOPIC = "/hal/canopen"
 CONFIG_METADATA = "hil.config"
 RUN_METADATA = "hil.run"
 RECORDER_METADATA = "hil.recorder"

@@ -75,10 +75,10 @@ READY = b"ready\n"
 LOCKSTEP_NICE = 10
 """Lockstep (``backpressure``): the recorder process's nice value is raised by this much. A
 Sync-paced period is a chain through the emulator, the vision process and the controller that
-waits for nothing else; the log (0.6 ms of CPU a period with images, most of it zstd on the
-chunks) is off that chain and, at the same priority, took a core from it on a 2-core host. It
-still has every idle moment of a core, and the tick waits for it when the pipe is full, so
-nothing is lost. Realtime keeps the default: there a starved recorder would drop records."""
+waits for nothing else; the log is off that chain and, at the same priority, takes a core from
+it on a small host (docs/benchmarks.md, "Design choices, measured"). It still has every idle
+moment of a core, and the tick waits for it when the pipe is full, so nothing is lost.
+Realtime keeps the default: there a starved recorder would drop records."""
 IDLE_S = 0.25
 """How often the waiting child looks whether the log is due for a flush."""
 
