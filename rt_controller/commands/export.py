@@ -90,8 +90,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None and not set(files.values()) & {Path(args.out)}:
         check_not_a_file_name(args.out, args.format)
         output_dir(args.out, "--out")
+    option = "--out" if args.out is not None else "output file"  # beside LOG, no --out given
     for path in set(files.values()):
-        output_file(path, "--out", replace=True)  # derived from the log: made again at will
+        output_file(path, option, replace=True)  # derived from the log: made again at will
     run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
     if "cycle" in args.topics and run_.log.n_cycles == 0:  # as replay: no empty tables
         why = f" ({run_.notes[0]})" if run_.notes else ""

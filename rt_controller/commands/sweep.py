@@ -32,7 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "same spec into the same DIR again skips the finished runs.",
     )
     p.add_argument("spec", metavar="SPEC.toml", help="the study spec")
-    p.add_argument("--out", metavar="DIR", help="results folder (default: sweeps/SPEC-NAME)")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="results folder (default: sweeps/STEM, STEM the spec file's name without .toml)",
+    )
     p.add_argument(
         "--engine",
         choices=("simulate", "rig"),
@@ -67,14 +71,20 @@ def run(args: argparse.Namespace) -> int:
 
     require_extra("sweep", "this command")
     from rt_controller.commands.output import output_dir, print_summary
+    from rt_controller.errors import ControllerConfigError
     from rt_controller.sweep.executor import run_sweep
     from rt_controller.sweep.report import write_report
     from rt_controller.sweep.spec import load_spec
 
+    if args.workers is not None and args.scheduler is not None:
+        raise ControllerConfigError(
+            "--workers sizes the local cluster; with --scheduler the cluster has its own"
+        )
     spec = load_spec(args.spec)
     out = Path(args.out) if args.out else Path("sweeps") / Path(args.spec).stem
+    logs = out / "logs" if args.keep_logs else None
+    tasks = spec.tasks(args.engine, logs)  # every run's config valid before out is touched
     output_dir(out, "--out")  # a file there is refused before the cluster starts
-    spec.tasks(args.engine)  # every run's config is valid before the cluster starts
     outcome = run_sweep(
         spec,
         out,
@@ -85,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
         keep_logs=args.keep_logs,
         retry_failed=args.retry_failed,
         progress=not args.no_progress,
+        tasks=tasks,
     )
     report = write_report(out, spec)
     summary = {**outcome.as_dict(), "out": str(out), "report": str(report)}

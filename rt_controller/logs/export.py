@@ -85,8 +85,10 @@ def export(run: Run, fmt: str, files: dict[str, Path]) -> list[Written]:
     write = {"csv": _write_csv, "parquet": _write_parquet, "mat": _write_mat}[fmt]
     try:
         return write(run, files)
-    except OSError as exc:
-        raise LogError(f"cannot write {fmt}: {exc.strerror or exc}") from None
+    except OSError as exc:  # pyarrow's carries no errno: its own text names the file
+        where = f"{exc.filename}: " if exc.filename else ""
+        why = " ".join((exc.strerror or str(exc)).split())
+        raise LogError(f"cannot write the {fmt} export: {where}{why}") from None
 
 
 def _write_csv(run: Run, files: dict[str, Path]) -> list[Written]:
@@ -163,11 +165,12 @@ def _write_mat(run: Run, files: dict[str, Path]) -> list[Written]:
         **{v: info[k] for k, v in matlab_names(list(info)).items()},
     }
     for path, structs in by_file.items():
-        sio.savemat(
-            path,
-            {**structs, "meta": meta},
-            long_field_names=True,
-            do_compression=True,
-            oned_as="column",
-        )
+        with open(path, "wb") as fh:  # opened here: scipy hides why it could not open a path
+            sio.savemat(
+                fh,
+                {**structs, "meta": meta},
+                long_field_names=True,
+                do_compression=True,
+                oned_as="column",
+            )
     return out

@@ -17,19 +17,24 @@ from typing import Any
 
 from rt_controller.sweep.engines import Engine, run_task
 from rt_controller.sweep.executor import machine_workers, open_cluster
-from rt_controller.sweep.spec import RunTask, spec_from_dict
+from rt_controller.sweep.spec import RunTask, SweepSpecError, spec_from_dict
 
 
 def bench_tasks(engine: str, runs: int, duration_s: float, law: str) -> list[RunTask]:
-    spec = spec_from_dict(
-        {
-            "study": {"duration_s": duration_s, "repetitions": runs, "timeout_s": 600.0},
-            "base": {  # the rig's rendering camera's noise is its sensor's, seeded per run
-                "controller": {"law": law},
-                "camera": {"noise_px": 0.5} if engine == "simulate" else {},
-            },
-        }
-    )
+    """The bench's runs as a sweep's; a setting a sweep refuses names the bench's option."""
+    try:
+        spec = spec_from_dict(
+            {
+                "study": {"duration_s": duration_s, "repetitions": runs, "timeout_s": 600.0},
+                "base": {  # the rig's rendering camera's noise is its sensor's, seeded per run
+                    "controller": {"law": law},
+                    "camera": {"noise_px": 0.5} if engine == "simulate" else {},
+                },
+            }
+        )
+    except SweepSpecError as exc:
+        option = "--rig-duration" if engine == "rig" else "--duration"
+        raise SweepSpecError(f"{option} {duration_s:g} (runs {runs}): {exc}") from None
     return spec.tasks(engine)
 
 

@@ -141,6 +141,8 @@ def open_cluster(
             dashboard_address=None,
             worker_dashboard_address=None,
             silence_logs=logging.ERROR,
+            # its HTTP server on a free port: 8787 may be another sweep's (a warning each time)
+            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
             **env,
         )
     return Cluster(Client(local), local)
@@ -293,25 +295,29 @@ def run_sweep(
     retry_failed: bool = False,
     progress: bool = True,
     on_row: Callable[[dict[str, Any], Cluster], None] | None = None,
+    tasks: list[RunTask] | None = None,
 ) -> Outcome:
     """Run every task of ``spec`` not yet in ``out`` and keep the rows; returns the outcome.
 
     ``cluster``: an open cluster to use (left open); else one is opened (and closed) from
     ``workers``/``scheduler``. ``on_row`` is called after each row is kept (tests use it to
-    interrupt or to kill a worker).
+    interrupt or to kill a worker). ``tasks``: ``spec.tasks(engine, log folder)`` expanded
+    already (``hil sweep`` validates them before it touches ``out``), else expanded here.
     """
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
     out = Path(out)
-    tasks = spec.tasks(engine, (out / "logs") if keep_logs else None)
+    if tasks is None:
+        tasks = spec.tasks(engine, (out / "logs") if keep_logs else None)
     t0 = time.monotonic()
-    with ResultStore(out, spec) as store:
+    run_engine = tasks[0].engine if tasks else (engine or spec.study.engine)
+    with ResultStore(out, spec, run_engine) as store:
         done = store.done(retry_failed)
         todo = [t for t in tasks if t.key not in done]
         result = Outcome(
             runs=len(tasks),
             skipped=len(tasks) - len(todo),
-            engine=tasks[0].engine if tasks else (engine or spec.study.engine),
+            engine=run_engine,
             spec_hash=spec.spec_hash,
         )
         if not todo:

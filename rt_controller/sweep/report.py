@@ -130,6 +130,42 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def _missing_lines(df: Any, spec: Spec) -> list[str]:
+    """The runs of the spec with no row yet (an interrupted sweep), and their points."""
+    missing = spec.runs - len(df)
+    if missing <= 0:
+        return []
+    complete = int((df.groupby("point").size() >= spec.study.repetitions).sum())
+    return [
+        f"- **not finished: {missing} run(s)**, at {len(spec.points) - complete} point(s) (the "
+        "sweep was interrupted: the same command runs them); the figures below are over the "
+        "finished runs only"
+    ]
+
+
+def _point_table(df: Any, spec: Spec) -> list[str]:
+    """One line per point of the spec, in its order, those with no finished run too."""
+    stats = df.groupby("point").agg(
+        finished=("run_key", "size"),
+        ok=("status", lambda s: int((s == "ok").sum())),
+        passed=("passed", "sum"),
+        J_median=("J", "median"),
+        J_min=("J", "min"),
+        J_max=("J", "max"),
+        f_final_median=("f_final_norm", "median"),
+    )
+    names = [*stats.columns]
+    head = [*spec.axis_keys, "runs", *names]
+    lines = ["## Per point", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p, values in enumerate(spec.points[:MAX_TABLE_ROWS]):
+        got = stats.loc[p].tolist() if p in stats.index else [0, 0, 0, *[math.nan] * 4]
+        cells = [*values.values(), spec.study.repetitions, *got]
+        lines.append("| " + " | ".join(_fmt(v) for v in cells) + " |")
+    if len(spec.points) > MAX_TABLE_ROWS:
+        lines.append(f"\n({len(spec.points) - MAX_TABLE_ROWS} more points: results.parquet)")
+    return [*lines, ""]
+
+
 def write_report(out: Path, spec: Spec) -> Path:
     """Write ``out/report.md`` (and ``out/plots/*.png``) from ``out/results.parquet``."""
     import pandas as pd
@@ -139,7 +175,7 @@ def write_report(out: Path, spec: Spec) -> Path:
     study = spec.study
     lines = [f"# Sweep: {study.name}", ""]
     if not (out / PARQUET).exists():
-        lines.append("No run has finished yet.")
+        lines.append(f"No run has finished yet (0 of {spec.runs}): the same command runs them.")
         path.write_text("\n".join(lines) + "\n", encoding="utf-8")
         return path
     df = pd.read_parquet(out / PARQUET)
@@ -153,6 +189,7 @@ def write_report(out: Path, spec: Spec) -> Path:
         f"{len(spec.points)} point(s).",
         "",
         f"- runs: {len(df)} of {spec.runs} finished; {len(ok)} ok, {len(df) - len(ok)} failed",
+        *_missing_lines(df, spec),
         f"- passing (clean, final |f| < {study.pass_f_final_px:g} px): {int(good.sum())}",
         f"- J over the ok runs: median {_fmt(float(ok['J'].median()) if len(ok) else math.nan)}"
         f", 5-95 % {_fmt(float(ok['J'].quantile(0.05)) if len(ok) else math.nan)} .. "
@@ -182,25 +219,7 @@ def write_report(out: Path, spec: Spec) -> Path:
         _plot_map(df, grid_keys[0], grid_keys[1], study.pass_f_final_px, png)
         lines += ["## Pass/fail map", "", f"![pass/fail map](plots/{png.name})", ""]
     if spec.axis_keys and len(df):
-        keys = spec.axis_keys
-        per = df.assign(passed=good).groupby(keys, sort=False)
-        table = per.agg(
-            runs=("run_key", "size"),
-            ok=("status", lambda s: int((s == "ok").sum())),
-            passed=("passed", "sum"),
-            J_median=("J", "median"),
-            J_min=("J", "min"),
-            J_max=("J", "max"),
-            f_final_median=("f_final_norm", "median"),
-        ).reset_index()
-        head = [*keys, *table.columns[len(keys) :]]
-        lines += ["## Per point", "", "| " + " | ".join(head) + " |",
-                  "|" + "---|" * len(head)]  # fmt: skip
-        for rec in table.head(MAX_TABLE_ROWS).itertuples(index=False):
-            lines.append("| " + " | ".join(_fmt(v) for v in rec) + " |")
-        if len(table) > MAX_TABLE_ROWS:
-            lines.append(f"\n({len(table) - MAX_TABLE_ROWS} more points in results.parquet)")
-        lines.append("")
+        lines += _point_table(df.assign(passed=good), spec)
     failed = df[df["status"] != "ok"]
     if len(failed):
         lines += ["## Failed runs", ""]

@@ -31,6 +31,8 @@ JOURNAL = "rows.jsonl"
 PARQUET = "results.parquet"
 CSV = "results.csv"
 META = "sweep.json"
+OWN_NAMES = (JOURNAL, PARQUET, CSV, "report.md", "plots", "logs", "compile_target.json")
+"""What a sweep writes in its folder besides :data:`META` (replaced or appended to)."""
 
 _FIXED_HEAD = [("run_key", "string"), ("spec_hash", "string"), ("point", "int64"),
                ("rep", "int64"), ("seed", "int64")]  # fmt: skip
@@ -73,7 +75,7 @@ def _cell(value: Any, typ: str) -> Any:
 class ResultStore:
     """The rows of one study in ``out``; :meth:`add` as runs finish, :meth:`close` at the end."""
 
-    def __init__(self, out: Path, spec: Spec) -> None:
+    def __init__(self, out: Path, spec: Spec, engine: str | None = None) -> None:
         self.out = Path(out)
         self.spec = spec
         self.columns = columns(spec)
@@ -83,6 +85,7 @@ class ResultStore:
         self.out.mkdir(parents=True, exist_ok=True)
         self._check_meta()
         self._load_journal()
+        self._check_engine(engine)
         self._journal = (self.out / JOURNAL).open("a", encoding="utf-8")
         if self._journal.tell() and not (self.out / JOURNAL).read_bytes().endswith(b"\n"):
             self._journal.write("\n")  # end a line torn by a killed sweep before appending
@@ -98,6 +101,13 @@ class ResultStore:
             "repetitions": self.spec.study.repetitions,
             "runs": self.spec.runs,
         }
+        if not meta.exists():
+            ours = sorted(n for n in OWN_NAMES if (self.out / n).exists())
+            if ours:  # not a sweep's folder: its report.md or results.csv are someone's
+                raise ControllerConfigError(
+                    f"--out {self.out} has {', '.join(ours)} but no {META}: not a sweep's "
+                    "results folder (a sweep would overwrite those); give another folder"
+                )
         if meta.exists():
             try:
                 old = json.loads(meta.read_text(encoding="utf-8"))
@@ -122,6 +132,16 @@ class ResultStore:
             if isinstance(row, dict) and isinstance(row.get("run_key"), str):
                 self.rows[row["run_key"]] = row
         self._dirty = True
+
+    def _check_engine(self, engine: str | None) -> None:
+        """Refuse to add ``engine``'s runs to a folder holding the other engine's: the spec
+        hash leaves the engine out (both run the same seeds), so the report would mix them."""
+        others = sorted({str(r.get("engine")) for r in self.rows.values()} - {engine})
+        if engine is not None and others:
+            raise ControllerConfigError(
+                f"--out {self.out} holds this study's runs on the {' and '.join(others)} "
+                f"engine; give another folder for the {engine} engine's"
+            )
 
     def done(self, retry_failed: bool = False) -> set[str]:
         """Keys of the runs that need no rerun: every finished run, or with ``retry_failed``

@@ -188,9 +188,10 @@ class Spec:
             problem = image_noise_error(cfg) if engine == "rig" else None
             if problem is not None:  # the simulate engine's camera is the analytic one
                 raise SweepSpecError(f"point {p} on the rig engine: {problem}")
+            point_dict = cfg.to_dict()  # built and validated once per point, not per run
             for rep in range(self.study.repetitions):
-                seed = run_seed(self.spec_hash, p, rep)
-                run_cfg = cfg.with_overrides({"camera.seed": seed}).to_dict()
+                seed = run_seed(self.spec_hash, p, rep)  # in camera.seed's range by design
+                run_cfg = {**point_dict, "camera": {**point_dict["camera"], "seed": seed}}
                 key = run_key(run_cfg, engine, self.study.duration_s)
                 out.append(
                     RunTask(
@@ -290,6 +291,23 @@ _DIST_PARAMS = {
 }
 
 
+def _plain(value: Any) -> bool:
+    """A value a config key can take: a TOML number, string, boolean, or a list of them (not
+    a date, a time or a table)."""
+    if isinstance(value, list):
+        return all(_plain(v) for v in value)
+    return isinstance(value, bool | int | float | str)
+
+
+def _canonical(value: Any) -> Any:
+    """``value`` as the config sees it: a number as a float (``1`` and ``1.0`` are one point)."""
+    if isinstance(value, list):
+        return [_canonical(v) for v in value]
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
 def _axis(i: int, data: Any) -> Axis:
     where = f"axes[{i}]"
     if not isinstance(data, dict):
@@ -310,7 +328,12 @@ def _axis(i: int, data: Any) -> Axis:
         values = rest["values"]
         if not isinstance(values, list) or not values:
             raise SweepSpecError(f"{where}.values: expected a non-empty list, got {values!r}")
-        if len({json.dumps(v, sort_keys=True) for v in values}) != len(values):
+        for value in values:
+            if not _plain(value):
+                raise SweepSpecError(
+                    f"{where}.values: {value!r} is not a number, string, boolean or list of them"
+                )
+        if len({json.dumps(_canonical(v), sort_keys=True) for v in values}) != len(values):
             raise SweepSpecError(f"{where}.values: a value is listed twice: {values!r}")
         return Axis(key, tuple(values))
     dist = rest.get("distribution")
