@@ -48,6 +48,9 @@ class ProcessEnd:
     """As :class:`subprocess.Popen` has it: negative for a signal."""
     at_ns: int
     """``time.monotonic_ns()`` when the supervisor saw it (the controller's log clock)."""
+    unasked: bool = False
+    """It ended while the run went on, the rig had not told it to stop: an exit status 0 is
+    then an orderly stop on a signal from elsewhere (``kill``, a shutdown)."""
 
     @property
     def signal_name(self) -> str | None:
@@ -60,9 +63,14 @@ class ProcessEnd:
 
     @property
     def how(self) -> str:
-        """``killed by SIGKILL`` or ``exited with status 3``."""
+        """``killed by SIGKILL``, ``exited with status 3``, or ``stopped by a signal the rig
+        did not send (exit status 0)``: the stop SIGTERM or SIGINT asks for."""
         name = self.signal_name
-        return f"killed by {name}" if name else f"exited with status {self.returncode}"
+        if name:
+            return f"killed by {name}"
+        if self.returncode == 0 and self.unasked:
+            return "stopped by a signal the rig did not send (exit status 0)"
+        return f"exited with status {self.returncode}"
 
 
 def log_path_said(controller_stderr: str) -> Path | None:
@@ -149,8 +157,10 @@ def dsp_words(dsp: dict[str, Any]) -> str:
     )
 
 
-def _read_log(path: Path | None) -> tuple[dict[str, Any], Any]:
-    """What the log holds and the loaded log (None when it cannot be read)."""
+def _read_log(path: Path | None, writer_pid: int | None = None) -> tuple[dict[str, Any], Any]:
+    """What the log holds and the loaded log (None when it cannot be read, or when
+    ``writer_pid``, this run's controller, did not write it: an earlier run's file at the
+    path, which the controller had not replaced yet)."""
     if path is None:
         return {"path": None, "error": "the controller named no log before it died"}, None
     from rt_controller.logs import load
@@ -159,6 +169,10 @@ def _read_log(path: Path | None) -> tuple[dict[str, Any], Any]:
         run = load(path, raw=False)
     except LogError as exc:
         return {"path": str(path), "error": str(exc)}, None
+    pid = run.info.get("pid")
+    if writer_pid is not None and pid is not None and pid != str(writer_pid):
+        why = f"an earlier run's (process {pid}), not replaced: the controller opened no log"
+        return {"path": None, "error": f"no log of this run: {path} is {why}"}, None
     ticks = run.log.column("tick")
     n = run.log.n_cycles
     return {
@@ -206,15 +220,17 @@ def summary_after(
     log_path: Path | None,
     dsp: dict[str, Any],
     base: dict[str, Any],
+    writer_pid: int | None = None,
 ) -> dict[str, Any]:
     """The run's summary after ``end``: the controller's ``summary`` (None: it printed none,
     its counters are then read from the log), ``base`` (what was run: clock, law, planned
     ticks) under it, with ``end_reason``, ``ended_by``, ``dsp``, ``log``, ``log_contents`` and
-    ``problems`` filled in."""
+    ``problems`` filled in. ``writer_pid``: the controller's pid, so that a file at the log's
+    path that another process wrote (an earlier run's) is never taken for this run's log."""
     out = {**base, **(summary or {})}
     if log_path is None and out.get("log"):
         log_path = Path(out["log"])
-    contents, run = _read_log(log_path)
+    contents, run = _read_log(log_path, writer_pid)
     if summary is None and run is not None:
         from rt_controller.logs.info import logged_summary
         from rt_controller.logtools.deadline_report import summarize
@@ -244,7 +260,8 @@ def summary_after(
     if not any(out["end_reason"] in p for p in problems):
         problems.insert(0, f"the run ended: {out['end_reason']}")
     if "error" in contents:
-        problems.append(f"the log cannot be read: {contents['error']}")
+        said = contents["error"]
+        problems.append(said if said.startswith("no log") else f"the log cannot be read: {said}")
     out["problems"] = problems
     if summary is None:
         out["warnings"] = run_warnings(out)

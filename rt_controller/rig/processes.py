@@ -178,9 +178,8 @@ class Rig:
     def _check_alive(self, but: str) -> None:
         for c in self.children:
             if c.name not in (but, "monitor") and c.proc.poll() is not None:
-                raise RigProcessDied(
-                    ProcessEnd(c.name, c.proc.returncode, time.monotonic_ns()), c.tail()
-                )
+                end = ProcessEnd(c.name, c.proc.returncode, time.monotonic_ns(), unasked=True)
+                raise RigProcessDied(end, c.tail())
 
     def child(self, name: str) -> Child | None:
         return next((c for c in self.children if c.name == name), None)
@@ -256,9 +255,9 @@ class Rig:
 
     def _after(self, end: ProcessEnd, partial: dict | None, log: Path | None, base: dict) -> dict:
         """:func:`summary_after` with the DSP's report and the dead process's last words."""
-        emulator, dead = self.child("emulator"), self.child(end.name)
+        emulator, dead, ctl = self.child("emulator"), self.child(end.name), self.child("controller")
         dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
-        out = summary_after(end, partial, log, dsp, base)
+        out = summary_after(end, partial, log, dsp, base, ctl.proc.pid if ctl else None)
         out["stderr_tail"] = dead.tail(5) if dead else ""
         return out
 
