@@ -61,12 +61,13 @@ DATA_BITRATE = 2_000_000
 """The CAN FD data-phase bit rate a real interface is brought up with."""
 
 
-def can_up_hint(channel: str, bitrate: int | None = None) -> str:
+def can_up_hint(channel: str, bitrate: int | None = None, fd: bool = True) -> str:
     """The shell line that brings a real SocketCAN interface up for the rig at ``bitrate``
-    (default :data:`NOMINAL_BITRATE`), with CAN FD on: :func:`open_bus` opens SocketCAN for
-    CAN FD frames and refuses an interface of MTU 16."""
-    rate = bitrate or NOMINAL_BITRATE
-    return f"sudo ip link set {channel} up type can bitrate {rate} dbitrate {DATA_BITRATE} fd on"
+    (default :data:`NOMINAL_BITRATE`): with CAN FD on for the DSP's 16-byte frames, which
+    :func:`open_bus` refuses an interface of MTU 16 for; classic CAN for ``fd=False`` (CANopen
+    drives)."""
+    line = f"sudo ip link set {channel} up type can bitrate {bitrate or NOMINAL_BITRATE}"
+    return f"{line} dbitrate {DATA_BITRATE} fd on" if fd else line
 
 
 @dataclass(frozen=True)
@@ -181,7 +182,7 @@ def process_spec(spec: str | None = None) -> BusSpec:
 
 
 def _transport_error(
-    spec: BusSpec, exc: BaseException, bitrate: int | None = None
+    spec: BusSpec, exc: BaseException, bitrate: int | None = None, fd: bool = True
 ) -> HalTransportError:
     """One line saying what failed and what to do about it (``bitrate``: the bus's, named in
     the line that brings a missing SocketCAN interface up)."""
@@ -195,7 +196,7 @@ def _transport_error(
             hint = (
                 f"create it with: {vcan_hint(name)} (or use --can udp_multicast)"
                 if name.startswith("vcan")
-                else f"check the adapter, then: {can_up_hint(name, bitrate)}"
+                else f"check the adapter, then: {can_up_hint(name, bitrate, fd)}"
             )
         elif code == errno.ENETDOWN:
             hint = f"bring it up with: sudo ip link set up {name}"
@@ -237,7 +238,9 @@ def open_bus(
     """Open the bus named by ``spec`` (see the module docstring); extra ``kwargs`` go to it.
     python-can's ``bitrate`` (the cia402 profile passes ``cia402.bitrate``) sets the adapters
     that take one (PCAN, Kvaser, ...); a SocketCAN interface has its own, set by ``ip link``,
-    so there it is the rate the hint for a missing interface names.
+    so there it is the rate the hint for a missing interface names. SocketCAN is opened for
+    CAN FD (the DSP's frames) unless ``fd=False`` (CANopen's classic frames, which a classic
+    adapter of MTU 16 carries).
 
     Raises :class:`~hal.errors.HalConfigError` for a malformed spec and
     :class:`~hal.errors.HalTransportError` when the transport is unavailable.
@@ -248,14 +251,16 @@ def open_bus(
         if resolved.interface == "udp_multicast":
             options.setdefault("hop_limit", 0)
             return LoopbackMulticastBus(channel=resolved.channel or DEFAULT_GROUP, **options)
-        if resolved.interface == "socketcan":
-            options.setdefault("fd", True)  # the rig's frames are 16-byte CAN FD (SecOC)
+        socketcan = resolved.interface == "socketcan"
+        if socketcan and options.setdefault("fd", True):  # the DSP's 16-byte FD frames (SecOC)
             _check_fd_mtu(resolved.channel or DEFAULT_VCAN)
         return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
     except HalTransportError:  # already one line saying what to do (e.g. a refused group)
         raise
     except (can.CanError, OSError, ValueError, ImportError) as exc:
-        raise _transport_error(resolved, exc, options.get("bitrate")) from exc
+        raise _transport_error(
+            resolved, exc, options.get("bitrate"), options.get("fd", True)
+        ) from exc
 
 
 ISOLATED_GROUP_BASE = ipaddress.IPv4Address("239.75.0.0")

@@ -71,7 +71,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
     where = str(process_spec(spec))  # HalConfigError: malformed, or in-process only
     poses: PoseLink | None = None
     with contextlib.ExitStack() as stack:
-        bus = stack.enter_context(open_bus(spec, bitrate=cfg.cia402.bitrate))
+        bus = stack.enter_context(open_bus(spec, bitrate=cfg.cia402.bitrate, fd=False))
         zenoh_where = ""
         session = None
         if args.vision_link:

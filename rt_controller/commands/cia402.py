@@ -38,7 +38,7 @@ def run_check(args: argparse.Namespace) -> int:
     from hal.cia402_master.master import Cia402Master
 
     cfg = config_from_args(args)
-    bus = open_bus(args.can or cfg.transport.can, bitrate=cfg.cia402.bitrate)
+    bus = open_bus(args.can or cfg.transport.can, bitrate=cfg.cia402.bitrate, fd=False)
     master = Cia402Master.from_config(cfg, bus)
     try:
         drives = master.check()

@@ -95,7 +95,7 @@ def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[CanLink,
     with contextlib.ExitStack() as links:
         can: CanLink
         if cfg.hardware.profile == "cia402":
-            bus = open_bus(cfg.transport.can, bitrate=cfg.cia402.bitrate)
+            bus = open_bus(cfg.transport.can, bitrate=cfg.cia402.bitrate, fd=False)
             can = Cia402Master.from_config(cfg, bus)
             links.callback(can.close)
         else:
