@@ -25,6 +25,7 @@ import fcntl
 import json
 import os
 import select
+import signal
 import struct
 import subprocess
 import sys
@@ -65,8 +66,7 @@ KIND_OF_TOPIC = {**{topic: kind for kind, topic in TOPICS.items()}, IMAGE_TOPIC:
 MMAP_THRESHOLD = 128 << 10
 """glibc's mmap threshold for the recorder process, fixed: buffers of a chunk or a camera image
 are mapped and given back when freed. Left to glibc, the threshold grows to the largest buffer
-freed, and the heap keeps about 2 MB more after the first minutes (an in-process recorder fed
-600 s of the soak's records: +2.7 MB against +0.5 MB)."""
+freed and the heap keeps what it grew to (the soak, ``hil bench soak``, watches the RSS)."""
 START_TIMEOUT_S = 60.0
 """How long the log's start waits for the child to have opened the file (its imports included:
 seconds on a slow host such as user-mode Linux)."""
@@ -291,9 +291,9 @@ class RecorderProcess(Recorder):
             self._die(f"the recorder process did not finish the log in {timeout:g} s")
         status = self._child.returncode
         results = [line for line in (self._printed + out).splitlines() if line.startswith(b"{")]
-        if not results:  # it died before the end of its input
-            how = f"killed by signal {-status}" if status < 0 else f"status {status}"
-            self._die(f"the recorder process exited ({how})")
+        if not results:  # it died before the end of its input (what the pipe said is replaced)
+            self._die("")
+            self.dead = self.error = f"the recorder process {_ended(status)} before the log's end"
             return
         final = json.loads(results[-1])
         self.error = self.error or final["error"]
@@ -304,6 +304,16 @@ class RecorderProcess(Recorder):
             for key in WRITER_COUNTERS:
                 setattr(self, key, int(final.get(key, 0)))
             self.finished = final["finished"]
+
+
+def _ended(status: int) -> str:
+    """``was killed by SIGKILL`` or ``exited with status 1``."""
+    if status >= 0:
+        return f"exited with status {status}"
+    try:
+        return f"was killed by {signal.Signals(-status).name}"
+    except ValueError:
+        return f"was killed by signal {-status}"
 
 
 class _PipeInput:

@@ -159,7 +159,7 @@ def test_a_killed_recorder_is_reported_and_never_stops_the_loop(tmp_path, cfg):
     rec.close(timeout=5)
     assert not any(sent)  # nothing is queued in vain after that
     assert rec.dropped == 11  # the refused records are counted
-    assert "recorder process" in rec.error and not rec.finished
+    assert "recorder process was killed by SIGKILL" in rec.error and not rec.finished
     with pytest.raises(LogError, match="incomplete"), rec:
         pass
     summary = {"recorder": rec.as_dict(), "log_error": rec.error}
