@@ -58,20 +58,39 @@ def wait_for_stop(
     return True
 
 
+class StopEvent(threading.Event):
+    """The event :func:`stop_on_signals` yields: a :class:`threading.Event` that also keeps
+    which stop signal set it first, so a summary can say ``stopped by SIGTERM``."""
+
+    signal_name: str | None = None
+    """``"SIGTERM"`` or ``"SIGINT"``; None while no stop signal arrived."""
+
+
+def signal_name_of(stop: threading.Event) -> str | None:
+    """The stop signal that set ``stop`` inside :func:`stop_on_signals` (``"SIGTERM"``, ...);
+    None if none did (set by the caller, or not yet set)."""
+    name = getattr(stop, "signal_name", None)
+    return name if isinstance(name, str) else None
+
+
 @contextlib.contextmanager
 def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.Event]:
     """Yield an event that SIGTERM or SIGINT sets; restore the previous handlers on exit.
 
-    Outside the main thread (where Python cannot install handlers) the event is only set by
-    the caller. A signal also arms :data:`STACKS_AFTER_S`'s stack dump (and, in an orphan,
-    exit), cancelled on exit; :data:`STACKS_SIGNAL` dumps the stacks at any time inside.
+    The event keeps which signal set it first (:func:`signal_name_of`; a :class:`StopEvent`
+    when none is given). Outside the main thread (where Python cannot install handlers) the
+    event is only set by the caller. A signal also arms :data:`STACKS_AFTER_S`'s stack dump
+    (and, in an orphan, exit), cancelled on exit; :data:`STACKS_SIGNAL` dumps the stacks at
+    any time inside.
     """
-    event = threading.Event() if stop is None else stop
+    event = StopEvent() if stop is None else stop
     previous: dict[int, object] = {}
     parent = os.getppid()
 
-    def on_signal(*_: object) -> None:
+    def on_signal(signum: int, _frame: object) -> None:
         if not event.is_set():
+            with contextlib.suppress(AttributeError, ValueError):  # a caller's slotted event
+                event.signal_name = signal.Signals(signum).name  # type: ignore[attr-defined]
             orphaned = os.getppid() != parent
             with contextlib.suppress(OSError, ValueError, AttributeError):
                 faulthandler.dump_traceback_later(STACKS_AFTER_S, exit=orphaned, file=sys.stderr)

@@ -29,6 +29,7 @@ from hal.errors import HalStopped
 from hal.hardware_interface import HardwareInterface
 from hal.joint_client import JointClient
 from hal.secoc import rig_key
+from hal.signals import signal_name_of
 from hal.vision_receivers import FeatureDecoder
 from hal.zenoh_session import ZenohSession, open_session
 from rt_controller.calibration.link import ParameterServer
@@ -218,9 +219,31 @@ class ControllerDaemon:
         except HalStopped:  # told to stop while waiting for zenoh
             self.counters.stopped_before_arming = True
             self.counters.end_reason = "stopped"
+        except Exception as exc:  # the log says why the run ended, as the error does
+            if self._final_diagnostics is None:
+                self.counters.end_reason = f"failed to start: {exc}"
+            raise
         finally:
+            if self._final_diagnostics is None:  # no loop: no hardware counters
+                self._record_end(rec, self._bare_diagnostics(rec))
             rec.close()
         return self._summary(rec)
+
+    def _bare_diagnostics(self, rec: RecorderProcess) -> dict[str, Any]:
+        """The final ``/diagnostics`` record of a run stopped before its hardware existed."""
+        return diagnostics.build(
+            t_ns=self.clock.now_ns(), tick=self.counters.ticks, can_rx={}, features={}, dsp={},
+            controller=self.counters.controller_block(), recorder=rec.as_dict(), final=True,
+        )  # fmt: skip
+
+    def _record_end(self, rec: Any, record: dict[str, Any]) -> None:
+        """Write the run's final ``/diagnostics`` record, with how the run ended, on every
+        orderly end (a stop before the first tick included): without it, ``hil info`` takes
+        the log for one of a killed run."""
+        self._final_diagnostics = diagnostics.with_run_end(
+            record, self.counters.planned_ticks, self.counters.end_reason, self.counters.judged()
+        )
+        rec.record_diagnostics(self._final_diagnostics, final=True)
 
     def _run_with(self, can: CanLink, session: Any, rec: RecorderProcess) -> None:
         """The run on open links (:func:`open_links`): the parts, the live stream, the loop."""
@@ -251,6 +274,7 @@ class ControllerDaemon:
         if self.stop.is_set():
             self.counters.stopped_before_arming = True
             self.counters.end_reason = "stopped"
+            self._record_end(loop.ctx.recorder, loop.diagnostics(final=True))
             return  # told to stop during start-up: the DSP is never armed
         if self.opts.realtime_settings:
             # After warm-up and the first inputs: the pages locked are those the tick, the
@@ -262,19 +286,16 @@ class ControllerDaemon:
         try:
             with GcPaused():
                 loop.run(self.counters.planned_ticks)
+        except Exception as exc:  # not "duration": the final record says it failed
+            self.counters.end_reason = f"failed: {exc}"
+            raise
         finally:
             self.counters.host_steal_percent = steal_percent(before, cpu_ticks())
             self.counters.spin_s = self.clock.spun_ns / 1e9
             if self.stop.is_set() and self.counters.end_reason == "duration":
                 self.counters.end_reason = "stopped"
             hw.deactivate()
-            self._final_diagnostics = diagnostics.with_run_end(
-                loop.diagnostics(final=True),
-                self.counters.planned_ticks,
-                self.counters.end_reason,
-                self.counters.judged(),
-            )
-            loop.ctx.recorder.record_diagnostics(self._final_diagnostics, final=True)
+            self._record_end(loop.ctx.recorder, loop.diagnostics(final=True))
 
     def _summary(self, rec: RecorderProcess) -> dict[str, Any]:
         out = {**self.what_runs(), **self.counters.as_dict()}
@@ -290,6 +311,8 @@ class ControllerDaemon:
             ),
         }
         out["parameters"] = diagnostics.values_of(final, "parameters")
+        if (by := signal_name_of(self.stop)) is not None:
+            out["stop_signal"] = by  # which signal the "stopped" end_reason was
         out["problems"] = run_problems(out)
         out["warnings"] = run_warnings(out)
         return out
