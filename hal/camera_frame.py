@@ -303,7 +303,7 @@ class FrameDecoder:
             self.last = out
             return out
 
-    def counters(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         """Every counter by name, plus the sums ``malformed``, ``stale``, ``untrusted`` and
         ``rejected``."""
         with self._lock:

@@ -265,7 +265,7 @@ class DriveMonitor:
             self._count(ev.value)
         return DriveUpdate(self._mode(), state, self.fault, tuple(events))
 
-    def counters(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         """Events by name (``dsp_restarted``, ``fault``, ``disarmed``, ...) and faults by
         reason (``fault.watchdog``, ``fault.position_limit``, ...)."""
         return dict(self._counts)

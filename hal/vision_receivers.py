@@ -140,7 +140,7 @@ class _Receiver:
         """The locked-in source id (``None`` before the first accepted message)."""
         return self._source
 
-    def counters(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         """Every counter by name (``accepted``, ``future_stamp``, ``foreign_source``, ...,
         plus the sums ``malformed``, ``stale``, ``untrusted``, ``rejected``)."""
         with self._cond:

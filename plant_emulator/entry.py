@@ -265,6 +265,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             "sim_control": None if sim_control is None else sim_control.counts.as_dict(),
             **stats.as_dict(),
         }
+        summary = with_callback_errors(summary, session)  # the session still open
     if args.json:
         print(json.dumps(summary), flush=True)
     else:
@@ -272,10 +273,32 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             f"hil emulator: {summary['sim_time_s']:.3f} s simulated in {wall_s:.3f} s, "
             f"{stats.commands} commands, {stats.state_frames} states, "
             f"{stats.watchdog_trips} watchdog trips, "
-            f"{stats.rejected.get('rejected', 0)} frames rejected",
+            f"{stats.rejected.get('rejected', 0)} frames rejected"
+            f"{callback_errors_text(summary)}",
             flush=True,
         )
     return 0
+
+
+def with_callback_errors(summary: dict[str, Any], session: Any) -> dict[str, Any]:
+    """``summary`` plus ``callback_errors``: the zenoh session's messages lost to an exception
+    in a callback (the camera's region requests, the harness's sim control), which the
+    session swallows: a bug if not zero, then also a warning line on stderr. None without a
+    session (``--no-vision-link``)."""
+    n = None if session is None else int(session.callback_errors)
+    if n:
+        print(
+            f"hil emulator: warning: {n} zenoh message(s) lost to errors in callbacks (a bug)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return {**summary, "callback_errors": n}
+
+
+def callback_errors_text(summary: dict[str, Any]) -> str:
+    """The text summary's part for ``callback_errors`` (empty without a session)."""
+    n = summary.get("callback_errors")
+    return "" if n is None else f", {n} zenoh callback errors"
 
 
 @contextlib.contextmanager

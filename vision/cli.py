@@ -98,7 +98,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                     return 0
                 raise
     if args.json:
-        print(json.dumps(stats.__dict__), flush=True)
+        print(json.dumps(stats.as_dict()), flush=True)
     else:
         rejected = stats.pipeline.get("rejected", {})
         why = ", ".join(f"{r} {n}" for r, n in rejected.items() if n)

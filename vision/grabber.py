@@ -80,7 +80,7 @@ class GrabberStats:
     """How realtime frames were measured: ``SCHED_FIFO`` (``vision.rt_priority``), the reason it
     was refused, or empty (normal scheduling, or no realtime frame)."""
     image_log: dict[str, int] = field(default_factory=dict)
-    """The decimated image stream's counters (:meth:`vision.image_log.ImageLog.counters`)."""
+    """The decimated image stream's counters (:meth:`vision.image_log.ImageLog.as_dict`)."""
     detect_us_p50: float = 0.0
     detect_us_p99: float = 0.0
     latency_us_p50: float = 0.0
@@ -94,6 +94,10 @@ class GrabberStats:
     """Emulated source, lockstep: the camera pose offered to the frame's arrival (the camera's
     render and encode, zenoh)."""
     arrival_us_p99: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every field by name, in order (``hil vision --json``)."""
+        return dataclasses.asdict(self)
 
 
 class Grabber:

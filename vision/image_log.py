@@ -102,7 +102,7 @@ class ImageLog:
             self._thread.start()
         self._queue.put((frame, m))
 
-    def counters(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         """Frames logged, not logged for a full backlog, failed to encode or publish, and
         regions of interest passed over (not whole frames)."""
         return {

@@ -119,10 +119,10 @@ def run_live(
         stats = grabber.snapshot()
         stats.callback_errors = session.callback_errors  # frames lost in zenoh's callbacks
         if image_log is not None:
-            stats.image_log = image_log.counters()
+            stats.image_log = image_log.as_dict()
         stats.source = source.name
         if isinstance(source, EmulatedSource):
-            stats.frame_rx = source.decoder.counters()
+            stats.frame_rx = source.decoder.as_dict()
             if source.pipeline_ns:
                 stats.pipeline_us_p50, stats.pipeline_us_p99 = source.pipeline_ns.percentiles_us()
             if source.arrival_ns:

@@ -64,6 +64,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
 
     from hal.bus import open_bus, process_spec
     from plant_emulator.cia402.rig import Cia402Rig
+    from plant_emulator.entry import callback_errors_text, with_callback_errors
 
     cfg = _config(args)
 
@@ -120,14 +121,14 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             if args.duration and rig.world.t >= args.duration:
                 break
         wall_s = time.monotonic() - t0
-        summary = _summary(rig, where, wall_s, poses)
+        summary = with_callback_errors(_summary(rig, where, wall_s, poses), session)
     if args.json:
         print(json.dumps(summary), flush=True)
     else:
         states = ", ".join(f"node {d['node_id']} {d['state']}" for d in summary["drives"])
         print(
             f"hil emulator: {summary['sim_time_s']:.3f} s simulated in {wall_s:.3f} s, "
-            f"{summary['syncs']} SYNCs; {states}",
+            f"{summary['syncs']} SYNCs; {states}{callback_errors_text(summary)}",
             flush=True,
         )
     return 0

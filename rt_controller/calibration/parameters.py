@@ -27,6 +27,7 @@ from hal.config import RigConfig
 from hal.errors import HalConfigError
 from rt_controller.calibration.handover import DueQueue, beyond_end, run_ended
 from rt_controller.calibration.operator import ActionQueue
+from rt_controller.errors import ControllerConfigError
 
 TUNABLE: dict[str, str] = {
     "gains.kp": "kp of eq. (34)",
@@ -75,8 +76,8 @@ def refusal(key: str) -> str | None:
     return f"{key} is not online-tunable: {SECTION_REASONS[section]}"
 
 
-class ParameterRefused(ValueError):
-    """A change set that may not be applied; ``str()`` is the reason."""
+class ParameterRefused(ControllerConfigError):
+    """A change set that may not be applied; ``str()`` is the reason (a ``ValueError`` too)."""
 
 
 def _plain(value: Any) -> Any:

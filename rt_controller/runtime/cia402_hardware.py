@@ -203,7 +203,7 @@ class Cia402Hardware(HardwareBase):
             block[f"{name}_p99"] = percentile(samples, 99)
         return {
             "can_rx": {"authenticated": False, "syncs_sent": m.sync_count},
-            "features": self.features.counts(),
+            "features": self.features.as_dict(),
             "dsp": block,
         }
 

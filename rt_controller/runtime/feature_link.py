@@ -98,7 +98,7 @@ class FeatureLink:
         with self._feeding:
             self._attached = False
 
-    def counts(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         """The feature decoder's counters plus ``images_rejected``, ``images_missing`` (images
         the received features announced that are not in the log: overtaken by a newer one, or
         still to come) and ``callback_errors`` (messages or images lost to an exception in

@@ -230,7 +230,7 @@ class DspHardware(HardwareBase):
         status = self.dsp.status
         return {
             "can_rx": diagnostics.since(self.can_base, self.dsp.stats.e2e.as_dict()),
-            "features": self.features.counts(),
+            "features": self.features.as_dict(),
             "dsp": {
                 "status_received": status is not None,
                 "mode": self.monitor.mode,
@@ -240,7 +240,7 @@ class DspHardware(HardwareBase):
                 "torque_enabled": bool(status and status.torque_enabled),
                 "watchdog_tripped": bool(status and status.watchdog_tripped),
                 "rejected_frames": int(status.rejected_frames) if status else 0,
-                **{f"events.{k}": v for k, v in self.monitor.counters().items()},
+                **{f"events.{k}": v for k, v in self.monitor.as_dict().items()},
                 **{f"ticks.{k}": v for k, v in self.ctx.counters.drive_ticks.items()},
             },
         }

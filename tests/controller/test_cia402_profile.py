@@ -38,7 +38,7 @@ class Features:
     def detach(self) -> None:
         self.attached = False
 
-    def counts(self) -> dict[str, int]:
+    def as_dict(self) -> dict[str, int]:
         return {}
 
     def settle_images(self, timeout_s: float) -> bool:

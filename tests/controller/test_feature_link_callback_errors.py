@@ -28,9 +28,9 @@ class FailingRecorder:
 
 def _counts_when(link: FeatureLink, done: Any, timeout_s: float = 10.0) -> dict[str, int]:
     end = time.monotonic() + timeout_s
-    while not done(link.counts()) and time.monotonic() < end:
+    while not done(link.as_dict()) and time.monotonic() < end:
         time.sleep(0.01)
-    return link.counts()
+    return link.as_dict()
 
 
 def test_a_failed_callback_is_counted_and_makes_the_run_not_clean(endpoint: str) -> None:
@@ -51,7 +51,7 @@ def test_a_failed_callback_is_counted_and_makes_the_run_not_clean(endpoint: str)
         link = FeatureLink(ctx, session, decoder, by_callback=True, record_raw=False)
         link.attach()
         try:
-            assert link.counts()["callback_errors"] == 0  # the session's count before the run
+            assert link.as_dict()["callback_errors"] == 0  # the session's count before the run
             pub.put(encode_vision_image(image, key=key))
             counts = _counts_when(link, lambda c: c["callback_errors"] >= 1)
         finally:

@@ -89,7 +89,7 @@ def test_refused_images_are_counted_and_said_in_the_summary() -> None:
     on_image(_image(b"k" * len(key)))  # another rig's key: bad MAC
     on_image(b"HV garbage")
     assert len(rec.images) == 1
-    counts = link.counts()
+    counts = link.as_dict()
     assert counts["images_rejected"] == 2 and counts["accepted"] == 0
 
     summary = {"rejections": {"features": counts}}
@@ -99,7 +99,7 @@ def test_refused_images_are_counted_and_said_in_the_summary() -> None:
     )
     for _ in range(AUTH_FAULT_MIN - 2):
         on_image(b"HV garbage")
-    summary = {"rejections": {"features": link.counts()}}
+    summary = {"rejections": {"features": link.as_dict()}}
     assert run_problems(summary) == [
         f"{AUTH_FAULT_MIN} camera image(s) refused for the log (not authentic or malformed)"
     ]
@@ -121,13 +121,13 @@ def test_a_lockstep_run_ends_after_the_images_of_its_last_frames() -> None:
         on_features(_features(key, k))
     assert decoder.latest is not None and decoder.latest.frame == 5
     on_image(_frame_image(key, 0))
-    assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
+    assert link.as_dict()["images_missing"] == 1  # the frame of 0.1 s
     assert not link.settle_images(0.01)
     late = threading.Timer(0.05, on_image, args=(_frame_image(key, 5),))
     late.start()
     assert link.settle_images(10.0)
     late.join()
-    assert link.counts()["images_missing"] == 0 and len(rec.images) == 2
+    assert link.as_dict()["images_missing"] == 0 and len(rec.images) == 2
     link.detach()
 
 
@@ -170,11 +170,11 @@ def test_a_realtime_run_counts_the_images_of_its_last_frames_that_did_not_come()
     link.poll(clock.now_ns())
     assert decoder.latest is not None and decoder.latest.frame == 5
     on_image(_frame_image(key, 0))
-    assert link.counts()["images_missing"] == 1  # the frame of 0.1 s
+    assert link.as_dict()["images_missing"] == 1  # the frame of 0.1 s
     assert not link.settle_images(0.01)
     on_image(_frame_image(key, 5))
     assert link.settle_images(0.01)
-    assert link.counts()["images_missing"] == 0 and len(rec.images) == 2
+    assert link.as_dict()["images_missing"] == 0 and len(rec.images) == 2
     link.detach()
 
 
@@ -189,7 +189,7 @@ def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None
     on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
     for k in range(65):  # logged: the frames of 0, 0.1, ... 1.2 s (every fifth)
         on_features(_features(key, k))
-    assert link.counts()["images_missing"] == 13
+    assert link.as_dict()["images_missing"] == 13
     quiet_s, stop = 1.0, threading.Event()
     spans: list[tuple[float, float]] = []  # each image's (start, end) of delivery, monotonic
 
@@ -213,7 +213,7 @@ def test_the_end_of_a_run_waits_for_images_as_long_as_they_keep_coming() -> None
     finally:
         sender.join()
     assert not settled  # the last image never comes
-    assert len(spans) == len(rec.images) == 12 and link.counts()["images_missing"] == 1
+    assert len(spans) == len(rec.images) == 12 and link.as_dict()["images_missing"] == 1
     # How many it had to wait for follows from when they came, not from how fast the host was:
     # it waits quiet_s from (at the earliest) the start of the delivery of the last image it saw,
     # so every image whose delivery ended within quiet_s of the start of the one before (of the
@@ -239,7 +239,7 @@ def test_an_image_overtaken_by_a_newer_one_is_counted_at_once() -> None:
         on_features(_features(key, k))
     on_image(_frame_image(key, 0))
     on_image(_frame_image(key, 10))  # the image of frame 5 was dropped on the way
-    assert link.counts()["images_missing"] == 1
+    assert link.as_dict()["images_missing"] == 1
     assert link.settle_images(0.01)  # nothing still to come
     assert len(rec.images) == 2
     link.detach()
@@ -256,9 +256,9 @@ def test_only_announced_images_are_expected() -> None:
     for k in range(1, 5):  # the controller subscribed after frame 0, whose image was logged
         on_features(_features(key, k, image=False))
     on_features(_features(key, 5))
-    assert link.counts()["images_missing"] == 1
+    assert link.as_dict()["images_missing"] == 1
     on_image(_frame_image(key, 5))
-    assert link.counts()["images_missing"] == 0
+    assert link.as_dict()["images_missing"] == 0
     assert link.settle_images(0.01) and len(rec.images) == 1
     link.detach()
 
@@ -302,14 +302,14 @@ def test_a_late_image_of_the_plan_run_before_stays_out_of_the_next_runs_log() ->
     for k in range(6):  # the next run's frames 0-5 (its clock starts at 0 again)
         on_features(_features(key, k))
     on_image(_frame_image(key, 10))  # the run before's image of 0.2 s, late
-    assert link.counts()["images_of_run_before"] == 1
-    assert link.counts()["images_missing"] == 2  # this run's 0 and 0.1 s, still to come
+    assert link.as_dict()["images_of_run_before"] == 1
+    assert link.as_dict()["images_missing"] == 2  # this run's 0 and 0.1 s, still to come
     for k in (0, 5):
         on_image(_frame_image(key, k))
-    assert link.counts()["images_missing"] == 0 and link.settle_images(0.01)
+    assert link.as_dict()["images_missing"] == 0 and link.settle_images(0.01)
     for k in range(6, 11):  # this run reaches 0.2 s: its own image of 0.2 s is logged
         on_features(_features(key, k))
     on_image(_frame_image(key, 10))
-    assert len(rec.images) == 3 and link.counts()["images_missing"] == 0
-    assert link.counts()["images_of_run_before"] == 1
+    assert len(rec.images) == 3 and link.as_dict()["images_missing"] == 0
+    assert link.as_dict()["images_of_run_before"] == 1
     link.detach()

@@ -179,8 +179,8 @@ def test_frames_reach_a_frame_grabber_over_zenoh_authenticated():
             node.close()
             frames.close()
     assert got == list(range(20))
-    assert grabber.counters()["rejected"] == 0
-    assert stranger.counters()["bad_mac"] == 20
+    assert grabber.as_dict()["rejected"] == 0
+    assert stranger.as_dict()["bad_mac"] == 20
     assert node.stats.publish_errors == 0
 
 

@@ -108,6 +108,7 @@ def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_p
     assert "fault: node 1 EMCY 0x8700 (SYNC loss)" in err
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["syncs"] == 3
+    assert summary["callback_errors"] is None  # --no-vision-link: no zenoh session
     assert summary["sim_time_s"] == 0.0  # no drive was enabled: the world's clock held
     assert [d["state"] for d in summary["drives"]] == ["FAULT", "FAULT"]
     assert [d["emcys"] for d in summary["drives"]] == [["0x8700"], ["0x8700"]]

@@ -121,7 +121,7 @@ def test_monitor_modes_and_events():
     assert m.update(status(S.OPERATION_ENABLED, session=8)).mode == MODE_DSP_RESTARTED
     m.acknowledge_restart()
     assert m.update(status(S.OPERATION_ENABLED, session=8)).mode == MODE_ENABLED
-    assert m.counters() == {
+    assert m.as_dict() == {
         "first_status": 1,
         "state_changed": 6,
         "enabled": 3,

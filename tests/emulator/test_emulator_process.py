@@ -230,6 +230,7 @@ def test_emulator_process_exchanges_commands_and_state(cfg: RigConfig, can_spec:
     assert summary["rejected"]["rejected"] == 0
     assert_dsp_clock_invariants(cfg, summary)
     assert summary["drive_state"] != "operation_enabled"  # disarmed at the end
+    assert summary["callback_errors"] == (0 if native else None)  # the zenoh session's
     if native:
         assert summary["poses_published"] > 0
         assert len(poses) > 10, "no camera poses arrived over zenoh"

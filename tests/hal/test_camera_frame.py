@@ -65,7 +65,7 @@ def test_decoder_accepts_authentic_frames_in_order():
     dec = FrameDecoder(key=KEY)
     assert dec.feed(frame(seq=0, period=0)) is not None
     assert dec.feed(frame(seq=1, period=1)) is not None
-    assert dec.counters()["accepted"] == 2
+    assert dec.as_dict()["accepted"] == 2
     assert dec.last is not None and dec.last.seq == 1
 
 
@@ -100,7 +100,7 @@ def test_malformed_frames_are_rejected_and_counted(mangle, counter):
     bad = mangle(frame())
     dec = FrameDecoder(key=KEY)
     assert dec.feed(bad) is None
-    c = dec.counters()
+    c = dec.as_dict()
     assert c[counter] == 1 and c["received"] == 1 and c["rejected"] == 1 and c["accepted"] == 0
     if counter != "bad_mac":
         with pytest.raises(HalCodecError, match=counter):
@@ -110,7 +110,7 @@ def test_malformed_frames_are_rejected_and_counted(mangle, counter):
 def test_other_rigs_key_is_rejected():
     dec = FrameDecoder(key=b"x" * 32)
     assert dec.feed(frame()) is None
-    assert dec.counters()["bad_mac"] == 1
+    assert dec.as_dict()["bad_mac"] == 1
 
 
 def test_lockstep_resend_is_returned_and_counted_not_accepted_twice():
@@ -119,7 +119,7 @@ def test_lockstep_resend_is_returned_and_counted_not_accepted_twice():
     assert dec.feed(buf) is not None
     again = dec.feed(frame(seq=5, period=5, stamp_ns=999))
     assert again is not None and again.seq == 5
-    c = dec.counters()
+    c = dec.as_dict()
     assert (c["accepted"], c["resent"], c["rejected"]) == (1, 1, 0)
 
 
@@ -128,9 +128,9 @@ def test_old_frames_are_stale_and_a_new_camera_takes_over():
     assert dec.feed(frame(seq=5, period=5, lockstep=False)) is not None
     assert dec.feed(frame(seq=4, period=4, lockstep=False)) is None
     assert dec.feed(frame(seq=5, period=5, lockstep=False)) is None
-    assert dec.counters()["stale_order"] == 2
+    assert dec.as_dict()["stale_order"] == 2
     assert dec.feed(frame(seq=0, period=0, lockstep=False, source=1)) is not None
-    assert dec.counters()["source_changes"] == 1
+    assert dec.as_dict()["source_changes"] == 1
 
 
 @pytest.mark.parametrize(
@@ -163,7 +163,7 @@ def test_fuzzed_payloads_never_raise():
         for i in rng.integers(0, len(b), rng.integers(1, 6)):
             b[i] = int(rng.integers(0, 256))
         dec.feed(bytes(b[: int(rng.integers(0, len(b) + 1))]))
-    c = dec.counters()
+    c = dec.as_dict()
     assert c["received"] == 300
     assert c["accepted"] + c["resent"] + c["rejected"] == 300
 
@@ -191,7 +191,7 @@ def test_a_tampered_region_offset_or_sensor_size_is_rejected_and_counted(field):
     assert decode_frame(bad).sensor_size is not None  # well formed...
     dec = FrameDecoder(key=KEY)
     assert dec.feed(bad) is None  # ...but not authentic
-    c = dec.counters()
+    c = dec.as_dict()
     assert (c["bad_mac"], c["rejected"], c["accepted"]) == (1, 1, 0)
 
 
@@ -205,7 +205,7 @@ def test_a_region_then_the_same_frame_whole_are_both_accepted(lockstep):
     assert whole is not None and not whole.is_roi
     again = dec.feed(roi)  # the region again: lockstep re-sends are returned, realtime is stale
     assert (again is not None) == lockstep
-    c = dec.counters()
+    c = dec.as_dict()
     assert (c["accepted"], c["resent"], c["stale_order"]) == (2, int(lockstep), int(not lockstep))
 
 

@@ -37,7 +37,7 @@ def decoder(**kw: object) -> FeatureDecoder:
 
 
 def rejections(d: FeatureDecoder) -> dict[str, int]:
-    c = d.counters()
+    c = d.as_dict()
     keys = ("future_stamp", "foreign_source", "backwards_stamp", "stale_age", "stale_order")
     return {k: c[k] for k in keys if c[k]}
 
@@ -48,7 +48,7 @@ def test_future_stamp_beyond_skew_is_rejected_and_counted():
     assert d.feed(msg(2, NOW + 5 * MS + 1), NOW) is None
     assert d.feed(msg(3, NOW + 3_600 * 10**9), NOW) is None  # the f_age -3596 s
     assert rejections(d) == {"future_stamp": 2}
-    c = d.counters()
+    c = d.as_dict()
     assert (c["accepted"], c["untrusted"], c["rejected"]) == (1, 2, 2)
     assert d.latest.frame == 1
 
@@ -86,11 +86,11 @@ def test_foreign_source_is_rejected_while_the_locked_one_is_alive():
         assert d.feed(msg(100 + k, NOW + k * MS, source=2), NOW + k * MS) is None
         assert d.feed(msg(2 + k, NOW + k * MS, source=1), NOW + k * MS) is not None
     assert rejections(d) == {"foreign_source": 5}
-    assert d.counters()["source_changes"] == 0 and d.latest.source == 1
+    assert d.as_dict()["source_changes"] == 0 and d.latest.source == 1
     # once the locked source was silent for the takeover time, a new one may take over
     later = NOW + 4 * MS + 1_000 * MS
     assert d.feed(msg(0, later, source=2), later) is not None
-    assert d.source == 2 and d.counters()["source_changes"] == 1
+    assert d.source == 2 and d.as_dict()["source_changes"] == 1
     # and now the old one is the foreign one
     assert d.feed(msg(99, later + MS, source=1), later + MS) is None
     assert rejections(d) == {"foreign_source": 6}
@@ -112,7 +112,7 @@ def test_backwards_stamp_and_frame_are_rejected_and_counted_by_reason():
     assert d.feed(msg(9, NOW + 1), NOW + 1) is None  # newer stamp, older frame
     assert d.feed(msg(10, NOW + 2), NOW + 2) is None  # same frame again
     assert rejections(d) == {"backwards_stamp": 1, "stale_order": 2}
-    assert d.counters()["accepted"] == 1
+    assert d.as_dict()["accepted"] == 1
 
 
 def test_resync_after_a_corrupt_counter_never_admits_an_older_stamp():
@@ -122,7 +122,7 @@ def test_resync_after_a_corrupt_counter_never_admits_an_older_stamp():
     assert d.feed(msg(2, NOW - 1), NOW + 2) is None  # an older stamp never resyncs
     assert d.feed(msg(3, NOW + 3), NOW + 3) is not None  # fresh: resync
     assert rejections(d) == {"stale_order": 1, "backwards_stamp": 1}
-    assert d.counters()["resyncs"] == 1
+    assert d.as_dict()["resyncs"] == 1
 
 
 def test_every_message_lands_in_exactly_one_bucket():
@@ -139,7 +139,7 @@ def test_every_message_lands_in_exactly_one_bucket():
     ]
     for payload, t in feeds:
         d.feed(payload, t)
-    c = d.counters()
+    c = d.as_dict()
     assert c["received"] == len(feeds) == c["accepted"] + c["rejected"]
     assert {k: c[k] for k in ("accepted", "future_stamp", "stale_age", "foreign_source",
                               "backwards_stamp", "stale_order", "bad_size")} == {

@@ -72,7 +72,7 @@ def test_lockstep_frames_wait_for_room_and_are_all_logged_in_order():
     log.close()
     assert got == list(range(0, 40, 5))
     assert how == {True}  # published to be waited for, never dropped on the way
-    assert log.counters() == {"sent": 8, "dropped": 0, "errors": 0, "regions": 0}
+    assert log.as_dict() == {"sent": 8, "dropped": 0, "errors": 0, "regions": 0}
 
 
 def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
@@ -87,7 +87,7 @@ def test_realtime_frames_beyond_the_backlog_are_dropped_and_counted():
     claimed = [i for i in range(40) if offer(log, frame(i, False))]  # never blocks
     gate.set()
     log.close()
-    c = log.counters()
+    c = log.as_dict()
     assert c["sent"] + c["dropped"] == 8 and c["dropped"] >= 5  # one in the encoder, two queued
     assert got == claimed  # a frame refused at its claim, before its features left, only
     assert how == {False}
@@ -107,7 +107,7 @@ def test_regions_of_interest_are_never_logged_the_slot_takes_the_next_whole_fram
     assert [img.frame for img in got] == [1, 7, 10]
     shapes = {cv2.imdecode(np.frombuffer(img.png, np.uint8), 0).shape for img in got}
     assert shapes == {(48, 64)}
-    assert log.counters()["regions"] == 3
+    assert log.as_dict()["regions"] == 3
 
 
 @pytest.mark.parametrize("lockstep", [True, False])

@@ -160,7 +160,7 @@ def test_emulated_frames_good_corrupted_and_mis_sized():
     assert s.reanswers == 1 and s.frames == 3 and s.invalid == 1
     assert s.pipeline["rejected"]["malformed"] == 2
     assert s.pipeline["rejected"]["wrong_size"] == 1
-    rx = source.decoder.counters()
+    rx = source.decoder.as_dict()
     assert rx["bad_mac"] == 1 and rx["bad_size"] == 1 and rx["resent"] == 1
 
 
