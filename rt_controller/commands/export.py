@@ -51,6 +51,33 @@ def check_not_a_file_name(out: str, fmt: str) -> None:
         )
 
 
+def check_outputs(out: str | None, fmt: str, files: dict[str, Path], *, make: bool) -> None:
+    """Check the output paths with the commands' rule. ``make=False`` runs only the checks
+    that create nothing (before the log is read: a bad log must leave no new folder);
+    ``make=True`` runs them all, creating the missing folders."""
+    from rt_controller.commands.output import output_dir, output_file
+
+    if out is not None and not set(files.values()) & {Path(out)}:
+        check_not_a_file_name(out, fmt)
+        if make or creates_nothing(Path(out)):
+            output_dir(out, "--out")
+    option = "--out" if out is not None else "output file"  # beside LOG, no --out given
+    for path in set(files.values()):
+        if make or creates_nothing(path.parent):  # derived from the log: replaced at will
+            output_file(path, option, replace=True)
+
+
+def creates_nothing(folder: Path) -> bool:
+    """Whether checking ``folder`` creates nothing: it exists, or making it fails at its
+    nearest existing ancestor (a file, a folder this process cannot write)."""
+    import os
+
+    base = folder
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    return base == folder or not base.is_dir() or not os.access(base, os.W_OK)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "export",
@@ -81,23 +108,18 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from rt_controller.commands.output import output_dir, output_file
     from rt_controller.errors import LogError
     from rt_controller.logs import load
     from rt_controller.logs.export import export, plan_outputs
 
     files = plan_outputs(args.log, args.format, args.topics, args.out)  # before any work:
-    if args.out is not None and not set(files.values()) & {Path(args.out)}:
-        check_not_a_file_name(args.out, args.format)
-        output_dir(args.out, "--out")
-    option = "--out" if args.out is not None else "output file"  # beside LOG, no --out given
-    for path in set(files.values()):
-        output_file(path, option, replace=True)  # derived from the log: made again at will
+    check_outputs(args.out, args.format, files, make=False)  # what exists, creating nothing
     run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
     if "cycle" in args.topics and run_.log.n_cycles == 0:  # as replay: no empty tables
         why = f" ({run_.notes[0]})" if run_.notes else ""
         what = f"no readable /controller/cycle messages{why}, nothing to export"
         raise LogError(f"{run_.path}: {what}")
+    check_outputs(args.out, args.format, files, make=True)  # the log is good: make folders
     written = export(run_, args.format, files)
     if args.json:
         rows = [{"topic": w.topic, "path": str(w.path), "rows": w.rows} for w in written]

@@ -60,7 +60,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="keep each run's log in DIR/logs (rig: MCAP; simulate: the trace as Parquet)",
     )
-    p.add_argument("--retry-failed", action="store_true", help="run the failed runs of DIR again")
+    p.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="run the failed runs of DIR again (without it a resume skips them and exits 1)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.add_argument("--json", action="store_true", help="print the outcome as one JSON object")
     p.set_defaults(handler=run)
@@ -107,4 +111,13 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
-    return 1 if outcome.failed else 0
+    if outcome.kept_failed:
+        names = ", ".join(outcome.kept_failed[:5]) + (
+            ", ..." if len(outcome.kept_failed) > 5 else ""
+        )
+        print(
+            f"hil sweep: {len(outcome.kept_failed)} failed run(s) in {out} not run again "
+            f"({names}); --retry-failed runs them again",
+            file=sys.stderr,
+        )
+    return 1 if outcome.failed or outcome.kept_failed else 0

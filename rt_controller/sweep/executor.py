@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import signal
+import sys
 import threading
 import time
 import uuid
@@ -42,6 +44,9 @@ WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THRE
 MAX_WORKERS = 256
 WORKER_WAIT_S = 60.0
 """With ``--scheduler``: how long to wait for a first worker before giving up."""
+NO_WORKER_S = 30.0
+"""How long the cluster may have no worker before :meth:`Tasks.next` says so (again every
+ten times as long): Dask keeps the tasks and waits for a worker silently."""
 
 
 def machine_workers() -> int:
@@ -158,10 +163,18 @@ class Tasks:
     :func:`watch_stop`).
     """
 
-    def __init__(self, cluster: Cluster, prefix: str) -> None:
+    def __init__(
+        self,
+        cluster: Cluster,
+        prefix: str,
+        *,
+        no_worker_s: float = NO_WORKER_S,
+        say: Callable[[str], None] | None = None,
+    ) -> None:
         from distributed import as_completed
 
-        self.client, self.prefix = cluster.client, prefix
+        self.client, self.prefix, self.address = cluster.client, prefix, cluster.address
+        self.no_worker_s, self.say = no_worker_s, say or _stderr
         self._items: dict[Any, Any] = {}
         self._done = as_completed()
 
@@ -182,6 +195,7 @@ class Tasks:
         """The next task to finish: (item, result, None), or (item, None, its exception)."""
         from rt_controller.rig.supervise import RigInterrupted
 
+        self._wait_ready()
         fut = next(self._done)
         item = self._items.pop(fut)
         try:
@@ -194,6 +208,32 @@ class Tasks:
         fut.release()
         return item, result, error
 
+    def _wait_ready(self) -> None:
+        """Wait for a task to finish, saying so when the cluster has had no worker for
+        ``no_worker_s`` (its only worker died): the tasks wait, the sweep does not end."""
+        since = checked = time.monotonic()
+        said = -math.inf
+        check_s = min(1.0, self.no_worker_s / 4)
+        while self._items and not self._done.has_ready():
+            now = time.monotonic()
+            if now - checked >= check_s:
+                checked = now
+                since = since if self._no_worker() else now
+            if now - since >= self.no_worker_s and now - said >= 10 * self.no_worker_s:
+                said = now
+                self.say(
+                    f"no worker in the cluster at {self.address} for {round(now - since, 1):g} s; "
+                    "waiting (Ctrl-C keeps the finished rows)"
+                )
+            time.sleep(0.1)  # as as_completed itself polls
+
+    def _no_worker(self) -> bool:
+        """Whether the scheduler answers and has no worker (an unanswered query: unknown)."""
+        try:
+            return not self.client.scheduler_info(n_workers=1).get("workers")
+        except Exception:  # a scheduler going down: not this message's business
+            return False
+
     def cancel(self) -> None:
         """Cancel the tasks not taken back yet."""
         if self._items:
@@ -205,6 +245,10 @@ class Tasks:
 
     def __exit__(self, *_exc: object) -> None:
         self.cancel()
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
 
 
 def stop_name(prefix: str) -> str:
@@ -265,6 +309,8 @@ class Outcome:
     skipped: int
     ran: int = 0
     failed: int = 0
+    kept_failed: list[str] = field(default_factory=list)
+    """Failed runs of an earlier sweep in the folder, skipped (``point P rep R``)."""
     interrupted: bool = False
     wall_s: float = 0.0
     workers: int = 0
@@ -296,6 +342,7 @@ def run_sweep(
     progress: bool = True,
     on_row: Callable[[dict[str, Any], Cluster], None] | None = None,
     tasks: list[RunTask] | None = None,
+    no_worker_s: float = NO_WORKER_S,
 ) -> Outcome:
     """Run every task of ``spec`` not yet in ``out`` and keep the rows; returns the outcome.
 
@@ -303,6 +350,7 @@ def run_sweep(
     ``workers``/``scheduler``. ``on_row`` is called after each row is kept (tests use it to
     interrupt or to kill a worker). ``tasks``: ``spec.tasks(engine, log folder)`` expanded
     already (``hil sweep`` validates them before it touches ``out``), else expanded here.
+    ``no_worker_s``: after so long without a worker, a line on stderr (:class:`Tasks`).
     """
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
@@ -319,6 +367,7 @@ def run_sweep(
             skipped=len(tasks) - len(todo),
             engine=run_engine,
             spec_hash=spec.spec_hash,
+            kept_failed=_kept_failed(store, tasks, done),
         )
         if not todo:
             return result
@@ -330,7 +379,8 @@ def run_sweep(
                 )
                 try:
                     result.workers, result.scheduler = cl.workers, cl.address
-                    _collect(cl, todo, store, result, Engine(plant), progress, on_row)
+                    run = Engine(plant)
+                    _collect(cl, todo, store, result, run, progress, on_row, no_worker_s)
                 finally:
                     if own:
                         cl.close()
@@ -341,10 +391,14 @@ def run_sweep(
     return result
 
 
+def _kept_failed(store: ResultStore, tasks: list[RunTask], done: set[str]) -> list[str]:
+    """The skipped runs whose kept row failed: the study is not all good without them."""
+    rows = [store.rows[t.key] for t in tasks if t.key in done]
+    return [f"point {r.get('point')} rep {r.get('rep')}" for r in rows if r.get("status") != "ok"]
+
+
 def _target_env(out: Path, scheduler: str | None, progress: bool) -> dict[str, str]:
     """The local workers' compile target: the sweep's first run's (:mod:`.target`)."""
-    import sys
-
     from rt_controller.sweep.target import worker_env
 
     def say(line: str) -> None:
@@ -364,6 +418,7 @@ def _collect(
     engine: Engine,
     progress: bool,
     on_row: Callable[[dict[str, Any], Cluster], None] | None,
+    no_worker_s: float = NO_WORKER_S,
 ) -> None:
     from rich.console import Console
     from rich.progress import (
@@ -387,7 +442,12 @@ def _collect(
         disable=not progress,
         transient=False,
     )
-    with Tasks(cl, "hil-sweep") as tasks, bar:  # interrupted: nothing left keeps running for us
+
+    def say(line: str) -> None:
+        print(f"hil sweep: {line}", file=sys.stderr)
+
+    tasks = Tasks(cl, "hil-sweep", no_worker_s=no_worker_s, say=say)
+    with tasks, bar:  # interrupted: nothing left keeps running for us
         for task in todo:
             tasks.submit(task, engine, task, key=task.key)
         bar_task = bar.add_task("runs", total=len(todo), failed=0)

@@ -4,7 +4,10 @@
   (the truth for resuming; a torn last line of a killed sweep is ignored);
 * ``results.parquet`` (pyarrow) and ``results.csv``: every run once (deduplicated by run key,
   the newest row winning), sorted by point and repetition, rewritten atomically from the
-  journal at most every ``FLUSH_S`` seconds while the sweep runs and once at its end;
+  journal while the sweep runs, at most every ``FLUSH_S`` seconds and every
+  ``FLUSH_RATIO`` times the last rewrite's duration (a rewrite of 20k rows takes about a
+  second: the client spends at most ~1/``FLUSH_RATIO`` of its time on them), and always
+  once at its end;
 * ``sweep.json``: the spec's hash, name and axes (a folder holds one study).
 
 Columns: ``run_key``, ``spec_hash``, ``point``, ``rep``, ``seed``, one per axis (named by its
@@ -27,6 +30,8 @@ from rt_controller.sweep.engines import METRICS
 from rt_controller.sweep.spec import Spec
 
 FLUSH_S = 1.0
+FLUSH_RATIO = 10.0
+"""Wait at least this many times the last rewrite's duration before the next one."""
 JOURNAL = "rows.jsonl"
 PARQUET = "results.parquet"
 CSV = "results.csv"
@@ -82,6 +87,7 @@ class ResultStore:
         self.rows: dict[str, dict[str, Any]] = {}
         self._dirty = False
         self._last_flush = 0.0
+        self._flush_every = FLUSH_S
         self.out.mkdir(parents=True, exist_ok=True)
         self._check_meta()
         self._load_journal()
@@ -160,7 +166,7 @@ class ResultStore:
             os.fsync(self._journal.fileno())
             self.rows[row["run_key"]] = row
             self._dirty = True
-        if time.monotonic() - self._last_flush >= FLUSH_S:
+        if time.monotonic() - self._last_flush >= self._flush_every:
             self.flush()
 
     def ordered(self, keys: set[str] | None = None) -> list[dict[str, Any]]:
@@ -184,6 +190,7 @@ class ResultStore:
         import pyarrow.csv as pcsv
         import pyarrow.parquet as pq
 
+        start = time.monotonic()
         table = self.table()
         for name, write in (
             (PARQUET, lambda t, p: pq.write_table(t, p)),
@@ -194,6 +201,7 @@ class ResultStore:
             os.replace(tmp, self.out / name)
         self._dirty = False
         self._last_flush = time.monotonic()
+        self._flush_every = max(FLUSH_S, FLUSH_RATIO * (self._last_flush - start))
 
     def close(self) -> None:
         self.flush()
