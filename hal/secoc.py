@@ -131,11 +131,17 @@ def write_key_file(path: str | Path, *, overwrite: bool = False) -> Path:
 def load_key_file(path: str | Path) -> bytes:
     """The rig key in ``path``; :class:`HalKeyError` (one line) when it cannot be trusted."""
     path = Path(path)
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:  # non-blocking: a named pipe is refused below, not waited on for a writer
+        fd = os.open(path, flags)
     except FileNotFoundError:
         raise HalKeyError(f"rig key {path}: no such file; {KEYGEN_HINT}") from None
     except OSError as exc:
+        if path.is_symlink():
+            raise HalKeyError(
+                f"rig key {path}: cannot read it: a symbolic link (to {os.readlink(path)}) is not "
+                "followed; give the key file itself"
+            ) from None
         raise HalKeyError(f"rig key {path}: cannot read it: {exc.strerror}") from exc
     try:
         st = os.fstat(fd)

@@ -39,7 +39,7 @@ from rt_controller.calibration.parameters import (
     Outcome,
     ParameterService,
     Request,
-    finite_tick,
+    parse_tick,
     tunable_values,
 )
 from rt_controller.config_rules import config_toml
@@ -94,6 +94,10 @@ class ParameterServer:
         self.service, self.key, self.wall_ns = service, key, wall_ns
         self._seen: OrderedDict[str, int] = OrderedDict()
         self._seen_max = seen_max
+        self._floor = 0
+        """The newest time of a nonce forgotten: a request of that time or older may be a replay
+        of it, so it is refused (a burst of requests must not reopen old ones to a replay)."""
+        self._seen_lock = threading.Lock()  # one nonce is fresh once, whatever the thread
         self.failed = 0
         """Requests whose handling raised here (a fault of the controller, not of the request):
         left unanswered, as the reply has no error form; the first one is logged."""
@@ -101,13 +105,16 @@ class ParameterServer:
 
     def _fresh(self, body: dict[str, Any]) -> bool:
         nonce, t = body.get("nonce"), body.get("t_unix_ns")
-        if not isinstance(nonce, str) or not isinstance(t, int) or nonce in self._seen:
+        if not isinstance(nonce, str) or not isinstance(t, int):
             return False
         if abs(self.wall_ns() - t) > FRESHNESS_S * 1e9:
             return False
-        self._seen[nonce] = t
-        while len(self._seen) > self._seen_max:
-            self._seen.popitem(last=False)
+        with self._seen_lock:
+            if nonce in self._seen or t <= self._floor:
+                return False
+            self._seen[nonce] = t
+            while len(self._seen) > self._seen_max:
+                self._floor = max(self._floor, self._seen.popitem(last=False)[1])
         return True
 
     def handle(self, payload: bytes, reply: Callable[[bytes | None], None]) -> None:
@@ -124,6 +131,7 @@ class ParameterServer:
             reply(seal({"nonce": nonce, "op": op, **out}, self.key, REPLY_LABEL))
 
         svc = self.service
+        at_tick, invalid = parse_tick(body.get("at_tick"))
         if op == "get":
             answer({"param_set": svc.param_set, "values": tunable_values(svc.cfg)})
         elif op == "dump":
@@ -135,9 +143,10 @@ class ParameterServer:
                     str(body.get("action", "")),
                     note=str(body.get("note", ""))[:1000],
                     source=str(body.get("source", "hil param"))[:200],
-                    at_tick=finite_tick(body.get("at_tick")),
+                    at_tick=at_tick,
                     request_id=nonce,
                     reply=lambda event: answer({"event": event}),
+                    invalid=invalid,
                 )
             )
         else:
@@ -149,9 +158,10 @@ class ParameterServer:
                 Request(
                     changes,
                     source=source,
-                    at_tick=finite_tick(body.get("at_tick")),
+                    at_tick=at_tick,
                     request_id=nonce,
                     reply=lambda o: answer({"outcome": o.record()}),
+                    invalid=invalid,
                 )
             )
 

@@ -54,10 +54,12 @@ class Action:
     at_tick: int | None = None
     request_id: str = ""
     reply: Callable[[dict[str, Any]], Any] | None = None
+    invalid: str | None = None
+    """Why it is refused whatever it is (a malformed ``at_tick``): at the next boundary."""
 
     @property
     def refusal(self) -> str | None:
-        return refusal(self.action)
+        return self.invalid or refusal(self.action)
 
     def finish(
         self, tick: int, *, accepted: bool = True, reason: str | None = None, t_ns: int = 0

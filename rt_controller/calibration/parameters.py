@@ -96,14 +96,35 @@ def judge(cfg: RigConfig, changes: Mapping[str, Any]) -> RigConfig:
     result breaks a rule."""
     if not changes:
         raise ParameterRefused("no keys given")
-    for key in changes:
-        why = refusal(key)
+    for key, value in changes.items():
+        why = refusal(key) or _out_of_range(key, value)
         if why is not None:
             raise ParameterRefused(why)
     try:
         return cfg.with_overrides(dict(changes))
-    except HalConfigError as exc:
-        raise ParameterRefused(str(exc)) from None
+    except (HalConfigError, ValueError, TypeError, ArithmeticError) as exc:
+        raise ParameterRefused(_one_line(str(exc))) from None
+
+
+MAX_INT = 2**63
+"""No tunable value comes near it; a larger JSON integer has no float (the TOML cannot hold one)."""
+MAX_REASON = 300
+"""A reason echoes the value asked for: cut to this many characters, one line."""
+
+
+def _out_of_range(key: str, value: Any) -> str | None:
+    """Why ``value`` (a JSON value, nested lists) holds an integer no tunable key can take."""
+    if isinstance(value, list | tuple):
+        return next(filter(None, (_out_of_range(key, v) for v in value)), None)
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= MAX_INT:
+        return f"{key}: out of range, an integer of {value.bit_length()} bits"
+    return None
+
+
+def _one_line(reason: str) -> str:
+    """``reason`` on one line of at most :data:`MAX_REASON` characters."""
+    reason = " ".join(reason.split())
+    return reason if len(reason) <= MAX_REASON else reason[: MAX_REASON - 3] + "..."
 
 
 def tunable_values(cfg: RigConfig) -> dict[str, Any]:
@@ -133,6 +154,8 @@ class Request:
     at_tick: int | None = None
     request_id: str = ""
     reply: Callable[[Outcome], Any] | None = None
+    invalid: str | None = None
+    """Why it is refused whatever the tick (a malformed ``at_tick``): at the next boundary."""
 
 
 @dataclass
@@ -243,6 +266,9 @@ class ParameterService:
             return None, []
         changed, outcomes = None, []
         for r in now:
+            if r.invalid is not None:
+                outcomes.append(self._refuse(r, tick, t_ns, r.invalid))
+                continue
             if r.at_tick is not None and r.at_tick > tick:  # due only as never reached
                 out = self._refuse(r, tick, t_ns, beyond_end(r.at_tick, self._queue.end_tick))
                 outcomes.append(out)
@@ -307,11 +333,17 @@ def accepted_changes(records: list[dict[str, Any]]) -> list[tuple[int, dict[str,
     return out
 
 
-def finite_tick(value: Any) -> int | None:
-    """``at_tick`` as an int (None for absent or not finite)."""
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return None
-    return int(value)
+def parse_tick(value: Any) -> tuple[int | None, str | None]:
+    """A request's ``at_tick`` (JSON): ``(tick, None)``, None for absent; ``(None, reason)``
+    when it is no tick (a string, a fraction, NaN, a boolean, out of range), to be refused
+    rather than taken at another tick."""
+    if value is None:
+        return None, None
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        value = int(value)
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) < MAX_INT:
+        return value, None
+    return None, _one_line(f"at_tick: expected a tick (an integer), got {value!r}")
 
 
 __all__ = [

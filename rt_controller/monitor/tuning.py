@@ -103,6 +103,12 @@ def _like(new: Any, old: Any) -> Any:
     return new
 
 
+def _tick(value: Any) -> Any:
+    """``hil.at_tick`` as set: -1 (the next boundary) for none or a negative number."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return -1 if value is None or (number and value < 0) else value
+
+
 class TuningFrontEnd(ServerListener):
     """The server listener (the SDK's defaults for the callbacks it does not need) and the
     services of one monitor. ``session`` is an open
@@ -204,8 +210,8 @@ class TuningFrontEnd(ServerListener):
         return None
 
     def _set(self, asked: dict[str, Any]) -> None:
-        if AT_TICK in asked:
-            self._at_tick = int(asked.pop(AT_TICK) or -1)
+        if AT_TICK in asked:  # what is no tick goes as sent: the controller refuses it
+            self._at_tick = _tick(asked.pop(AT_TICK))
         for name in (LAST_OUTCOME, TUNING):
             asked.pop(name, None)
         if not asked:
@@ -216,11 +222,11 @@ class TuningFrontEnd(ServerListener):
             if name in DIAGONALS:
                 key, i = DIAGONALS[name]
                 m = [list(r) for r in changes.get(key, current[key])]
-                m[i][i] = float(value)
+                m[i][i] = value  # as sent: the controller judges it
                 changes[key] = m
             else:
                 changes[name] = _like(value, current.get(name))
-        at_tick, self._at_tick = (None if self._at_tick < 0 else self._at_tick), -1
+        at_tick, self._at_tick = (None if self._at_tick == -1 else self._at_tick), -1
         out = self.ask("set", changes=changes, at_tick=at_tick)
         self.last_outcome = outcome_line(out)
         self._status(self.last_outcome, ok=out["outcome"]["accepted"])
