@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from collections.abc import Callable
 
 from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration
@@ -33,7 +35,39 @@ def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespa
     """Every bench prints one JSON object; ``--json`` is accepted for symmetry with the rest."""
     parser.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
     add_quiet_option(parser)
-    parser.set_defaults(handler=handler)
+    parser.set_defaults(handler=_said_on_interrupt(parser.prog, handler))
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the bench is so that it unwinds as on Ctrl-C."""
+
+
+def _terminated(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+def _said_on_interrupt(
+    prog: str, handler: Callable[[argparse.Namespace], int]
+) -> Callable[[argparse.Namespace], int]:
+    """``handler``, saying in one line that Ctrl-C or SIGTERM stopped it before any figure was
+    printed (exit status 130 or 143). SIGTERM unwinds like Ctrl-C, so the bench's rigs stop and
+    its temporary folders (MCAP logs, the rig's key) are removed instead of left in /tmp."""
+
+    def run(args: argparse.Namespace) -> int:
+        if threading.current_thread() is not threading.main_thread():
+            return handler(args)  # only the main thread may take a signal
+        previous = signal.signal(signal.SIGTERM, _terminated)
+        try:
+            return handler(args)
+        except KeyboardInterrupt as exc:
+            print(f"{prog}: interrupted: no figures", file=sys.stderr)
+            if isinstance(exc, Terminated):
+                return 128 + signal.SIGTERM
+            raise
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+    return run
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_option(s)
     s.add_argument(
         "--updates",
-        type=bounded_int(1, 10_000_000, what="updates"),
+        type=bounded_int(2, 10_000_000, what="updates"),  # the first one initialises: 1 times none
         default=2000,
         help="updates per configuration",
     )
@@ -240,6 +274,12 @@ def run_vision(args: argparse.Namespace) -> int:
         progress=progress.line,
     )
     print(json.dumps(out))
+    rt = out.get("realtime") or {"problems": [], "exit_codes": {}}
+    failed = [f"{n} exited {c}" for n, c in rt["exit_codes"].items() if c]
+    if rt["problems"] or failed:  # the figures are printed either way; the status tells the truth
+        why = "; ".join([*rt["problems"], *failed])
+        print(f"hil bench vision: realtime run not clean: {why}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -262,7 +302,13 @@ def run_sweep(args: argparse.Namespace) -> int:
             rig_duration_s=args.rig_duration,
         )
     print(json.dumps(result))
-    return 0
+    failed = [e for e in result["engines"] if e["failed"]]
+    for e in failed:  # runs/s of failed runs are not the engine's speed: the status says so
+        print(
+            f"hil bench sweep: {e['failed']} {e['engine']} runs failed: {'; '.join(e['errors'])}",
+            file=sys.stderr,
+        )
+    return 1 if failed else 0
 
 
 def run_soak(args: argparse.Namespace) -> int:
@@ -273,6 +319,12 @@ def run_soak(args: argparse.Namespace) -> int:
     if args.warmup >= args.duration:  # growth needs samples after the warm-up
         raise ControllerConfigError(
             f"--warmup must be less than --duration ({args.duration:g} s), got {args.warmup:g}"
+        )
+    if args.warmup + 2 * args.sample > args.duration:  # else no RSS growth, or no RSS at all
+        raise ControllerConfigError(
+            f"--sample {args.sample:g} s leaves fewer than two RSS samples after the --warmup "
+            f"({args.warmup:g} s) in --duration {args.duration:g} s: need warmup + 2 x sample "
+            "<= duration"
         )
     cfg = config_from_args(args)
     keep = output_dir(args.keep, "--keep") if args.keep else None
@@ -304,6 +356,12 @@ def run_tuning(args: argparse.Namespace) -> int:
     with progress.stage(f"a realtime run with {args.requests} parameter sets"):
         result = bench_tuning(workdir, requests=args.requests)
     print(json.dumps(result))
+    if result["rig_exit"] != 0:  # the figures are printed either way; the status tells the truth
+        print(
+            f"hil bench tuning: the rig exited with status {result['rig_exit']} "
+            f"(its log: {result['log']})",
+            file=sys.stderr,
+        )
     return 0 if result["rig_exit"] == 0 else 1
 
 

@@ -88,6 +88,11 @@ def bench_host(
     in its own process; their figures and the steal over the run."""
     if not (duration_s > 0 and math.isfinite(duration_s)) or period_us < 50:
         raise ControllerError("bench host: duration must be > 0 and period at least 50 us")
+    if duration_s * 1e6 < period_us:  # no release would fall in the run: figures of nothing
+        raise ControllerError(
+            f"bench host: --duration {duration_s:g} s is shorter than one --period-us "
+            f"({period_us} us): no wake-up to measure"
+        )
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     before = cpu_ticks()
     procs = [
@@ -106,12 +111,13 @@ def bench_host(
         )
         for cpu in cpus
     ]
-    probes = []
-    for cpu, p in zip(cpus, procs, strict=True):
-        out, err = p.communicate()
-        if p.returncode != 0 or not out.strip():
-            raise ControllerError(f"bench host: the probe on CPU {cpu} failed: {err.strip()}")
-        probes.append(json.loads(out))
+    try:
+        probes = [_probe_report(cpu, p) for cpu, p in zip(cpus, procs, strict=True)]
+    finally:  # Ctrl-C or a failed probe: the others must not run on at priority 99
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.communicate()
     steal = steal_percent(before, cpu_ticks())
     return {
         "duration_s": duration_s,
@@ -119,6 +125,14 @@ def bench_host(
         "steal_percent": steal,
         "probes": probes,
     }
+
+
+def _probe_report(cpu: int, proc: subprocess.Popen) -> dict[str, Any]:
+    """The figures a probe process printed, once it ended."""
+    out, err = proc.communicate()
+    if proc.returncode != 0 or not out.strip():
+        raise ControllerError(f"bench host: the probe on CPU {cpu} failed: {err.strip()}")
+    return json.loads(out)
 
 
 def main(argv: list[str]) -> int:

@@ -286,24 +286,40 @@ def bench_loop(
     with contextlib.ExitStack() as stack:
         work = bench_workdir(stack, keep, "hil-bench-")
         if profile == "cia402":
-            return _bench_both(
+            both = _bench_both(
                 cfg, rates, duration, law, lockstep_duration, work, host, monitor_port
             )
+            return _logs_if_kept({**both, "can_frame_us": can_frame_us()}, keep)
         runs = [bench_rate(cfg, r, duration, law, work, monitor_port) for r in rates]
         lock = bench_lockstep(cfg, lockstep_duration, law, work) if lockstep_duration > 0 else None
-    from hal.can_codec import bench_codec
-    from hal.secoc import bench_mac
-
-    return {
+    out = {
         "profile": "dsp",
         "duration_s": duration,
         "rates": runs,
         "lockstep": lock,
         "monitor_port": monitor_port,
         "host": host,
-        "can_frame_us": {**bench_mac(), **bench_codec(2000)},
+        "can_frame_us": can_frame_us(),
         "machine": machine(),
     }
+    return _logs_if_kept(out, keep)
+
+
+def can_frame_us() -> dict[str, float]:
+    """The per-frame CAN encode/decode and SecOC sign/verify cost, whatever the profile."""
+    from hal.can_codec import bench_codec
+    from hal.secoc import bench_mac
+
+    return {**bench_mac(), **bench_codec(2000)}
+
+
+def _logs_if_kept(out: dict[str, Any], keep: Path | None) -> dict[str, Any]:
+    """A run's ``log`` names its MCAP file only under ``keep``: without it the temporary
+    folder is gone when the bench returns, and a path to nothing would mislead."""
+    if keep is None:
+        for run in out["rates"] + out.get("dsp_rates", []):
+            run["log"] = None
+    return out
 
 
 def _bench_both(

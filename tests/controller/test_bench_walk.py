@@ -1,0 +1,150 @@
+"""``hil bench`` off its path: settings that would measure nothing, failed runs, Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from rt_controller.cli import main
+from tests.support.proc import WAIT_S, processes_mentioning, wait_for
+
+
+def test_bench_host_refuses_a_duration_shorter_than_one_period(capsys):
+    """No release falls in the run: the report would be NaN figures of zero wake-ups."""
+    assert main(["bench", "host", "--duration", "0.01", "--period-us", "1000000"]) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    (line,) = err.strip().splitlines()
+    assert "shorter than one --period-us" in line
+
+
+def test_bench_solver_refuses_a_single_update(capsys):
+    """The first update initialises the solver: with one there is no timed update at all."""
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "solver", "--updates", "1"])
+    assert exc.value.code == 2
+    assert "argument --updates" in capsys.readouterr().err
+
+
+def test_bench_sweep_with_failed_runs_prints_its_figures_and_exits_1():
+    """Runs shorter than a control period all fail: their runs/s are no engine's speed.
+    In a process of its own: the Dask cluster's helper processes outlive a call."""
+    pytest.importorskip("distributed")
+    argv = ["bench", "sweep", "--runs", "1", "--duration", "0.001", "--rig-runs", "0"]
+    cmd = [sys.executable, "-m", "rt_controller.cli", *argv, "--workers", "1", "-q"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=WAIT_S, check=False)
+    assert done.returncode == 1
+    assert json.loads(done.stdout)["engines"][0]["failed"] == 2  # serial and on the worker
+    (line,) = done.stderr.strip().splitlines()
+    assert line.startswith("hil bench sweep: 2 simulate runs failed: ")
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_mid_bench_says_so_in_one_line_and_leaves_no_probe(sig, status):
+    duration = f"587.{sig:d}"  # names this test's probes among the host's processes
+    cmd = [sys.executable, "-m", "rt_controller.cli", "bench", "host", "--duration", duration]
+    env = {**os.environ, "HIL_PROGRESS_AFTER_S": "0"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stderr is not None
+        assert "measuring" in proc.stderr.readline()  # the bench has started
+        wait_for(lambda: bool(probes(duration)), "the probes", proc)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=WAIT_S)
+        assert proc.returncode == status and out == ""
+        assert err.strip().splitlines() == ["hil bench host: interrupted: no figures"]
+        wait_for(lambda: not probes(duration), "the probes to end")
+    finally:  # a probe left behind must not run on at priority 99 for ten minutes
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for line in probes(duration):
+            os.kill(int(line.split(":")[0]), signal.SIGKILL)
+
+
+def probes(duration: str) -> list[str]:
+    """The live probe processes of a ``hil bench host --duration DURATION``."""
+    return [p for p in processes_mentioning(duration) if "rig.bench_host" in p]
+
+
+@pytest.mark.integration
+def test_bench_loop_without_keep_names_no_log_and_reports_can_cost_in_both_profiles():
+    """Without ``--keep`` the runs' temporary folder is gone when the figures are printed: no
+    ``log`` path to nothing. ``can_frame_us`` is in the cia402 comparison as in the dsp one."""
+    from rt_controller.rig.bench_loop import bench_loop
+
+    out = bench_loop(
+        rates=(50.0,),
+        duration=0.5,
+        law="ioc",
+        lockstep_duration=0,
+        host_probe_s=0,
+        profile="cia402",
+    )
+    assert [r["log"] for r in out["rates"] + out["dsp_rates"]] == [None, None]
+    assert set(out["can_frame_us"]) >= {"secoc_sign_us", "encode_torque_us"}
+
+
+def test_bench_tuning_whose_rig_failed_says_so_in_one_line(monkeypatch, capsys, tmp_path):
+    from rt_controller.rig import bench_tuning as bt
+
+    def failed_rig(workdir, *, requests):
+        return {"requests": requests, "rig_exit": 3, "log": str(workdir / "tuning.mcap")}
+
+    monkeypatch.setattr(bt, "bench_tuning", failed_rig)
+    assert main(["bench", "tuning", "--requests", "1", "--workdir", str(tmp_path), "-q"]) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["rig_exit"] == 3
+    (line,) = err.strip().splitlines()
+    assert line.startswith("hil bench tuning: the rig exited with status 3")
+
+
+def test_bench_vision_whose_realtime_rig_was_not_clean_exits_1(monkeypatch, capsys):
+    """As ``hil bench loop`` and ``soak``: the figures printed, the status and one line tell."""
+    from rt_controller.rig import bench_vision as bv
+
+    def unclean(cfg, render, truth, **kw):
+        realtime = {"problems": ["1 DSP watchdog trip(s)"], "exit_codes": {"controller": 0}}
+        return {"poses": 4, "realtime": realtime}
+
+    monkeypatch.setattr(bv, "bench_vision", unclean)
+    assert main(["bench", "vision", "--latency-frames", "0", "--lockstep-duration", "0"]) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["poses"] == 4
+    (line,) = err.strip().splitlines()
+    assert line == "hil bench vision: realtime run not clean: 1 DSP watchdog trip(s)"
+
+
+def test_bench_soak_refuses_a_sample_period_that_leaves_no_rss_growth(capsys):
+    """With one sample every 100 s in a 4 s run the soak's main figures would be empty."""
+    argv = ["bench", "soak", "--duration", "4", "--sample", "100", "--warmup", "1", "-q"]
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    (line,) = err.strip().splitlines()
+    assert "fewer than two RSS samples after the --warmup" in line
+
+
+@pytest.mark.integration
+def test_a_bench_loop_stopped_by_sigterm_leaves_no_temporary_folder(tmp_path):
+    """Its runs' MCAP logs and the rig's key are in temporary folders: gone with the bench."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", "bench", "loop", "--rates", "50"]
+    cmd += ["--duration", "60", "--host-probe", "0", "--lockstep-duration", "0"]
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        wait_for(lambda: any(tmp_path.glob("hil-bench-*/loop-50.mcap")), "the run's log", proc)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143 and out == ""
+    assert err.strip().splitlines()[-1] == "hil bench loop: interrupted: no figures"
+    wait_for(lambda: not list(tmp_path.glob("hil-*")), "the temporary folders to go")
