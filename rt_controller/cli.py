@@ -108,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return status
         return explained_extras(handler, args)
 
-    return run_standalone(f"hil {args.command}", body, (ControllerError,))
+    return run_standalone(args.usage_parser.prog, body, (ControllerError,))  # "hil param set"
 
 
 def say_on_stderr(line: str) -> None:

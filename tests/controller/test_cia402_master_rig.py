@@ -179,8 +179,8 @@ def test_hil_cia402_check_without_drives_says_so_in_one_line(capsys):
     assert main(["cia402", "check", "--can", "virtual:cia402-nobody"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        "hil cia402: error: node 1 sent no boot-up within 20 s of NMT reset communication: is "
-        "it powered, on this bus at its bit rate, with node id 1?"
+        "hil cia402 check: error: node 1 sent no boot-up within 20 s of NMT reset communication: "
+        "is it powered, on this bus at its bit rate, with node id 1?"
     ]
 
 
