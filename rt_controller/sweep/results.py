@@ -36,7 +36,7 @@ JOURNAL = "rows.jsonl"
 PARQUET = "results.parquet"
 CSV = "results.csv"
 META = "sweep.json"
-OWN_NAMES = (JOURNAL, PARQUET, CSV, "report.md", "plots", "logs", "compile_target.json")
+OWN_NAMES = (JOURNAL, PARQUET, CSV, "report.md", "plots", "logs")
 """What a sweep writes in its folder besides :data:`META` (replaced or appended to)."""
 
 _FIXED_HEAD = [("run_key", "string"), ("spec_hash", "string"), ("point", "int64"),
