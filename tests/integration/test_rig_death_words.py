@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from hal.bus import isolated_spec
 from hal.zenoh_session import free_loopback_port
 from tests.support import cycles_logged, run_hil, start_hil_up
 from tests.support.proc import WAIT_S, child_running, processes_mentioning, reaped, wait_for
@@ -42,7 +43,10 @@ def _summary(out: str, err: str, rc: int) -> dict:
 def _earlier_log(tmp_path: Path) -> tuple[Path, bytes]:
     """A finished log of an earlier, short lockstep run, and its bytes."""
     log = tmp_path / "run.mcap"
-    done = run_hil(["up", "--lockstep", "--duration", "0.5", "--json", "--log", str(log)], 180)
+    private = ["--can", isolated_spec("udp_multicast"), "--zenoh-endpoint", _endpoint()]
+    done = run_hil(
+        ["up", "--lockstep", "--duration", "0.5", "--json", "--log", str(log), *private], 180
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     return log, log.read_bytes()
 
