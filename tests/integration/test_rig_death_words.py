@@ -70,15 +70,16 @@ def test_a_rig_process_stopped_by_a_signal_from_elsewhere_is_said_so(tmp_path):
 
 def test_bad_usage_over_an_earlier_runs_log_is_still_bad_usage(tmp_path):
     """A CAN interface that is not there: the emulator exits 2 before any tick. The earlier
-    run's log at ``--log`` (given with --force) is not this run's: one line, exit 2."""
-    log, before = _earlier_log(tmp_path)
+    run's log at ``--log`` (given with --force) is not taken for this run's: one line, exit 2."""
+    log, _ = _earlier_log(tmp_path)
     args = ["up", "--lockstep", "--duration", "2", "--json", "--force", "--log", str(log)]
     done = run_hil([*args, "--can", "socketcan:hilnone0", "--zenoh-endpoint", _endpoint()], 120)
     assert done.returncode == 2, (done.stdout, done.stderr[-2000:])
     assert done.stderr.startswith("hil up: error:"), done.stderr
     assert "exited with status 2" in done.stderr and "Traceback" not in done.stderr
     assert not done.stdout.strip()
-    assert log.read_bytes() == before  # the earlier run's log is left as it was
+    # (with --force the controller may have replaced the earlier log before the rig stopped it:
+    # its recorder opens before its links; either way nothing of the earlier run is reported)
 
 
 def test_a_death_before_the_log_is_replaced_does_not_report_the_earlier_run(tmp_path):
