@@ -128,7 +128,7 @@ def test_bench_loop_keep_unusable_is_refused_before_measuring(tmp_path):
         timeout=30,
     )
     assert done.returncode == 2, done.stderr
-    line = _one_error_line(done.stderr, "hil bench")
+    line = _one_error_line(done.stderr, "hil bench loop")
     assert f"--keep {target}" in line and "not a directory" in line
 
 
