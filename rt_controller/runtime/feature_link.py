@@ -71,6 +71,8 @@ class FeatureLink:
         reached their time: not this run's, so not in its log."""
         self._feeding = threading.Lock()
         self._attached = False
+        self._taking_features = True
+        """False from :meth:`settle_images` on: the run has ended."""
         self._callback_errors_before = 0
         """The session's ``callback_errors`` when this run attached (a plan's runs share it)."""
 
@@ -126,10 +128,13 @@ class FeatureLink:
             return tuple(self._images_due)
 
     def settle_images(self, quiet_s: float) -> bool:
-        """Wait until the camera images announced by the features received so far are in the
-        log (the vision process sends each after its features, so the run's last ones may
-        still be on their way), as long as each comes within ``quiet_s`` of the one before.
-        True when none is still to come."""
+        """The run's end: take no more features (the loop is over; one arriving now would
+        announce an image after this wait), then wait until the camera images announced by the
+        features received so far are in the log (the vision process sends each after its
+        features, so the run's last ones may still be on their way), as long as each comes
+        within ``quiet_s`` of the one before. True when none is still to come."""
+        with self._feeding:
+            self._taking_features = False
         with self._images:
             while self._images_due:
                 seen = self._image_seen_ns
@@ -158,7 +163,7 @@ class FeatureLink:
 
     def _on_features(self, payload: bytes, now_ns: int | None = None) -> None:
         with self._feeding:
-            if not self._attached:
+            if not (self._attached and self._taking_features):
                 return
             now = self.ctx.clock.now_ns() if now_ns is None else now_ns
             msg = self.features.feed(payload, now)

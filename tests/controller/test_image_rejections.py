@@ -78,6 +78,21 @@ def _lockstep_link(
     return link, decoder, rec, session
 
 
+def test_features_arriving_after_the_end_announce_no_image() -> None:
+    """The loop has ended and the images it was owed are in: features that arrive now (the
+    answer to the last pose) are not the run's and announce no image it must wait for."""
+    cfg = RigConfig()
+    key = rig_key(cfg)
+    link, _, rec, session = _lockstep_link(cfg)
+    on_features, on_image = session.callbacks[KEY_FEATURES], session.callbacks[KEY_VISION_IMAGE]
+    on_features(_features(key, 0))
+    on_image(_frame_image(key, 0))
+    assert link.settle_images(0.01)
+    on_features(_features(key, 5))  # between the wait for images and the detach
+    link.detach()
+    assert link.as_dict()["images_missing"] == 0 and len(rec.images) == 1
+
+
 def test_refused_images_are_counted_and_said_in_the_summary() -> None:
     cfg = RigConfig()
     assert cfg.camera.image_log_fps > 0  # the default logs images
