@@ -95,23 +95,14 @@ def bench_host(
         )
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     before = cpu_ticks()
-    procs = [
-        subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "rt_controller.rig.bench_host",
-                str(cpu),
-                repr(duration_s),
-                str(period_us),
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for cpu in cpus
-    ]
-    try:
+    procs: list[subprocess.Popen] = []
+    try:  # a Ctrl-C while the probes start stops those already started too
+        for cpu in cpus:
+            args = [sys.executable, "-m", "rt_controller.rig.bench_host", str(cpu)]
+            args += [repr(duration_s), str(period_us)]
+            procs.append(
+                subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            )
         probes = [_probe_report(cpu, p) for cpu, p in zip(cpus, procs, strict=True)]
     finally:  # Ctrl-C or a failed probe: the others must not run on at priority 99
         for p in procs:

@@ -53,7 +53,8 @@ def test_ctrl_c_mid_bench_says_so_in_one_line_and_leaves_no_probe(sig, status):
     try:
         assert proc.stderr is not None
         assert "measuring" in proc.stderr.readline()  # the bench has started
-        wait_for(lambda: bool(probes(duration)), "the probes", proc)
+        cpus = len(os.sched_getaffinity(0))  # one probe per CPU: all started, then the signal
+        wait_for(lambda: len(probes(duration)) >= cpus, "the probes", proc)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=WAIT_S)
         assert proc.returncode == status and out == ""
