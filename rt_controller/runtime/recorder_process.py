@@ -43,6 +43,7 @@ from mcap.writer import IndexType, Writer
 
 from hal.config import RigConfig, config_from_json
 from hal.fifo import raise_nice
+from hal.zenoh_session import KEY_VISION_IMAGE
 from rt_controller.errors import LogError
 from rt_controller.runtime.recorder import (
     CONFIG_METADATA,
@@ -60,9 +61,7 @@ from rt_controller.runtime.recorder import (
 
 TIMEOUT_S = 30.0
 """How long a lockstep tick or the end of the log waits for the child."""
-IMAGE_TOPIC = "hil/vision/image"
-"""The stream's channel of the camera's images, as received (the file gets protobuf topics)."""
-KIND_OF_TOPIC = {**{topic: kind for kind, topic in TOPICS.items()}, IMAGE_TOPIC: IMAGE}
+KIND_OF_TOPIC = {**{topic: kind for kind, topic in TOPICS.items()}, KEY_VISION_IMAGE: IMAGE}
 MMAP_THRESHOLD = 128 << 10
 """glibc's mmap threshold for the recorder process, fixed: buffers of a chunk or a camera image
 are mapped and given back when freed. Left to glibc, the threshold grows to the largest buffer
@@ -185,7 +184,8 @@ class RecorderProcess(Recorder):
         )
         w.start(library="hil-rt_controller")
         self._channels = {k: w.register_channel(t, "json", 0) for k, t in TOPICS.items()}
-        self._channels[IMAGE] = w.register_channel(IMAGE_TOPIC, "hil.vision_image", 0)
+        self._channels[IMAGE] = w.register_channel(KEY_VISION_IMAGE, "hil.vision_image", 0)
+        # the stream names the camera images by their zenoh key; the file gets protobuf topics
         w.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
         w.add_metadata(RUN_METADATA, run_metadata(cfg, run_info))  # this process's pid, argv
         self._send(wait=True)
