@@ -5,23 +5,19 @@ image pipeline's stats, not lost unseen."""
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from hal.camera_frame import encode_frame
 from hal.config import RigConfig
-from hal.secoc import rig_key
-from hal.vision_receivers import FeatureDecoder
-from hal.zenoh_session import KEY_CAMERA_FRAME, KEY_FEATURES, free_loopback_port, open_session
+from hal.zenoh_session import free_loopback_port
 from rt_controller.cli import main
+from tests.support.live_grabber import live_grabber
 from tests.support.synthetic_frames import frame
 from vision.intrinsics import intrinsics_from_config
 from vision.pipeline import Measurement, Pipeline
-from vision.process import run_live
 
 K = intrinsics_from_config(RigConfig())
 
@@ -110,47 +106,12 @@ def test_a_frame_whose_callback_failed_is_counted_in_the_stats(
         return measure(self, pixels)
 
     monkeypatch.setattr(Pipeline, "process", failing)
-    cfg = RigConfig()
-    stop, ready, out = threading.Event(), threading.Event(), {}
-
-    def serve() -> None:
-        out["stats"] = run_live(
-            cfg, "emulated", stop_event=stop, endpoint=endpoint, listen=True, ready=ready
-        )
-
-    th = threading.Thread(target=serve)
-    th.start()
-    try:
-        assert ready.wait(20)
-        with open_session(listen=False, endpoint=endpoint) as s:
-            decoder = FeatureDecoder(max_age_ns=None)
-            s.subscribe(KEY_FEATURES, decoder.feed)
-            pub = s.publisher(KEY_CAMERA_FRAME)
-
-            def send(i: int, pixels: np.ndarray) -> None:
-                pub.put(
-                    encode_frame(
-                        pixels,
-                        seq=i,
-                        stamp_ns=i,
-                        sim_time_ns=i * 20_000_000,
-                        exposure_ns=4_000_000,
-                        period=i,
-                        lockstep=True,
-                        key=rig_key(cfg),
-                    )
-                )
-
-            target = frame(K, (-120.0, -160.0), radius_px=20.0)
-            for _ in range(100):  # the subscription may take a moment: re-send frame 0
-                send(0, target)
-                if decoder.wait_pose_seq(0, 0.2) is not None:
-                    break
-            send(1, np.full_like(target, 200))  # the callback fails: no answer
-            send(2, target)
-            assert decoder.wait_pose_seq(2, 10.0) is not None
-    finally:
-        stop.set()
-        th.join(20)
+    out: dict = {}
+    with live_grabber(RigConfig(), endpoint, out) as grabber:
+        target = frame(K, (-120.0, -160.0), radius_px=20.0)
+        grabber.first(target)
+        grabber.send(1, np.full_like(target, 200))  # the callback fails: no answer
+        grabber.send(2, target)
+        assert grabber.answer(2) is not None
     stats = out["stats"]
     assert stats.callback_errors == 1 and stats.frames == 2
