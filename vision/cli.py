@@ -101,11 +101,12 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(json.dumps(stats.as_dict()), flush=True)
     else:
         rejected = stats.pipeline.get("rejected", {})
+        p99 = stats.detect_us_p99
         why = ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
         print(
             f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
-            f"{stats.invalid} without the target{f' ({why})' if why else ''}, "
-            f"detection p99 {stats.detect_us_p99:.0f} us"
+            f"{stats.invalid} without the target{f' ({why})' if why else ''}"
+            + (f", detection p99 {p99:.0f} us" if p99 is not None else "")
             + (
                 f", {stats.callback_errors} frame(s) lost to errors in zenoh callbacks (a bug)"
                 if stats.callback_errors

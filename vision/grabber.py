@@ -81,19 +81,20 @@ class GrabberStats:
     was refused, or empty (normal scheduling, or no realtime frame)."""
     image_log: dict[str, int] = field(default_factory=dict)
     """The decimated image stream's counters (:meth:`vision.image_log.ImageLog.as_dict`)."""
-    detect_us_p50: float = 0.0
-    detect_us_p99: float = 0.0
-    latency_us_p50: float = 0.0
+    detect_us_p50: float | None = None
+    """Timings in us; None (null in JSON) where no frame gave one."""
+    detect_us_p99: float | None = None
+    latency_us_p50: float | None = None
     """Capture stamp to publish (emulated source and real cameras: same clock)."""
-    latency_us_p99: float = 0.0
-    pipeline_us_p50: float = 0.0
+    latency_us_p99: float | None = None
+    pipeline_us_p50: float | None = None
     """Emulated source: a frame's payload received to its features published (decode, MAC,
     detect, undistort, publish)."""
-    pipeline_us_p99: float = 0.0
-    arrival_us_p50: float = 0.0
+    pipeline_us_p99: float | None = None
+    arrival_us_p50: float | None = None
     """Emulated source, lockstep: the camera pose offered to the frame's arrival (the camera's
     render and encode, zenoh)."""
-    arrival_us_p99: float = 0.0
+    arrival_us_p99: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Every field by name, in order (``hil vision --json``)."""

@@ -186,14 +186,8 @@ def latency(cfg: RigConfig, render: Render, frames: int, fps: float) -> dict[str
         "fps": fps,
         "frames_sent": frames,
         "frames_measured": stats.valid,
-        "capture_to_publish_us": {
-            "median": round(stats.latency_us_p50, 1),
-            "p99": round(stats.latency_us_p99, 1),
-        },
-        "pipeline_us": {
-            "median": round(stats.detect_us_p50, 1),
-            "p99": round(stats.detect_us_p99, 1),
-        },
+        "capture_to_publish_us": _pair(stats.as_dict(), "latency"),
+        "pipeline_us": _pair(stats.as_dict(), "detect"),
         "note": "the frame's stamp is taken when it is sent (render time excluded)",
     }
 
