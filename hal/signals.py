@@ -3,8 +3,9 @@
 :func:`stop_on_signals` replaces the install-handlers-then-restore block each long-running
 command needs; :func:`run_standalone` is the one ``main()`` error rule (a :class:`HalError` or a
 subclass of ``errors`` becomes one line on stderr and exit status 2, an ``OSError`` one line
-naming its path). Lives in ``hal`` because
-both ``plant_emulator`` and ``rt_controller`` use it and neither may import the other.
+naming its path; a reader of stdout that went away ends the command quietly). Lives in
+``hal`` because both ``plant_emulator`` and ``rt_controller`` use it and neither may import
+the other.
 """
 
 from __future__ import annotations
@@ -119,7 +120,8 @@ def run_standalone(
     ``"<prog>: error: <message>"`` on stderr with exit status 2, Ctrl-C as 130. ``prog``
     appears once: a message that starts with ``"<prog>: "`` already is not prefixed again.
     An :class:`OSError` (a path the user gave: missing, a directory, a full disk) is one line
-    naming the path and the reason: status 2 for :data:`USAGE_ERRNOS`, else 1."""
+    naming the path and the reason: status 2 for :data:`USAGE_ERRNOS`, else 1; stdout's reader
+    gone (``| head``) is :data:`SIGPIPE_STATUS` without a word."""
     from hal.errors import HalError
 
     try:
@@ -131,10 +133,37 @@ def run_standalone(
         print(f"{prog}: error: {message}", file=sys.stderr)
         return 2
     except OSError as exc:
+        if isinstance(exc, BrokenPipeError) and stdout_reader_gone():
+            return SIGPIPE_STATUS
         print(f"{prog}: error: {os_error_line(exc)}", file=sys.stderr)
         return 2 if exc.errno in USAGE_ERRNOS else 1
     except KeyboardInterrupt:
         return 130
+
+
+SIGPIPE_STATUS = 128 + signal.SIGPIPE
+"""The status of a filter whose reader went away (``hil info --json | head``): what a shell
+shows for a process SIGPIPE ended. Python ignores SIGPIPE, so the write raised instead."""
+
+
+def stdout_reader_gone() -> bool:
+    """True when stdout is a pipe without a reader (poll's POLLERR); stdout then points at
+    /dev/null, so the flush at exit does not fail again. A broken pipe elsewhere (a child's)
+    stays an error."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        gone = any(event & select.POLLERR for _, event in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no real stdout (captured, closed)
+        return False
+    if gone:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, fd)
+        os.close(devnull)
+    return gone
 
 
 def os_error_line(exc: OSError) -> str:

@@ -278,3 +278,22 @@ def test_progress_waits_before_speaking(capsys):
         pass
     err = capsys.readouterr().err
     assert err.startswith("hil x: slow work") and "done" in err
+
+
+def test_output_into_a_closed_pipe_ends_quietly(hil_log):
+    """``hil info LOG --json | head -0``: the reader is gone before the first write. The
+    command ends as a Unix filter does (status 128 + SIGPIPE), without a line on stderr."""
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        done = subprocess.run(
+            [*HIL, "info", str(hil_log), "--json"],
+            stdout=w,
+            capture_output=False,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        os.close(w)
+    assert (done.returncode, done.stderr) == (141, "")
