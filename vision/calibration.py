@@ -268,9 +268,10 @@ _ANY_SECTION = re.compile(r"^\s*\[")
 
 def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfig:
     """Write the calibration into the rig config ``path`` (TOML): the calibration keys of its
-    ``[vision]`` section are replaced (the section moves to the end; its other keys and every
-    other section stay as they were), or the section is appended. The file is created when
-    missing; the result is validated like any config before it replaces the file."""
+    ``[vision]`` section are replaced (the section moves to the end; its heading comment, its
+    other keys and every other section stay as they were), or the section is appended. The
+    file is created when missing; the result is validated like any config before it replaces
+    the file."""
     p = Path(path)
     if p.exists() and not p.is_file():
         raise HalConfigError(f"{p}: not a regular file, not touched")
@@ -282,8 +283,9 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     c = calibration
     values = c.vision_keys()
     kept: list[str] = []
+    heading: list[str] = []  # the section's comment lines above its first key stay on top
     others: list[str] = []
-    inside = False
+    inside = keyed = False
     for line in text.splitlines():
         if _SECTION.match(line):
             inside = True
@@ -292,13 +294,18 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
             inside = False
         if not inside:
             kept.append(line)
-        elif line.strip() and line.split("=")[0].strip() not in values:
-            others.append(line)  # the section's other keys stay
+        elif not keyed and line.lstrip().startswith("#"):
+            heading.append(line)
+        elif line.strip():
+            keyed = True
+            if line.split("=")[0].strip() not in values:
+                others.append(line)  # the section's other keys stay
     while kept and not kept[-1].strip():
         kept.pop()
     block = [
         f"[vision]            # hil camera calibrate: {c.views_used} of {c.views_total} views, "
         f"{c.corners} corners, RMS {c.rms_px:.3f} px, {c.width}x{c.height}",
+        *heading,
         *(f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v)}" for k, v in values.items()),
         *others,
     ]

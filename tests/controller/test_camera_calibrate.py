@@ -145,3 +145,18 @@ def test_views_that_do_not_determine_the_focal_length_are_refused(tmp_path: Path
     assert tilt_spread_deg([cv2.Rodrigues(r)[0] for r in turned]) < 1e-6 < MIN_TILT_DEG
     tilted = [np.array([0.0, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])]
     assert tilt_spread_deg(tilted) == pytest.approx(np.degrees(0.2))
+
+
+def test_the_vision_sections_heading_comment_stays_under_its_header(tmp_path: Path):
+    """examples/rig.toml's ``[vision]`` opens with a comment saying what the section is; after
+    a calibration it still opens the section, above the keys, not below them."""
+    from vision.calibration import Calibration, write_vision_section
+
+    k = np.array([[1200.0, 0, 320], [0, 1201.0, 240], [0, 0, 1]])
+    cal = Calibration(640, 480, k, np.zeros(5), 0.1, 5, 6, 300)
+    rig = tmp_path / "rig.toml"
+    rig.write_text("[vision]\n# what the section is\ncalibrated = false\nrt_priority = 5\n")
+    write_vision_section(rig, cal)
+    lines = rig.read_text().splitlines()
+    assert lines[0].startswith("[vision]") and lines[1] == "# what the section is"
+    assert lines[-1] == "rt_priority = 5" and "calibrated = true" in lines
