@@ -13,7 +13,9 @@ Fault reactions (torque off, FAULT, EMCY; the drive stays in FAULT until a fault
   the cycle (0x1006 if set, else 0x60C2), or for ``sync_timeout_s`` in lockstep -> EMCY 0x8700
   (sync controller);
 * heartbeat loss: 0x1016.1 = (node id << 16) | ms; after the first heartbeat of that node, a gap
-  longer than ms -> EMCY 0x8130 (life guard / heartbeat error);
+  longer than ms (in lockstep at least ``sync_timeout_s``: the world waits for the controller,
+  a late heartbeat on a loaded host is not a lost one) -> EMCY 0x8130 (life guard / heartbeat
+  error);
 * enabling operation with a 0x60C2 that is not the emulator's control period -> EMCY 0x6320
   (parameter error): the world steps one control period per SYNC, so a drive told otherwise
   refuses to follow.
@@ -66,7 +68,8 @@ class EmulatedDrive(canopen.LocalNode):
         self.sync_loss_periods = sync_loss_periods
         self.sync_timeout_s = sync_timeout_s
         """Lockstep: the SYNC-loss limit in seconds instead of ``sync_loss_periods`` cycles (a
-        controller that paces the world may take longer than a period over a tick)."""
+        controller that paces the world may take longer than a period over a tick), and the
+        least heartbeat-loss limit."""
         self.clock = clock
         self.lock = lock
         self.power = PowerStateMachine(
@@ -256,8 +259,12 @@ class EmulatedDrive(canopen.LocalNode):
             ):
                 self._last_sync = None
                 self.fault(cia.EMCY_SYNC)
-            beat = self._last_heartbeat
-            if self._heartbeat is not None and beat is not None and now - beat > self._heartbeat[1]:
+            beat, consumer = self._last_heartbeat, self._heartbeat
+            if (
+                consumer is not None
+                and beat is not None
+                and now - beat > max(consumer[1], self.sync_timeout_s or 0.0)
+            ):
                 self._last_heartbeat = None
                 self.fault(cia.EMCY_HEARTBEAT)
 

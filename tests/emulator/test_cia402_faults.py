@@ -78,6 +78,30 @@ def test_heartbeat_loss_faults_every_drive_with_emcy_8130():
         assert_faulted(bench, nodes, cia.EMCY_HEARTBEAT)
 
 
+def test_in_lockstep_the_heartbeat_limit_is_the_sync_limit():
+    """In lockstep the world waits for the controller: a heartbeat late by more than 0x1016's
+    time on a loaded host is not a lost controller. The drive allows the lockstep SYNC limit
+    (``cia402.lockstep_sync_timeout_s``), as it does for SYNC; beyond it the drive faults."""
+    cfg = RigConfig()
+    limit = cfg.cia402.lockstep_sync_timeout_s
+    with drives_on_virtual_bus(cfg, lockstep=True) as bench:
+        nodes = both_enabled_with_torque(bench)
+        for node in nodes:
+            node.sdo[cia.HEARTBEAT_CONSUMER][1].raw = MASTER_ID << 16 | 500  # as the master
+        bench.master.send_message(0x700 + MASTER_ID, b"\x05")
+        for node in nodes:
+            round_trip(node)
+        beat = bench.clock.t
+        bench.clock.t = beat + 0.9 * limit  # SYNC comes on time: only the heartbeat is late
+        sync_and_wait(bench, *(n.tpdo[1] for n in nodes))
+        bench.rig.poll()
+        assert all(d.power.state is PowerState.OPERATION_ENABLED for d in bench.rig.drives)
+        bench.clock.t = beat + limit + 0.001
+        sync_and_wait(bench, *(n.tpdo[1] for n in nodes))
+        bench.rig.poll()
+        assert_faulted(bench, nodes, cia.EMCY_HEARTBEAT)
+
+
 def test_a_drive_stays_in_fault_until_a_fault_reset():
     with drives_on_virtual_bus() as bench:
         nodes = both_enabled_with_torque(bench)
