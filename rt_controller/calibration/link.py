@@ -9,7 +9,8 @@ a ``note`` and ``at_tick``, a
 ``source``, a random ``nonce`` and its wall-clock time ``t_unix_ns``: the controller refuses a
 request whose tag does not verify, whose time is more than :data:`FRESHNESS_S` away from its
 own, or whose nonce it has seen (a replayed request). Such attempts change nothing and are
-counted (``unauthenticated`` in the ``parameters`` component of ``/diagnostics``). A reply
+counted (``unauthenticated`` in the ``parameters`` component of ``/diagnostics``; a request
+the controller itself failed on, ``failed``). A reply
 repeats the request's nonce under the reply tag, so the client knows the rig answered *its*
 request.
 
@@ -98,10 +99,14 @@ class ParameterServer:
         """The newest time of a nonce forgotten: a request of that time or older may be a replay
         of it, so it is refused (a burst of requests must not reopen old ones to a replay)."""
         self._seen_lock = threading.Lock()  # one nonce is fresh once, whatever the thread
-        self.failed = 0
-        """Requests whose handling raised here (a fault of the controller, not of the request):
-        left unanswered, as the reply has no error form; the first one is logged."""
         self._failed_lock = threading.Lock()  # zenoh may run queries on several threads
+
+    @property
+    def failed(self) -> int:
+        """Requests whose handling raised here (a fault of the controller, not of the request):
+        left unanswered, as the reply has no error form; the first one is logged. Counted in
+        the service's counters, so ``/diagnostics`` reports them (``failed``)."""
+        return self.service.counters.failed
 
     def _fresh(self, body: dict[str, Any]) -> bool:
         nonce, t = body.get("nonce"), body.get("t_unix_ns")
@@ -188,8 +193,8 @@ class ParameterServer:
     def _failed(self, exc: Exception) -> None:
         """Count a request this side failed on; say the first one (later ones are counted)."""
         with self._failed_lock:
-            self.failed += 1
-            first = self.failed == 1
+            self.service.counters.failed += 1
+            first = self.service.counters.failed == 1
         if first:
             log.error(
                 "parameters: a request on %s failed in the controller and got no answer "

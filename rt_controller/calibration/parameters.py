@@ -217,9 +217,15 @@ class ParameterCounters:
     accepted: int = 0
     refused: int = 0
     unauthenticated: int = 0
+    failed: int = 0
+    """Requests the controller failed on and left unanswered (``ParameterServer``)."""
 
     def as_dict(self) -> dict[str, int]:
-        return dataclasses.asdict(self)
+        """The counts; ``failed`` only when some request failed (a fault, rare)."""
+        out = dataclasses.asdict(self)
+        if not self.failed:
+            del out["failed"]
+        return out
 
 
 @dataclass

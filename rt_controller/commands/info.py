@@ -27,7 +27,9 @@ not say), problems (what makes the run not clean), warnings (what a clean run's 
 warns of: camera outages, unauthenticated parameter requests refused, ...), rejected ({TOPIC:
 records skipped}), recovered (null, or the hil.recovered record: from, input_bytes,
 kept_bytes, lost_bytes, skipped_bytes, stopped, line), topics ({TOPIC: {messages, schema}}),
-messages, run_info (all hil.run metadata), notes.
+messages, run_info (all hil.run metadata), notes, parameters (the online parameter service's
+requests: accepted, refused, unauthenticated, and failed (in the controller, unanswered) when
+some did; {} when the run had no parameter service).
 """
 
 
@@ -49,12 +51,28 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.logs import load
     from rt_controller.logs.info import log_info
 
-    info = log_info(load(args.log, raw=False))
+    run = load(args.log, raw=False)
+    info = {**log_info(run), "parameters": parameter_counts(run)}
     if args.json:
         print(json.dumps(info))
     else:
         print(render(info))
     return 0
+
+
+def parameter_counts(run: Any) -> dict[str, int]:
+    """The parameter service's counts of the run, from its final ``/diagnostics`` record (else
+    its last): accepted, refused, unauthenticated, failed; {} when the run had no service."""
+    from rt_controller.logs.info import final_diagnostics
+    from rt_controller.runtime.diagnostics import values_of
+
+    return values_of(final_diagnostics(run) or {}, "parameters")
+
+
+def _parameters(counts: dict[str, Any]) -> str:
+    """The parameter requests in one line: ``2 accepted, 1 refused, 0 unauthenticated``."""
+    names = ("accepted", "refused", "unauthenticated", "failed")
+    return ", ".join(f"{_fmt(counts.get(k, 0))} {k}" for k in names if k != "failed" or k in counts)
 
 
 def _fmt(value: Any) -> str:
@@ -97,6 +115,7 @@ def render(info: dict[str, Any]) -> str:
         ("deadline misses", f"{_fmt(info['deadline_misses'])} "
          f"({_fmt(info['missed_periods'])} missed periods)"),
         *((("ended", _ended(info)),) if info.get("end_reason") else ()),
+        *((("parameter requests", _parameters(p)),) if (p := info.get("parameters")) else ()),
         ("problems", "; ".join(info["problems"]) or "none"),
         *(("warning", w) for w in info.get("warnings") or ()),
         *((("recovered", info["recovered"]["line"]),) if info.get("recovered") else ()),

@@ -15,9 +15,9 @@ from rt_controller.commands.common import (
 
 SUMMARY_KEYS = (
     "clock", "rate_hz", "duration_s", "law", "horizon_s", "steps", "can",
-    "ticks", "planned_ticks", "end_reason", "J", "f_first", "jump_seen_s", "f_final",
-    "f_final_norm", "deadline_misses", "missed_periods", "stale_features", "stale_states",
-    "late_states", "fallbacks", "watchdog_trips", "solve_us_median",
+    "ticks", "planned_ticks", "end_reason", "stop_signal", "J", "f_first", "jump_seen_s",
+    "f_final", "f_final_norm", "deadline_misses", "missed_periods", "stale_features",
+    "stale_states", "late_states", "fallbacks", "watchdog_trips", "solve_us_median",
     "solve_us_p99", "lateness_us_p99", "cycle_us_p99", "host_steal_percent", "drive_ticks",
     "dsp_faults", "rearms", "arming_ticks", "ended_by", "dsp", "log", "log_contents",
     "rejections", "recorder", "outages", "problems", "warnings", "exit_codes", "stderr_tail",
@@ -167,9 +167,12 @@ def table_view(summary: dict) -> dict:
     """The summary as the table shows it: of :data:`NONZERO_ONLY` only the counters that are
     not zero (nested blocks flattened to ``block.key``), the DSP's watchdog account, the
     log's contents and the outages in words."""
-    from rt_controller.rig.ending import contents_words, dsp_words
+    from rt_controller.rig.ending import contents_words, dsp_words, end_words
 
     out = dict(summary)
+    if out.get("stop_signal"):
+        out["end_reason"] = end_words(out)  # "stopped by SIGINT"
+        out.pop("stop_signal")
     for key in NONZERO_ONLY:
         if isinstance(out.get(key), dict):
             counts = nonzero(out[key])

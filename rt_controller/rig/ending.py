@@ -198,6 +198,13 @@ def contents_words(contents: dict[str, Any]) -> str:
     return f"{contents['cycles']} cycles, {state}"
 
 
+def end_words(summary: dict[str, Any]) -> str | None:
+    """The run's ``end_reason`` for the table: ``stopped by SIGINT`` when the controller says
+    which signal stopped it (its summary's ``stop_signal``), else as it is."""
+    reason, by = summary.get("end_reason"), summary.get("stop_signal")
+    return f"stopped by {by}" if reason == "stopped" and by else reason
+
+
 def _tick_at(run: Any, at_ns: int | None) -> tuple[int | None, float | None]:
     """The log's tick at the monotonic time ``at_ns`` (None: its last) and its run time."""
     if run is None or not run.log.n_cycles:
@@ -280,7 +287,9 @@ def refused_to_start(end: ProcessEnd, summary: dict[str, Any]) -> bool:
 def stopped_from_outside(summary: dict[str, Any]) -> str:
     """The problem of a run whose controller was stopped by a signal the supervisor did not
     send (``kill``, a shutdown): a stop the supervisor did not ask for is an end like a
-    death, not the run's duration."""
+    death, not the run's duration. The signal is named when the controller's summary says it
+    (``stop_signal``)."""
     ticks, planned = summary.get("ticks"), summary.get("planned_ticks")
     when = f"after {ticks} of {planned} ticks" if planned else f"after {ticks} ticks"
-    return f"the controller was stopped by a signal the rig did not send, {when}"
+    by = f" ({summary['stop_signal']})" if summary.get("stop_signal") else ""
+    return f"the controller was stopped by a signal the rig did not send, {when}{by}"

@@ -104,6 +104,20 @@ def rejected(values: dict[str, Any]) -> int:
     return sum(int(v) for k, v in values.items() if k.startswith(("bad_", "stale_")))
 
 
+def _parameters_status(values: dict[str, Any]) -> dict[str, Any]:
+    """The parameter service's status: an error when it failed on requests (lost unanswered,
+    a fault of the controller's, as a lost record is the recorder's), a warning when it
+    refused unauthenticated ones (someone else's)."""
+    failed, rogue = int(values.get("failed", 0)), int(values.get("unauthenticated", 0))
+    if failed:
+        why = f"{failed} request(s) failed in the controller, unanswered"
+        return _status(
+            "parameters", ERROR, why + (f"; {rogue} unauthenticated" if rogue else ""), values
+        )
+    why = f"{rogue} unauthenticated request(s)" if rogue else "no unauthenticated request"
+    return _status("parameters", WARN if rogue else OK, why, values)
+
+
 def build(
     *,
     t_ns: int,
@@ -117,7 +131,8 @@ def build(
     parameters: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One ``/diagnostics`` record from the components' counters (``parameters``: the online
-    parameter service's accepted/refused/unauthenticated counts, when it runs)."""
+    parameter service's accepted/refused/unauthenticated counts, and ``failed`` when the
+    controller failed on some, when it runs)."""
     lost = int(recorder.get("dropped", 0)) + int(recorder.get("encode_errors", 0))
     dsp_bad = bool(dsp.get("watchdog_tripped")) or int(controller.get("watchdog_trips", 0)) > 0
     misses = int(controller.get("deadline_misses", 0))
@@ -144,9 +159,7 @@ def build(
         ),
     ]
     if parameters is not None:
-        rogue = int(parameters.get("unauthenticated", 0))
-        why = f"{rogue} unauthenticated request(s)" if rogue else "no unauthenticated request"
-        status.append(_status("parameters", WARN if rogue else OK, why, parameters))
+        status.append(_parameters_status(parameters))
     return {
         "t_ns": int(t_ns),
         "tick": int(tick),
