@@ -14,8 +14,13 @@ Parameters (capability ``parameters``: get, set, subscribe):
 A set is one change set (all or none) and its reply carries the values in force afterwards: the
 new ones when accepted, the unchanged ones when refused. Without ``allow_tuning`` every set is
 refused here, before the controller, and the operator services that change things are not
-advertised. Subscribers get fresh values whenever the cycle records' ``param_set`` moves
-(:meth:`TuningFrontEnd.param_set_seen`), whoever changed it.
+advertised. Edits of one matrix compose: each starts from the value last sent to the
+controller when that set got no answer in time (it may still take effect), else from the
+controller's (a whole matrix brings the entries that differ from the controller's); one that
+would land before such an edit sent for a later tick, and so be undone by it, is refused here.
+A callback that fails here is said once on stderr (later ones counted in ``failed``) and
+answered with the last values known. Subscribers get fresh values whenever the cycle records'
+``param_set`` moves (:meth:`TuningFrontEnd.param_set_seen`), whoever changed it.
 
 Services (JSON): ``/hil/mark`` (a note in ``/controller/events``), and with
 ``allow_tuning`` ``/hil/arm``, ``/hil/disarm``, ``/hil/switch_law`` (``{"law": ...}``, a set of
@@ -32,6 +37,7 @@ no service at all.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import threading
@@ -72,6 +78,8 @@ DIAGONALS = {
     "gains.K_2": ("gains.K", 1),
 }
 """Scalar parameter -> (matrix key, diagonal index)."""
+MATRICES = frozenset(key for key, _ in DIAGONALS.values())
+"""The matrix keys: edits of one compose (see the module's docstring)."""
 AT_TICK, LAST_OUTCOME, TUNING = "hil.at_tick", "hil.last_outcome", "hil.tuning"
 ADVERTISED = (*TUNABLE, *DIAGONALS, AT_TICK, LAST_OUTCOME, TUNING)
 """Every parameter the monitor advertises."""
@@ -101,6 +109,30 @@ def _like(new: Any, old: Any) -> Any:
     if isinstance(old, int) and not isinstance(old, bool) and isinstance(new, float):
         return int(new) if new.is_integer() else new
     return new
+
+
+def _shape(value: Any) -> list[int] | None:
+    """The row lengths of a matrix as nested lists (None: not one)."""
+    rows = isinstance(value, list) and all(isinstance(r, list) for r in value)
+    return [len(r) for r in value] if rows else None
+
+
+def _merge(start: Any, asked: Any, shown: Any) -> Any:
+    """A whole matrix as asked, onto ``start``: the entries that differ from ``shown`` (the
+    controller's value, which the panel shows) are the edit; the rest keep ``start``'s. Not a
+    matrix of ``shown``'s shape: as asked (the controller judges it)."""
+    if _shape(asked) is None or _shape(asked) != _shape(shown):
+        return asked
+    return [
+        [a if a != was else s for a, was, s in zip(ra, rw, rs, strict=True)]
+        for ra, rw, rs in zip(asked, shown, start, strict=True)
+    ]
+
+
+def _answer(values: dict[str, Any], names: list[str]) -> list[Parameter]:
+    """The parameters ``names`` (all when empty) of ``values``."""
+    everything = (*ADVERTISED, TOKEN_PARAMETER)
+    return [Parameter(n, value=values[n]) for n in (names or everything) if n in values]
 
 
 def _tick(value: Any) -> Any:
@@ -140,6 +172,14 @@ class TuningFrontEnd(ServerListener):
         self._subscribed: set[str] = set()
         self._param_set: int | None = None
         self._lock = threading.Lock()
+        self._sent: dict[str, tuple[Any, int | None]] = {}
+        """Matrix key -> (value, at_tick) of a set that got no answer in time: it may still
+        take effect, so the next edit of that matrix starts from it."""
+        self._known: dict[str, Any] = {}
+        """The values last had from the controller: the answer when a callback fails."""
+        self.failed = 0
+        """Callbacks that raised here: each answered with the last values known."""
+        self._failed_lock = threading.Lock()
 
     # --- the link ---------------------------------------------------------------------------
     def ask(self, op: str, **kw: Any) -> dict[str, Any]:
@@ -158,6 +198,7 @@ class TuningFrontEnd(ServerListener):
         got[TUNING] = self.allow_tuning
         if self.gate.mode == "token":
             got[TOKEN_PARAMETER] = ""  # write-only: a place to type the token
+        self._known = dict(got)
         return got
 
     def _parameters(self, names: list[str], outcome: str | None = None) -> list[Parameter]:
@@ -166,8 +207,7 @@ class TuningFrontEnd(ServerListener):
         values = self.values()
         if outcome is not None:
             values[LAST_OUTCOME] = outcome
-        everything = (*ADVERTISED, TOKEN_PARAMETER)
-        return [Parameter(n, value=values[n]) for n in (names or everything) if n in values]
+        return _answer(values, names)
 
     # --- foxglove ServerListener --------------------------------------------------------------
     capabilities = (Capability.Parameters, Capability.Services)
@@ -175,22 +215,46 @@ class TuningFrontEnd(ServerListener):
     def on_get_parameters(
         self, client: Client, param_names: list[str], request_id: str | None = None
     ) -> list[Parameter]:
-        return self._parameters(param_names)
+        try:
+            return self._parameters(param_names)
+        except Exception as exc:  # the SDK would log it apart and answer nothing
+            return self._failed(exc, param_names)
 
     def on_set_parameters(
         self, client: Client, parameters: list[Parameter], request_id: str | None = None
     ) -> list[Parameter]:
         names = [p.name for p in parameters]
         names += [DIAGONALS[n][0] for n in names if n in DIAGONALS]  # the whole matrix too
-        with self._lock:
-            asked = {p.name: p.get_value() for p in parameters}
-            outcome = None  # this connection's own answer, when the gate decides
-            if TOKEN_PARAMETER in asked:
-                outcome = self.gate.present(client.id, asked.pop(TOKEN_PARAMETER))
-            if asked:  # a refused token's line stands for the change it came with
-                change = self._change(client.id, asked)
-                outcome = outcome if outcome and change else change
-            return self._parameters([*names, LAST_OUTCOME], outcome)
+        try:
+            with self._lock:
+                asked = {p.name: p.get_value() for p in parameters}
+                outcome = None  # this connection's own answer, when the gate decides
+                if TOKEN_PARAMETER in asked:
+                    outcome = self.gate.present(client.id, asked.pop(TOKEN_PARAMETER))
+                if asked:  # a refused token's line stands for the change it came with
+                    change = self._change(client.id, asked)
+                    outcome = outcome if outcome and change else change
+                return self._parameters([*names, LAST_OUTCOME], outcome)
+        except Exception as exc:  # the SDK would log it apart and answer nothing
+            return self._failed(exc, [*names, LAST_OUTCOME])
+
+    def _failed(self, exc: Exception, names: list[str]) -> list[Parameter]:
+        """A callback that raised here: the first is said on stderr (later ones are counted in
+        :attr:`failed`); the answer is the last values known, so the panel shows them
+        unchanged, with the fault as ``hil.last_outcome``."""
+        with self._failed_lock:
+            self.failed += 1
+            first = self.failed == 1
+        why = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+        if first:
+            log.error(
+                "hil monitor: a Foxglove parameter request failed here and was answered with "
+                "the last values known (further failures are counted only): %s",
+                why,
+            )
+        with contextlib.suppress(Exception):  # the server may be what fails
+            self._status(f"failed in hil monitor: {why}", ok=False)
+        return _answer({**self._known, LAST_OUTCOME: f"failed in hil monitor: {why}"}, names)
 
     def _change(self, client_id: int, asked: dict[str, Any]) -> str | None:
         """Set ``asked`` for one connection: None when the shared outcome tells (the set was
@@ -217,19 +281,61 @@ class TuningFrontEnd(ServerListener):
         if not asked:
             return
         current = self.ask("get")["values"]
+        self._sent = {k: v for k, v in self._sent.items() if current.get(k) != v[0]}  # landed
+        changes = self._changes(asked, current)
+        at_tick, self._at_tick = (None if self._at_tick == -1 else self._at_tick), -1
+        clash = self._clash(changes, at_tick)
+        if clash is not None:
+            self.last_outcome = clash
+            self._status(clash, ok=False)
+            return
+        try:
+            out = self.ask("set", changes=changes, at_tick=at_tick)
+        except ParameterLinkError:  # it may still land: the next edit of a matrix builds on it
+            for key in MATRICES.intersection(changes):
+                if _shape(changes[key]) == _shape(current[key]):
+                    self._sent[key] = (changes[key], at_tick)
+            raise
+        for key in changes:
+            self._sent.pop(key, None)
+        self.last_outcome = outcome_line(out)
+        self._status(self.last_outcome, ok=out["outcome"]["accepted"])
+
+    def _changes(self, asked: dict[str, Any], current: dict[str, Any]) -> dict[str, Any]:
+        """The change set for ``asked``: an edit of a matrix (a diagonal entry, or the entries
+        of a whole one that differ from ``current``) starts from the value last sent
+        unanswered, else from ``current``, so edits in quick succession compose."""
         changes: dict[str, Any] = {}
         for name, value in asked.items():
+            key = DIAGONALS[name][0] if name in DIAGONALS else name
+            if key not in MATRICES:
+                changes[name] = _like(value, current.get(name))
+                continue
+            start = changes.get(key, self._sent.get(key, (current[key],))[0])
             if name in DIAGONALS:
-                key, i = DIAGONALS[name]
-                m = [list(r) for r in changes.get(key, current[key])]
+                m, i = [list(r) for r in start], DIAGONALS[name][1]
                 m[i][i] = value  # as sent: the controller judges it
                 changes[key] = m
             else:
-                changes[name] = _like(value, current.get(name))
-        at_tick, self._at_tick = (None if self._at_tick == -1 else self._at_tick), -1
-        out = self.ask("set", changes=changes, at_tick=at_tick)
-        self.last_outcome = outcome_line(out)
-        self._status(self.last_outcome, ok=out["outcome"]["accepted"])
+                changes[key] = _merge(start, value, current[key])
+        return changes
+
+    def _clash(self, changes: dict[str, Any], at_tick: int | None) -> str | None:
+        """Why this set is refused here: it would land before the unanswered edit of the same
+        matrix sent for a later tick, which would then undo it (None: it composes). Said
+        once: the unanswered edit is then forgotten."""
+        for key in MATRICES.intersection(changes):
+            sent = self._sent.get(key)
+            if sent is None or sent[1] is None or (at_tick is not None and at_tick >= sent[1]):
+                continue
+            del self._sent[key]
+            when = "the next tick" if at_tick is None else f"tick {at_tick}"
+            return (
+                f"refused here: {key} has an edit sent for tick {sent[1]} that got no answer "
+                f"yet and may still take effect then, undoing this one (for {when}): set it "
+                f"with hil.at_tick >= {sent[1]}, or again to send it as it is"
+            )
+        return None
 
     def on_parameters_subscribe(self, param_names: list[str]) -> None:
         self._subscribed.update(param_names)
