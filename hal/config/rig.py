@@ -5,6 +5,7 @@ type-checked and the result validated (:func:`hal.config.validation.validate`)."
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import stat
@@ -124,11 +125,18 @@ RETIRED_KEYS = {
 ignored in a log's embedded config (they never changed what the per-tick rule computes)."""
 
 
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """The resolved field types of a section class, once per class (a sweep builds a config
+    per run; resolving them is most of the build's time)."""
+    return typing.get_type_hints(cls)
+
+
 def _build_section(name: str, data: Any, *, retired_ok: bool = False) -> Any:
     cls = _SECTION_TYPES[name]
     if not isinstance(data, dict):
         raise HalConfigError(f"[{name}]: expected a table, got {data!r}")
-    hints = typing.get_type_hints(cls)
+    hints = _type_hints(cls)
     known = [f.name for f in dataclasses.fields(cls)]
     kwargs = {}
     for key, value in data.items():

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from typing import Any
 
 from hal.config import RigConfig, config_from_dict
 from rt_controller.errors import ControllerError
+from rt_controller.rig.failures import RigCancelled
 from rt_controller.sweep.spec import RunTask
 
 METRICS = (
@@ -54,12 +56,13 @@ def package_version() -> str:
 @dataclass(frozen=True)
 class Engine:
     """The task runner sent to the workers: ``Engine(World)(task) -> row``. ``plant`` builds
-    the simulate engine's plant from a config (None: only the rig engine works)."""
+    the simulate engine's plant from a config (None: only the rig engine works); ``cancel``
+    stops a rig run (see :func:`run_task`)."""
 
     plant: Callable[[RigConfig], Any] | None = None
 
-    def __call__(self, task: RunTask) -> dict[str, Any]:
-        return run_task(task, self.plant)
+    def __call__(self, task: RunTask, cancel: threading.Event | None = None) -> dict[str, Any]:
+        return run_task(task, self.plant, cancel)
 
 
 def base_row(task: RunTask, status: str = "ok", error: str = "") -> dict[str, Any]:
@@ -82,8 +85,14 @@ def base_row(task: RunTask, status: str = "ok", error: str = "") -> dict[str, An
     }
 
 
-def run_task(task: RunTask, plant: Callable[[RigConfig], Any] | None = None) -> dict[str, Any]:
-    """The task's row: its identity, axis values, figures, status and error."""
+def run_task(
+    task: RunTask,
+    plant: Callable[[RigConfig], Any] | None = None,
+    cancel: threading.Event | None = None,
+) -> dict[str, Any]:
+    """The task's row: its identity, axis values, figures, status and error. A rig run
+    stopped through ``cancel`` (its processes stopped) raises :class:`RigCancelled`: it has
+    no row, a resume runs it."""
     t0 = time.perf_counter()
     row = base_row(task)
     try:
@@ -92,9 +101,11 @@ def run_task(task: RunTask, plant: Callable[[RigConfig], Any] | None = None) -> 
                 raise ControllerError("the simulate engine was given no plant")
             row.update(simulate_run(task, plant, t0 + task.timeout_s))
         elif task.engine == "rig":
-            row.update(rig_run(task))
+            row.update(rig_run(task, cancel))
         else:
             raise ControllerError(f"unknown engine {task.engine!r}")
+    except RigCancelled:
+        raise
     except Exception as exc:  # any failure of one run is recorded, the sweep goes on
         row["status"] = "failed"
         row["error"] = " ".join(f"{type(exc).__name__}: {exc}".split())[:2000]
@@ -190,9 +201,9 @@ def write_trace(path: Path, trace: Any) -> None:
 
 
 # -------------------------------------------------------------------------------------- rig
-def rig_run(task: RunTask) -> dict[str, Any]:
+def rig_run(task: RunTask, cancel: threading.Event | None = None) -> dict[str, Any]:
     """The task on the lockstep rig processes; figures from the controller's summary and its
-    MCAP log (max |tau|)."""
+    MCAP log (max |tau|). ``cancel`` set: the processes are stopped, :class:`RigCancelled`."""
     import numpy as np
 
     from rt_controller.config_rules import config_toml
@@ -220,6 +231,7 @@ def rig_run(task: RunTask) -> dict[str, Any]:
                 lockstep=True,
                 log=log,
                 wall_timeout_s=task.timeout_s,
+                cancel=cancel,
             )
         )
         tau = read_log(log, raw=False).column("tau")

@@ -14,8 +14,9 @@ cluster, :class:`Tasks` puts tasks on it and takes each back as it finishes, and
 one run (:class:`rt_controller.sweep.spec.RunTask`, keyed by its run key); its row never depends
 on the worker that runs it. Dask itself moves the tasks of a worker that dies to
 the others (``distributed.scheduler.allowed-failures`` times, then the run is recorded as
-failed); the store keeps one row per run key. Ctrl-C or SIGTERM cancels what is left, keeps
-every finished row and writes the report of what ran; the same command resumes.
+failed); the store keeps one row per run key. Ctrl-C or SIGTERM cancels what is left (a
+running rig run stops its processes, waited for), keeps every finished row and writes the
+report of what ran; the same command resumes.
 """
 
 from __future__ import annotations
@@ -234,6 +235,19 @@ class Tasks:
         except Exception:  # a scheduler going down: not this message's business
             return False
 
+    def drop_queued(self) -> None:
+        """Cancel and forget the tasks no worker has started (a stop waits for the rest)."""
+        try:
+            started = {k for keys in self.client.processing().values() for k in keys}
+        except Exception:  # a cluster going down: nothing is waited for
+            started = set()
+        queued = [f for f in self._items if f.key not in started]
+        self._done.clear()
+        self._items = {f: i for f, i in self._items.items() if f.key in started}
+        self._done.update(self._items)
+        with contextlib.suppress(Exception):
+            self.client.cancel(queued, force=True)
+
     def cancel(self) -> None:
         """Cancel the tasks not taken back yet."""
         if self._items:
@@ -321,6 +335,14 @@ class Outcome:
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+
+def stoppable_run(engine: Engine, task: RunTask, stop: str) -> dict[str, Any] | None:
+    """In a task: ``engine(task)``, cancelled by the stop request ``stop`` (rig processes)."""
+    from rt_controller.rig.failures import RigCancelled
+
+    with watch_stop(stop) as cancel, contextlib.suppress(RigCancelled):  # no row: None
+        return None if cancel.is_set() else engine(task, cancel)
 
 
 def failed_row(task: RunTask, error: str) -> dict[str, Any]:
@@ -446,18 +468,32 @@ def _collect(
     def say(line: str) -> None:
         print(f"hil sweep: {line}", file=sys.stderr)
 
+    def keep(row: dict[str, Any]) -> None:
+        store.add(row)
+        result.ran += 1
+        result.failed += row.get("status") != "ok"
+
     tasks = Tasks(cl, "hil-sweep", no_worker_s=no_worker_s, say=say)
+    stop = stop_name("hil-sweep") if todo[0].engine == "rig" else None  # rigs: stoppable
     with tasks, bar:  # interrupted: nothing left keeps running for us
-        for task in todo:
-            tasks.submit(task, engine, task, key=task.key)
-        bar_task = bar.add_task("runs", total=len(todo), failed=0)
-        while tasks:
-            task, row, exc = tasks.next()
-            if exc is not None:  # a lost task is a failed run
-                row = failed_row(task, " ".join(f"{type(exc).__name__}: {exc}".split()))
-            store.add(row)
-            result.ran += 1
-            result.failed += row.get("status") != "ok"
-            bar.update(bar_task, advance=1, failed=result.failed)
-            if on_row is not None:
-                on_row(row, cl)
+        try:
+            for task in todo:
+                call = (engine, task) if stop is None else (stoppable_run, engine, task, stop)
+                tasks.submit(task, *call, key=task.key)
+            bar_task = bar.add_task("runs", total=len(todo), failed=0)
+            while tasks:
+                task, row, exc = tasks.next()
+                if exc is not None:  # a lost task is a failed run
+                    row = failed_row(task, " ".join(f"{type(exc).__name__}: {exc}".split()))
+                keep(row)
+                bar.update(bar_task, advance=1, failed=result.failed)
+                if on_row is not None:
+                    on_row(row, cl)
+        finally:
+            if stop is not None and len(tasks):  # stopped: the running rigs stop, waited for
+                request_stop(cl, stop)
+                tasks.drop_queued()
+                while tasks:
+                    _, row, _ = tasks.next()
+                    if row is not None:  # a run that ended before the stop reached it
+                        keep(row)

@@ -238,7 +238,15 @@ def point_config(base: RigConfig, values: dict[str, Any], point: int | None = No
     except (HalConfigError, ControllerConfigError) as exc:
         where = ", ".join(f"{k} = {v!r}" for k, v in values.items())
         at = f"point {point} " if point is not None else ""
-        raise SweepSpecError(f"axes: {at}({where}): {exc}") from None
+        raise SweepSpecError(f"axes: {at}({where}): {_unkeyed(str(exc), values)}") from None
+
+
+def _unkeyed(message: str, values: dict[str, Any]) -> str:
+    """``message`` without a leading ``"KEY: "`` of an axis: the point already names it."""
+    for key in values:
+        if message.startswith(f"{key}: "):
+            return message[len(key) + 2 :]
+    return message
 
 
 # ------------------------------------------------------------------------------------ parse
