@@ -239,7 +239,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=50,
         help="parameter sets to time (default 50)",
     )
-    tp.add_argument("--workdir", default="logs/bench-tuning", help="the run's log and key here")
+    tp.add_argument(
+        "--workdir",
+        metavar="DIR",
+        help="keep the run's MCAP log (tuning.mcap) and key in DIR (default: a temporary "
+        "folder, removed)",
+    )
     _finish(tp, run_tuning)
 
 
@@ -350,18 +355,18 @@ def run_soak(args: argparse.Namespace) -> int:
 def run_tuning(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import output_dir
     from rt_controller.rig.bench_tuning import bench_tuning
+    from rt_controller.rig.failures import with_tail
 
-    workdir = output_dir(args.workdir, "--workdir")  # a bad path before the rig starts
+    # a bad path before the rig starts
+    workdir = output_dir(args.workdir, "--workdir") if args.workdir else None
     progress = Progress.of(args, "hil bench tuning")
     with progress.stage(f"a realtime run with {args.requests} parameter sets"):
         result = bench_tuning(workdir, requests=args.requests)
     print(json.dumps(result))
     if result["rig_exit"] != 0:  # the figures are printed either way; the status tells the truth
-        print(
-            f"hil bench tuning: the rig exited with status {result['rig_exit']} "
-            f"(its log: {result['log']})",
-            file=sys.stderr,
-        )
+        log = f" (its log: {result['log']})" if result["log"] else ""
+        line = f"hil bench tuning: the rig exited with status {result['rig_exit']}{log}"
+        print(with_tail(line, result.get("stderr_tail", "")), file=sys.stderr)
     return 0 if result["rig_exit"] == 0 else 1
 
 

@@ -237,7 +237,8 @@ PROFILE_PHASES = {"features_wait": "read_us", "solve": "solve_us", "write": "wri
 
 
 def lockstep_period_profile(cycles: dict[str, np.ndarray]) -> dict[str, float]:
-    """Where one lockstep period's wall time goes (medians over the run, microseconds), from the
+    """Where one lockstep period's wall time goes (medians over the run, microseconds; the
+    period itself as ``period_median`` and ``period_p99``), from the
     controller's own cycle records: ``features_wait`` (Sync received until this period's
     features arrived: the DSP's pose -> vision -> controller over zenoh), ``solve`` (the law),
     ``write`` (torque frame out), and ``dsp_and_can`` (torque frame out until the next Sync is
@@ -250,7 +251,7 @@ def lockstep_period_profile(cycles: dict[str, np.ndarray]) -> dict[str, float]:
     cycle = cycles["cycle_us"][:-1]
     p = summary_stats(period, ("median", "p99"))
     return {
-        "period": p["median"],
+        "period_median": p["median"],
         "period_p99": p["p99"],
         **{name: _median(cycles[field]) for name, field in PROFILE_PHASES.items()},
         "dsp_and_can": _median(period - cycle),

@@ -21,7 +21,7 @@ def test_lockstep_period_profile_splits_each_period_exactly() -> None:
     }
     prof = lockstep_period_profile(cycles)
     assert prof == {
-        "period": 1000.0,
+        "period_median": 1000.0,
         "period_p99": 1000.0,
         "features_wait": 300.0,
         "solve": 100.0,
@@ -30,7 +30,7 @@ def test_lockstep_period_profile_splits_each_period_exactly() -> None:
     }
     assert prof["features_wait"] + prof["solve"] + prof["write"] + prof[
         "dsp_and_can"
-    ] == pytest.approx(prof["period"])
+    ] == pytest.approx(prof["period_median"])
 
 
 def test_lockstep_period_profile_of_a_single_tick_is_empty() -> None:

@@ -22,7 +22,7 @@ def test_a_period_profile_ignores_samples_that_are_not_finite() -> None:
         "cycle_us": np.array([450.0, nan, 450.0, 450.0]),
     }
     assert lockstep_period_profile(cycles) == {
-        "period": 1000.0,
+        "period_median": 1000.0,
         "period_p99": 1000.0,
         "features_wait": 300.0,
         "solve": 100.0,

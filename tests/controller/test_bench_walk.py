@@ -105,6 +105,26 @@ def test_bench_tuning_whose_rig_failed_says_so_in_one_line(monkeypatch, capsys, 
     assert line.startswith("hil bench tuning: the rig exited with status 3")
 
 
+def test_bench_tuning_whose_rig_failed_gives_its_stderr_tail(monkeypatch, capsys, tmp_path):
+    """The rig's last stderr lines follow the error line (the reason, as ``hil up`` gives it);
+    without ``--workdir`` no log is named (it was in a removed temporary folder)."""
+    from rt_controller.rig import bench_tuning as bt
+
+    def failed_rig(workdir, *, requests):
+        tail = "hil controller: fault: no CAN\nhil up: controller exited with status 1"
+        return {"requests": requests, "rig_exit": 1, "log": None, "stderr_tail": tail}
+
+    monkeypatch.setattr(bt, "bench_tuning", failed_rig)
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "tuning", "--requests", "1", "-q"]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "hil bench tuning: the rig exited with status 1:",
+        "hil controller: fault: no CAN",
+        "hil up: controller exited with status 1",
+    ]
+    assert list(tmp_path.iterdir()) == []  # nothing made in the working directory
+
+
 def test_bench_vision_whose_realtime_rig_was_not_clean_exits_1(monkeypatch, capsys):
     """As ``hil bench loop`` and ``soak``: the figures printed, the status and one line tell."""
     from rt_controller.rig import bench_vision as bv
