@@ -87,23 +87,37 @@ CanLink = JointClient | Cia402Master
 
 @contextlib.contextmanager
 def open_links(cfg: RigConfig, stop: threading.Event) -> Iterator[tuple[CanLink, ZenohSession]]:
-    """The controller's links on ``cfg.transport``: the CAN side of ``hardware.profile`` (the
-    DSP's client in poll mode: the control thread reads the bus itself, no receive thread; or
-    the ``cia402`` profile's CANopen master, whose receive thread is canopen's) and the zenoh
-    session, both closed at the end. The bus first: a bad ``transport.can`` is reported at
-    once, not after waiting for zenoh. :class:`HalStopped` when ``stop`` is set while waiting
-    for zenoh."""
+    """The controller's links on ``cfg.transport`` (:func:`open_can`, then the zenoh session),
+    both closed at the end. :class:`HalStopped` when ``stop`` is set while waiting for zenoh."""
     with contextlib.ExitStack() as links:
-        can: CanLink
-        if cfg.hardware.profile == "cia402":
-            bus = open_bus(cfg.transport.can, bitrate=cfg.cia402.bitrate, fd=False)
-            can = Cia402Master.from_config(cfg, bus)
-            links.callback(can.close)
-        else:
-            can = links.enter_context(JointClient.open(None, cfg))
-        session = open_session(cfg, listen=False, wait_s=STARTUP_TIMEOUT_S, stop_event=stop)
+        can = links.enter_context(open_can(cfg))
+        session = open_zenoh(cfg, stop)
         links.callback(session.close)
         yield can, session
+
+
+def open_zenoh(cfg: RigConfig, stop: threading.Event) -> ZenohSession:
+    """The controller's zenoh session, waiting for the hub; :class:`HalStopped` on ``stop``."""
+    return open_session(cfg, listen=False, wait_s=STARTUP_TIMEOUT_S, stop_event=stop)
+
+
+@contextlib.contextmanager
+def open_can(cfg: RigConfig) -> Iterator[CanLink]:
+    """The CAN side of ``hardware.profile``: the DSP's client in poll mode (the control thread
+    reads the bus itself, no receive thread) or the ``cia402`` profile's CANopen master (whose
+    receive thread is canopen's); closed at the end. Opened first: a bad ``transport.can`` is
+    reported at once, before a log is made or zenoh is waited for."""
+    if cfg.hardware.profile == "cia402":
+        master = Cia402Master.from_config(
+            cfg, open_bus(cfg.transport.can, bitrate=cfg.cia402.bitrate, fd=False)
+        )
+        try:
+            yield master
+        finally:
+            master.close()
+    else:
+        with JointClient.open(None, cfg) as client:
+            yield client
 
 
 def build_hardware(
@@ -208,13 +222,22 @@ class ControllerDaemon:
         )
 
     def run(self, links: tuple[CanLink, Any] | None = None) -> dict[str, Any]:
-        """Open the recorder and the links, run until stopped; the summary. ``links``: a CAN
-        link and zenoh session that outlive the run (``hil controller --plan``, tests), left as
-        found; else :func:`open_links`. The recorder is finished on every exit."""
-        rec = self._open_recorder()
-        opened = contextlib.nullcontext(links) if links else open_links(self.cfg, self.stop)
+        """Open the CAN link, the recorder and the zenoh session, run until stopped; the
+        summary. ``links``: a CAN link and zenoh session that outlive the run (``hil controller
+        --plan``, tests), left as found. A CAN link that cannot open makes no log; from the
+        recorder on, the log says how the run ended. The links close before the recorder."""
+        own = contextlib.ExitStack()
+        can = links[0] if links else own.enter_context(open_can(self.cfg))
         try:
-            with opened as (can, session):
+            rec = self._open_recorder()
+        except BaseException:
+            own.close()
+            raise
+        try:
+            with own:
+                session = links[1] if links else open_zenoh(self.cfg, self.stop)
+                if not links:
+                    own.callback(session.close)
                 self._run_with(can, session, rec)
         except HalStopped:  # told to stop while waiting for zenoh
             self.counters.stopped_before_arming = True

@@ -90,6 +90,23 @@ def test_controller_log_unusable_is_refused_before_the_daemon(tmp_path, capsys):
     assert "--log" in line and "/proc/hil-nope" in line
 
 
+@pytest.mark.parametrize("profile", ["dsp", "cia402"])
+def test_a_can_interface_that_cannot_open_makes_no_log(tmp_path, profile):
+    """A CAN interface that is not there (no such device, or no SocketCAN in the kernel) is
+    refused before the recorder starts: one line, exit 2, and no log of a run that never was
+    (with ``--force``, an earlier log under the name stays)."""
+    key, log = tmp_path / "rig.key", tmp_path / "run.mcap"
+    assert main(["keygen", str(key)]) == 0
+    log.write_bytes(b"an earlier run")
+    argv = ["controller", "--can", "socketcan:hilnope0", "--key-file", str(key)]
+    argv += ["--profile", profile, "--log", str(log), "--force", "--duration", "1", "--no-rt"]
+    done = subprocess.run([*HIL, *argv], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("hil controller: error: cannot open CAN interface socketcan:hilnope0")
+    assert log.read_bytes() == b"an earlier run"
+
+
 @pytest.mark.parametrize("command", ["controller", "up"])
 @pytest.mark.parametrize("what", ["empty", "fifo"])
 def test_a_log_path_that_cannot_hold_a_log_is_refused(tmp_path, capsys, command, what):
