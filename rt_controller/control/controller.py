@@ -79,15 +79,15 @@ class Decision:
     def record_fields(self, law_name: str) -> dict[str, Any]:
         """The cycle record's decision fields, as declared (:data:`~rt_controller.control.
         state.OUTPUTS`; see :func:`rt_controller.runtime.cycle_record.decision_fields`); the
-        rule leaves NaN in what it did not act on."""
+        rule leaves NaN in what it did not act on, recorded as null whatever the type."""
         v, out = self._out, {}
         for name, k, kind in _RECORD:
             if kind == "vector":
                 out[name] = v[k : k + 2]
             elif kind == "boolean":
-                out[name] = v[k] != 0.0
+                out[name] = None if v[k] != v[k] else v[k] != 0.0  # NaN: not acted on, null
             elif kind == "integer":
-                out[name] = int(v[k])
+                out[name] = None if v[k] != v[k] else int(v[k])
             elif kind == "law":
                 out[name] = law_name if self.mode == "control" else self.mode
             else:

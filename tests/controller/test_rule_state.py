@@ -82,3 +82,16 @@ def test_the_work_cut_tiles_the_work_vector():
         end = off + rows * cols
     n, s, m = cfg.rhc.steps, iP[state.IP.SUB], max(iP[state.IP.KMAX], iP[state.IP.INIT_KRYLOV])
     assert state.work_offsets(n, s, m)[1] == end == state.work_length(iP)
+
+
+def test_an_output_the_rule_left_nan_is_recorded_as_null_whatever_its_type() -> None:
+    """NaN is "not acted on" for every record type: a boolean left NaN is null, not ``true``
+    (NaN != 0), and an integer is null, not a ValueError from ``int(nan)``."""
+    from rt_controller.control.controller import Decision
+
+    io = np.full(state.IO.SIZE, np.nan)
+    io[state.IO.MODE] = 0.0
+    fields = Decision(io, "disarmed", 0).record_fields("ioc")
+    kinds = {f.name: f.record for f in state.OUTPUTS if f.record in ("boolean", "integer")}
+    assert set(kinds.values()) == {"boolean", "integer"}
+    assert all(fields[name] is None for name in kinds), fields
