@@ -186,9 +186,10 @@ class ControllerDaemon:
         """After :meth:`run`: the camera images announced that did not come (the next run of a
         plan is given them: ``DaemonOptions.images_owed_before``)."""
 
-    def what_runs(self) -> dict[str, Any]:
-        """What this run is: clock, rate, duration, law (with the horizon for rhc), CAN bus."""
-        cfg = self.cfg
+    def what_runs(self, cfg: RigConfig | None = None) -> dict[str, Any]:
+        """What this run is: clock, rate, duration, law (with the horizon for rhc), CAN bus;
+        of ``cfg`` (default: the configuration the run starts with)."""
+        cfg = cfg or self.cfg
         rhc = cfg.controller.law == "rhc"
         return {
             "clock": cfg.controller.clock,
@@ -321,8 +322,9 @@ class ControllerDaemon:
             self._record_end(loop.ctx.recorder, loop.diagnostics(final=True))
 
     def _summary(self, rec: RecorderProcess) -> dict[str, Any]:
-        out = {**self.what_runs(), **self.counters.as_dict()}
-        out.update(law=self.controller.law, log=str(self.log_path), recorder=rec.as_dict())
+        # the law in force at the end, with its settings (a live switch may have changed them)
+        out = {**self.what_runs(self.controller.cfg), **self.counters.as_dict()}
+        out.update(log=str(self.log_path), recorder=rec.as_dict())
         if rec.error is not None:
             out["log_error"] = str(rec.error)
         final = self._final_diagnostics or {}

@@ -111,13 +111,14 @@ def run_daemon(
     slow_ticks: dict[int, int],
     dsp_stalls: frozenset[int] = frozenset(),
     on_tick=None,
+    on_start=None,
 ):
     """Run the daemon (:meth:`ControllerDaemon.run` on given links, its log written by a recorder
     process) for ``duration_s`` of fake time;
     ``slow_ticks`` maps a tick number to extra nanoseconds its decide phase takes; for each
     tick in ``dsp_stalls`` the DSP gets no CPU from 4 ms before the next release to 2 ms after
-    it, so the state it samples 3 ms before that release goes out 2 ms after it. Returns
-    (summary, log, node)."""
+    it, so the state it samples 3 ms before that release goes out 2 ms after it; ``on_start``
+    is given the daemon before it runs. Returns (summary, log, node)."""
     spec = isolated_spec("virtual")
     log = tmp_path / "fake.mcap"
     period = cfg.rates.control_period_ns
@@ -149,6 +150,8 @@ def run_daemon(
             return decide(*args, **kwargs)
 
         daemon.controller.decide = slow_decide
+        if on_start is not None:
+            on_start(daemon)
         with JointClient.open(spec, cfg) as dsp:
             clock.client = dsp
             summary = daemon.run((dsp, NoZenoh()))

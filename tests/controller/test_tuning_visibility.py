@@ -107,3 +107,17 @@ def test_hil_up_names_the_signal_that_stopped_the_controller(monkeypatch, capsys
     said = stopped_from_outside(STOPPED)
     assert said.startswith("the controller was stopped by a signal the rig did not send, ")
     assert said.endswith("after 12 of 500 ticks (SIGINT)")
+
+
+def test_the_summary_gives_the_law_at_the_end_with_its_settings(tmp_path):
+    """A run switched from ioc to rhc (T = 0.2 s, N = 8) on the way: the summary's law is rhc
+    and its horizon and steps are the ones that ran, not the start's (ioc: none)."""
+    from rt_controller.calibration.parameters import Request
+
+    switch = {"controller.law": "rhc", "rhc.horizon": 0.2, "rhc.steps": 8}
+    summary, log, _ = fake.run_daemon(
+        tmp_path, load_config(), 0.5, {},
+        on_start=lambda daemon: daemon.params.submit(Request(switch, at_tick=10)),
+    )  # fmt: skip
+    assert set(log.cycles["law"]) == {"ioc", "rhc"}
+    assert (summary["law"], summary["horizon_s"], summary["steps"]) == ("rhc", 0.2, 8)
