@@ -202,9 +202,12 @@ class TuningFrontEnd(ServerListener):
         return got
 
     def _parameters(self, names: list[str], outcome: str | None = None) -> list[Parameter]:
-        """The values of ``names`` (all when empty); ``outcome`` stands for the last outcome
-        in this answer only."""
-        values = self.values()
+        """The values of ``names`` (all when empty; the last known when the controller does not
+        answer); ``outcome`` stands for the last outcome in this answer only."""
+        try:
+            values = self.values()
+        except ParameterLinkError as exc:  # a silent controller: the last values known
+            values = {**self._known, LAST_OUTCOME: str(exc)}
         if outcome is not None:
             values[LAST_OUTCOME] = outcome
         return _answer(values, names)

@@ -95,3 +95,23 @@ def test_a_fault_in_a_callback_is_said_once_counted_and_answered_with_the_values
     assert len(errors) == 1 and "RuntimeError: zenoh session closed" in errors[0]
     assert "\n" not in errors[0]
     assert tuning.failed == 2
+
+
+class SilentLink(LoopbackLink):
+    """A controller that does not answer (yet): every request times out."""
+
+    def get(self, key, payload, timeout):
+        return []
+
+
+def test_a_token_refused_while_the_controller_is_silent_says_the_refusal():
+    """A monitor started before its controller answers: a wrong token is refused for what it
+    is, and a silent controller is the link's answer, not a fault of the monitor's."""
+    from rt_controller.monitor.access import AccessGate
+
+    tuning = TuningFrontEnd(SilentLink(), KEY, allow_tuning=True, gate=AccessGate("token", KEY))
+    out = _set(tuning, hil__token="not the token")
+    assert "token" in out["hil.last_outcome"] and "no answer" not in out["hil.last_outcome"]
+    open_gate = TuningFrontEnd(SilentLink(), KEY, allow_tuning=True)
+    assert "no answer" in _set(open_gate, gains__kp=0.3)["hil.last_outcome"]
+    assert tuning.failed == open_gate.failed == 0
