@@ -228,11 +228,12 @@ class ControllerDaemon:
         --plan``, tests), left as found. A CAN link that cannot open makes no log; from the
         recorder on, the log says how the run ended. The links close before the recorder."""
         own = contextlib.ExitStack()
-        can = links[0] if links else own.enter_context(open_can(self.cfg))
         try:
+            can = links[0] if links else own.enter_context(open_can(self.cfg))
             rec = self._open_recorder()
         except BaseException:
             own.close()
+            self._give_back_log()
             raise
         try:
             with own:
@@ -252,6 +253,14 @@ class ControllerDaemon:
                 self._record_end(rec, self._bare_diagnostics(rec))
             rec.close()
         return self._summary(rec)
+
+    def _give_back_log(self) -> None:
+        """The default log's name, claimed at start (:func:`claim_log`), given back when no
+        recorder wrote into it: a run that never started leaves no empty file."""
+        if self.opts.log_path is None:
+            with contextlib.suppress(OSError):
+                if self.log_path.stat().st_size == 0:
+                    self.log_path.unlink()
 
     def _bare_diagnostics(self, rec: RecorderProcess) -> dict[str, Any]:
         """The final ``/diagnostics`` record of a run stopped before its hardware existed."""

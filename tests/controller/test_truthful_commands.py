@@ -107,6 +107,20 @@ def test_a_can_interface_that_cannot_open_makes_no_log(tmp_path, profile):
     assert log.read_bytes() == b"an earlier run"
 
 
+def test_a_can_interface_that_cannot_open_leaves_no_default_log(tmp_path):
+    """Without ``--log`` the controller claims ``logs/run-*.mcap`` at start (one name per run);
+    a run that never opened its CAN link gives the name back: no empty file is left."""
+    key = tmp_path / "rig.key"
+    assert main(["keygen", str(key)]) == 0
+    argv = ["controller", "--can", "socketcan:hilnope0", "--key-file", str(key)]
+    done = subprocess.run(
+        [*HIL, *argv, "--duration", "1", "--no-rt"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert list(tmp_path.glob("logs/*")) == []
+
+
 @pytest.mark.parametrize("command", ["controller", "up"])
 @pytest.mark.parametrize("what", ["empty", "fifo"])
 def test_a_log_path_that_cannot_hold_a_log_is_refused(tmp_path, capsys, command, what):
