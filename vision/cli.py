@@ -100,12 +100,14 @@ def run_from_args(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(stats.as_dict()), flush=True)
     else:
-        rejected = stats.pipeline.get("rejected", {})
+        rejected = dict(stats.pipeline.get("rejected", {}))
+        bad_mac = rejected.pop("bad_mac", 0)
         p99 = stats.detect_us_p99
         why = ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
         print(
             f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
             f"{stats.invalid} without the target{f' ({why})' if why else ''}"
+            + (f", {bad_mac} dropped as bad_mac (another rig key)" if bad_mac else "")
             + (f", detection p99 {p99:.0f} us" if p99 is not None else "")
             + (
                 f", {stats.callback_errors} frame(s) lost to errors in zenoh callbacks (a bug)"

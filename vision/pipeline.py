@@ -44,6 +44,11 @@ class Measurement:
         return self.f is not None
 
 
+REJECTED = (*REASONS, "bad_mac")
+"""The reasons counted in ``rejected``: the detector's, and ``bad_mac`` (a camera frame whose MAC
+does not verify: signed with another rig key)."""
+
+
 @dataclass
 class PipelineCounts:
     """Frames processed, measurements made, and frames without one by reason."""
@@ -59,7 +64,7 @@ class PipelineCounts:
             "frames": self.frames,
             "measured": self.measured,
             "tracked": self.tracked,
-            "rejected": {r: self.rejected.get(r, 0) for r in REASONS},
+            "rejected": {r: self.rejected.get(r, 0) for r in REJECTED},
         }
 
 

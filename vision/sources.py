@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import stat
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -39,7 +40,13 @@ from hal.signals import wait_for_stop
 FrameSink = Callable[[CameraFrame], None]
 """Receives each frame."""
 RejectSink = Callable[[str], None]
-"""Receives the reason of each payload that was not a frame (``malformed``)."""
+"""Receives the reason of each payload that was not a frame (``malformed``, ``bad_mac``)."""
+BAD_MAC_WARNING = (
+    "hil vision: warning: camera frames are signed with another rig key (bad_mac), every one "
+    "is dropped: give hil vision the emulator's key (--key-file, transport.key_file or "
+    "$HIL_KEY_FILE)"
+)
+"""Said once, at the first camera frame whose MAC does not verify."""
 SOURCE_KINDS = ("emulated", "v4l2", "gst", "file", "log")
 
 
@@ -85,13 +92,18 @@ class EmulatedSource:
     Timing, per frame handed on: :attr:`pipeline_ns`, the payload's arrival to the grabber's
     return (decode, MAC, detect, undistort, publish); :attr:`arrival_ns`, lockstep only, the
     camera pose offered (the end of the exposure, on the emulator's monotonic clock, which
-    is this host's) to the payload's arrival (render, encode, zenoh)."""
+    is this host's) to the payload's arrival (render, encode, zenoh).
+
+    A frame whose MAC does not verify is rejected as ``bad_mac``; the first one is said on
+    stderr: it means another rig key, not a broken camera."""
 
     name = "emulated"
 
     def __init__(self, session: object, key: bytes) -> None:
         self.session = session
         self.key = key
+        self._warned = False
+        self._warn_lock = threading.Lock()
         self.decoder = FrameDecoder(key=key)
         self.pipeline_ns = Durations()
         self.arrival_ns = Durations()
@@ -110,14 +122,17 @@ class EmulatedSource:
         def feed(payload: bytes) -> None:
             t0 = time.monotonic_ns()
             c = self.decoder.counts
-            bad = c.malformed + c.bad_mac
+            malformed, bad_mac = c.malformed, c.bad_mac
             frame = self.decoder.feed(payload)
             if frame is not None:
                 on_frame(frame)
                 self.pipeline_ns.add(time.monotonic_ns() - t0)
                 if frame.lockstep:
                     self.arrival_ns.add(t0 - frame.stamp_ns - frame.exposure_ns // 2)
-            elif c.malformed + c.bad_mac > bad:  # not an out-of-order frame: no frame at all
+            elif c.bad_mac > bad_mac:  # not an out-of-order frame: no frame at all
+                self._first_bad_mac()
+                on_reject("bad_mac")
+            elif c.malformed > malformed:
                 on_reject("malformed")
 
         sub = self.session.subscribe(KEY_CAMERA_FRAME, feed)  # type: ignore[attr-defined]
@@ -127,6 +142,14 @@ class EmulatedSource:
             sub.undeclare()
             pub, self._roi_pub = self._roi_pub, None
             pub.undeclare()  # type: ignore[attr-defined]
+
+    def _first_bad_mac(self) -> None:
+        """Say :data:`BAD_MAC_WARNING` once (zenoh may call from several threads)."""
+        with self._warn_lock:
+            if self._warned:
+                return
+            self._warned = True
+        print(BAD_MAC_WARNING, file=sys.stderr, flush=True)
 
 
 class CaptureSource:

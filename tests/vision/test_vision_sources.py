@@ -158,7 +158,8 @@ def test_emulated_frames_good_corrupted_and_mis_sized():
     assert np.allclose(sent[3].f, (-100.0, -140.0), atol=0.02)
     s = g.snapshot()
     assert s.reanswers == 1 and s.frames == 3 and s.invalid == 1
-    assert s.pipeline["rejected"]["malformed"] == 2
+    assert s.pipeline["rejected"]["malformed"] == 1  # the 3-byte payload
+    assert s.pipeline["rejected"]["bad_mac"] == 1  # the corrupted frame
     assert s.pipeline["rejected"]["wrong_size"] == 1
     rx = source.decoder.as_dict()
     assert rx["bad_mac"] == 1 and rx["bad_size"] == 1 and rx["resent"] == 1
