@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -33,6 +34,17 @@ def _session_rig_key() -> None:
 
 
 _session_rig_key()
+
+
+def _sigint_delivered() -> None:
+    """A suite started as a shell's background job (``pytest ... &``) inherits SIGINT ignored,
+    and so would every process a test starts: a test that sends Ctrl-C to a child would wait
+    for a signal the child ignores. The session gives SIGINT back its default handler."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+_sigint_delivered()
 
 
 def _child_pids() -> set[int]:
