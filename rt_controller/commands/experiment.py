@@ -53,7 +53,9 @@ Table I for comparison, and per run the command that repeats it, run inside the 
 `hil --target-of LOG up --config CONFIG --log NAME.rerun.mcap --force`, on the CPU target its
 log records) and results.json (also printed by --json).
 A failed run is reported with the error of its process; the experiment then exits with status 1
-after the remaining runs (it gives up after three failures in a row).
+after the remaining runs (it gives up after three failures in a row). A failed run's J enters
+no average or claim: a Table I average over fewer runs says so, e.g. "24.011 (4 of 5)". A
+--can bus that cannot be opened is refused before any run.
 
 The runs go as Dask tasks (one per set of processes) on the executor of `hil sweep`: a local
 cluster of --jobs workers by default, or an existing cluster with --scheduler, whose workers
@@ -245,7 +247,26 @@ def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:
     for specs in plan(settings, load_config(settings.config)).values():
         for spec in specs:
             run_config(settings, spec)
+    check_shared_bus(settings)
     return settings
+
+
+def check_shared_bus(settings: Settings) -> None:
+    """Open and close the one bus all runs would share (``--can``, a SocketCAN interface):
+    one that cannot be opened (no such interface, no SocketCAN in this kernel) is refused with
+    the line its emulator would print (:func:`hal.bus.open_bus`) before any run, instead of
+    failing every run. Private per-run buses are each opened by their own run."""
+    from hal.bus import open_bus
+    from hal.config import load_config
+
+    if settings.private_buses():
+        return
+    cfg = load_config(settings.config)
+    if settings.hardware_profile() == "cia402":  # classic frames, at the drives' bit rate
+        bus = open_bus(settings.shared_bus(), bitrate=cfg.cia402.bitrate, fd=False)
+    else:
+        bus = open_bus(settings.shared_bus())
+    bus.shutdown()
 
 
 def run_on(
@@ -315,7 +336,7 @@ def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: 
         TimeRemainingColumn,
     )
 
-    from rt_controller.rig.experiment import batches, run_batch
+    from rt_controller.rig.experiment import EXPERIMENTS, batches, run_batch
     from rt_controller.sweep.executor import Tasks, request_stop, stop_name
 
     columns = (
@@ -331,6 +352,7 @@ def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: 
     jobs = settings.effective_jobs() if local else cl.workers if settings.parallel() else 1
     queue = batches(list(runs.values()), settings, jobs)
     failed_in_a_row = 0
+    name = "all" if settings.experiments == EXPERIMENTS else " ".join(settings.experiments)
     with (
         Progress(*columns, console=console, transient=False) as progress,
         Tasks(cl, prefix) as tasks,
@@ -350,7 +372,7 @@ def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: 
                 progress.update(task, description=labels)
                 for run in _take(tasks, runs):
                     progress.advance(task)
-                    failed_in_a_row = _report_run(progress.console, run, failed_in_a_row)
+                    failed_in_a_row = _report_run(progress.console, run, failed_in_a_row, name)
         finally:
             if len(tasks):  # stopped: the running tasks stop their rigs; wait for them
                 request_stop(cl, stop)
@@ -374,8 +396,9 @@ def _take(tasks: Any, runs: dict[str, RunResult]) -> list[RunResult]:
     return [runs[r.spec.name] for r in done]
 
 
-def _report_run(console: Console, run: RunResult, failed_in_a_row: int) -> int:
-    """One finished run's line; the count of failures in a row after it."""
+def _report_run(console: Console, run: RunResult, failed_in_a_row: int, experiment: str) -> int:
+    """One finished run's line; the count of failures in a row after it (at the limit, the
+    line that ``experiment`` gives up)."""
     if run.status == "ok":
         console.print(
             f"{run.spec.label}: J = {run.J:.4f}, |f_final| = "
@@ -387,7 +410,9 @@ def _report_run(console: Console, run: RunResult, failed_in_a_row: int) -> int:
     console.print(f"[red]{run.spec.label}: FAILED[/] ({_took(run)})")
     failed_in_a_row += 1
     if failed_in_a_row == MAX_CONSECUTIVE_FAILURES:
-        console.print(f"[red]{failed_in_a_row} failures in a row: giving up on the sweep[/]")
+        console.print(
+            f"[red]{failed_in_a_row} failures in a row: giving up on hil experiment {experiment}[/]"
+        )
     return failed_in_a_row
 
 

@@ -165,6 +165,7 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
             "",
             t1["markdown"],
             "",
+            *_left_out(t1["rows"]),
             "The same values in run order (seed by seed):",
             "",
             "| Horizon length | "
@@ -189,6 +190,18 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
                for f in res["failures"]]  # fmt: skip
         md.append("")
     return "\n".join(md)
+
+
+def _left_out(rows: list[dict[str, Any]]) -> list[str]:
+    """The note under Table I naming the runs its averages leave out (failed or not run)."""
+    names = [f"`{name}`" for row in rows for name in row.get("failed", [])]
+    if not names:
+        return []
+    return [
+        f"Not in the table nor its averages (failed or not run, see Runs): {', '.join(names)}; "
+        "an average over fewer runs than the row has says how many, e.g. (4 of 5).",
+        "",
+    ]
 
 
 def _bus_text(runs: list[dict[str, Any]]) -> str:

@@ -42,29 +42,44 @@ def _mean(values: Sequence[float | None]) -> float | None:
     return float(np.mean(ok)) if ok and len(ok) == len(values) else None
 
 
+def ok_value(run: RunResult, value: float | None) -> float | None:
+    """``value`` (a figure of ``run``) if the run ended ok, else None: a failed run's J (one
+    cut short, or not clean) never enters a table's aggregate or a claim."""
+    return value if run.status == "ok" else None
+
+
 def table1_rows(specs: list[RunSpec], runs: dict[str, RunResult]) -> list[dict[str, Any]]:
-    """One row per horizon: J per rep (seed order), sorted ascending, average, N, seeds."""
+    """One row per horizon: J per rep (seed order; None for a run that failed or did not run),
+    sorted ascending, their average and how many runs it averages, N, seeds."""
     rows = []
     for h in HORIZONS_S:
         mine = [runs[s.name] for s in specs if s.horizon_s == h]
-        js = [r.J for r in mine]
+        js = [ok_value(r, r.J) for r in mine]
+        ok = [j for j in js if j is not None]
         rows.append(
             {
                 "horizon_s": h,
                 "steps": mine[0].config.rhc.steps,
                 "seeds": [r.spec.seed for r in mine],
                 "J": js,
-                "J_sorted": sorted(j for j in js if j is not None),
-                "average": _mean(js),
-                "J_steady": [r.J_steady for r in mine],
+                "J_sorted": sorted(ok),
+                "average": float(np.mean(ok)) if ok else None,
+                "average_count": len(ok),
+                "J_steady": [ok_value(r, r.J_steady) for r in mine],
                 "failed": [r.spec.name for r in mine if r.status != "ok"],
             }
         )
     return rows
 
 
+def _complete(row: dict[str, Any]) -> bool:
+    """Whether a Table I row's average is over all its runs (rows without a count: if set)."""
+    return row["average"] is not None and row.get("average_count", len(row["J"])) == len(row["J"])
+
+
 def table1_markdown(rows: list[dict[str, Any]], digits: int = 3) -> str:
-    """Rows like the paper's Table I: ``T = 0.02 s | 1st .. Nth (ascending) | average``."""
+    """Rows like the paper's Table I: ``T = 0.02 s | 1st .. Nth (ascending) | average``; an
+    average over fewer than the row's runs (some failed or did not run) says so: ``(4 of 5)``."""
     reps = max(len(r["J"]) for r in rows)
     head = ["Horizon length", *(ordinal(i + 1) for i in range(reps)), "average"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (reps + 1)]
@@ -72,6 +87,8 @@ def table1_markdown(rows: list[dict[str, Any]], digits: int = 3) -> str:
         cells = [f"{j:.{digits}f}" for j in r["J_sorted"]]
         cells += ["—"] * (reps - len(cells))
         avg = "—" if r["average"] is None else f"{r['average']:.{digits}f}"
+        if r["average"] is not None and not _complete(r):  # some runs failed or did not run
+            avg += f" ({r['average_count']} of {len(r['J'])})"
         lines.append(f"| T = {fmt_t(r['horizon_s'])} s | " + " | ".join([*cells, avg]) + " |")
     return "\n".join(lines)
 
@@ -193,8 +210,8 @@ def build_results(
             res[exp] = {
                 "noise_px": specs[0].noise_px,
                 "seed": specs[0].seed,
-                "J": {key(s): runs[s.name].J for s in specs},
-                "J_steady": {key(s): runs[s.name].J_steady for s in specs},
+                "J": {key(s): ok_value(runs[s.name], runs[s.name].J) for s in specs},
+                "J_steady": {key(s): ok_value(runs[s.name], runs[s.name].J_steady) for s in specs},
                 "runs": {key(s): s.name for s in specs},
                 "figures": figs,
             }
@@ -284,7 +301,7 @@ def claims(
 def _horizon_values(res: dict[str, Any]) -> tuple[str, dict[str, float] | None]:
     if "table1" in res:
         rows = res["table1"]["rows"]
-        if all(r["average"] is not None for r in rows):
+        if all(_complete(r) for r in rows):  # averages over every run of each row
             return "Table I", {f"{fmt_t(r['horizon_s'])}": r["average"] for r in rows}
     if "fig4" in res and all(v is not None for v in res["fig4"]["J"].values()):
         return "Fig. 4", dict(res["fig4"]["J"])
