@@ -22,11 +22,14 @@ from __future__ import annotations
 
 import atexit
 import configparser
+import contextlib
 import errno
 import ipaddress
+import logging
 import socket
 import threading
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -215,6 +218,38 @@ def _transport_error(
     )
 
 
+SOCKETCAN_LOGGER = "can.interfaces.socketcan.socketcan"
+"""python-can's SocketCAN logger, which logs its own line when it cannot open a device."""
+
+
+@contextlib.contextmanager
+def _socketcan_logs_held() -> Iterator[None]:
+    """Hold what python-can's SocketCAN logger says in this thread while a bus opens: passed on
+    if the open succeeds, dropped if it fails (python-can logs "Could not access SocketCAN device
+    vcan0" before raising; our one-line error says it and what to do). Other threads' records
+    pass untouched."""
+    logger = logging.getLogger(SOCKETCAN_LOGGER)
+    me = threading.get_ident()
+    held: list[logging.LogRecord] = []
+
+    def hold(record: logging.LogRecord) -> bool:
+        if record.thread != me:
+            return True
+        held.append(record)
+        return False
+
+    logger.addFilter(hold)
+    try:
+        yield
+    except BaseException:
+        held.clear()
+        raise
+    finally:
+        logger.removeFilter(hold)
+        for record in held:
+            logger.handle(record)
+
+
 CANFD_MTU = 72
 
 
@@ -254,7 +289,8 @@ def open_bus(
         socketcan = resolved.interface == "socketcan"
         if socketcan and options.setdefault("fd", True):  # the DSP's 16-byte FD frames (SecOC)
             _check_fd_mtu(resolved.channel or DEFAULT_VCAN)
-        return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
+        with _socketcan_logs_held():
+            return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
     except HalTransportError:  # already one line saying what to do (e.g. a refused group)
         raise
     except (can.CanError, OSError, ValueError, ImportError) as exc:

@@ -204,7 +204,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             stack.callback(publisher.close)
             link = PoseLink(publisher)
             listening = publisher.has_subscribers
-            zenoh_where = f", camera poses on zenoh {session.endpoint}"
+            zenoh_where = f", camera poses on zenoh {zenoh_where_of(session)}"
             if args.camera and cfg.camera.model == "image":
                 from plant_emulator.camera_link import start_camera
 
@@ -299,6 +299,25 @@ def callback_errors_text(summary: dict[str, Any]) -> str:
     """The text summary's part for ``callback_errors`` (empty without a session)."""
     n = summary.get("callback_errors")
     return "" if n is None else f", {n} zenoh callback errors"
+
+
+def zenoh_where_of(session: Any) -> str:
+    """Where the banner says the zenoh session is: its loopback endpoint, or for a
+    ``--zenoh-config`` file the endpoints that file makes it listen on (connect to, if none),
+    e.g. ``tcp/127.0.0.1:7447 (listen endpoints of hub.json5)``: the file's name alone does not
+    tell a user where to point the other processes."""
+    if session.source == "loopback":
+        return str(session.endpoint)
+    import zenoh
+
+    zcfg = zenoh.Config.from_file(session.source)  # opened already: it parses
+    for role in ("listen", "connect"):
+        found = json.loads(zcfg.get_json(f"{role}/endpoints") or "[]")
+        if isinstance(found, dict):  # per mode: {"router": [...], "peer": [...]}
+            found = found.get(session.mode) or []
+        if found:
+            return f"{', '.join(map(str, found))} ({role} endpoints of {session.source})"
+    return f"no endpoints of {session.source}"
 
 
 @contextlib.contextmanager

@@ -64,7 +64,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
 
     from hal.bus import open_bus, process_spec
     from plant_emulator.cia402.rig import Cia402Rig
-    from plant_emulator.entry import callback_errors_text, with_callback_errors
+    from plant_emulator.entry import callback_errors_text, with_callback_errors, zenoh_where_of
 
     cfg = _config(args)
 
@@ -88,7 +88,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             publisher = PosePublisher(session, key=rig_key(cfg))
             stack.callback(publisher.close)
             poses = PoseLink(publisher)
-            zenoh_where = f", camera poses on zenoh {session.endpoint}"
+            zenoh_where = f", camera poses on zenoh {zenoh_where_of(session)}"
             if args.camera and cfg.camera.model == "image":
                 from plant_emulator.camera_link import start_camera
 

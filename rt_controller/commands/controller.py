@@ -16,6 +16,7 @@ from rt_controller.commands.common import (
 )
 
 if TYPE_CHECKING:
+    from hal.bus import BusSpec
     from hal.config import RigConfig
     from rt_controller.runtime.daemon import DaemonOptions
 
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if args.log is not None:  # before the daemon opens its links
         output_file(args.log, "--log", replace=args.force)
     cfg = with_command_line(config_from_args(args), args)
-    process_spec(cfg.transport.can)  # the DSP is another process: not python-can's virtual bus
+    bus = process_spec(cfg.transport.can)  # another process: not python-can's virtual bus
     cfg = configure_key(cfg, args.key_file, "hil controller")
     opts = daemon_options(args)
     with stop_on_signals() as stop:
@@ -113,8 +114,17 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         summary = daemon.run()
-    print_summary(summary, args.json, "hil controller")
+    print_summary(shown(summary, bus, args.json), args.json, "hil controller")
     return verdict(summary, "hil controller")
+
+
+def shown(summary: dict, bus: BusSpec, as_json: bool) -> dict:
+    """The summary as printed: ``can`` names the bus the run opened (``auto`` resolved, as in
+    ``hil up``), and the table shows the counter blocks as ``hil up``'s does."""
+    from rt_controller.commands.up import table_view
+
+    out = {**summary, "can": str(bus)} if "can" in summary else summary
+    return out if as_json else table_view(out)
 
 
 def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
@@ -150,6 +160,7 @@ def daemon_options(args: argparse.Namespace) -> DaemonOptions:
 
 def run_plan_command(args: argparse.Namespace) -> int:
     """``--plan``: every run of the plan, one summary each; 1 when any run was not clean."""
+    from hal.bus import process_spec
     from hal.config import load_config
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
@@ -182,9 +193,11 @@ def run_plan_command(args: argparse.Namespace) -> int:
     check_started_seed(runs[0], cfgs[0], load_config(args.config))
     opts = daemon_options(args)
     unclean: list[str] = []
+    buses = {run.name: process_spec(c.transport.can) for run, c in zip(runs, cfgs, strict=True)}
 
     def emit(summary: dict) -> None:
-        print_summary(summary, args.json, f"hil controller: run {summary['run']}")
+        title = f"hil controller: run {summary['run']}"
+        print_summary(shown(summary, buses[summary["run"]], args.json), args.json, title)
         sys.stdout.flush()
         if summary["problems"]:
             unclean.append(f"{summary['run']}: {'; '.join(summary['problems'])}")
