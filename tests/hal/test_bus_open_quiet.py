@@ -2,8 +2,8 @@
 "Could not access SocketCAN device ..." log line is not shown as well.
 
 On a kernel without SocketCAN (AF_CAN) python-can fails before it logs; on one with SocketCAN
-(user-mode Linux: ``scripts/vcan_pytest.py --exec -- python -m pytest THIS_FILE``) it logs
-that line for a missing interface, which is what this checks."""
+(user-mode Linux, where ``scripts/vcan_pytest.py`` runs the ``vcan`` tests) it logs that line
+for a missing interface, which is what this checks."""
 
 from __future__ import annotations
 
@@ -16,6 +16,8 @@ from hal.errors import HalTransportError
 
 MISSING = "socketcan:hilnope0"
 """An interface that cannot exist (not vcan0, not a real adapter)."""
+
+pytestmark = pytest.mark.vcan  # run where SocketCAN exists (user-mode Linux): it can fail there
 
 
 def test_a_missing_socketcan_interface_logs_nothing_from_python_can(
