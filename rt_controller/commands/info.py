@@ -115,7 +115,7 @@ def render(info: dict[str, Any]) -> str:
         ("deadline misses", f"{_fmt(info['deadline_misses'])} "
          f"({_fmt(info['missed_periods'])} missed periods)"),
         *((("ended", _ended(info)),) if info.get("end_reason") else ()),
-        *((("parameter requests", _parameters(p)),) if (p := info.get("parameters")) else ()),
+        *((("parameters", _parameters(p)),) if (p := info.get("parameters")) else ()),
         ("problems", "; ".join(info["problems"]) or "none"),
         *(("warning", w) for w in info.get("warnings") or ()),
         *((("recovered", info["recovered"]["line"]),) if info.get("recovered") else ()),

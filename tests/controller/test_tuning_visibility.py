@@ -79,7 +79,7 @@ def test_hil_info_shows_the_parameter_requests(run_log, capsys):
     assert json.loads(capsys.readouterr().out)["parameters"] == COUNTS
     assert main(["info", str(log)]) == 0
     lines = capsys.readouterr().out.splitlines()
-    said = [line for line in lines if line.startswith("parameter requests:")]
+    said = [line for line in lines if line.startswith("parameters:")]
     assert len(said) == 1, lines
     assert said[0].endswith("2 accepted, 1 refused, 3 unauthenticated, 1 failed")
 
@@ -90,7 +90,7 @@ def test_hil_info_of_a_run_without_the_parameter_service_says_nothing_of_it(run_
     assert main(["info", str(log), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["parameters"] == {}
     assert main(["info", str(log)]) == 0
-    assert "parameter requests" not in capsys.readouterr().out
+    assert "\nparameters:" not in capsys.readouterr().out
 
 
 STOPPED = {"ticks": 12, "planned_ticks": 500, "end_reason": "stopped", "stop_signal": "SIGINT",
