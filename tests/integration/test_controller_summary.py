@@ -5,43 +5,22 @@ Python dicts."""
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 
 import pytest
 
 from hal.bus import isolated_spec
-from tests.support import REPO, free_endpoint, hil_command
+from tests.support import REPO, free_endpoint, hil_command, start_hil, stop_hil
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
-
-
-def _start(args: list[str]) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*hil_command(), *args],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-        cwd=REPO,
-    )
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:  # pragma: no cover - only on a hang
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
 
 
 def test_a_lone_controller_names_its_bus_and_words_its_counters(tmp_path) -> None:
     can, ep = isolated_spec("udp_multicast"), free_endpoint()
     group_port = can.partition(":")[2]
     common = ["--zenoh-endpoint", ep, "--key-file", os.environ["HIL_KEY_FILE"]]
-    emulator = _start(["emulator", "--can", can, *common])
-    vision = _start(["vision", *common, "--wait", "60"])
+    emulator = start_hil(["emulator", "--can", can, *common])
+    vision = start_hil(["vision", *common, "--wait", "60"])
     # no --can: transport.can = auto, here python-can's configuration (the isolated bus)
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAN_")}
     env.update(CAN_INTERFACE="udp_multicast", CAN_CHANNEL=group_port, COLUMNS="200")
@@ -56,8 +35,8 @@ def test_a_lone_controller_names_its_bus_and_words_its_counters(tmp_path) -> Non
             env=env,
         )
     finally:
-        _stop(vision)
-        _stop(emulator)
+        stop_hil(vision)
+        stop_hil(emulator)
     assert ctl.returncode == 0, ctl.stderr
     rows = {
         cells[1].strip(): cells[2].strip()

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import time
 
@@ -22,33 +21,12 @@ from hal.bus import isolated_spec
 from hal.config import load_config
 from rt_controller.logtools.reader import read_log
 from rt_controller.runtime.host_steal import DISTURBED_STEAL_PERCENT
-from tests.support import REPO, free_endpoint, hil_command
+from tests.support import REPO, free_endpoint, hil_command, start_hil, stop_hil
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
 CFG = load_config()
 PERIOD_S = CFG.rates.control_period_ns / 1e9
-
-
-def _start(args: list[str]) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*hil_command(), *args],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        cwd=REPO,
-    )
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:  # pragma: no cover - only on a hang
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
 
 
 def jump_tick(f: np.ndarray) -> int | None:
@@ -62,8 +40,8 @@ def jump_tick(f: np.ndarray) -> int | None:
 def test_a_late_controller_still_runs_the_paper_scenario(tmp_path):
     can, ep = isolated_spec("udp_multicast"), free_endpoint()
     common = ["--zenoh-endpoint", ep, "--key-file", os.environ["HIL_KEY_FILE"]]
-    emulator = _start(["emulator", "--can", can, *common])
-    vision = _start(["vision", *common, "--wait", "60"])
+    emulator = start_hil(["emulator", "--can", can, *common])
+    vision = start_hil(["vision", *common, "--wait", "60"])
     try:
         # well past the scenario's jump on the emulator's own clock
         time.sleep(CFG.scenario.jump_time + 1.5)
@@ -80,8 +58,8 @@ def test_a_late_controller_still_runs_the_paper_scenario(tmp_path):
         assert ctl.returncode == 0, ctl.stderr
         summary = json.loads(ctl.stdout.strip().splitlines()[-1])
     finally:
-        _stop(vision)
-        _stop(emulator)
+        stop_hil(vision)
+        stop_hil(emulator)
     cycles = read_log(log, raw=False).cycles
     f = cycles["f"]
     # the first law tick sees the scenario's start, not a target that already jumped

@@ -104,6 +104,29 @@ def hil_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
 
 
+def start_hil(args: list[str]) -> subprocess.Popen:
+    """``hil ARGS`` in the background from the repository root, in a session of its own (its
+    children with it), output discarded; end it with :func:`stop_hil`."""
+    return subprocess.Popen(
+        [*hil_command(), *args],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+        cwd=REPO,
+    )
+
+
+def stop_hil(proc: subprocess.Popen) -> None:
+    """SIGTERM to the session of a :func:`start_hil` process, SIGKILL after 15 s; reaped."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:  # pragma: no cover - only on a hang
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
 def run_hil(args: list[str], timeout_s: float) -> subprocess.CompletedProcess[str]:
     """Run ``hil ARGS`` from the repository root in its own session; on a hang, kill the whole
     session (the rig's children too) and re-raise ``TimeoutExpired``."""
