@@ -10,8 +10,8 @@ over a tick. Unless ``--no-vision-link``, the camera pose after each SYNC goes o
 the vision process (with ``camera.model = "image"`` the emulated camera renders and streams
 frames from them, unless ``--no-camera``), and the harness's scenario resets are taken from
 ``hil/sim/control``, as with the emulated DSP.
-SIGTERM / SIGINT or ``--duration`` (simulated seconds) end it with exit status 0; ``--json``
-prints the final counters.
+SIGTERM / SIGINT or ``--duration`` (simulated seconds in lockstep, wall seconds in realtime) end
+it with exit status 0; ``--json`` prints the final counters.
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         )
         t0 = time.monotonic()
         while not stop.wait(WAIT_SLICE_S):
-            if args.duration and rig.world.t >= args.duration:
+            if args.duration and _elapsed(rig, t0, lockstep) >= args.duration:
                 break
         wall_s = time.monotonic() - t0
         summary = with_callback_errors(_summary(rig, where, wall_s, poses), session)
@@ -132,6 +132,13 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
             flush=True,
         )
     return 0
+
+
+def _elapsed(rig: Cia402Rig, t0: float, lockstep: bool) -> float:
+    """Seconds ``--duration`` counts: simulated in lockstep (the world waits for the
+    controller), wall in realtime (as the DSP profile's; the world's clock holds while no
+    drive is enabled, so it alone would never end a run without a master)."""
+    return rig.world.t if lockstep else time.monotonic() - t0
 
 
 _FAULTS = {

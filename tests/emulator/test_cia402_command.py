@@ -112,3 +112,28 @@ def test_the_emulator_command_serves_two_drives_that_fault_when_sync_stops(tmp_p
     assert summary["sim_time_s"] == 0.0  # no drive was enabled: the world's clock held
     assert [d["state"] for d in summary["drives"]] == ["FAULT", "FAULT"]
     assert [d["emcys"] for d in summary["drives"]] == [["0x8700"], ["0x8700"]]
+
+
+def test_duration_counts_wall_seconds_in_realtime_when_no_master_syncs(tmp_path):
+    """In realtime ``--duration`` is wall time (as the DSP profile's): with no master sending
+    SYNC the world's clock holds, and the emulator must still end when its seconds are up."""
+    config = tmp_path / "rig.toml"
+    config.write_text('[hardware]\nprofile = "cia402"\n')
+    args = ["emulator", "--can", isolated_spec("udp_multicast"), "--config", str(config)]
+    proc = subprocess.Popen(
+        [*hil_command(), *args, "--no-vision-link", "--duration", "1", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        cwd=REPO,
+    )
+    try:
+        out, err = proc.communicate(timeout=START_TIMEOUT_S + 1.0)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"--duration 1 did not end the emulator:\n{err}")
+    assert proc.returncode == 0, err
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["syncs"] == 0 and summary["sim_time_s"] == 0.0
