@@ -33,8 +33,6 @@ from hal.drive_state import DriveState, FaultReason
 from plant_emulator.arm import Encoder
 from plant_emulator.dsp_node import DspNode, DspStats
 
-LOCKSTEP_REPLY_TIMEOUT_S = 0.5
-"""Real time the lockstep DSP waits for the command of one period before counting it missing."""
 SYNC_RESEND_S = 0.04
 """Real time without the period's command after which state and Sync(k) are re-sent."""
 
@@ -49,17 +47,20 @@ class LockstepDsp(DspNode):
         cfg: Any,
         bus: Any,
         *,
-        reply_timeout_s: float = LOCKSTEP_REPLY_TIMEOUT_S,
+        reply_timeout_s: float | None = None,
         sync_resend_s: float = SYNC_RESEND_S,
         wait_for_controller: bool = True,
         **kwargs: Any,
     ) -> None:
-        """``reply_timeout_s``, ``sync_resend_s``: the waits for a period's command (real time,
-        see the module docstring); ``wait_for_controller``: hold period 0 until the first
-        command arrives (``False`` counts it missing after ``reply_timeout_s`` like any
-        other); the other options are :class:`~plant_emulator.dsp_node.DspNode`'s."""
+        """``reply_timeout_s`` (default ``dsp.lockstep_reply_timeout_s``), ``sync_resend_s``: the
+        waits for a period's command (real time, see the module docstring);
+        ``wait_for_controller``: hold period 0 until the first command arrives (``False``
+        counts it missing after ``reply_timeout_s`` like any other); the other options are
+        :class:`~plant_emulator.dsp_node.DspNode`'s."""
         super().__init__(cfg, bus, **kwargs)
-        self.reply_timeout_s = reply_timeout_s
+        self.reply_timeout_s = (
+            cfg.dsp.lockstep_reply_timeout_s if reply_timeout_s is None else reply_timeout_s
+        )
         self.sync_resend_s = sync_resend_s
         self.sync_tick = 0
         self._awaiting_controller = wait_for_controller
@@ -234,4 +235,4 @@ class LockstepDsp(DspNode):
         return self.stats
 
 
-__all__ = ["LOCKSTEP_REPLY_TIMEOUT_S", "SYNC_RESEND_S", "LockstepDsp"]
+__all__ = ["SYNC_RESEND_S", "LockstepDsp"]

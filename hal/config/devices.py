@@ -29,6 +29,10 @@ class DspConfig:
     """Joint speed limits, rad/s: with operation enabled, exceeding one faults the DSP
     (VELOCITY_LIMIT). The paper scenario's live runs peak near 1.2 and 8.3 rad/s (the light
     elbow swings fast after the first torque); a runaway arm passes 20 rad/s within a second."""
+    lockstep_reply_timeout_s: float = 0.5
+    """Lockstep: real time the DSP waits for a period's command before it counts the period
+    missing and steps with the held torque (the watchdog then counts it). Raise it on a host so
+    loaded that the controller stalls this long: each missing period makes the run unclean."""
     rt_priority: int = 70
     """Realtime: SCHED_FIFO priority of the DSP loop's thread (best effort; 0 = normal
     scheduling). The emulator stands in for hardware that is never starved: without it, a busy

@@ -81,6 +81,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "dsp.velocity_filter_hz": (0, 100_000, "[]"),
     "dsp.state_lead_us": (0, 1e6, "[]"),
     "dsp.rt_priority": (0, 99, "[]"),
+    "dsp.lockstep_reply_timeout_s": (0, 600, "(]"),
     "dsp.q_min": (-50, 50, "[]"),
     "dsp.q_max": (-50, 50, "[]"),
     "dsp.dq_max": (0, 83, "(]"),

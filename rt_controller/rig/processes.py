@@ -60,9 +60,6 @@ from rt_controller.rig.supervise import (
 from rt_controller.runtime.counters import run_problems
 
 STOP_TIMEOUT_S = 10.0
-LOCKSTEP_MISSING_PERIOD_S = 0.5
-"""Real time a lockstep DSP waits for a period's command before it counts the period missing
-(``plant_emulator.dsp_lockstep.LOCKSTEP_REPLY_TIMEOUT_S``): its watchdog counts such periods."""
 TRIP_MARGIN_S = 1.0
 """How much longer than its watchdog time the supervisor waits for a DSP's trip after the
 controller died (a loaded host delays the emulator's loop)."""
@@ -296,7 +293,9 @@ class Rig:
         if emulator is None or emulator.proc.poll() is not None:
             return
         cfg = load_config(self.opts.config)
-        period = LOCKSTEP_MISSING_PERIOD_S if self.opts.lockstep else 1 / cfg.rates.control_hz
+        # a lockstep DSP counts a period missing after dsp.lockstep_reply_timeout_s of real time
+        lockstep_period = cfg.dsp.lockstep_reply_timeout_s
+        period = lockstep_period if self.opts.lockstep else 1 / cfg.rates.control_hz
         deadline = time.monotonic() + cfg.dsp.watchdog_periods * period + TRIP_MARGIN_S
         while time.monotonic() < deadline and emulator.proc.poll() is None:
             if WATCHDOG_TRIP_LINE in emulator.tail(50):

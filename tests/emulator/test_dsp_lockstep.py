@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hal.config import RigConfig
+from hal.config import RigConfig, config_from_dict
 from tests.support.dsp import (
     RECV_TIMEOUT_S,
     TRANSPORTS,
@@ -121,11 +121,13 @@ def test_lockstep_ignores_late_and_wrong_tick_commands(cfg: RigConfig, transport
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_lockstep_watchdog_counts_periods(cfg: RigConfig, transport: str) -> None:
-    """Commands for periods 0..4 only: the DSP trips at period 7 (3 periods of silence)."""
-    with rig(cfg, transport, lockstep=True, reply_timeout_s=0.05, sync_resend_s=0.02) as (
-        node,
-        client,
-    ):
+    """Commands for periods 0..4 only: the DSP trips at period 7 (3 periods of silence). The
+    wait for each missing period is the configuration's ``dsp.lockstep_reply_timeout_s``."""
+    data = cfg.to_dict()
+    data["dsp"]["lockstep_reply_timeout_s"] = 0.05
+    cfg = config_from_dict(data)
+    with rig(cfg, transport, lockstep=True, sync_resend_s=0.02) as (node, client):
+        assert node.reply_timeout_s == 0.05
         client.enable()
         for k in range(5):
             client.send_torque(3.0, 0.3, tick=k)
