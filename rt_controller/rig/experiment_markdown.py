@@ -174,12 +174,10 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
             "|---|" + "---:|" * (len(t1["seeds"]) + 1),
         ]
         for row in t1["rows"]:
-            ok = row["J_sorted"]
-            spread = f"{ok[-1] - ok[0]:.4f}" if ok else "—"
             md.append(
                 f"| T = {fmt_t(row['horizon_s'])} s | "
                 + " | ".join(_j(j) for j in row["J"])
-                + f" | {spread} |"
+                + f" | {_spread(row)} |"
             )
         md += ["", *(f"![{p}]({p})" for p in t1["figures"]), ""]
         md += ["The paper's Table I (its own J scale, see below):", "", paper_table1_markdown(), ""]
@@ -192,6 +190,16 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
     return "\n".join(md)
 
 
+def _spread(row: dict[str, Any]) -> str:
+    """A Table I row's max - min over its runs that ended ok: "—" under two (one run has no
+    spread), and over fewer than the row's runs it says how many, as the average does."""
+    ok = row["J_sorted"]
+    if len(ok) < 2:
+        return "—"
+    text = f"{ok[-1] - ok[0]:.4f}"
+    return text if len(ok) == len(row["J"]) else f"{text} ({len(ok)} of {len(row['J'])})"
+
+
 def _left_out(rows: list[dict[str, Any]]) -> list[str]:
     """The note under Table I naming the runs its averages leave out (failed or not run)."""
     names = [f"`{name}`" for row in rows for name in row.get("failed", [])]
@@ -199,7 +207,7 @@ def _left_out(rows: list[dict[str, Any]]) -> list[str]:
         return []
     return [
         f"Not in the table nor its averages (failed or not run, see Runs): {', '.join(names)}; "
-        "an average over fewer runs than the row has says how many, e.g. (4 of 5).",
+        "an average or spread over fewer runs than the row has says how many, e.g. (4 of 5).",
         "",
     ]
 
@@ -232,7 +240,7 @@ def _noise_note(res: dict[str, Any]) -> list[str]:
     ours = []
     for row in res["table1"]["rows"]:
         js, avg = row["J_sorted"], row["average"]
-        if js and avg:
+        if len(js) > 1 and avg:  # one run has no spread
             ours.append(f"T = {fmt_t(row['horizon_s'])} s: {100 * (js[-1] - js[0]) / avg:.2f} %")
     paper = ", ".join(
         f"T = {fmt_t(h)} s: {100 * (v[-1] - v[0]) / a:.1f} %" for h, (v, a) in PAPER_TABLE1.items()
