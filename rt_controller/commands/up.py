@@ -166,7 +166,8 @@ def _print(summary: dict | None, as_json: bool) -> None:
 def table_view(summary: dict) -> dict:
     """The summary as the table shows it: of :data:`NONZERO_ONLY` only the counters that are
     not zero (nested blocks flattened to ``block.key``), the DSP's watchdog account, the
-    log's contents and the outages in words."""
+    log's contents and the outages in words, every other block as ``accepted 2, refused 0``
+    (``none`` when empty): never a Python dict."""
     from rt_controller.rig.ending import contents_words, dsp_words, end_words
 
     out = dict(summary)
@@ -186,20 +187,30 @@ def table_view(summary: dict) -> dict:
     if isinstance(out.get("outages"), dict):
         o = out["outages"]
         out["outages"] = f"{o.get('count', 0)} (longest {o.get('longest_ticks', 0)} ticks)"
+    for key, value in out.items():  # every other block (drive_ticks, parameters, ...)
+        if isinstance(value, dict):
+            out[key] = ", ".join(f"{k} {v}" for k, v in flat(value).items()) or "none"
+    return out
+
+
+def flat(counts: dict, prefix: str = "") -> dict:
+    """``counts`` with nested dicts flattened to dotted keys:
+    ``{"can_rx": {"crc": 2, "ok": 0}}`` -> ``{"can_rx.crc": 2, "can_rx.ok": 0}``."""
+    out: dict = {}
+    for key, value in counts.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flat(value, f"{name}."))
+        else:
+            out[name] = value
     return out
 
 
 def nonzero(counts: dict, prefix: str = "") -> dict:
     """The counters of ``counts`` that are not zero (or empty), nested dicts flattened to
     dotted keys: ``{"can_rx": {"crc": 2, "ok": 0}}`` -> ``{"can_rx.crc": 2}``."""
-    out: dict = {}
-    for key, value in counts.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(nonzero(value, f"{name}."))
-        elif value not in (0, None, False, "", [], 0.0):
-            out[name] = value
-    return out
+    zero = (0, None, False, "", [], 0.0)
+    return {k: v for k, v in flat(counts, prefix).items() if v not in zero}
 
 
 def _effective_config(args: argparse.Namespace) -> str | None:
