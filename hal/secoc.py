@@ -55,7 +55,9 @@ import os
 import secrets
 import stat
 import struct
+import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -181,6 +183,33 @@ def key_path(cfg: Any = None) -> str:
     """The configured key file: ``cfg.transport.key_file``, else ``$HIL_KEY_FILE``, else ""."""
     path = getattr(getattr(cfg, "transport", None), "key_file", "") if cfg is not None else ""
     return path or os.environ.get(KEY_ENV, "")
+
+
+class AnotherKeyNotice:
+    """Says once on stderr that ``what`` arrive signed with another rig key (their MAC does not
+    verify: ``bad_mac``, every one dropped) and which options give the key: a receiver that
+    only counted them would look like a broken link. Thread-safe (zenoh calls back from several
+    threads)."""
+
+    def __init__(self, prog: str, what: str, peer: str = "the emulator's") -> None:
+        self.text = (
+            f"{prog}: warning: {what} are signed with another rig key (bad_mac), every one is "
+            f"dropped: give {prog} {peer} key (--key-file, transport.key_file or ${KEY_ENV})"
+        )
+        self._said = False
+        self._lock = threading.Lock()
+
+    def say(self) -> None:
+        """Print :attr:`text` the first time only."""
+        with self._lock:
+            said, self._said = self._said, True
+        if not said:
+            print(self.text, file=sys.stderr, flush=True)
+
+
+def bad_mac_clause(n: int) -> str:
+    """An end line's clause for ``n`` messages dropped as ``bad_mac`` ("" for none)."""
+    return f", {n} dropped as bad_mac (another rig key)" if n else ""
 
 
 _loaded: dict[tuple[str, int, int, int], bytes] = {}

@@ -146,10 +146,14 @@ def run_from_args(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(stats.as_dict()), flush=True)
     else:
+        from hal.secoc import bad_mac_clause
+
+        bad_mac = stats.pose_rx.get("bad_mac", 0)
         print(
             f"hil vision: {stats.poses} poses, {stats.frames} frames, "
-            f"{stats.published} messages published, {stats.pose_rx.get('rejected', 0)} poses "
-            "rejected",
+            f"{stats.published} messages published, "
+            f"{stats.pose_rx.get('rejected', 0) - bad_mac} poses rejected"
+            + bad_mac_clause(bad_mac),
             flush=True,
         )
     return 0

@@ -59,7 +59,7 @@ import zenoh
 
 from hal.config import RigConfig, plant_view
 from hal.errors import HalError
-from hal.secoc import rig_key
+from hal.secoc import AnotherKeyNotice, rig_key
 from hal.vision_codec import FeatureMsg, PoseMsg, encode_features, is_resend
 from hal.vision_receivers import PoseDecoder
 from hal.zenoh_session import (
@@ -339,6 +339,8 @@ class VisionNode:
         )
         self.key = rig_key(cfg)
         self.decoder = PoseDecoder(key=self.key)
+        self.bad_mac_notice = AnotherKeyNotice("hil vision", "camera poses")
+        """Said at the first pose whose MAC does not verify (counted ``pose_rx.bad_mac``)."""
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._pub = session.publisher(KEY_FEATURES)
@@ -364,6 +366,8 @@ class VisionNode:
         now = time.monotonic_ns()
         pose = self.decoder.feed(payload, now)
         if pose is None:
+            if self.decoder.counts.bad_mac:
+                self.bad_mac_notice.say()
             return
         with self._lock:
             self._publish(self.core.on_pose(pose, now))

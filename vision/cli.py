@@ -15,6 +15,7 @@ import sys
 
 from hal.arguments import zenoh_session_options
 from hal.errors import HalConfigError, HalError
+from hal.secoc import bad_mac_clause
 from hal.signals import stop_on_signals
 
 CAMERA_ONLY = ("fps", "noise", "latency", "seed")
@@ -107,7 +108,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(
             f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
             f"{stats.invalid} without the target{f' ({why})' if why else ''}"
-            + (f", {bad_mac} dropped as bad_mac (another rig key)" if bad_mac else "")
+            + bad_mac_clause(bad_mac)
             + (f", detection p99 {p99:.0f} us" if p99 is not None else "")
             + (
                 f", {stats.callback_errors} frame(s) lost to errors in zenoh callbacks (a bug)"

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import stat
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -35,18 +34,13 @@ from hal.camera_frame import CameraFrame, FrameDecoder, RoiRequest, encode_roi_r
 from hal.durations import Durations
 from hal.errors import HalConfigError, HalTransportError
 from hal.log_topics import IMAGE_TOPIC
+from hal.secoc import AnotherKeyNotice
 from hal.signals import wait_for_stop
 
 FrameSink = Callable[[CameraFrame], None]
 """Receives each frame."""
 RejectSink = Callable[[str], None]
 """Receives the reason of each payload that was not a frame (``malformed``, ``bad_mac``)."""
-BAD_MAC_WARNING = (
-    "hil vision: warning: camera frames are signed with another rig key (bad_mac), every one "
-    "is dropped: give hil vision the emulator's key (--key-file, transport.key_file or "
-    "$HIL_KEY_FILE)"
-)
-"""Said once, at the first camera frame whose MAC does not verify."""
 SOURCE_KINDS = ("emulated", "v4l2", "gst", "file", "log")
 
 
@@ -102,8 +96,8 @@ class EmulatedSource:
     def __init__(self, session: object, key: bytes) -> None:
         self.session = session
         self.key = key
-        self._warned = False
-        self._warn_lock = threading.Lock()
+        self.bad_mac_notice = AnotherKeyNotice("hil vision", "camera frames")
+        """Said at the first camera frame whose MAC does not verify."""
         self.decoder = FrameDecoder(key=key)
         self.pipeline_ns = Durations()
         self.arrival_ns = Durations()
@@ -130,7 +124,7 @@ class EmulatedSource:
                 if frame.lockstep:
                     self.arrival_ns.add(t0 - frame.stamp_ns - frame.exposure_ns // 2)
             elif c.bad_mac > bad_mac:  # not an out-of-order frame: no frame at all
-                self._first_bad_mac()
+                self.bad_mac_notice.say()
                 on_reject("bad_mac")
             elif c.malformed > malformed:
                 on_reject("malformed")
@@ -142,14 +136,6 @@ class EmulatedSource:
             sub.undeclare()
             pub, self._roi_pub = self._roi_pub, None
             pub.undeclare()  # type: ignore[attr-defined]
-
-    def _first_bad_mac(self) -> None:
-        """Say :data:`BAD_MAC_WARNING` once (zenoh may call from several threads)."""
-        with self._warn_lock:
-            if self._warned:
-                return
-            self._warned = True
-        print(BAD_MAC_WARNING, file=sys.stderr, flush=True)
 
 
 class CaptureSource:
