@@ -22,6 +22,7 @@ def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
             text = f"{value:.6g}"
         elif isinstance(value, list):
             text = ", ".join(f"{v:.6g}" if isinstance(v, float) else str(v) for v in value)
+            text = text or "none"  # an empty list (no problems) is not a blank cell
         else:
             text = str(value)
         table.add_row(key, text)
