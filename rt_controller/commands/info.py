@@ -22,11 +22,12 @@ records without a tick: counted per topic) are problems too.
 --json prints one object: log, library, truncated (not all of it was read), damaged (the
 writer finished it, but damaged chunks were skipped), run, config_digest, duration_s, time_axis,
 ticks, first_tick, last_tick, laws, deadline_misses, missed_periods, planned_ticks, end_reason,
-ticks_run (how the run ended, from its final /diagnostics record; null where an older log does
-not say), problems (what makes the run not clean), warnings (what a clean run's summary
-warns of: camera outages, unauthenticated parameter requests refused, ...), rejected ({TOPIC:
-records skipped}), recovered (null, or the hil.recovered record: from, input_bytes,
-kept_bytes, lost_bytes, skipped_bytes, stopped, line), topics ({TOPIC: {messages, schema}}),
+ticks_run, stop_signal (how the run ended and the signal that stopped it, e.g. SIGINT, from its
+final /diagnostics record; null where none did or an older log does not say), problems (what
+makes the run not clean), warnings (what a clean run's summary warns of: camera outages,
+unauthenticated parameter requests refused, ...), rejected ({TOPIC: records skipped}),
+recovered (null, or the hil.recovered record: from, input_bytes, kept_bytes, lost_bytes,
+skipped_bytes, stopped, line), topics ({TOPIC: {messages, schema}}),
 messages, run_info (all hil.run metadata), notes, parameters (the online parameter service's
 requests: accepted, refused, unauthenticated, and failed (in the controller, unanswered) when
 some did; {} when the run had no parameter service).
@@ -90,11 +91,14 @@ def _state(info: dict[str, Any]) -> str:
 
 
 def _ended(info: dict[str, Any]) -> str:
-    """How the run ended: its end reason, the ticks run and those planned."""
+    """How the run ended: its end reason (``stopped by SIGINT``, as ``hil up`` says it), the
+    ticks run and those planned."""
+    from rt_controller.rig.ending import end_words
+
     planned = info.get("planned_ticks")
     of = f" of {planned} planned" if planned is not None else ""
     until = "" if planned is not None else " (no duration: run until stopped)"
-    return f"{info['end_reason']}, after {_fmt(info.get('ticks_run'))}{of} ticks{until}"
+    return f"{end_words(info)}, after {_fmt(info.get('ticks_run'))}{of} ticks{until}"
 
 
 def render(info: dict[str, Any]) -> str:

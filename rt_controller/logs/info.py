@@ -147,16 +147,18 @@ def log_problems(run: Run, ticks: int) -> list[str]:
 
 def run_end(run: Run) -> dict[str, Any]:
     """How the run ended, as its final ``/diagnostics`` record says: ``planned_ticks`` (the
-    ticks its duration asked for; None: until stopped), ``end_reason`` and ``ticks_run``;
-    None each where the log does not say (an older log, or no final record)."""
+    ticks its duration asked for; None: until stopped), ``end_reason``, ``ticks_run`` and
+    ``stop_signal`` (the signal that stopped it, e.g. ``SIGINT``); None each where the log does
+    not say (an older log, or no final record)."""
     final = final_diagnostics(run) or {}
     if not final.get("final"):
         final = {}
-    reason = final.get("end_reason")
+    reason, by = final.get("end_reason"), final.get("stop_signal")
     return {
         "planned_ticks": _int(final.get("planned_ticks")),
         "end_reason": reason if isinstance(reason, str) else None,
         "ticks_run": _int(final.get("tick")) if "end_reason" in final else None,
+        "stop_signal": by if isinstance(by, str) else None,
     }
 
 
@@ -171,6 +173,8 @@ def ended_early(run: Run) -> str | None:
         return None
     when = f"{ticks} of {planned}" if planned is not None else f"{ticks}"
     why = f": {reason}" if reason and reason != "duration" else ""
+    if reason == "stopped" and end["stop_signal"]:
+        why += f" by {end['stop_signal']}"
     return f"the run ended after {when} ticks{why}"
 
 

@@ -12,8 +12,9 @@ from rich.markup import escape
 from rt_controller.logtools.deadline_report import TIMING_FIELDS
 from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC
 
-PARAMETER_COUNTS = ("accepted", "refused", "unauthenticated")
-"""The counters of the ``/diagnostics`` record's ``parameters`` component the report shows."""
+PARAMETER_COUNTS = ("accepted", "refused", "unauthenticated", "failed")
+"""The counters of the ``/diagnostics`` record's ``parameters`` component the report shows
+(``failed`` only where the record has it: some request failed in the controller)."""
 
 
 def _fmt(x: Any, digits: int = 1) -> str:
@@ -96,8 +97,9 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
         params = diag.get("parameters") or {}
         if params:
-            rows.append(("parameter requests accepted / refused / unauthenticated",
-                         " / ".join(_fmt(params.get(k)) for k in PARAMETER_COUNTS)))  # fmt: skip
+            names = [k for k in PARAMETER_COUNTS if k != "failed" or k in params]
+            rows.append((f"parameter requests {' / '.join(names)}",
+                         " / ".join(_fmt(params.get(k)) for k in names)))  # fmt: skip
         dsp_rejected = diag["dsp"].get("rejected_frames")
         if dsp_rejected is not None:
             rows.append(("frames the DSP rejected (saturates at 255)", _fmt(dsp_rejected)))

@@ -281,7 +281,7 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     if unanswered and summary.get("clock") == "lockstep":
         out.append(
             f"the DSP advanced {unanswered} lockstep period(s) with the held torque (no command "
-            f"within its reply timeout): not the deterministic run"
+            f"within dsp.lockstep_reply_timeout_s): not the deterministic run"
         )
     faults = {k: v for k, v in (summary.get("dsp_faults") or {}).items() if k != "watchdog"}
     if faults:
@@ -341,15 +341,34 @@ def outage_warnings(outages: dict[str, Any]) -> list[str]:
     return out
 
 
+def parameter_warnings(counts: dict[str, Any]) -> list[str]:
+    """The warnings of the parameter service's counts (the ``parameters`` component of
+    ``/diagnostics``): requests refused as unauthenticated, and requests the controller failed
+    on (``failed``: only counted, so the warning names no request)."""
+    out = []
+    rogue, failed = _int0(counts.get("unauthenticated")), _int0(counts.get("failed"))
+    if rogue:
+        out.append(
+            f"{rogue} unauthenticated parameter request(s) refused (wrong key, replayed, "
+            "malformed or stale `hil param set`; none applied)"
+        )
+    if failed:
+        out.append(
+            f"{failed} parameter request(s) failed in the controller and got no answer (a fault "
+            "of the controller's, not the request's; it logged why the first failed)"
+        )
+    return out
+
+
 def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
     nothing): camera outages (:func:`outage_warnings`), scene drawings or live records the
     recorder could not make (the cycles themselves are logged), a few camera images refused for
     the log (a stream of them is a problem), parameter requests refused as unauthenticated
-    (none was applied, but someone sent them), and a realtime run during which the hypervisor
-    took :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT`
-    or more of the CPUs' time. The run is still clean (its exit status says so); its J is not the
-    lockstep one's.
+    (none was applied, but someone sent them) or that the controller failed on
+    (:func:`parameter_warnings`), and a realtime run during which the hypervisor took
+    :data:`~rt_controller.runtime.host_steal.DISTURBED_STEAL_PERCENT` or more of the CPUs'
+    time. The run is still clean (its exit status says so); its J is not the lockstep one's.
     """
     out = outage_warnings(summary.get("outages") or {})
     rec = summary.get("recorder") or {}
@@ -363,12 +382,7 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     missing = _image_count(summary, "images_missing")
     if missing and summary.get("clock") != "lockstep":
         out.append(f"{missing} camera image(s) announced by their features are not in the log")
-    rogue = _int0((summary.get("parameters") or {}).get("unauthenticated"))
-    if rogue:
-        out.append(
-            f"{rogue} unauthenticated parameter request(s) refused (wrong key, replayed, "
-            "malformed or stale `hil param set`; none applied)"
-        )
+    out += parameter_warnings(summary.get("parameters") or {})
     steal = summary.get("host_steal_percent")
     if summary.get("clock") != "realtime" or steal is None or steal < DISTURBED_STEAL_PERCENT:
         return out

@@ -274,8 +274,9 @@ class ControllerDaemon:
         orderly end (a stop before the first tick included): without it, ``hil info`` takes
         the log for one of a killed run."""
         self._final_diagnostics = diagnostics.with_run_end(
-            record, self.counters.planned_ticks, self.counters.end_reason, self.counters.judged()
-        )
+            record, self.counters.planned_ticks, self.counters.end_reason, self.counters.judged(),
+            stop_signal=signal_name_of(self.stop),
+        )  # fmt: skip
         rec.record_diagnostics(self._final_diagnostics, final=True)
 
     def _run_with(self, can: CanLink, session: Any, rec: RecorderProcess) -> None:

@@ -30,6 +30,11 @@ DIAGNOSTICS_SCHEMA: dict[str, Any] = {
             "description": "final record only: why the loop ended: duration, stopped (a stop "
             "request) or a short phrase (no Sync from the DSP, ...)",
         },
+        "stop_signal": {
+            "type": ["string", "null"],
+            "description": "final record only: the signal that stopped the controller "
+            "(SIGINT, SIGTERM) when end_reason is stopped by one; null otherwise",
+        },
         "dsp_faults": {
             "type": "object",
             "additionalProperties": {"type": "integer"},
@@ -174,12 +179,15 @@ def with_run_end(
     planned_ticks: int | None,
     end_reason: str,
     judged: dict[str, Any] | None = None,
+    stop_signal: str | None = None,
 ) -> dict[str, Any]:
     """The run's final record with how the run ended, so its log alone tells a run cut short
     (``tick`` < ``planned_ticks``, or an ``end_reason`` other than its duration) from a whole
-    one (``hil info``), and with ``judged``: the counters of the run's verdict that are nowhere
-    else in the log (``dsp_faults``, ``drive_ticks``, ``outages``: ``RunCounters.judged``)."""
-    return {**record, "planned_ticks": planned_ticks, "end_reason": end_reason, **(judged or {})}
+    one (``hil info``), which signal stopped it (``stop_signal``, as the summary says), and with
+    ``judged``: the counters of the run's verdict that are nowhere else in the log
+    (``dsp_faults``, ``drive_ticks``, ``outages``: ``RunCounters.judged``)."""
+    end = {"planned_ticks": planned_ticks, "end_reason": end_reason, "stop_signal": stop_signal}
+    return {**record, **end, **(judged or {})}
 
 
 def values_of(record: dict[str, Any], name: str) -> dict[str, Any]:

@@ -62,8 +62,8 @@ def test_lockstep_periods_the_dsp_advanced_unanswered_make_the_run_not_clean():
     assert dsp["skipped_periods"] == 2 and dsp["skipped_by_run"] == [0, 2]
     lockstep = {"clock": "lockstep", "dsp": dsp}
     assert run_problems(lockstep) == [
-        "the DSP advanced 2 lockstep period(s) with the held torque (no command within its "
-        "reply timeout): not the deterministic run"
+        "the DSP advanced 2 lockstep period(s) with the held torque (no command within "
+        "dsp.lockstep_reply_timeout_s): not the deterministic run"
     ]
     assert run_problems({**lockstep, "dsp": {**dsp, "skipped_periods": 0}}) == []
     # realtime has no such periods, and an emulator that printed nothing is said elsewhere

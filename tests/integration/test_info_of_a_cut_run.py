@@ -38,4 +38,5 @@ def test_info_of_a_run_stopped_early_says_after_how_many_of_the_planned_ticks(tm
     planned, ran = info["planned_ticks"], info["ticks_run"]
     assert info["end_reason"] == "stopped" and planned == 600 * float(info["run"]["rate_hz"])
     assert TICKS_FIRST <= ran < planned
-    assert f"the run ended after {ran} of {planned} ticks: stopped" in info["problems"]
+    assert info["stop_signal"] == "SIGTERM"
+    assert f"the run ended after {ran} of {planned} ticks: stopped by SIGTERM" in info["problems"]
