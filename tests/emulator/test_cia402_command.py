@@ -17,7 +17,7 @@ from canopen.sdo import SdoCommunicationError
 
 from hal.bus import isolated_spec, open_bus
 from hal.cia402_od import EDS_PATH, EMCY_SYNC
-from tests.support import REPO, hil_command
+from tests.support import REPO, hil_command, run_hil
 from tests.support.vcan import requires_vcan
 
 pytestmark = pytest.mark.integration
@@ -120,20 +120,8 @@ def test_duration_counts_wall_seconds_in_realtime_when_no_master_syncs(tmp_path)
     config = tmp_path / "rig.toml"
     config.write_text('[hardware]\nprofile = "cia402"\n')
     args = ["emulator", "--can", isolated_spec("udp_multicast"), "--config", str(config)]
-    proc = subprocess.Popen(
-        [*hil_command(), *args, "--no-vision-link", "--duration", "1", "--json"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        cwd=REPO,
-    )
-    try:
-        out, err = proc.communicate(timeout=START_TIMEOUT_S + 1.0)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"--duration 1 did not end the emulator:\n{err}")
-    assert proc.returncode == 0, err
-    summary = json.loads(out.strip().splitlines()[-1])
+    # on a hang (the emulator never ends) run_hil kills it and raises TimeoutExpired
+    done = run_hil([*args, "--no-vision-link", "--duration", "1", "--json"], START_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert summary["syncs"] == 0 and summary["sim_time_s"] == 0.0
