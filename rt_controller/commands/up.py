@@ -245,5 +245,6 @@ def _check_monitor_port(port: int | None) -> None:
             sock.listen(1)
         except OSError as exc:
             raise ControllerConfigError(
-                f"--monitor: cannot listen on 127.0.0.1:{port}: {exc.strerror or exc}"
+                f"--monitor: cannot listen on 127.0.0.1:{port}: {exc.strerror or exc} (another "
+                "rig's live view?); choose another with --monitor-port PORT (0 = any)"
             ) from None

@@ -112,6 +112,10 @@ POSE_SCHEMA: dict[str, Any] = {
 }
 
 
+PORT_HINT = "; choose another with --port PORT (hil up: --monitor-port PORT; 0 = any)"
+"""Appended to a refusal of a port in use (another monitor, e.g. a second rig's, serves it)."""
+
+
 class MonitorError(ControllerError, OSError):
     """The monitor cannot serve (address in use, bad host)."""
 
@@ -200,7 +204,11 @@ class MonitorBridge:
         except Exception as exc:  # the SDK's own error types (port in use, bad address)
             for ch in self._channels.values():
                 ch.close()
-            raise MonitorError(f"cannot serve Foxglove WebSocket on {host}:{port}: {exc}") from exc
+            # another monitor (a second rig's) serves the port: say how to choose another
+            hint = PORT_HINT if "in use" in str(exc) else ""
+            raise MonitorError(
+                f"cannot serve Foxglove WebSocket on {host}:{port}: {exc}{hint}"
+            ) from exc
         if tuning is not None:
             tuning.server = self.server
         self.port = int(self.server.port)

@@ -248,6 +248,18 @@ def _image_count(summary: dict[str, Any], name: str) -> int:
     return int((rejections.get("features") or {}).get(name, 0))
 
 
+def _other_sender(can_rx: dict[str, Any]) -> str:
+    """Why the DSP rejected frames when another node sent this controller's own ids
+    (``ignored``): a second controller driving the same DSP interleaves its commands."""
+    ignored = _int0(can_rx.get("ignored"))
+    if not ignored:
+        return ""
+    return (
+        f": {ignored} frame(s) with this controller's own ids from another node "
+        "(another controller on this bus?)"
+    )
+
+
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
     ended short for another reason than a stop request, lost or could not encode log records
@@ -306,7 +318,10 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
         )
     dsp_rejected = int(rejections.get("dsp_rejected_frames") or 0)
     if dsp_rejected >= diagnostics.AUTH_FAULT_MIN:
-        out.append(f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)")
+        out.append(
+            f"the DSP rejected {dsp_rejected} frame(s) (DspStatus.RejectedFrames)"
+            + _other_sender(rejections.get("can_rx") or {})
+        )
     drive = summary.get("drive_ticks") or {}
     if drive:
         what = ", ".join(f"{k} {v}" for k, v in drive.items())

@@ -61,7 +61,8 @@ def test_a_monitor_port_in_use_fails_before_the_rig_starts():
         out = run_hil(["up", "--monitor-port", str(port), "--duration", "1"], timeout_s=60)
     assert out.returncode == 2, out.stderr
     assert out.stderr.strip() == (
-        f"hil up: error: --monitor: cannot listen on 127.0.0.1:{port}: Address already in use"
+        f"hil up: error: --monitor: cannot listen on 127.0.0.1:{port}: Address already in use "
+        "(another rig's live view?); choose another with --monitor-port PORT (0 = any)"
     )
     assert out.stdout == ""
 
