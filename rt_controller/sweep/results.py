@@ -117,6 +117,8 @@ class ResultStore:
         if meta.exists():
             try:
                 old = json.loads(meta.read_text(encoding="utf-8"))
+                if not isinstance(old, dict):
+                    raise ValueError(f"not a JSON object: {str(old)[:40]}")
             except (OSError, ValueError) as exc:
                 raise ControllerConfigError(f"--out {self.out}: unreadable {META}: {exc}") from None
             if old.get("spec_hash") != self.spec.spec_hash:
@@ -130,7 +132,8 @@ class ResultStore:
         path = self.out / JOURNAL
         if not path.exists():
             return
-        for line in path.read_text(encoding="utf-8").splitlines():
+        # bytes that are no text make a line that does not parse: that run is run again
+        for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
             try:
                 row = json.loads(line)
             except ValueError:
