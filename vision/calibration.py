@@ -258,6 +258,11 @@ def read_images(folder: str | Path) -> list[np.ndarray]:
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise CalibrationError(f"{p}: not an image OpenCV can read")
+        if out and img.shape != out[0].shape:  # named by file: "view 2" is no file name
+            (h, w), (h0, w0) = img.shape, out[0].shape
+            raise CalibrationError(
+                f"{p} is {w}x{h}, {files[0]} is {w0}x{h0}: every view must be of one camera"
+            )
         out.append(img)
     return out
 
@@ -275,9 +280,15 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     p = Path(path)
     if p.exists() and not p.is_file():
         raise HalConfigError(f"{p}: not a regular file, not touched")
-    text = p.read_text(encoding="utf-8") if p.exists() else ""
+    raw = p.read_bytes() if p.exists() else b""
     try:
+        text = raw.decode("utf-8")
         tomllib.loads(text)
+    except UnicodeDecodeError as exc:  # a PNG or a log named by mistake: one line, not touched
+        byte = f"0x{raw[exc.start]:02x}"
+        raise HalConfigError(
+            f"{p}: not UTF-8 text (invalid byte {byte} at offset {exc.start}), not touched"
+        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise HalConfigError(f"{p}: not valid TOML, not touched: {exc}") from None
     c = calibration

@@ -61,12 +61,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def _changes_of_file(path: str, running: dict[str, Any]) -> dict[str, Any]:
-    """The tunable keys whose values in the TOML file ``path`` differ from ``running``."""
+def _values_of_file(path: str) -> dict[str, Any]:
+    """The tunable values of the TOML file ``path``, read and validated before any wait for
+    the rig (a missing or bad file is named at once, not after a hub timeout)."""
     from hal.config import load_config
     from rt_controller.calibration.parameters import tunable_values
 
-    wanted = tunable_values(load_config(path))
+    return tunable_values(load_config(path))
+
+
+def _changes(wanted: dict[str, Any], running: dict[str, Any]) -> dict[str, Any]:
+    """The keys of ``wanted`` whose values differ from ``running``."""
     return {k: v for k, v in wanted.items() if running.get(k) != v}
 
 
@@ -99,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = configure_key(load_config(args.config), args.key_file, "hil param")
     if args.action in ("load", "diff") and len(args.items) != 1:
         raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
+    wanted = _values_of_file(args.items[0]) if args.action in ("load", "diff") else {}
     changes = parse_sets(args.items, "set") if args.action == "set" else {}
     if args.action == "set" and not changes:
         raise ControllerConfigError("set expects KEY=VALUE ...")
@@ -149,12 +155,12 @@ def run(args: argparse.Namespace) -> int:
                         print(f"{k} = {json.dumps(v)}")
                 return 0
             if args.action == "diff":
-                changes = _changes_of_file(args.items[0], got["values"])
+                changes = _changes(wanted, got["values"])
                 for k, v in changes.items():
                     print(f"{k}: running {json.dumps(got['values'][k])}, file {json.dumps(v)}")
                 return 0
             if args.action == "load":
-                changes = _changes_of_file(args.items[0], got["values"])
+                changes = _changes(wanted, got["values"])
                 if not changes:
                     print("hil param: nothing to change", file=sys.stderr)
                     return 0

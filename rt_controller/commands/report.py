@@ -93,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
                 prefix = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
                 rep["plots"] = [str(p) for p in write_plots(log, plot_dir, prefix)]
     if args.json:
-        payload = reports[0] if len(reports) == 1 else reports
+        # the shape follows the logs asked for, not how many could be read
+        payload = reports[0] if len(args.logs) == 1 else reports
         print(json.dumps(_json_safe(payload)))
         return 2 if failed else 0
     from rich.console import Console

@@ -10,6 +10,8 @@ a ``meta`` struct (the log's path, the recorded configuration as JSON, its diges
 
 from __future__ import annotations
 
+import errno
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,12 +85,30 @@ def export(run: Run, fmt: str, files: dict[str, Path]) -> list[Written]:
         except OSError as exc:
             raise LogError(f"cannot create {path.parent}: {exc.strerror or exc}") from None
     write = {"csv": _write_csv, "parquet": _write_parquet, "mat": _write_mat}[fmt]
+    # written beside the file (through a link), then renamed over it: a full disk leaves no
+    # half file and the last export stays
+    target = {p: Path(os.path.realpath(p)) for p in set(files.values())}
+    partial = {p: t.with_name(f".{t.name}.partial") for p, t in target.items()}
     try:
-        return write(run, files)
+        for p, t in target.items():
+            if not t.parent.is_dir():  # a link to nowhere
+                raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(p))
+        written = write(run, {topic: partial[p] for topic, p in files.items()})
+        for p, tmp in partial.items():
+            os.replace(tmp, target[p])
     except OSError as exc:  # pyarrow's carries no errno: its own text names the file
         where = f"{exc.filename}: " if exc.filename else ""
-        why = " ".join((exc.strerror or str(exc)).split())
-        raise LogError(f"cannot write the {fmt} export: {where}{why}") from None
+        if not exc.filename and exc.strerror:  # a full disk: name the file(s) asked for
+            where = " / ".join(map(str, dict.fromkeys(files.values()))) + ": "
+        text = f"{where}{' '.join((exc.strerror or str(exc)).split())}"
+        for p, tmp in partial.items():  # the names asked for, not the temporary ones
+            text = text.replace(str(tmp), str(p))
+        raise LogError(f"cannot write the {fmt} export: {text}") from None
+    finally:
+        for tmp in partial.values():
+            tmp.unlink(missing_ok=True)
+    asked = {tmp: p for p, tmp in partial.items()}
+    return [Written(w.topic, asked[w.path], w.rows) for w in written]
 
 
 def _write_csv(run: Run, files: dict[str, Path]) -> list[Written]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -157,6 +158,12 @@ def columns(records: list[dict[str, Any]]) -> dict[str, np.ndarray]:
 def check_file(path: Path) -> None:
     """Raise :class:`LogError` (one line) unless ``path`` is a readable file that starts with
     the MCAP magic."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        mode = None  # open() below names what is wrong
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # FIFO: blocks
+        raise LogError(f"{path}: not a regular file (a pipe or a device), not an MCAP file")
     try:
         with path.open("rb") as fh:
             head = fh.read(len(MAGIC))

@@ -129,8 +129,10 @@ def recover(log: str | Path, out: str | Path | None = None) -> Recovery:
         with log.open("rb") as src, tmp.open("wb") as dst:
             _copy(src, dst, result)
         os.replace(tmp, out)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.errno and exc.filename is None:  # a full disk
+            raise OSError(exc.errno, exc.strerror, str(out)) from None
         raise
     result.lost_bytes = result.input_bytes - result.kept_bytes
     return result

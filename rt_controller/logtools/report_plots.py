@@ -84,7 +84,13 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
 
     def save(fig: Figure, name: str) -> None:
         path = out / f"{stem}_{name}.png"
-        fig.savefig(path, dpi=110)
+        try:
+            fig.savefig(path, dpi=110)
+        except OSError as exc:  # a full disk: no half PNG, and the figure named
+            path.unlink(missing_ok=True)
+            if exc.errno is None or exc.filename is not None:
+                raise
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
         written.append(path)
 
     late = log.column("lateness_us")
