@@ -63,6 +63,9 @@ STOP_TIMEOUT_S = 10.0
 TRIP_MARGIN_S = 1.0
 """How much longer than its watchdog time the supervisor waits for a DSP's trip after the
 controller died (a loaded host delays the emulator's loop)."""
+STOPPED_IN_START_UP = "the controller was stopped before its first tick"
+"""How a summary says a controller ended by the rig's SIGTERM in its start-up (it had no
+handler yet): the supervisor's own stop, not a death."""
 WATCHDOG_TRIP_LINE = "hil emulator: fault: watchdog"
 """What the emulator prints on stderr when its watchdog trips (``plant_emulator.entry``)."""
 
@@ -222,15 +225,21 @@ class Rig:
             out["problems"].append(with_tail(f"controller {end.how} when stopped", ctl.tail(40)))
         return out
 
-    def finish_interrupted(self, why: str) -> dict[str, Any]:
-        """After a stop signal to the supervisor (``why``): stop the rig; the controller's
-        summary of the run so far, else (it was still starting) what is left, as after a
+    def finish_interrupted(self, interrupt: RigInterrupted) -> dict[str, Any]:
+        """After a stop signal to the supervisor: stop the rig; the controller's summary of
+        the run so far (stopped by the signal the supervisor got, not the SIGTERM it passed
+        on) with the DSP's account, else (it was still starting) what is left, as after a
         death."""
-        at_ns = time.monotonic_ns()
+        at_ns, why = time.monotonic_ns(), str(interrupt)
         codes = self.stop()
         lines = self.summaries()
         if lines:
-            return {**lines[-1], "exit_codes": codes}
+            emulator = self.child("emulator")
+            dsp = dsp_report(emulator.output()) if emulator else {"reported": False}
+            out = {**lines[-1], "dsp": dsp, "exit_codes": codes}
+            if out.get("end_reason") == "stopped":
+                out["stop_signal"] = signal.Signals(interrupt.signum).name
+            return out
         if self.child("controller") is None:  # stopped while the rig was being started
             o = self.opts
             base = self.what_runs(o.config, o.duration_s, o.law)
@@ -239,9 +248,13 @@ class Rig:
                 "end_reason": f"{why} before the controller started",
                 "exit_codes": codes,
             }
-        return self._summary_after(
+        out = self._summary_after(
             ProcessEnd("controller", codes.get("controller") or 0, at_ns), codes
         )
+        if codes.get("controller") == -signal.SIGTERM:  # ended by the rig's stop, in start-up
+            said, out["end_reason"] = out["end_reason"], f"{why}: {STOPPED_IN_START_UP}"
+            out["problems"] = [p.replace(said, out["end_reason"]) for p in out["problems"]]
+        return out
 
     def _summary_after(self, end: ProcessEnd, codes: dict[str, int | None]) -> dict[str, Any]:
         """The summary after ``end`` on the stopped rig (its exit ``codes``)."""
@@ -450,7 +463,8 @@ def run_rig(opts: RigOptions) -> dict[str, Any]:
             exc.summary = rig.finish_hung(time.monotonic_ns())
             raise
         except RigInterrupted as exc:  # the controller is stopped first and says its summary
-            exc.summary = rig.finish_interrupted(str(exc))
+            with signals_deferred(deliver=False):  # a second Ctrl-C asks for nothing more
+                exc.summary = rig.finish_interrupted(exc)
             raise
         if summary.get("end_reason") == "stopped":  # by a stop signal this rig did not send
             summary["problems"] = [*summary.get("problems", []), stopped_from_outside(summary)]

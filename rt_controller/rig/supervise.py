@@ -117,10 +117,11 @@ def supervised() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def signals_deferred() -> Iterator[None]:
+def signals_deferred(deliver: bool = True) -> Iterator[None]:
     """Hold the supervised signals until the block ends, then deliver them to the handlers in
     force (a second SIGTERM must not cut an orderly stop short; a Ctrl-C must not split a
-    journal write from its table row).
+    journal write from its table row). ``deliver=False`` drops them instead: a second stop
+    signal while the supervisor already stops on the first asks for nothing more.
 
     The hold is at the Python level: a process-directed signal reaches whichever thread does
     not block it, and CPython runs the handler in the main thread anyway, so a signal mask
@@ -141,5 +142,5 @@ def signals_deferred() -> Iterator[None]:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, signal.SIG_DFL if handler is None else handler)
-        for signum in dict.fromkeys(held):
+        for signum in dict.fromkeys(held if deliver else ()):
             signal.raise_signal(signum)
