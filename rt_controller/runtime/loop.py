@@ -60,6 +60,8 @@ class ControlLoop:
                     self.ctx.counters.deadline_misses += 1
                     cycle["deadline_miss"] = True
                 self.record(cycle)
+                if self.log_lost():
+                    return
         finally:
             self.end_requests(last)
 
@@ -176,6 +178,17 @@ class ControlLoop:
         self.ctx.recorder.record_cycle(cycle)
         if self.ctx.counters.ticks % self._diag_every == 0:
             self.ctx.recorder.record_diagnostics(self.diagnostics())
+
+    def log_lost(self) -> bool:
+        """Lockstep: whether the log can no longer be written (the recorder process died, the
+        disk failed); the run then ends now, ``end_reason`` "log lost: ...", since a lockstep
+        run exists for its log and no arm waits on it. Realtime runs on: the arm stays under
+        control, and the records lost are counted and make the run not clean."""
+        error = self.ctx.recorder.error
+        if error is None or self.ctx.cfg.controller.clock != "lockstep":
+            return False
+        self.ctx.counters.end_reason = f"log lost: {error}"
+        return True
 
     def diagnostics(self, final: bool = False) -> dict[str, Any]:
         """The ``/diagnostics`` record of this moment (:mod:`rt_controller.runtime.diagnostics`)."""
