@@ -59,6 +59,17 @@ def duration(*, zero_means_forever: bool = False) -> Callable[[str], float]:
     )
 
 
+def path_given(text: str) -> str:
+    """A path option's value that is not empty: ``--out ""`` would otherwise be taken as no
+    option at all and write to the default place."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the path is empty")
+    return text
+
+
+path_given.__name__ = "path"
+
+
 def add_key_option(p: argparse.ArgumentParser) -> None:
     """``--key-file``: the rig key (``hil keygen FILE``), overriding ``transport.key_file``."""
     p.add_argument(

@@ -24,6 +24,7 @@ from hal.config.rig import (
     config_from_dict,
     config_from_json,
     load_config,
+    read_text_file,
 )
 from hal.config.validation import image_noise_error, validate
 from hal.config.values import Mat2, Vec2
@@ -53,5 +54,6 @@ __all__ = [
     "image_noise_error",
     "load_config",
     "plant_view",
+    "read_text_file",
     "validate",
 ]

@@ -180,25 +180,34 @@ def config_from_dict(
         raise HalConfigError(f"{source}: {msg}" if source else msg) from None
 
 
+def read_text_file(path: str | Path, what: str) -> str:
+    """The UTF-8 text of the user's file ``path`` (a config, a study spec), or
+    :class:`HalConfigError` in one line: ``cannot read {what} PATH: why`` (missing, a folder, a
+    FIFO or a device, which would block or never end and is never opened) or ``PATH: not UTF-8
+    text`` naming the first bad byte and its offset (a binary named by mistake)."""
+    p = Path(path)
+    try:  # stat first: a FIFO or a device is never opened
+        mode = p.stat().st_mode
+        if not stat.S_ISREG(mode):
+            kind = "is a directory" if stat.S_ISDIR(mode) else "not a regular file"
+            raise HalConfigError(f"cannot read {what} {p}: {kind}")
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise HalConfigError(f"cannot read {what} {p}: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise HalConfigError(
+            f"{p}: not UTF-8 text (invalid byte 0x{raw[exc.start]:02x} at offset {exc.start})"
+        ) from None
+
+
 def load_config(path: str | Path | None = None) -> RigConfig:
     """Load and validate a TOML rig config; ``None`` gives the embedded defaults."""
     if path is None:
         return validate(RigConfig())
     p = Path(path)
-    try:  # stat first: a FIFO or a device would block or never end (never opened)
-        mode = p.stat().st_mode
-        if not stat.S_ISREG(mode):
-            what = "is a directory" if stat.S_ISDIR(mode) else "not a regular file"
-            raise HalConfigError(f"cannot read config file {p}: {what}")
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise HalConfigError(f"cannot read config file {p}: {exc.strerror or exc}") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise HalConfigError(
-            f"{p}: not UTF-8 text (invalid byte 0x{raw[exc.start]:02x} at offset {exc.start})"
-        ) from None
+    text = read_text_file(p, "config file")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

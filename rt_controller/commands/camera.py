@@ -14,7 +14,7 @@ import math
 import sys
 from typing import Any
 
-from hal.arguments import bounded_float, bounded_int
+from hal.arguments import bounded_float, bounded_int, path_given
 
 TARGETS = {"fx_rel": 0.005, "fy_rel": 0.005, "cx_px": 1.0, "cy_px": 1.0, "k1_rel": 0.05}
 """How close a calibration from emulated views must come to the true lens (issue 38)."""
@@ -67,7 +67,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=0,
         help="emulated views: poses and noise (0)",
     )
-    c.add_argument("--write", metavar="FILE", help="write the result here instead of --config")
+    c.add_argument(
+        "--write", type=path_given, metavar="FILE", help="write the result here instead of --config"
+    )
     c.add_argument("--save-views", metavar="DIR", help="emulated views: also save them as PNG")
     c.add_argument(
         "--squares",

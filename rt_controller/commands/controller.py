@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hal.arguments import add_key_option, duration
+from hal.arguments import add_key_option, duration, path_given
 from rt_controller.commands.common import (
     add_config_option,
     add_law_options,
@@ -59,6 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--log",
+        type=path_given,
         metavar="FILE.mcap",
         help="log path (default: logs/run-...mcap); an existing file is refused unless --force",
     )

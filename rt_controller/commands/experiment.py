@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hal.arguments import bounded_float, bounded_int, duration
+from hal.arguments import bounded_float, bounded_int, duration, path_given
 from rt_controller.commands.common import add_profile_option
 from rt_controller.commands.progress import add_quiet_option
 
@@ -79,6 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("which", choices=("fig3", "fig4", "table1", "all"), help="what to run")
     p.add_argument(
         "--out",
+        type=path_given,
         metavar="DIR",
         help="output folder (default experiments/<timestamp>); one that holds an experiment "
         "already is refused unless --force",

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hal.arguments import path_given
+
 TOPIC_NAMES = ("cycle", "diagnostics", "can", "canopen")
 DEFAULT_TOPICS = ("cycle", "diagnostics", "can")
 
@@ -97,6 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--out",
+        type=path_given,
         metavar="PATH",
         help="output directory, or a file ending in the format's suffix (default: beside LOG); "
         "existing files are replaced",

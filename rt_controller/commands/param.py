@@ -8,7 +8,7 @@ import json
 import sys
 from typing import Any
 
-from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, bounded_int
+from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, bounded_int, path_given
 from rt_controller.commands.common import add_config_option
 
 ACTION_NAMES = ("arm", "disarm", "mark", "reset_scenario")
@@ -50,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "-o",
         "--out",
+        type=path_given,
         metavar="FILE",
         help="dump: write the TOML here (an existing FILE is replaced: dump again to remake it)",
     )

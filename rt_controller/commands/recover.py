@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from hal.arguments import path_given
+
 DESCRIPTION = """\
 Reads LOG.mcap up to its last complete record (mcap's stream reader; past a damaged chunk in
 the middle when the file still has its summary, whose chunk index says where the next one
@@ -33,7 +35,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("log", metavar="LOG.mcap", help="the cut log (read only)")
     p.add_argument(
-        "--out", metavar="NEW.mcap", help="the copy (default: LOG.recovered.mcap beside LOG)"
+        "--out",
+        type=path_given,
+        metavar="NEW.mcap",
+        help="the copy (default: LOG.recovered.mcap beside LOG)",
     )
     p.add_argument("--force", action="store_true", help="replace an existing copy")
     p.add_argument("--json", action="store_true", help="print one JSON object")

@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any
 
-from hal.arguments import MAX_DURATION_S, bounded_float
+from hal.arguments import MAX_DURATION_S, bounded_float, path_given
 from hal.config import RigConfig
 from rt_controller.commands.progress import Progress, add_quiet_option
 
@@ -61,7 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--tol", type=float, default=1e-9, help="largest |difference| counted as equal (1e-9)"
     )
-    p.add_argument("--out", metavar="NEW.mcap", help="write the replayed run to this log")
+    p.add_argument(
+        "--out", type=path_given, metavar="NEW.mcap", help="write the replayed run to this log"
+    )
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
     p.add_argument(
         "--allow-partial",

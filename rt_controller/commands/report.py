@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hal.arguments import bounded_int
+from hal.arguments import bounded_int, path_given
 from rt_controller.commands.progress import Progress, add_quiet_option
 
 DESCRIPTION = """\
@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json", action="store_true", help="print JSON (an object, or a list for several logs)"
     )
-    p.add_argument("--plot", metavar="DIR", help="write PNG figures into DIR")
+    p.add_argument("--plot", type=path_given, metavar="DIR", help="write PNG figures into DIR")
     p.add_argument(
         "--max-list",
         type=bounded_int(0, 1_000_000_000, what="misses to list"),

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hal.arguments import bounded_int
+from hal.arguments import bounded_int, path_given
 
 
 def simulate_plant() -> Any:
@@ -34,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("spec", metavar="SPEC.toml", help="the study spec")
     p.add_argument(
         "--out",
+        type=path_given,
         metavar="DIR",
         help="results folder (default: sweeps/STEM, STEM the spec file's name without .toml)",
     )

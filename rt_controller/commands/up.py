@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hal.arguments import bounded_int, duration
+from hal.arguments import bounded_int, duration, path_given
 from rt_controller.commands.common import (
     add_law_options,
     add_profile_option,
@@ -57,6 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
     p.add_argument(
         "--log",
+        type=path_given,
         metavar="FILE.mcap",
         help="controller log path (an existing file is refused unless --force)",
     )

@@ -285,12 +285,22 @@ def read_hil_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
 
 
 def require_hil_log(log: LoadedLog) -> LoadedLog:
-    """``log`` if it is a controller log: it has a ``/controller/cycle`` channel or the run's
-    ``hil.config``/``hil.run`` metadata (a run stopped before its first tick, or killed before
-    its first chunk was written, still has them). Else :class:`NotAHilLogError`, one line
-    naming the channels the file has: an MCAP written by another tool, or a hil log cut before
-    any of its records."""
-    if CYCLE_TOPIC in log.channels or log.config_json is not None or log.run_info:
+    """``log`` if it is a controller log: it has the run's ``hil.config``/``hil.run`` metadata
+    (a run stopped before its first tick, or killed before its first chunk was written, still
+    has them; damaged records are then its notes and problems) or a ``/controller/cycle``
+    channel of which no message is unreadable or at least one is readable (a channel name
+    alone does not make a hil log). Else :class:`NotAHilLogError`, one line naming the count
+    of unreadable cycle records, or the channels the file has: an MCAP written by another
+    tool, or a hil log cut before any of its records."""
+    if log.config_json is not None or log.run_info:
+        return log
+    unreadable = log.rejected.get(CYCLE_TOPIC, 0)
+    if unreadable and not log.n_cycles:
+        raise NotAHilLogError(
+            f"{log.path}: not a hil log: none of its {unreadable} {CYCLE_TOPIC} record(s) is "
+            "readable and it has no hil.config or hil.run metadata"
+        )
+    if CYCLE_TOPIC in log.channels:
         return log
     shown = ", ".join(log.channels[:MAX_CHANNELS_NAMED]) or "none"
     if len(log.channels) > MAX_CHANNELS_NAMED:

@@ -374,9 +374,11 @@ def replay_loaded(
                 writer.cycle(record)
         if writer is not None:
             writer.raw_inputs(log)
+            writer, whole = None, writer
+            whole.close()  # renamed onto --out only now; on failure nothing is left
     finally:
         if writer is not None:
-            writer.close()
+            writer.discard()
     result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
     result.allow_partial = allow_partial
     result.skipped_records = skipped

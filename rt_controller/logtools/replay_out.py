@@ -4,6 +4,7 @@ with :class:`~rt_controller.runtime.recorder.CycleRecorder` (the record shapes a
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +33,12 @@ def cycle_record_at(log: LoadedLog, i: int) -> dict[str, Any]:
 
 
 class OutLog:
-    """The ``--out`` writer: replayed cycles plus the recorded raw inputs."""
+    """The ``--out`` writer: replayed cycles plus the recorded raw inputs, written beside the
+    file asked for and renamed onto it only when whole (:meth:`close`); a failed or interrupted
+    replay leaves no half log (:meth:`discard`), errors name the file asked for."""
 
     def __init__(self, path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> None:
+        self.path, self.partial = path, path.with_name(f".{path.name}.partial")
         info: dict[str, Any] = {f"source.{k}": v for k, v in log.run_info.items()}
         info.update(
             replay_of=str(log.path),
@@ -43,12 +47,15 @@ class OutLog:
             clock=log.run_info.get("clock", cfg.controller.clock),
             law=cfg.controller.law,
         )
-        self.rec = CycleRecorder(path, cfg, run_info=info)
+        try:
+            self.rec = CycleRecorder(self.partial, cfg, run_info=info)
+        except LogError as exc:
+            self.partial.unlink(missing_ok=True)
+            raise LogError(str(exc).replace(str(self.partial), str(path))) from None
 
     def _check(self) -> None:
-        rec = self.rec
-        if rec.error is not None:
-            raise LogError(f"cannot write {rec.path}: {rec.error}") from rec.error
+        if self.rec.error is not None:
+            raise LogError(f"cannot write {self.path}: {self.rec.error}") from self.rec.error
 
     def cycle(self, record: dict[str, Any]) -> None:
         self.rec.record_cycle(record)
@@ -75,6 +82,21 @@ class OutLog:
             self._check()
 
     def close(self) -> None:
+        """Finish the log and rename it onto the file asked for; :class:`LogError` if it
+        could not be written whole (nothing left then)."""
         self.rec.close()
-        if self.rec.error is not None:
-            raise LogError(f"cannot write {self.rec.path}: {self.rec.error}") from self.rec.error
+        try:
+            self._check()
+            self.partial.replace(self.path)
+        except LogError:  # before OSError, which it may derive from
+            self.discard()
+            raise
+        except OSError as exc:
+            self.discard()
+            raise LogError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+
+    def discard(self) -> None:
+        """Close and delete the unfinished log (the replay failed or was stopped)."""
+        with contextlib.suppress(Exception):
+            self.rec.close()
+        self.partial.unlink(missing_ok=True)

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hal.config import RigConfig, config_from_dict, image_noise_error, load_config
+from hal.config import RigConfig, config_from_dict, image_noise_error, load_config, read_text_file
 from hal.errors import HalConfigError
 from rt_controller.config_rules import apply_overrides
 from rt_controller.errors import ControllerConfigError
@@ -422,10 +422,10 @@ def load_spec(path: str | Path) -> Spec:
     """Read, validate and expand a spec; :class:`SweepSpecError` (one line) when it is bad."""
     p = Path(path)
     try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise SweepSpecError(f"cannot read spec {p}: {exc.strerror or exc}") from None
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        data = tomllib.loads(read_text_file(p, "spec"))
+    except HalConfigError as exc:  # not a regular file, unreadable, not UTF-8: one line
+        raise SweepSpecError(str(exc)) from None
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise SweepSpecError(f"{p}: not valid TOML: {' '.join(str(exc).split())}") from None
     try:
         return spec_from_dict(data, p)
