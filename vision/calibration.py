@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from hal.config import RigConfig, config_from_dict
+from hal.config import RigConfig, config_from_dict, read_text_file
 from hal.errors import HalConfigError
 
 MIN_CORNERS = 8
@@ -278,17 +278,12 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     file is created when missing; the result is validated like any config before it replaces
     the file."""
     p = Path(path)
-    if p.exists() and not p.is_file():
-        raise HalConfigError(f"{p}: not a regular file, not touched")
-    raw = p.read_bytes() if p.exists() else b""
+    try:  # a folder, a FIFO, a PNG or a log named by mistake: one line
+        text = read_text_file(p, "config file") if p.exists() or p.is_symlink() else ""
+    except HalConfigError as exc:
+        raise HalConfigError(f"{exc}, not touched") from None
     try:
-        text = raw.decode("utf-8")
         tomllib.loads(text)
-    except UnicodeDecodeError as exc:  # a PNG or a log named by mistake: one line, not touched
-        byte = f"0x{raw[exc.start]:02x}"
-        raise HalConfigError(
-            f"{p}: not UTF-8 text (invalid byte {byte} at offset {exc.start}), not touched"
-        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise HalConfigError(f"{p}: not valid TOML, not touched: {exc}") from None
     c = calibration
