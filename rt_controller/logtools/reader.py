@@ -173,6 +173,8 @@ def check_file(path: Path) -> None:
         raise LogError(f"{path}: is a directory, not an MCAP file") from None
     except OSError as exc:
         raise LogError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    if not head:  # a recorder that died before its first byte, a file made by hand
+        raise LogError(f"{path}: empty file (0 bytes): nothing was recorded, not an MCAP file")
     if head != MAGIC:
         raise LogError(f"{path}: not an MCAP file (bad magic)")
 

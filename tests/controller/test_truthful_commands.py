@@ -206,7 +206,10 @@ def _cut_hil_log(hil_log: Path, tmp_path: Path) -> Path:
 NOT_HIL = {
     "an MCAP of another tool": lambda log, t: (_foreign_mcap(t), "not a hil log"),
     "a hil log cut after its header": lambda log, t: (_cut_hil_log(log, t), "not a hil log"),
-    "an empty file": lambda log, t: (_written(t, b""), "not an MCAP file"),
+    "an empty file": lambda log, t: (
+        _written(t, b""),
+        "empty file (0 bytes): nothing was recorded",
+    ),
     "a text file": lambda log, t: (_written(t, b"hello\n"), "not an MCAP file"),
 }
 
