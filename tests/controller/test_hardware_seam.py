@@ -96,6 +96,11 @@ class ScriptedHardware:
 
 
 class ListRecorder:
+    """The recorder's seam as the loop uses it, keeping what it is given."""
+
+    error = None
+    """The log never fails here (the loop ends a lockstep run whose log failed)."""
+
     def __init__(self) -> None:
         self.cycles: list[dict[str, Any]] = []
         self.parameters: list[dict[str, Any]] = []
