@@ -59,8 +59,7 @@ class ControlLoop:
                 if self.pacer.overran(last):
                     self.ctx.counters.deadline_misses += 1
                     cycle["deadline_miss"] = True
-                self.record(cycle)
-                if self.log_lost():
+                if not self.record(cycle) and self.log_lost():  # looked at on a refusal only
                     return
         finally:
             self.end_requests(last)
@@ -172,12 +171,13 @@ class ControlLoop:
             drives=obs.drives,
         )
 
-    def record(self, cycle: dict[str, Any]) -> None:
+    def record(self, cycle: dict[str, Any]) -> bool:
         """The record phase: the cycle to the recorder and, about once a second (every
-        ``control_hz`` ticks), the diagnostics."""
-        self.ctx.recorder.record_cycle(cycle)
+        ``control_hz`` ticks), the diagnostics; whether the recorder took the cycle."""
+        taken = bool(self.ctx.recorder.record_cycle(cycle))
         if self.ctx.counters.ticks % self._diag_every == 0:
             self.ctx.recorder.record_diagnostics(self.diagnostics())
+        return taken
 
     def log_lost(self) -> bool:
         """Lockstep: whether the log can no longer be written (the recorder process died, the
