@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import time
 from collections import defaultdict
+from pathlib import Path
 from typing import Any
 
 import cantools
@@ -34,7 +35,12 @@ from tests.support.emulator_proc import (
     Proc,
     emulator,
 )
-from tests.support.vcan import VCAN_CHANNEL, candump_available, vcan_required
+from tests.support.vcan import (
+    LOCKSTEP_REPLY_TOML,
+    VCAN_CHANNEL,
+    candump_available,
+    vcan_required,
+)
 
 pytestmark = pytest.mark.timeout(TEST_TIMEOUT_S)
 
@@ -60,11 +66,13 @@ def decode_candump_line(line: str) -> tuple[str, dict[str, Any]] | None:
     return msg.name, msg.decode(data, decode_choices=False)
 
 
-def lockstep_process_run(cfg: RigConfig, spec: str, periods: int) -> dict[str, Any]:
-    """``hil emulator --lockstep --duration`` answered by a JointClient (PD law); its summary."""
+def lockstep_process_run(cfg: RigConfig, spec: str, periods: int, config: Path) -> dict[str, Any]:
+    """``hil emulator --lockstep --duration --config CONFIG`` answered by a JointClient (PD
+    law); its summary."""
     duration = periods / cfg.rates.control_hz
+    args = ("--no-vision-link", "--lockstep", "--duration", f"{duration}", "--config", str(config))
     with (
-        emulator(spec, "--no-vision-link", "--lockstep", "--duration", f"{duration}") as emu,
+        emulator(spec, *args) as emu,
         JointClient.open(spec, cfg) as client,
     ):
         client.enable()
@@ -93,10 +101,12 @@ def lockstep_process_run(cfg: RigConfig, spec: str, periods: int) -> dict[str, A
     return summary
 
 
-def test_lockstep_emulator_process(cfg: RigConfig, can_spec: str) -> None:
+def test_lockstep_emulator_process(cfg: RigConfig, can_spec: str, tmp_path: Path) -> None:
     """Lockstep over a real transport, twice: bit-identical runs. On vcan0, candump (same
     kernel) records the run and every frame must decode with the DBC and pass the E2E CRC."""
     periods = 20
+    config = tmp_path / "rig.toml"
+    config.write_text(LOCKSTEP_REPLY_TOML, encoding="utf-8")
     socketcan = can_spec.startswith("socketcan")
     dump: Proc | None = None
     if socketcan:
@@ -110,13 +120,13 @@ def test_lockstep_emulator_process(cfg: RigConfig, can_spec: str) -> None:
             # candump gives no ready signal; start it well before the emulator's first frame.
             time.sleep(0.5 * SLOW)
             assert dump.popen.poll() is None, f"candump exited: {dump.err}"
-        first = lockstep_process_run(cfg, can_spec, periods)
+        first = lockstep_process_run(cfg, can_spec, periods, config)
         if dump is not None:
             time.sleep(0.5 * SLOW)  # let candump print the last frames
     finally:
         if dump is not None:
             dump.close()
-    second = lockstep_process_run(cfg, can_spec, periods)
+    second = lockstep_process_run(cfg, can_spec, periods, config)
     print(f"lockstep: q after {periods} periods {first['q']} (run 1) {second['q']} (run 2)")
     assert first["q"] == second["q"] and first["dq"] == second["dq"]
     assert first["q"][0] > cfg.scenario.q0[0]

@@ -47,7 +47,7 @@ from rt_controller.runtime.daemon import build_hardware, open_links
 from rt_controller.runtime.hardware import DspHardware
 from rt_controller.runtime.pacers import LockstepPacer
 from tests.support.proc import stop_all
-from tests.support.vcan import VCAN_CHANNEL, requires_vcan
+from tests.support.vcan import LOCKSTEP_REPLY_TIMEOUT_S, VCAN_CHANNEL, requires_vcan
 
 pytestmark = pytest.mark.integration
 
@@ -68,17 +68,14 @@ def bus_spec(transport: str) -> str:
     return f"socketcan:{VCAN_CHANNEL}" if transport == "socketcan" else isolated_spec(transport)
 
 
-REPLY_TIMEOUT_S = 10.0
-"""The lockstep DSP's wait for a period's command: the test steps the seam by hand, and user-mode
-Linux runs it ~10x slower (0.5 s per period tripped the watchdog there between configure and
-the first periods)."""
-
-
 def rig_config(profile: str, transport: str, tmp: Path) -> tuple[RigConfig, Path, Path]:
     """A lockstep configuration of ``profile`` on a private bus and zenoh port, written to a
     file for the peer's processes, and a fresh rig key; (config with the key, file, key)."""
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-    base = load_config(None).with_overrides({"dsp.lockstep_reply_timeout_s": REPLY_TIMEOUT_S})
+    # the test steps the seam by hand: a period's command can come late on any host
+    base = load_config(None).with_overrides(
+        {"dsp.lockstep_reply_timeout_s": LOCKSTEP_REPLY_TIMEOUT_S}
+    )
     cfg = apply_overrides(
         base,
         profile=profile,

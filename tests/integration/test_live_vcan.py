@@ -27,7 +27,7 @@ from hal.zenoh_session import free_loopback_port
 from rt_controller.logtools.reader import read_log
 from tests.support import run_hil
 from tests.support.proc import processes_mentioning
-from tests.support.vcan import VCAN_CHANNEL, requires_vcan
+from tests.support.vcan import LOCKSTEP_REPLY_TOML, VCAN_CHANNEL, requires_vcan
 
 IN_UML = os.environ.get("HIL_IN_UML", "") == "1"
 RUN_TIMEOUT_S = 600.0 if IN_UML else 120.0
@@ -56,11 +56,11 @@ def simulate_f(law: str, duration_s: float) -> np.ndarray:
 CAN = f"socketcan:{VCAN_CHANNEL}"
 
 
-ANALYTIC_CAMERA = '[camera]\nmodel = "analytic"\n'
+ANALYTIC_CAMERA = '[camera]\nmodel = "analytic"\n' + LOCKSTEP_REPLY_TOML
 """The CAN transport is what these tests are about: features from eq. (6), because user-mode
 Linux renders and detects images so slowly that a lockstep period's features can miss their
 wait (``pacers.LOCKSTEP_FEATURE_TIMEOUT_S``), seen as camera outages. Image runs:
-``test_up_images.py``."""
+``test_up_images.py``. The DSP waits long for each period's command, as user-mode Linux is slow."""
 
 
 def up_on_vcan(log: Path, *args: str) -> dict:

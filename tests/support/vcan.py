@@ -28,6 +28,12 @@ ENABLE_HINT = (
     "sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; sudo ip link set vcan0 mtu 72; "
     "sudo ip link set up vcan0"
 )
+LOCKSTEP_REPLY_TIMEOUT_S = 10.0
+"""``dsp.lockstep_reply_timeout_s`` for lockstep runs in the vcan tests: user-mode Linux runs the
+rig about 10x slower than the host, and a period's command now and then missed the default 0.5 s
+there (one held period makes a lockstep run not clean)."""
+LOCKSTEP_REPLY_TOML = f"[dsp]\nlockstep_reply_timeout_s = {LOCKSTEP_REPLY_TIMEOUT_S}\n"
+"""The same, as a rig configuration file's section."""
 
 
 def vcan_required() -> bool:
