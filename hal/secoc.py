@@ -56,13 +56,13 @@ import secrets
 import stat
 import struct
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from hal.errors import HalConfigError
+from hal.whole_file import written_whole
 
 KEY_BYTES = 32
 MAC_BYTES = 4
@@ -94,6 +94,21 @@ class HalKeyError(HalConfigError):
 # ------------------------------------------------------------------------------------ keys
 
 
+def _write_new_key(path: Path) -> None:
+    """A fresh key into a new file ``path``, created 0600; nothing left if it fails."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        try:
+            os.fchmod(fd, 0o600)  # exactly 0600 whatever the umask
+            os.write(fd, (secrets.token_bytes(KEY_BYTES).hex() + "\n").encode())
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        path.unlink(missing_ok=True)
+        raise
+
+
 def write_key_file(path: str | Path, *, overwrite: bool = False) -> Path:
     """Write a fresh random rig key to ``path`` with mode 0600 (created that way, never
     widened first); refuses to replace an existing file unless ``overwrite``, and anything but
@@ -107,25 +122,14 @@ def write_key_file(path: str | Path, *, overwrite: bool = False) -> Path:
         raise HalKeyError(f"rig key {path}: already exists (use --force to replace it)")
     try:  # created 0600 (O_EXCL), never widened first; a replacement beside it, swapped in
         if overwrite:
-            fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-            target = Path(name)
+            with written_whole(path) as tmp:
+                tmp.unlink(missing_ok=True)  # left by a killed run
+                _write_new_key(tmp)
         else:
-            fd, target = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), path
+            _write_new_key(path)
     except FileExistsError:
         raise HalKeyError(f"rig key {path}: already exists (use --force to replace it)") from None
     except OSError as exc:
-        raise HalKeyError(f"rig key {path}: cannot create: {exc.strerror}") from exc
-    try:
-        try:
-            os.fchmod(fd, 0o600)
-            os.write(fd, (secrets.token_bytes(KEY_BYTES).hex() + "\n").encode())
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        if overwrite:
-            os.replace(target, path)
-    except OSError as exc:
-        target.unlink(missing_ok=True)
         raise HalKeyError(f"rig key {path}: cannot write: {exc.strerror}") from exc
     return path
 

@@ -12,7 +12,6 @@ real camera's or the emulated one's views, see ``hil camera calibrate``).
 
 from __future__ import annotations
 
-import contextlib
 import math
 import re
 import tomllib
@@ -25,6 +24,7 @@ import numpy as np
 
 from hal.config import RigConfig, config_from_dict, read_text_file
 from hal.errors import HalConfigError
+from hal.whole_file import written_whole
 
 MIN_CORNERS = 8
 """A view with fewer identified corners is not used (too little of the board in view)."""
@@ -317,12 +317,6 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     ]
     new_text = "\n".join([*kept, *([""] if kept else []), *block]) + "\n"
     cfg = config_from_dict(tomllib.loads(new_text), source=str(p))  # validated before writing
-    tmp = p.with_name(p.name + ".calibrating")
-    try:
+    with written_whole(p) as tmp:
         tmp.write_text(new_text, encoding="utf-8")
-        tmp.replace(p)
-    except OSError as exc:  # named by the file asked for, not the temporary one
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise OSError(exc.errno, exc.strerror, str(p)) from None
     return cfg

@@ -10,8 +10,6 @@ a ``meta`` struct (the log's path, the recorded configuration as JSON, its diges
 
 from __future__ import annotations
 
-import errno
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from hal.whole_file import written_whole
 from rt_controller.errors import ControllerConfigError, LogError
 from rt_controller.logs.run import TOPICS, Run, identifier, require
 
@@ -85,37 +84,20 @@ def export(run: Run, fmt: str, files: dict[str, Path]) -> list[Written]:
         except OSError as exc:
             raise LogError(f"cannot create {path.parent}: {exc.strerror or exc}") from None
     write = {"csv": _write_csv, "parquet": _write_parquet, "mat": _write_mat}[fmt]
-    # written beside the file (through a link), then renamed over it: a full disk leaves no
-    # half file and the last export stays
-    target = {p: Path(os.path.realpath(p)) for p in set(files.values())}
-    partial = {p: t.with_name(f".{t.name}.partial") for p, t in target.items()}
-    try:
-        for p, t in target.items():
-            if not t.parent.is_dir():  # a link to nowhere
-                raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(p))
-        written = write(run, {topic: partial[p] for topic, p in files.items()})
-        for p, tmp in partial.items():
-            os.replace(tmp, target[p])
-    except OSError as exc:  # pyarrow's carries no errno: its own text names the file
-        where = f"{exc.filename}: " if exc.filename else ""
-        if not exc.filename and exc.strerror:  # a full disk: name the file(s) asked for
-            where = " / ".join(map(str, dict.fromkeys(files.values()))) + ": "
-        text = f"{where}{' '.join((exc.strerror or str(exc)).split())}"
-        for p, tmp in partial.items():  # the names asked for, not the temporary ones
-            text = text.replace(str(tmp), str(p))
-        raise LogError(f"cannot write the {fmt} export: {text}") from None
-    finally:
-        for tmp in partial.values():
-            tmp.unlink(missing_ok=True)
-    asked = {tmp: p for p, tmp in partial.items()}
-    return [Written(w.topic, asked[w.path], w.rows) for w in written]
+    try:  # each file written whole (hal.whole_file): a full disk leaves the last export
+        return write(run, files)
+    except OSError as exc:  # pyarrow's text names the file itself
+        text = " ".join((exc.strerror or str(exc)).split())
+        where = f"{exc.filename}: " if exc.filename and str(exc.filename) not in text else ""
+        raise LogError(f"cannot write the {fmt} export: {where}{text}") from None
 
 
 def _write_csv(run: Run, files: dict[str, Path]) -> list[Written]:
     out = []
     for topic, path in files.items():
         df = run.frame(topic)
-        df.to_csv(path, index=df.index.name is not None)
+        with written_whole(path) as tmp:
+            df.to_csv(tmp, index=df.index.name is not None)
         out.append(Written(topic, path, len(df)))
     return out
 
@@ -127,7 +109,8 @@ def _write_parquet(run: Run, files: dict[str, Path]) -> list[Written]:
     for topic, path in files.items():
         cols = run.arrays(topic)
         table = pa.table({k: pa.array(_as_list(v)) for k, v in cols.items()})
-        pq.write_table(table.replace_schema_metadata({**meta, "hil.topic": topic}), path)
+        with written_whole(path) as tmp:
+            pq.write_table(table.replace_schema_metadata({**meta, "hil.topic": topic}), tmp)
         out.append(Written(topic, path, table.num_rows))
     return out
 
@@ -185,7 +168,8 @@ def _write_mat(run: Run, files: dict[str, Path]) -> list[Written]:
         **{v: info[k] for k, v in matlab_names(list(info)).items()},
     }
     for path, structs in by_file.items():
-        with open(path, "wb") as fh:  # opened here: scipy hides why it could not open a path
+        # opened here: scipy hides why it could not open a path
+        with written_whole(path) as tmp, open(tmp, "wb") as fh:
             sio.savemat(
                 fh,
                 {**structs, "meta": meta},

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from hal.log_topics import DETECTION_TOPIC, IMAGE_TOPIC
+from hal.whole_file import written_whole
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.logtools.walk import topic_messages
 
@@ -85,5 +86,6 @@ def write_contact_sheet(log: LoadedLog, path: Path) -> bool:
         ax.imshow(fr["pixels"], cmap="gray", vmin=0, vmax=255)
         ax.set_title(f"t ~ {fr['t_s']:.2f} s\n{fr['label']}", fontsize=7)
         ax.set_axis_off()
-    fig.savefig(path, dpi=100)
+    with written_whole(path) as tmp:  # a full disk: no half PNG, the last one stays
+        fig.savefig(tmp, dpi=100, format="png")
     return True

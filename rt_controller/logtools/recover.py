@@ -12,7 +12,6 @@ The input is never changed; the copy is written beside its final name and rename
 
 from __future__ import annotations
 
-import os
 import stat
 from collections import Counter
 from dataclasses import asdict, dataclass, field
@@ -31,6 +30,7 @@ from mcap.records import (
 )
 from mcap.writer import CompressionType, Writer
 
+from hal.whole_file import written_whole
 from rt_controller.errors import ControllerConfigError, LogError
 from rt_controller.logtools.reader import (
     CYCLE_TOPIC,
@@ -124,16 +124,8 @@ def recover(log: str | Path, out: str | Path | None = None) -> Recovery:
     out = Path(out) if out is not None else default_out(log)
     _check_paths(log, out)
     result = Recovery(log=str(log), out=str(out), input_bytes=log.stat().st_size)
-    tmp = out.with_name(f".{out.name}.partial")
-    try:
-        with log.open("rb") as src, tmp.open("wb") as dst:
-            _copy(src, dst, result)
-        os.replace(tmp, out)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError) and exc.errno and exc.filename is None:  # a full disk
-            raise OSError(exc.errno, exc.strerror, str(out)) from None
-        raise
+    with written_whole(out) as tmp, log.open("rb") as src, tmp.open("wb") as dst:
+        _copy(src, dst, result)
     result.lost_bytes = result.input_bytes - result.kept_bytes
     return result
 

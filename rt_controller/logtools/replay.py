@@ -31,6 +31,7 @@ with them, so the new log can itself be replayed or republished.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +45,7 @@ from rt_controller.calibration.parameters import LAW_KEYS, accepted_changes, jud
 from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log, same_file
-from rt_controller.logtools.replay_out import OutLog, cycle_record_at
+from rt_controller.logtools.replay_out import cycle_record_at, out_log
 from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
 from rt_controller.runtime.recorder import CYCLE_TOPIC
 
@@ -347,8 +348,8 @@ def replay_loaded(
     u = np.zeros((n, 2))
     tau = np.zeros((n, 2))
     laws: list[str] = []
-    writer = OutLog(Path(out), cfg, log, tol) if out is not None else None
-    try:
+    writing = out_log(Path(out), cfg, log, tol) if out is not None else contextlib.nullcontext()
+    with writing as writer:  # renamed onto --out only when whole; on failure nothing is left
         for i in range(n):
             changes.apply(ctl, i)
             d = ctl.decide(
@@ -374,11 +375,6 @@ def replay_loaded(
                 writer.cycle(record)
         if writer is not None:
             writer.raw_inputs(log)
-            writer, whole = None, writer
-            whole.close()  # renamed onto --out only now; on failure nothing is left
-    finally:
-        if writer is not None:
-            writer.discard()
     result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
     result.allow_partial = allow_partial
     result.skipped_records = skipped

@@ -5,10 +5,12 @@ with :class:`~rt_controller.runtime.recorder.CycleRecorder` (the record shapes a
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from hal.config import RigConfig
+from hal.whole_file import written_whole
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog
 from rt_controller.runtime.recorder import CycleRecorder
@@ -33,12 +35,11 @@ def cycle_record_at(log: LoadedLog, i: int) -> dict[str, Any]:
 
 
 class OutLog:
-    """The ``--out`` writer: replayed cycles plus the recorded raw inputs, written beside the
-    file asked for and renamed onto it only when whole (:meth:`close`); a failed or interrupted
-    replay leaves no half log (:meth:`discard`), errors name the file asked for."""
+    """The ``--out`` writer: replayed cycles plus the recorded raw inputs, into ``tmp`` (see
+    :func:`out_log`); its errors name ``path``, the file asked for."""
 
-    def __init__(self, path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> None:
-        self.path, self.partial = path, path.with_name(f".{path.name}.partial")
+    def __init__(self, tmp: Path, path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> None:
+        self.path = path
         info: dict[str, Any] = {f"source.{k}": v for k, v in log.run_info.items()}
         info.update(
             replay_of=str(log.path),
@@ -48,10 +49,9 @@ class OutLog:
             law=cfg.controller.law,
         )
         try:
-            self.rec = CycleRecorder(self.partial, cfg, run_info=info)
+            self.rec = CycleRecorder(tmp, cfg, run_info=info)
         except LogError as exc:
-            self.partial.unlink(missing_ok=True)
-            raise LogError(str(exc).replace(str(self.partial), str(path))) from None
+            raise LogError(str(exc).replace(str(tmp), str(path))) from None
 
     def _check(self) -> None:
         if self.rec.error is not None:
@@ -81,22 +81,29 @@ class OutLog:
             self.rec.record_vision(base64.b64decode(r.get("data", "")), int(r["t_ns"]))
             self._check()
 
-    def close(self) -> None:
-        """Finish the log and rename it onto the file asked for; :class:`LogError` if it
-        could not be written whole (nothing left then)."""
+    def finish(self) -> None:
+        """Finish the log; :class:`LogError` if it could not be written whole."""
         self.rec.close()
-        try:
-            self._check()
-            self.partial.replace(self.path)
-        except LogError:  # before OSError, which it may derive from
-            self.discard()
-            raise
-        except OSError as exc:
-            self.discard()
-            raise LogError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+        self._check()
 
-    def discard(self) -> None:
-        """Close and delete the unfinished log (the replay failed or was stopped)."""
-        with contextlib.suppress(Exception):
-            self.rec.close()
-        self.partial.unlink(missing_ok=True)
+
+@contextlib.contextmanager
+def out_log(path: Path, cfg: RigConfig, log: LoadedLog, tol: float) -> Iterator[OutLog]:
+    """An :class:`OutLog` written beside ``path`` and renamed onto it when the block ends
+    whole (:func:`~hal.whole_file.written_whole`); a failed or interrupted replay leaves no
+    half log and the file that was there stays."""
+    with written_whole(path) as tmp:
+        writer = OutLog(tmp, path, cfg, log, tol)
+        try:
+            yield writer
+            writer.finish()
+        except OSError as exc:  # a full disk while closing: named by the file asked for
+            with contextlib.suppress(Exception):
+                writer.rec.close()
+            if isinstance(exc, LogError):
+                raise
+            raise LogError(f"cannot write {path}: {exc.strerror or exc}") from None
+        except BaseException:
+            with contextlib.suppress(Exception):
+                writer.rec.close()
+            raise

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from hal.whole_file import written_whole
 from rt_controller.logtools.contact_sheet import write_contact_sheet
 from rt_controller.logtools.deadline_report import change_entry, period_us, stats, time_axis
 from rt_controller.logtools.reader import LoadedLog
@@ -84,13 +85,8 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
 
     def save(fig: Figure, name: str) -> None:
         path = out / f"{stem}_{name}.png"
-        try:
-            fig.savefig(path, dpi=110)
-        except OSError as exc:  # a full disk: no half PNG, and the figure named
-            path.unlink(missing_ok=True)
-            if exc.errno is None or exc.filename is not None:
-                raise
-            raise OSError(exc.errno, exc.strerror, str(path)) from None
+        with written_whole(path) as tmp:  # a full disk: no half PNG, the last one stays
+            fig.savefig(tmp, dpi=110, format="png")
         written.append(path)
 
     late = log.column("lateness_us")

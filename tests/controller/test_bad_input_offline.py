@@ -123,3 +123,25 @@ def test_report_plots_onto_a_full_disk_name_the_figure_and_leave_no_half_png(
     assert err.endswith(".png: No space left on device\n")
     for png in plots.iterdir():  # the figures that fitted are whole
         assert png.read_bytes().endswith(b"IEND\xaeB`\x82")
+
+
+def test_report_plots_onto_a_full_disk_keep_the_last_figures(
+    tmp_path: Path, cfg, tiny_tmpfs: Path, capsys
+):
+    import os
+
+    log = big_log(tmp_path / "run.mcap", cfg)
+    assert main(["report", "-q", "--plot", str(tmp_path / "first"), str(log)]) == 0
+    plots = tiny_tmpfs / "plots"
+    plots.mkdir()
+    names = sorted(p.name for p in (tmp_path / "first").iterdir())
+    for name in names:  # the last report's figures, small
+        (plots / name).write_bytes(b"yesterday's figure")
+    room = os.statvfs(tiny_tmpfs)
+    (tiny_tmpfs / "filler").write_bytes(b"x" * (room.f_bavail * room.f_frsize - 2_000))
+    assert main(["report", "-q", "--plot", str(plots), str(log)]) == 1
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(p.name for p in plots.iterdir()) == names  # nothing lost, nothing half
+    kept = [p.read_bytes() for p in plots.iterdir()]
+    assert b"yesterday's figure" in kept
+    assert all(b == b"yesterday's figure" or b.endswith(b"IEND\xaeB`\x82") for b in kept)
