@@ -27,6 +27,7 @@ from rt_controller.runtime.recorder import (
     CAN_RX_TOPIC,
     CAN_TX_TOPIC,
     CANOPEN_TOPIC,
+    CHUNK_SIZE,
     CONFIG_METADATA,
     CYCLE_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -257,13 +258,25 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
         out.rejected[topic] = out.rejected.get(topic, 0) + n
         out.notes.append(f"{n} {topic} message(s) were {why} and were skipped")
     if not state.footer and not out.recorder_info:
-        out.notes.append("the recorder did not close the file (process killed or crashed?)")
+        out.notes.append(f"the recorder did not close the file ({_unclosed_cause(path)})")
     out.cycles = columns(cycle_records)
     out.topic_counts = dict(counts)
     out.channels = list(dict.fromkeys(channels.values()))
     if out.config is None and out.config_json is None:
         out.notes.append("no hil.config metadata: the run configuration is unknown")
     return out
+
+
+def _unclosed_cause(path: Path) -> str:
+    """Why a log may have no footer: its filesystem is (nearly) full, or the recorder died."""
+    try:
+        st = os.statvfs(path)
+    except OSError:
+        return "process killed or crashed?"
+    free = st.f_bavail * st.f_frsize
+    if free < CHUNK_SIZE:  # less than the recorder's next chunk
+        return f"{free} bytes left on its filesystem: the disk probably filled up while recording"
+    return "process killed or crashed?"
 
 
 def _payload(topic: str, data: bytes) -> tuple[dict[str, Any] | None, str]:

@@ -145,3 +145,17 @@ def test_report_plots_onto_a_full_disk_keep_the_last_figures(
     kept = [p.read_bytes() for p in plots.iterdir()]
     assert b"yesterday's figure" in kept
     assert all(b == b"yesterday's figure" or b.endswith(b"IEND\xaeB`\x82") for b in kept)
+
+
+def test_a_log_cut_by_a_full_disk_is_said_so(tmp_path: Path, cfg, tiny_tmpfs: Path, capsys):
+    log = tiny_tmpfs / "run.mcap"
+    rec = CycleRecorder(log, cfg, run_info={"law": "ioc"}, chunk_size=4096)
+    for i, q in enumerate(np.random.default_rng(0).random((6000, 8)).tolist()):
+        if not rec.record_cycle({"tick": i, "t_ns": i * 20_000_000, "law": "ioc", "q": q[:2]}):
+            break
+    rec.close()
+    assert "No space left on device" in str(rec.error)
+    main(["info", str(log)])
+    out = capsys.readouterr().out
+    assert "killed or crashed" not in out
+    assert "the disk probably filled up while recording" in out
