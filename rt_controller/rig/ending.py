@@ -261,6 +261,8 @@ def summary_after(
         "time_s": None if t is None or math.isnan(t) else t,
     }
     out["dsp"] = dsp
+    if summary is None:
+        _count_dsp_trips(out, dsp)
     out["log"] = contents["path"]
     out["log_contents"] = contents
     problems = run_problems(out)
@@ -274,6 +276,19 @@ def summary_after(
         out["warnings"] = run_warnings(out)
     out.setdefault("warnings", [])
     return out
+
+
+def _count_dsp_trips(out: dict[str, Any], dsp: dict[str, Any]) -> None:
+    """The DSP's watchdog trips into the summary's counters where the controller counted fewer:
+    a dead controller's last record cannot count the trip its death caused (the safe stop)."""
+    trips = int(dsp.get("watchdog_trips") or 0) if dsp.get("reported") else 0
+    if trips <= int(out.get("watchdog_trips") or 0):
+        return
+    out["watchdog_trips"] = trips  # a cia402 drive's: SYNC or heartbeat lost, by its reason
+    out["dsp_faults"] = {
+        **(out.get("dsp_faults") or {}),
+        dsp.get("fault_reason") or "watchdog": trips,
+    }
 
 
 def refused_to_start(end: ProcessEnd, summary: dict[str, Any]) -> bool:

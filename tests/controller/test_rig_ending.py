@@ -113,3 +113,20 @@ def test_the_table_shows_only_counters_that_are_not_zero():
     assert table["rejections"] == "can_rx.accepted 10, can_rx.counter 2"
     assert table["recorder"] == "written 5"
     assert table_view({"recorder": {"dropped": 0}})["recorder"] == "none"
+
+
+def test_a_dead_controller_s_summary_counts_the_trip_the_dsp_reports(tmp_path):
+    """The controller killed: its last record counted no trip, but the DSP tripped its
+    watchdog after the death (the safe stop). The table must not say ``watchdog_trips 0``
+    and ``dsp_faults none`` beside ``dsp: 1 watchdog trip(s) ...; drive fault``."""
+    base = {"clock": "lockstep", "rate_hz": 50.0, "planned_ticks": 500, "watchdog_trips": 0}
+    dsp = dsp_report(json.dumps(STATS) + "\n")
+    killed = ProcessEnd("controller", -signal.SIGKILL, 0)
+    out = summary_after(killed, None, tmp_path / "none.mcap", dsp, base)
+    assert out["watchdog_trips"] == 1 and out["dsp_faults"] == {"watchdog": 1}
+    assert "1 DSP watchdog trip(s)" in out["problems"]
+    table = table_view(out)
+    assert table["watchdog_trips"] == 1 and table["dsp_faults"] == "watchdog 1"
+    quiet = dsp_report(json.dumps({**STATS, "watchdog_trips": 0, "drive_state": "enabled"}))
+    out = summary_after(killed, None, tmp_path / "none.mcap", quiet, base)
+    assert out["watchdog_trips"] == 0 and not out.get("dsp_faults")
