@@ -41,6 +41,7 @@ from typing import Any
 import zenoh
 
 from hal.config import RigConfig
+from hal.config.rig import read_text_file
 from hal.errors import HalConfigError, HalStopped, HalTransportError
 from hal.resources import release, track
 from hal.zenoh_endpoint import parse_loopback_endpoint
@@ -121,13 +122,23 @@ def _zenoh_config(doc: dict[str, Any]) -> zenoh.Config:
         raise HalConfigError(f"internal zenoh config rejected: {exc}") from exc
 
 
-def _load_config_file(path: str) -> zenoh.Config:
-    if not Path(path).is_file():
+def load_config_file(path: str) -> zenoh.Config:
+    """zenoh's own config file (JSON5 or YAML by its suffix, as zenoh reads it), checked first
+    as the user's text file: a folder, a FIFO or bytes that are not UTF-8 are named in one
+    line (:class:`HalConfigError`), zenoh's complaints without their Rust source locations."""
+    if not Path(path).exists():
         raise HalConfigError(f"transport.zenoh_config: no such file {path!r}")
+    try:
+        read_text_file(path, "transport.zenoh_config file")
+    except HalConfigError as exc:  # "cannot read ... file PATH: why" or "PATH: not UTF-8 ..."
+        said = str(exc)
+        raise HalConfigError(
+            said if said.startswith("cannot") else f"transport.zenoh_config: {said}"
+        ) from None
     try:
         return zenoh.Config.from_file(path)
     except zenoh.ZError as exc:
-        raise HalConfigError(f"transport.zenoh_config: {path}: {exc}") from exc
+        raise HalConfigError(f"transport.zenoh_config: {path}: {_short(exc)}") from exc
 
 
 def _short(exc: BaseException) -> str:
@@ -375,7 +386,7 @@ def open_session(
     config_file = config_file if config_file is not None else transport.zenoh_config
     endpoint = endpoint or transport.zenoh_endpoint or DEFAULT_ENDPOINT
     if config_file:
-        zcfg = _load_config_file(config_file)
+        zcfg = load_config_file(config_file)
         try:
             session = zenoh.open(zcfg)
         except zenoh.ZError as exc:

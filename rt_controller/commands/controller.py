@@ -130,10 +130,12 @@ def shown(summary: dict, bus: BusSpec, as_json: bool) -> dict:
 
 def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
     """``cfg`` with the clock, profile and transport options of the command line (config
-    overrides: ``controller.clock``, ``hardware.profile``, ``transport.*``)."""
+    overrides: ``controller.clock``, ``hardware.profile``, ``transport.*``). A zenoh config
+    file that zenoh cannot read is refused here, before any link, process or log exists."""
+    from hal.zenoh_session import load_config_file
     from rt_controller.config_rules import apply_overrides
 
-    return apply_overrides(
+    cfg = apply_overrides(
         cfg,
         clock=args.clock,
         profile=args.profile,
@@ -142,6 +144,9 @@ def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
         zenoh_config=args.zenoh_config,
         from_command_line=True,
     )
+    if cfg.transport.zenoh_config:
+        load_config_file(cfg.transport.zenoh_config)
+    return cfg
 
 
 def daemon_options(args: argparse.Namespace) -> DaemonOptions:

@@ -36,3 +36,29 @@ def test_a_run_with_a_bad_endpoint_is_refused_before_anything_starts(tmp_path, w
     assert "transport.zenoh_endpoint" in out.stderr and "'foo'" in out.stderr
     assert "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
     assert not log.exists()
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo", "not-utf8"])
+def test_a_zenoh_config_file_zenoh_cannot_read_is_refused_in_one_line(tmp_path, kind):
+    """Before its recorder starts (no warning of a live stream first), naming the file and
+    what is wrong with it: never a hang on a FIFO, "no such file" for a folder, or zenoh's
+    Rust source locations."""
+    import os
+
+    key, log, zcfg = tmp_path / "rig.key", tmp_path / "run.mcap", tmp_path / "zenoh.json5"
+    if kind == "folder":
+        zcfg.mkdir()
+    elif kind == "fifo":
+        os.mkfifo(zcfg)
+    else:
+        zcfg.write_bytes(b"\xff\xfe{ mode: 'peer' }")
+    assert run_hil(["keygen", str(key)], timeout_s=60).returncode == 0
+    argv = ["controller", "--key-file", str(key), "--log", str(log), "--duration", "1"]
+    argv += ["--zenoh-config", str(zcfg), "--can", isolated_spec("udp_multicast")]
+    out = run_hil(argv, timeout_s=120)
+    assert out.returncode == 2, out.stderr
+    (line,) = out.stderr.strip().splitlines()
+    assert line.startswith("hil controller: error: ") and str(zcfg) in line
+    said = {"folder": "is a directory", "fifo": "not a regular file", "not-utf8": "not UTF-8"}
+    assert said[kind] in line and ".rs:" not in line
+    assert not log.exists()
