@@ -104,15 +104,16 @@ def _write_new_key(path: Path) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
-    except OSError:
+    except OSError as exc:  # a full disk: named by the file
         path.unlink(missing_ok=True)
-        raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
 
 
 def write_key_file(path: str | Path, *, overwrite: bool = False) -> Path:
     """Write a fresh random rig key to ``path`` with mode 0600 (created that way, never
     widened first); refuses to replace an existing file unless ``overwrite``, and anything but
-    a regular file always. A replaced key is swapped in whole (a full disk leaves the old one)."""
+    a regular file always. A replaced key is swapped in whole (a full disk leaves the old one).
+    :class:`HalKeyError` for what the path is; :class:`OSError` naming it when writing fails."""
     if not str(path):
         raise HalKeyError("rig key: the path is empty")
     path = Path(path)
@@ -129,9 +130,7 @@ def write_key_file(path: str | Path, *, overwrite: bool = False) -> Path:
             _write_new_key(path)
     except FileExistsError:
         raise HalKeyError(f"rig key {path}: already exists (use --force to replace it)") from None
-    except OSError as exc:
-        raise HalKeyError(f"rig key {path}: cannot write: {exc.strerror}") from exc
-    return path
+    return path  # any other OSError names the path: a full disk fails as every writer does
 
 
 def load_key_file(path: str | Path) -> bytes:

@@ -40,7 +40,27 @@ def test_a_full_disk_keeps_the_key_being_replaced(tiny_tmpfs):
         pass
     finally:
         os.close(fd)
-    with pytest.raises(HalKeyError, match="No space left on device"):
+    with pytest.raises(OSError, match="No space left on device") as info:
         write_key_file(key, overwrite=True)
+    assert info.value.filename == str(key) and not isinstance(info.value, HalKeyError)
     assert load_key_file(key) == before
     assert sorted(p.name for p in tiny_tmpfs.iterdir()) == ["filler", "rig.key"]
+
+
+def test_hil_keygen_onto_a_full_disk_fails_as_every_writer_does(tiny_tmpfs, capsys):
+    """Exit 1 and ``PATH: No space left on device``, as ``hil camera calibrate --write`` or
+    ``hil export`` on a full disk: a failed write, not a bad argument (exit 2)."""
+    from rt_controller.cli import main
+
+    fd = os.open(tiny_tmpfs / "filler", os.O_WRONLY | os.O_CREAT)
+    try:
+        while os.write(fd, b"\0" * 4096):
+            pass
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+    key = tiny_tmpfs / "rig.key"
+    assert main(["keygen", str(key)]) == 1
+    assert capsys.readouterr().err == f"hil keygen: error: {key}: No space left on device\n"
+    assert not key.exists()
