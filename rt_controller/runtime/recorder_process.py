@@ -156,6 +156,8 @@ class RecorderProcess(Recorder):
         self._outbox = _Outbox()
         self._queued = 0  # records in the outbox, at most (it was last empty before them)
         self.counts: Counter[int] = Counter()  # sent; the child's written once it finished
+        self.confirmed = False
+        """Whether :attr:`counts` are the child's own (it finished); else records sent to it."""
         self._lock = threading.Lock()  # images and Sync-paced features come from zenoh's thread
         how = json.dumps(
             {"path": str(path), "scene": scene, "live": live, "flush": flush_interval_s}
@@ -304,6 +306,15 @@ class RecorderProcess(Recorder):
             for key in WRITER_COUNTERS:
                 setattr(self, key, int(final.get(key, 0)))
             self.finished = final["finished"]
+            self.confirmed = True
+
+    def as_dict(self) -> dict[str, int]:
+        """The counters; once closed without the child's own counts (it died), ``written`` is
+        ``sent``: what reached the file is the log's to say, not this process's."""
+        out = super().as_dict()
+        if self.closed and not self.confirmed:
+            out["sent"] = out.pop("written")
+        return out
 
 
 def _ended(status: int) -> str:
