@@ -28,7 +28,24 @@ def rate_list(text: str) -> tuple[float, ...]:
     rates = tuple(CONTROL_RATE(r) for r in text.split(",") if r.strip())
     if not rates:
         raise argparse.ArgumentTypeError(f"expected control rates like 50,200, got {text!r}")
+    twice = sorted({r for r in rates if rates.count(r) > 1})
+    if twice:  # one log per rate (loop-50.mcap): a second run would replace the first's
+        raise argparse.ArgumentTypeError(
+            f"{', '.join(f'{r:g}' for r in twice)} Hz given twice in {text!r}; each rate once"
+        )
     return rates
+
+
+def _two_ticks(seconds: float, rate_hz: float, option: str) -> None:
+    """Refuse a lockstep run shorter than two control periods (0 skips it): it would log fewer
+    than two cycles, so its speed is NaN (no JSON) or, with none, not measured at all."""
+    from rt_controller.errors import ControllerConfigError
+
+    if 0 < seconds < 2 / rate_hz:
+        raise ControllerConfigError(
+            f"{option} {seconds:g} s is shorter than two control periods at {rate_hz:g} Hz "
+            f"({2 / rate_hz:g} s): the lockstep run would time nothing (0 skips it)"
+        )
 
 
 def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespace], int]) -> None:
@@ -266,10 +283,12 @@ def run_vision(args: argparse.Namespace) -> int:
     from rt_controller.commands.vision import emulated_camera
     from rt_controller.rig.bench_vision import bench_vision
 
+    cfg = config_from_args(args)
+    _two_ticks(args.lockstep_duration, cfg.rates.control_hz, "--lockstep-duration")
     render, truth = emulated_camera()
     progress = Progress.of(args, "hil bench vision")
     out = bench_vision(
-        config_from_args(args),
+        cfg,
         render,
         truth,
         grid=args.grid,
@@ -386,6 +405,7 @@ def run_loop(args: argparse.Namespace) -> int:
 
     rates = args.rates  # a tuple, each in range (rate_list)
     cfg = config_from_args(args)
+    _two_ticks(args.lockstep_duration, cfg.rates.control_hz, "--lockstep-duration")
     keep = output_dir(args.keep, "--keep") if args.keep else None
     measured = args.host_probe + len(rates) * args.duration + args.lockstep_duration
     progress = Progress.of(args, "hil bench loop")

@@ -5,14 +5,58 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
-from typing import Any
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, bounded_int, path_given
+from hal.signals import signal_name_of
 from rt_controller.commands.common import add_config_option
+
+if TYPE_CHECKING:
+    from hal.config import RigConfig
 
 ACTION_NAMES = ("arm", "disarm", "mark", "reset_scenario")
 """The operator actions (:data:`rt_controller.calibration.operator.ACTIONS`)."""
+T = TypeVar("T")
+
+
+class Interrupted(Exception):
+    """Ctrl-C or SIGTERM while a request waited for its answer: :attr:`status` 130 or 143."""
+
+    def __init__(self, line: str, status: int) -> None:
+        super().__init__(line)
+        self.status = status
+
+
+def _until_stopped(stop: threading.Event, op: str, call: Callable[[], T]) -> T:
+    """``call()`` (one request) in a worker thread while this one waits for it or for ``stop``:
+    zenoh's wait for an answer (up to 600 s for a set at a later tick) takes no signal, so
+    Ctrl-C would otherwise go unheeded until it ends. :class:`Interrupted` when stopped."""
+    box: dict[str, Any] = {}
+    done = threading.Event()
+
+    def work() -> None:
+        try:
+            box["out"] = call()
+        except BaseException as exc:  # handed to the waiting thread
+            box["exc"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=work, name="hil-param-request", daemon=True).start()
+    while not done.wait(0.05):
+        if stop.is_set():
+            name = signal_name_of(stop) or "SIGINT"
+            line = f"interrupted by {name} before the answer"
+            if op in ("set", "action"):
+                line += f"; the {op} was sent and may still take effect (the run's log says)"
+            raise Interrupted(line, 128 + signal.Signals[name])
+    if "exc" in box:
+        raise box["exc"]
+    return box["out"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -62,13 +106,39 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def _values_of_file(path: str) -> dict[str, Any]:
-    """The tunable values of the TOML file ``path``, read and validated before any wait for
-    the rig (a missing or bad file is named at once, not after a hub timeout)."""
-    from hal.config import load_config
-    from rt_controller.calibration.parameters import tunable_values
+def _file_settings(path: str) -> tuple[RigConfig, set[str]]:
+    """The TOML file ``path`` as a validated config and the dotted keys it sets, read before
+    any wait for the rig (a missing or bad file is named at once, not after a hub timeout).
+    Only the keys it sets are loaded: a key it leaves out keeps its running value, not the
+    embedded default (a partial file must not switch the law of a rig started with --law)."""
+    import tomllib
 
-    return tunable_values(load_config(path))
+    from hal.config import load_config, read_text_file
+
+    cfg = load_config(path)
+    data = tomllib.loads(read_text_file(path, "config file"))
+    return cfg, {f"{s}.{k}" for s, body in data.items() if isinstance(body, dict) for k in body}
+
+
+def _not_online(path: str, file_cfg: RigConfig, keys: set[str], dump_toml: str) -> str | None:
+    """A note naming the keys ``path`` sets to other values than the running configuration
+    (``dump_toml``) that no online change can apply (None: there are none)."""
+    import tomllib
+
+    from hal.config import config_from_dict
+    from rt_controller.calibration.parameters import TUNABLE, diff
+
+    running = config_from_dict(tomllib.loads(dump_toml), source="the controller's dump")
+    apart = {k: v for k, v in diff(running, file_cfg).items() if k in keys and k not in TUNABLE}
+    if not apart:
+        return None
+    items = ", ".join(
+        f"{k} (running {json.dumps(a)}, file {json.dumps(b)})" for k, (a, b) in apart.items()
+    )
+    return (
+        f"{path} sets keys that are no online parameter, left as they run (restart with "
+        f"--config to change them): {items}"
+    )
 
 
 def _changes(wanted: dict[str, Any], running: dict[str, Any]) -> dict[str, Any]:
@@ -90,27 +160,68 @@ def _check_keys(keys: list[str]) -> None:
         )
 
 
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse an option or ARG that ``args.action`` would ignore (a dump "to" FILE that
+    goes to stdout, a get "at" a tick that reads now), before any wait for the rig."""
+    from rt_controller.errors import ControllerConfigError
+
+    act = args.action
+    if args.out and act != "dump":
+        raise ControllerConfigError(f"{act}: -o/--out is for dump only")
+    if args.at_tick is not None and act in ("get", "dump", "diff"):
+        raise ControllerConfigError(f"{act}: --at-tick is for set, load and the actions only")
+    if args.json and act == "dump":
+        raise ControllerConfigError("dump: --json does not apply: a dump is the config's TOML")
+    if act == "dump" and args.items:
+        raise ControllerConfigError(f"dump takes no ARG, got {args.items[0]!r} (write to FILE: -o)")
+
+
+def _print_diff(changes: dict[str, Any], got: dict[str, Any], as_json: bool) -> None:
+    """The tunable keys whose file value differs from the running one, as lines or as one
+    JSON object ``{"param_set", "differ": {key: {"running", "file"}}}``."""
+    running = got["values"]
+    if as_json:
+        differ = {k: {"running": running[k], "file": v} for k, v in changes.items()}
+        print(json.dumps({"param_set": got["param_set"], "differ": differ}))
+        return
+    for k, v in changes.items():
+        print(f"{k}: running {json.dumps(running[k])}, file {json.dumps(v)}")
+
+
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except Interrupted as exc:
+        print(f"hil param: {exc}", file=sys.stderr)
+        return exc.status
+
+
+def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
     from rt_controller.calibration.link import event_line, outcome_line, request
+    from rt_controller.calibration.parameters import TUNABLE, value_of
     from rt_controller.commands.output import output_file
     from rt_controller.commands.replay import parse_sets
     from rt_controller.errors import ControllerConfigError
 
+    _check_options(args)
     if args.action == "get":
         _check_keys(args.items)
     cfg = configure_key(load_config(args.config), args.key_file, "hil param")
     if args.action in ("load", "diff") and len(args.items) != 1:
         raise ControllerConfigError(f"hil param {args.action} expects one TOML file")
-    wanted = _values_of_file(args.items[0]) if args.action in ("load", "diff") else {}
+    file_cfg, file_keys = None, set()
+    if args.action in ("load", "diff"):
+        file_cfg, file_keys = _file_settings(args.items[0])
+    wanted = {k: value_of(file_cfg, k) for k in TUNABLE if k in file_keys}
     changes = parse_sets(args.items, "set") if args.action == "set" else {}
     if args.action == "set" and not changes:
         raise ControllerConfigError("set expects KEY=VALUE ...")
     out_file = None
-    if args.out and args.action == "dump":  # a dump is made again from the running set
+    if args.out:  # a dump is made again from the running set
         out_file = output_file(args.out, "--out", replace=True)
     key = rig_key(cfg)
     hub_wait = {} if args.timeout is None else {"wait_s": args.timeout}
@@ -126,7 +237,9 @@ def run(args: argparse.Namespace) -> int:
         try:
 
             def ask(op: str, **kw: Any) -> dict[str, Any]:
-                return request(session, key, op, timeout_s=args.timeout, **kw)
+                return _until_stopped(
+                    stop, op, lambda: request(session, key, op, timeout_s=args.timeout, **kw)
+                )
 
             if args.action in ACTION_NAMES:
                 out = ask(
@@ -145,6 +258,10 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     sys.stdout.write(out["toml"])
                 return 0
+            if file_cfg is not None and file_keys - TUNABLE.keys():
+                note = _not_online(args.items[0], file_cfg, file_keys, ask("dump")["toml"])
+                if note is not None:
+                    print(f"hil param: {note}", file=sys.stderr)
             got = ask("get")
             if args.action == "get":
                 values = got["values"]
@@ -156,9 +273,7 @@ def run(args: argparse.Namespace) -> int:
                         print(f"{k} = {json.dumps(v)}")
                 return 0
             if args.action == "diff":
-                changes = _changes(wanted, got["values"])
-                for k, v in changes.items():
-                    print(f"{k}: running {json.dumps(got['values'][k])}, file {json.dumps(v)}")
+                _print_diff(_changes(wanted, got["values"]), got, args.json)
                 return 0
             if args.action == "load":
                 changes = _changes(wanted, got["values"])

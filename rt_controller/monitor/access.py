@@ -52,6 +52,11 @@ CLOSED_REASON = (
     "access token (hil monitor --tls-cert FILE --tls-key FILE --allow-tuning)"
 )
 ADMITTED_LINE = "access token accepted: this connection may change the rig"
+OPEN_LINE = (
+    "no access token is needed or checked here (plain ws:// on loopback): every client of this "
+    "host may change the rig"
+)
+"""A token presented to an ``open`` monitor: not checked, so never said to be right."""
 
 
 def tuning_token(key: bytes) -> str:
@@ -141,7 +146,7 @@ class AccessGate:
         """A client presents ``token`` (the value it set ``hil.token`` to): the outcome line.
         A right token admits the connection; a wrong one changes nothing."""
         if self.mode == "open":
-            return ADMITTED_LINE
+            return OPEN_LINE
         if self.mode == "closed":
             with self._lock:
                 self.counts["refused"] += 1

@@ -221,7 +221,9 @@ class MonitorBridge:
 
     @property
     def url(self) -> str:
-        return f"{'wss' if self.tls else 'ws'}://{self.host}:{self.port}"
+        """What a client opens; an IPv6 address in brackets (``ws://[::1]:8765``)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{'wss' if self.tls else 'ws'}://{host}:{self.port}"
 
     def channels(self) -> dict[str, str]:
         """Advertised topic -> schema name."""

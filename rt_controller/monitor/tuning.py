@@ -279,8 +279,12 @@ class TuningFrontEnd(ServerListener):
     def _set(self, asked: dict[str, Any]) -> None:
         if AT_TICK in asked:  # what is no tick goes as sent: the controller refuses it
             self._at_tick = _tick(asked.pop(AT_TICK))
-        for name in (LAST_OUTCOME, TUNING):
-            asked.pop(name, None)
+        read_only = [name for name in (LAST_OUTCOME, TUNING) if name in asked]
+        for name in read_only:
+            del asked[name]
+        if read_only and not asked:  # else the reply would show an older, unrelated outcome
+            self.last_outcome = f"refused here: {' and '.join(read_only)} cannot be set (read-only)"
+            self._status(self.last_outcome, ok=False)
         if not asked:
             return
         current = self.ask("get")["values"]

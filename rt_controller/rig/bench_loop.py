@@ -112,11 +112,20 @@ def bench_rate(
         "watchdog_trips": summary.get("watchdog_trips"),
         "dsp_faults": summary.get("dsp_faults"),
         "drive_ticks": summary.get("drive_ticks"),
-        "problems": summary.get("problems") or [],
+        "problems": _problems(summary),
         "log": str(log),
         "footprint": footprint(sampler, duration, summary),
         "canopen": canopen_figures(loaded) if name == "cia402" else None,
     }
+
+
+def _problems(summary: dict[str, Any]) -> list[str]:
+    """The run's problems, and a ``--monitor-port`` monitor that failed (a port in use): the
+    figures were then taken without the live view they were asked with."""
+    problems = list(summary.get("problems") or [])
+    if summary.get("monitor_error"):
+        problems.append(f"hil monitor failed, no live view ran: {summary['monitor_error']}")
+    return problems
 
 
 def canopen_figures(log: Any) -> dict[str, Any] | None:

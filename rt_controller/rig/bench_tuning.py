@@ -11,6 +11,7 @@ the client's monotonic time just before it sent the request.
 from __future__ import annotations
 
 import contextlib
+import signal
 import subprocess
 import sys
 import tempfile
@@ -29,12 +30,18 @@ from rt_controller.rig.bench_loop import bench_workdir
 from rt_controller.rig.ending import ProcessEnd
 from rt_controller.rig.failures import RigProcessDied
 from rt_controller.rig.processes import Child
+from rt_controller.rig.supervise import kill_with_stacks
 from rt_controller.sample_stats import summary_stats
 
 STARTUP_S = 120.0
 """How long the client waits for the rig to answer (its start-up on a loaded host)."""
 TAIL_LINES = 20
 """How many of the rig's last stderr lines a failure carries."""
+STOP_S = 60.0
+"""How long ``hil up`` may take to stop its processes when the bench ends early."""
+ENDING_S = 15.0
+"""How long a client failure waits for ``hil up`` to end on its own: a rig whose controller
+died is still stopping the others when the client's next request fails."""
 
 
 def bench_tuning(
@@ -54,13 +61,13 @@ def bench_tuning(
             lat_ns, switch_ticks = _client(up.proc, ep, load_key_file(key_file), requests, gap_s)
             up.proc.wait(timeout=duration + 120)
         except Exception as exc:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                up.proc.wait(timeout=ENDING_S)
             if not up.proc.poll():  # running or ended cleanly: the client failed, not the rig
                 raise
             raise _died(up) from exc
         finally:
-            if up.proc.poll() is None:
-                up.proc.kill()
-                up.proc.wait()
+            _stop(up)
         figures = _figures(up, log, lat_ns, switch_ticks)
         tail = up.tail(TAIL_LINES) if up.proc.returncode else ""
     kept = str(log) if workdir is not None else None
@@ -81,6 +88,20 @@ def _start_up(
         stdout=out, stderr=err,
     )  # fmt: skip
     return Child("rig (hil up)", proc, err, out)
+
+
+def _stop(up: Child) -> None:
+    """End a ``hil up`` still running (the bench failed or was interrupted) as Ctrl-C does: it
+    stops its processes, controller first, and waits for them, so none outlives the bench nor
+    writes into its removed folder (SIGKILL would orphan them). Killed after :data:`STOP_S`."""
+    if up.proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            up.proc.send_signal(signal.SIGTERM)
+        try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                up.proc.wait(timeout=STOP_S)
+        finally:  # also on a second Ctrl-C during the wait
+            kill_with_stacks(up.proc)
 
 
 def _died(up: Child) -> RigProcessDied:

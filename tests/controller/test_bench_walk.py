@@ -169,3 +169,111 @@ def test_a_bench_loop_stopped_by_sigterm_leaves_no_temporary_folder(tmp_path):
     assert proc.returncode == 143 and out == ""
     assert err.strip().splitlines()[-1] == "hil bench loop: interrupted: no figures"
     wait_for(lambda: not list(tmp_path.glob("hil-*")), "the temporary folders to go")
+
+
+@pytest.mark.integration
+def test_a_bench_tuning_interrupted_mid_run_leaves_no_rig_process_running(tmp_path):
+    """Ctrl-C while its rig runs: the bench stops ``hil up`` as Ctrl-C would (its processes,
+    controller first) before it says so, rather than killing it and leaving the controller and
+    its recorder running on, writing into the bench's removed folder."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", "bench", "tuning", "--requests", "500"]
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    rig = str(tmp_path / "hil-bench-tuning-")
+    try:
+        wait_for(lambda: any(" controller " in p for p in processes_mentioning(rig)), "it", proc)
+        wait_for(lambda: any(tmp_path.glob("hil-bench-tuning-*/tuning.mcap")), "its log", proc)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=WAIT_S)
+        left = processes_mentioning(rig)  # at once: nothing may outlive the bench
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for line in processes_mentioning(rig):
+            os.kill(int(line.split(":")[0]), signal.SIGKILL)
+    assert proc.returncode == 130 and out == ""
+    assert err.strip().splitlines()[-1] == "hil bench tuning: interrupted: no figures"
+    assert left == []
+    wait_for(lambda: not list(tmp_path.glob("hil-*")), "the temporary folders to go")
+
+
+@pytest.mark.parametrize("rates", ["50,50", "50,200,5e1"])
+def test_bench_loop_refuses_a_rate_given_twice(rates, capsys):
+    """One log per rate (``--keep DIR``: loop-50.mcap): a second run at 50 Hz would replace the
+    first's while the figures of both named the same file."""
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "loop", "--rates", rates, "--config", "/nonexistent/rig.toml"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --rates: 50 Hz given twice" in err
+
+
+@pytest.mark.integration
+def test_bench_loop_whose_monitor_could_not_serve_its_port_says_the_run_was_not_clean():
+    """``--monitor-port`` in use: the monitor fails at start, the run goes on without it; its
+    figures must not pass for ones taken with the live view (exit 1, the reason named)."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        cmd = [sys.executable, "-m", "rt_controller.cli", "bench", "loop", "--rates", "50"]
+        cmd += ["--duration", "1", "--host-probe", "0", "--lockstep-duration", "0", "-q"]
+        done = subprocess.run(
+            [*cmd, "--monitor-port", port], capture_output=True, text=True, timeout=WAIT_S
+        )
+    assert done.returncode == 1, done.stderr
+    (run,) = json.loads(done.stdout)["rates"]
+    assert any("hil monitor failed" in p and port in p for p in run["problems"])
+    assert "hil bench loop: dsp run not clean at 50 Hz: hil monitor failed" in done.stderr
+
+
+@pytest.mark.parametrize(
+    ("what", "seconds"),
+    [
+        (["loop", "--rates", "50", "--duration", "0.01", "--host-probe", "0"], "0.03"),
+        (["vision", "--grid", "2", "--latency-frames", "0", "--realtime-duration", "0"], "0.01"),
+    ],
+)
+def test_a_lockstep_run_shorter_than_two_periods_is_refused_before_any_run(what, seconds):
+    """One cycle gives a NaN speed (``NaN`` is no JSON), none a KeyError traceback."""
+    cmd = [sys.executable, "-m", "rt_controller.cli", "bench", *what, "-q"]
+    done = subprocess.run(
+        [*cmd, "--lockstep-duration", seconds], capture_output=True, text=True, timeout=WAIT_S
+    )
+    assert done.returncode == 2 and done.stdout == ""
+    (line,) = done.stderr.strip().splitlines()
+    assert line == (
+        f"hil bench {what[0]}: error: --lockstep-duration {seconds} s is shorter than two control "
+        "periods at 50 Hz (0.04 s): the lockstep run would time nothing (0 skips it)"
+    )
+
+
+@pytest.mark.integration
+def test_a_bench_tuning_whose_controller_dies_mid_run_names_the_rig_not_the_link(tmp_path):
+    """The client's next request fails at once while ``hil up`` is still stopping the rest:
+    the error is the rig's end and reason, not "no controller on this endpoint yet"."""
+    from tests.support import cycles_logged
+
+    cmd = [sys.executable, "-m", "rt_controller.cli", "bench", "tuning", "--requests", "500"]
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    rig = str(tmp_path / "hil-bench-tuning-")
+    try:
+        wait_for(lambda: any(tmp_path.glob("hil-bench-tuning-*/tuning.mcap")), "its log", proc)
+        (log,) = tmp_path.glob("hil-bench-tuning-*/tuning.mcap")
+        wait_for(lambda: cycles_logged(log) >= 200, "the measurement", proc, poll_s=0.5)
+        (ctl,) = [p for p in processes_mentioning(rig) if " controller " in p]
+        os.kill(int(ctl.split(":")[0]), signal.SIGKILL)
+        out, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for line in processes_mentioning(rig):
+            os.kill(int(line.split(":")[0]), signal.SIGKILL)
+    assert proc.returncode == 2 and out == ""
+    assert "hil bench tuning: error: rig (hil up) exited with status" in err
+    assert "controller killed by SIGKILL" in err and "no answer" not in err
