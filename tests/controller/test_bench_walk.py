@@ -172,6 +172,15 @@ def test_a_bench_loop_stopped_by_sigterm_leaves_no_temporary_folder(tmp_path):
 
 
 @pytest.mark.integration
+def reap_bench(proc: subprocess.Popen, rig: str) -> None:
+    """The bench ``proc`` and every process mentioning ``rig`` gone, whatever the test saw."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    for line in processes_mentioning(rig):
+        os.kill(int(line.split(":")[0]), signal.SIGKILL)
+
+
 def test_a_bench_tuning_interrupted_mid_run_leaves_no_rig_process_running(tmp_path):
     """Ctrl-C while its rig runs: the bench stops ``hil up`` as Ctrl-C would (its processes,
     controller first) before it says so, rather than killing it and leaving the controller and
@@ -187,11 +196,7 @@ def test_a_bench_tuning_interrupted_mid_run_leaves_no_rig_process_running(tmp_pa
         out, err = proc.communicate(timeout=WAIT_S)
         left = processes_mentioning(rig)  # at once: nothing may outlive the bench
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        for line in processes_mentioning(rig):
-            os.kill(int(line.split(":")[0]), signal.SIGKILL)
+        reap_bench(proc, rig)
     assert proc.returncode == 130 and out == ""
     assert err.strip().splitlines()[-1] == "hil bench tuning: interrupted: no figures"
     assert left == []
@@ -269,11 +274,7 @@ def test_a_bench_tuning_whose_controller_dies_mid_run_names_the_rig_not_the_link
         os.kill(int(ctl.split(":")[0]), signal.SIGKILL)
         out, err = proc.communicate(timeout=WAIT_S)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        for line in processes_mentioning(rig):
-            os.kill(int(line.split(":")[0]), signal.SIGKILL)
+        reap_bench(proc, rig)
     assert proc.returncode == 2 and out == ""
     assert "hil bench tuning: error: rig (hil up) exited with status" in err
     assert "controller killed by SIGKILL" in err and "no answer" not in err

@@ -7,24 +7,13 @@ from __future__ import annotations
 
 import pytest
 
-from hal.config import RigConfig
-from hal.zenoh_session import free_loopback_port
-from rt_controller.monitor.bridge import MonitorBridge
-from rt_controller.monitor.tuning import TuningFrontEnd
-from tests.support.foxglove_ws import FoxgloveClient
-from tests.support.param_link import KEY, LoopbackLink
+from tests.support.param_link import tuning_monitor
 
 
 @pytest.fixture
 def rig():
-    link = LoopbackLink()
-    tuning = TuningFrontEnd(link, KEY, allow_tuning=True)
-    port = free_loopback_port()
-    bridge = MonitorBridge(RigConfig(), link, port=port, tuning=tuning)
-    client = FoxgloveClient.open(f"ws://127.0.0.1:{port}")
-    yield link, client
-    client.close()
-    bridge.close()
+    with tuning_monitor() as pair:
+        yield pair
 
 
 def test_a_diagonal_typed_as_text_is_refused_by_the_controller(rig):

@@ -5,8 +5,11 @@ front-end: ``session.session.get`` of zenoh answered by a real
 
 from __future__ import annotations
 
+import contextlib
 import threading
+from collections.abc import Iterator
 from types import SimpleNamespace
+from typing import Any
 
 from hal.config import RigConfig
 from rt_controller.calibration.link import ParameterServer
@@ -36,3 +39,24 @@ class LoopbackLink:
                     act.finish(TICK, accepted=act.refusal is None, reason=act.refusal)
         ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: got[0]))
         return [SimpleNamespace(ok=ok)] if got and got[0] is not None else []
+
+
+@contextlib.contextmanager
+def tuning_monitor() -> Iterator[tuple[LoopbackLink, Any]]:
+    """A real ``hil monitor`` bridge with tuning allowed on a free loopback port, over a
+    :class:`LoopbackLink`, and an independent Foxglove WebSocket client connected to it."""
+    from hal.zenoh_session import free_loopback_port
+    from rt_controller.monitor.bridge import MonitorBridge
+    from rt_controller.monitor.tuning import TuningFrontEnd
+    from tests.support.foxglove_ws import FoxgloveClient
+
+    link = LoopbackLink()
+    tuning = TuningFrontEnd(link, KEY, allow_tuning=True)
+    port = free_loopback_port()
+    bridge = MonitorBridge(RigConfig(), link, port=port, tuning=tuning)
+    client = FoxgloveClient.open(f"ws://127.0.0.1:{port}")
+    try:
+        yield link, client
+    finally:
+        client.close()
+        bridge.close()
