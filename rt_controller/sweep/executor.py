@@ -8,15 +8,16 @@ package installed::
     dask scheduler --host 10.0.0.1 --port 8786
     dask worker tcp://10.0.0.1:8786 --nthreads 1 --nworkers 4   # on every machine
 
-The one mechanism of ``hil sweep`` and ``hil experiment``: :func:`open_cluster` makes the
-cluster, :class:`Tasks` puts tasks on it and takes each back as it finishes, and a stop request
-(:func:`request_stop`) reaches the tasks that are running (:func:`watch_stop`). A sweep task is
-one run (:class:`rt_controller.sweep.spec.RunTask`, keyed by its run key); its row never depends
-on the worker that runs it. Dask itself moves the tasks of a worker that dies to
-the others (``distributed.scheduler.allowed-failures`` times, then the run is recorded as
-failed); the store keeps one row per run key. Ctrl-C or SIGTERM cancels what is left (a
-running rig run stops its processes, waited for), keeps every finished row and writes the
-report of what ran; the same command resumes.
+The one mechanism of ``hil sweep`` and ``hil experiment``: :func:`open_cluster`
+(:mod:`.cluster`) makes the cluster, :class:`Tasks` puts tasks on it and takes each back as it
+finishes, and a stop request (:func:`request_stop`) reaches the tasks that are running
+(:func:`watch_stop`). A scheduler that goes away ends the sweep (:class:`ClusterLost`): the
+runs it never ran are no rows. A sweep task is one run (:class:`rt_controller.sweep.spec.RunTask`,
+keyed by its run key); its row never depends on the worker that runs it. Dask itself moves the
+tasks of a worker that dies to the others (``distributed.scheduler.allowed-failures`` times,
+then the run is recorded as failed); the store keeps one row per run key. Ctrl-C or SIGTERM
+cancels what is left (a running rig run stops its processes, waited for), keeps every finished
+row and writes the report of what ran; the same command resumes.
 """
 
 from __future__ import annotations
@@ -24,134 +25,25 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import os
-import signal
 import sys
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from concurrent.futures import CancelledError
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rt_controller.errors import ControllerConfigError
+from rt_controller.sweep.cluster import Cluster, open_cluster
+from rt_controller.sweep.cluster import machine_workers as machine_workers  # re-exported
 from rt_controller.sweep.engines import Engine, base_row, package_version
 from rt_controller.sweep.results import ResultStore
 from rt_controller.sweep.spec import RunTask, Spec
 
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-"""Each worker is one thread; its BLAS too (the control law's matrices are tiny)."""
-MAX_WORKERS = 256
-WORKER_WAIT_S = 60.0
-"""With ``--scheduler``: how long to wait for a first worker before giving up."""
 NO_WORKER_S = 30.0
 """How long the cluster may have no worker before :meth:`Tasks.next` says so (again every
 ten times as long): Dask keeps the tasks and waits for a worker silently."""
-
-
-def machine_workers() -> int:
-    """Worker processes of a default local cluster: the CPUs this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
-
-
-@dataclass
-class Cluster:
-    """A Dask client and, for a local cluster, the cluster it owns."""
-
-    client: Any
-    local: Any = None
-
-    @property
-    def address(self) -> str:
-        return str(self.client.scheduler.address)
-
-    @property
-    def workers(self) -> int:
-        return len(self.client.scheduler_info().get("workers", {}))
-
-    def close(self) -> None:
-        with contextlib.suppress(Exception):  # a cluster already going down on Ctrl-C
-            self.client.close(timeout=10)
-        if self.local is not None:
-            with contextlib.suppress(Exception):
-                self.local.close(timeout=10)
-
-
-@contextlib.contextmanager
-def _workers_ignore_sigint() -> Iterator[None]:
-    """Start the local workers with SIGINT ignored (a spawned interpreter keeps an ignored
-    SIGINT): Ctrl-C at a terminal signals the whole process group, and the sweep itself stops
-    its workers in order instead of each one dying with a traceback."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-def open_cluster(
-    workers: int | None = None,
-    scheduler: str | None = None,
-    *,
-    processes: bool = True,
-    workers_option: str = "--workers",
-    worker_env: dict[str, str] | None = None,
-) -> Cluster:
-    """Connect to ``scheduler``, else start a local cluster of ``workers`` workers of one
-    thread each on 127.0.0.1: processes (with ``worker_env`` added to :data:`WORKER_ENV`), or
-    with ``processes=False`` threads of this process (for tasks that only supervise processes
-    of their own, such as a rig's). ``workers_option`` names the option that sizes the local
-    cluster in errors."""
-    from distributed import Client, LocalCluster
-
-    if scheduler is not None:
-        if workers is not None:
-            raise ControllerConfigError(
-                f"{workers_option} sizes the local cluster; with --scheduler the cluster has "
-                "its own"
-            )
-        try:
-            client = Client(scheduler, timeout="20s")
-        except Exception as exc:  # also a peer speaking another protocol (MemoryError)
-            why = " ".join(str(exc).split())[:200] or type(exc).__name__
-            raise ControllerConfigError(
-                f"--scheduler {scheduler}: cannot connect (is it a Dask scheduler?): {why}"
-            ) from None
-        try:
-            client.wait_for_workers(1, timeout=WORKER_WAIT_S)
-        except TimeoutError:
-            client.close()
-            raise ControllerConfigError(
-                f"--scheduler {scheduler}: no worker joined within {WORKER_WAIT_S:g} s "
-                f"(start one: dask worker {scheduler} --nthreads 1)"
-            ) from None
-        return Cluster(client)
-    n = machine_workers() if workers is None else workers
-    if not 1 <= n <= MAX_WORKERS:
-        raise ControllerConfigError(f"{workers_option} must be 1..{MAX_WORKERS}, got {n}")
-    env = {"env": {**WORKER_ENV, **(worker_env or {})}} if processes else {}  # threads: ours
-    with _workers_ignore_sigint():
-        local = LocalCluster(
-            n_workers=n,
-            threads_per_worker=1,
-            processes=processes,
-            protocol="tcp://",
-            host="127.0.0.1",
-            dashboard_address=None,
-            worker_dashboard_address=None,
-            silence_logs=logging.ERROR,
-            # its HTTP server on a free port: 8787 may be another sweep's (a warning each time)
-            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-            **env,
-        )
-    return Cluster(Client(local), local)
 
 
 class Tasks:
@@ -337,6 +229,10 @@ class Outcome:
         return dict(self.__dict__)
 
 
+class ClusterLost(ConnectionError):
+    """The cluster cancelled the tasks (its scheduler went away): they are no runs' rows."""
+
+
 def stoppable_run(engine: Engine, task: RunTask, stop: str) -> dict[str, Any] | None:
     """In a task: ``engine(task)``, cancelled by the stop request ``stop`` (rig processes)."""
     from rt_controller.rig.failures import RigCancelled
@@ -483,6 +379,13 @@ def _collect(
             bar_task = bar.add_task("runs", total=len(todo), failed=0)
             while tasks:
                 task, row, exc = tasks.next()
+                if isinstance(exc, CancelledError):  # not by us: the scheduler went away
+                    logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
+                    raise ClusterLost(
+                        f"the Dask cluster at {cl.address} went away after {result.ran} "
+                        f"run(s); the finished rows are kept in {store.out}: the same "
+                        "command resumes"
+                    )
                 if exc is not None:  # a lost task is a failed run
                     row = failed_row(task, " ".join(f"{type(exc).__name__}: {exc}".split()))
                 keep(row)

@@ -18,13 +18,16 @@ config key; a list value as JSON text), ``engine``, ``status`` (ok | failed), ``
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from hal.whole_file import written_whole
 from rt_controller.errors import ControllerConfigError
 from rt_controller.sweep.engines import METRICS
 from rt_controller.sweep.spec import Spec
@@ -163,7 +166,7 @@ class ResultStore:
         until the row is in both the journal and the table's rows, so the two never differ."""
         from rt_controller.rig.supervise import signals_deferred
 
-        with signals_deferred():
+        with signals_deferred(), self._writing(JOURNAL):
             self._journal.write(json.dumps(row, allow_nan=True) + "\n")
             self._journal.flush()
             os.fsync(self._journal.fileno())
@@ -199,22 +202,43 @@ class ResultStore:
             (PARQUET, lambda t, p: pq.write_table(t, p)),
             (CSV, lambda t, p: pcsv.write_csv(t, p)),
         ):
-            tmp = self.out / f".{name}.tmp"
-            write(table, str(tmp))
-            os.replace(tmp, self.out / name)
+            with self._writing(name), written_whole(self.out / name) as tmp:
+                write(table, str(tmp))
         self._dirty = False
         self._last_flush = time.monotonic()
         self._flush_every = max(FLUSH_S, FLUSH_RATIO * (self._last_flush - start))
 
+    @contextlib.contextmanager
+    def _writing(self, name: str) -> Iterator[None]:
+        """An :class:`OSError` while writing ``name`` (a full disk) names the file and what
+        is kept."""
+        try:
+            yield
+        except OSError as exc:
+            reason = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+            raise OSError(
+                exc.errno,
+                f"{reason} (the finished rows are kept in {self.out / JOURNAL}: "
+                "the same command resumes)",
+                str(self.out / name),
+            ) from None
+
     def close(self) -> None:
-        self.flush()
-        self._journal.close()
+        try:
+            self.flush()
+        finally:
+            with self._writing(JOURNAL):
+                self._journal.close()
 
     def __enter__(self) -> ResultStore:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, *_rest: object) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        with contextlib.suppress(OSError):  # the error on its way out is the one to tell
+            self.close()
 
 
 def counts(rows: list[dict[str, Any]]) -> dict[str, int]:

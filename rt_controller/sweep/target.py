@@ -14,6 +14,7 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+from hal.whole_file import written_whole
 from rt_controller import compile_target as ct
 
 TARGET_FILE = "compile_target.json"
@@ -27,7 +28,8 @@ def worker_env(out: Path, say: Callable[[str], None]) -> dict[str, str]:
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         record = {**here.as_dict(), ct.KEY_LIBM: ",".join(sorted(ct.libm_features()))}
-        path.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+        with written_whole(path) as tmp:  # a full disk leaves no empty file to warn of
+            tmp.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
         return {}
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
