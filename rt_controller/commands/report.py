@@ -30,7 +30,9 @@ that were not recorded are null.
 The text starts with the verdict: "run not clean: ..." (the problems) or "problems: none", then
 one line per warning.
 
---plot DIR writes PNGs named LOGSTEM_{lateness_hist,cycle_time,solve_time,f,xi,u,tau}.png.
+--plot DIR writes PNGs named LOGSTEM_{lateness_hist,cycle_time,solve_time,f,xi,u,tau}.png,
+and LOGSTEM_camera_jump.png (a contact sheet of the camera's frames around the target jump)
+for a log that holds them. Each is written whole: a full disk leaves the previous figure.
 """
 
 
