@@ -39,6 +39,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
+from hal import strict_json
 from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, duration
 
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
@@ -267,7 +268,7 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
         }
         summary = with_callback_errors(summary, session)  # the session still open
     if args.json:
-        print(json.dumps(summary), flush=True)
+        print(strict_json.dumps(summary), flush=True)
     else:
         print(
             f"hil emulator: {summary['sim_time_s']:.3f} s simulated in {wall_s:.3f} s, "

@@ -8,11 +8,11 @@ the vision node is imported when the command runs.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+from hal import strict_json
 from hal.arguments import add_key_option, bounded_float, duration, zenoh_session_options
 from hal.errors import HalError
 from hal.signals import run_standalone, stop_on_signals
@@ -144,7 +144,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                 return 0
             raise
     if args.json:
-        print(json.dumps(stats.as_dict()), flush=True)
+        print(strict_json.dumps(stats.as_dict()), flush=True)
     else:
         from hal.secoc import bad_mac_clause
 

@@ -10,9 +10,9 @@ The options are the analytic vision process's (``plant_emulator.vision_cli``) pl
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
+from hal import strict_json
 from hal.arguments import zenoh_session_options
 from hal.errors import HalConfigError, HalError
 from hal.secoc import bad_mac_clause
@@ -75,7 +75,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         stats = run_offline(cfg, args.source, keep)
         if getattr(args, "frames", False):
             for line in lines:
-                print(json.dumps(line))
+                print(strict_json.dumps(line))
     else:
         with stop_on_signals() as stop:
             print(
@@ -99,7 +99,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                     return 0
                 raise
     if args.json:
-        print(json.dumps(stats.as_dict()), flush=True)
+        print(strict_json.dumps(stats.as_dict()), flush=True)
     else:
         rejected = dict(stats.pipeline.get("rejected", {}))
         bad_mac = rejected.pop("bad_mac", 0)

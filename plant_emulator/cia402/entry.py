@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 import threading
 import time
 from typing import TYPE_CHECKING, Any
 
 from hal import cia402_od as cia
+from hal import strict_json
 
 if TYPE_CHECKING:
     from hal.config import RigConfig
@@ -123,7 +123,7 @@ def serve_cia402(args: argparse.Namespace, stop: threading.Event) -> int:
         wall_s = time.monotonic() - t0
         summary = with_callback_errors(_summary(rig, where, wall_s, poses), session)
     if args.json:
-        print(json.dumps(summary), flush=True)
+        print(strict_json.dumps(summary), flush=True)
     else:
         states = ", ".join(f"node {d['node_id']} {d['state']}" for d in summary["drives"])
         print(

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import threading
 from collections.abc import Callable
 
+from hal import strict_json
 from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration
 from hal.config import LAW_NAMES, PROFILES
 from hal.config.ranges import RANGES
@@ -275,7 +275,7 @@ def run_solver(args: argparse.Namespace) -> int:
         "(numba compiles the solver on a cold cache)"
     ):
         result = bench_solver(cfg, updates=args.updates)
-    print(json.dumps(result))
+    print(strict_json.dumps(result))
     return 0
 
 
@@ -297,7 +297,7 @@ def run_vision(args: argparse.Namespace) -> int:
         realtime_s=args.realtime_duration,
         progress=progress.line,
     )
-    print(json.dumps(out))
+    print(strict_json.dumps(out))
     rt = out.get("realtime") or {"problems": [], "exit_codes": {}}
     failed = [f"{n} exited {c}" for n, c in rt["exit_codes"].items() if c]
     if rt["problems"] or failed:  # the figures are printed either way; the status tells the truth
@@ -325,7 +325,7 @@ def run_sweep(args: argparse.Namespace) -> int:
             rig_runs=args.rig_runs,
             rig_duration_s=args.rig_duration,
         )
-    print(json.dumps(result))
+    print(strict_json.dumps(result))
     failed = [e for e in result["engines"] if e["failed"]]
     for e in failed:  # runs/s of failed runs are not the engine's speed: the status says so
         print(
@@ -365,7 +365,7 @@ def run_soak(args: argparse.Namespace) -> int:
             law=args.law,
             keep=keep,
         )
-    print(json.dumps(result))
+    print(strict_json.dumps(result))
     if result["problems"]:  # the figures are printed either way; the exit status tells the truth
         print(f"hil bench soak: run not clean: {'; '.join(result['problems'])}", file=sys.stderr)
     return 1 if result["problems"] else 0
@@ -381,7 +381,7 @@ def run_tuning(args: argparse.Namespace) -> int:
     progress = Progress.of(args, "hil bench tuning")
     with progress.stage(f"a realtime run with {args.requests} parameter sets"):
         result = bench_tuning(workdir, requests=args.requests)
-    print(json.dumps(result))
+    print(strict_json.dumps(result))
     if result["rig_exit"] != 0:  # the figures are printed either way; the status tells the truth
         log = f" (its log: {result['log']})" if result["log"] else ""
         line = f"hil bench tuning: the rig exited with status {result['rig_exit']}{log}"
@@ -395,7 +395,7 @@ def run_host(args: argparse.Namespace) -> int:
     progress = Progress.of(args, "hil bench host")
     with progress.stage(f"measuring this host's wake-up lateness for {args.duration:g} s"):
         result = bench_host(args.duration, args.period_us)
-    print(json.dumps(result))
+    print(strict_json.dumps(result))
     return 0
 
 
@@ -424,7 +424,7 @@ def run_loop(args: argparse.Namespace) -> int:
             host_probe_s=args.host_probe,
             profile=args.profile,
         )
-    print(json.dumps(result))
+    print(strict_json.dumps(result))
     runs = result["rates"] + result.get("dsp_rates", [])
     unclean = [r for r in runs if r["problems"]]
     for r in unclean:  # the figures are printed either way; the exit status tells the truth

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from hal import strict_json
 from rt_controller.commands.common import add_config_option, config_from_args
 
 
@@ -32,7 +33,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    import json
 
     from hal.bus import open_bus
     from hal.cia402_master.master import Cia402Master
@@ -45,7 +45,7 @@ def run_check(args: argparse.Namespace) -> int:
     finally:
         master.close()
     if args.json:
-        print(json.dumps({"drives": drives}))
+        print(strict_json.dumps({"drives": drives}))
         return 0
     for d in drives:
         pdo = "; ".join(

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hal import strict_json
 from hal.arguments import bounded_float, bounded_int, duration, path_given
 from rt_controller.commands.common import add_profile_option
 from rt_controller.commands.progress import add_quiet_option
@@ -309,7 +309,7 @@ def run_on(
     if not_run:
         print(f"hil experiment: not run: {', '.join(not_run)}", file=sys.stderr)
     if args.json:
-        print(json.dumps(res))
+        print(strict_json.dumps(res))
     else:
         print_tables(res)
     return 1 if res["failures"] or any(r.status != "ok" for r in runs.values()) else 0

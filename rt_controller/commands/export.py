@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hal import strict_json
 from hal.arguments import path_given
 
 TOPIC_NAMES = ("cycle", "diagnostics", "can", "canopen")
@@ -109,7 +110,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
 
     from rt_controller.errors import LogError
     from rt_controller.logs import load
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         rows = [{"topic": w.topic, "path": str(w.path), "rows": w.rows} for w in written]
         summary = {"log": str(run_.path), "format": args.format, "files": rows}
-        print(json.dumps({**summary, "truncated": run_.truncated, "notes": run_.notes}))
+        print(strict_json.dumps({**summary, "truncated": run_.truncated, "notes": run_.notes}))
         return 0
     for w in written:
         print(f"{w.topic}: {w.rows} rows -> {w.path}")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from hal import strict_json
+
 DESCRIPTION = """\
 One controller log (MCAP) at a glance: the run (clock, law, rate, CAN, zenoh, recorder, start),
 the digest of the recorded configuration, duration, ticks, the laws that ran, deadline misses,
@@ -47,7 +49,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
 
     from rt_controller.logs import load
     from rt_controller.logs.info import log_info
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     run = load(args.log, raw=False)
     info = {**log_info(run), "parameters": parameter_counts(run)}
     if args.json:
-        print(json.dumps(info))
+        print(strict_json.dumps(info))
     else:
         print(render(info))
     return 0

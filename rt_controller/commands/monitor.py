@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
+from hal import strict_json
 from hal.arguments import add_key_option, bounded_int, duration
 from hal.signals import wait_for_stop
 from rt_controller.commands.common import add_config_option
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         finally:
             session.close()
     if args.json:
-        print(json.dumps({"url": bridge.url, "channels": bridge.channels(), **counts}))
+        print(strict_json.dumps({"url": bridge.url, "channels": bridge.channels(), **counts}))
     else:
         print("hil monitor: " + ", ".join(f"{k} {v}" for k, v in counts.items()), file=sys.stderr)
     if not clean:  # a client that never reads holds the server's shutdown (and its exit hook)

@@ -3,15 +3,16 @@ modules, not by ``cli``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
+
+from hal import strict_json
 
 
 def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
     """One JSON object on stdout, or a two-column table for people."""
     if as_json:
-        print(json.dumps(summary, sort_keys=False))
+        print(strict_json.dumps(summary))
         return
     from rich.console import Console
     from rich.table import Table
@@ -32,7 +33,7 @@ def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
 def print_summary_with_notes(summary: dict[str, Any], as_json: bool, title: str) -> None:
     """:func:`print_summary` for a summary with a ``notes`` list: notes as lines after the table."""
     if as_json:
-        print(json.dumps(summary))
+        print(strict_json.dumps(summary))
         return
     notes = summary.pop("notes")
     print_summary(summary, False, title)

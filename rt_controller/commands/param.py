@@ -11,6 +11,7 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from hal import strict_json
 from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, bounded_int, path_given
 from hal.signals import signal_name_of
 from rt_controller.commands.common import add_config_option
@@ -182,7 +183,7 @@ def _print_diff(changes: dict[str, Any], got: dict[str, Any], as_json: bool) -> 
     running = got["values"]
     if as_json:
         differ = {k: {"running": running[k], "file": v} for k, v in changes.items()}
-        print(json.dumps({"param_set": got["param_set"], "differ": differ}))
+        print(strict_json.dumps({"param_set": got["param_set"], "differ": differ}))
         return
     for k, v in changes.items():
         print(f"{k}: running {json.dumps(running[k])}, file {json.dumps(v)}")
@@ -249,7 +250,11 @@ def _run(args: argparse.Namespace) -> int:
                     at_tick=args.at_tick,
                     source="hil param",
                 )
-                print(json.dumps(out["event"]) if args.json else f"hil param: {event_line(out)}")
+                print(
+                    strict_json.dumps(out["event"])
+                    if args.json
+                    else f"hil param: {event_line(out)}"
+                )
                 return 0 if out["event"]["accepted"] else 1
             if args.action == "dump":
                 out = ask("dump")
@@ -267,7 +272,7 @@ def _run(args: argparse.Namespace) -> int:
                 values = got["values"]
                 shown = {k: values[k] for k in args.items if k in values} if args.items else values
                 if args.json:
-                    print(json.dumps({"param_set": got["param_set"], "values": shown}))
+                    print(strict_json.dumps({"param_set": got["param_set"], "values": shown}))
                 else:
                     for k, v in shown.items():
                         print(f"{k} = {json.dumps(v)}")
@@ -286,7 +291,7 @@ def _run(args: argparse.Namespace) -> int:
         finally:
             session.close()
     if args.json:
-        print(json.dumps(out["outcome"]))
+        print(strict_json.dumps(out["outcome"]))
     else:
         print(f"hil param: {outcome_line(out)}", file=sys.stderr)
     return 0 if out["outcome"]["accepted"] else 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from hal import strict_json
 from hal.arguments import path_given
 
 DESCRIPTION = """\
@@ -46,7 +47,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
     from pathlib import Path
 
     from rt_controller.commands.output import output_file
@@ -59,5 +59,5 @@ def run(args: argparse.Namespace) -> int:
         # the input itself is refused by recover, whatever --force says
         output_file(out, option, replace=args.force or same_file(out, args.log))
     result = recover(args.log, out)
-    print(json.dumps(result.as_dict()) if args.json else result.line())
+    print(strict_json.dumps(result.as_dict()) if args.json else result.line())
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from hal import strict_json
 from hal.arguments import bounded_int, path_given
 from rt_controller.commands.progress import Progress, add_quiet_option
 
@@ -60,7 +61,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
     import sys
 
     from rt_controller.commands.output import output_dir
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         # the shape follows the logs asked for, not how many could be read
         payload = reports[0] if len(args.logs) == 1 else reports
-        print(json.dumps(_json_safe(payload)))
+        print(strict_json.dumps(payload))
         return 2 if failed else 0
     from rich.console import Console
 
@@ -120,16 +120,3 @@ def _with_canopen_frames(log: Any) -> Any:
     if cfg is None or cfg.hardware.profile != "cia402":
         return log
     return read_hil_log(log.path, raw=True)
-
-
-def _json_safe(obj: Any) -> Any:
-    """Replace non-finite floats by null (strict JSON)."""
-    import math
-
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_json_safe(v) for v in obj]
-    return obj

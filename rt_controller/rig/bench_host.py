@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from hal import strict_json
 from rt_controller.errors import ControllerError
 from rt_controller.runtime.cadence import Cadence, Clock, MonotonicClock
 from rt_controller.runtime.host_steal import cpu_ticks, steal_percent
@@ -128,7 +129,7 @@ def _probe_report(cpu: int, proc: subprocess.Popen) -> dict[str, Any]:
 
 def main(argv: list[str]) -> int:
     """``python -m rt_controller.rig.bench_host CPU DURATION_S PERIOD_US``: one probe, JSON."""
-    print(json.dumps(probe(int(argv[0]), float(argv[1]), int(argv[2]))))
+    print(strict_json.dumps(probe(int(argv[0]), float(argv[1]), int(argv[2]))))
     return 0
 
 

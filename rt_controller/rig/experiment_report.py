@@ -9,10 +9,11 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from hal.strict_json import finite
 from rt_controller.rig.experiment import RunResult, RunSpec, Settings
 from rt_controller.rig.experiment_figures import write_figures
 from rt_controller.rig.experiment_markdown import render_report
-from rt_controller.rig.experiment_results import build_results, initial_4v, json_safe
+from rt_controller.rig.experiment_results import build_results, initial_4v
 
 
 def write_outputs(
@@ -23,7 +24,7 @@ def write_outputs(
 ) -> dict[str, Any]:
     """Figures, ``results.json`` and ``report.md`` in the output folder; returns the results."""
     figures = write_figures(settings, runs_by_exp, runs)
-    res = json_safe(build_results(settings, runs_by_exp, runs, command, figures))
+    res = finite(build_results(settings, runs_by_exp, runs, command, figures))
     res["report"] = str(settings.out / "report.md")
     res["results"] = str(settings.out / "results.json")
     (settings.out / "results.json").write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")

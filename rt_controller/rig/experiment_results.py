@@ -219,17 +219,6 @@ def build_results(
     return res
 
 
-def json_safe(obj: Any) -> Any:
-    """Non-finite floats become null (strict JSON)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [json_safe(v) for v in obj]
-    return obj
-
-
 # ----------------------------------------------------------------------- qualitative claims
 def _max_f_gap(a: RunResult, b: RunResult) -> float | None:
     """Largest |f_a(t) - f_b(t)| (px) over the common ticks of two runs."""

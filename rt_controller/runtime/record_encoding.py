@@ -9,10 +9,11 @@ of the log (numpy values as lists and scalars, non-finite floats as null).
 from __future__ import annotations
 
 import json
-import math
 from typing import Any
 
 import numpy as np
+
+from hal.strict_json import finite
 
 CAN_SCHEMA: dict[str, Any] = {
     "title": "hil.CanFrame",
@@ -114,27 +115,12 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
-def _finite(obj: Any) -> Any:
-    """Copy of ``obj`` with NaN/inf replaced by None (JSON has no NaN)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
 def encode_json(obj: Any) -> bytes:
     """Compact JSON; numpy values become lists/scalars, non-finite floats become null."""
     try:
         text = json.dumps(obj, default=_json_default, allow_nan=False, separators=(",", ":"))
     except ValueError:
-        text = json.dumps(_finite(obj), default=_json_default, separators=(",", ":"))
+        text = json.dumps(finite(obj), default=_json_default, separators=(",", ":"))
     return text.encode()
 
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hal.strict_json import finite
 from rt_controller.cli import main
 from rt_controller.rig import experiment as ex
 from rt_controller.rig.experiment_markdown import render_report
-from rt_controller.rig.experiment_results import build_results, json_safe
+from rt_controller.rig.experiment_results import build_results
 from rt_controller.rig.failures import RigProcessError
 
 NOT_CLEAN = "run not clean: the DSP advanced 1 lockstep period(s) with the held torque"
@@ -23,7 +24,7 @@ def finished(out: Path, which: tuple[str, ...], failed: str, **kw) -> tuple[dict
         run.status, run.summary, run.J_steady = "ok", {"J": 10.0 + i}, 1.0 + i
     bad = runs[failed]
     bad.status, bad.error, bad.summary["J"], bad.J_steady = "failed", NOT_CLEAN, 100.0, 50.0
-    res = json_safe(build_results(settings, runs_by_exp, runs, "hil experiment"))
+    res = finite(build_results(settings, runs_by_exp, runs, "hil experiment"))
     return res, runs
 
 

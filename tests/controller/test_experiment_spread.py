@@ -6,9 +6,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hal.strict_json import finite
 from rt_controller.rig import experiment as ex
 from rt_controller.rig.experiment_markdown import render_report
-from rt_controller.rig.experiment_results import build_results, json_safe
+from rt_controller.rig.experiment_results import build_results
 
 
 def table1(out: Path, reps: int, failed: tuple[str, ...]) -> dict:
@@ -20,7 +21,7 @@ def table1(out: Path, reps: int, failed: tuple[str, ...]) -> dict:
         run.status, run.summary, run.J_steady = "ok", {"J": 10.0 + i}, 1.0 + i
     for name in failed:
         runs[name].status, runs[name].error = "failed", "run not clean"
-    return json_safe(build_results(settings, runs_by_exp, runs, "hil experiment"))
+    return finite(build_results(settings, runs_by_exp, runs, "hil experiment"))
 
 
 def run_order_rows(report: str) -> dict[str, str]:
