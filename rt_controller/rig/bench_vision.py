@@ -387,7 +387,8 @@ def lockstep_speed(cfg: RigConfig, duration_s: float, law: str = "ioc") -> dict[
             k: run[k] for k in ("sim_s", "ticks", "speedup_loop", "speedup_total", "period_us", "J")
         }
     clean, analytic = out["image_clean"]["J"], out["analytic"]["J"]
-    out["image_clean"]["J_vs_analytic"] = clean / analytic - 1.0 if analytic else None
+    both = isinstance(clean, int | float) and isinstance(analytic, int | float) and analytic
+    out["image_clean"]["J_vs_analytic"] = clean / analytic - 1.0 if both else None
     return out
 
 

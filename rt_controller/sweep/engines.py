@@ -238,8 +238,8 @@ def rig_run(task: RunTask, cancel: threading.Event | None = None) -> dict[str, A
     tau = np.abs(np.asarray(tau, dtype=float)).reshape(-1, 2) if tau is not None else None
     faults = summary.get("dsp_faults") or {}
     return {
-        "J": float(summary.get("J", math.nan)),
-        "f_final_norm": float(summary.get("f_final_norm", math.nan)),
+        "J": _number(summary.get("J")),
+        "f_final_norm": _number(summary.get("f_final_norm")),
         "max_abs_tau1": float(np.nanmax(tau[:, 0])) if tau is not None and tau.size else math.nan,
         "max_abs_tau2": float(np.nanmax(tau[:, 1])) if tau is not None and tau.size else math.nan,
         "fallbacks": int(summary.get("fallbacks", 0)),
@@ -248,3 +248,9 @@ def rig_run(task: RunTask, cancel: threading.Event | None = None) -> dict[str, A
         "ticks": int(summary.get("ticks", 0)),
         "problems": "; ".join(run_problems(summary)),
     }
+
+
+def _number(value: Any) -> float:
+    """A summary's figure as a float; NaN where it has none (JSON's null: a run without law
+    ticks has no final features)."""
+    return float(value) if isinstance(value, int | float) else math.nan
