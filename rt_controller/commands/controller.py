@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         return run_plan_command(args)
     if args.log is not None:  # before the daemon opens its links
         output_file(args.log, "--log", replace=args.force)
-    cfg = with_command_line(config_from_args(args), args)
+    cfg = check_zenoh_config(with_command_line(config_from_args(args), args))
     bus = process_spec(cfg.transport.can)  # another process: not python-can's virtual bus
     cfg = configure_key(cfg, args.key_file, "hil controller")
     opts = daemon_options(args)
@@ -130,12 +130,10 @@ def shown(summary: dict, bus: BusSpec, as_json: bool) -> dict:
 
 def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
     """``cfg`` with the clock, profile and transport options of the command line (config
-    overrides: ``controller.clock``, ``hardware.profile``, ``transport.*``). A zenoh config
-    file that zenoh cannot read is refused here, before any link, process or log exists."""
-    from hal.zenoh_session import load_config_file
+    overrides: ``controller.clock``, ``hardware.profile``, ``transport.*``)."""
     from rt_controller.config_rules import apply_overrides
 
-    cfg = apply_overrides(
+    return apply_overrides(
         cfg,
         clock=args.clock,
         profile=args.profile,
@@ -144,6 +142,13 @@ def with_command_line(cfg: RigConfig, args: argparse.Namespace) -> RigConfig:
         zenoh_config=args.zenoh_config,
         from_command_line=True,
     )
+
+
+def check_zenoh_config(cfg: RigConfig) -> RigConfig:
+    """``cfg`` once its zenoh config file (if any) reads as zenoh's: one that cannot is
+    refused before any link, process or log exists."""
+    from hal.zenoh_session import load_config_file
+
     if cfg.transport.zenoh_config:
         load_config_file(cfg.transport.zenoh_config)
     return cfg
@@ -181,7 +186,8 @@ def run_plan_command(args: argparse.Namespace) -> int:
     runs = load_plan(args.plan)
 
     def prepare(cfg: RigConfig) -> RigConfig:
-        cfg = configure_key(with_command_line(cfg, args), args.key_file, "hil controller")
+        cfg = check_zenoh_config(with_command_line(cfg, args))
+        cfg = configure_key(cfg, args.key_file, "hil controller")
         if cfg.controller.clock != "lockstep":
             raise ControllerConfigError(
                 "--plan runs lockstep only (a scenario reset rewinds the emulated arm); "
