@@ -282,8 +282,10 @@ def _run(args: argparse.Namespace) -> int:
                 return 0
             if args.action == "load":
                 changes = _changes(wanted, got["values"])
-                if not changes:
+                if not changes:  # nothing sent: no outcome, but --json still prints one object
                     print("hil param: nothing to change", file=sys.stderr)
+                    if args.json:
+                        print(strict_json.dumps({"param_set": got["param_set"], "changes": []}))
                     return 0
             out = ask(
                 "set", changes=changes, at_tick=args.at_tick, source=f"hil param {args.action}"

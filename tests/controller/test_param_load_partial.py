@@ -98,3 +98,14 @@ def test_dump_json_is_refused_rather_than_printing_toml(rig, tmp_path, capsys):
     assert _param(tmp_path, "dump", "--json") == 2
     out = capsys.readouterr()
     assert out.out == "" and out.err.startswith("hil param: error: dump: --json does not apply")
+
+
+def test_load_json_with_nothing_to_change_still_prints_one_object(rig, tmp_path, capsys):
+    import json
+
+    same = tmp_path / "same.toml"
+    same.write_text("[gains]\nkp = 0.13\n")  # the running value
+    assert _param(tmp_path, "load", str(same), "--json") == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == {"param_set": 0, "changes": []}
+    assert "nothing to change" in err
