@@ -137,7 +137,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     lp.add_argument(
         "--keep",
         metavar="DIR",
-        help="keep the runs' MCAP logs and configs in DIR (default: a temporary folder)",
+        help="keep the runs' MCAP logs and configs in DIR, replacing an earlier bench's "
+        "files of the same names (default: a temporary folder)",
     )
     lp.add_argument(
         "--profile",
@@ -242,7 +243,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     sk.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
     sk.add_argument(
-        "--keep", metavar="DIR", help="keep the run's MCAP log and config in DIR (default: drop)"
+        "--keep",
+        metavar="DIR",
+        help="keep the run's MCAP log and config in DIR, replacing an earlier bench's "
+        "(default: drop)",
     )
     _finish(sk, run_soak)
     tp = bench.add_parser(
