@@ -129,7 +129,8 @@ class ResultStore:
                     f"--out {self.out} holds another study (spec hash {old.get('spec_hash')}, "
                     f"this spec {self.spec.spec_hash}); give another folder"
                 )
-        meta.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        with self._writing(META), written_whole(meta) as tmp:  # never a half sweep.json
+            tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
 
     def _load_journal(self) -> None:
         path = self.out / JOURNAL

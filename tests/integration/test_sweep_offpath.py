@@ -138,7 +138,7 @@ def fill(disk: Path, leave_pages: int) -> Path:
 
 @pytest.mark.parametrize(
     ("leave_pages", "failing"),
-    [(1, "compile_target.json"), (2, "rows.jsonl"), (4, "results.parquet")],
+    [(0, "sweep.json"), (1, "compile_target.json"), (2, "rows.jsonl"), (4, "results.parquet")],
 )
 def test_a_disk_that_fills_up_names_the_file_and_the_same_command_resumes(
     tiny_disk: Path, leave_pages: int, failing: str
@@ -155,7 +155,7 @@ def test_a_disk_that_fills_up_names_the_file_and_the_same_command_resumes(
     err = full.stderr.strip()
     assert full.returncode == 1, err[-2000:]
     assert "\n" not in err and f"{out / failing}: " in err and "No space left on device" in err
-    assert not list(out.glob(".*.tmp"))
+    assert not list(out.glob(".*.tmp")) and not list(out.glob(".*.partial"))
     filler.unlink()
     again = sweep(spec, out, "--workers", "1", "--json")
     assert again.returncode == 0 and "unreadable" not in again.stderr, again.stderr[-2000:]
