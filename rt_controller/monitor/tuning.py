@@ -391,8 +391,15 @@ class TuningFrontEnd(ServerListener):
                 if refusal is not None:
                     out = {"accepted": False, "reason": refusal, "line": f"refused: {refusal}"}
                     return json.dumps(out).encode()
-                body = json.loads(req.payload or b"{}") if req.payload else {}
-                return json.dumps(fn(body if isinstance(body, dict) else {})).encode()
+                try:
+                    body = json.loads(req.payload) if req.payload else {}
+                except (ValueError, UnicodeDecodeError):
+                    body = None
+                why = _bad_request(body)
+                if why is not None:  # refused here, never guessed at
+                    out = {"accepted": False, "reason": why, "line": f"refused here: {why}"}
+                    return json.dumps(out).encode()
+                return json.dumps(fn(body)).encode()
 
             return handler
 
@@ -413,6 +420,15 @@ class TuningFrontEnd(ServerListener):
         self.last_outcome = line = outcome_line(out)
         self._status(line, ok=out["outcome"]["accepted"])
         return {**out["outcome"], "line": line}
+
+
+def _bad_request(body: Any) -> str | None:
+    """Why a service request's body is not a ``hil.ServiceRequest`` (None: it is one as far
+    as here; the controller judges the values)."""
+    if not isinstance(body, dict):
+        return "the request is not a JSON object (hil.ServiceRequest: at_tick, note, law)"
+    bad = [k for k in ("note", "law") if k in body and not isinstance(body[k], str)]
+    return f"{' and '.join(bad)} must be text" if bad else None
 
 
 __all__ = ["ADVERTISED", "DIAGONALS", "READ_ONLY_REASON", "TuningFrontEnd"]

@@ -52,3 +52,21 @@ def test_the_url_of_a_monitor_on_ipv6_loopback_is_one_a_client_can_open():
         FoxgloveClient.open(bridge.url).close()
     finally:
         bridge.close()
+
+
+@pytest.mark.parametrize(
+    ("body", "why"),
+    [
+        ([1, 2], "not a JSON object"),
+        ("look here", "not a JSON object"),
+        ({"note": {"a": 1}}, "note must be text"),
+    ],
+)
+def test_a_service_request_that_is_no_request_object_is_refused(served, body, why):
+    """A mark whose body is a list or a string was made with an empty note, and a note that is
+    an object was stored as its Python text: refused, with the reason, and nothing marked."""
+    _, client = served
+    client.wait_services({"/hil/mark"})
+    out = client.call_service("/hil/mark", body)
+    assert out["accepted"] is False and why in out["reason"], out
+    assert client.call_service("/hil/mark", {"note": "fine"})["accepted"] is True
