@@ -345,11 +345,12 @@ def parse_tick(value: Any) -> tuple[int | None, str | None]:
     rather than taken at another tick."""
     if value is None:
         return None, None
+    given = value  # named as sent: 1e300 is not written out as its 301 digits
     if isinstance(value, float) and math.isfinite(value) and value.is_integer():
         value = int(value)
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) < MAX_INT:
         return value, None
-    return None, _one_line(f"at_tick: expected a tick (an integer), got {value!r}")
+    return None, _one_line(f"at_tick: expected a tick (an integer), got {given!r}")
 
 
 __all__ = [

@@ -83,3 +83,10 @@ def test_a_tick_reached_or_none_is_taken(at_tick: Any) -> None:
     out = request(rig, KEY, "set", changes={"gains.kp": 0.2}, at_tick=at_tick, timeout_s=1)
     assert out["outcome"]["accepted"] and out["outcome"]["tick"] == TICK
     assert out["outcome"]["at_tick"] == (None if at_tick is None else int(at_tick))
+
+
+def test_a_huge_tick_is_named_as_it_was_sent() -> None:
+    """1e300 is an integer-valued float: refused as out of range, named ``1e+300``, not written
+    out as its 301 digits (cut at the reason's length)."""
+    out = request(Rig(), KEY, "set", changes={"gains.kp": 0.2}, at_tick=1e300, timeout_s=1)
+    assert out["outcome"]["reason"] == "at_tick: expected a tick (an integer), got 1e+300"
