@@ -11,8 +11,6 @@ import json
 import math
 from typing import Any
 
-import numpy as np
-
 
 def finite(obj: Any) -> Any:
     """``obj`` with every non-finite float (in dicts, lists, tuples, NumPy arrays and scalars,
@@ -23,8 +21,8 @@ def finite(obj: Any) -> Any:
         return {k: finite(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
         return [finite(v) for v in obj]
-    if isinstance(obj, np.ndarray | np.generic):
-        return finite(obj.tolist())
+    if type(obj).__module__ == "numpy" and hasattr(obj, "tolist"):  # NumPy is not imported
+        return finite(obj.tolist())  # for this: --help stays light
     return obj
 
 
