@@ -5,6 +5,7 @@ key as it was."""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -29,17 +30,22 @@ def test_an_empty_path_is_refused():
         write_key_file("")
 
 
-def test_a_full_disk_keeps_the_key_being_replaced(tiny_tmpfs):
-    key = write_key_file(tiny_tmpfs / "rig.key")
-    before = load_key_file(key)
-    fd = os.open(tiny_tmpfs / "filler", os.O_WRONLY | os.O_CREAT)
-    try:  # fill the file system to the last block
+def fill_up(disk: Path) -> None:
+    """Fill the file system of ``disk`` to its last block."""
+    fd = os.open(disk / "filler", os.O_WRONLY | os.O_CREAT)
+    try:
         while os.write(fd, b"\0" * 4096):
             pass
     except OSError:
         pass
     finally:
         os.close(fd)
+
+
+def test_a_full_disk_keeps_the_key_being_replaced(tiny_tmpfs):
+    key = write_key_file(tiny_tmpfs / "rig.key")
+    before = load_key_file(key)
+    fill_up(tiny_tmpfs)
     with pytest.raises(OSError, match="No space left on device") as info:
         write_key_file(key, overwrite=True)
     assert info.value.filename == str(key) and not isinstance(info.value, HalKeyError)
@@ -52,14 +58,7 @@ def test_hil_keygen_onto_a_full_disk_fails_as_every_writer_does(tiny_tmpfs, caps
     ``hil export`` on a full disk: a failed write, not a bad argument (exit 2)."""
     from rt_controller.cli import main
 
-    fd = os.open(tiny_tmpfs / "filler", os.O_WRONLY | os.O_CREAT)
-    try:
-        while os.write(fd, b"\0" * 4096):
-            pass
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+    fill_up(tiny_tmpfs)
     key = tiny_tmpfs / "rig.key"
     assert main(["keygen", str(key)]) == 1
     assert capsys.readouterr().err == f"hil keygen: error: {key}: No space left on device\n"
