@@ -16,10 +16,12 @@ ticks without an enabled DSP and camera outages, and the recorder counters; a lo
 has its outages rebuilt from the cycle records), and the topics with their message counts.
 A log whose writer was killed is reported as truncated, with what could be read; a complete log
 without the final /diagnostics record (controller killed, or a cut log made whole by `hil
-recover`) has that as a problem, and a copy made by `hil recover` says where it came from. A run
-that ended before its duration ("the run ended after 60 of 250 ticks: stopped", as the final
-/diagnostics record says) and records that could not be read (not JSON objects, or cycle
-records without a tick: counted per topic) are problems too.
+recover`) has that as a problem, and a copy made by `hil recover` says where it came from. How
+the run ended is judged as its summary judged it, from the final /diagnostics record: a run that
+ended for another reason than its duration or a stop ("the run ended after 60 of 250 ticks: no
+Sync from the DSP for 2 s") is a problem, one stopped before its duration a warning ("... 60 of
+250 ticks: stopped by SIGINT": its J is of fewer ticks). Records that could not be read (not
+JSON objects, or cycle records without a tick: counted per topic) are problems too.
 
 --json prints one object: log, library, truncated (not all of it was read), damaged (the
 writer finished it, but damaged chunks were skipped), run, config_digest, duration_s, time_axis,

@@ -9,7 +9,6 @@ from typing import Any
 from hal.drive_state import MODE_ENABLED, MODES
 from rt_controller.logs.run import Run
 from rt_controller.runtime import diagnostics
-from rt_controller.runtime.counters import ENDED_FULL
 
 RUN_KEYS = (
     "clock",
@@ -61,6 +60,10 @@ def logged_summary(run: Run) -> dict[str, Any]:
         },
         "parameters": diagnostics.values_of(last, "parameters"),
     }
+    if final.get("end_reason") is not None:  # how the run ended, as its summary says it
+        end = run_end(run)
+        end["ticks"] = end.pop("ticks_run")
+        out.update(end)
     if out["drive_ticks"] is None:  # the dsp profile's counts, else the cycle records'
         ticks = {k[len("ticks.") :]: v for k, v in dsp.items() if k.startswith("ticks.")}
         out["drive_ticks"] = ticks or _drive_ticks_of_cycles(run)
@@ -125,8 +128,7 @@ def log_problems(run: Run, ticks: int) -> list[str]:
     always writes a final ``/diagnostics`` record when it ends a run in order, so a complete
     log without one is of a run killed or cut (a truncated log already says so); a copy that
     ``hil recover`` made by skipping damaged chunks lost ticks; records that could not be read
-    were skipped (``LoadedLog.rejected``); the final record says the run ended early
-    (:func:`ended_early`)."""
+    were skipped (``LoadedLog.rejected``)."""
     out = []
     by_controller = "replay_of" not in run.info and (
         bool(run.log.diagnostics) or "recorder" in run.info
@@ -141,8 +143,7 @@ def log_problems(run: Run, ticks: int) -> list[str]:
         out.append(f"recovered from a damaged log: {skipped} bytes of damaged chunks skipped")
     for topic, n in sorted(run.log.rejected.items()):
         out.append(f"{n} {topic} message(s) could not be read as records and were skipped")
-    early = ended_early(run)
-    return out if early is None else [early, *out]
+    return out
 
 
 def run_end(run: Run) -> dict[str, Any]:
@@ -160,22 +161,6 @@ def run_end(run: Run) -> dict[str, Any]:
         "ticks_run": _int(final.get("tick")) if "end_reason" in final else None,
         "stop_signal": by if isinstance(by, str) else None,
     }
-
-
-def ended_early(run: Run) -> str | None:
-    """The problem of a run that ended before its duration (fewer ticks than planned, a stop
-    request included) or for another reason than its duration or a stop; None for a whole run
-    and for a log that does not record how its run ended (older logs)."""
-    end = run_end(run)
-    planned, reason, ticks = end["planned_ticks"], end["end_reason"], end["ticks_run"]
-    short = planned is not None and ticks is not None and ticks < planned
-    if not short and (reason is None or reason in ENDED_FULL):
-        return None
-    when = f"{ticks} of {planned}" if planned is not None else f"{ticks}"
-    why = f": {reason}" if reason and reason != "duration" else ""
-    if reason == "stopped" and end["stop_signal"]:
-        why += f" by {end['stop_signal']}"
-    return f"the run ended after {when} ticks{why}"
 
 
 def recovered_from(run: Run) -> dict[str, Any] | None:

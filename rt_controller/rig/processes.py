@@ -57,7 +57,7 @@ from rt_controller.rig.supervise import (
     kill_with_stacks,
     signals_deferred,
 )
-from rt_controller.runtime.counters import run_problems
+from rt_controller.runtime.counters import run_problems, run_warnings
 
 STOP_TIMEOUT_S = 10.0
 TRIP_MARGIN_S = 1.0
@@ -239,6 +239,7 @@ class Rig:
             out = {**lines[-1], "dsp": dsp, "exit_codes": codes}
             if out.get("end_reason") == "stopped":
                 out["stop_signal"] = signal.Signals(interrupt.signum).name
+                out["warnings"] = run_warnings(out)  # "stopped by SIGINT" in them too
             return out
         if self.child("controller") is None:  # stopped while the rig was being started
             o = self.opts

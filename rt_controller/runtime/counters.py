@@ -178,8 +178,8 @@ class RunCounters:
     """Ticks the duration asks for (None: no duration, run until stopped)."""
     end_reason: str = "duration"
     """Why the loop ended: ``duration``, ``stopped`` (a stop request) or a short phrase (the
-    DSP fell silent, ...); anything but :data:`ENDED_FULL` before ``planned_ticks`` makes the
-    run not clean."""
+    DSP fell silent, ...); anything but :data:`ENDED_FULL` makes the run not clean, and a stop
+    before ``planned_ticks`` is a warning."""
     solve: Durations = field(default_factory=Durations)
     """Per-tick times for the summary's percentiles, in fixed memory however long the run:
     the rule's decide (read to solve), the wake-up's lateness and the cycle (wake to write)."""
@@ -260,9 +260,22 @@ def _other_sender(can_rx: dict[str, Any]) -> str:
     )
 
 
+def _short(summary: dict[str, Any]) -> bool:
+    """Whether the run had fewer ticks than its duration asked for."""
+    planned = summary.get("planned_ticks")
+    return planned is not None and int(summary.get("ticks") or 0) < planned
+
+
+def _ended_after(summary: dict[str, Any]) -> str:
+    """``the run ended after 60 of 250 ticks`` (``after 60 ticks`` without a duration)."""
+    planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
+    return f"the run ended after {ticks}{'' if planned is None else f' of {planned}'} ticks"
+
+
 def run_problems(summary: dict[str, Any]) -> list[str]:
     """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
-    ended short for another reason than a stop request, lost or could not encode log records
+    ended for another reason than its duration or a stop request (or short of its duration
+    without one), lost or could not encode log records
     or camera images (in lockstep, also an announced image that never came), lost vision
     messages or images to an exception in the feature link's zenoh callbacks (the session's
     ``callback_errors``), tripped the DSP's watchdog, saw a DSP fault, received a stream of
@@ -273,10 +286,9 @@ def run_problems(summary: dict[str, Any]) -> list[str]:
     ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
-    planned, ticks = summary.get("planned_ticks"), int(summary.get("ticks") or 0)
     reason = summary.get("end_reason") or "duration"
-    if planned is not None and ticks < planned and reason not in ENDED_FULL:
-        out.append(f"the run ended after {ticks} of {planned} ticks: {reason}")
+    if reason not in ENDED_FULL or (reason == "duration" and _short(summary)):
+        out.append(_ended_after(summary) + ("" if reason == "duration" else f": {reason}"))
     rec = summary.get("recorder") or {}
     lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))  # pending: an older log
     if lost:
@@ -377,7 +389,8 @@ def parameter_warnings(counts: dict[str, Any]) -> list[str]:
 
 def run_warnings(summary: dict[str, Any]) -> list[str]:
     """What makes a clean run's J differ from the paper's experiment, one phrase each (empty:
-    nothing): camera outages (:func:`outage_warnings`), scene drawings or live records the
+    nothing): a stop request before the run's duration (its J is of fewer ticks), camera
+    outages (:func:`outage_warnings`), scene drawings or live records the
     recorder could not make (the cycles themselves are logged), a few camera images refused for
     the log (a stream of them is a problem), parameter requests refused as unauthenticated
     (none was applied, but someone sent them) or that the controller failed on
@@ -386,6 +399,9 @@ def run_warnings(summary: dict[str, Any]) -> list[str]:
     time. The run is still clean (its exit status says so); its J is not the lockstep one's.
     """
     out = outage_warnings(summary.get("outages") or {})
+    if summary.get("end_reason") == "stopped" and _short(summary):
+        by = summary.get("stop_signal")
+        out.append(f"{_ended_after(summary)}: stopped{f' by {by}' if by else ''}")
     rec = summary.get("recorder") or {}
     if rec.get("scene_errors"):
         out.append(f"{rec['scene_errors']} cycle(s) without their 3D scene in the log")

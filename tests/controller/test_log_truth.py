@@ -21,6 +21,7 @@ from mcap.writer import Writer
 
 from hal.config import RigConfig
 from rt_controller.cli import main
+from rt_controller.runtime.counters import run_problems, run_warnings
 from rt_controller.runtime.recorder import CYCLE_TOPIC, DIAGNOSTICS_TOPIC
 from tests.controller.test_logs import record
 from tests.controller.test_replay import TICKS, record_run
@@ -171,19 +172,31 @@ def with_end(planned: int | None, reason: str) -> Payload:
     return payload
 
 
+STOPPED_SHORT = "the run ended after 60 of 250 ticks: stopped"
+
+
 @pytest.mark.parametrize(
-    ("planned", "reason", "problem"),
+    ("planned", "reason", "problem", "warning"),
     [
-        (250, "stopped", "the run ended after 60 of 250 ticks: stopped"),
-        (250, "no Sync from the DSP for 2 s", "the run ended after 60 of 250 ticks: no Sync "),
-        (250, "duration", "the run ended after 60 of 250 ticks"),
-        (None, "no Sync from the DSP for 2 s", "the run ended after 60 ticks: no Sync from "),
-        (60, "duration", None),
-        (60, "stopped", None),
-        (None, "stopped", None),
+        (250, "stopped", None, STOPPED_SHORT),  # asked for: clean, its J of fewer ticks
+        (
+            250,
+            "no Sync from the DSP for 2 s",
+            "the run ended after 60 of 250 ticks: no Sync ",
+            None,
+        ),
+        (250, "duration", "the run ended after 60 of 250 ticks", None),
+        (None, "no Sync from the DSP for 2 s", "the run ended after 60 ticks: no Sync from ", None),
+        (60, "duration", None, None),
+        (60, "stopped", None, None),
+        (None, "stopped", None, None),
     ],
 )
-def test_info_reports_a_run_that_ended_early(tmp_path, capsys, planned, reason, problem):
+def test_info_judges_how_a_run_ended_as_its_summary_did(
+    tmp_path, capsys, planned, reason, problem, warning
+):
+    """The controller's own rule: a failure is a problem, a stop before the duration a
+    warning; the same verdict as the summary the controller printed."""
     whole = record(tmp_path / "whole.mcap", 60)  # its final record: 60 ticks ran
     cut = rewrite(whole, tmp_path / "cut.mcap", DIAGNOSTICS_TOPIC, with_end(planned, reason))
     info = info_of(cut, capsys)
@@ -196,6 +209,10 @@ def test_info_reports_a_run_that_ended_early(tmp_path, capsys, planned, reason, 
         assert info["problems"] == []
     else:
         assert len(info["problems"]) == 1 and info["problems"][0].startswith(problem)
+    assert info["warnings"] == ([] if warning is None else [warning])
+    summary = {"planned_ticks": planned, "end_reason": reason, "ticks": 60}
+    assert run_problems(summary) == info["problems"]
+    assert run_warnings(summary) == info["warnings"]
     assert main(["info", str(cut)]) == 0
     text = capsys.readouterr().out
     of = f" of {planned} planned" if planned is not None else ""

@@ -49,6 +49,8 @@ def test_a_hangup_is_named_in_the_summary(tmp_path):
     (line,) = [line for line in out.splitlines() if line.startswith("{")]
     summary = json.loads(line)
     assert (summary["end_reason"], summary["stop_signal"]) == ("stopped", "SIGHUP"), summary
+    stopped = [w for w in summary["warnings"] if "stopped by" in w]  # before its 600 s
+    assert len(stopped) == 1 and stopped[0].endswith("stopped by SIGHUP"), summary
     dsp = summary["dsp"]  # the DSP's own account: torque off in order, no trip
     assert dsp is not None and dsp["reported"] is True and dsp["watchdog_trips"] == 0, summary
 

@@ -39,4 +39,4 @@ def test_info_of_a_run_stopped_early_says_after_how_many_of_the_planned_ticks(tm
     assert info["end_reason"] == "stopped" and planned == 600 * float(info["run"]["rate_hz"])
     assert TICKS_FIRST <= ran < planned
     assert info["stop_signal"] == "SIGTERM"
-    assert f"the run ended after {ran} of {planned} ticks: stopped by SIGTERM" in info["problems"]
+    assert f"the run ended after {ran} of {planned} ticks: stopped by SIGTERM" in info["warnings"]
