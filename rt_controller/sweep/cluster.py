@@ -76,11 +76,16 @@ class NoHandshake(TimeoutError):
     """The address accepted the connection and said nothing Dask understands in time."""
 
 
+class NotAScheduler(ConnectionError):
+    """The address is a Dask server of another kind (a worker, a nanny)."""
+
+
 def handshake(address: str, timeout_s: float) -> None:
-    """Connect to ``address`` and exchange Dask's handshake within ``timeout_s`` + 10 s, then
-    hang up: Dask's own client bounds the connection, not the handshake, so a peer that
-    accepts and stays silent would keep it waiting for ever. The loop runs in a thread of its
-    own, so that a Ctrl-C reaches this (main) thread as it does elsewhere."""
+    """Connect to ``address``, exchange Dask's handshake and ask the server what it is within
+    ``timeout_s`` + 10 s, then hang up: Dask's own client bounds the connection, not the
+    handshake, so a peer that accepts and stays silent would keep it waiting for ever, and a
+    worker's address fails later with a message about the worker's internals. The loop runs
+    in a thread of its own, so that a Ctrl-C reaches this (main) thread as it does elsewhere."""
     import asyncio
 
     from distributed.comm import connect
@@ -90,9 +95,19 @@ def handshake(address: str, timeout_s: float) -> None:
     async def shake() -> None:
         try:  # connect's own timeout (with its reason) first, then the handshake's
             comm = await asyncio.wait_for(connect(address, timeout=timeout_s), timeout_s + 10)
+            try:
+                await comm.write({"op": "identity", "reply": True})
+                reply = await asyncio.wait_for(comm.read(), timeout_s)
+                kind = reply.get("type") if isinstance(reply, dict) else None
+            finally:
+                await comm.close()
         except TimeoutError:
             raise NoHandshake(f"no Dask handshake within {timeout_s + 10:g} s") from None
-        await comm.close()
+        if kind != "Scheduler":
+            raise NotAScheduler(
+                f"a Dask {(kind or 'server').lower()}, not a scheduler (`dask scheduler` prints its "
+                "address, port 8786 by default)"
+            )
 
     def run() -> None:
         try:
@@ -137,9 +152,9 @@ def open_cluster(
             raise
         except Exception as exc:  # also a peer speaking another protocol (MemoryError)
             why = " ".join(str(exc).split())[:200] or type(exc).__name__
-            raise ControllerConfigError(
-                f"--scheduler {scheduler}: cannot connect (is it a Dask scheduler?): {why}"
-            ) from None
+            if not isinstance(exc, NotAScheduler):
+                why = f"cannot connect (is it a Dask scheduler?): {why}"
+            raise ControllerConfigError(f"--scheduler {scheduler}: {why}") from None
         try:
             client.wait_for_workers(1, timeout=WORKER_WAIT_S)
         except TimeoutError:

@@ -124,13 +124,23 @@ class ResultStore:
                     raise ValueError(f"not a JSON object: {str(old)[:40]}")
             except (OSError, ValueError) as exc:
                 raise ControllerConfigError(f"--out {self.out}: unreadable {META}: {exc}") from None
-            if old.get("spec_hash") != self.spec.spec_hash:
+            if old.get("spec_hash") != self.spec.spec_hash and self._kept_any():
                 raise ControllerConfigError(
                     f"--out {self.out} holds another study (spec hash {old.get('spec_hash')}, "
                     f"this spec {self.spec.spec_hash}); give another folder"
                 )
         with self._writing(META), written_whole(meta) as tmp:  # never a half sweep.json
             tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+
+    def _kept_any(self) -> bool:
+        """Whether the folder keeps a run: a study that never finished one (its cluster
+        could not be reached, a bad spec stopped it) leaves only a claim, which another spec
+        may take, since nothing of it would be lost."""
+        path = self.out / JOURNAL
+        try:
+            return path.exists() and bool(path.read_bytes().strip())
+        except OSError as exc:
+            raise ControllerConfigError(f"--out {self.out}: unreadable {JOURNAL}: {exc}") from None
 
     def _load_journal(self) -> None:
         path = self.out / JOURNAL

@@ -65,8 +65,9 @@ def test_store_dedupes_by_run_key_and_survives_a_torn_journal(tmp_path: Path):
 
 
 def test_a_folder_holds_one_study(tmp_path: Path):
-    with ResultStore(tmp_path, spec_from_dict(SPEC)):
-        pass
+    spec = spec_from_dict(SPEC)
+    with ResultStore(tmp_path, spec) as store:
+        store.add(run_task(spec.tasks()[0], World))
     other = spec_from_dict({**SPEC, "study": {"duration_s": 1.0}})
     try:
         ResultStore(tmp_path, other)
@@ -75,3 +76,14 @@ def test_a_folder_holds_one_study(tmp_path: Path):
     else:  # pragma: no cover
         raise AssertionError("a second study was accepted")
     assert json.loads((tmp_path / "sweep.json").read_text())["runs"] == 4
+
+
+def test_a_study_that_kept_no_run_leaves_its_folder_to_the_next(tmp_path: Path):
+    """A sweep stopped before its first row (an unreachable --scheduler) claimed the folder;
+    the corrected spec takes it, as nothing of the first would be lost."""
+    with ResultStore(tmp_path, spec_from_dict(SPEC)):
+        pass  # no run kept
+    other = spec_from_dict({**SPEC, "study": {"duration_s": 1.0}})
+    with ResultStore(tmp_path, other) as store:
+        assert store.done() == set()
+    assert json.loads((tmp_path / "sweep.json").read_text())["spec_hash"] == other.spec_hash

@@ -6,6 +6,7 @@ only."""
 from __future__ import annotations
 
 import json
+import logging
 import signal
 import socket
 import subprocess
@@ -45,6 +46,25 @@ def test_a_scheduler_address_that_never_answers_is_refused_in_one_line(tmp_path:
     assert done.returncode == 2, err[-2000:]
     assert "\n" not in err and f"--scheduler {address}: cannot connect" in err
     assert "no Dask handshake" in err
+
+
+def test_a_worker_s_address_for_the_scheduler_is_named_as_such(tmp_path: Path):
+    """A Dask worker's address given as --scheduler: before this, 'Worker.identity() got an
+    unexpected keyword argument' from deep in Dask."""
+    from distributed import LocalCluster
+
+    spec = tmp_path / "one.toml"
+    spec.write_text(ONE)
+    kw = {"processes": False, "protocol": "tcp://", "host": "127.0.0.1", "dashboard_address": None}
+    with LocalCluster(n_workers=1, silence_logs=logging.ERROR, **kw) as cluster:
+        (worker,) = cluster.scheduler.workers
+        done = sweep(spec, tmp_path / "out", "--scheduler", worker, timeout=120)
+    err = done.stderr.strip()
+    assert done.returncode == 2, err[-2000:]
+    assert err == (
+        f"hil sweep: error: --scheduler {worker}: a Dask worker, not a scheduler "
+        "(`dask scheduler` prints its address, port 8786 by default)"
+    )
 
 
 def test_ctrl_c_while_connecting_is_an_interrupted_sweep(tmp_path: Path):
