@@ -104,9 +104,10 @@ def handshake(address: str, timeout_s: float) -> None:
         except TimeoutError:
             raise NoHandshake(f"no Dask handshake within {timeout_s + 10:g} s") from None
         if kind != "Scheduler":
+            what = (kind or "server").lower()
             raise NotAScheduler(
-                f"a Dask {(kind or 'server').lower()}, not a scheduler (`dask scheduler` prints its "
-                "address, port 8786 by default)"
+                f"a Dask {what}, not a scheduler (`dask scheduler` prints its address, port "
+                "8786 by default)"
             )
 
     def run() -> None:
