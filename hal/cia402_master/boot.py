@@ -156,15 +156,29 @@ def check_types(node: canopen.RemoteNode) -> None:
             )
 
 
+UNIT_OBJECTS: dict[str, tuple[int, int | None]] = {
+    "encoder_increments": (ENCODER_RESOLUTION, 1),
+    "motor_revolutions": (ENCODER_RESOLUTION, 2),
+    "gear_motor_revolutions": (GEAR_RATIO, 1),
+    "gear_shaft_revolutions": (GEAR_RATIO, 2),
+    "rated_torque_mnm": (RATED_TORQUE, None),
+}
+""":class:`DriveUnits` field -> the object it is read from."""
+
+
 def read_units(node: canopen.RemoteNode) -> DriveUnits:
-    """The drive's encoder resolution, gear ratio and rated torque, read by SDO."""
-    return DriveUnits(
-        encoder_increments=int(sdo_read(node, ENCODER_RESOLUTION, 1)),
-        motor_revolutions=int(sdo_read(node, ENCODER_RESOLUTION, 2)),
-        gear_motor_revolutions=int(sdo_read(node, GEAR_RATIO, 1)),
-        gear_shaft_revolutions=int(sdo_read(node, GEAR_RATIO, 2)),
-        rated_torque_mnm=int(sdo_read(node, RATED_TORQUE)),
-    )
+    """The drive's encoder resolution, gear ratio and rated torque, read by SDO; a value
+    of 0 (a drive whose vendor tool never stored it) is a :class:`HalDriveError` naming the
+    node and the object."""
+    values = {}
+    for name, (index, sub) in UNIT_OBJECTS.items():
+        values[name] = int(sdo_read(node, index, sub))
+        if values[name] <= 0:
+            raise HalDriveError(
+                f"{_what(node, index, sub)} reads {values[name]}, must be > 0: set the "
+                f"drive's true value with the vendor's tool and store it (0x1010)"
+            )
+    return DriveUnits(**values)
 
 
 def configure(

@@ -61,6 +61,12 @@ loaded host may stall for a few hundred ms, the control thread does not); a cont
 stops ticking is caught within 3 periods by the drives' SYNC monitoring."""
 TIMING_KEPT = 100_000
 """SYNC intervals and SYNC-to-TPDO latencies kept for the run's statistics."""
+OTHER_MASTER_LISTEN_S = 3 * HEARTBEAT_MS / 1000
+"""How long the bus is listened to for another master (its SYNC, or a heartbeat of the
+controller's node id) before the first NMT command: three of our heartbeat periods."""
+SYNC_COB_ID = 0x080
+RELEASE_ON_CLOSE_S = 0.5
+"""How long :meth:`Cia402Master.close` waits for each drive's pre-operational heartbeat."""
 
 
 def controlword_toward(target: str, statusword: int, last: int) -> int:
@@ -175,18 +181,21 @@ class Cia402Master:
             self.network.connect()
             self.connected = True
         s = self.settings
-        booted = {w.node.id: w.booted for w in self.watches}
-        boot.reset_communication(self.nodes, booted, s.boot_timeout_s, stop)
-        self.units, self.limits = [], []
-        joints = zip(self.nodes, self.watches, self.torque_limits_nm, strict=True)
-        for node, watch, limit_nm in joints:
-            units, limit = boot.configure(node, s, limit_nm)
-            self.units.append(units)
-            self.limits.append(limit)
-            watch.heartbeat_limit_ns = CONSUMER_PERIODS * s.heartbeat_ms * 1_000_000
-            boot.map_pdos(node)
-            watch.watch_tpdos()
-            boot.enter_cst(node)
+        with OtherMasters(self.network, s.master_id) as others:
+            others.refuse(OTHER_MASTER_LISTEN_S)  # before a drive hears anything from us
+            booted = {w.node.id: w.booted for w in self.watches}
+            boot.reset_communication(self.nodes, booted, s.boot_timeout_s, stop)
+            self.units, self.limits = [], []
+            joints = zip(self.nodes, self.watches, self.torque_limits_nm, strict=True)
+            for node, watch, limit_nm in joints:
+                units, limit = boot.configure(node, s, limit_nm)
+                self.units.append(units)
+                self.limits.append(limit)
+                watch.heartbeat_limit_ns = CONSUMER_PERIODS * s.heartbeat_ms * 1_000_000
+                boot.map_pdos(node)
+                watch.watch_tpdos()
+                boot.enter_cst(node)
+            others.refuse(0.0)  # one that started during the boot: no NMT start under it
         self.heartbeat.nmt.state = "OPERATIONAL"
         self.heartbeat.nmt.start_heartbeat(s.heartbeat_ms)
         for node, watch in zip(self.nodes, self.watches, strict=True):
@@ -385,7 +394,16 @@ class Cia402Master:
             )
 
     def close(self) -> None:
-        """Stop the heartbeat and the receive thread and shut the bus down."""
+        """Drives booted and never deactivated (a run stopped between its boot and its first
+        arming step) are released first (:meth:`release`), so none stays in NMT operational; then
+        stop the heartbeat and the receive thread and shut the bus down."""
+        try:
+            if self.operational and self.connected:
+                self.release(RELEASE_ON_CLOSE_S)
+        finally:
+            self._shut()
+
+    def _shut(self) -> None:
         self.heartbeat.nmt.stop_heartbeat()
         if self.connected:
             self.connected = False
@@ -413,4 +431,41 @@ class Cia402Master:
         return {"drives": drives, "syncs": self.sync_count, **self.faults.as_dict()}
 
 
-__all__ = ["Cia402Master", "JointState", "controlword_toward"]
+class OtherMasters:
+    """While open: whether another master drives the bus, by its SYNC (COB-ID 0x080) or a
+    heartbeat of the controller's node id. Booting under it would reset and remap drives it
+    is running (and the dsp profile's emulator sends its Sync on 0x080 too)."""
+
+    def __init__(self, network: canopen.Network, master_id: int) -> None:
+        self.network = network
+        self.heartbeat_id = 0x700 + master_id
+        self.heard = threading.Event()
+        self.what = ""
+
+    def _on_frame(self, can_id: int, _data: bytearray, _timestamp: float) -> None:
+        if not self.heard.is_set():
+            node = self.heartbeat_id - 0x700
+            self.what = "SYNC" if can_id == SYNC_COB_ID else f"a heartbeat of node {node}"
+            self.what += f" (COB-ID 0x{can_id:03X})"
+            self.heard.set()
+
+    def __enter__(self) -> OtherMasters:
+        for can_id in (SYNC_COB_ID, self.heartbeat_id):
+            self.network.subscribe(can_id, self._on_frame)
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        for can_id in (SYNC_COB_ID, self.heartbeat_id):
+            self.network.unsubscribe(can_id, self._on_frame)
+
+    def refuse(self, listen_s: float) -> None:
+        """:class:`HalDriveError` when another master was heard (waiting up to ``listen_s``)."""
+        if self.heard.wait(listen_s):
+            raise HalDriveError(
+                f"another CANopen master is on this bus ({self.what} heard): stop it first "
+                f"(a running `hil controller` or `hil up`, a PLC, a vendor tool, or a "
+                f"dsp-profile emulator), so its drives are not reset and remapped under it"
+            )
+
+
+__all__ = ["Cia402Master", "JointState", "OtherMasters", "controlword_toward"]

@@ -13,21 +13,13 @@ import pytest
 
 from hal.cia402_master.master import CONSUMER_PERIODS, HEARTBEAT_MS, Cia402Master
 from hal.config import RigConfig
-from tests.support.cia402 import drives_on_virtual_bus
+from tests.support.cia402 import FakeNow, drives_on_virtual_bus
 
 CFG = RigConfig()
 IDS = (CFG.cia402.node_id_1, CFG.cia402.node_id_2)
 PERIOD_S = 1.0 / CFG.rates.control_hz
 WAIT_S = 5.0
 """How long a test waits for the drives' TPDOs (generous: shared CPUs)."""
-
-
-class FakeNow:
-    def __init__(self) -> None:
-        self.ns = 10**12
-
-    def __call__(self) -> int:
-        return self.ns
 
 
 @pytest.fixture

@@ -38,6 +38,16 @@ class ManualClock:
         return self.t
 
 
+class FakeNow:
+    """The master's ``now_ns``, fixed unless the test moves it (``ns``)."""
+
+    def __init__(self) -> None:
+        self.ns = 10**12
+
+    def __call__(self) -> int:
+        return self.ns
+
+
 @dataclass
 class Bench:
     rig: Cia402Rig
