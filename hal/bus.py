@@ -212,6 +212,11 @@ def _transport_error(
         else:
             hint = f"check that loopback is up (sudo ip link set lo up), or use {SOCKETCAN_HINT}"
         return HalTransportError(f"cannot open CAN bus {spec}: {exc}; {hint}")
+    if isinstance(exc, NameError):  # python-can's backend without its vendor library
+        return HalTransportError(
+            f"cannot open CAN bus {spec}: python-can's {spec.interface} interface is missing its "
+            f"vendor library ({exc}); install the adapter's driver and library"
+        )
     return HalTransportError(
         f"cannot open CAN bus {spec}: {exc}; check the adapter, its driver and python-can's "
         "interface options"
@@ -293,10 +298,21 @@ def open_bus(
             return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
     except HalTransportError:  # already one line saying what to do (e.g. a refused group)
         raise
-    except (can.CanError, OSError, ValueError, ImportError) as exc:
+    except (can.CanError, OSError, ValueError, ImportError, NameError) as exc:
+        if isinstance(exc, NameError) and not _raised_in_backend(exc):
+            raise  # ours: a bug, not the adapter
         raise _transport_error(
             resolved, exc, options.get("bitrate"), options.get("fd", True)
         ) from exc
+
+
+def _raised_in_backend(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised inside a python-can interface module: the Kvaser backend
+    raises NameError when its vendor library (canlib) is not installed."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and "can/interfaces/" in tb.tb_frame.f_code.co_filename.replace("\\", "/")
 
 
 ISOLATED_GROUP_BASE = ipaddress.IPv4Address("239.75.0.0")

@@ -175,3 +175,22 @@ def test_udp_multicast_skips_garbage_datagrams() -> None:
             got = bus.recv(timeout=RECV_TIMEOUT_S)
         assert got is not None and got.arbitration_id == 0x080
         assert bus.malformed_datagrams == 1
+
+
+def test_an_adapter_without_its_vendor_library_is_one_line() -> None:
+    """python-can's Kvaser interface raises NameError when canlib is not installed: before
+    this, a traceback from every command given --can kvaser:0."""
+    kvaser = pytest.importorskip("can.interfaces.kvaser.canlib")
+    if hasattr(kvaser, "canGetNumberOfChannels"):
+        pytest.skip("this host has Kvaser's canlib")
+    with pytest.raises(HalTransportError, match=r"^cannot open CAN bus kvaser:0: .*vendor library"):
+        open_bus("kvaser:0")
+
+
+def test_a_name_error_of_our_own_is_not_taken_for_the_adapter(monkeypatch) -> None:
+    def broken(**_kw):
+        raise NameError("name 'oops' is not defined")
+
+    monkeypatch.setattr(can, "Bus", broken)
+    with pytest.raises(NameError, match="oops"):
+        open_bus("virtual:x")
