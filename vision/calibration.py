@@ -13,7 +13,9 @@ real camera's or the emulated one's views, see ``hil camera calibrate``).
 from __future__ import annotations
 
 import math
+import os
 import re
+import stat
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -250,7 +252,9 @@ def read_images(folder: str | Path) -> list[np.ndarray]:
     root = Path(folder)
     if not root.is_dir():
         raise CalibrationError(f"--images {root}: not a folder")
-    files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = sorted(  # hidden files are no views (a Mac's ._view.png beside view.png)
+        p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.name[0] != "."
+    )
     if not files:
         raise CalibrationError(f"--images {root}: no image files ({', '.join(IMAGE_SUFFIXES)})")
     out = []
@@ -278,6 +282,7 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     file is created when missing; the result is validated like any config before it replaces
     the file."""
     p = Path(path)
+    mode = check_writable(p)
     try:  # a folder, a FIFO, a PNG or a log named by mistake: one line
         text = read_text_file(p, "config file") if p.exists() or p.is_symlink() else ""
     except HalConfigError as exc:
@@ -319,4 +324,22 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     cfg = config_from_dict(tomllib.loads(new_text), source=str(p))  # validated before writing
     with written_whole(p) as tmp:
         tmp.write_text(new_text, encoding="utf-8")
+        if mode is not None:  # the new file replaces the old one: keep its permissions
+            tmp.chmod(mode)
     return cfg
+
+
+def check_writable(path: str | Path) -> int | None:
+    """The permission bits of the rig config ``path`` (None: it does not exist yet), or one
+    line when it is read-only: the file is replaced by a rename, which its own mode does not
+    stop, so ``chmod a-w`` ("do not touch") is honoured here (also for root)."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        return None  # missing (created), or said by the read that follows
+    if stat.S_ISREG(st.st_mode) and (not st.st_mode & 0o222 or not os.access(p, os.W_OK)):
+        raise HalConfigError(
+            f"{p}: read-only, not touched (make it writable, or give --write FILE)"
+        )
+    return stat.S_IMODE(st.st_mode)

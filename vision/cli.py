@@ -19,6 +19,14 @@ from hal.secoc import bad_mac_clause
 from hal.signals import stop_on_signals
 
 CAMERA_ONLY = ("fps", "noise", "latency", "seed")
+FRAMES_ONLY_WITH_LOG = (
+    "--frames: only with --source log:RUN.mcap (an offline re-run); a live source publishes "
+    "each frame's features on zenoh"
+)
+
+
+def _notice(text: str) -> None:
+    print(f"hil vision: warning: {text}", file=sys.stderr, flush=True)
 
 
 def add_source_option(p: argparse.ArgumentParser) -> None:
@@ -49,6 +57,8 @@ def run_from_args(args: argparse.Namespace) -> int:
             "the frames it gets (set the emulated camera in the [camera] section)"
         )
     kind, _ = parse_source(args.source)
+    if getattr(args, "frames", False) and kind != "log":
+        raise HalConfigError(FRAMES_ONLY_WITH_LOG)
     if kind == "log" and dropouts:
         raise HalConfigError(
             f"--dropout with --source {args.source}: a log is re-run offline and publishes "
@@ -72,7 +82,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                 }
             )
 
-        stats = run_offline(cfg, args.source, keep)
+        stats = run_offline(cfg, args.source, keep, notice=_notice)
         if getattr(args, "frames", False):
             for line in lines:
                 print(strict_json.dumps(line))
@@ -92,6 +102,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                     duration_s=args.duration,
                     dropouts=dropouts,
                     rt_priority=cfg.vision.rt_priority,
+                    notice=_notice,
                     **zenoh_session_options(args),
                 )
             except HalError:
@@ -105,6 +116,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         bad_mac = rejected.pop("bad_mac", 0)
         p99 = stats.detect_us_p99
         why = ", ".join(f"{r} {n}" for r, n in rejected.items() if n)
+        if stats.wrong_size_px:  # which sizes: the fix is in [camera], not in the scene
+            (w, h), k = stats.wrong_size_px, cfg.camera
+            why += f"; frames are {w}x{h}, camera.width_px x height_px {k.width_px}x{k.height_px}"
         print(
             f"hil vision: {stats.frames} frames from {stats.source}, {stats.valid} measured, "
             f"{stats.invalid} without the target{f' ({why})' if why else ''}"

@@ -74,6 +74,9 @@ class GrabberStats:
     """Realtime frames in a dropout, not answered."""
     pipeline: dict[str, Any] = field(default_factory=dict)
     """Frames, measurements and rejections by reason."""
+    wrong_size_px: list[int] | None = None
+    """[width, height] of the first frame of another size than the camera's (``wrong_size``:
+    a real camera or clip of another resolution than ``[camera]``'s); None: there was none."""
     frame_rx: dict[str, int] = field(default_factory=dict)
     """The frame decoder's counters (emulated source)."""
     scheduling: str = ""
@@ -197,7 +200,8 @@ class Grabber:
             self._last = (ident, msg)
             self._send(msg)
             self._ask(RoiRequest(frame.source, frame.seq + 1, self.pipeline.roi()))
-            self._detect_ns.add(m.detect_ns)
+            if m.detect_ns:  # 0: no detection ran (a frame of another size, malformed)
+                self._detect_ns.add(m.detect_ns)
             if not frame.lockstep:
                 self._latency_ns.add(self.clock() - frame.stamp_ns)
             if log is not None and image:
@@ -262,6 +266,8 @@ class Grabber:
         with self._lock:
             s = dataclasses.replace(self.stats)
             s.pipeline = self.pipeline.counts.as_dict()
+            if self.pipeline.wrong_size is not None:
+                s.wrong_size_px = list(self.pipeline.wrong_size)
             if self._detect_ns:
                 s.detect_us_p50, s.detect_us_p99 = self._detect_ns.percentiles_us()
             if self._latency_ns:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -111,18 +112,29 @@ class Pipeline:
     (``track``: search a tracking window first, see the module docstring)."""
 
     def __init__(
-        self, intrinsics: Intrinsics, params: DetectorParams | None = None, *, track: bool = True
+        self,
+        intrinsics: Intrinsics,
+        params: DetectorParams | None = None,
+        *,
+        track: bool = True,
+        notice: Callable[[str], None] | None = None,
     ) -> None:
         self.intrinsics = intrinsics
         self.params = params or DetectorParams()
         self.counts = PipelineCounts()
         self.tracker = Tracker() if track else None
+        self.notice = notice
+        """Told once, at the first frame of another size than the camera's (a real camera or
+        clip of another resolution: every frame would be rejected)."""
+        self.wrong_size: tuple[int, int] | None = None
+        """(width, height) of the first frame of another size than the camera's."""
 
-    def reject(self, reason: str) -> Measurement:
-        """Count a frame that gave no measurement (also for frames that never decoded)."""
+    def reject(self, reason: str, detect_ns: int = 0) -> Measurement:
+        """Count a frame that gave no measurement (also for frames that never decoded);
+        ``detect_ns``: the time of a detection that found nothing (0: none ran)."""
         self.counts.frames += 1
         self.counts.rejected[reason] += 1
-        return Measurement(None, reason, None, 0)
+        return Measurement(None, reason, None, detect_ns)
 
     def process(self, pixels: np.ndarray) -> Measurement:
         """Measure f in one 8-bit grey frame (height x width)."""
@@ -131,6 +143,14 @@ class Pipeline:
         if not isinstance(pixels, np.ndarray) or pixels.dtype != np.uint8 or pixels.ndim != 2:
             return self.reject("malformed")
         if pixels.shape != (k.height, k.width):
+            if self.wrong_size is None:
+                self.wrong_size = (w, h) = (pixels.shape[1], pixels.shape[0])
+                if self.notice is not None:
+                    self.notice(
+                        f"frames are {w}x{h}, camera.width_px x height_px {k.width}x{k.height}: "
+                        "every such frame is rejected (wrong_size); set [camera] width_px, "
+                        "height_px to the camera's (and calibrate it)"
+                    )
             return self.reject("wrong_size")
         window = self.tracker.window() if self.tracker is not None else None
         det, reason = detect(pixels, self.params, window) if window else (None, None)
@@ -140,7 +160,7 @@ class Pipeline:
         if self.tracker is not None:
             self.tracker.update(det, tracked)
         if det is None:
-            return self.reject(reason or "not_found")
+            return self.reject(reason or "not_found", max(time.perf_counter_ns() - t0, 1))
         return self._measured(det, tracked, t0)
 
     def process_region(self, pixels: np.ndarray, x0: int, y0: int) -> Measurement | None:

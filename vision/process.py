@@ -33,10 +33,15 @@ def run_offline(
     spec: str,
     on_result: Callable[[CameraFrame, Measurement, FeatureMsg], None] | None = None,
     stop_event: threading.Event | None = None,
+    notice: Callable[[str], None] | None = None,
 ) -> GrabberStats:
-    """Run the pipeline over every frame of a log or file, publishing nothing."""
+    """Run the pipeline over every frame of a log or file, publishing nothing (``notice``:
+    told once, at the first frame of another size than the camera's)."""
     grabber = Grabber(
-        Pipeline(intrinsics_from_config(cfg)), lambda msg: None, source_id=0, observer=on_result
+        Pipeline(intrinsics_from_config(cfg), notice=notice),
+        lambda msg: None,
+        source_id=0,
+        observer=on_result,
     )
     source = open_source(spec)
     source.run(grabber.on_frame, grabber.on_reject, stop_event or threading.Event())
@@ -58,11 +63,13 @@ def run_live(
     ready: threading.Event | None = None,
     dropouts: Sequence[Dropout] = (),
     rt_priority: int = 0,
+    notice: Callable[[str], None] | None = None,
 ) -> GrabberStats:
     """Serve ``spec``'s frames as features on zenoh until ``stop_event``, ``duration_s`` (0 =
     forever) or the end of a file; ``dropouts``: windows without features (fault injection);
     ``rt_priority``: realtime frames are measured on SCHED_FIFO threads (``hil vision`` passes
-    ``vision.rt_priority``; 0: normal scheduling)."""
+    ``vision.rt_priority``; 0: normal scheduling); ``notice``: told once, at the first frame of
+    another size than the camera's."""
     parse_source(spec)  # a bad spec fails before zenoh is opened
     key = rig_key(cfg)
     session = open_session(
@@ -93,7 +100,7 @@ def run_live(
             )
         source = open_source(spec, session=session, key=key, live=True)
         grabber = Grabber(
-            Pipeline(intrinsics_from_config(cfg)),
+            Pipeline(intrinsics_from_config(cfg), notice=notice),
             lambda msg: pub.put(encode_features(msg, key)),
             source_id=source_id,
             dropouts=dropouts,

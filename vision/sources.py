@@ -152,10 +152,28 @@ class CaptureSource:
 
     def open(self) -> cv2.VideoCapture:
         check_source(self.name)
+        quiet_ffmpeg()
         api = {"v4l2": cv2.CAP_V4L2, "gst": cv2.CAP_GSTREAMER}.get(self.kind, cv2.CAP_ANY)
-        cap = cv2.VideoCapture(self.target, api)
+        logging = cv2.utils.logging
+        level = logging.getLogLevel()
+        logging.setLogLevel(logging.LOG_LEVEL_ERROR)  # its warnings: our one line says it
+        try:
+            cap = cv2.VideoCapture(self.target, api)
+        finally:
+            logging.setLogLevel(level)
         if not cap.isOpened():
             cap.release()
+            if self.kind == "file" and "://" not in self.target:  # it exists (checked above)
+                raise HalConfigError(
+                    f"--source {self.name}: not a video OpenCV can open (or this OpenCV has no "
+                    "decoder for it)"
+                )
+            if self.kind == "v4l2":
+                raise HalTransportError(
+                    f"--source {self.name}: OpenCV cannot open it (busy in another program, or "
+                    "no capture node: a USB camera's other /dev/videoN carries metadata; "
+                    "v4l2-ctl --list-devices names them)"
+                )
             raise HalTransportError(
                 f"--source {self.name}: OpenCV cannot open it (device busy or missing, or this "
                 "OpenCV has no backend for it)"
@@ -163,7 +181,36 @@ class CaptureSource:
         return cap
 
     def run(self, on_frame: FrameSink, on_reject: RejectSink, stop: threading.Event) -> None:
+        """Read frames on a thread of the capture's own (the grabber may make the thread that
+        measures them SCHED_FIFO: not the caller's), until the end, an error or ``stop``."""
         cap = self.open()
+        failed: list[BaseException] = []
+
+        def body() -> None:
+            try:
+                self._read(cap, on_frame, on_reject, stop)
+            except BaseException as exc:  # handed to the caller's thread
+                failed.append(exc)
+
+        reader = threading.Thread(target=body, name="hil-vision-capture", daemon=True)
+        reader.start()
+        try:
+            while reader.is_alive():
+                reader.join(0.5)  # a signal's handler (it sets stop) runs meanwhile
+        finally:
+            if reader.is_alive():  # the caller's thread was interrupted (Ctrl-C): end the reader
+                stop.set()
+                reader.join()
+        if failed:
+            raise failed[0]
+
+    def _read(
+        self,
+        cap: cv2.VideoCapture,
+        on_frame: FrameSink,
+        on_reject: RejectSink,
+        stop: threading.Event,
+    ) -> None:
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) if self.pace else 0.0
         period_ns = round(1e9 / fps) if fps > 0 else 0
         seq, t0, rejected = 0, 0, 0
@@ -191,6 +238,14 @@ class CaptureSource:
             cap.release()
 
 
+def quiet_ffmpeg() -> None:
+    """Keep FFmpeg's own lines ("moov atom not found") off stderr: the source's error says it
+    in one line. Effective before OpenCV's first FFmpeg capture of the process; a user's
+    ``OPENCV_FFMPEG_LOGLEVEL`` or ``OPENCV_FFMPEG_DEBUG`` is kept (set one to see them)."""
+    if "OPENCV_FFMPEG_DEBUG" not in os.environ:
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
 class LogSource:
     """The camera frames a run recorded (``/camera/image``, PNG or JPEG), in log order; their
     stamps are the log times."""
@@ -206,10 +261,11 @@ class LogSource:
         """Re-run the frames with mcap's stream reader, as far as the file goes: a log whose
         recorder was killed (no summary, a half-written chunk) still gives the frames of its
         complete chunks, as the other log tools read it."""
-        from mcap.records import Channel, Header, Message
+        from mcap.records import Channel, Header, Message, Metadata
         from mcap.stream_reader import StreamReader
 
         check_source(self.name)
+        _check_mcap_magic(self.path, self.name)
         seq, seen, started, topic_ids = 0, 0, False, set()
         with self.path.open("rb") as fh:
             reader = StreamReader(
@@ -220,6 +276,8 @@ class LogSource:
                     started = started or isinstance(rec, Header)
                     if isinstance(rec, Channel) and rec.topic == self.topic:
                         topic_ids.add(rec.id)
+                    if isinstance(rec, Metadata) and rec.name == "hil.config":
+                        self._check_camera_model(rec.metadata.get("json", ""))
                     if not isinstance(rec, Message) or rec.channel_id not in topic_ids:
                         continue
                     if stop.is_set():
@@ -231,6 +289,8 @@ class LogSource:
                         continue
                     on_frame(grabbed_frame(seq, pixels, rec.log_time))
                     seq += 1
+            except HalConfigError:
+                raise
             except Exception as exc:  # a cut or damaged tail ends the frames; no header: refuse
                 if not started:
                     raise HalConfigError(
@@ -245,6 +305,21 @@ class LogSource:
             raise HalConfigError(
                 f"--source {self.name}: none of its {seen} {self.topic} frames is an image "
                 "OpenCV decodes (damaged frames, or another topic of that name)"
+            )
+
+    def _check_camera_model(self, config_json: str) -> None:
+        """One line when the run's config (the ``hil.config`` metadata, before the frames)
+        had the analytic camera: its ``/camera/image`` is the monitor's blank image plane."""
+        import json
+
+        try:
+            model = json.loads(config_json)["camera"]["model"]
+        except (ValueError, KeyError, TypeError):
+            return  # not said: the frames tell
+        if model == "analytic":
+            raise HalConfigError(
+                f"--source {self.name}: a run of the analytic camera (camera.model = analytic): "
+                f"its {self.topic} is the monitor's blank image plane, no camera frames"
             )
 
 
@@ -275,13 +350,30 @@ def _check_is_file(path: Path, name: str, what: str) -> None:
         raise HalConfigError(f"--source {name}: not readable (permission denied)")
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _check_mcap_magic(path: Path, name: str) -> None:
+    """One line unless ``path`` begins as an MCAP file does (a clip, a key, a text file named
+    by mistake: said as such, not as a reader's internal complaint)."""
+    with path.open("rb") as fh:
+        head = fh.read(len(MCAP_MAGIC))
+    if not head:
+        raise HalConfigError(f"--source {name}: not an MCAP log: an empty file")
+    if head != MCAP_MAGIC:
+        raise HalConfigError(
+            f"--source {name}: not an MCAP log: does not begin with the MCAP magic"
+        )
+
+
 def _check_device(path: Path, name: str) -> None:
     """One line unless ``path`` is a character device this user may read and write (V4L2
     opens it read-write)."""
     try:
         mode = path.stat().st_mode
     except OSError:
-        raise HalConfigError(f"--source {name}: no such device") from None
+        hint = f" (give its path: v4l2:/dev/video{path})" if str(path).isdigit() else ""
+        raise HalConfigError(f"--source {name}: no such device{hint}") from None
     if not stat.S_ISCHR(mode):
         raise HalConfigError(f"--source {name}: not a video device (a V4L2 device is /dev/videoN)")
     if not os.access(path, os.R_OK | os.W_OK):
@@ -341,6 +433,8 @@ def parse_source(spec: str) -> tuple[str, str]:
         return kind, ""
     if not sep or not target:
         raise HalConfigError(f"--source {spec!r}: {kind} needs a target, e.g. {kind}:PATH")
+    if kind != "gst" and target.startswith("~"):  # the shell expands no ~ after "log:"
+        target = os.path.expanduser(target)
     return kind, target
 
 

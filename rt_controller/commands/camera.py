@@ -20,6 +20,9 @@ TARGETS = {"fx_rel": 0.005, "fy_rel": 0.005, "cx_px": 1.0, "cy_px": 1.0, "k1_rel
 """How close a calibration from emulated views must come to the true lens (issue 38)."""
 MAX_MARKERS = 100
 """DICT_4X4_100 has 100 markers; a board of X x Y squares needs X*Y // 2 of them."""
+EMULATED_VIEWS = 20
+EMULATED_ONLY = ("views", "seed", "save_views")
+"""Options of the emulated views: refused with --images (they would do nothing)."""
 EMULATED_MARKER_MIN = 0.69
 """The emulated board draws a square as 8 cells and a marker needs 6 (4 bits and a border):
 a smaller marker/square ratio cannot be drawn."""
@@ -57,14 +60,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument(
         "--views",
         type=bounded_int(3, 500, what="views"),
-        default=20,
+        default=None,
         metavar="N",
-        help="emulated views (20)",
+        help=f"emulated views ({EMULATED_VIEWS})",
     )
     c.add_argument(
         "--seed",
         type=bounded_int(0, 2**32 - 1, what="seed"),
-        default=0,
+        default=None,
         help="emulated views: poses and noise (0)",
     )
     c.add_argument(
@@ -141,18 +144,36 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.errors import HalConfigError
     from rt_controller.commands.output import output_file
-    from vision.calibration import calibrate, read_images, write_vision_section
+    from vision.calibration import calibrate, check_writable, read_images, write_vision_section
 
+    given = [name for name in EMULATED_ONLY if getattr(args, name) is not None]
+    if args.images and given:
+        raise HalConfigError(
+            f"--{given[0].replace('_', '-')}: only with --source emulated (--images calibrates "
+            "from the folder's views as they are)"
+        )
     cfg = load_config(args.config)
     spec = _spec(args)
     if args.write:  # a bad path is refused before the views are taken
         output_file(args.write, "--write")
+    if args.write or args.config:  # so is a read-only config
+        check_writable(args.write or args.config)
+    if args.save_views:  # views of two runs in one folder would be calibrated together
+        from pathlib import Path
+
+        earlier = sorted(Path(args.save_views).glob("view-*.png"))
+        if earlier:
+            raise HalConfigError(
+                f"--save-views {args.save_views}: already holds {len(earlier)} saved views "
+                "(view-*.png): give an empty or new folder"
+            )
     if args.images:
         views = read_images(args.images)
     else:
         from plant_emulator.calibration_views import board_views
 
-        views = board_views(cfg, spec.cells(), spec.cell_m, args.views, seed=args.seed)
+        n = EMULATED_VIEWS if args.views is None else args.views
+        views = board_views(cfg, spec.cells(), spec.cell_m, n, seed=args.seed or 0)
         if args.save_views:
             _save(views, args.save_views)
     cal = calibrate(views, spec, k3=args.k3, tangential=args.tangential)

@@ -34,12 +34,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
+    from hal.errors import HalConfigError
 
     source = args.source
     if source is None and load_config(args.config).camera.model == "image":
         source = "emulated"
     if source is None:
         from plant_emulator import vision_cli
+        from vision.cli import FRAMES_ONLY_WITH_LOG
+
+        if args.frames:  # the analytic camera has no frames to list
+            raise HalConfigError(FRAMES_ONLY_WITH_LOG)
 
         return vision_cli.run_from_args(args)
     from vision.cli import run_from_args

@@ -71,3 +71,30 @@ def frame(
     if noise > 0:
         img = img + np.random.default_rng(seed).normal(0.0, noise, img.shape)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def write_image_log(
+    path, images: list[np.ndarray], *, chunk_size: int | None = None, tail: bytes | None = None
+):
+    """An MCAP log of ``images`` as PNG ``foxglove.CompressedImage`` on /camera/image, 0.1 s
+    apart (``chunk_size`` 1: each in its own chunk); ``tail``: one more message of these raw
+    bytes (a damaged frame) after them. Returns ``path``."""
+    from foxglove.messages import CompressedImage, Timestamp
+    from mcap.writer import Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh) if chunk_size is None else Writer(fh, chunk_size=chunk_size)
+        w.start()
+        sid = w.register_schema(
+            "foxglove.CompressedImage", "protobuf", CompressedImage.get_schema().data
+        )
+        ch = w.register_channel("/camera/image", "protobuf", sid)
+        for i, img in enumerate(images):
+            png = cv2.imencode(".png", img)[1].tobytes()
+            msg = CompressedImage(timestamp=Timestamp(sec=i), frame_id="c", data=png, format="png")
+            w.add_message(ch, i * 10**8, msg.encode(), i * 10**8)
+        if tail is not None:
+            t = len(images) * 10**8
+            w.add_message(ch, t, tail, t)
+        w.finish()
+    return path

@@ -14,7 +14,7 @@ import pytest
 from hal.camera_frame import CameraFrame, encode_frame
 from hal.errors import HalConfigError
 from hal.vision_codec import FeatureMsg
-from tests.support.synthetic_frames import frame
+from tests.support.synthetic_frames import frame, write_image_log
 from vision.grabber import Grabber
 from vision.intrinsics import Intrinsics
 from vision.pipeline import Pipeline
@@ -60,29 +60,8 @@ def test_bad_source_specs(spec: str):
 
 
 def test_log_frames_are_re_run(tmp_path: Path):
-    from foxglove.messages import CompressedImage, Timestamp
-    from mcap.writer import Writer
-
-    path = tmp_path / "run.mcap"
-    with path.open("wb") as fh:
-        w = Writer(fh)
-        w.start()
-        sid = w.register_schema(
-            "foxglove.CompressedImage", "protobuf", CompressedImage.get_schema().data
-        )
-        ch = w.register_channel("/camera/image", "protobuf", sid)
-        for i, f in enumerate(PATH_F):
-            ok, png = cv2.imencode(".png", frame(K, f))
-            assert ok
-            msg = CompressedImage(
-                timestamp=Timestamp(sec=i, nsec=0),
-                frame_id="camera",
-                data=png.tobytes(),
-                format="png",
-            )
-            w.add_message(ch, i * 10**8, msg.encode(), i * 10**8)
-        w.add_message(ch, 10**9, b"\x00garbage", 10**9)
-        w.finish()
+    images = [frame(K, f) for f in PATH_F]
+    path = write_image_log(tmp_path / "run.mcap", images, tail=b"\x00garbage")
     sent: list[FeatureMsg] = []
     g = grabber(sent)
     open_source(f"log:{path}").run(g.on_frame, g.on_reject, threading.Event())
@@ -214,22 +193,7 @@ def test_a_live_file_plays_at_its_frame_rate(tmp_path: Path):
 
 def _image_log(path: Path, n: int = len(PATH_F)) -> Path:
     """A log of ``n`` PNG frames on /camera/image, each in its own chunk."""
-    from foxglove.messages import CompressedImage, Timestamp
-    from mcap.writer import Writer
-
-    with path.open("wb") as fh:
-        w = Writer(fh, chunk_size=1)
-        w.start()
-        sid = w.register_schema(
-            "foxglove.CompressedImage", "protobuf", CompressedImage.get_schema().data
-        )
-        ch = w.register_channel("/camera/image", "protobuf", sid)
-        for i, f in enumerate(PATH_F[:n]):
-            png = cv2.imencode(".png", frame(K, f))[1].tobytes()
-            msg = CompressedImage(timestamp=Timestamp(sec=i), frame_id="c", data=png, format="png")
-            w.add_message(ch, i * 10**8, msg.encode(), i * 10**8)
-        w.finish()
-    return path
+    return write_image_log(path, [frame(K, f) for f in PATH_F[:n]], chunk_size=1)
 
 
 def test_a_log_whose_frames_none_decodes_is_refused(tmp_path: Path):
