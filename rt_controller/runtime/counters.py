@@ -273,22 +273,20 @@ def _ended_after(summary: dict[str, Any]) -> str:
 
 
 def run_problems(summary: dict[str, Any]) -> list[str]:
-    """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it
-    ended for another reason than its duration or a stop request (or short of its duration
-    without one), lost or could not encode log records
-    or camera images (in lockstep, also an announced image that never came), lost vision
-    messages or images to an exception in the feature link's zenoh callbacks (the session's
-    ``callback_errors``), tripped the DSP's watchdog, saw a DSP fault, received a stream of
-    frames or messages that failed
-    authentication (:data:`diagnostics.AUTH_FAULT_MIN` or more), ran ticks without an
-    enabled DSP, or (lockstep, as the emulator's report in ``dsp`` says) had periods the DSP
-    advanced without their command, which makes it another run than the deterministic one.
-    ``summary``: a run's summary, also as rebuilt from a log.
+    """Why a finished run cannot be trusted, one short phrase each (empty: a clean run): it ended
+    for another reason than its duration or a stop request, lost or could not encode log
+    records or camera images (in lockstep, also an announced image that never came), lost
+    vision messages or images to an exception in the feature link's zenoh callbacks (the
+    session's ``callback_errors``), tripped the DSP's watchdog, saw a DSP fault, received a
+    stream of frames or messages that failed authentication (:data:`diagnostics.AUTH_FAULT_MIN`
+    or more), ran ticks without an enabled DSP, or (lockstep, as the emulator's report in
+    ``dsp`` says) had periods the DSP advanced without their command, which makes it another
+    run than the deterministic one. ``summary``: a run's summary, also as rebuilt from a log.
     """
     out: list[str] = []
     reason = summary.get("end_reason") or "duration"
-    if reason not in ENDED_FULL or (reason == "duration" and _short(summary)):
-        out.append(_ended_after(summary) + ("" if reason == "duration" else f": {reason}"))
+    if reason not in ENDED_FULL:  # "duration" may run fewer ticks: periods missed are skipped
+        out.append(f"{_ended_after(summary)}: {reason}")
     rec = summary.get("recorder") or {}
     lost = int(rec.get("dropped", 0)) + int(rec.get("pending", 0))  # pending: an older log
     if lost:
