@@ -67,6 +67,7 @@ time. Real-time runs, and runs on one shared bus (--can, SocketCAN), run one at 
 """
 
 MAX_CONSECUTIVE_FAILURES = 3
+DEFAULT_REPS = 5
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -90,9 +91,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--reps",
         type=bounded_int(1, 1000, what="repetitions"),
-        default=5,
         metavar="N",
-        help="table1 runs per horizon (5)",
+        help=f"table1 runs per horizon ({DEFAULT_REPS}); refused for fig3 and fig4",
     )
     p.add_argument(
         "--duration", type=duration(), default=10.0, metavar="S", help="plant time per run (10)"
@@ -151,7 +151,7 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
     """The canonical command line of this experiment (for report.md)."""
     parts = ["hil", "experiment", args.which, "--out", str(out)]
     if args.which in ("table1", "all"):
-        parts += ["--reps", str(args.reps)]
+        parts += ["--reps", str(args.reps or DEFAULT_REPS)]
     parts += ["--duration", f"{args.duration:g}"]
     if args.noise is not None:
         parts += ["--noise", f"{args.noise:g}"]
@@ -183,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
     require_extra("sweep", "this command")  # the runs go as tasks on the sweep's Dask executor
 
     from rt_controller.commands.progress import Progress
+    from rt_controller.rig.supervise import signals_deferred
     from rt_controller.sweep.executor import open_cluster
 
     out = Path(args.out) if args.out else default_out()
@@ -204,8 +205,9 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         return run_on(cl, args, settings, err, progress)
-    finally:
-        cl.close()
+    finally:  # a stop signal now (an impatient second Ctrl-C) asks for nothing more
+        with signals_deferred(deliver=False):
+            cl.close()
 
 
 EXPERIMENT_FILES = ("results.json", "report.md", "logs", "configs")
@@ -228,12 +230,14 @@ def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:
     """The experiment's settings, validated with every run's configuration (a config file that
     does not load, a ``--noise`` the camera cannot apply): nothing is written yet."""
     from hal.config import load_config
+    from rt_controller.control.simulate import tick_count, too_short
+    from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.experiment import EXPERIMENTS, Settings, plan, run_config
 
     settings = Settings(
         experiments=EXPERIMENTS if args.which == "all" else (args.which,),
         out=out,
-        reps=args.reps,
+        reps=args.reps or DEFAULT_REPS,
         duration_s=args.duration,
         noise_px=args.noise,
         realtime=args.realtime,
@@ -245,9 +249,13 @@ def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:
         profile=args.profile,
     )
     settings.validate()
+    if args.reps is not None and args.which in ("fig3", "fig4"):  # one run per law / horizon
+        raise ControllerConfigError(f"--reps: {args.which} has no repetitions (table1 has)")
     for specs in plan(settings, load_config(settings.config)).values():
         for spec in specs:
-            run_config(settings, spec)
+            rate = run_config(settings, spec).rates.control_hz
+            if tick_count(settings.duration_s, rate) < 1:  # as `hil up`: a run of no tick
+                raise ControllerConfigError(too_short(settings.duration_s, rate))
     check_shared_bus(settings)
     return settings
 
@@ -277,7 +285,7 @@ def run_on(
     from rt_controller.commands.output import output_dir
     from rt_controller.rig.experiment import prepare
     from rt_controller.rig.experiment_report import write_outputs
-    from rt_controller.rig.supervise import RigInterrupted, supervised
+    from rt_controller.rig.supervise import RigInterrupted, signals_deferred, supervised
 
     out = settings.out
     output_dir(out, "--out")  # before any run: a file or an unwritable place is one line
@@ -290,16 +298,27 @@ def run_on(
     what = f"{settings.clock}, {settings.hardware_profile()} profile{at_once}"
     err.print(f"hil experiment {args.which}: {len(runs)} runs ({what}) -> {out}")
     interrupted: RigInterrupted | None = None
+    res: dict[str, Any] | None = None
     try:
         with supervised():
-            sweep(cl, runs, settings, err)
-    except RigInterrupted as exc:
+            try:
+                sweep(cl, runs, settings, err)
+            except RigInterrupted as exc:
+                interrupted = exc
+            finally:  # a partial sweep (failure, signal) is written up as far as it went;
+                # a stop signal meanwhile waits for the write-up (one more after the first:
+                # dropped, the experiment is stopping already)
+                with (
+                    signals_deferred(deliver=interrupted is None),
+                    progress.stage(f"writing report.md, results.json and the figures into {out}"),
+                ):
+                    res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
+    except RigInterrupted as exc:  # the signal held during the write-up
         interrupted = exc
-    finally:  # a partial sweep (failure, signal) is written up as far as it went
-        with progress.stage(f"writing report.md, results.json and the figures into {out}"):
-            res = write_outputs(settings, runs_by_exp, runs, command_line(args, out))
     if interrupted is not None:
         print(f"hil experiment: {interrupted}: partial results in {out}", file=sys.stderr)
+        if args.json and res is not None:  # a reader of stdout: the results as far as they went
+            print(strict_json.dumps(res))
         return interrupted.exit_code
     for f in res["failures"]:
         print(
@@ -338,6 +357,7 @@ def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: 
     )
 
     from rt_controller.rig.experiment import EXPERIMENTS, batches, run_batch
+    from rt_controller.rig.supervise import signals_deferred
     from rt_controller.sweep.executor import Tasks, request_stop, stop_name
 
     columns = (
@@ -376,9 +396,10 @@ def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: 
                     failed_in_a_row = _report_run(progress.console, run, failed_in_a_row, name)
         finally:
             if len(tasks):  # stopped: the running tasks stop their rigs; wait for them
-                request_stop(cl, stop)
-                while len(tasks):
-                    _take(tasks, runs)
+                with signals_deferred(deliver=False):  # a second stop signal: no more to do
+                    request_stop(cl, stop)
+                    while len(tasks):
+                        _take(tasks, runs)
 
 
 def _take(tasks: Any, runs: dict[str, RunResult]) -> list[RunResult]:

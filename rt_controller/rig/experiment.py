@@ -7,9 +7,8 @@ its MCAP log, so ``hil up --config ... --law ...`` repeats it exactly. This modu
 runs them; :mod:`rt_controller.rig.experiment_report` turns the results into one JSON-ready dict,
 PNG figures and a ``report.md`` (:func:`rt_controller.rig.experiment_report.write_outputs`).
 
-Identical specs are run once (``all`` shares the RHC T = 0.02 s run between Fig. 3 and Fig. 4).
-The runs go in batches (:func:`batches`); each batch is one task (:func:`run_batch`) on the
-Dask executor of ``hil sweep`` (:mod:`rt_controller.sweep.executor`).
+Identical specs are run once (``all`` shares Fig. 3's and Fig. 4's RHC T = 0.02 s run). Batches
+(:func:`batches`) go as tasks (:func:`run_batch`) on ``hil sweep``'s Dask executor.
 """
 
 from __future__ import annotations
@@ -101,8 +100,7 @@ class Settings:
     """Rigs run at once (``--jobs``, the workers of the local Dask cluster); None:
     :func:`default_jobs`."""
     scheduler: str | None = None
-    """``--scheduler``: run the batches on this existing Dask cluster (its workers decide how
-    many run at once) instead of a local one."""
+    """``--scheduler``: run the batches on this existing Dask cluster, not a local one."""
     fresh_processes: bool = False
     """``--fresh-processes``: start the rig anew for every lockstep run instead of running
     the runs that share an emulator configuration on one set of processes (:func:`batches`)."""
@@ -345,6 +343,8 @@ def finish(run: RunResult, summary: dict[str, Any]) -> None:
     problems = summary.get("problems") or []
     if problems:
         run.status, run.error = "failed", f"run not clean: {'; '.join(problems)}"
+    elif run.J is None:  # nothing to tabulate
+        run.status, run.error = "failed", f"the controller reported no finite J: {summary.get('J')}"
     else:
         run.status = "ok"
     if "error" not in (summary.get("log_contents") or {}):  # a run cut short before its log
@@ -386,7 +386,7 @@ def execute_batch(
 ) -> list[RunResult]:
     """Run a batch (:func:`batches`): one run through :func:`execute`, more as a plan on one
     set of processes (:func:`~rt_controller.rig.processes.run_rig_plan`). Failures are
-    recorded on the runs; runs stopped through ``cancel`` stay ``pending``."""
+    recorded on the runs; runs stopped through ``cancel`` before they ended stay ``pending``."""
     if len(batch) == 1:
         return [execute(batch[0], settings, None, cancel)]
     t0 = time.monotonic()
@@ -416,21 +416,23 @@ def execute_batch(
     )
     summaries: list[dict[str, Any]] = []
     error: str | None = None
+    cancelled = False
     try:
         summaries, exc = run_rig_plan(opts, len(batch))
         error = None if exc is None else f"{type(exc).__name__}: {exc}"
     except RigInterrupted:
         raise
-    except RigCancelled:
-        for run in batch:
-            run.status, run.summary = "pending", {}
-        return batch
+    except RigCancelled as exc:  # the runs that ended before keep their results
+        summaries, cancelled = list(exc.summaries), True
     except (ControllerError, HalError, OSError) as exc:
         error = f"{type(exc).__name__}: {exc}"
     by_name = {s.get("run"): s for s in summaries}
     for run in batch:
-        run.can = can
         summary = by_name.get(run.spec.name)
+        if summary is None and cancelled:  # not run
+            run.status, run.summary = "pending", {}
+            continue
+        run.can = can
         if summary is None:
             run.status, run.error = "failed", error or "the controller printed no summary"
             run.wall_s = None

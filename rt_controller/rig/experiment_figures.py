@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from hal.whole_file import written_whole
 from rt_controller.rig.experiment import (
     RunResult,
     RunSpec,
@@ -54,7 +55,8 @@ def plot_overlay(
         axes[0].legend(loc="best", fontsize="small")
         fig.suptitle(f"{title}: {sym}(t)")
         path = outdir / f"{stem}_{name}.png"
-        fig.savefig(path, dpi=110)
+        with written_whole(path) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
         written.append(path)
     return written
 
@@ -76,7 +78,8 @@ def plot_table1(rows: list[dict[str, Any]], outdir: Path) -> Path:
     ax.set_title("Table I: J per repetition (dots) and average (bar)")
     ax.grid(alpha=0.3, axis="y")
     path = outdir / "table1_J.png"
-    fig.savefig(path, dpi=110)
+    with written_whole(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     return path
 
 

@@ -10,6 +10,7 @@ import json
 from typing import Any
 
 from hal.strict_json import finite
+from hal.whole_file import written_whole
 from rt_controller.rig.experiment import RunResult, RunSpec, Settings
 from rt_controller.rig.experiment_figures import write_figures
 from rt_controller.rig.experiment_markdown import render_report
@@ -27,6 +28,9 @@ def write_outputs(
     res = finite(build_results(settings, runs_by_exp, runs, command, figures))
     res["report"] = str(settings.out / "report.md")
     res["results"] = str(settings.out / "results.json")
-    (settings.out / "results.json").write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
-    (settings.out / "report.md").write_text(render_report(res, initial_4v(runs)), encoding="utf-8")
+    # each written whole (hal.whole_file): a full disk or a kill leaves no half file
+    with written_whole(settings.out / "results.json") as tmp:
+        tmp.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
+    with written_whole(settings.out / "report.md") as tmp:
+        tmp.write_text(render_report(res, initial_4v(runs)), encoding="utf-8")
     return res

@@ -3,6 +3,7 @@ wall-clock budget, a cancelled run (``hil up``, ``hil experiment``, the sweep's 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from rt_controller.errors import ControllerError
@@ -36,3 +37,7 @@ def with_tail(message: str, tail: str) -> str:
 class RigCancelled(ControllerError):
     """The run was cancelled (:attr:`RigOptions.cancel`) before it ended; its processes have
     been stopped."""
+
+    summaries: Sequence[dict[str, Any]] = ()
+    """Of a plan (:func:`~rt_controller.rig.processes.run_rig_plan`): the summaries of its
+    runs that ended before the cancel, which keep their results."""

@@ -412,6 +412,9 @@ def run_rig_plan(
                 error = RigProcessDied(end, ctl.tail())
         except RigProcessError as exc:
             error = exc
+        except RigCancelled as exc:  # the runs that ended before keep their summaries
+            exc.summaries = rig.summaries()
+            raise
         if isinstance(error, RigProcessDied) and error.end.name == "controller":
             rig._await_trip()
         summaries = rig.summaries()

@@ -169,7 +169,8 @@ def open_cluster(
     if not 1 <= n <= MAX_WORKERS:
         raise ControllerConfigError(f"{workers_option} must be 1..{MAX_WORKERS}, got {n}")
     env = {"env": {**WORKER_ENV, **(worker_env or {})}} if processes else {}  # threads: ours
-    with _workers_ignore_sigint():
+    # worker processes ignore the terminal's Ctrl-C; threads need not (and a Ctrl-C then is heeded)
+    with _workers_ignore_sigint() if processes else contextlib.nullcontext():
         local = LocalCluster(
             n_workers=n,
             threads_per_worker=1,

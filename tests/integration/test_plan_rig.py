@@ -17,6 +17,7 @@ from hal.config import load_config
 from hal.zenoh_session import free_loopback_port
 from rt_controller.config_rules import config_toml
 from rt_controller.logtools.reader import read_log
+from rt_controller.rig.failures import RigCancelled
 from rt_controller.rig.options import RigOptions
 from rt_controller.rig.processes import run_rig, run_rig_plan
 from tests.support.proc import running_controller
@@ -115,3 +116,31 @@ def test_a_period_the_dsp_skipped_in_a_plan_fails_that_run(tmp_path):
     frozen, clean = summaries
     assert any("lockstep period(s)" in p for p in frozen["problems"]), frozen["problems"]
     assert clean["problems"] == [], clean["problems"]
+
+
+def test_a_cancelled_plan_hands_over_the_runs_that_ended(tmp_path):
+    """Cancel a two-run plan in its second run (``hil experiment``'s Ctrl-C): the first run's
+    summary goes with :class:`RigCancelled`, so its result is kept, not called not run."""
+    ep = f"tcp/127.0.0.1:{free_loopback_port()}"
+    config = _config(tmp_path, "ioc")
+    doc = [
+        {"name": n, "config": str(config), "law": "ioc", "duration_s": d,
+         "log": str(tmp_path / f"{n}.mcap")}
+        for n, d in (("first", DURATION_S), ("second", 60.0))
+    ]  # fmt: skip
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"runs": doc}), encoding="utf-8")
+    cancel = threading.Event()
+
+    def cancel_in_the_second_run() -> None:
+        running_controller(ep, Path(doc[1]["log"]), cycles=20)
+        cancel.set()
+
+    threading.Thread(target=cancel_in_the_second_run, daemon=True).start()
+    opts = RigOptions(config=str(config), duration_s=120.0, lockstep=True, plan=plan,
+                      zenoh_endpoint=ep, cancel=cancel)  # fmt: skip
+    with pytest.raises(RigCancelled) as cancelled:
+        run_rig_plan(opts, 2)
+    assert [s["run"] for s in cancelled.value.summaries] == ["first"]
+    (first,) = cancelled.value.summaries
+    assert first["problems"] == [] and first["ticks"] == DURATION_S * 50, first
