@@ -72,11 +72,42 @@ def _workers_ignore_sigint() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
+class Unusable(ConnectionError):
+    """The ``--scheduler`` address cannot be a Dask scheduler hil can use, said in words."""
+
+
+def check_address(address: str) -> None:
+    """:class:`Unusable` at once for an address Dask's client would retry for
+    :data:`CONNECT_S` or fail on obscurely: a scheme other than tcp (TLS and UCX need a
+    security or transport setup hil does not take), a port out of range, a host that does not
+    resolve, or nothing listening there."""
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    scheme, loc = parse_address(address)  # no scheme: tcp
+    if scheme != "tcp":
+        raise Unusable(f"only tcp:// schedulers are supported, not {scheme}://")
+    host, port = parse_host_port(loc)  # ValueError: no port
+    if not 0 < int(port) < 65536:
+        raise Unusable(f"port {port} is out of range (1..65535)")
+    try:
+        with socket.create_connection((host, int(port)), timeout=CONNECT_S):
+            pass
+    except socket.gaierror as exc:
+        raise Unusable(f"unknown host {host} ({exc.strerror})") from None
+    except ConnectionRefusedError:
+        raise Unusable(
+            f"connection refused: nothing listens on {host}:{port} (start one: dask scheduler "
+            f"--port {port})"
+        ) from None
+
+
 class NoHandshake(TimeoutError):
     """The address accepted the connection and said nothing Dask understands in time."""
 
 
-class NotAScheduler(ConnectionError):
+class NotAScheduler(Unusable):
     """The address is a Dask server of another kind (a worker, a nanny)."""
 
 
@@ -147,13 +178,14 @@ def open_cluster(
                 "its own"
             )
         try:
+            check_address(scheduler)
             handshake(scheduler, CONNECT_S)
             client = Client(scheduler, timeout=CONNECT_S)
         except RigInterrupted:  # Ctrl-C while connecting: an interrupted sweep, not a bad address
             raise
         except Exception as exc:  # also a peer speaking another protocol (MemoryError)
             why = " ".join(str(exc).split())[:200] or type(exc).__name__
-            if not isinstance(exc, NotAScheduler):
+            if not isinstance(exc, Unusable):  # said already what it is
                 why = f"cannot connect (is it a Dask scheduler?): {why}"
             raise ControllerConfigError(f"--scheduler {scheduler}: {why}") from None
         try:

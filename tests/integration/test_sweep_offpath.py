@@ -180,3 +180,31 @@ def test_a_disk_that_fills_up_names_the_file_and_the_same_command_resumes(
     again = sweep(spec, out, "--workers", "1", "--json")
     assert again.returncode == 0 and "unreadable" not in again.stderr, again.stderr[-2000:]
     assert "4 of 4 finished" in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("address", "said"),
+    [
+        (
+            "tcp://127.0.0.1:{closed}",
+            "connection refused: nothing listens on 127.0.0.1:{closed} "
+            "(start one: dask scheduler --port {closed})",
+        ),
+        ("127.0.0.1:99999", "port 99999 is out of range (1..65535)"),
+        ("tls://127.0.0.1:{closed}", "only tcp:// schedulers are supported, not tls://"),
+    ],
+    ids=["refused", "port-out-of-range", "tls"],
+)
+def test_a_scheduler_address_that_cannot_work_is_refused_at_once(
+    tmp_path: Path, address: str, said: str
+):
+    """Before this, a refused or out-of-range address waited Dask's 20 s connect timeout and
+    then said "Timed out trying to connect"; tls:// gave Dask's "TLS expects a ssl_context"."""
+    with socket.create_server(("127.0.0.1", 0)) as probe:
+        closed = probe.getsockname()[1]  # free once closed: nothing listens there
+    spec = tmp_path / "one.toml"
+    spec.write_text(ONE)
+    address, said = address.format(closed=closed), said.format(closed=closed)
+    done = sweep(spec, tmp_path / "out", "--scheduler", address, timeout=120)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.strip() == f"hil sweep: error: --scheduler {address}: {said}"
