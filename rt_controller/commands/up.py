@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--lockstep",
         action="store_true",
-        help="DSP clocks the run with Sync frames: deterministic, faster than real time",
+        help="DSP clocks the run with Sync frames: deterministic, faster than real time "
+        "(default: controller.clock of the config)",
     )
     p.add_argument(
         "--wall-timeout",
@@ -125,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
                         config=str(conf) if config is not None else args.config,
                         law=args.law,
                         duration_s=args.duration,
-                        lockstep=args.lockstep,
+                        # as each process takes it: the flag, else the config's clock
+                        lockstep=args.lockstep or cfg.controller.clock == "lockstep",
                         wall_timeout_s=args.wall_timeout,
                         can=args.can,
                         zenoh_endpoint=args.zenoh_endpoint,

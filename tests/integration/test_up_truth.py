@@ -47,6 +47,19 @@ def test_up_takes_rate_horizon_and_steps_and_says_what_it_ran(tmp_path):
     assert s["jump_seen_s"] is None  # the jump comes at 3 s, after this run
 
 
+def test_a_config_s_lockstep_clock_is_the_rig_s_without_the_flag(tmp_path):
+    """The config an experiment writes (controller.clock = "lockstep") given to ``hil up``
+    without --lockstep: the emulator took lockstep from it and the controller was told
+    realtime, so the rig waited 20 s for features and exited 2."""
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[controller]\nclock = "lockstep"\nlaw = "ioc"\n', encoding="utf-8")
+    log = ["--log", str(tmp_path / "r.mcap")]
+    out = run_hil(["up", "--config", str(cfg), "--duration", "1", "--json", *log], 240)
+    assert out.returncode == 0, out.stderr
+    s = json.loads(out.stdout)
+    assert (s["clock"], s["ticks"], s["problems"]) == ("lockstep", 50, []), s
+
+
 def test_a_bad_rate_is_refused_before_the_rig_starts():
     out = run_hil(["up", "--rate", "-5"], timeout_s=60)
     assert out.returncode == 2
