@@ -24,6 +24,7 @@ from canopen.nmt import NmtError
 from canopen.profiles.p402 import BaseNode402, State402
 
 from hal.can_tap import FrameTap
+from hal.cia402_frames import SYNC_ID
 from hal.cia402_master import boot
 from hal.cia402_master.units import DriveUnits
 from hal.cia402_master.watch import (
@@ -64,7 +65,6 @@ TIMING_KEPT = 100_000
 OTHER_MASTER_LISTEN_S = 3 * HEARTBEAT_MS / 1000
 """How long the bus is listened to for another master (its SYNC, or a heartbeat of the
 controller's node id) before the first NMT command: three of our heartbeat periods."""
-SYNC_COB_ID = 0x080
 RELEASE_ON_CLOSE_S = 0.5
 """How long :meth:`Cia402Master.close` waits for each drive's pre-operational heartbeat."""
 
@@ -438,24 +438,25 @@ class OtherMasters:
 
     def __init__(self, network: canopen.Network, master_id: int) -> None:
         self.network = network
-        self.heartbeat_id = 0x700 + master_id
+        self.master_id = master_id
+        self.heartbeat_id = 0x700 + master_id  # CiA 301: NMT error control, 0x700 + node id
         self.heard = threading.Event()
         self.what = ""
 
     def _on_frame(self, can_id: int, _data: bytearray, _timestamp: float) -> None:
         if not self.heard.is_set():
-            node = self.heartbeat_id - 0x700
-            self.what = "SYNC" if can_id == SYNC_COB_ID else f"a heartbeat of node {node}"
+            heartbeat = f"a heartbeat of node {self.master_id}"
+            self.what = "SYNC" if can_id == SYNC_ID else heartbeat
             self.what += f" (COB-ID 0x{can_id:03X})"
             self.heard.set()
 
     def __enter__(self) -> OtherMasters:
-        for can_id in (SYNC_COB_ID, self.heartbeat_id):
+        for can_id in (SYNC_ID, self.heartbeat_id):
             self.network.subscribe(can_id, self._on_frame)
         return self
 
     def __exit__(self, *_exc: object) -> None:
-        for can_id in (SYNC_COB_ID, self.heartbeat_id):
+        for can_id in (SYNC_ID, self.heartbeat_id):
             self.network.unsubscribe(can_id, self._on_frame)
 
     def refuse(self, listen_s: float) -> None:
