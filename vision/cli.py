@@ -35,9 +35,9 @@ def add_source_option(p: argparse.ArgumentParser) -> None:
         metavar="SPEC",
         default=None,
         help="run the image pipeline on frames from SPEC: emulated (the emulated camera over "
-        "zenoh), v4l2:/dev/video0, gst:PIPELINE, file:clip.mp4 or log:run.mcap (offline "
-        "re-run, nothing published); default: emulated when camera.model is image, else the "
-        "analytic camera model",
+        "zenoh), v4l2:/dev/video0, gst:PIPELINE, file:clip.mp4 (or an image sequence, "
+        "file:views/view-%%03d.png), or log:run.mcap (offline re-run, nothing published); "
+        "default: emulated when camera.model is image, else the analytic camera model",
     )
 
 

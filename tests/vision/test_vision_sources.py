@@ -18,7 +18,7 @@ from tests.support.synthetic_frames import frame, write_image_log
 from vision.grabber import Grabber
 from vision.intrinsics import Intrinsics
 from vision.pipeline import Pipeline
-from vision.sources import EmulatedSource, open_source, parse_source
+from vision.sources import EmulatedSource, check_source, open_source, parse_source
 
 K = Intrinsics(640, 480, 1230.0, 1230.0, 320.0, 240.0)
 PATH_F = [(-120.0 + 10 * i, -160.0 + 8 * i) for i in range(8)]
@@ -51,6 +51,35 @@ def test_a_missing_file_is_a_one_line_error(tmp_path: Path):
         open_source(f"file:{tmp_path / 'nope.mp4'}").run(
             lambda fr: None, lambda r: None, threading.Event()
         )
+
+
+def test_an_image_sequence_through_videocapture(tmp_path: Path):
+    (tmp_path / "views").mkdir()
+    for i, f in enumerate(PATH_F):
+        cv2.imwrite(str(tmp_path / "views" / f"view-{i:03d}.png"), frame(K, f, radius_px=14.0))
+    sent: list[FeatureMsg] = []
+    g = grabber(sent)
+    spec = f"file:{tmp_path / 'views' / 'view-%03d.png'}"
+    open_source(spec).run(g.on_frame, g.on_reject, threading.Event())
+    assert [m.frame for m in sent] == list(range(len(PATH_F)))
+    assert all(m.valid for m in sent)
+
+
+@pytest.mark.parametrize(
+    ("names", "pattern", "said"),
+    [
+        ([], "view-%03d.png", "no file matches the image sequence"),
+        (["view-007.png"], "view-%03d.png", "numbered from 7"),
+        (["view-1.png"], "missing/view-%d.png", "no such folder"),
+    ],
+)
+def test_an_image_sequence_that_cannot_play_is_one_line(
+    tmp_path: Path, names: list[str], pattern: str, said: str
+):
+    for name in names:
+        cv2.imwrite(str(tmp_path / name), np.zeros((8, 8), np.uint8))
+    with pytest.raises(HalConfigError, match=said):
+        check_source(f"file:{tmp_path / pattern}")
 
 
 @pytest.mark.parametrize("spec", ["usb0", "file:", "emulated:x", "log"])
