@@ -205,12 +205,15 @@ class ControlLoop:
 
     def _follow_features(self, f: np.ndarray, t_s: float) -> None:
         """The summary's view of the scenario: f at the first law tick and at the last, and
-        when the target's jump was seen (a step of more than half the configured jump)."""
+        when the target's jump was seen: a step of more than half the configured jump, from a
+        period before ``scenario.jump_time`` on (the emulator starts the scenario with the
+        run, to within a period; an earlier step is the arm's fast start)."""
         st = self.ctx.counters
         if st.ticks == 0 or not np.isfinite(st.f_first).all():
             st.f_first = vec2(f)
         sc = self.ctx.cfg.scenario
-        if sc.disturbance and st.jump_seen_s is None and np.isfinite(st.f_final).all():
+        due = t_s >= sc.jump_time - self.ctx.cfg.rates.control_period_ns / 1e9
+        if sc.disturbance and due and st.jump_seen_s is None and np.isfinite(st.f_final).all():
             jump = math.hypot(sc.f_jump[0] - sc.f0[0], sc.f_jump[1] - sc.f0[1])
             if math.hypot(f[0] - st.f_final[0], f[1] - st.f_final[1]) > jump / 2:
                 st.jump_seen_s = t_s
