@@ -94,9 +94,11 @@ def _access(args: argparse.Namespace) -> tuple[str, object]:
 
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
+    from hal.errors import HalStopped
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
-    from hal.zenoh_session import open_session
+    from hal.zenoh_session import DEFAULT_WAIT_S, open_session
+    from rt_controller.commands.param import hub_endpoint, hub_wait_interrupted
     from rt_controller.monitor.access import AccessGate, tuning_token
     from rt_controller.monitor.bridge import MonitorBridge
     from rt_controller.monitor.tuning import TuningFrontEnd
@@ -108,14 +110,22 @@ def run(args: argparse.Namespace) -> int:
     mode, tls = _access(args)
     cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
     gate = AccessGate(mode, rig_key(cfg))
+    # --duration bounds the wait for the hub too (a 3 s view does not wait 10 s for a rig)
+    hub_wait = {"wait_s": min(args.duration, DEFAULT_WAIT_S)} if args.duration else {}
     with stop_on_signals() as stop:
-        session = open_session(
-            cfg,
-            listen=False,
-            endpoint=args.zenoh_endpoint,
-            config_file=args.zenoh_config,
-            stop_event=stop,
-        )
+        try:
+            session = open_session(
+                cfg,
+                listen=False,
+                endpoint=args.zenoh_endpoint,
+                config_file=args.zenoh_config,
+                stop_event=stop,
+                **hub_wait,
+            )
+        except HalStopped:  # Ctrl-C before the hub came: an interruption, not bad args
+            stopped = hub_wait_interrupted(stop, hub_endpoint(args, cfg))
+            print(f"hil monitor: {stopped}", file=sys.stderr)
+            return stopped.status
         try:
             tuning = TuningFrontEnd(
                 session, rig_key(cfg), allow_tuning=args.allow_tuning, gate=gate

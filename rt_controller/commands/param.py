@@ -60,6 +60,21 @@ def _until_stopped(stop: threading.Event, op: str, call: Callable[[], T]) -> T:
     return box["out"]
 
 
+def hub_wait_interrupted(stop: threading.Event, endpoint: str) -> Interrupted:
+    """The :class:`Interrupted` of a signal that ended the wait for the zenoh hub at
+    ``endpoint`` (:class:`hal.errors.HalStopped` from ``open_session``): no rig there yet."""
+    name = signal_name_of(stop) or "SIGINT"
+    line = f"interrupted by {name} while waiting for the zenoh hub at {endpoint} (no rig there yet)"
+    return Interrupted(line, 128 + signal.Signals[name])
+
+
+def hub_endpoint(args: argparse.Namespace, cfg: RigConfig) -> str:
+    """The loopback endpoint ``open_session`` waits on for these ``args`` and ``cfg``."""
+    from hal.zenoh_session import DEFAULT_ENDPOINT
+
+    return args.zenoh_endpoint or cfg.transport.zenoh_endpoint or DEFAULT_ENDPOINT
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "param",
@@ -199,6 +214,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
+    from hal.errors import HalStopped
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import open_session
@@ -227,14 +243,17 @@ def _run(args: argparse.Namespace) -> int:
     key = rig_key(cfg)
     hub_wait = {} if args.timeout is None else {"wait_s": args.timeout}
     with stop_on_signals() as stop:
-        session = open_session(
-            cfg,
-            listen=False,
-            endpoint=args.zenoh_endpoint,
-            config_file=args.zenoh_config,
-            stop_event=stop,
-            **hub_wait,
-        )
+        try:
+            session = open_session(
+                cfg,
+                listen=False,
+                endpoint=args.zenoh_endpoint,
+                config_file=args.zenoh_config,
+                stop_event=stop,
+                **hub_wait,
+            )
+        except HalStopped:  # Ctrl-C before the hub came: an interruption, not bad args
+            raise hub_wait_interrupted(stop, hub_endpoint(args, cfg)) from None
         try:
 
             def ask(op: str, **kw: Any) -> dict[str, Any]:
