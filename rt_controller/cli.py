@@ -55,6 +55,20 @@ class HilParser(argparse.ArgumentParser):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.set_defaults(usage_parser=self)
+        self._intermixing = False
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        """A command without subcommands takes its options between its positionals too
+        (``hil param set --at-tick 5 gains.kp=0.3``): plain argparse gives a ``nargs="*"``
+        positional nothing once an option follows the first positional, and the rest is an
+        "unrecognized argument"."""
+        if self._intermixing or self._subparsers is not None:
+            return super().parse_known_args(args, namespace)
+        self._intermixing = True  # the intermixed parse calls this method again
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._intermixing = False
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from rt_controller.cli import COMMAND_MODULES, main
+from rt_controller.cli import COMMAND_MODULES, build_parser, main
 
 HIL = [sys.executable, "-m", "rt_controller.cli"]
 
@@ -69,7 +69,7 @@ HEAVY = ("numpy", "zenoh", "numba", "matplotlib", "can", "cantools", "mcap")
 
 HELP_PROBE = """
 import contextlib, io, json, sys
-from rt_controller.cli import COMMAND_MODULES, main
+from rt_controller.cli import COMMAND_MODULES, build_parser, main
 out = io.StringIO()
 with contextlib.redirect_stdout(out):
     try:
@@ -141,3 +141,18 @@ def test_an_unknown_option_is_reported_with_its_command_s_usage(argv, command, u
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and err.startswith(f"usage: {command} "), err
     assert f"{command}: error: unrecognized arguments: {unknown}" in err, err
+
+
+@pytest.mark.parametrize(
+    ("argv", "items", "at_tick", "as_json"),
+    [
+        (["param", "set", "--at-tick", "5", "gains.kp=0.3"], ["gains.kp=0.3"], 5, False),
+        (["param", "get", "--json", "gains.kp", "gains.kd"], ["gains.kp", "gains.kd"], None, True),
+        (["param", "mark", "--at-tick", "5", "hello"], ["hello"], 5, False),
+    ],
+)
+def test_options_between_a_commands_positionals(argv, items, at_tick, as_json):
+    """argparse alone gave ``items`` nothing once an option followed the action, and the
+    items were "unrecognized arguments" (exit 2)."""
+    args = build_parser().parse_args(argv)
+    assert (args.items, args.at_tick, args.json) == (items, at_tick, as_json)
