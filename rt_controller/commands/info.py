@@ -116,7 +116,7 @@ def render(info: dict[str, Any]) -> str:
         ("state", _state(info)),
         *((key, _fmt(run[key])) for key in run),
         ("config digest", _fmt(info["config_digest"])),
-        ("duration", f"{info['duration_s']:.3f} s ({info['time_axis']})"),
+        ("duration", f"{info['duration_s']:.3f} s ({info['time_axis'].removesuffix(' (s)')})"),
         ("ticks", f"{ticks}{span}"),
         ("laws", laws),
         ("deadline misses", f"{_fmt(info['deadline_misses'])} "

@@ -33,7 +33,9 @@ one line per warning.
 
 --plot DIR writes PNGs named LOGSTEM_{lateness_hist,cycle_time,solve_time,f,xi,u,tau}.png,
 and LOGSTEM_camera_jump.png (a contact sheet of the camera's frames around the target jump)
-for a log that holds them. Each is written whole: a full disk leaves the previous figure.
+for a log that holds frames of it (none without a jump, or for a run that ended before it).
+A log without cycle values gives no figure (said as "plots: none"). Each is written whole:
+a full disk leaves the previous figure.
 """
 
 
@@ -81,18 +83,23 @@ def run(args: argparse.Namespace) -> int:
                 if len(args.logs) == 1:
                     raise
                 failed.append(exc)
-    if not logs:
-        raise failed[0]
-    for exc in failed:
+    for exc in failed if logs else failed[:-1]:  # each unreadable log named, in argument order
         print(f"hil report: error: {exc}", file=sys.stderr)
+    if not logs:  # none could be read: the last one's error ends the command (exit status 2)
+        raise failed[-1]
     reports = [judged_report(log, max_list=args.max_list) for log in logs]
     if plot_dir is not None:
-        stems: dict[str, int] = {}
+        used: set[str] = set()
+        stems = {log.path.stem for log in logs}
         with progress.stage(f"drawing the figures into {plot_dir}"):
             for log, rep in zip(logs, reports, strict=True):
-                stem = log.path.stem
-                stems[stem] = stems.get(stem, 0) + 1
-                prefix = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
+                # a second run.mcap draws as run-2, or run-3 when a run-2.mcap is also given
+                stem, k = log.path.stem, 1
+                prefix = stem
+                while prefix in used or (prefix != stem and prefix in stems):
+                    k += 1
+                    prefix = f"{stem}-{k}"
+                used.add(prefix)
                 rep["plots"] = [str(p) for p in write_plots(log, plot_dir, prefix)]
     if args.json:
         # the shape follows the logs asked for, not how many could be read
@@ -107,7 +114,9 @@ def run(args: argparse.Namespace) -> int:
             console.rule()
         render_text(rep, console)
         if rep.get("plots"):
-            console.print(f"plots: {', '.join(rep['plots'])}")
+            console.print(f"plots: {', '.join(rep['plots'])}", markup=False)
+        elif plot_dir is not None:  # asked for, but nothing to draw: said, not left out
+            console.print("plots: none (the log has no cycle values to draw)")
     return 2 if failed else 0
 
 

@@ -19,6 +19,7 @@ to the ticks of the run (boot and deactivation send SYNCs at their own pace).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -50,34 +51,52 @@ class Frame:
 
 
 def decoded_frames(can_rx: Iterable[dict], can_tx: Iterable[dict]) -> list[Frame]:
-    """Every raw frame of the log decoded, in time order (a record without an id or with
-    bad hex is decoded as an empty payload; :func:`decode` marks what does not fit)."""
+    """Every raw frame of the log decoded, in time order (a record with bad hex is decoded as
+    an empty payload; :func:`decode` marks what does not fit; one without an integer id or
+    time stamp is kept as an ``other`` frame with an ``error``, in no figure)."""
     out: list[Frame] = []
     for direction, frames in (("rx", can_rx), ("tx", can_tx)):
         for f in frames:
             try:
                 data = bytes.fromhex(f.get("data") or "")
-            except ValueError:
+            except (TypeError, ValueError):
                 data = b""
-            cob_id = int(f.get("arbitration_id", -1))
-            out.append(Frame(int(f.get("t_ns", 0)), direction, cob_id, decode(cob_id, data)))
+            t_ns, cob_id = f.get("t_ns"), f.get("arbitration_id")
+            if not all(_number(x) for x in (t_ns, cob_id)):
+                broken = {"kind": "other", "node": None, "error": "no integer id or time stamp"}
+                out.append(Frame(0, direction, -1, broken))
+                continue
+            out.append(Frame(int(t_ns), direction, int(cob_id), decode(int(cob_id), data)))
     out.sort(key=lambda fr: fr.t_ns)
     return out
+
+
+def _number(x: Any) -> bool:
+    """A finite JSON number (not a bool, null or text)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def _in(window: tuple[int, int] | None, t_ns: int) -> bool:
     return window is None or window[0] <= t_ns <= window[1]
 
 
-def sync_jitter(frames: Sequence[Frame], period_s: float, window: tuple[int, int] | None) -> dict:
-    """SYNC intervals (µs) and their error against ``period_s`` (``|interval - period|``)."""
+def sync_jitter(
+    frames: Sequence[Frame], period_s: float | None, window: tuple[int, int] | None
+) -> dict:
+    """SYNC intervals (µs) and their error against ``period_s`` (``|interval - period|``);
+    with ``period_s`` None (a lockstep run: its SYNCs follow the world's steps, not a clock)
+    the error is not computed (every figure None)."""
     sent = [f.t_ns for f in frames if f.kind == "sync" and f.direction == "tx"]
     t = np.array([t for t in sent if _in(window, t)], dtype=float)
     interval = np.diff(t) / 1e3
     return {
         "syncs": int(t.size),
         "interval_us": summary_stats(interval, TIMING_KEYS),
-        "period_error_us": summary_stats(np.abs(interval - period_s * 1e6), TIMING_KEYS),
+        "period_error_us": (
+            dict.fromkeys(TIMING_KEYS)
+            if period_s is None
+            else summary_stats(np.abs(interval - period_s * 1e6), TIMING_KEYS)
+        ),
     }
 
 
@@ -191,7 +210,7 @@ def canopen_timing(
     can_rx: Iterable[dict],
     can_tx: Iterable[dict],
     *,
-    period_s: float,
+    period_s: float | None,
     nodes: Sequence[int],
     window: tuple[int, int] | None = None,
     t0_ns: int | None = None,
@@ -222,7 +241,8 @@ def log_timing(log: Any) -> dict[str, Any] | None:
     from the first tick's start to the end of its last tick's write. The arming's SYNCs
     precede the window; a lockstep tick's SYNC falls between the tick before and its own
     start (period 0's is the arming's last), a realtime tick sends its SYNC at its write;
-    deactivation's come after. None for a log without CANopen frames."""
+    deactivation's come after. A lockstep log's SYNCs are paced by the world, not the period:
+    no SYNC period error. None for a log without CANopen frames."""
     cfg = log.config
     if cfg is None or cfg.hardware.profile != "cia402" or not (log.can_rx or log.can_tx):
         return None
@@ -235,10 +255,11 @@ def log_timing(log: Any) -> dict[str, Any] | None:
         cycle_us = log.cycles.get("cycle_us")
         write_ns = int(cycle_us[-1] * 1e3) + 1_000 if cycle_us is not None else period_ns
         window = (t0, int(t[-1]) + write_ns)
+    clock = (getattr(log, "run_info", None) or {}).get("clock") or cfg.controller.clock
     return canopen_timing(
         log.can_rx,
         log.can_tx,
-        period_s=period_ns / 1e9,
+        period_s=None if clock == "lockstep" else period_ns / 1e9,
         nodes=(cfg.cia402.node_id_1, cfg.cia402.node_id_2),
         window=window,
         t0_ns=t0,

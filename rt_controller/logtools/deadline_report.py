@@ -44,9 +44,21 @@ HIST_EDGES_US: tuple[float, ...] = (
 TIMING_FIELDS = ("lateness_us", "cycle_us", "read_us", "solve_us", "write_us")
 
 
+def numbers(col: Any) -> np.ndarray:
+    """A column as floats; in a column of mixed types (a hand-edited log: text where a number
+    or flag belongs) a value that is no number is NaN, unknown."""
+    a = np.asarray(col)
+    if a.dtype != object:
+        return a.astype(float)
+    return np.array(
+        [float(x) if isinstance(x, (bool, int, float, np.number)) else np.nan for x in a.ravel()],
+        dtype=float,
+    ).reshape(a.shape)
+
+
 def stats(values: np.ndarray | None) -> dict[str, float] | None:
     """min / median / p99 / max / mean of the finite samples, or None when there are none."""
-    v = finite(values)
+    v = finite(None if values is None else numbers(values))
     if v.size == 0:
         return None
     return summary_stats(v, ("min", "median", "p99", "max", "mean"))
@@ -56,7 +68,7 @@ def histogram(values: np.ndarray | None, edges: tuple[float, ...] = HIST_EDGES_U
     """Counts per bucket ``[lo, hi)``; ``lo`` None = below the first edge, ``hi`` None = open."""
     if values is None:
         return []
-    v = np.asarray(values, dtype=float)
+    v = numbers(values)
     v = v[np.isfinite(v)]
     bounds = [-math.inf, *edges, math.inf]
     out = []
@@ -78,12 +90,19 @@ def histogram(values: np.ndarray | None, edges: tuple[float, ...] = HIST_EDGES_U
     return out
 
 
+def flags(col: np.ndarray) -> np.ndarray:
+    """A per-tick flag column as bools; a tick whose record lacks the flag (NaN) is False."""
+    if col.dtype == bool:
+        return col
+    return np.nan_to_num(numbers(col)) != 0
+
+
 def _count(col: np.ndarray | None) -> int | None:
     if col is None:
         return None
     if col.dtype == bool:
         return int(np.count_nonzero(col))
-    c = np.asarray(col, dtype=float)
+    c = numbers(col)
     return int(np.count_nonzero(np.nan_to_num(c) != 0))
 
 
@@ -95,7 +114,7 @@ def time_axis(log: LoadedLog) -> tuple[np.ndarray, str]:
     t_ns = log.column("t_ns")
     if t_ns is None or t_ns.size == 0:
         return np.arange(log.n_cycles, dtype=float), "tick"
-    t = np.asarray(t_ns, dtype=float)
+    t = numbers(t_ns)
     return (t - t[0]) / 1e9, "time since first tick (s)"
 
 
@@ -106,7 +125,7 @@ def period_us(log: LoadedLog) -> float | None:
         return 1e6 / rate
     t_ns = log.column("t_ns")
     if t_ns is not None and t_ns.size > 1:
-        return float(np.median(np.diff(np.asarray(t_ns, dtype=float)))) / 1e3
+        return float(np.median(np.diff(numbers(t_ns)))) / 1e3
     return None
 
 
@@ -127,14 +146,14 @@ def _stale_state(log: LoadedLog) -> int | None:
     if age is None or log.config is None:
         return None
     limit_ms = log.config.controller.state_timeout_s * 1e3
-    return int(np.count_nonzero(np.asarray(age, dtype=float) > limit_ms))
+    return int(np.count_nonzero(numbers(age) > limit_ms))
 
 
 def _misses(log: LoadedLog, t: np.ndarray, max_list: int) -> tuple[int | None, list[dict]]:
     miss = log.column("deadline_miss")
     if miss is None:
         return None, []
-    idx = np.flatnonzero(np.asarray(miss, dtype=bool))
+    idx = np.flatnonzero(flags(miss))
     tick, late = log.column("tick"), log.column("lateness_us")
     cyc, skip = log.column("cycle_us"), log.column("missed_periods")
     listed = []
@@ -145,16 +164,21 @@ def _misses(log: LoadedLog, t: np.ndarray, max_list: int) -> tuple[int | None, l
                 "t_s": float(t[i]),
                 "lateness_us": _num(late, i),
                 "cycle_us": _num(cyc, i),
-                "missed_periods": int(skip[i]) if skip is not None else None,
+                "missed_periods": _int(skip, i),
             }
         )
     return int(idx.size), listed
 
 
+def _int(col: np.ndarray | None, i: int) -> int | None:
+    x = _num(col, i)
+    return None if x is None else int(x)
+
+
 def _num(col: np.ndarray | None, i: int) -> float | None:
     if col is None:
         return None
-    x = float(col[i])
+    x = float(numbers(col[i : i + 1])[0])
     return x if math.isfinite(x) else None
 
 
@@ -170,7 +194,7 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
     cost = log.column("cost")
     J = None
     if cost is not None and rate:
-        J = float(np.nansum(np.asarray(cost, dtype=float)) / rate)
+        J = float(np.nansum(numbers(cost)) / rate)
     f_final = _vector_final(log.column("f"))
     info = log.run_info
     out: dict[str, Any] = {
@@ -187,7 +211,9 @@ def summarize(log: LoadedLog, *, max_list: int = 50) -> dict[str, Any]:
         "time_axis": t_label,
         "deadline_misses": misses,
         "miss_pct": 100.0 * misses / n if (misses is not None and n) else None,
-        "missed_periods": int(np.sum(skipped)) if skipped is not None and n else None,
+        "missed_periods": (  # a record without the field does not say: left out
+            int(np.nansum(numbers(skipped))) if skipped is not None and n else None
+        ),
         "misses": listed,
         "misses_listed": len(listed),
     }
@@ -248,9 +274,10 @@ def _outages(log: LoadedLog, t: np.ndarray, per_us: float | None) -> dict[str, A
     n = log.n_cycles
     bad = np.zeros(n, dtype=bool)
     if stale is not None:
-        bad |= np.asarray(stale, dtype=bool)
-    if valid is not None:
-        bad |= ~np.asarray(valid, dtype=bool)
+        bad |= flags(stale)
+    if valid is not None:  # a record without f_valid does not say it was invalid
+        v = numbers(valid) if valid.dtype != bool else valid
+        bad |= (v == 0) if v.dtype != bool else ~v
     ticks = log.column("tick")
     ticks = np.arange(n) if ticks is None else np.asarray(ticks)
     ctl = log.config.controller if log.config else ControllerConfig()
@@ -260,8 +287,14 @@ def _outages(log: LoadedLog, t: np.ndarray, per_us: float | None) -> dict[str, A
 
 
 def change_entry(rec: dict[str, Any]) -> dict[str, Any]:
-    """One ``/controller/parameters`` record as the report lists it."""
-    items = ", ".join(f"{c['key']} {c['old']} -> {c['new']}" for c in rec.get("changes", []))
+    """One ``/controller/parameters`` record as the report lists it (a change entry that
+    lacks its key, old or new value shows ``?`` there; one that is no object is left out)."""
+    changes = rec.get("changes")
+    items = ", ".join(
+        f"{c.get('key', '?')} {c.get('old', '?')} -> {c.get('new', '?')}"
+        for c in (changes if isinstance(changes, list) else [])
+        if isinstance(c, dict)
+    )
     return {
         "tick": rec.get("tick"),
         "accepted": bool(rec.get("accepted")),

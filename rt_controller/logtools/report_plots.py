@@ -11,7 +11,14 @@ import numpy as np
 
 from hal.whole_file import written_whole
 from rt_controller.logtools.contact_sheet import write_contact_sheet
-from rt_controller.logtools.deadline_report import change_entry, period_us, stats, time_axis
+from rt_controller.logtools.deadline_report import (
+    change_entry,
+    flags,
+    numbers,
+    period_us,
+    stats,
+    time_axis,
+)
 from rt_controller.logtools.reader import LoadedLog
 
 
@@ -42,14 +49,20 @@ def change_lines(log: LoadedLog) -> list[ChangeLine]:
     at = {int(k): float(t[i]) for i, k in enumerate(np.asarray(tick))}
     out = []
     for rec in log.parameters:
-        if int(rec.get("tick", -1)) in at:
+        if (k := _tick(rec)) in at:
             kind = "accepted" if rec.get("accepted") else "refused"
-            out.append(ChangeLine(at[int(rec["tick"])], kind, change_entry(rec)["changes"]))
+            out.append(ChangeLine(at[k], kind, change_entry(rec)["changes"]))
     for rec in log.events:
-        if int(rec.get("tick", -1)) in at:
-            label = rec.get("action", "") + (f": {rec['note']}" if rec.get("note") else "")
-            out.append(ChangeLine(at[int(rec["tick"])], "event", label))
+        if (k := _tick(rec)) in at:
+            label = str(rec.get("action") or "") + (f": {rec['note']}" if rec.get("note") else "")
+            out.append(ChangeLine(at[k], "event", label))
     return out
+
+
+def _tick(rec: dict[str, Any]) -> int | None:
+    """A record's tick, None when it has no integer one (a hand-made or damaged record)."""
+    tick = rec.get("tick")
+    return tick if isinstance(tick, int) and not isinstance(tick, bool) else None
 
 
 def _draw_lines(ax: Any, lines: list[ChangeLine]) -> None:
@@ -82,6 +95,8 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
     t, t_label = time_axis(log)
     lines = change_lines(log)
     written: list[Path] = []
+    # a line of one point draws nothing: a one-tick log's values get a marker
+    dot: dict[str, Any] = {"marker": "o", "ms": 4} if len(t) < 2 else {}
 
     def save(fig: Figure, name: str) -> None:
         path = out / f"{stem}_{name}.png"
@@ -93,7 +108,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
     if late is not None:
         fig = Figure(figsize=(8, 4), layout="constrained")
         ax = fig.add_subplot()
-        v = np.asarray(late, dtype=float)
+        v = numbers(late)
         v = v[np.isfinite(v)]
         lo = max(min(float(v.min()) if v.size else 1.0, 1.0), 0.1)
         hi = max(float(v.max()) if v.size else 10.0, lo * 10)
@@ -108,17 +123,17 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
 
     cyc = log.column("cycle_us")
     if cyc is not None:
+        cyc = numbers(cyc)  # text in a hand-edited log: a gap
         fig = Figure(figsize=(9, 4), layout="constrained")
         ax = fig.add_subplot()
-        ax.plot(t, cyc, lw=0.8, label="cycle time")
+        ax.plot(t, cyc, lw=0.8, label="cycle time", **dot)
         per = period_us(log)
         if per:
             ax.axhline(per, color="tab:red", ls="--", label=f"deadline (period {per:g} µs)")
         miss = log.column("deadline_miss")
-        if miss is not None and np.any(miss):
-            m = np.asarray(miss, dtype=bool)
-            ax.plot(t[m], np.asarray(cyc, dtype=float)[m], "rx", label="deadline miss")
-        c = np.asarray(cyc, dtype=float)
+        if miss is not None and np.any(m := flags(miss)):
+            ax.plot(t[m], cyc[m], "rx", label="deadline miss")
+        c = cyc
         c = c[np.isfinite(c) & (c > 0)]
         if c.size and max(float(c.max()), per or 0.0) > 50 * float(c.min()):
             ax.set_yscale("log")  # µs-scale cycles under a ms-scale deadline
@@ -131,10 +146,11 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
 
     solve = log.column("solve_us")
     if solve is not None:
+        solve = numbers(solve)
         res = log.column("residual")
         fig = Figure(figsize=(9, 5), layout="constrained")
         ax = fig.add_subplot(2, 1, 1)
-        ax.plot(t, solve, lw=0.8)
+        ax.plot(t, solve, lw=0.8, **dot)
         s_stats = stats(solve)
         if s_stats is not None:
             ax.axhline(s_stats["p99"], color="tab:red", ls="--", lw=0.8, label="p99")
@@ -143,8 +159,8 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
         ax.set_title("Solver")
         ax2 = fig.add_subplot(2, 1, 2, sharex=ax)
         if res is not None:
-            r = np.asarray(res, dtype=float)
-            ax2.plot(t, r, lw=0.8, color="tab:orange")
+            r = numbers(res)
+            ax2.plot(t, r, lw=0.8, color="tab:orange", **dot)
             if np.any(r > 0):
                 ax2.set_yscale("log")
         _draw_lines(ax2, lines)
@@ -160,7 +176,7 @@ def write_plots(log: LoadedLog, outdir: str | Path, prefix: str | None = None) -
         fig = Figure(figsize=(9, 4), layout="constrained")
         ax = fig.add_subplot()
         for j in range(col.shape[1]):
-            ax.plot(t, col[:, j], lw=1.0, label=f"{name}{j + 1}")
+            ax.plot(t, col[:, j], lw=1.0, label=f"{name}{j + 1}", **dot)
         _draw_lines(ax, lines)
         ax.set_xlabel(t_label)
         ax.set_ylabel(f"{name} ({unit})" if unit else name)

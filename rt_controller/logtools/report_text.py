@@ -45,8 +45,8 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
 
     con = console or Console()
     head = (
-        f"[bold]{report['log']}[/bold]  law {report['law'] or '?'}, "
-        f"{_g(report['rate_hz'])} Hz, clock {report['clock'] or '?'}, "
+        f"[bold]{escape(report['log'])}[/bold]  law {escape(report['law'] or '?')}, "
+        f"{_g(report['rate_hz'])} Hz, clock {escape(report['clock'] or '?')}, "
         f"{report['ticks']} ticks over {_fmt(report['duration_s'], 3)} s"
     )
     con.print(head)
@@ -130,8 +130,8 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
             t = Table(title=title, title_justify="left")
             for col in columns:
                 t.add_column(col)
-            for row in rows:
-                t.add_row(*row)
+            for row in rows:  # notes, sources, changes as written, not rich markup
+                t.add_row(*("" if cell is None else escape(str(cell)) for cell in row))
             con.print(t)
 
     def verdict(item: dict[str, Any], ok: str) -> str:
@@ -163,7 +163,7 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         ],
     )
 
-    _canopen(con, report.get("canopen"))
+    _canopen(con, report.get("canopen"), lockstep=report.get("clock") == "lockstep")
 
     hist = report["lateness_histogram"]
     if hist:
@@ -191,7 +191,7 @@ def _verdict(con: Any, report: dict[str, Any]) -> None:
         con.print(f"[yellow]warning:[/yellow] {escape(warning)}")
 
 
-def _canopen(con: Any, co: dict[str, Any] | None) -> None:
+def _canopen(con: Any, co: dict[str, Any] | None, *, lockstep: bool = False) -> None:
     """The cia402 profile's CANopen section: SYNC jitter, latencies, counts, the EMCYs."""
     from rich.table import Table
 
@@ -202,7 +202,11 @@ def _canopen(con: Any, co: dict[str, Any] | None) -> None:
         t.add_column(col, justify="right" if col else "left")
     rows = (
         ("SYNC interval", co["sync"]["interval_us"]),
-        ("SYNC period error", co["sync"]["period_error_us"]),
+        # a lockstep run's SYNCs follow the world's steps: no error against the period
+        (
+            "SYNC period error (lockstep: none)" if lockstep else "SYNC period error",
+            co["sync"]["period_error_us"],
+        ),
         ("SYNC to TPDOs", co["sync_to_tpdo_us"]),
         ("PDO round trip", co["pdo_round_trip_us"]),
         ("torque to effect", co["torque_to_effect_us"]),
