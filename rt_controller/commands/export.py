@@ -42,16 +42,34 @@ def topic_list(text: str) -> tuple[str, ...]:
 
 def check_not_a_file_name(out: str, fmt: str) -> None:
     """Refuse a folder ``--out`` named like another format's file (``--format mat --out
-    m.csv`` would make a folder ``m.csv``), unless that folder exists already."""
+    m.csv`` would make a folder ``m.csv``), unless that folder exists already or ``out`` ends
+    in a slash."""
     from rt_controller.errors import OutputPathError
     from rt_controller.logs.export import SUFFIXES
 
     suffix = Path(out).suffix
+    if out.endswith("/"):  # x.csv/ says folder
+        return
     if suffix in SUFFIXES.values() and not Path(out).is_dir():
         raise OutputPathError(
             f"--out {out}: names a {suffix} file, but --format {fmt} writes {SUFFIXES[fmt]} "
             f"files: give a folder, or a file name ending in {SUFFIXES[fmt]}"
         )
+
+
+def check_not_the_log(log: str, out: str | None, files: dict[str, Path]) -> None:
+    """Refuse an output file that is the log itself (``--out`` naming it, or ``LOG.mat``
+    exported with ``--format mat`` beside it): an export replaces its files, never its log."""
+    from rt_controller.errors import OutputPathError
+    from rt_controller.logtools.reader import same_file
+
+    for path in set(files.values()):
+        if Path(log).exists() and same_file(path, log):  # a missing log is told when read
+            option = "--out" if out is not None else "the default output file"
+            raise OutputPathError(
+                f"{option} {path}: is the log being exported ({log}); an export never "
+                "overwrites its log: give another --out"
+            )
 
 
 def check_outputs(out: str | None, fmt: str, files: dict[str, Path], *, make: bool) -> None:
@@ -114,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.errors import LogError
     from rt_controller.logs import load
     from rt_controller.logs.export import export, plan_outputs
+    from rt_controller.logtools.replay_out import inherited_loss
 
     files = plan_outputs(args.log, args.format, args.topics, args.out)  # before any work:
+    check_not_the_log(args.log, args.out, files)
     check_outputs(args.out, args.format, files, make=False)  # what exists, creating nothing
     run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
     if "cycle" in args.topics and run_.log.n_cycles == 0:  # as replay: no empty tables
@@ -124,13 +144,22 @@ def run(args: argparse.Namespace) -> int:
         raise LogError(f"{run_.path}: {what}")
     check_outputs(args.out, args.format, files, make=True)  # the log is good: make folders
     written = export(run_, args.format, files)
+    notes = list(run_.notes)
+    lost = inherited_loss(run_.log)  # a whole file holding part of a run: say so
+    if lost:
+        notes.append(lost)
+    if "canopen" in args.topics and not any(w.rows for w in written if w.topic == "canopen"):
+        notes.append(
+            f"{run_.path} has no /hal/canopen messages: only a cia402 run records them "
+            '(hardware.profile = "cia402"); its CAN frames are in the can table'
+        )
     if args.json:
         rows = [{"topic": w.topic, "path": str(w.path), "rows": w.rows} for w in written]
         summary = {"log": str(run_.path), "format": args.format, "files": rows}
-        print(strict_json.dumps({**summary, "truncated": run_.truncated, "notes": run_.notes}))
+        print(strict_json.dumps({**summary, "truncated": run_.truncated, "notes": notes}))
         return 0
     for w in written:
         print(f"{w.topic}: {w.rows} rows -> {w.path}")
-    for note in run_.notes:
+    for note in notes:
         print(f"note: {note}")
     return 0

@@ -82,9 +82,9 @@ def output_dir(path: str | Path, option: str) -> Path:
 
 
 def output_file(path: str | Path, option: str, *, replace: bool = True) -> Path:
-    """The file ``path`` given with ``option`` (e.g. ``--out``): not empty, not a folder, a
-    device or a FIFO, in a folder that :func:`output_dir` accepts (created if missing). The
-    file itself is not created.
+    """The file ``path`` given with ``option`` (e.g. ``--out``): not empty, not a folder (nor
+    named as one, ending in a slash), a device or a FIFO, in a folder that :func:`output_dir`
+    accepts (created if missing). The file itself is not created.
 
     ``replace=False`` (a run's log, a log written by replay or recover: data that cannot be
     made again) also refuses a path that exists, naming ``--force``; derived outputs that
@@ -93,6 +93,8 @@ def output_file(path: str | Path, option: str, *, replace: bool = True) -> Path:
 
     if not str(path):
         raise OutputPathError(f"{option}: the path is empty")
+    if str(path).endswith("/"):  # Path() drops the slash: a file named as the folder
+        raise OutputPathError(f"{option} {path}: ends in a slash, so names a folder; give a file")
     out = Path(path)
     if out.is_dir():
         raise OutputPathError(f"{option} {path}: is a directory, not a file")

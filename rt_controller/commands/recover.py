@@ -53,11 +53,12 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.logtools.reader import same_file
     from rt_controller.logtools.recover import default_out, recover
 
-    out = Path(args.out) if args.out else default_out(Path(args.log))
+    given = args.out or default_out(Path(args.log))
     option = "--out" if args.out else "the default --out"
+    out = Path(given)
     if args.out or Path(args.log).exists():  # no folder made for a missing log's default
         # the input itself is refused by recover, whatever --force says
-        output_file(out, option, replace=args.force or same_file(out, args.log))
+        output_file(given, option, replace=args.force or same_file(out, args.log))
     result = recover(args.log, out)
     print(strict_json.dumps(result.as_dict()) if args.json else result.line())
     return 0

@@ -45,7 +45,7 @@ from rt_controller.calibration.parameters import LAW_KEYS, accepted_changes, jud
 from rt_controller.control.controller import Controller
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog, read_log, same_file
-from rt_controller.logtools.replay_out import cycle_record_at, out_log
+from rt_controller.logtools.replay_out import cycle_record_at, inherited_loss, out_log
 from rt_controller.runtime.cycle_record import TIMING_FIELDS, decision_fields
 from rt_controller.runtime.recorder import CYCLE_TOPIC
 
@@ -156,7 +156,7 @@ class ReplayResult:
             what = f"{skipped}, {self.ticks} ticks replayed"
         else:
             first = self.notes[0] if self.notes else "the log ends early"
-            what = f"only its first {self.ticks} ticks were replayed ({first})"
+            what = f"only the {self.ticks} ticks it holds were replayed ({first})"
             what += f"; {skipped}" if self.skipped_records else ""
         return (
             f"log is incomplete or damaged: {what}; pass --allow-partial to accept a partial replay"
@@ -330,11 +330,23 @@ def replay_loaded(
     n, skipped = log.n_cycles, log.rejected.get(CYCLE_TOPIC, 0)
     if n == 0:
         why = f" ({skipped} unreadable, skipped)" if skipped else ""
+        why += f" ({log.notes[0]})" if log.truncated and log.notes else ""
         raise LogError(f"{log.path}: no /controller/cycle records{why}, nothing to replay")
     if out is not None and same_file(out, log.path):
         raise LogError(f"--out {out} would overwrite the log being replayed")
     notes = list(log.notes)
-    if log.truncated:
+    lost = inherited_loss(log)
+    if lost:
+        notes.append(lost)
+    walk = log.walk
+    all_data = walk is not None and walk.data_end and not walk.skipped
+    if log.truncated and all_data:
+        notes.append(
+            "the log is cut in its summary section, after all its data: every tick was "
+            "replayed (`hil recover` makes a copy that stock MCAP tools open)"
+        )
+    truncated = (log.truncated and not all_data) or lost is not None
+    if truncated:
         notes.append(f"truncated log: replayed the {n} ticks it holds")
     inputs = _inputs(log, cfg, notes)
     recorded_u, recorded_tau = _vec(log, "u"), _vec(log, "tau")
@@ -377,6 +389,7 @@ def replay_loaded(
             writer.raw_inputs(log)
     result = _compare(log, cfg, u, tau, recorded_u, recorded_tau, tol)
     result.allow_partial = allow_partial
+    result.truncated = truncated
     result.skipped_records = skipped
     if recorded_law is not None and recorded_law.dtype == object:
         result.law_mismatches = sum(

@@ -13,7 +13,7 @@ from hal.config import RigConfig
 from hal.whole_file import written_whole
 from rt_controller.errors import LogError
 from rt_controller.logtools.reader import LoadedLog
-from rt_controller.runtime.recorder import CycleRecorder
+from rt_controller.runtime.recorder import CYCLE_TOPIC, CycleRecorder
 
 
 def cycle_record_at(log: LoadedLog, i: int) -> dict[str, Any]:
@@ -34,6 +34,46 @@ def cycle_record_at(log: LoadedLog, i: int) -> dict[str, Any]:
     return rec
 
 
+PARTIAL_SOURCE = "replay_of_partial"
+"""``hil.run`` key of a replayed log whose source was cut or damaged: what it lost."""
+
+
+def inherited_loss(log: LoadedLog) -> str | None:
+    """A note when ``log`` is whole as a file but holds only part of a run: a copy ``hil
+    recover`` made of a cut or damaged log that lost records, or a replay (``--out``) of a
+    partial log. None for any other log (its own damage is ``log.truncated``)."""
+    partial = log.run_info.get(PARTIAL_SOURCE)
+    if partial:
+        src = log.run_info.get("replay_of", "?")
+        return f"a replay of the partial log {src} ({partial}): the ticks it lost are not here"
+    meta = log.recovered_info
+    if meta is None:
+        return None
+    stopped = meta.get("stopped", "")
+    skipped = meta.get("skipped_bytes", "0") not in ("", "0")
+    if not skipped and (stopped.startswith("footer") or "(all data kept)" in stopped):
+        return None
+    src, kept, size = meta.get("from", "?"), meta.get("kept_bytes", "?"), meta.get("input_bytes")
+    how = stopped or "unknown end"
+    if skipped:
+        how = f"{meta['skipped_bytes']} bytes of damaged chunks skipped; read to the {how}"
+    return (
+        f"a copy `hil recover` made of the damaged log {src}: kept {kept} of {size} bytes "
+        f"({how}); the records it lost are not in this copy"
+    )
+
+
+def source_loss(log: LoadedLog) -> str | None:
+    """What a replayed log inherits from its source ``log``: why it is partial, or None."""
+    walk = log.walk
+    if log.truncated and not (walk is not None and walk.data_end and not walk.skipped):
+        return log.notes[0] if log.notes else "truncated"
+    unread = log.rejected.get(CYCLE_TOPIC, 0)
+    if unread:
+        return f"{unread} unreadable cycle record(s) skipped"
+    return inherited_loss(log)
+
+
 class OutLog:
     """The ``--out`` writer: replayed cycles plus the recorded raw inputs, into ``tmp`` (see
     :func:`out_log`); its errors name ``path``, the file asked for."""
@@ -48,6 +88,9 @@ class OutLog:
             clock=log.run_info.get("clock", cfg.controller.clock),
             law=cfg.controller.law,
         )
+        partial = source_loss(log)
+        if partial:
+            info[PARTIAL_SOURCE] = partial
         try:
             self.rec = CycleRecorder(tmp, cfg, run_info=info)
         except LogError as exc:

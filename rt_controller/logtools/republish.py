@@ -178,7 +178,8 @@ def republish_log(
     result = RepublishResult(Path(path), speed, truncated=log.truncated, notes=list(log.notes))
     events = playback_events(log, result)
     if not events:
-        result.notes.append("the log holds no raw inputs (recorded with --no-raw?)")
+        why = "it is cut or damaged before any" if log.truncated else "recorded with --no-raw?"
+        result.notes.append(f"the log holds no raw inputs ({why})")
         return result
     with ExitStack() as stack:
         bus = publisher = None

@@ -17,7 +17,7 @@ from typing import IO, Any
 
 from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Footer, Message, Schema
+from mcap.records import Channel, DataEnd, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
@@ -43,6 +43,12 @@ class Walk:
     good_end: int = 0
     """Offset just after the last record read whole (where the failed record starts)."""
     skipped: list[Skip] = field(default_factory=list)
+    data_end: bool = False
+    """The data end record was read: every data record of the file was (a cut after it is in
+    the summary section, which only repeats what was read)."""
+    indexed: bool = False
+    """The file has a readable footer and summary: a record running past its end is damage
+    in the middle (a garbage length), not a cut."""
 
     @property
     def skipped_bytes(self) -> int:
@@ -58,7 +64,7 @@ class Walk:
             return ""
         if self.footer:
             return "the closing magic after the footer is missing or damaged"
-        if isinstance(self.error, EndOfFile) or self._cut_record():
+        if not self.indexed and (isinstance(self.error, EndOfFile) or self._cut_record()):
             at_boundary = self.good_end >= self.size
             return "ends without a footer" + ("" if at_boundary else f", cut {self.where()}")
         return f"damaged {self.where()} ({type(self.error).__name__}: {self.error})"
@@ -111,16 +117,21 @@ def walk_records(fh: IO[bytes], state: Walk) -> Iterator[Any]:
                     seen.add((type(rec), rec.id))
                 elif isinstance(rec, Footer):
                     state.footer = True
+                elif isinstance(rec, DataEnd):
+                    state.data_end = True
                 yield rec
                 state.good_end = fh.tell()
             state.error = None
             return
         except Exception as exc:  # EndOfFile, CRC, zstd, garbage lengths
             state.error = exc
-        if state.footer or isinstance(state.error, EndOfFile) or state._cut_record():
+        if state.footer:
             return
         if summary is False:
             summary = _summary(fh, state.size)
+            state.indexed = summary is not None
+        if not state.indexed and (isinstance(state.error, EndOfFile) or state._cut_record()):
+            return  # a cut file: nothing after the cut to resume at
         starts = sorted(
             c.chunk_start_offset
             for c in (summary.chunk_indexes if summary else [])
