@@ -444,12 +444,12 @@ def _took(run: RunResult) -> str:
 
 def print_tables(res: dict[str, Any]) -> None:
     """The J tables for people, on stdout."""
-    from rich.console import Console
     from rich.table import Table
 
+    from rt_controller.commands.output import stdout_console
     from rt_controller.rig.experiment_markdown import noise_words
 
-    console = Console()
+    console = stdout_console()
     for exp, key_title in (("fig3", "law"), ("fig4", "T (s)")):
         if exp in res:
             table = Table(title=f"{exp}: J")

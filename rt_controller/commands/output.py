@@ -9,12 +9,27 @@ from typing import Any
 from hal import strict_json
 
 
+def stdout_console() -> Any:
+    """rich's Console on stdout, whose reader gone (``| head``) raises the BrokenPipeError
+    every command ends on with SIGPIPE's status (:func:`hal.signals.run_standalone`); rich's
+    own answer is a silent exit 1."""
+    import errno
+
+    from rich.console import Console
+
+    class PipedConsole(Console):
+        def on_broken_pipe(self) -> None:
+            self.quiet = True  # nothing more is written; the exit's flush is run_standalone's
+            raise BrokenPipeError(errno.EPIPE, "Broken pipe")
+
+    return PipedConsole()
+
+
 def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
     """One JSON object on stdout, or a two-column table for people."""
     if as_json:
         print(strict_json.dumps(summary))
         return
-    from rich.console import Console
     from rich.table import Table
 
     table = Table(title=title, show_header=False)
@@ -27,7 +42,7 @@ def print_summary(summary: dict[str, Any], as_json: bool, title: str) -> None:
         else:
             text = str(value)
         table.add_row(key, text)
-    Console().print(table)
+    stdout_console().print(table)
 
 
 def print_summary_with_notes(summary: dict[str, Any], as_json: bool, title: str) -> None:

@@ -106,9 +106,9 @@ def run(args: argparse.Namespace) -> int:
         payload = reports[0] if len(args.logs) == 1 else reports
         print(strict_json.dumps(payload))
         return 2 if failed else 0
-    from rich.console import Console
+    from rt_controller.commands.output import stdout_console
 
-    console = Console()
+    console = stdout_console()
     for i, rep in enumerate(reports):
         if i:
             console.rule()

@@ -319,14 +319,18 @@ def test_progress_waits_before_speaking(capsys):
     assert err.startswith("hil x: slow work") and "done" in err
 
 
-def test_output_into_a_closed_pipe_ends_quietly(hil_log):
+@pytest.mark.parametrize(
+    "args", [["info", "--json"], ["report", "-q"], ["info"]], ids=["info-json", "report", "info"]
+)
+def test_output_into_a_closed_pipe_ends_quietly(hil_log, args):
     """``hil info LOG --json | head -0``: the reader is gone before the first write. The
-    command ends as a Unix filter does (status 128 + SIGPIPE), without a line on stderr."""
+    command ends as a Unix filter does (status 128 + SIGPIPE), without a line on stderr; also
+    what rich prints (``hil report``: rich's own answer was a silent exit 1)."""
     r, w = os.pipe()
     os.close(r)
     try:
         done = subprocess.run(
-            [*HIL, "info", str(hil_log), "--json"],
+            [*HIL, *args, str(hil_log)],
             stdout=w,
             capture_output=False,
             stderr=subprocess.PIPE,
