@@ -142,8 +142,14 @@ def load_config_file(path: str) -> zenoh.Config:
 
 
 def _short(exc: BaseException) -> str:
-    """A zenoh error without its Rust source locations."""
-    return re.sub(r"\s*at /\S+?:\d+\.?", "", str(exc)).strip()
+    """A zenoh error on one line, without its Rust source locations; a parser's drawing of
+    where the file is wrong (``--> 1:66``, the line, a caret, ``= expected ...``) as
+    "line 1, column 66: expected ..."."""
+    text = re.sub(r"\s*at /\S+?:\d+\.?", "", str(exc)).strip()
+    at, why = re.search(r"-->\s*(\d+):(\d+)", text), re.search(r"^\s*=\s*(.+)$", text, re.M)
+    if at and why:
+        return f"line {at[1]}, column {at[2]}: {why[1].strip()}"
+    return " ".join(text.split())
 
 
 class ZenohSession:
