@@ -47,7 +47,7 @@ def check_not_a_file_name(out: str, fmt: str) -> None:
     from rt_controller.errors import OutputPathError
     from rt_controller.logs.export import SUFFIXES
 
-    suffix = Path(out).suffix
+    suffix = Path(out).suffix.lower()  # m.CSV names a CSV file too
     if out.endswith("/"):  # x.csv/ says folder
         return
     if suffix in SUFFIXES.values() and not Path(out).is_dir():

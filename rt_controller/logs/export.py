@@ -60,7 +60,7 @@ def plan_outputs(
             f"unknown topic(s) {', '.join(bad) or '(none)'}: choose from {', '.join(TOPICS)}"
         )
     suffix, log = SUFFIXES[fmt], Path(log)
-    if out is not None and str(out).endswith(suffix):
+    if out is not None and str(out).lower().endswith(suffix):  # X.CSV is a CSV file too
         target = Path(out)
         if fmt != "mat" and len(topics) > 1:
             raise ControllerConfigError(

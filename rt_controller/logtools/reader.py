@@ -249,6 +249,8 @@ def read_log(path: str | Path, *, raw: bool = True) -> LoadedLog:
     if state.skipped:
         out.truncated = True
         out.notes.append(f"log {state.skipped_note()}")
+    if state.index_damage:  # redundant with the chunks, which were read whole: nothing lost
+        out.notes.append(f"log: {state.index_note()}")
     if not state.footer:
         out.truncated = True
         out.notes.append(_damage_note(state, counts[CYCLE_TOPIC]))

@@ -8,12 +8,12 @@ import json
 from pathlib import Path
 
 import pytest
-from mcap.reader import make_reader
 
 from hal.config import RigConfig
 from rt_controller.cli import main
 from rt_controller.logtools.recover import recover
 from tests.controller.test_replay import TICKS, record_run
+from tests.support.mcap_damage import chunk_starts, damaged_copy
 
 
 @pytest.fixture(scope="module")
@@ -46,22 +46,6 @@ def test_a_recovered_copy_of_a_whole_log_replays_clean(log, tmp_path, capsys):
     assert main(["replay", str(copy), "--json", "-q"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["truncated"] is False and out["ok"] is True and out["ticks"] == TICKS
-
-
-def chunk_starts(path: Path) -> list[int]:
-    with path.open("rb") as fh:
-        summary = make_reader(fh).get_summary()
-    return sorted(c.chunk_start_offset for c in summary.chunk_indexes)
-
-
-def damaged_copy(log: Path, tmp_path: Path, at: int, n: int) -> Path:
-    """``log`` with ``n`` bytes flipped from byte ``at``."""
-    data = bytearray(log.read_bytes())
-    for i in range(at, at + n):
-        data[i] ^= 0xFF
-    bad = tmp_path / "flip.mcap"
-    bad.write_bytes(bytes(data))
-    return bad
 
 
 def test_a_damaged_chunk_in_the_middle_is_not_called_the_first_ticks(log, tmp_path, capsys):
