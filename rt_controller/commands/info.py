@@ -89,7 +89,7 @@ def _fmt(value: Any) -> str:
 
 def _state(info: dict[str, Any]) -> str:
     if info.get("damaged"):
-        return "DAMAGED (chunks in the middle could not be read and were skipped)"
+        return "DAMAGED (chunks that could not be read were skipped)"
     return "TRUNCATED (the writer did not finish it)" if info["truncated"] else "complete"
 
 

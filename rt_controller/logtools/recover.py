@@ -82,7 +82,7 @@ class Recovery:
         skipped = ""
         if self.skipped:
             where = ", ".join(f"{s['length']} B at byte {s['offset']}" for s in self.skipped[:4])
-            skipped = f"; skipped {len(self.skipped)} damaged chunk(s) in the middle ({where})"
+            skipped = f"; skipped {len(self.skipped)} damaged chunk(s) ({where})"
         if self.finished and not self.skipped:
             magic = "; its closing magic was missing" if self.stopped != "footer" else ""
             lost = f"nothing lost (the log was already finished{magic})"

@@ -13,7 +13,7 @@ the message indexes after a chunk read whole loses no record: it is noted apart
 from __future__ import annotations
 
 import re
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -96,26 +96,30 @@ class Walk:
 
     def index_note(self) -> str:
         """One phrase naming the damaged message indexes stepped over ("" if none)."""
-        if not self.index_damage:
-            return ""
-        where = ", ".join(f"byte {s.offset}" for s in self.index_damage[:4])
-        more = f", ... ({len(self.index_damage)} in all)" if len(self.index_damage) > 4 else ""
-        return (
-            f"stepped over damaged message index(es) after {len(self.index_damage)} chunk(s) "
-            f"(at {where}{more}; {self.index_damage[0].error}): the chunks were read whole, "
-            "no record lost"
+        return _listed(
+            self.index_damage,
+            "stepped over damaged message index(es) after {n} chunk(s) (at {where}; {error}): "
+            "the chunks were read whole, no record lost",
+            lambda s: f"byte {s.offset}",
         )
 
     def skipped_note(self) -> str:
         """One phrase naming the damaged chunks that were skipped ("" if none)."""
-        if not self.skipped:
-            return ""
-        where = ", ".join(f"{s.length} bytes at byte {s.offset}" for s in self.skipped[:4])
-        more = f", ... ({len(self.skipped)} in all)" if len(self.skipped) > 4 else ""
-        return (
-            f"skipped {len(self.skipped)} damaged chunk(s) in the middle ({where}{more}; "
-            f"{self.skipped[0].error}): the chunks after them were read from the chunk index"
+        return _listed(
+            self.skipped,
+            "skipped {n} damaged chunk(s) ({where}; {error}): the records after them were "
+            "read from the summary's index",
+            lambda s: f"{s.length} bytes at byte {s.offset}",
         )
+
+
+def _listed(skips: list[Skip], line: str, place: Callable[[Skip], str]) -> str:
+    """``line`` filled in for ``skips`` (the first four placed, the first's error), or ""."""
+    if not skips:
+        return ""
+    where = ", ".join(place(s) for s in skips[:4])
+    where += f", ... ({len(skips)} in all)" if len(skips) > 4 else ""
+    return line.format(n=len(skips), where=where, error=skips[0].error)
 
 
 def _summary(fh: IO[bytes], size: int) -> Summary | None:
