@@ -94,11 +94,10 @@ def _access(args: argparse.Namespace) -> tuple[str, object]:
 
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
-    from hal.errors import HalStopped
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
-    from hal.zenoh_session import DEFAULT_WAIT_S, open_session
-    from rt_controller.commands.param import hub_endpoint, hub_wait_interrupted
+    from hal.zenoh_session import DEFAULT_WAIT_S
+    from rt_controller.commands.param import Interrupted, open_hub_session
     from rt_controller.monitor.access import AccessGate, tuning_token
     from rt_controller.monitor.bridge import MonitorBridge
     from rt_controller.monitor.tuning import TuningFrontEnd
@@ -114,16 +113,8 @@ def run(args: argparse.Namespace) -> int:
     hub_wait = {"wait_s": min(args.duration, DEFAULT_WAIT_S)} if args.duration else {}
     with stop_on_signals() as stop:
         try:
-            session = open_session(
-                cfg,
-                listen=False,
-                endpoint=args.zenoh_endpoint,
-                config_file=args.zenoh_config,
-                stop_event=stop,
-                **hub_wait,
-            )
-        except HalStopped:  # Ctrl-C before the hub came: an interruption, not bad args
-            stopped = hub_wait_interrupted(stop, hub_endpoint(args, cfg))
+            session = open_hub_session(args, cfg, stop, **hub_wait)
+        except Interrupted as stopped:  # a signal before the hub came
             print(f"hil monitor: {stopped}", file=sys.stderr)
             return stopped.status
         try:

@@ -68,6 +68,27 @@ def hub_wait_interrupted(stop: threading.Event, endpoint: str) -> Interrupted:
     return Interrupted(line, 128 + signal.Signals[name])
 
 
+def open_hub_session(
+    args: argparse.Namespace, cfg: RigConfig, stop: threading.Event, **hub_wait: float
+) -> Any:
+    """A live tool's zenoh session (``--zenoh-endpoint``/``--zenoh-config``), waiting for the
+    rig's hub; :class:`Interrupted` when a signal ends the wait."""
+    from hal.errors import HalStopped
+    from hal.zenoh_session import open_session
+
+    try:
+        return open_session(
+            cfg,
+            listen=False,
+            endpoint=args.zenoh_endpoint,
+            config_file=args.zenoh_config,
+            stop_event=stop,
+            **hub_wait,
+        )
+    except HalStopped:  # Ctrl-C before the hub came: an interruption, not bad args
+        raise hub_wait_interrupted(stop, hub_endpoint(args, cfg)) from None
+
+
 def hub_endpoint(args: argparse.Namespace, cfg: RigConfig) -> str:
     """The loopback endpoint ``open_session`` waits on for these ``args`` and ``cfg``."""
     from hal.zenoh_session import DEFAULT_ENDPOINT
@@ -214,10 +235,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
-    from hal.errors import HalStopped
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
-    from hal.zenoh_session import open_session
     from rt_controller.calibration.link import event_line, outcome_line, request
     from rt_controller.calibration.parameters import TUNABLE, value_of
     from rt_controller.commands.output import output_file
@@ -243,17 +262,7 @@ def _run(args: argparse.Namespace) -> int:
     key = rig_key(cfg)
     hub_wait = {} if args.timeout is None else {"wait_s": args.timeout}
     with stop_on_signals() as stop:
-        try:
-            session = open_session(
-                cfg,
-                listen=False,
-                endpoint=args.zenoh_endpoint,
-                config_file=args.zenoh_config,
-                stop_event=stop,
-                **hub_wait,
-            )
-        except HalStopped:  # Ctrl-C before the hub came: an interruption, not bad args
-            raise hub_wait_interrupted(stop, hub_endpoint(args, cfg)) from None
+        session = open_hub_session(args, cfg, stop, **hub_wait)
         try:
 
             def ask(op: str, **kw: Any) -> dict[str, Any]:
