@@ -131,16 +131,18 @@ class Rig:
         out = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Rig.close()
         env = {**os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())}
         group = self.children[0].proc.pid if self.children else 0
-        proc = subprocess.Popen(
-            args,
-            stdout=out,
-            stderr=err,
-            stdin=subprocess.DEVNULL,
-            env=env,
-            process_group=group,
-        )
-        child = Child(name, proc, err, out)
-        self.children.append(child)
+        # a stop signal out of Popen after the fork would orphan the child: held till it is ours
+        with signals_deferred():
+            proc = subprocess.Popen(
+                args,
+                stdout=out,
+                stderr=err,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                process_group=group,
+            )
+            child = Child(name, proc, err, out)
+            self.children.append(child)
         return child
 
     def start(self) -> None:
