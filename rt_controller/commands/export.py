@@ -128,13 +128,40 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-
-    from rt_controller.errors import LogError
-    from rt_controller.logs import load
-    from rt_controller.logs.export import export, plan_outputs
-    from rt_controller.logtools.replay_out import inherited_loss
+    from rt_controller.commands.interrupts import run_interruptible
+    from rt_controller.logs.export import plan_outputs
 
     files = plan_outputs(args.log, args.format, args.topics, args.out)  # before any work:
+    paths = list(dict.fromkeys(files.values()))  # in the order they are written
+    existed = {p: p.exists() for p in paths}
+    done: list[Path] = []
+
+    def left() -> str:
+        wrote = f"wrote {', '.join(map(str, done))}" if done else "no file written"
+        return wrote + _not_written([p for p in paths if p not in done], existed)
+
+    return run_interruptible("hil export", lambda: _run(args, files, done), left)
+
+
+def _not_written(paths: list[Path], existed: dict[Path, bool]) -> str:
+    """``; not written: A, B`` (each file there before is as it was)."""
+    from rt_controller.commands.interrupts import unwritten
+
+    if not paths:
+        return ""
+    kept = " (a file there before is as it was)" if any(existed[p] for p in paths) else ""
+    for p in paths:
+        unwritten(p, False)  # removes a temporary file left beside it
+    return f"; not written: {', '.join(map(str, paths))}{kept}"
+
+
+def _run(args: argparse.Namespace, files: dict[str, Path], done: list[Path]) -> int:
+    """The export of ``files``; each file's path is added to ``done`` once written whole."""
+    from rt_controller.errors import LogError
+    from rt_controller.logs import load
+    from rt_controller.logs.export import export
+    from rt_controller.logtools.replay_out import inherited_loss
+
     check_not_the_log(args.log, args.out, files)
     check_outputs(args.out, args.format, files, make=False)  # what exists, creating nothing
     run_ = load(args.log, raw=bool({"can", "canopen"} & set(args.topics)))
@@ -143,7 +170,10 @@ def run(args: argparse.Namespace) -> int:
         what = f"no readable /controller/cycle messages{why}, nothing to export"
         raise LogError(f"{run_.path}: {what}")
     check_outputs(args.out, args.format, files, make=True)  # the log is good: make folders
-    written = export(run_, args.format, files)
+    written = []
+    for path in dict.fromkeys(files.values()):  # file by file: an interrupt names those done
+        written += export(run_, args.format, {t: p for t, p in files.items() if p == path})
+        done.append(path)
     notes = list(run_.notes)
     lost = inherited_loss(run_.log)  # a whole file holding part of a run: say so
     if lost:

@@ -54,13 +54,14 @@ def run(args: argparse.Namespace) -> int:
 
     from rt_controller.logs import load
     from rt_controller.logs.info import log_info
+    from rt_controller.logtools.replay_out import inherited_loss
 
     run = load(args.log, raw=False)
     info = {**log_info(run), "parameters": parameter_counts(run)}
     if args.json:
         print(strict_json.dumps(info))
     else:
-        print(render(info))
+        print(render(info, partial=inherited_loss(run.log)))
     return 0
 
 
@@ -87,10 +88,15 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
-def _state(info: dict[str, Any]) -> str:
+def _state(info: dict[str, Any], partial: str | None = None) -> str:
+    """``complete`` only for a whole file holding the whole run: ``partial`` (the note of
+    :func:`~rt_controller.logtools.replay_out.inherited_loss`) is a copy `hil recover` made
+    of a cut or damaged log, or a replay of one."""
     if info.get("damaged"):
         return "DAMAGED (chunks that could not be read were skipped)"
-    return "TRUNCATED (the writer did not finish it)" if info["truncated"] else "complete"
+    if info["truncated"]:
+        return "TRUNCATED (the writer did not finish it)"
+    return f"PARTIAL ({partial})" if partial else "complete"
 
 
 def _ended(info: dict[str, Any]) -> str:
@@ -104,8 +110,9 @@ def _ended(info: dict[str, Any]) -> str:
     return f"{end_words(info)}, after {_fmt(info.get('ticks_run'))}{of} ticks{until}"
 
 
-def render(info: dict[str, Any]) -> str:
-    """The text of ``hil info``: aligned ``key: value`` lines, then the topics."""
+def render(info: dict[str, Any], partial: str | None = None) -> str:
+    """The text of ``hil info``: aligned ``key: value`` lines, then the topics; ``partial``:
+    why a whole file holds only part of its run (see :func:`_state`)."""
     run = info["run"]
     ticks = info["ticks"]
     span = f" ({info['first_tick']} .. {info['last_tick']})" if ticks else ""
@@ -113,7 +120,7 @@ def render(info: dict[str, Any]) -> str:
     rows = [
         ("log", info["log"]),
         ("library", _fmt(info["library"])),
-        ("state", _state(info)),
+        ("state", _state(info, partial)),
         *((key, _fmt(run[key])) for key in run),
         ("config digest", _fmt(info["config_digest"])),
         ("duration", f"{info['duration_s']:.3f} s ({info['time_axis'].removesuffix(' (s)')})"),

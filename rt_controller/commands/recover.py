@@ -17,7 +17,9 @@ A hil.recovered metadata record in the copy names the input and what was kept; `
 shows it. The input is never changed (an --out naming it, or a device or FIFO, is refused);
 an existing copy (--out or the default name) is refused unless --force.
 Prints one line with what was kept and what was lost (the bytes after the last complete
-record, usually a half-written chunk, and the damaged chunks skipped).
+record, usually a half-written chunk, and the damaged chunks skipped). A cut or damaged log
+without one message that can be read (cut inside its first chunk) gives no copy: one line
+saying where the read stopped, exit 1.
 
 --json prints one object: log, out, finished (the input already had its footer), input_bytes,
 kept_bytes, lost_bytes, skipped (the damaged chunks stepped over: offset, length, error),
@@ -47,18 +49,33 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
     from pathlib import Path
 
+    from rt_controller.commands.interrupts import run_interruptible, unwritten
     from rt_controller.commands.output import output_file
     from rt_controller.logtools.reader import same_file
-    from rt_controller.logtools.recover import default_out, recover
+    from rt_controller.logtools.recover import NothingRecovered, default_out, recover
 
     given = args.out or default_out(Path(args.log))
     option = "--out" if args.out else "the default --out"
     out = Path(given)
-    if args.out or Path(args.log).exists():  # no folder made for a missing log's default
-        # the input itself is refused by recover, whatever --force says
-        output_file(given, option, replace=args.force or same_file(out, args.log))
-    result = recover(args.log, out)
-    print(strict_json.dumps(result.as_dict()) if args.json else result.line())
-    return 0
+    existed, done = out.exists(), []
+
+    def body() -> int:
+        if args.out or Path(args.log).exists():  # no folder made for a missing log's default
+            # the input itself is refused by recover, whatever --force says
+            output_file(given, option, replace=args.force or same_file(out, args.log))
+        try:
+            result = recover(args.log, out)
+        except NothingRecovered as exc:  # a runtime failure (exit 1), not a bad argument
+            print(f"hil recover: error: {exc}", file=sys.stderr)
+            return 1
+        done.append(True)
+        print(strict_json.dumps(result.as_dict()) if args.json else result.line())
+        return 0
+
+    def left() -> str:
+        return f"{out} was written whole" if done else f"the copy {unwritten(out, existed)}"
+
+    return run_interruptible("hil recover", body, left)

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from hal.arguments import MAX_DURATION_S, bounded_float, path_given
 from hal.config import RigConfig
+from rt_controller.commands.interrupts import run_interruptible, unwritten
 from rt_controller.commands.progress import Progress, add_quiet_option
 
 DESCRIPTION = """\
@@ -145,6 +147,24 @@ def _config(args: argparse.Namespace, log_cfg: RigConfig | None) -> RigConfig | 
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.republish:
+        return _run(args)
+    out = Path(args.out) if args.out else None
+    existed = out is not None and out.exists()
+    state = {"done": False}
+
+    def left() -> str:
+        if out is None:
+            return "nothing was written"
+        if state["done"]:
+            return f"--out {out} was written whole"
+        return f"--out {unwritten(out, existed)}"
+
+    return run_interruptible("hil replay", lambda: _run(args, state), left)
+
+
+def _run(args: argparse.Namespace, state: dict[str, bool] | None = None) -> int:
+    """The command; ``state["done"]`` is set once the replay (and its --out) is complete."""
     from rt_controller.commands.output import print_summary_with_notes
 
     if args.republish:
@@ -179,6 +199,8 @@ def run(args: argparse.Namespace) -> int:
             allow_partial=args.allow_partial,
             say=progress.line,
         )
+    if state is not None:
+        state["done"] = True
     print_summary_with_notes(result.as_dict(), args.json, f"hil replay {args.log}")
     if not result.ok:
         print(f"hil replay: {result.failure_line()}", file=sys.stderr)

@@ -97,6 +97,11 @@ class Recovery:
         )
 
 
+class NothingRecovered(LogError):
+    """The input holds no message that could be read (cut or damaged inside its first chunk):
+    no copy is written (``hil recover`` exits 1)."""
+
+
 def default_out(log: Path) -> Path:
     """``LOG.recovered.mcap`` beside ``LOG``."""
     return log.with_name(f"{log.stem}.recovered{log.suffix or '.mcap'}")
@@ -118,7 +123,9 @@ def recover(log: str | Path, out: str | Path | None = None) -> Recovery:
     """Write a finished copy of ``log`` to ``out`` (default :func:`default_out`).
 
     Raises :class:`LogError` for a missing or non-MCAP input or one cut before its header
-    ended, :class:`ControllerConfigError` when ``out`` is the input itself.
+    ended, :class:`NothingRecovered` (and writes nothing) when a cut or damaged input holds no
+    message that could be read, :class:`ControllerConfigError` when ``out`` is the input
+    itself.
     """
     log = Path(log)
     out = Path(out) if out is not None else default_out(log)
@@ -228,4 +235,22 @@ def _copy(src: Any, dst: Any, result: Recovery) -> None:
     if result.finished:
         result.kept_bytes = result.input_bytes
     result.kept_bytes -= sum(s.length for s in state.skipped)
+    if not rewriter.counts and (not result.finished or state.skipped):
+        raise NothingRecovered(f"{result.log}: nothing to recover: {_nothing_read(state, result)}")
     rewriter.finish()
+
+
+def _nothing_read(state: Walk, result: Recovery) -> str:
+    """Why a cut or damaged input gave no message: its damaged chunks, where the read stopped."""
+    parts = []
+    if state.skipped:
+        where = ", ".join(f"{s.length} bytes at byte {s.offset}" for s in state.skipped[:4])
+        parts.append(f"its damaged chunk(s) were skipped ({where}; {state.skipped[0].error})")
+    if not result.finished and state.error is not None:
+        parts.append(
+            f"the record from byte {state.good_end} on cannot be read ({result.stopped}; the "
+            f"file has {state.size} bytes)"
+        )
+    elif not result.finished:
+        parts.append(f"the file ends at byte {state.size}, before any message")
+    return f"no message could be read: {'; '.join(parts)}; no copy written"

@@ -84,6 +84,11 @@ def test_a_log_cut_anywhere_becomes_a_log_the_stock_reader_opens(rig_log, tmp_pa
     with pytest.raises((McapError, ValueError, EOFError)), cut.open("rb") as fh:
         list(make_reader(fh).iter_messages())  # the stock reader cannot open the cut log
     out = tmp_path / "recovered.mcap"
+    if not stream_messages(data, upto=len(cut.read_bytes())):  # cut inside the first chunk
+        done = hil("recover", cut, "--out", out, "--json")
+        assert done.returncode == 1 and "nothing to recover" in done.stderr, done.stderr
+        assert len(done.stderr.splitlines()) == 1 and not out.exists(), done.stderr
+        return
     res = recover(cut, out)
     got = stock_messages(out)
     assert len(got) == res["messages"]
