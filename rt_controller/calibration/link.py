@@ -18,7 +18,9 @@ request.
 immutable snapshot); ``set`` is queued
 (:class:`~rt_controller.calibration.parameters.ParameterService`)
 and answered by the control thread at the tick it was judged; so is ``action`` (its answer's
-``event`` is the ``/controller/events`` record).
+``event`` is the ``/controller/events`` record). An action's note (a mark's text) holds at most
+:data:`MAX_NOTE` characters: a longer one is refused at the next tick boundary with that
+reason (its record keeps the first :data:`MAX_NOTE`) and counted (``oversized``).
 """
 
 from __future__ import annotations
@@ -55,6 +57,10 @@ REQUEST_LABEL, REPLY_LABEL = "hil-param-request", "hil-param-reply"
 OPS = ("get", "dump", "set", "action")
 ANSWER_TIMEOUT_S = 10.0
 """How long a client waits for an answer the controller gives at once (get, dump, a set now)."""
+MAX_NOTE = 1000
+"""The longest note of an action (a mark's text), in characters: a longer one is refused."""
+SHOWN_NOTE = 80
+"""An action's line shows at most this many characters of its note (the record holds it)."""
 SCHEDULED_TIMEOUT_S = 600.0
 """How long a client waits for a set or an action with an ``at_tick``: the controller answers
 when that tick comes, which a lockstep run on a loaded host may reach minutes later."""
@@ -143,10 +149,14 @@ class ParameterServer:
             header = f"hil param dump: parameter set {svc.param_set}"
             answer({"param_set": svc.param_set, "toml": config_toml(svc.cfg, header=header)})
         elif op == "action":
+            note = str(body.get("note", ""))
+            if len(note) > MAX_NOTE and invalid is None:  # refused, never cut silently
+                svc.counters.oversized += 1
+                invalid = f"the note is too long: {len(note)} characters (limit {MAX_NOTE})"
             svc.actions.submit(
                 Action(
                     str(body.get("action", "")),
-                    note=str(body.get("note", ""))[:1000],
+                    note=note[:MAX_NOTE],
                     source=str(body.get("source", "hil param"))[:200],
                     at_tick=at_tick,
                     request_id=nonce,
@@ -267,6 +277,12 @@ def outcome_line(out: dict[str, Any]) -> str:
     """One line for an outcome record."""
     o = out["outcome"]
     items = ", ".join(f"{c['key']} {c['old']} -> {c['new']}" for c in o["changes"])
+    if o["accepted"] and o.get("unchanged"):
+        kept = ", ".join(f"{c['key']} {c['new']}" for c in o["changes"])
+        return (
+            f"unchanged at tick {o['tick']} (parameter set {o['param_set']} stays in force): "
+            f"already {kept}"
+        )
     if o["accepted"]:
         return f"accepted at tick {o['tick']} (parameter set {o['param_set']}): {items}"
     return f"refused at tick {o['tick']}: {o['reason']}"
@@ -275,7 +291,9 @@ def outcome_line(out: dict[str, Any]) -> str:
 def event_line(out: dict[str, Any]) -> str:
     """One line for an action's event record."""
     e = out["event"]
-    what = e["action"] + (f" ({e['note']})" if e.get("note") else "")
+    note = e.get("note") or ""
+    note = note if len(note) <= SHOWN_NOTE else note[: SHOWN_NOTE - 3] + "..."
+    what = e["action"] + (f" ({note})" if note else "")
     if e["accepted"]:
         return f"{what} done at tick {e['tick']}"
     return f"{what} refused at tick {e['tick']}: {e['reason']}"
@@ -283,6 +301,7 @@ def event_line(out: dict[str, Any]) -> str:
 
 __all__ = [
     "FRESHNESS_S",
+    "MAX_NOTE",
     "Outcome",
     "ParameterLinkError",
     "ParameterServer",

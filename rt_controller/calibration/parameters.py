@@ -10,7 +10,9 @@ server or an XCP slave tomorrow) is small:
 - :class:`ParameterService` takes :class:`Request` objects from any thread (:meth:`submit`) and,
   in the control thread, hands the loop at each tick boundary the configuration to run with
   (:meth:`due`). Each request gives one :class:`Outcome` (the ``/controller/parameters``
-  record): accepted with the tick at which it took effect, or refused with the reason.
+  record): accepted with the tick at which it took effect, or refused with the reason. A set
+  that asks for the values already in force is accepted as ``unchanged``: logged like any
+  other, but no new parameter set, no reconfiguration and counted apart (``unchanged``).
 
 Pure apart from the thread-safe queue: no I/O, no clocks.
 """
@@ -173,6 +175,8 @@ class Outcome:
     request_id: str = ""
     at_tick: int | None = None
     t_ns: int = 0
+    unchanged: bool = False
+    """Accepted, but every value asked for was already in force: no new parameter set."""
 
     def record(self) -> dict[str, Any]:
         """The ``/controller/parameters`` message (:data:`PARAMETERS_SCHEMA`)."""
@@ -199,6 +203,10 @@ PARAMETERS_SCHEMA: dict[str, Any] = {
         "request_id": {"type": "string"},
         "at_tick": {"type": "integer", "description": "the tick asked for (null: the next)"},
         "reason": {"type": "string", "description": "why it was refused (null if accepted)"},
+        "unchanged": {
+            "type": "boolean",
+            "description": "accepted, but the values asked for were already in force",
+        },
         "changes": {
             "type": "array",
             "items": {
@@ -219,12 +227,17 @@ class ParameterCounters:
     unauthenticated: int = 0
     failed: int = 0
     """Requests the controller failed on and left unanswered (``ParameterServer``)."""
+    unchanged: int = 0
+    """Change sets accepted with nothing to change (the values already in force)."""
+    oversized: int = 0
+    """Requests refused for a text beyond its limit (a mark's note: ``ParameterServer``)."""
 
     def as_dict(self) -> dict[str, int]:
-        """The counts; ``failed`` only when some request failed (a fault, rare)."""
+        """The counts; ``failed``, ``unchanged`` and ``oversized`` only when not 0."""
         out = dataclasses.asdict(self)
-        if not self.failed:
-            del out["failed"]
+        for rare in ("failed", "unchanged", "oversized"):
+            if not out[rare]:
+                del out[rare]
         return out
 
 
@@ -280,7 +293,7 @@ class ParameterService:
                 outcomes.append(out)
                 continue
             out = self._judge(r, tick, t_ns)
-            if out.accepted:
+            if out.accepted and not out.unchanged:
                 changed = self.cfg
             outcomes.append(out)
             if r.reply is not None:
@@ -311,7 +324,7 @@ class ParameterService:
 
     def _judge(self, r: Request, tick: int, t_ns: int) -> Outcome:
         items = self._items(r)
-        reason = None
+        reason, unchanged = None, False
         try:
             cfg = judge(self.cfg, r.changes)
         except ParameterRefused as exc:
@@ -320,21 +333,34 @@ class ParameterService:
         else:
             for item in items:  # as validated (an int reads back as a float, a diagonal as 2x2)
                 item["new"] = value_of(cfg, item["key"])
-            self.cfg = cfg
-            self.param_set += 1
-            self.counters.accepted += 1
+            unchanged = not diff(self.cfg, cfg)
+            if unchanged:  # no change: the same set stays in force, nothing to rebuild
+                self.counters.unchanged += 1
+            else:
+                self.cfg = cfg
+                self.param_set += 1
+                self.counters.accepted += 1
         ok = reason is None
         return Outcome(
-            tick, ok, items, r.source, self.param_set, reason, r.request_id, r.at_tick, t_ns
+            tick,
+            ok,
+            items,
+            r.source,
+            self.param_set,
+            reason,
+            r.request_id,
+            r.at_tick,
+            t_ns,
+            unchanged=unchanged,
         )
 
 
 def accepted_changes(records: list[dict[str, Any]]) -> list[tuple[int, dict[str, Any]]]:
-    """``(tick, changes)`` of the accepted records of a log's ``/controller/parameters``, in
-    order (what ``hil replay`` applies)."""
+    """``(tick, changes)`` of the applied records of a log's ``/controller/parameters``, in
+    order (what ``hil replay`` applies): accepted and not ``unchanged``."""
     out = []
     for rec in records:
-        if rec.get("accepted"):
+        if rec.get("accepted") and not rec.get("unchanged"):
             out.append((int(rec["tick"]), {c["key"]: c["new"] for c in rec.get("changes", [])}))
     return out
 

@@ -33,8 +33,9 @@ unauthenticated parameter requests refused, ...), rejected ({TOPIC: records skip
 recovered (null, or the hil.recovered record: from, input_bytes, kept_bytes, lost_bytes,
 skipped_bytes, stopped, line), topics ({TOPIC: {messages, schema}}),
 messages, run_info (all hil.run metadata), notes, parameters (the online parameter service's
-requests: accepted, refused, unauthenticated, and failed (in the controller, unanswered) when
-some did; {} when the run had no parameter service).
+requests: accepted, refused, unauthenticated; failed (in the controller, unanswered),
+unchanged (a set to the values in force) and oversized (a mark's note over its limit) when
+some were; {} when the run had no parameter service).
 """
 
 
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
 def parameter_counts(run: Any) -> dict[str, int]:
     """The parameter service's counts of the run, from its final ``/diagnostics`` record (else
-    its last): accepted, refused, unauthenticated, failed; {} when the run had no service."""
+    its last): accepted, refused, unauthenticated, ...; {} when the run had no service."""
     from rt_controller.logs.info import final_diagnostics
     from rt_controller.runtime.diagnostics import values_of
 
@@ -75,9 +76,12 @@ def parameter_counts(run: Any) -> dict[str, int]:
 
 
 def _parameters(counts: dict[str, Any]) -> str:
-    """The parameter requests in one line: ``2 accepted, 1 refused, 0 unauthenticated``."""
-    names = ("accepted", "refused", "unauthenticated", "failed")
-    return ", ".join(f"{_fmt(counts.get(k, 0))} {k}" for k in names if k != "failed" or k in counts)
+    """The parameter requests in one line: ``2 accepted, 1 refused, 0 unauthenticated`` (and
+    ``failed``, ``unchanged``, ``oversized`` where the run counted some)."""
+    from rt_controller.logtools.report_text import PARAMETER_COUNTS, RARE_COUNTS
+
+    names = [k for k in PARAMETER_COUNTS if k not in RARE_COUNTS or k in counts]
+    return ", ".join(f"{_fmt(counts.get(k, 0))} {k}" for k in names)
 
 
 def _fmt(value: Any) -> str:

@@ -3,13 +3,24 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
 
 from hal import strict_json
 from hal.arguments import add_key_option, bounded_int, duration
 from hal.signals import wait_for_stop
 from rt_controller.commands.common import add_config_option
+
+HUB_NOTE_S = 1.0
+"""After this long without the zenoh hub, ``hil monitor`` says it waits for it (when its wait
+may last at least twice as long: a shorter one ends with its error soon enough)."""
+SILENT_S = 3.0
+"""No cycle or diagnostics record for this long after some came: said (the rig went silent)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "link of hil param; setting them needs --allow-tuning. Another host may watch with "
         "--allow-remote (read-only); tuning from another host needs TLS (--tls-cert, --tls-key: "
         "wss://) and the access token (--print-token), which a client sets as the parameter "
-        "hil.token before it may change anything. Runs until SIGTERM/SIGINT or --duration.",
+        "hil.token before it may change anything. Runs until SIGTERM/SIGINT or --duration; "
+        "says on stderr when it waits for the zenoh hub and when the rig stops sending.",
     )
     add_config_option(p)
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
@@ -97,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     from hal.secoc import configure_key, rig_key
     from hal.signals import stop_on_signals
     from hal.zenoh_session import DEFAULT_WAIT_S
-    from rt_controller.commands.param import Interrupted, open_hub_session
+    from rt_controller.commands.param import Interrupted, hub_endpoint, open_hub_session
     from rt_controller.monitor.access import AccessGate, tuning_token
     from rt_controller.monitor.bridge import MonitorBridge
     from rt_controller.monitor.tuning import TuningFrontEnd
@@ -111,9 +123,12 @@ def run(args: argparse.Namespace) -> int:
     gate = AccessGate(mode, rig_key(cfg))
     # --duration bounds the wait for the hub too (a 3 s view does not wait 10 s for a rig)
     hub_wait = {"wait_s": min(args.duration, DEFAULT_WAIT_S)} if args.duration else {}
+    waiting = f"hil monitor: waiting for the zenoh hub at {hub_endpoint(args, cfg)} (no rig yet)"
+    wait_s = hub_wait.get("wait_s", DEFAULT_WAIT_S)
     with stop_on_signals() as stop:
         try:
-            session = open_hub_session(args, cfg, stop, **hub_wait)
+            with _said_after(HUB_NOTE_S if wait_s >= 2 * HUB_NOTE_S else None, waiting):
+                session = open_hub_session(args, cfg, stop, **hub_wait)
         except Interrupted as stopped:  # a signal before the hub came
             print(f"hil monitor: {stopped}", file=sys.stderr)
             return stopped.status
@@ -130,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"hil monitor:   parameters {_mode_line(args, mode)}", file=sys.stderr)
                 for topic, schema in bridge.channels().items():
                     print(f"hil monitor:   {topic}  [{schema}]", file=sys.stderr)
-                wait_for_stop(stop, args.duration or None)
+                _watch(stop, args.duration or None, bridge)
             finally:
                 clean = bridge.close()
                 counts = dict(bridge.counts)
@@ -148,6 +163,56 @@ def run(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         os._exit(0)
     return 0
+
+
+@contextlib.contextmanager
+def _said_after(delay_s: float | None, line: str) -> Iterator[None]:
+    """Say ``line`` on stderr if the block still runs after ``delay_s`` (None: never)."""
+    done, lock = threading.Event(), threading.Lock()
+
+    def say() -> None:
+        with lock:
+            if not done.is_set():
+                print(line, file=sys.stderr, flush=True)
+
+    timer = None if delay_s is None else threading.Timer(delay_s, say)
+    if timer is not None:
+        timer.daemon = True
+        timer.start()
+    try:
+        yield
+    finally:
+        with lock:
+            done.set()
+        if timer is not None:
+            timer.cancel()
+
+
+def _watch(stop: threading.Event, duration_s: float | None, bridge: Any) -> None:
+    """Serve until ``stop`` or ``duration_s`` (None: no limit); say once when the rig stops
+    sending records (:data:`SILENT_S` without any after some came), and when it sends again."""
+    end = None if duration_s is None else time.monotonic() + duration_s
+    silent = False
+    while True:
+        left = None if end is None else end - time.monotonic()
+        if left is not None and left <= 0:
+            return
+        if wait_for_stop(stop, 0.5 if left is None else min(0.5, left)):
+            return
+        last = bridge.last_record_s
+        if last is None:
+            continue
+        quiet_s = time.monotonic() - last
+        if quiet_s >= SILENT_S and not silent:
+            print(
+                f"hil monitor: the rig went silent: no record for {SILENT_S:g} s (stopped "
+                "or paused; still serving, the view resumes when a rig sends again)",
+                file=sys.stderr,
+                flush=True,
+            )
+        elif quiet_s < SILENT_S and silent:
+            print("hil monitor: the rig sends again (records resumed)", file=sys.stderr)
+        silent = quiet_s >= SILENT_S
 
 
 def _mode_line(args: argparse.Namespace, mode: str) -> str:

@@ -298,6 +298,7 @@ def change_entry(rec: dict[str, Any]) -> dict[str, Any]:
     return {
         "tick": rec.get("tick"),
         "accepted": bool(rec.get("accepted")),
+        "unchanged": bool(rec.get("unchanged")),  # accepted, the values already in force
         "param_set": rec.get("param_set"),
         "source": rec.get("source"),
         "changes": items,

@@ -12,9 +12,12 @@ from rich.markup import escape
 from rt_controller.logtools.deadline_report import TIMING_FIELDS
 from rt_controller.runtime.recorder import CAN_RX_TOPIC, CAN_TX_TOPIC, VISION_TOPIC
 
-PARAMETER_COUNTS = ("accepted", "refused", "unauthenticated", "failed")
+PARAMETER_COUNTS = ("accepted", "refused", "unauthenticated", "failed", "unchanged", "oversized")
 """The counters of the ``/diagnostics`` record's ``parameters`` component the report shows
-(``failed`` only where the record has it: some request failed in the controller)."""
+(:data:`RARE_COUNTS` only where the record has them)."""
+RARE_COUNTS = ("failed", "unchanged", "oversized")
+"""Counters the record holds only when not 0: a request the controller failed on, a set to the
+values in force, a mark's note beyond its limit."""
 
 
 def _fmt(x: Any, digits: int = 1) -> str:
@@ -97,7 +100,7 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
         rows.append(("DSP watchdog trips", _fmt(diag["controller"].get("watchdog_trips"))))
         params = diag.get("parameters") or {}
         if params:
-            names = [k for k in PARAMETER_COUNTS if k != "failed" or k in params]
+            names = [k for k in PARAMETER_COUNTS if k not in RARE_COUNTS or k in params]
             rows.append((f"parameter requests {' / '.join(names)}",
                          " / ".join(_fmt(params.get(k)) for k in names)))  # fmt: skip
         dsp_rejected = diag["dsp"].get("rejected_frames")
@@ -135,6 +138,8 @@ def render_text(report: dict[str, Any], console: Any = None) -> None:
             con.print(t)
 
     def verdict(item: dict[str, Any], ok: str) -> str:
+        if item.get("unchanged"):
+            return "unchanged"
         return ok if item["accepted"] else f"refused: {item['reason']}"
 
     outages = report.get("outages") or {}

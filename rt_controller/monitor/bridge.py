@@ -214,6 +214,9 @@ class MonitorBridge:
         self.port = int(self.server.port)
         self.host = host
         self._rings: dict[str, PayloadRing] = {}
+        self.last_record_s: float | None = None
+        """``time.monotonic()`` when the last cycle or diagnostics record came (None: none
+        yet): how long the rig has been silent (``hil monitor`` says when it stopped)."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="hil-monitor", daemon=True)
         self._closed = False
@@ -260,6 +263,7 @@ class MonitorBridge:
                 self._stop.wait(self.poll_s)
 
     def _on_cycle(self, payload: bytes) -> None:
+        self.last_record_s = time.monotonic()
         now = self.clock()
         self._channels[CYCLE_TOPIC].log(payload, log_time=now)
         self.counts["cycles"] += 1
@@ -276,6 +280,7 @@ class MonitorBridge:
         self.counts["scenes"] += 1
 
     def _on_diagnostics(self, payload: bytes) -> None:
+        self.last_record_s = time.monotonic()
         self._channels[DIAGNOSTICS_TOPIC].log(payload, log_time=self.clock())
         self.counts["diagnostics"] += 1
 

@@ -83,7 +83,7 @@ class ControlLoop:
         is in force for the whole of this tick. Each outcome goes to the log."""
         cfg, outcomes = self.params.due(release.index, release.wake_ns)
         if cfg is not None:
-            keys = {c["key"] for o in outcomes if o.accepted for c in o.changes}
+            keys = {c["key"] for o in outcomes if o.accepted and not o.unchanged for c in o.changes}
             self.controller.reconfigure(cfg, law_changed=bool(keys & LAW_KEYS))
             self.ctx.cfg = cfg  # every part reads it from here on
         for o in outcomes:
