@@ -194,16 +194,17 @@ class FootprintSampler:
         self.parent = os.getpid() if parent is None else parent
         self.interval_s = interval_s
         self.series: dict[str, list[Snapshot]] = {}
-        self._pids: dict[int, str | None] = {}
+        self._pids: dict[int, str] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="footprint", daemon=True)
 
     def _role(self, pid: int) -> str | None:
         if pid not in self._pids:
             text = _read(Path("/proc") / str(pid) / "cmdline")
-            if not text:
-                return None  # not exec'd yet: ask again next time
-            self._pids[pid] = role_of(text.split("\0"))
+            role = role_of(text.split("\0")) if text else None
+            if role is None:
+                return None  # not exec'd yet (no or this process's command line): ask again
+            self._pids[pid] = role
         return self._pids[pid]
 
     def sample(self) -> None:

@@ -162,3 +162,34 @@ def test_present_runs_merge_contiguous_present_pages() -> None:
         (0x7000, 0x1000),
     ]
     assert present_runs(b"", 0, 4096) == []
+
+
+def test_a_child_sampled_before_its_exec_is_sampled_after_it() -> None:
+    """A rig child read between its fork and its exec (the parent's command line, no role)
+    is looked at again: its figures are not lost for the whole run."""
+    import subprocess
+    import sys
+    import time
+
+    from rt_controller.rig.footprint import FootprintSampler
+
+    exec_on_a_line = (
+        "import os, sys; sys.stdin.readline(); os.execv(sys.executable, [sys.executable, '-c', "
+        "'import time; time.sleep(60)', 'rt_controller.cli', 'vision'])"
+    )
+    child = subprocess.Popen([sys.executable, "-c", exec_on_a_line], stdin=subprocess.PIPE)
+    try:
+        sampler = FootprintSampler()
+        sampler.sample()  # before the exec: no role yet
+        assert "vision" not in sampler.series
+        child.stdin.write(b"go\n")
+        child.stdin.flush()
+        for _ in range(500):  # until the exec'd command line shows (no wall-clock bound)
+            if role_of(Path(f"/proc/{child.pid}/cmdline").read_bytes().decode().split("\0")):
+                break
+            time.sleep(0.01)
+        sampler.sample()
+        assert "vision" in sampler.series, sampler.series
+    finally:
+        child.kill()
+        child.wait()
