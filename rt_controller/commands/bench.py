@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import threading
 from collections.abc import Callable
+from pathlib import Path
 
 from hal import strict_json
-from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration
+from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration, path_given
 from hal.config import LAW_NAMES, PROFILES
 from hal.config.ranges import RANGES
 from rt_controller.commands.common import add_config_option, config_from_args
@@ -28,10 +27,11 @@ def rate_list(text: str) -> tuple[float, ...]:
     rates = tuple(CONTROL_RATE(r) for r in text.split(",") if r.strip())
     if not rates:
         raise argparse.ArgumentTypeError(f"expected control rates like 50,200, got {text!r}")
-    twice = sorted({r for r in rates if rates.count(r) > 1})
-    if twice:  # one log per rate (loop-50.mcap): a second run would replace the first's
+    names = [f"{r:g}" for r in rates]  # one log per rate, named so (loop-50.mcap)
+    twice = sorted({n for n in names if names.count(n) > 1}, key=float)
+    if twice:  # a second run would replace the first's log
         raise argparse.ArgumentTypeError(
-            f"{', '.join(f'{r:g}' for r in twice)} Hz given twice in {text!r}; each rate once"
+            f"{', '.join(twice)} Hz given twice in {text!r}; each rate once"
         )
     return rates
 
@@ -48,6 +48,18 @@ def _two_ticks(seconds: float, rate_hz: float, option: str) -> None:
         )
 
 
+def _files_free(folder: Path, names: list[str]) -> None:
+    """Refuse a kept folder where a file the bench will write is a folder or not a file."""
+    from rt_controller.errors import OutputPathError
+
+    taken = [n for n in names if (folder / n).exists() and not (folder / n).is_file()]
+    if taken:
+        raise OutputPathError(
+            f"--keep {folder}: the bench writes its runs' files there, but {', '.join(taken)} "
+            "already exists as a folder or other non-file (remove it or keep elsewhere)"
+        )
+
+
 def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespace], int]) -> None:
     """Every bench prints one JSON object; ``--json`` is accepted for symmetry with the rest."""
     parser.add_argument("--json", action="store_true", help="print one JSON object (always JSON)")
@@ -55,36 +67,15 @@ def _finish(parser: argparse.ArgumentParser, handler: Callable[[argparse.Namespa
     parser.set_defaults(handler=_said_on_interrupt(parser.prog, handler))
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the bench is so that it unwinds as on Ctrl-C."""
-
-
-def _terminated(signum: int, frame: object) -> None:
-    raise Terminated
-
-
 def _said_on_interrupt(
     prog: str, handler: Callable[[argparse.Namespace], int]
 ) -> Callable[[argparse.Namespace], int]:
-    """``handler``, saying in one line that Ctrl-C or SIGTERM stopped it before any figure was
-    printed (exit status 130 or 143). SIGTERM unwinds like Ctrl-C, so the bench's rigs stop and
-    its temporary folders (MCAP logs, the rig's key) are removed instead of left in /tmp."""
+    """``handler``, saying in one line that Ctrl-C, SIGTERM or SIGHUP stopped it before any
+    figure was printed (exit status 130, 143 or 129); the signal unwinds the bench, so its
+    rigs stop and its temporary folders (MCAP logs, the rig's key) are removed."""
+    from rt_controller.commands.interrupts import run_interruptible
 
-    def run(args: argparse.Namespace) -> int:
-        if threading.current_thread() is not threading.main_thread():
-            return handler(args)  # only the main thread may take a signal
-        previous = signal.signal(signal.SIGTERM, _terminated)
-        try:
-            return handler(args)
-        except KeyboardInterrupt as exc:
-            print(f"{prog}: interrupted: no figures", file=sys.stderr)
-            if isinstance(exc, Terminated):
-                return 128 + signal.SIGTERM
-            raise
-        finally:
-            signal.signal(signal.SIGTERM, previous)
-
-    return run
+    return lambda args: run_interruptible(prog, lambda: handler(args), lambda: "no figures")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -136,6 +127,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     lp.add_argument(
         "--keep",
+        type=path_given,
         metavar="DIR",
         help="keep the runs' MCAP logs and configs in DIR, replacing an earlier bench's "
         "files of the same names (default: a temporary folder)",
@@ -172,8 +164,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=SKIPPABLE_S,
         default=5.0,
         metavar="S",
-        help="simulated seconds of the lockstep rigs: images, images with no image log, "
-        "analytic (0 = skip)",
+        help="simulated seconds of the lockstep rigs: images, images of a clean camera, "
+        "images with no image log, analytic (0 = skip)",
     )
     vp.add_argument(
         "--realtime-duration",
@@ -244,6 +236,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sk.add_argument("--law", choices=LAW_NAMES, default="rhc", help="default rhc")
     sk.add_argument(
         "--keep",
+        type=path_given,
         metavar="DIR",
         help="keep the run's MCAP log and config in DIR, replacing an earlier bench's "
         "(default: drop)",
@@ -262,6 +255,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     tp.add_argument(
         "--workdir",
+        type=path_given,
         metavar="DIR",
         help="keep the run's MCAP log (tuning.mcap) and key in DIR (default: a temporary "
         "folder, removed)",
@@ -355,7 +349,7 @@ def run_soak(args: argparse.Namespace) -> int:
             "<= duration"
         )
     cfg = config_from_args(args)
-    keep = output_dir(args.keep, "--keep") if args.keep else None
+    keep = output_dir(args.keep, "--keep") if args.keep is not None else None
     progress = Progress.of(args, "hil bench soak")
     with progress.stage(
         f"running the realtime rig with {args.law} for {args.duration:g} s, sampling every "
@@ -381,7 +375,7 @@ def run_tuning(args: argparse.Namespace) -> int:
     from rt_controller.rig.failures import with_tail
 
     # a bad path before the rig starts
-    workdir = output_dir(args.workdir, "--workdir") if args.workdir else None
+    workdir = output_dir(args.workdir, "--workdir") if args.workdir is not None else None
     progress = Progress.of(args, "hil bench tuning")
     with progress.stage(f"a realtime run with {args.requests} parameter sets"):
         result = bench_tuning(workdir, requests=args.requests)
@@ -405,12 +399,14 @@ def run_host(args: argparse.Namespace) -> int:
 
 def run_loop(args: argparse.Namespace) -> int:
     from rt_controller.commands.output import output_dir
-    from rt_controller.rig.bench_loop import bench_loop
+    from rt_controller.rig.bench_loop import bench_files, bench_loop
 
     rates = args.rates  # a tuple, each in range (rate_list)
     cfg = config_from_args(args)
     _two_ticks(args.lockstep_duration, cfg.rates.control_hz, "--lockstep-duration")
-    keep = output_dir(args.keep, "--keep") if args.keep else None
+    keep = output_dir(args.keep, "--keep") if args.keep is not None else None
+    if keep is not None:  # a later run's file taken by a folder would lose the earlier figures
+        _files_free(keep, bench_files(rates, args.lockstep_duration > 0, args.profile))
     measured = args.host_probe + len(rates) * args.duration + args.lockstep_duration
     progress = Progress.of(args, "hil bench loop")
     with progress.stage(

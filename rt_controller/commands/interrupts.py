@@ -13,6 +13,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 INTERRUPT_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
@@ -29,36 +30,43 @@ class Interrupted(KeyboardInterrupt):
 
 
 @contextlib.contextmanager
-def _signals_raise() -> Iterator[None]:
-    """While inside, :data:`INTERRUPT_SIGNALS` raise :class:`Interrupted` (main thread only)."""
+def _signals_handled(handler: Any) -> Iterator[None]:
+    """While inside, :data:`INTERRUPT_SIGNALS` go to ``handler`` (main thread only); a signal
+    ignored when the command started (``nohup``) stays ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def interrupt(signum: int, _frame: object) -> None:
-        raise Interrupted(signum)
-
-    previous = {sig: signal.signal(sig, interrupt) for sig in INTERRUPT_SIGNALS}
+    previous = {
+        sig: signal.signal(sig, handler)
+        for sig in INTERRUPT_SIGNALS
+        if signal.getsignal(sig) is not signal.SIG_IGN
+    }
     try:
         yield
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        for sig, before in previous.items():
+            signal.signal(sig, signal.SIG_DFL if before is None else before)
+
+
+def _interrupt(signum: int, _frame: object) -> None:
+    raise Interrupted(signum)
 
 
 def run_interruptible(prog: str, body: Callable[[], int], left: Callable[[], str]) -> int:
     """``body()``; Ctrl-C, SIGTERM or SIGHUP end it with one line on stderr, ``PROG:
-    interrupted by SIGINT; LEFT`` (``left()``: what was and was not written), and the
-    shell's status for the signal, 128 + its number (130, 143)."""
+    interrupted by SIGINT; LEFT`` (``left()``: what was and was not written, or what was not
+    measured), and the shell's status for the signal, 128 + its number (130, 143, 129). The
+    signal unwinds ``body`` as Ctrl-C does, so its ``finally`` blocks stop what it started and
+    remove its temporary files."""
     try:
-        with _signals_raise():
+        with _signals_handled(_interrupt):
             return body()
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else int(signal.SIGINT)
-        with _signals_raise():  # a second signal does not cut the line short
+        with _signals_handled(signal.SIG_IGN):  # a second signal does not cut the line short
             tail = left()
-        name = signal.Signals(signum).name
-        print(f"{prog}: interrupted by {name}" + (f"; {tail}" if tail else ""), file=sys.stderr)
+            name = signal.Signals(signum).name
+            print(f"{prog}: interrupted by {name}" + (f"; {tail}" if tail else ""), file=sys.stderr)
         return 128 + signum
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from hal.arguments import bounded_int, duration
 from rt_controller.commands.common import (
@@ -11,7 +12,12 @@ from rt_controller.commands.common import (
     add_scenario_options,
     config_from_args,
 )
+from rt_controller.commands.interrupts import run_interruptible
 from rt_controller.commands.progress import Progress, add_quiet_option
+
+if TYPE_CHECKING:
+    from hal.config import RigConfig
+    from rt_controller.control.simulate import SimResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -52,10 +58,32 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.errors import ControllerConfigError
 
     cfg = config_from_args(args)
-    if tick_count(args.duration, cfg.rates.control_hz) < 1:  # before numba compiles anything
-        raise ControllerConfigError(too_short(args.duration, cfg.rates.control_hz))
-    ctl = cfg.controller
+    rate = cfg.rates.control_hz
+    ticks = tick_count(args.duration, rate)
+    if ticks < 1:  # before numba compiles anything
+        raise ControllerConfigError(too_short(args.duration, rate))
+    for flag, delay in (
+        ("--state-delay", args.state_delay),
+        ("--feature-delay", args.feature_delay),
+    ):
+        if delay and delay >= ticks - 1:  # tick k sees sample max(0, k - delay)
+            raise ControllerConfigError(
+                f"{flag} {delay} periods leaves the law nothing but the first sample in a "
+                f"{ticks}-tick run (--duration {args.duration:g} s at {rate:g} Hz): use a longer "
+                "--duration or a shorter delay"
+            )
     progress = Progress.of(args, "hil simulate")
+
+    def body() -> int:
+        result = _closed_loop(args, cfg, progress)
+        print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
+        return 0
+
+    return run_interruptible("hil simulate", body, lambda: "no result")
+
+
+def _closed_loop(args: argparse.Namespace, cfg: RigConfig, progress: Progress) -> SimResult:
+    ctl = cfg.controller
     with progress.stage(
         f"preparing the {ctl.law} law and the arm model (numba compiles its kernels on a cold "
         "cache, up to a minute)"
@@ -68,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     with progress.stage(
         f"running {args.duration:g} s of closed loop ({ctl.law} at {cfg.rates.control_hz:g} Hz)"
     ):
-        result = run_closed_loop(
+        return run_closed_loop(
             world,
             controller,
             cfg,
@@ -77,5 +105,3 @@ def run(args: argparse.Namespace) -> int:
             predict=ctl.predict_state and ctl.predict_features and not args.no_predict,
             feature_delay=args.feature_delay,
         )
-    print_summary(result.as_dict(), args.json, f"hil simulate --law {result.law}")
-    return 0

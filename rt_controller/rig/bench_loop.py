@@ -57,6 +57,25 @@ def _monitor(port: int | None) -> dict[str, Any]:
     return {"monitor": port is not None, "monitor_port": port}
 
 
+def rate_files(rate: float, profile: str | None = None) -> tuple[str, str]:
+    """The config and log a run at ``rate`` writes in the bench's folder."""
+    tag = "" if profile is None else f"{profile}-"  # both profiles' runs side by side
+    return f"rig-{tag}{rate:g}.toml", f"loop-{tag}{rate:g}.mcap"
+
+
+def lockstep_files(profile: str | None = None) -> tuple[str, str]:
+    """The config and log of the lockstep run."""
+    tag = "" if profile is None else f"-{profile}"
+    return f"rig-lockstep{tag}.toml", f"lockstep{tag}.mcap"
+
+
+def bench_files(rates: tuple[float, ...], lockstep: bool, profile: str = "dsp") -> list[str]:
+    """Every file :func:`bench_loop` writes in its folder (``--keep``), to check up front."""
+    profiles: tuple[str | None, ...] = ("dsp", "cia402") if profile == "cia402" else (None,)
+    out = [n for p in profiles for r in rates for n in rate_files(r, p)]
+    return out + [n for p in profiles if lockstep for n in lockstep_files(p)]
+
+
 def bench_rate(
     cfg: RigConfig,
     rate: float,
@@ -71,10 +90,8 @@ def bench_rate(
     ``profile``: the hardware profile (None: the configuration's)."""
     rcfg = _profile_config(_rate_config(cfg, rate), profile)
     name = rcfg.hardware.profile
-    tag = "" if profile is None else f"{profile}-"  # both profiles' runs side by side
-    conf = workdir / f"rig-{tag}{rate:g}.toml"
+    conf, log = (workdir / n for n in rate_files(rate, profile))
     _write_toml(rcfg, conf)
-    log = workdir / f"loop-{tag}{rate:g}.mcap"
     with FootprintSampler() as sampler:
         summary = run_rig(
             RigOptions(
@@ -205,9 +222,7 @@ def bench_lockstep(
     """Wall time of a lockstep run of ``duration`` simulated seconds (all processes)."""
     cfg = _profile_config(cfg, profile)
     name = cfg.hardware.profile
-    tag = "" if profile is None else f"-{profile}"
-    conf = workdir / f"rig-lockstep{tag}.toml"
-    log = workdir / f"lockstep{tag}.mcap"
+    conf, log = (workdir / n for n in lockstep_files(profile))
     _write_toml(cfg, conf)
     t0 = time.perf_counter()
     summary = run_rig(

@@ -58,7 +58,8 @@ def test_ctrl_c_mid_bench_says_so_in_one_line_and_leaves_no_probe(sig, status):
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=WAIT_S)
         assert proc.returncode == status and out == ""
-        assert err.strip().splitlines() == ["hil bench host: interrupted: no figures"]
+        said = f"hil bench host: interrupted by {sig.name}; no figures"
+        assert err.strip().splitlines() == [said]
         wait_for(lambda: not probes(duration), "the probes to end")
     finally:  # a probe left behind must not run on at priority 99 for ten minutes
         if proc.poll() is None:
@@ -167,7 +168,7 @@ def test_a_bench_loop_stopped_by_sigterm_leaves_no_temporary_folder(tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode == 143 and out == ""
-    assert err.strip().splitlines()[-1] == "hil bench loop: interrupted: no figures"
+    assert err.strip().splitlines()[-1] == "hil bench loop: interrupted by SIGTERM; no figures"
     wait_for(lambda: not list(tmp_path.glob("hil-*")), "the temporary folders to go")
 
 
@@ -198,7 +199,7 @@ def test_a_bench_tuning_interrupted_mid_run_leaves_no_rig_process_running(tmp_pa
     finally:
         reap_bench(proc, rig)
     assert proc.returncode == 130 and out == ""
-    assert err.strip().splitlines()[-1] == "hil bench tuning: interrupted: no figures"
+    assert err.strip().splitlines()[-1] == "hil bench tuning: interrupted by SIGINT; no figures"
     assert left == []
     wait_for(lambda: not list(tmp_path.glob("hil-*")), "the temporary folders to go")
 
