@@ -84,6 +84,18 @@ ZENOH_ROLES = {"auto": None, "hub": True, "client": False}
 """``--zenoh-role`` -> ``open_session``'s ``listen``."""
 
 
+def check_zenoh_options(args: argparse.Namespace) -> None:
+    """Refuse ``--zenoh-endpoint`` with ``--zenoh-config`` (:class:`HalConfigError`, exit 2):
+    the file sets its own endpoints, and the endpoint would be ignored without a word."""
+    from hal.errors import HalConfigError
+
+    if getattr(args, "zenoh_endpoint", None) and getattr(args, "zenoh_config", None):
+        raise HalConfigError(
+            "--zenoh-endpoint and --zenoh-config: give one "
+            "(a zenoh config file sets its own endpoints)"
+        )
+
+
 def zenoh_session_options(args: argparse.Namespace) -> dict[str, Any]:
     """``open_session`` keywords from a process's ``--zenoh-endpoint``, ``--zenoh-config``,
     ``--zenoh-role`` and ``--wait`` (None: the default wait)."""

@@ -74,6 +74,15 @@ def signal_name_of(stop: threading.Event) -> str | None:
     return name if isinstance(name, str) else None
 
 
+def said_stopped_before_start(prog: str, stop: threading.Event, waiting_for_hub: bool) -> int:
+    """Exit status 0 for a stop signal that came before a daemon's first measurement, said in
+    one line on stderr (a ``--json`` reader gets no counters: nothing was measured)."""
+    by = signal_name_of(stop) or "request"
+    where = "waiting for the zenoh hub" if waiting_for_hub else "starting"
+    print(f"{prog}: stopped by {by} while {where}; nothing measured", file=sys.stderr)
+    return 0
+
+
 @contextlib.contextmanager
 def stop_on_signals(stop: threading.Event | None = None) -> Iterator[threading.Event]:
     """Yield an event that SIGTERM or SIGINT sets; restore the previous handlers on exit.

@@ -169,11 +169,21 @@ def _profile(args: argparse.Namespace) -> str:
 
 
 def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
+    from hal.arguments import check_zenoh_options
     from hal.bus import open_bus, process_spec
     from plant_emulator.dsp import make_dsp
 
+    check_zenoh_options(args)
     if _profile(args) == "cia402":
         from plant_emulator.cia402.entry import serve_cia402
+
+        if args.state_rate is not None:  # the drives answer each SYNC: no free-running state
+            from hal.errors import HalConfigError
+
+            raise HalConfigError(
+                "--state-rate: only for the dsp profile (CiA 402 drives send their state per "
+                "SYNC); drop --state-rate or use --profile dsp"
+            )
 
         return serve_cia402(args, stop)
     cfg = _config(args)

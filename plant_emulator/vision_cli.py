@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 from hal import strict_json
 from hal.arguments import add_key_option, bounded_float, duration, zenoh_session_options
-from hal.errors import HalError
-from hal.signals import run_standalone, stop_on_signals
+from hal.errors import HalError, HalStopped
+from hal.signals import run_standalone, said_stopped_before_start, stop_on_signals
 
 if TYPE_CHECKING:
     from hal.config import RigConfig
@@ -139,9 +139,9 @@ def run_from_args(args: argparse.Namespace) -> int:
                 dropouts=dropouts,
                 **zenoh_session_options(args),
             )
-        except HalError:
+        except HalError as exc:
             if stop.is_set():  # told to stop while waiting for the hub
-                return 0
+                return said_stopped_before_start("hil vision", stop, isinstance(exc, HalStopped))
             raise
     if args.json:
         print(strict_json.dumps(stats.as_dict()), flush=True)

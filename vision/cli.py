@@ -14,9 +14,9 @@ import sys
 
 from hal import strict_json
 from hal.arguments import zenoh_session_options
-from hal.errors import HalConfigError, HalError
+from hal.errors import HalConfigError, HalError, HalStopped
 from hal.secoc import bad_mac_clause
-from hal.signals import stop_on_signals
+from hal.signals import said_stopped_before_start, stop_on_signals
 
 CAMERA_ONLY = ("fps", "noise", "latency", "seed")
 FRAMES_ONLY_WITH_LOG = (
@@ -105,9 +105,11 @@ def run_from_args(args: argparse.Namespace) -> int:
                     notice=_notice,
                     **zenoh_session_options(args),
                 )
-            except HalError:
+            except HalError as exc:
                 if stop.is_set():
-                    return 0
+                    return said_stopped_before_start(
+                        "hil vision", stop, isinstance(exc, HalStopped)
+                    )
                 raise
     if args.json:
         print(strict_json.dumps(stats.as_dict()), flush=True)

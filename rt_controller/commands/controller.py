@@ -86,6 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hal.arguments import check_zenoh_options
+
+    check_zenoh_options(args)
     from hal.lean_start import without_scipy_linalg
 
     without_scipy_linalg()  # before numba: it would import SciPy's BLAS, which no kernel uses

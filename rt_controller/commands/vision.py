@@ -33,9 +33,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from hal.arguments import check_zenoh_options
     from hal.config import load_config
     from hal.errors import HalConfigError
 
+    check_zenoh_options(args)
     source = args.source
     if source is None and load_config(args.config).camera.model == "image":
         source = "emulated"
