@@ -104,13 +104,16 @@ def hil_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "rt_controller.cli"]
 
 
-def start_hil(args: list[str]) -> subprocess.Popen:
+def start_hil(args: list[str], capture: bool = False) -> subprocess.Popen:
     """``hil ARGS`` in the background from the repository root, in a session of its own (its
-    children with it), output discarded; end it with :func:`stop_hil`."""
+    children with it), output discarded (``capture``: piped, as text); end it with
+    :func:`stop_hil`."""
+    out = subprocess.PIPE if capture else subprocess.DEVNULL
     return subprocess.Popen(
         [*hil_command(), *args],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stdout=out,
+        stderr=out,
+        text=capture,
         start_new_session=True,
         cwd=REPO,
     )

@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 from pathlib import Path
 
 import pytest
 
-from tests.support import REPO, free_endpoint, hil_command, run_hil
+from tests.support import free_endpoint, run_hil, start_hil
 
 pytestmark = pytest.mark.integration
 
@@ -27,14 +26,7 @@ def test_stop_while_waiting_for_the_hub_is_told(tmp_path: Path, model: str, sig)
     if model == "analytic":
         (tmp_path / "rig.toml").write_text(ANALYTIC)
         args += ["--config", str(tmp_path / "rig.toml")]
-    proc = subprocess.Popen(
-        [*hil_command(), *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        cwd=REPO,
-    )
+    proc = start_hil(args, capture=True)
     try:
         banner = proc.stderr.readline()  # printed once the stop handlers are installed
         assert banner.startswith("hil vision: "), banner
