@@ -16,7 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from hal.signals import run_standalone
 from rt_controller.errors import ControllerError
@@ -56,12 +56,15 @@ class HilParser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
         self.set_defaults(usage_parser=self)
         self._intermixing = False
+        self._args: list[str] = []
 
     def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
         """A command without subcommands takes its options between its positionals too
         (``hil param set --at-tick 5 gains.kp=0.3``): plain argparse gives a ``nargs="*"``
         positional nothing once an option follows the first positional, and the rest is an
         "unrecognized argument"."""
+        if not self._intermixing:
+            self._args = list(sys.argv[1:] if args is None else args)  # for error()
         if self._intermixing or self._subparsers is not None:
             return super().parse_known_args(args, namespace)
         self._intermixing = True  # the intermixed parse calls this method again
@@ -69,6 +72,19 @@ class HilParser(argparse.ArgumentParser):
             return self.parse_known_intermixed_args(args, namespace)
         finally:
             self._intermixing = False
+
+    def error(self, message: str) -> NoReturn:
+        """argparse's error, with how to give a value that begins with ``-`` (``--dropout
+        -1:2``: argparse takes ``-1:2`` for an option and says a value is missing)."""
+        import re
+
+        missing = re.fullmatch(r"argument (\S+): expected one argument", message)
+        if missing:
+            names, args = missing.group(1).split("/"), self._args
+            given = [i for i, a in enumerate(args[:-1]) if a in names]
+            if given and args[given[-1] + 1].startswith("-"):
+                message += f" (a value that begins with '-' is written {names[-1]}=VALUE)"
+        super().error(message)
 
 
 def build_parser() -> argparse.ArgumentParser:
