@@ -82,7 +82,7 @@ _POLL_S = 0.005
 
 
 def free_loopback_port() -> int:
-    """A TCP port that is free on 127.0.0.1 right now (for tests; racy by nature)."""
+    """A TCP port that is free on 127.0.0.1 right now (racy by nature: bind it soon)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])

@@ -115,7 +115,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--monitor-port",
         type=bounded_int(0, 65535, what="port"),
         metavar="PORT",
-        help="also run `hil monitor` on this port during the real-time runs (connect a client)",
+        help="also run `hil monitor` on this port during the real-time runs (connect a "
+        "client); 0 = a free port, the same for every run, said on stderr",
     )
     lp.add_argument(
         "--host-probe",
@@ -257,8 +258,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--workdir",
         type=path_given,
         metavar="DIR",
-        help="keep the run's MCAP log (tuning.mcap) and key in DIR (default: a temporary "
-        "folder, removed)",
+        help="keep the run's MCAP log (tuning.mcap) and key (bench.key) in DIR, replacing an "
+        "earlier bench's (default: a temporary folder, removed)",
     )
     _finish(tp, run_tuning)
 
@@ -409,6 +410,16 @@ def run_loop(args: argparse.Namespace) -> int:
         _files_free(keep, bench_files(rates, args.lockstep_duration > 0, args.profile))
     measured = args.host_probe + len(rates) * args.duration + args.lockstep_duration
     progress = Progress.of(args, "hil bench loop")
+    monitor_port = args.monitor_port
+    if monitor_port == 0:  # any port: one for every run, said, or no client could connect
+        from hal.zenoh_session import free_loopback_port
+
+        monitor_port = free_loopback_port()
+        print(
+            f"hil bench loop: live view of each real-time run on ws://127.0.0.1:{monitor_port} "
+            "(--monitor-port 0)",
+            file=sys.stderr,
+        )
     with progress.stage(
         f"running the rig with {args.law} at {', '.join(f'{r:g}' for r in rates)} Hz, "
         f"{args.duration:g} s each (about {measured:.0f} s of measurement, plus start-ups)"
@@ -419,7 +430,7 @@ def run_loop(args: argparse.Namespace) -> int:
             duration=args.duration,
             law=args.law,
             lockstep_duration=args.lockstep_duration,
-            monitor_port=args.monitor_port,
+            monitor_port=monitor_port,
             keep=keep,
             host_probe_s=args.host_probe,
             profile=args.profile,

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from hal.config import LAW_NAMES, PROFILES, RigConfig, load_config
 from rt_controller.config_rules import apply_overrides
+from rt_controller.errors import ControllerConfigError
 
 
 def add_config_option(p: argparse.ArgumentParser) -> None:
@@ -43,6 +45,10 @@ def add_profile_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+RHC_ONLY_OPTIONS = ("horizon", "steps", "kmax", "zeta")
+"""Options of :func:`add_law_options` that only the receding-horizon law reads."""
+
+
 def config_from_args(args: argparse.Namespace) -> RigConfig:
     """The config file (or defaults) with the command-line overrides applied and validated
     (the rules: :func:`rt_controller.config_rules.apply_overrides`)."""
@@ -59,3 +65,32 @@ def config_from_args(args: argparse.Namespace) -> RigConfig:
         profile=getattr(args, "profile", None),
         from_command_line=True,
     )
+
+
+def rhc_options_off_law(args: argparse.Namespace, cfg: RigConfig) -> list[str]:
+    """The RHC-only options (``--horizon`` ...) the command line gives while the law in force
+    in ``cfg`` (``--law``, else ``controller.law``) is not rhc: none when it is rhc."""
+    if cfg.controller.law == "rhc":
+        return []
+    return [f"--{n}" for n in RHC_ONLY_OPTIONS if getattr(args, n, None) is not None]
+
+
+def refuse_rhc_options_off_law(args: argparse.Namespace, cfg: RigConfig) -> None:
+    """For a run whose law cannot change: an RHC-only option under another law would change
+    nothing, so it is refused."""
+    given = rhc_options_off_law(args, cfg)
+    if given:
+        law = cfg.controller.law
+        raise ControllerConfigError(f"{given[0]}: only for the rhc law (the law in force is {law})")
+
+
+def rhc_options_note(args: argparse.Namespace, cfg: RigConfig, prog: str) -> None:
+    """For a run whose law can be switched while it runs (``hil param set controller.law``):
+    an RHC-only option under another law is kept for that switch, and said on stderr."""
+    given = rhc_options_off_law(args, cfg)
+    if given:
+        print(
+            f"{prog}: note: {', '.join(given)} only take effect once the law is switched to rhc "
+            f"(the law in force is {cfg.controller.law}; hil param set controller.law=rhc)",
+            file=sys.stderr,
+        )

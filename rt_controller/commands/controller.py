@@ -13,6 +13,7 @@ from rt_controller.commands.common import (
     add_law_options,
     add_profile_option,
     config_from_args,
+    rhc_options_note,
 )
 
 if TYPE_CHECKING:
@@ -80,7 +81,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FILE.json",
         help="lockstep: run every run of the plan on these links, resetting the emulated "
         "DSP's scenario between runs (one summary per run; see rt_controller/runtime/plan.py); "
-        "excludes --law, --duration and --log, which each run gives",
+        "excludes --law, --duration and --log, which each run gives, and --rate, --horizon, "
+        "--steps, --kmax and --zeta, which its config gives",
     )
     p.set_defaults(handler=run)
 
@@ -107,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if args.log is not None:  # before the daemon opens its links
         output_file(args.log, "--log", replace=args.force)
     cfg = check_zenoh_config(with_command_line(config_from_args(args), args))
+    rhc_options_note(args, cfg, "hil controller")  # kept for a switch to rhc while it runs
     bus = process_spec(cfg.transport.can)  # another process: not python-can's virtual bus
     cfg = configure_key(cfg, args.key_file, "hil controller")
     opts = daemon_options(args)
@@ -178,6 +181,7 @@ def run_plan_command(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key
     from hal.signals import stop_on_signals
+    from rt_controller.commands.common import RHC_ONLY_OPTIONS
     from rt_controller.commands.output import print_summary
     from rt_controller.errors import ControllerConfigError
     from rt_controller.runtime.plan import check_started_seed, load_plan, run_configs, run_plan
@@ -186,6 +190,9 @@ def run_plan_command(args: argparse.Namespace) -> int:
     given += ["--duration"] if args.duration else []
     if given:
         raise ControllerConfigError(f"--plan gives each run's law, duration and log: drop {given}")
+    tuned = [f"--{n}" for n in ("rate", *RHC_ONLY_OPTIONS) if getattr(args, n) is not None]
+    if tuned:  # each run's config file is run as it is
+        raise ControllerConfigError(f"--plan runs each run's config as it is: drop {tuned}")
     runs = load_plan(args.plan)
 
     def prepare(cfg: RigConfig) -> RigConfig:

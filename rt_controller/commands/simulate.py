@@ -11,6 +11,7 @@ from rt_controller.commands.common import (
     add_law_options,
     add_scenario_options,
     config_from_args,
+    refuse_rhc_options_off_law,
 )
 from rt_controller.commands.interrupts import run_interruptible
 from rt_controller.commands.progress import Progress, add_quiet_option
@@ -58,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.errors import ControllerConfigError
 
     cfg = config_from_args(args)
+    refuse_rhc_options_off_law(args, cfg)  # the law of a simulation does not change
     rate = cfg.rates.control_hz
     ticks = tick_count(args.duration, rate)
     if ticks < 1:  # before numba compiles anything

@@ -79,13 +79,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--monitor-port",
         type=bounded_int(0, 65535, what="port"),
         metavar="PORT",
-        help="live view port (8765; 0 = any)",
+        help="live view port (8765; 0 = any free one); implies --monitor. hil up says the "
+        "live view's address on stderr as it starts",
     )
     p.add_argument(
         "--allow-tuning",
         action="store_true",
-        help="with --monitor: Foxglove may set the tunable parameters and call the operator "
-        "services (hil monitor --allow-tuning); off: read-only",
+        help="with --monitor (refused without it): Foxglove may set the tunable parameters and "
+        "call the operator services (hil monitor --allow-tuning); off: read-only",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=run)
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     import tempfile
 
     from hal.bus import process_spec
-    from rt_controller.commands.common import config_from_args
+    from rt_controller.commands.common import config_from_args, rhc_options_note
     from rt_controller.commands.output import output_file, verdict
     from rt_controller.control.simulate import tick_count, too_short
     from rt_controller.errors import ControllerConfigError
@@ -104,21 +105,28 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.rig.processes import run_rig
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
+    if args.allow_tuning and not (args.monitor or args.monitor_port is not None):
+        raise ControllerConfigError(
+            "--allow-tuning opens the live view to tuning: it needs --monitor (or --monitor-port)"
+        )
     if args.log is not None:
         # checked once, here: the rig tells its controller to replace (rig/processes.py)
         output_file(args.log, "--log", replace=args.force)
     config = _effective_config(args)
     cfg = config_from_args(args)
+    rhc_options_note(args, cfg, "hil up")  # kept for a switch to rhc while it runs
     process_spec(args.can or cfg.transport.can)  # three processes: not python-can's virtual bus
     rate = cfg.rates.control_hz
     if tick_count(args.duration, rate) < 1:  # a run of no tick is no run, not a clean one
         raise ControllerConfigError(too_short(args.duration, rate))
-    if args.monitor or args.monitor_port is not None:
-        _check_monitor_port(args.monitor_port)
+    monitor = args.monitor or args.monitor_port is not None
+    port = _check_monitor_port(args.monitor_port) if monitor else None
     with tempfile.TemporaryDirectory(prefix="hil-up-") as tmp:
         if config is not None:  # the command-line overrides reach all three processes
             conf = Path(tmp) / "rig.toml"
             conf.write_text(config, encoding="utf-8")
+        if monitor:  # the live view is for during the run: say where it is now
+            print(f"hil up: live view on ws://127.0.0.1:{port} (Foxglove)", file=sys.stderr)
         try:
             with supervised():
                 summary = run_rig(
@@ -133,8 +141,8 @@ def run(args: argparse.Namespace) -> int:
                         zenoh_endpoint=args.zenoh_endpoint,
                         log=Path(args.log) if args.log else None,
                         replace_log=args.force,
-                        monitor=args.monitor or args.monitor_port is not None,
-                        monitor_port=args.monitor_port,
+                        monitor=monitor,
+                        monitor_port=port,
                         extra_monitor=["--allow-tuning"] if args.allow_tuning else [],
                         key_file=Path(args.key_file) if args.key_file else None,
                     )
@@ -170,7 +178,7 @@ def table_view(summary: dict) -> dict:
     """The summary as the table shows it: of :data:`NONZERO_ONLY` only the counters that are
     not zero (nested blocks flattened to ``block.key``), the DSP's watchdog account, the
     log's contents and the outages in words, every other block as ``accepted 2, refused 0``
-    (``none`` when empty): never a Python dict."""
+    (``none`` when empty), a None as :func:`none_words` says: never a Python dict or None."""
     from rt_controller.rig.ending import contents_words, dsp_words, end_words
 
     out = dict(summary)
@@ -193,7 +201,21 @@ def table_view(summary: dict) -> dict:
     for key, value in out.items():  # every other block (drive_ticks, parameters, ...)
         if isinstance(value, dict):
             out[key] = ", ".join(f"{k} {v}" for k, v in flat(value).items()) or "none"
+        elif value is None:  # never a Python None: what it means
+            out[key] = none_words(key, out)
     return out
+
+
+def none_words(key: str, summary: dict) -> str:
+    """What a figure of None means in the table: ``not seen`` for the target's jump, ``n/a``
+    (and why, where known) for a figure that does not apply to the run, ``-`` otherwise."""
+    if key == "jump_seen_s":
+        return "not seen"
+    if key in ("horizon_s", "steps") and summary.get("law") not in (None, "rhc"):
+        return f"n/a (law {summary['law']}, not rhc)"
+    if key == "host_steal_percent":
+        return "n/a (lockstep)" if summary.get("clock") == "lockstep" else "n/a"
+    return "-"
 
 
 def flat(counts: dict, prefix: str = "") -> dict:
@@ -229,16 +251,15 @@ def _effective_config(args: argparse.Namespace) -> str | None:
     return config_toml(cfg, header="hil up: the config with its command-line overrides")
 
 
-def _check_monitor_port(port: int | None) -> None:
-    """Refuse ``--monitor`` before the rig starts when its port cannot be opened."""
+def _check_monitor_port(port: int | None) -> int:
+    """The live view's port: refused before the rig starts when it cannot be opened; for 0
+    (any), a free port picked now, so that ``hil up`` can say where the live view is."""
     import socket
 
     from rt_controller.errors import ControllerConfigError
     from rt_controller.monitor.bridge import DEFAULT_PORT
 
     port = DEFAULT_PORT if port is None else port
-    if port == 0:  # any free port
-        return
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         # as the monitor's server binds (tokio sets it): a closed client connection's
         # TIME_WAIT must not refuse the port for a minute, a listener still does
@@ -251,3 +272,4 @@ def _check_monitor_port(port: int | None) -> None:
                 f"--monitor: cannot listen on 127.0.0.1:{port}: {exc.strerror or exc} (another "
                 "rig's live view?); choose another with --monitor-port PORT (0 = any)"
             ) from None
+        return int(sock.getsockname()[1])

@@ -51,6 +51,9 @@ class ProcessEnd:
     unasked: bool = False
     """It ended while the run went on, the rig had not told it to stop: an exit status 0 is
     then an orderly stop on a signal from elsewhere (``kill``, a shutdown)."""
+    stopped_because: str | None = None
+    """Why the rig itself stopped it (e.g. its wall-clock budget ran out): its end is then the
+    rig's stop, not an exit of its own, whatever its status (0 or SIGTERM: the stop)."""
 
     @property
     def signal_name(self) -> str | None:
@@ -64,7 +67,11 @@ class ProcessEnd:
     @property
     def how(self) -> str:
         """``killed by SIGKILL``, ``exited with status 3``, or ``stopped by a signal the rig
-        did not send (exit status 0)``: the stop SIGTERM or SIGINT asks for."""
+        did not send (exit status 0)``: the stop SIGTERM or SIGINT asks for; ``stopped by the
+        rig: WHY`` when the rig stopped it in order (:attr:`stopped_because`; SIGKILLed, it
+        is ``killed by SIGKILL``)."""
+        if self.stopped_because and self.returncode in (0, -signal.SIGTERM):  # the rig's stop
+            return f"stopped by the rig: {self.stopped_because}"
         name = self.signal_name
         if name:
             return f"killed by {name}"

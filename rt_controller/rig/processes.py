@@ -219,9 +219,9 @@ class Rig:
         """After the wall-clock budget ran out (at ``at_ns``): stop the rig (a controller that
         does not stop is killed, its stacks in the problem) and the run's summary from what
         is left, as after a death."""
-        codes = self.stop()
-        ctl = self.child("controller")
-        end = ProcessEnd("controller", codes.get("controller") or 0, at_ns)
+        codes, ctl = self.stop(), self.child("controller")
+        why = f"its wall-clock budget of {self.opts.wall_budget_s():g} s ran out"
+        end = ProcessEnd("controller", codes.get("controller") or 0, at_ns, stopped_because=why)
         out = self._summary_after(end, codes)
         if ctl is not None and end.returncode == -signal.SIGKILL:
             out["problems"].append(with_tail(f"controller {end.how} when stopped", ctl.tail(40)))
