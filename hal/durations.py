@@ -19,11 +19,15 @@ SIGNIFICANT_DIGITS = 3
 
 class Durations:
     """Durations in ns (negative ones, from clocks of two hosts, are recorded as 0 and counted
-    in :attr:`clipped` with the over-long ones)."""
+    in :attr:`clipped` with the over-long ones). A percentile is held within the samples'
+    exact minimum and maximum: a bucket's top is no figure of a run that never reached it (a
+    lockstep run's lateness, 0 every tick, reads 0, not the 0.511 us of the lowest bucket)."""
 
     def __init__(self) -> None:
         self._hist = HdrHistogram(LOWEST_NS, HIGHEST_NS, SIGNIFICANT_DIGITS)
         self.clipped = 0
+        self._min = HIGHEST_NS
+        self._max = 0
 
     def add(self, ns: int) -> None:
         ns = int(ns)
@@ -31,13 +35,16 @@ class Durations:
             self.clipped += 1
             ns = min(max(ns, 0), HIGHEST_NS)
         self._hist.record_value(ns)
+        self._min, self._max = min(self._min, ns), max(self._max, ns)
 
     def __len__(self) -> int:
         return self._hist.get_total_count()
 
     def percentile_us(self, q: float) -> float:
         """The ``q``-th percentile in us (0.0 when empty)."""
-        return self._hist.get_value_at_percentile(q) / 1e3 if len(self) else 0.0
+        if not len(self):
+            return 0.0
+        return min(max(self._hist.get_value_at_percentile(q), self._min), self._max) / 1e3
 
     def percentiles_us(self) -> tuple[float, float]:
         """Median and p99 in us."""

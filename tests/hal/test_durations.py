@@ -42,3 +42,20 @@ def test_empty_and_out_of_range():
     d.add(HIGHEST_NS * 2)
     assert d.clipped == 2 and len(d) == 2
     assert d.percentile_us(100) == pytest.approx(HIGHEST_NS / 1e3, rel=2e-3)
+
+
+def test_a_run_of_zeros_reads_zero_not_its_buckets_top():
+    """A lockstep run's lateness is 0 every tick: its median and p99 are 0, not the 0.511 us
+    at the top of the lowest bucket (values under 1 us share it)."""
+    d = Durations()
+    for _ in range(100):
+        d.add(0)
+    assert d.percentiles_us() == (0.0, 0.0)
+
+
+def test_a_percentile_stays_within_the_samples():
+    d = Durations()
+    for ns in (1_234_567, 1_234_999, 2_000_001):
+        d.add(ns)
+    p50, p99 = d.percentiles_us()
+    assert p50 >= 1234.567 and p99 <= 2000.001
