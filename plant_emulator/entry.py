@@ -216,8 +216,8 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
             link = PoseLink(publisher)
             listening = publisher.has_subscribers
             zenoh_where = f", camera poses on zenoh {zenoh_where_of(session)}"
-            if args.camera and cfg.camera.model == "image":
-                from plant_emulator.camera_link import start_camera
+            if args.camera and cfg.camera.model == "image" and not stop.is_set():
+                from plant_emulator.camera_link import start_camera  # compiles the renderer
 
                 link.camera, frames = start_camera(cfg, session, stack, rig_key(cfg))
                 poses_seen = publisher.has_subscribers
@@ -235,7 +235,8 @@ def _serve(args: argparse.Namespace, stop: threading.Event) -> int:
         sim_control = None
         if session is not None:
             sim_control = stack.enter_context(serve_sim_control(session, node, rig_key(cfg)))
-        node.warm_up()
+        if not stop.is_set():  # stopped during start-up: compile nothing more (seconds, cold)
+            node.warm_up()
         print(
             f"hil emulator: serving the arm on {where} ({mode}){zenoh_where}",
             file=sys.stderr,

@@ -220,6 +220,7 @@ class ControllerDaemon:
             live=self.opts.live,
             backpressure=self.lockstep,  # no deadline: wait for a busy recorder
             replace=self.opts.replace_log or self.opts.log_path is None,  # claim_log made it
+            stop=self.stop,
         )
 
     def run(self, links: tuple[CanLink, Any] | None = None) -> dict[str, Any]:
@@ -288,7 +289,9 @@ class ControllerDaemon:
             images_owed_before=self.opts.images_owed_before,
         )  # fmt: skip
         pacer: Pacer = (
-            LockstepPacer(ctx, hw.step) if self.lockstep else RealtimePacer(ctx, hw.wait_inputs)
+            LockstepPacer(ctx, hw.step, hw.why_silent)
+            if self.lockstep
+            else RealtimePacer(ctx, hw.wait_inputs)
         )
         loop = ControlLoop(ctx, self.controller, hw, pacer, self.params)
         tuning = ParameterServer(self.params, rig_key(cfg)).attach(session)  # `hil param`

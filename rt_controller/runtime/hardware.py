@@ -65,6 +65,7 @@ class DspHardware(HardwareBase):
         """The CAN receive counters when this run began (a plan's links outlive its runs)."""
         self._arming_sent = 0
         self._last_sync: int | None = None
+        self._states_at_step = dsp.states_received  # since then: a realtime DSP's, if any
         self.last_tau = (0.0, 0.0)
         """Lockstep: the last torque sent, sent again when the DSP re-sends its Sync."""
 
@@ -131,9 +132,15 @@ class DspHardware(HardwareBase):
                 break
             if k == last:  # a re-sent Sync: our command was lost, send it again
                 self.dsp.send_torque(*self.last_tau, tick=k)
-        self._last_sync = k
+        self._last_sync, self._states_at_step = k, self.dsp.states_received
         self.features.wait_pose(k, LOCKSTEP_FEATURE_TIMEOUT_S)
         return k
+
+    def why_silent(self) -> str:
+        """Lockstep without a Sync: the joint states that kept coming are a realtime DSP's."""
+        if self.dsp.states_received > self._states_at_step:
+            return " (its joint states arrive: is the emulator started with --lockstep?)"
+        return ""
 
     # --- read and write ---------------------------------------------------------------------
     def read(self, now_ns: int, judge: InputJudge) -> Observation:
@@ -256,10 +263,13 @@ class DspHardware(HardwareBase):
                 return
             if time.monotonic() > deadline:
                 missing = "joint state (CAN)" if not have_state else "image features (zenoh)"
-                raise ControllerError(
-                    f"no {missing} within {STARTUP_TIMEOUT_S:.0f} s: is `hil emulator` "
-                    f"(and `hil vision`) running on the same transports?"
+                status = self.dsp.status  # a lockstep world waits, without a pose, for a step
+                why = (
+                    "the DSP runs lockstep (`hil emulator --lockstep`): use --clock lockstep"
+                    if status is not None and status.lockstep and not self.lockstep
+                    else "is `hil emulator` (and `hil vision`) running on the same transports?"
                 )
+                raise ControllerError(f"no {missing} within {STARTUP_TIMEOUT_S:.0f} s: {why}")
             self.ctx.pause(10_000_000)
 
     def _poll(self, now_ns: int) -> None:

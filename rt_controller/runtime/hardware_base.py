@@ -45,6 +45,10 @@ class HardwareBase:
         self._hook_errors_before = 0
         self._marker = 0
 
+    def why_silent(self) -> str:
+        """A hint for a lockstep world that stopped stepping (appended to the end reason)."""
+        return ""
+
     # --- lifecycle --------------------------------------------------------------------------
     def deactivate(self) -> None:
         """Disarm when armed (``_disarm``); end the feeds and hooks of this run, so no callback

@@ -113,10 +113,14 @@ class LockstepPacer:
     status_limit_s = None
     """Without a live drive there is no step and no tick: no status age limit."""
 
-    def __init__(self, ctx: RunContext, step: Callable[[float], int | None]) -> None:
-        """``step(timeout_s)``: the hardware's next period k, None on timeout."""
+    def __init__(
+        self, ctx: RunContext, step: Callable[[float], int | None], why_silent: Callable[[], str]
+    ) -> None:
+        """``step(timeout_s)``: the hardware's next period k, None on timeout; ``why_silent()``:
+        the hardware's hint for a world that stopped stepping ("" if none)."""
         self.ctx = ctx
         self.step = step
+        self.why_silent = why_silent
         self.period_ns = ctx.cfg.rates.control_period_ns
         self._now_sim_ns = 0
 
@@ -174,7 +178,8 @@ class LockstepPacer:
             waited += STEP_POLL_S
             if waited >= patience_s:
                 if self.ctx.counters.planned_ticks is not None:
-                    self.ctx.counters.end_reason = f"no Sync from the DSP for {patience_s:g} s"
+                    why = f"no Sync from the DSP for {patience_s:g} s{self.why_silent()}"
+                    self.ctx.counters.end_reason = why
                 return None
         return None
 

@@ -121,7 +121,8 @@ class RecorderProcess(Recorder):
     :meth:`close`, then the child's final ones plus what this process dropped. ``live``:
     the child publishes the cycle and diagnostics records on zenoh (``cfg.transport``).
     ``replace=False`` refuses an existing ``path`` (it is created with ``O_EXCL``: a file made
-    after the command line checked it is not replaced either)."""
+    after the command line checked it is not replaced either). ``stop`` set: the start no longer
+    waits for the child (which gives up waiting for the live stream's hub once its input ends)."""
 
     outbox_limit = 8 << 20
     """Bytes that may wait for the pipe; a realtime record beyond them is dropped and counted."""
@@ -137,6 +138,7 @@ class RecorderProcess(Recorder):
         backpressure: bool = False,
         flush_interval_s: float = 1.0,
         replace: bool = True,
+        stop: threading.Event | None = None,
     ) -> None:
         self.path = Path(path)
         try:  # a bad path is this process's clear error, before the child starts
@@ -191,15 +193,15 @@ class RecorderProcess(Recorder):
         w.add_metadata(CONFIG_METADATA, {"json": cfg.to_json()})
         w.add_metadata(RUN_METADATA, run_metadata(cfg, run_info))  # this process's pid, argv
         self._send(wait=True)
-        self._printed = self._await_start()
+        self._printed = self._await_start(stop or threading.Event())
 
-    def _await_start(self) -> bytes:
+    def _await_start(self, stop: threading.Event) -> bytes:
         """Wait for the child's :data:`READY`: its start-up (imports, the file opened) is then
         behind it, not inside the run, where a lockstep tick would wait on a pipe nobody reads
         yet. What the child printed (the result comes later on the same pipe)."""
         fd, printed = self._child.stdout.fileno(), b""
         deadline = time.monotonic() + START_TIMEOUT_S
-        while READY not in printed and self.dead is None:
+        while READY not in printed and self.dead is None and not stop.is_set():
             left = deadline - time.monotonic()
             if left <= 0:
                 self._die(f"the recorder process did not start in {START_TIMEOUT_S:g} s")
@@ -394,8 +396,8 @@ class _LogCopy:
             from hal.zenoh_session import open_session
             from rt_controller.monitor.live import LivePublisher
 
-            try:
-                self.session = open_session(cfg, listen=False, wait_s=5.0)
+            try:  # the controller may end the stream before the hub answers (stopped)
+                self.session = open_session(cfg, listen=False, wait_s=5.0, stop_event=_hang_up())
                 rec.live = LivePublisher(self.session)
             except HalError as exc:
                 print(f"hil controller: warning: no live stream: {exc}", file=sys.stderr)
@@ -419,6 +421,22 @@ class _LogCopy:
         if not (error or rec.finished):
             error = "the writer did not finish the file"
         return {**rec.as_dict(), "finished": rec.finished, "error": error}
+
+
+def _hang_up() -> threading.Event:
+    """Set once the controller has closed the child's standard input (POLLHUP: its stream is
+    complete, or the controller is gone), whatever the pipe still holds."""
+    ended = threading.Event()
+
+    def watch() -> None:
+        poll = select.poll()
+        poll.register(0, 0)  # no events asked: POLLHUP and POLLERR are always reported
+        while not poll.poll():
+            pass
+        ended.set()
+
+    threading.Thread(target=watch, name="stream-end", daemon=True).start()
+    return ended
 
 
 def serve(how: str) -> None:

@@ -63,6 +63,9 @@ class ScriptedHardware:
         self.calls.append(("step", timeout_s))
         return self.steps.pop(0) if self.steps else None
 
+    def why_silent(self) -> str:
+        return ""
+
     def read(self, now_ns: int, judge: InputJudge) -> Observation:
         self.calls.append(("read", now_ns))
         self.judges.append((judge.state_limit_s, judge.status_limit_s))
@@ -129,7 +132,11 @@ def cfg() -> RigConfig:
 
 def _loop(cfg: RigConfig, hw: ScriptedHardware, lockstep: bool):
     ctx = RunContext(cfg, WaitingClock(T0), threading.Event(), RunCounters(), ListRecorder())
-    pacer = LockstepPacer(ctx, hw.step) if lockstep else RealtimePacer(ctx, hw.wait_inputs)
+    pacer = (
+        LockstepPacer(ctx, hw.step, hw.why_silent)
+        if lockstep
+        else RealtimePacer(ctx, hw.wait_inputs)
+    )
     params = ParameterService(cfg)
     return ControlLoop(ctx, Controller(cfg), hw, pacer, params), ctx, params
 

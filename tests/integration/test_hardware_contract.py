@@ -167,7 +167,7 @@ def test_the_seams_lifecycle_against_the_emulated_rig(profile, transport, tmp_pa
     with emulated_rig(cfg_file, key), profile_seam(cfg, stop) as hw:
         hw.configure(stop)  # returns once the peer answered
         assert not stop.is_set()
-        judge = LockstepPacer(hw.ctx, hw.step)
+        judge = LockstepPacer(hw.ctx, hw.step, hw.why_silent)
         arm(hw)
         still = [period(hw, judge, (0.0, 0.0)) for _ in range(3)]
         assert {o.drive_mode for o in still} == {"enabled"}
