@@ -86,7 +86,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "already is refused unless --force",
     )
     p.add_argument(
-        "--force", action="store_true", help="run into an --out that holds an experiment"
+        "--force",
+        action="store_true",
+        help="run into an --out that holds an experiment: its results.json, report.md, "
+        "figures and the logs of the runs planned anew are removed before the first run",
     )
     p.add_argument(
         "--reps",
@@ -284,11 +287,15 @@ def run_on(
     """Write the runs' configurations, run them on the cluster ``cl`` and write the report."""
     from rt_controller.commands.output import output_dir
     from rt_controller.rig.experiment import prepare
-    from rt_controller.rig.experiment_report import write_outputs
+    from rt_controller.rig.experiment_report import clear_earlier, write_outputs
     from rt_controller.rig.supervise import RigInterrupted, signals_deferred, supervised
 
     out = settings.out
     output_dir(out, "--out")  # before any run: a file or an unwritable place is one line
+    if args.force:  # an earlier experiment's results must not pass for this one's
+        gone = clear_earlier(settings)
+        if gone:
+            err.print(f"--force: removed the earlier experiment's {', '.join(gone)}")
     with progress.stage(f"writing the runs' configurations into {out}"):
         runs_by_exp, runs = prepare(settings)
     jobs = settings.effective_jobs()
@@ -324,7 +331,10 @@ def run_on(
         print(
             f"hil experiment: run {f['run']} ({f['label']}) failed: {f['error']}", file=sys.stderr
         )
-    not_run = [r.spec.name for r in runs.values() if r.status == "pending"]
+    for r in runs.values():  # not run for a known reason (a shared process died): said
+        if r.status == "pending" and r.error:
+            print(f"hil experiment: run {r.spec.name} ({r.spec.label}) {r.error}", file=sys.stderr)
+    not_run = [r.spec.name for r in runs.values() if r.status == "pending" and not r.error]
     if not_run:
         print(f"hil experiment: not run: {', '.join(not_run)}", file=sys.stderr)
     if args.json:
@@ -427,7 +437,9 @@ def _report_run(console: Console, run: RunResult, failed_in_a_row: int, experime
             f"{run.summary.get('f_final_norm', float('nan')):.3g} px ({_took(run)})"
         )
         return 0
-    if run.status == "pending":
+    if run.status == "pending":  # not run: no failure of its own
+        if run.error:
+            console.print(f"[yellow]{run.spec.label}: {run.error}[/]", highlight=False)
         return failed_in_a_row
     console.print(f"[red]{run.spec.label}: FAILED[/] ({_took(run)})")
     failed_in_a_row += 1

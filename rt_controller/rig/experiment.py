@@ -186,7 +186,7 @@ class RunResult:
     config_file: Path
     log: Path
     status: str = "pending"
-    """pending | ok | failed"""
+    """pending (not run; ``error`` says why when known) | ok | failed"""
     can: str | None = None
     """The CAN bus spec the run used (see :func:`bus_for_run`)."""
     summary: dict[str, Any] = field(default_factory=dict)
@@ -386,7 +386,8 @@ def execute_batch(
 ) -> list[RunResult]:
     """Run a batch (:func:`batches`): one run through :func:`execute`, more as a plan on one
     set of processes (:func:`~rt_controller.rig.processes.run_rig_plan`). Failures are
-    recorded on the runs; runs stopped through ``cancel`` before they ended stay ``pending``."""
+    recorded on the runs (:func:`~rt_controller.rig.experiment_plan.record_plan`); runs stopped
+    through ``cancel``, or after a shared process died, stay ``pending`` (not run)."""
     if len(batch) == 1:
         return [execute(batch[0], settings, None, cancel)]
     t0 = time.monotonic()
@@ -414,35 +415,20 @@ def execute_batch(
         plan=plan_file,
         cancel=cancel,
     )
+    from rt_controller.rig.experiment_plan import record_plan
+
     summaries: list[dict[str, Any]] = []
-    error: str | None = None
+    error: BaseException | None = None
     cancelled = False
     try:
-        summaries, exc = run_rig_plan(opts, len(batch))
-        error = None if exc is None else f"{type(exc).__name__}: {exc}"
+        summaries, error = run_rig_plan(opts, len(batch))
     except RigInterrupted:
         raise
     except RigCancelled as exc:  # the runs that ended before keep their results
         summaries, cancelled = list(exc.summaries), True
     except (ControllerError, HalError, OSError) as exc:
-        error = f"{type(exc).__name__}: {exc}"
-    by_name = {s.get("run"): s for s in summaries}
-    for run in batch:
-        summary = by_name.get(run.spec.name)
-        if summary is None and cancelled:  # not run
-            run.status, run.summary = "pending", {}
-            continue
-        run.can = can
-        if summary is None:
-            run.status, run.error = "failed", error or "the controller printed no summary"
-            run.wall_s = None
-            continue
-        try:
-            finish(run, summary)
-        except (ControllerError, HalError, OSError) as exc:  # an unreadable log
-            run.status, run.error = "failed", f"{type(exc).__name__}: {exc}"
-        wall = summary.get("wall_s")
-        run.wall_s = float(wall) if isinstance(wall, int | float) else None
+        error = exc
+    record_plan(batch, summaries, error, can, cancelled)  # a run after a death: not run
     if batch[0].wall_s is not None:  # the first run carries the processes' start-up
         batch[0].wall_s += max(0.0, time.monotonic() - t0 - sum(r.wall_s or 0 for r in batch))
     return batch

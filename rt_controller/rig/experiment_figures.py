@@ -17,6 +17,13 @@ from rt_controller.rig.experiment_results import LAW_NAMES, table1_rows
 
 LAW_STYLES = {"rhc": "-", "ioc": "--", "pbc": "-."}
 HORIZON_STYLES = {0.02: "-", 0.1: "--", 1.0: "-."}
+PANELS = {"f": ("f", "px"), "xi": ("ξ", ""), "u": ("u", "N·m")}
+"""The overlays' quantities: ``STEM_<key>.png`` each, with its symbol and unit."""
+FIGURE_FILES = (
+    *(f"{stem}_{name}.png" for stem in ("fig3", "fig4") for name in PANELS),
+    "table1_J.png",
+)
+"""Every figure file an experiment may write in its output folder."""
 
 
 # ---------------------------------------------------------------------------------- figures
@@ -35,8 +42,7 @@ def plot_overlay(
 
     logs = [(label, style, read_log(path, raw=False)) for label, style, path in curves]
     written = []
-    units = {"f": ("f", "px"), "xi": ("ξ", ""), "u": ("u", "N·m")}
-    for name, (sym, unit) in units.items():
+    for name, (sym, unit) in PANELS.items():
         fig = Figure(figsize=(8, 5.5), layout="constrained")
         axes = fig.subplots(2, 1, sharex=True)
         for label, style, log in logs:

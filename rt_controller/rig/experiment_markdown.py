@@ -116,7 +116,7 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
             str(r["deadline_misses"] if r["deadline_misses"] is not None else "—"),
             str(r["fallbacks"] if r["fallbacks"] is not None else "—"),
             "—" if r["wall_s"] is None else f"{r['wall_s']:.1f}",
-            r["status"],
+            _status(r),
         ]
         md.append("| " + " | ".join(cells) + " |")
     md += ["", "Each run again (from inside this folder):", "", "```sh"]
@@ -188,6 +188,13 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
                for f in res["failures"]]  # fmt: skip
         md.append("")
     return "\n".join(md)
+
+
+def _status(run: dict[str, Any]) -> str:
+    """A run's status cell: a run not run says so, and why when known (a process died)."""
+    if run["status"] != "pending":
+        return run["status"]
+    return run["error"] or "not run"
 
 
 def _spread(row: dict[str, Any]) -> str:

@@ -9,10 +9,11 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from hal.config import load_config
 from hal.strict_json import finite
 from hal.whole_file import written_whole
-from rt_controller.rig.experiment import RunResult, RunSpec, Settings
-from rt_controller.rig.experiment_figures import write_figures
+from rt_controller.rig.experiment import RunResult, RunSpec, Settings, plan
+from rt_controller.rig.experiment_figures import FIGURE_FILES, write_figures
 from rt_controller.rig.experiment_markdown import render_report
 from rt_controller.rig.experiment_results import build_results, initial_4v
 
@@ -34,3 +35,30 @@ def write_outputs(
     with written_whole(settings.out / "report.md") as tmp:
         tmp.write_text(render_report(res, initial_4v(runs)), encoding="utf-8")
     return res
+
+
+def clear_earlier(settings: Settings) -> list[str]:
+    """``--force``, before any run: remove what an earlier experiment wrote in the output
+    folder that this one writes anew (``results.json``, ``report.md``, the figures, and the
+    logs and plans of the runs it plans), so that a run killed or failing before its write-up
+    leaves no earlier results to be read as its own. Nothing else is touched: the logs of runs
+    not planned now, rerun logs, files the experiment does not write. Returns what went
+    (paths relative to the output folder)."""
+    out = settings.out
+    names = {
+        s.name for specs in plan(settings, load_config(settings.config)).values() for s in specs
+    }
+    known = [
+        "results.json",
+        "report.md",
+        *FIGURE_FILES,
+        *(f"logs/{n}.mcap" for n in sorted(names)),
+        *(f"plans/{n}.json" for n in sorted(names)),
+    ]
+    gone = []
+    for rel in known:
+        path = out / rel
+        if path.is_file() or path.is_symlink():
+            path.unlink()
+            gone.append(rel)
+    return gone
