@@ -90,7 +90,8 @@ def rhc_options_note(args: argparse.Namespace, cfg: RigConfig, prog: str) -> Non
     given = rhc_options_off_law(args, cfg)
     if given:
         print(
-            f"{prog}: note: {', '.join(given)} only take effect once the law is switched to rhc "
+            f"{prog}: note: {', '.join(given)} only take{'s' if len(given) == 1 else ''} effect "
+            "once the law is switched to rhc "
             f"(the law in force is {cfg.controller.law}; hil param set controller.law=rhc)",
             file=sys.stderr,
         )

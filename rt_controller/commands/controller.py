@@ -189,10 +189,14 @@ def run_plan_command(args: argparse.Namespace) -> int:
     given = [o for o, v in (("--law", args.law), ("--log", args.log)) if v]
     given += ["--duration"] if args.duration else []
     if given:
-        raise ControllerConfigError(f"--plan gives each run's law, duration and log: drop {given}")
+        raise ControllerConfigError(
+            f"--plan gives each run's law, duration and log: drop {', '.join(given)}"
+        )
     tuned = [f"--{n}" for n in ("rate", *RHC_ONLY_OPTIONS) if getattr(args, n) is not None]
     if tuned:  # each run's config file is run as it is
-        raise ControllerConfigError(f"--plan runs each run's config as it is: drop {tuned}")
+        raise ControllerConfigError(
+            f"--plan runs each run's config as it is: drop {', '.join(tuned)}"
+        )
     runs = load_plan(args.plan)
 
     def prepare(cfg: RigConfig) -> RigConfig:

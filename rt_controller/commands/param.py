@@ -73,9 +73,11 @@ def open_hub_session(
 ) -> Any:
     """A live tool's zenoh session (``--zenoh-endpoint``/``--zenoh-config``), waiting for the
     rig's hub; :class:`Interrupted` when a signal ends the wait."""
+    from hal.arguments import check_zenoh_options
     from hal.errors import HalStopped
     from hal.zenoh_session import open_session
 
+    check_zenoh_options(args)
     try:
         return open_session(
             cfg,

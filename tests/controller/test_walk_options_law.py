@@ -107,4 +107,4 @@ def test_a_plan_refuses_the_options_its_runs_configs_give(
     plan.write_text('{"runs": []}', encoding="utf-8")
     argv = ["controller", "--no-rt", "--plan", str(plan), option, "20"]
     line = error_line(argv, capsys)
-    assert line.endswith(f"error: --plan runs each run's config as it is: drop ['{option}']")
+    assert line.endswith(f"error: --plan runs each run's config as it is: drop {option}")
