@@ -282,6 +282,8 @@ def summary_after(
     if summary is None:
         out["warnings"] = run_warnings(out)
     out.setdefault("warnings", [])
+    if end.stopped_because:  # the rig's own stop (the problem says why), not someone's signal
+        out["warnings"] = [w for w in out["warnings"] if "stopped by SIG" not in w]
     return out
 
 

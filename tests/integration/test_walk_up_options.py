@@ -62,3 +62,15 @@ def test_monitor_port_0_says_which_port_the_live_view_got(tmp_path):
     port = int(said[0].split("ws://127.0.0.1:")[1].split()[0])
     assert 0 < port < 65536
     assert json.loads(done.stdout)["exit_codes"]["monitor"] == 0
+
+
+def test_a_run_the_budget_cut_short_is_not_warned_as_stopped_by_a_signal(tmp_path):
+    """The rig's own stop at the end of its wall-clock budget is the problem (hung), not a
+    "stopped by SIGTERM" warning that reads as someone else's signal."""
+    args = ["up", "--lockstep", "--duration", "600", "--wall-timeout", "15", "--json"]
+    done = run_hil([*args, "--log", str(tmp_path / "run.mcap"), *_private()], timeout_s=240)
+    assert done.returncode == 1, done.stdout + done.stderr
+    summary = json.loads(next(x for x in done.stdout.splitlines() if x.startswith("{")))
+    assert summary["ticks"], summary  # it ran a while: the controller printed its summary
+    assert "wall-clock budget" in summary["end_reason"], summary["end_reason"]
+    assert not [w for w in summary["warnings"] if "stopped by SIG" in w], summary["warnings"]
