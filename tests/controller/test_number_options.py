@@ -10,21 +10,9 @@ from pathlib import Path
 import pytest
 
 from hal.config import RigConfig
-from rt_controller.cli import main
 from rt_controller.config_rules import apply_overrides
 from rt_controller.errors import ControllerConfigError
-
-
-def error_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    """``argv`` ends in status 2 and one ``error:`` line on stderr, never a traceback."""
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if "error:" in ln]
-    assert code == 2 and len(lines) == 1 and "Traceback" not in err, (code, err)
-    return lines[0]
+from tests.support import error_line
 
 
 @pytest.fixture

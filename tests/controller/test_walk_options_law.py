@@ -15,19 +15,9 @@ import pytest
 from rt_controller.cli import main
 from rt_controller.commands.common import config_from_args
 from rt_controller.errors import ControllerConfigError
+from tests.support import error_line
 
 RHC_ONLY = [("--horizon", "0.2"), ("--steps", "12"), ("--kmax", "3"), ("--zeta", "40")]
-
-
-def error_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if "error:" in ln]
-    assert code == 2 and len(lines) == 1 and "Traceback" not in err, (code, err)
-    return lines[0]
 
 
 @pytest.fixture

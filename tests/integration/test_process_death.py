@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import threading
 import time
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from rt_controller.config_rules import config_toml
 from rt_controller.rig.failures import RigProcessDied
 from rt_controller.rig.options import RigOptions
 from rt_controller.rig.processes import run_rig_plan
-from tests.support import cycles_logged, start_hil_up
+from tests.support import cycles_logged, killed_once_ticking, start_hil_up
 from tests.support.proc import WAIT_S, child_running, processes_mentioning, reaped, wait_for
 
 pytestmark = pytest.mark.integration
@@ -129,23 +128,9 @@ def test_a_plan_run_cut_short_by_a_death_has_its_summary(tmp_path, victim):
     ]
     plan = tmp_path / "plan.json"
     plan.write_text(json.dumps({"runs": doc}), encoding="utf-8")
-    done = threading.Event()
-
-    def kill_when_ticking() -> None:
-        while not done.is_set() and cycles_logged(logs["first"]) < TICKS_BEFORE_KILL:
-            time.sleep(0.05)
-        pid = child_running(os.getpid(), victim)
-        if pid is not None and not done.is_set():
-            os.kill(pid, signal.SIGKILL)
-
-    killer = threading.Thread(target=kill_when_ticking, daemon=True)
-    killer.start()
     opts = RigOptions(config=str(config), duration_s=1200.0, lockstep=True, plan=plan)
-    try:
+    with killed_once_ticking(logs["first"], victim, TICKS_BEFORE_KILL):
         summaries, error = run_rig_plan(opts, 2)
-    finally:
-        done.set()
-        killer.join()
     assert isinstance(error, RigProcessDied) and error.end.name == victim, error
     (cut,) = summaries
     assert cut["run"] == "first" and cut["ended_by"]["process"] == victim, cut

@@ -5,16 +5,10 @@ failures of their own."""
 
 from __future__ import annotations
 
-import os
-import signal
-import threading
-import time
-
 import pytest
 
 from rt_controller.rig.experiment import Settings, execute_batch, prepare
-from tests.support import cycles_logged
-from tests.support.proc import child_running
+from tests.support import killed_once_ticking
 
 pytestmark = pytest.mark.integration
 
@@ -27,22 +21,8 @@ def test_runs_after_a_shared_process_died_are_not_run(tmp_path, victim):
     _, runs = prepare(settings)
     batch = list(runs.values())
     first = batch[0]
-    done = threading.Event()
-
-    def kill_when_ticking() -> None:
-        while not done.is_set() and cycles_logged(first.log) < TICKS_BEFORE_KILL:
-            time.sleep(0.05)
-        pid = child_running(os.getpid(), victim)
-        if pid is not None and not done.is_set():
-            os.kill(pid, signal.SIGKILL)
-
-    killer = threading.Thread(target=kill_when_ticking, daemon=True)
-    killer.start()
-    try:
+    with killed_once_ticking(first.log, victim, TICKS_BEFORE_KILL):
         execute_batch(batch, settings)
-    finally:
-        done.set()
-        killer.join()
     assert first.status == "failed" and victim in (first.error or ""), first.error
     for run in batch[1:]:
         assert run.status == "pending", (run.spec.name, run.status, run.error)

@@ -7,13 +7,16 @@ processes a test started).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -195,3 +198,42 @@ def nominal_rk4(model, q, dq, tau, dt):
         q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q),
         dq + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v),
     )
+
+
+@contextlib.contextmanager
+def killed_once_ticking(log: Path, victim: str, ticks: int) -> Iterator[None]:
+    """While inside: SIGKILL this process's child running ``hil VICTIM`` once ``log`` holds
+    ``ticks`` cycle records (nothing if the block ends first)."""
+    from tests.support.proc import child_running
+
+    done = threading.Event()
+
+    def kill_when_ticking() -> None:
+        while not done.is_set() and cycles_logged(log) < ticks:
+            time.sleep(0.05)
+        pid = child_running(os.getpid(), victim)
+        if pid is not None and not done.is_set():
+            os.kill(pid, signal.SIGKILL)
+
+    killer = threading.Thread(target=kill_when_ticking, daemon=True)
+    killer.start()
+    try:
+        yield
+    finally:
+        done.set()
+        killer.join()
+
+
+def error_line(argv: list[str], capsys: Any) -> str:
+    """``hil ARGV`` in-process ends in status 2 and one ``error:`` line on stderr, never a
+    traceback; the line (``capsys``: pytest's fixture)."""
+    from rt_controller.cli import main
+
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if "error:" in ln]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, (code, err)
+    return lines[0]
