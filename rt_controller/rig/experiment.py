@@ -428,7 +428,7 @@ def execute_batch(
         summaries, cancelled = list(exc.summaries), True
     except (ControllerError, HalError, OSError) as exc:
         error = exc
-    record_plan(batch, summaries, error, can, cancelled)  # a run after a death: not run
+    record_plan(batch, summaries, error, can, finish, cancelled)  # after a death: not run
     if batch[0].wall_s is not None:  # the first run carries the processes' start-up
         batch[0].wall_s += max(0.0, time.monotonic() - t0 - sum(r.wall_s or 0 for r in batch))
     return batch

@@ -4,23 +4,26 @@ handed back: the summaries of the runs that ended and why the rest did not."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from hal.errors import HalError
 from rt_controller.errors import ControllerError
-from rt_controller.rig.experiment import RunResult, finish
 from rt_controller.rig.failures import RigProcessDied
 
 
 def record_plan(
-    batch: list[RunResult],
+    batch: list[Any],
     summaries: list[dict[str, Any]],
     error: BaseException | None,
     can: str | None,
+    finish: Callable[[Any, dict[str, Any]], None],
     cancelled: bool = False,
 ) -> None:
-    """Record each run of ``batch``: one with a summary as it ended (:func:`finish`); one
-    without, ``pending`` when the plan was ``cancelled``, else ``failed`` with ``error``.
+    """Record each run of ``batch`` (its :class:`~rt_controller.rig.experiment.RunResult`):
+    one with a summary as it ended (``finish``, :func:`~rt_controller.rig.experiment.finish`,
+    handed in: this module imports none of ``experiment``); one without, ``pending`` when the
+    plan was ``cancelled``, else ``failed`` with ``error``.
 
     When a process the runs share died (:class:`RigProcessDied`: the emulator, vision or the
     controller), the run it cut short failed (its summary says how) and the runs after it

@@ -15,7 +15,14 @@ def test_sighup_mid_bench_removes_the_temporary_folder_and_says_so(tmp_path):
     cmd = [sys.executable, "-m", "rt_controller.cli", "bench", "loop", "--rates", "50"]
     cmd += ["--duration", "60", "--host-probe", "0", "--lockstep-duration", "0"]
     env = {**os.environ, "TMPDIR": str(tmp_path), "HIL_PROGRESS_AFTER_S": "0"}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(  # SIGHUP as a terminal's, even under a nohup'd test run
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),
+    )
     try:
         wait_for(lambda: any(tmp_path.glob("hil-bench-*/loop-50.mcap")), "the run's log", proc)
         proc.send_signal(signal.SIGHUP)
