@@ -24,9 +24,22 @@ SUMMARY_KEYS = (
     "monitor_error",
 )  # fmt: skip
 """What ``hil up`` prints of the controller's summary, in this order."""
-NONZERO_ONLY = ("rejections", "recorder")
+NONZERO_ONLY = ("input_counts", "rejections", "recorder")
 """Counter blocks of which the table shows only the counters that are not zero (``--json``
 has them all)."""
+NOT_REJECTIONS = frozenset(
+    {
+        "accepted", "received", "ignored", "lost", "invalid", "repeats", "source_changes",
+        "resyncs", "resent", "images_missing", "images_of_run_before", "callback_errors",
+    }
+)  # fmt: skip
+"""The counters of the summary's ``rejections`` block that count no rejection: frames and
+messages accepted or received (:class:`hal.e2e.E2EStats`, the feature link's counters), and
+what the link saw besides (frames lost in counter gaps, accepted repeats, resyncs, images
+missing...). The table shows them as ``input_counts``, ``rejections`` only the rest."""
+WRITTEN_WORDS = "written {} (the topics listed; the writer's /scene, /camera, /tf not counted)"
+"""The recorder's ``written`` in the table: the messages of the topics it lists, which the
+controller handed to the writer, not every message of the log (``hil info`` counts those)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -185,10 +198,15 @@ def table_view(summary: dict) -> dict:
     if out.get("stop_signal"):
         out["end_reason"] = end_words(out)  # "stopped by SIGINT"
         out.pop("stop_signal")
+    if isinstance(out.get("rejections"), dict):
+        out = split_rejections(out)
     for key in NONZERO_ONLY:
         if isinstance(out.get(key), dict):
             counts = nonzero(out[key])
-            out[key] = ", ".join(f"{k} {v}" for k, v in counts.items()) or "none"
+            words = [f"{k} {v}" for k, v in counts.items()]
+            if key == "recorder" and "written" in counts:
+                words[list(counts).index("written")] = WRITTEN_WORDS.format(counts["written"])
+            out[key] = ", ".join(words) or "none"
     if isinstance(out.get("dsp"), dict):
         out["dsp"] = dsp_words(out["dsp"])
     if isinstance(out.get("log_contents"), dict):
@@ -203,6 +221,21 @@ def table_view(summary: dict) -> dict:
             out[key] = ", ".join(f"{k} {v}" for k, v in flat(value).items()) or "none"
         elif value is None:  # never a Python None: what it means
             out[key] = none_words(key, out)
+    return out
+
+
+def split_rejections(summary: dict) -> dict:
+    """``summary`` with its ``rejections`` block split in two: the counters of
+    :data:`NOT_REJECTIONS` (by their last name: ``can_rx.accepted``) as ``input_counts``, placed
+    before ``rejections``, which keeps the others."""
+    block = flat(summary["rejections"])
+    inputs = {k: v for k, v in block.items() if k.rsplit(".", 1)[-1] in NOT_REJECTIONS}
+    out: dict = {}
+    for key, value in summary.items():
+        if key == "rejections":
+            out["input_counts"] = inputs
+            value = {k: v for k, v in block.items() if k not in inputs}
+        out[key] = value
     return out
 
 

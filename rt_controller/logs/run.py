@@ -3,11 +3,13 @@
 Every table exists twice: as a dict of NumPy columns (:meth:`Run.arrays`, always available) and
 as a pandas DataFrame built from those columns (``cycles``, ``diagnostics``, ``can_frames``,
 ``canopen_frames``, only with the ``analysis`` extra). Missing numbers are NaN; a field no
-record had is no column.
+record had is no column. In ``can_frames`` an integer DBC signal is a pandas nullable integer
+column instead (``Int64``, ``<NA>`` where a frame lacks it: :func:`integer_signals`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import re
@@ -72,6 +74,10 @@ class Run:
     def __init__(self, log: LoadedLog) -> None:
         self.log = log
         self._arrays: dict[str, dict[str, np.ndarray]] = {}
+        self._can_ints: dict[str, list[Any]] = {}
+        """The integer DBC signals' columns of ``can`` as decoded (Python ints, None where
+        absent): the DataFrame's nullable integer columns, exact."""
+        self._can_dtypes: dict[str, str] = {}
 
     def __repr__(self) -> str:
         cut = ", truncated" if self.truncated else ""
@@ -205,6 +211,8 @@ class Run:
         db = load_database().db
         rows = [_decoded(db, direction, frame) for direction, frame in frames]
         cols = self._with_time(columns(rows))
+        self._can_dtypes = {k: v for k, v in integer_signals(db).items() if k in cols}
+        self._can_ints = {k: [row.get(k) for row in rows] for k in self._can_dtypes}
         order = [*_CAN_LEADING, "decode_error"]
         for msg in db.messages:
             for sig in msg.signals:
@@ -229,6 +237,12 @@ class Run:
         """The table ``topic`` as a DataFrame (``cycle`` indexed by ``tick``)."""
         pd = require("pandas", "a DataFrame of the log")
         df = pd.DataFrame(self.arrays(topic))
+        if topic == "can":
+            for name, dtype in self._can_dtypes.items():
+                # from the decoded ints (a float column rounds beyond 2**53); a column of
+                # other than whole numbers after all stays as it was
+                with contextlib.suppress(TypeError, ValueError):
+                    df[name] = pd.array(self._can_ints[name], dtype=dtype)
         if topic == "cycle" and "tick" in df.columns:
             df = df.set_index("tick")
         return df
@@ -251,7 +265,11 @@ class Run:
         """Every raw CAN frame (``/hal/can/rx`` and ``/hal/can/tx``) in time order: ``t_ns``,
         ``time_s``, ``direction`` (rx/tx), ``frame_id``, ``message`` (DBC name, None for an
         unknown id), ``dlc``, ``data`` (hex), ``is_fd``, then one column per DBC signal
-        (physical values; an enumerated signal also has ``SIGNAL_name``, its label). A
+        (physical values): an integer signal (not float, scale 1, whole offset:
+        :func:`integer_signals`) as a nullable ``Int64`` column (``UInt64`` for a 64-bit
+        unsigned one), ``<NA>`` in the frames without it, every other signal float64 (NaN
+        there). An enumerated signal (DBC ``VAL_``) is its raw value in such an integer column
+        and its label in ``SIGNAL_name``, a string column (missing where absent), as before. A
         ``cia402`` log's CANopen frames are decoded by COB-ID instead: ``message`` is the
         kind (``nmt``, ``sync``, ``emcy``, ``tpdo1``, ``tpdo2``, ``rpdo1``, ``sdo_request``,
         ``sdo_response``, ``heartbeat``), ``node``, then ``statusword``, ``state``,
@@ -270,6 +288,25 @@ class Run:
         ``kind``, ``node``, ``data``, then the decoded ``fields`` one column each, and
         ``decode_error``."""
         return self.frame("canopen")
+
+
+def integer_signals(db: Any) -> dict[str, str]:
+    """The columns of ``can_frames`` that hold whole numbers, with their pandas dtype: the
+    signal names of the cantools database ``db`` of which every signal (a name may be in
+    several messages: ``Tick``, ``Counter``) is not a float (``is_float``), has ``scale`` 1
+    and a whole ``offset``. ``UInt64`` for a 64-bit unsigned signal, else ``Int64``."""
+    out: dict[str, str] = {}
+    refused: set[str] = set()
+    for msg in db.messages:
+        for sig in msg.signals:
+            whole = not sig.is_float and sig.scale == 1 and float(sig.offset).is_integer()
+            if not whole:
+                refused.add(sig.name)
+            elif sig.length >= 64 and not sig.is_signed:
+                out[sig.name] = "UInt64"
+            else:
+                out.setdefault(sig.name, "Int64")
+    return {k: v for k, v in out.items() if k not in refused}
 
 
 def _scalar(value: Any) -> Any:

@@ -1,0 +1,47 @@
+"""``hil up``'s table says what its rows count: ``rejections`` lists only rejections (the
+accepted and received counts of the same block are the ``input_counts`` row), and the recorder's
+``written`` says it is the messages of the topics listed, not every message of the log (the
+writer's /scene, /camera and /tf drawings are not counted)."""
+
+from __future__ import annotations
+
+from rt_controller.commands.up import table_view
+
+REJECTIONS = {
+    "can_rx": {"accepted": 357, "ignored": 0, "lost": 0, "bad_crc": 2, "rejected": 2},
+    "features": {
+        "received": 193,
+        "accepted": 190,
+        "stale_age": 3,
+        "stale": 3,
+        "rejected": 3,
+        "repeats": 4,
+        "resyncs": 0,
+    },
+    "dsp_rejected_frames": 1,
+}
+
+
+def test_rejections_lists_only_rejections():
+    table = table_view({"rejections": REJECTIONS})
+    assert table["rejections"] == (
+        "can_rx.bad_crc 2, can_rx.rejected 2, features.stale_age 3, features.stale 3, "
+        "features.rejected 3, dsp_rejected_frames 1"
+    )
+    assert table["input_counts"] == (
+        "can_rx.accepted 357, features.received 193, features.accepted 190, features.repeats 4"
+    )
+
+
+def test_a_run_without_rejections_says_none():
+    ok = {"can_rx": {"accepted": 357, "bad_crc": 0}, "features": {"received": 193}}
+    table = table_view({"rejections": {**ok, "dsp_rejected_frames": 0}})
+    assert table["rejections"] == "none"
+    assert table["input_counts"] == "can_rx.accepted 357, features.received 193"
+
+
+def test_the_recorder_row_says_what_written_counts():
+    recorder = {"/controller/cycle": 150, "/hal/can/rx": 357, "written": 507, "dropped": 0}
+    row = table_view({"recorder": recorder})["recorder"]
+    assert row.startswith("/controller/cycle 150, /hal/can/rx 357, written 507 (")
+    assert "topics listed" in row and "/scene" in row and "/camera" in row
