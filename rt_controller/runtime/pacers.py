@@ -31,6 +31,11 @@ LOCKSTEP_FEATURE_TIMEOUT_S = 1.0
 """Lockstep: how long a step may wait for the features answering its period's pose."""
 STEP_POLL_S = 0.25
 """Lockstep: the wait for a step looks at the stop request this often."""
+NO_SYNC_HINT = (
+    "; none came since the start: start `hil emulator --lockstep` on the same --can and rig"
+    " key, or the whole rig with `hil up --lockstep`"
+)
+"""Lockstep: appended to the end reason when no Sync came since the run started."""
 ARMING_POLL_NS = 1_000_000
 """Lockstep: arming steps this far apart (the world does not step before it is armed)."""
 
@@ -151,7 +156,7 @@ class LockstepPacer:
         counters = self.ctx.counters
         patience = LOCKSTEP_SYNC_TIMEOUT_S if max_ticks is None else LOCKSTEP_STALL_TIMEOUT_S
         while not self.ctx.stop.is_set() and (max_ticks is None or counters.ticks < max_ticks):
-            k = self._next_step(patience)
+            k = self._next_step(patience, first=last is None)
             if k is None:
                 return
             missed = 0 if last is None else k - last - 1
@@ -167,9 +172,10 @@ class LockstepPacer:
                 sync=k,
             )
 
-    def _next_step(self, patience_s: float) -> int | None:
+    def _next_step(self, patience_s: float, *, first: bool) -> int | None:
         """The next step's k; None when told to stop or when the world stayed silent for
-        ``patience_s`` (``end_reason`` says which)."""
+        ``patience_s`` (``end_reason`` says which: without a duration, silence after the first
+        step is the world's end, silence before it is not)."""
         waited = 0.0
         while not self.ctx.stop.is_set():
             k = self.step(STEP_POLL_S)
@@ -177,9 +183,9 @@ class LockstepPacer:
                 return k
             waited += STEP_POLL_S
             if waited >= patience_s:
-                if self.ctx.counters.planned_ticks is not None:
+                if first or self.ctx.counters.planned_ticks is not None:
                     why = f"no Sync from the DSP for {patience_s:g} s{self.why_silent()}"
-                    self.ctx.counters.end_reason = why
+                    self.ctx.counters.end_reason = why + (NO_SYNC_HINT if first else "")
                 return None
         return None
 
