@@ -118,6 +118,32 @@ def package_version() -> str:
         return "unknown"
 
 
+def unrecognized(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    """argparse's "unrecognized arguments", with what the command calls an option of that name
+    where it has one: another command's spelling (``hil controller --lockstep``: ``--clock
+    lockstep``; ``hil emulator --clock lockstep``: ``--lockstep``) or a near miss
+    (``--durations``)."""
+    import difflib
+
+    actions = {name: a for a in parser._actions for name in a.option_strings}
+    hints: list[str] = []
+    for i, token in enumerate(unknown):
+        name = token.split("=", 1)[0]
+        if not name.startswith("--"):
+            continue
+        value = token.partition("=")[2] or (unknown[i + 1] if i + 1 < len(unknown) else "")
+        choice = [o for o, a in actions.items() if a.choices and name[2:] in a.choices]
+        near = difflib.get_close_matches(name, list(actions), n=1, cutoff=0.8)
+        if choice:
+            hints.append(f"{choice[0]} {name[2:]}")
+        elif f"--{value}" in actions and actions[f"--{value}"].nargs == 0:
+            hints.append(f"--{value}")
+        elif near:
+            hints.append(near[0])
+    said = f"unrecognized arguments: {' '.join(unknown)}"
+    return f"{said} (did you mean {', '.join(hints)}?)" if hints else said
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from rt_controller.rig.supervise import follow_parent
 
@@ -125,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
     if unknown:
-        args.usage_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        args.usage_parser.error(unrecognized(args.usage_parser, unknown))
     handler: Handler = args.handler
 
     def body() -> int:
