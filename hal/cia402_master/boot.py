@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -120,25 +120,32 @@ def reset_communication(
     booted: dict[int, threading.Event],
     timeout_s: float,
     stop: Any | None = None,
+    on_wait: Callable[[], None] | None = None,
 ) -> None:
     """NMT reset communication to each node (addressed, never broadcast: other devices on a
-    shared bus keep running), then wait until ``booted[node id]`` is set (by whoever follows
-    the node's heartbeats, on its boot-up message)."""
+    shared bus keep running), then ``on_wait()`` (say what is awaited: a drive may take many
+    seconds), then wait until ``booted[node id]`` is set (by whoever follows the node's
+    heartbeats, on its boot-up message)."""
     nodes = list(nodes)
     for node in nodes:
         booted[node.id].clear()
     for node in nodes:
         node.nmt.state = "RESET COMMUNICATION"
+    if on_wait is not None:
+        on_wait()
     deadline = time.monotonic() + timeout_s
     for node in nodes:
         while not booted[node.id].wait(0.05):
             if stop is not None and stop.is_set():
                 raise HalStopped("stopped while waiting for the drives' boot-up")
             if time.monotonic() > deadline:
+                silent = [n.id for n in nodes if not booted[n.id].is_set()]
+                ids = ", ".join(str(i) for i in silent)
+                many = len(silent) > 1
                 raise HalTimeoutError(
-                    f"node {node.id} sent no boot-up within {timeout_s:g} s of NMT reset "
-                    f"communication: is it powered, on this bus at its bit rate, with node "
-                    f"id {node.id}?"
+                    f"node{'s' if many else ''} {ids} sent no boot-up within {timeout_s:g} s "
+                    f"of NMT reset communication: {'are they' if many else 'is it'} powered, "
+                    f"on this bus at its bit rate, with node id{'s' if many else ''} {ids}?"
                 )
 
 

@@ -25,7 +25,7 @@ from canopen.profiles.p402 import BaseNode402, State402
 
 from hal.can_tap import FrameTap
 from hal.cia402_frames import SYNC_ID
-from hal.cia402_master import boot
+from hal.cia402_master import boot, eds
 from hal.cia402_master.units import DriveUnits
 from hal.cia402_master.watch import (
     FaultLog,
@@ -33,7 +33,7 @@ from hal.cia402_master.watch import (
     heartbeat_dictionary,
     state_of,
 )
-from hal.cia402_od import CONTROLWORD, EDS_PATH, TARGET_TORQUE
+from hal.cia402_od import CONTROLWORD, TARGET_TORQUE
 from hal.config.cia402 import CONTROLLER_NODE_ID
 from hal.drive_state import MODE_DISARMED, MODE_ENABLED, MODE_FAULT, MODE_NO_STATUS
 from hal.errors import HalDriveError
@@ -162,21 +162,32 @@ class Cia402Master:
         cls, cfg: Any, bus: Any, *, now_ns: Callable[[], int] = time.monotonic_ns
     ) -> Cia402Master:
         """The master of ``cfg`` (a :class:`hal.config.RigConfig`): the drives of
-        ``[cia402]`` described by the shipped EDS, 0x6072 from ``robot.tau_max``, 0x60C2 and
-        the SYNC period from ``rates.control_hz``."""
+        ``[cia402]``, each described by its EDS (``cia402.eds_1``, ``eds_2``; the shipped one
+        when empty), 0x6072 from ``robot.tau_max``, 0x60C2 and the SYNC period from
+        ``rates.control_hz``."""
         settings = boot.BootSettings(
             master_id=CONTROLLER_NODE_ID,
             heartbeat_ms=HEARTBEAT_MS,
             consumer_ms=CONSUMER_PERIODS * HEARTBEAT_MS,
             period_s=1.0 / cfg.rates.control_hz,
         )
-        ids = (cfg.cia402.node_id_1, cfg.cia402.node_id_2)
-        return cls(bus, ids, lambda _id: str(EDS_PATH), settings, cfg.robot.tau_max, now_ns=now_ns)
+        ods = {
+            node: eds.drive_dictionary(key, value, node) for key, value, node in eds.configured(cfg)
+        }
+        return cls(
+            bus,
+            list(ods),
+            ods.__getitem__,
+            settings,
+            cfg.robot.tau_max,
+            now_ns=now_ns,
+        )
 
     # --- boot --------------------------------------------------------------------------------
-    def boot(self, stop: Any | None = None) -> None:
+    def boot(self, stop: Any | None = None, on_wait: Callable[[], None] | None = None) -> None:
         """Reset, configure and map every drive, CST with 0x6061 read back, NMT start, and the
-        controller's heartbeat on (see :mod:`hal.cia402_master.boot`)."""
+        controller's heartbeat on (see :mod:`hal.cia402_master.boot`); ``on_wait()`` once the
+        resets are sent, before the wait for the boot-ups."""
         if not self.connected:
             self.network.connect()
             self.connected = True
@@ -184,7 +195,7 @@ class Cia402Master:
         with OtherMasters(self.network, s.master_id) as others:
             others.refuse(OTHER_MASTER_LISTEN_S)  # before a drive hears anything from us
             booted = {w.node.id: w.booted for w in self.watches}
-            boot.reset_communication(self.nodes, booted, s.boot_timeout_s, stop)
+            boot.reset_communication(self.nodes, booted, s.boot_timeout_s, stop, on_wait)
             self.units, self.limits = [], []
             joints = zip(self.nodes, self.watches, self.torque_limits_nm, strict=True)
             for node, watch, limit_nm in joints:
@@ -352,10 +363,13 @@ class Cia402Master:
         for node in self.nodes:
             boot.watch_controller(node, self.settings, on=True)
 
-    def check(self, stop: Any | None = None) -> list[dict[str, Any]]:
-        """Boot the drives as a run would (the maps read back, CST read back), describe each
-        by SDO, and :meth:`release` them: no SYNC is sent, no drive is enabled."""
-        self.boot(stop)
+    def check(
+        self, stop: Any | None = None, on_wait: Callable[[], None] | None = None
+    ) -> list[dict[str, Any]]:
+        """Boot the drives as a run would (the maps read back, CST read back; ``on_wait`` as
+        :meth:`boot`'s), describe each by SDO, and :meth:`release` them: no SYNC is sent, no
+        drive is enabled."""
+        self.boot(stop, on_wait)
         try:
             return [boot.describe(node) for node in self.nodes]
         finally:

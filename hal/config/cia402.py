@@ -2,7 +2,8 @@
 
 Both sides read it: the emulated drives (``hil emulator --profile cia402``) take their node ids
 and object-dictionary values from it, and the controller's master finds the drives by these node
-ids (the units it then reads from the drives themselves, by SDO)."""
+ids, each described by its EDS (``eds_1``, ``eds_2``: the vendor's file of a real drive; the
+units it then reads from the drives themselves, by SDO)."""
 
 from __future__ import annotations
 
@@ -23,6 +24,14 @@ class Cia402Config:
     """CANopen node id of joint 1's drive (1..126; 127 is the controller's)."""
     node_id_2: int = 2
     """CANopen node id of joint 2's drive (1..126; 127 is the controller's)."""
+    eds_1: str = ""
+    """Path of the EDS of joint 1's drive, as its vendor ships it (empty: the shipped
+    ``hal/cia402_drive.eds``, the emulated drive's). Relative to the working directory of the
+    command, like ``transport.key_file``. Checked when the configuration loads: canopen must
+    read it, and it must hold every object the master maps, reads or writes
+    (:data:`hal.cia402_master.eds.REQUIRED_OBJECTS`). The emulated drives ignore it."""
+    eds_2: str = ""
+    """Path of the EDS of joint 2's drive (as ``eds_1``)."""
     bitrate: int = 1_000_000
     """CAN bit rate of the drives' bus, bit/s: given to python-can when the cia402 profile opens
     the bus, so adapters that set their rate (PCAN, Kvaser, ...) run at it; a SocketCAN

@@ -156,13 +156,18 @@ def _one_line(text: str) -> str:
 
 
 def config_from_dict(
-    data: dict[str, Any], *, source: str | None = None, retired_ok: bool = False
+    data: dict[str, Any],
+    *,
+    source: str | None = None,
+    retired_ok: bool = False,
+    files: bool = True,
 ) -> RigConfig:
     """Build and validate a :class:`RigConfig` from a nested dict (parsed TOML or JSON).
 
     Exactly the checks of a file (types, ranges, cross-field constraints); ``source`` (e.g.
     ``"log metadata"``) prefixes the one-line error, as the path does for a file;
-    ``retired_ok`` skips :data:`RETIRED_KEYS` (a log written by an older version).
+    ``retired_ok`` skips :data:`RETIRED_KEYS` (a log written by an older version);
+    ``files=False`` does not read the files it names (a log's config, read on another host).
     """
     try:
         if not isinstance(data, dict):
@@ -174,7 +179,7 @@ def config_from_dict(
                     f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
                 )
             sections[name] = _build_section(name, body, retired_ok=retired_ok)
-        return validate(RigConfig(**sections))
+        return validate(RigConfig(**sections), files=files)
     except HalConfigError as exc:
         msg = _one_line(str(exc))
         raise HalConfigError(f"{source}: {msg}" if source else msg) from None
@@ -225,4 +230,4 @@ def config_from_json(text: str | bytes, *, source: str = "embedded config") -> R
         data = json.loads(text)
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise HalConfigError(f"{source}: not valid JSON: {_one_line(str(exc))}") from None
-    return config_from_dict(data, source=source, retired_ok=True)
+    return config_from_dict(data, source=source, retired_ok=True, files=False)

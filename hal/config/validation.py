@@ -33,9 +33,11 @@ def _check_spd(matrix: Mat2, key: str) -> None:
     )
 
 
-def validate(cfg: RigConfig) -> RigConfig:
+def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
     """Check every setting's range (:data:`~hal.config.ranges.RANGES`) and the cross-field
-    constraints; returns ``cfg`` or raises :class:`HalConfigError` naming the key."""
+    constraints; returns ``cfg`` or raises :class:`HalConfigError` naming the key. ``files``:
+    also the files the configuration names that are read here (the drives' EDS); False for a
+    configuration read back from a log, which may be read on a host without them."""
     r = cfg.robot
     for key in ("l1", "l2", "m1", "m2", "I1", "I2"):
         _require(getattr(r, key) > 0, f"robot.{key}", "must be positive")
@@ -146,6 +148,8 @@ def validate(cfg: RigConfig) -> RigConfig:
             f"must lie within dsp.q_min {d.q_min} .. dsp.q_max {d.q_max}, got {s.q0}",
         )
     _check_cia402(cfg)
+    if files:
+        _check_drive_eds(cfg)
     _check_transport(cfg)
     return cfg
 
@@ -180,6 +184,20 @@ def _check_cia402(cfg: RigConfig) -> None:
             f"{rated!r} Nm on joint {j + 1}: robot.tau_max {cfg.robot.tau_max[j]!r} Nm would be "
             f"{cfg.robot.tau_max[j] / rated * 1000:.0f} per mille, beyond INT16 (32767)",
         )
+
+
+def _check_drive_eds(cfg: RigConfig) -> None:
+    """Each configured drive EDS (``cia402.eds_1``, ``eds_2``) read and holding every object
+    the master needs, whatever the profile (``hil cia402 check`` takes any configuration);
+    the empty default, the shipped EDS, is not read again."""
+    c = cfg.cia402
+    if not (c.eds_1 or c.eds_2):
+        return
+    from hal.cia402_master.eds import check_eds, configured  # imports canopen: only when set
+
+    for key, value, node_id in configured(cfg):
+        if value:
+            check_eds(key, value, node_id)
 
 
 def _check_transport(cfg: RigConfig) -> None:

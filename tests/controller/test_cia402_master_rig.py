@@ -171,8 +171,11 @@ def test_hil_cia402_check_without_drives_says_so_in_one_line(capsys):
     assert main(["cia402", "check", "--can", "virtual:cia402-nobody"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        "hil cia402 check: error: node 1 sent no boot-up within 20 s of NMT reset communication: "
-        "is it powered, on this bus at its bit rate, with node id 1?"
+        "hil cia402 check: NMT reset communication sent, waiting up to 20 s for the boot-up of "
+        "node 1 (EDS the shipped hal/cia402_drive.eds) and node 2 (EDS the shipped "
+        "hal/cia402_drive.eds)",
+        "hil cia402 check: error: nodes 1, 2 sent no boot-up within 20 s of NMT reset "
+        "communication: are they powered, on this bus at its bit rate, with node ids 1, 2?",
     ]
 
 
