@@ -19,6 +19,11 @@ DBC: time, direction, frame id, message, one column per signal; a cia402 log's C
 by COB-ID). canopen, only when asked for: a cia402 log's /hal/canopen topic as recorded (the
 frames decoded by the recorder: kind, node, the decoded fields as columns).
 
+The can table's integer signals (Tick, Counter, Enable, an enumerated signal's raw value)
+are integers, as in rt_controller.logs.load(...).can_frames: parquet int64 columns, csv digits
+(4294967295, not 4294967295.0); where a frame lacks the signal, a null and an empty cell. mat
+has no missing integer: doubles, NaN there.
+
 csv and parquet write one file per topic, LOGSTEM.TOPIC.csv (.parquet); mat writes one file,
 LOGSTEM.mat, with a struct per topic (fields: the columns) and a meta struct (the recorded
 configuration as JSON, its digest, the hil.run metadata). --out DIR puts them in DIR (default:

@@ -6,6 +6,10 @@ topic (``cycle``, ``diagnostics``, ``can``, ``canopen``) whose fields are the co
 a ``meta`` struct (the log's path, the recorded configuration as JSON, its digest and the
 ``hil.run`` metadata). Column names are valid MATLAB identifiers already (``q1``, ``f_x``,
 ``can_rx_accepted``, ``Tau1``).
+
+The ``can`` table's columns have the types of ``run.can_frames``: an integer DBC signal is an
+Arrow ``int64`` column with nulls in Parquet and digits with empty cells in CSV; ``.mat`` has
+no missing integer, so every signal is a double with NaN there (:meth:`Run.arrays`).
 """
 
 from __future__ import annotations
@@ -23,7 +27,11 @@ from rt_controller.logs.run import TOPICS, Run, identifier, require
 
 SUFFIXES = {"csv": ".csv", "parquet": ".parquet", "mat": ".mat"}
 """File suffix per format."""
-MODULES = {"csv": ("pandas",), "parquet": ("pyarrow", "pyarrow.parquet"), "mat": ("scipy.io",)}
+MODULES = {
+    "csv": ("pandas",),
+    "parquet": ("pyarrow", "pyarrow.parquet", "pandas"),  # pandas: the can table's integers
+    "mat": ("scipy.io",),
+}
 """What each format needs from the ``analysis`` extra."""
 MATLAB_NAME_MAX = 63
 """MATLAB's ``namelengthmax``."""
@@ -107,12 +115,30 @@ def _write_parquet(run: Run, files: dict[str, Path]) -> list[Written]:
     meta = {"hil.log": str(run.path), "hil.config": run.config_json or ""}
     out = []
     for topic, path in files.items():
+        ints = _integer_columns(run, topic)
         cols = run.arrays(topic)
-        table = pa.table({k: pa.array(_as_list(v)) for k, v in cols.items()})
+        table = pa.table(
+            {k: ints[k] if k in ints else pa.array(_as_list(v)) for k, v in cols.items()}
+        )
         with written_whole(path) as tmp:
             pq.write_table(table.replace_schema_metadata({**meta, "hil.topic": topic}), tmp)
         out.append(Written(topic, path, table.num_rows))
     return out
+
+
+def _integer_columns(run: Run, topic: str) -> dict[str, Any]:
+    """The pandas nullable integer columns of ``run.can_frames`` (its integer DBC signals,
+    ``Int64`` with ``<NA>`` where a frame lacks them) as Arrow integer arrays with nulls, exact;
+    empty for the other tables, whose DataFrames are their NumPy columns as they are."""
+    if topic != "can":
+        return {}
+    pa, pd = require("pyarrow", "parquet export"), require("pandas", "parquet export")
+    df = run.can_frames
+    return {
+        k: pa.array(df[k])
+        for k in df.columns
+        if pd.api.types.is_extension_array_dtype(df[k]) and pd.api.types.is_integer_dtype(df[k])
+    }
 
 
 def _as_list(col: np.ndarray) -> Any:
