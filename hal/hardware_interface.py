@@ -21,7 +21,7 @@ Who paces (``controller.clock``):
 * **lockstep**: the world is stepped one control period at a time, and ``step`` says when the
   next one is there. In the DSP profile the DSP's ``Sync(k)`` paces (the DSP advances its
   physics only after the command answering Sync k); in the CiA 402 profile the controller's
-  own SYNC will step the world (``step`` sends SYNC k, then waits for the drive's PDOs and the
+  own SYNC steps the world (``step`` sends SYNC k, then waits for the drive's PDOs and the
   features of period k). Either way ``write(tau, sync=k, ...)`` answers period k.
 
 This module is pure declarations: :mod:`hal` may not import the runtime, and both profiles

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 from hal import strict_json
 from hal.arguments import MAX_DURATION_S, add_key_option, bounded_float, duration
+from hal.config.hardware import PROFILES
 
 if TYPE_CHECKING:  # heavy imports stay out of `hil --help`
     from plant_emulator.pose_link import PoseLink
@@ -62,7 +63,7 @@ def add_emulator_arguments(p: argparse.ArgumentParser) -> None:
     add_key_option(p)
     p.add_argument(
         "--profile",
-        choices=("dsp", "cia402"),
+        choices=PROFILES,
         help="the hardware to emulate: dsp (our DSP, hal/hil.dbc with SecOC) or cia402 (two "
         "CANopen CiA 402 drives in cyclic synchronous torque mode, node ids from [cia402], paced "
         "by the controller's SYNC); default: hardware.profile of the config (dsp)",

@@ -1,8 +1,9 @@
 """The ``/controller/cycle`` record (one per tick, fields of ``cycle_schema.json``), built here
-and only here: by the daemon's tick, by ``hil replay --out``, by ``hil simulate`` (its decision
-fields) and by the tests that synthesise daemon logs.
+and only here: by the daemon's tick, by ``hil replay --out`` and by the tests that synthesise
+daemon logs.
 
-Pure: no I/O, so the control layer (``simulate``) may use it.
+Pure: no I/O. The decision part of the record is ``Controller.record_fields``, from the
+rule's declared outputs (:data:`rt_controller.control.state.OUTPUTS`).
 """
 
 from __future__ import annotations

@@ -18,6 +18,7 @@ from hal.config import RigConfig, load_config
 from hal.hardware_interface import HardwareInterface, InputJudge, Observation, StopFlag
 from rt_controller.calibration.parameters import ParameterService, Request
 from rt_controller.control.controller import Controller
+from rt_controller.runtime.cia402_hardware import Cia402Hardware
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.counters import RunCounters
 from rt_controller.runtime.hardware import DspHardware
@@ -228,7 +229,9 @@ def test_the_seam_has_the_lifecycle():
     assert set(SEAM) >= {"configure", "activate", "read", "write", "deactivate", "step"}
 
 
-@pytest.mark.parametrize("profile", [DspHardware, ScriptedHardware], ids=lambda p: p.__name__)
+@pytest.mark.parametrize(
+    "profile", [DspHardware, Cia402Hardware, ScriptedHardware], ids=lambda p: p.__name__
+)
 def test_a_profile_has_every_method_of_the_seam_with_its_signature(profile):
     """Structural conformance (a Protocol is not checked at run time): same names, same
     parameters, in the same order and of the same kind."""
