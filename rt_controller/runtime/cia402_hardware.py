@@ -17,17 +17,19 @@ profile's SecOC has no counterpart here); see docs/tutorials/cia402-drive.md.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import Counter
 from typing import Any
 
+from hal.bus import resolve_spec
 from hal.cia402_master.master import Cia402Master, JointState
 from hal.drive_state import MODE_ENABLED, MODE_FAULT
 from hal.hardware_interface import InputJudge, Observation, StopFlag
 from rt_controller.errors import ControllerError
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.feature_link import FeatureLink
-from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, HardwareBase
+from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, NOTICE_AFTER_S, HardwareBase
 from rt_controller.runtime.pacers import LOCKSTEP_FEATURE_TIMEOUT_S
 from rt_controller.sample_stats import percentile
 
@@ -71,7 +73,20 @@ class Cia402Hardware(HardwareBase):
         heartbeat) and subscribe to the features. The first features are awaited while arming
         (:meth:`activate`): the emulated world publishes its camera pose only on SYNC."""
         self._hook_raw_can(self.master.tap)
-        self.master.boot(stop)
+        m, can = self.master, resolve_spec(self.ctx.cfg.transport.can)
+
+        def waiting() -> None:  # said once, when the boot-ups are slow: of the nodes still silent
+            if silent := [str(w.node.id) for w in m.watches if not w.booted.is_set()]:
+                ids, up_to = ", ".join(silent), f"up to {m.settings.boot_timeout_s:g} s"
+                self.ctx.say(
+                    f"waiting for the drives' boot-up on CAN {can} (node ids {ids}, {up_to})"
+                )
+
+        notice = threading.Timer(NOTICE_AFTER_S, waiting)
+        try:
+            m.boot(stop, on_wait=notice.start)
+        finally:
+            notice.cancel()
         self.features.attach()
 
     def activate(self, now_ns: int) -> bool:

@@ -8,6 +8,7 @@ and every part sees it from the next read on; no part keeps a copy.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -34,6 +35,8 @@ class RunContext:
     """The run's totals (the summary and ``/diagnostics``)."""
     recorder: Recorder
     """The run's log (its ``record_*`` calls, ``write`` and ``as_dict``; the live stream)."""
+    say: Callable[[str], None] = lambda line: None
+    """Tell the operator one line (the daemon's: on stderr), e.g. what a slow start-up awaits."""
 
     def pause(self, ns: int) -> None:
         """Wait ``ns`` on the loop's clock (start-up, arming in lockstep)."""

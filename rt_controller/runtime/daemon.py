@@ -283,7 +283,7 @@ class ControllerDaemon:
     def _run_with(self, can: CanLink, session: Any, rec: RecorderProcess) -> None:
         """The run on open links (:func:`open_links`): the parts, the live stream, the loop."""
         cfg = self.cfg
-        ctx = RunContext(cfg, self.clock, self.stop, self.counters, rec)
+        ctx = RunContext(cfg, self.clock, self.stop, self.counters, rec, say=self._say)
         hw = build_hardware(
             ctx, can, session, self.features, record_raw=self.opts.record_raw,
             images_owed_before=self.opts.images_owed_before,
@@ -301,6 +301,11 @@ class ControllerDaemon:
             tuning.undeclare()
             hw.deactivate()
             self.images_owed = hw.features.images_owed()
+
+    @staticmethod
+    def _say(line: str) -> None:
+        """The run's word to the operator, on stderr (e.g. a slow start-up's wait)."""
+        print(f"hil controller: {line}", file=sys.stderr, flush=True)
 
     def _start_and_loop(self, hw: HardwareInterface, loop: ControlLoop) -> None:
         """Warm up, configure the hardware (the peer answers), lock memory, then the loop

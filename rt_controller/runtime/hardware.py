@@ -16,6 +16,7 @@ import math
 import time
 from typing import Any
 
+from hal.bus import resolve_spec
 from hal.drive_state import MODE_ENABLED, DriveEvent, DriveMonitor, DriveUpdate, FaultReason
 from hal.errors import HalTimeoutError
 from hal.hardware_interface import InputJudge, Observation, StopFlag
@@ -24,7 +25,7 @@ from rt_controller.errors import ControllerError
 from rt_controller.runtime import diagnostics
 from rt_controller.runtime.context import RunContext
 from rt_controller.runtime.feature_link import FeatureLink
-from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, HardwareBase
+from rt_controller.runtime.hardware_base import ENABLE_TIMEOUT_S, NOTICE_AFTER_S, HardwareBase
 from rt_controller.runtime.pacers import LOCKSTEP_FEATURE_TIMEOUT_S
 
 STARTUP_TIMEOUT_S = 20.0
@@ -255,12 +256,20 @@ class DspHardware(HardwareBase):
     # --- links ------------------------------------------------------------------------------
     def _wait_ready(self, stop: StopFlag, *, features: bool) -> None:
         """Until the first joint state (and, with ``features``, image features)."""
-        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        start = time.monotonic()
+        deadline, notice_at = start + STARTUP_TIMEOUT_S, start + NOTICE_AFTER_S
         while not stop.is_set():
             self._poll(self.ctx.clock.now_ns())
             have_state = self.dsp.state_age_s() is not None
-            if have_state and (not features or self.features.features.latest is not None):
+            need_f = features and self.features.features.latest is None
+            if have_state and not need_f:
                 return
+            if time.monotonic() > notice_at:  # say once what is still missing
+                notice_at, t = math.inf, self.ctx.cfg.transport
+                what = [] if have_state else [f"the first joint state on CAN {resolve_spec(t.can)}"]
+                if need_f:
+                    what.append(f"image features on zenoh {t.zenoh_config or t.zenoh_endpoint}")
+                self.ctx.say(f"waiting for {' and '.join(what)} (up to {STARTUP_TIMEOUT_S:g} s)")
             if time.monotonic() > deadline:
                 missing = "joint state (CAN)" if not have_state else "image features (zenoh)"
                 status = self.dsp.status  # a lockstep world waits, without a pose, for a step

@@ -22,6 +22,8 @@ IMAGES_SETTLE_S = 2.0
 while they keep coming: the vision process may be far behind)."""
 ENABLE_TIMEOUT_S = 5.0
 """How long arming may take until the drive reports *operation enabled*."""
+NOTICE_AFTER_S = 2.0
+"""How long start-up waits for its inputs before it says what for (``RunContext.say``)."""
 
 
 class HardwareBase:
