@@ -7,30 +7,15 @@ from __future__ import annotations
 
 import pytest
 
-from hal.can_codec import DspCodec
-from hal.config import RigConfig
 from rt_controller.logs import load
-from rt_controller.runtime.recorder import CycleRecorder
+from tests.support.can_log import TICKS, write_tick_log
 
 pd = pytest.importorskip("pandas")
-
-T0_NS = 1_000_000_000
-TICKS = (4_294_967_295, 4_294_967_294, 123_456_789)  # the widest integer signal: 32 bits
 
 
 @pytest.fixture
 def frames(tmp_path):
-    """Sync frames (``Tick``, ``Counter``) between JointPosition frames (``Q1``, ``Q2`` and
-    ``Sample``, no ``Tick``): ``Tick`` is present in some rows and absent in the others."""
-    path = tmp_path / "run.mcap"
-    dsp = DspCodec()
-    info = {"clock": "lockstep", "can": "virtual", "zenoh": "tcp/127.0.0.1:1", "recorder": "thread"}
-    with CycleRecorder(path, RigConfig(), run_info=info) as rec:
-        for i, tick in enumerate(TICKS):
-            rec.record_can(dsp.encode_sync(tick), T0_NS + 2 * i * 1000, "rx")
-            position, _ = dsp.encode_state((0.25, -0.5), (0.0, 0.0), i)
-            rec.record_can(position, T0_NS + (2 * i + 1) * 1000, "rx")
-    return load(path).can_frames
+    return load(write_tick_log(tmp_path / "run.mcap")).can_frames
 
 
 def test_an_integer_signal_absent_from_some_frames_is_a_nullable_integer(frames):

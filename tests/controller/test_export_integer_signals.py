@@ -12,28 +12,13 @@ import math
 
 import pytest
 
-from hal.can_codec import DspCodec
-from hal.config import RigConfig
 from rt_controller.cli import main
-from rt_controller.runtime.recorder import CycleRecorder
-
-T0_NS = 1_000_000_000
-TICKS = (4_294_967_295, 4_294_967_294, 123_456_789)  # the widest integer signal: 32 bits
+from tests.support.can_log import TICKS, write_tick_log
 
 
 @pytest.fixture
 def log(tmp_path):
-    """Sync frames (``Tick``, ``Counter``) between JointPosition frames (``Q1``, ``Q2``,
-    ``Sample``, no ``Tick``): ``Tick`` is present in some rows and absent in the others."""
-    path = tmp_path / "run.mcap"
-    dsp = DspCodec()
-    info = {"clock": "lockstep", "can": "virtual", "zenoh": "tcp/127.0.0.1:1", "recorder": "thread"}
-    with CycleRecorder(path, RigConfig(), run_info=info) as rec:
-        for i, tick in enumerate(TICKS):
-            rec.record_can(dsp.encode_sync(tick), T0_NS + 2 * i * 1000, "rx")
-            position, _ = dsp.encode_state((0.25, -0.5), (0.0, 0.0), i)
-            rec.record_can(position, T0_NS + (2 * i + 1) * 1000, "rx")
-    return path
+    return write_tick_log(tmp_path / "run.mcap")
 
 
 def export(log, fmt, tmp_path, capsys):
