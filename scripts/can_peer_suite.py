@@ -301,7 +301,13 @@ def run(cache: Path, verbose: bool, keep: bool) -> tuple[int, str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cache", type=Path, default=None, help="sdist cache directory")
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="directory caching python-can's sdist (default: $HIL_PEER_CACHE, else "
+        ".venv/cache/python-can-sdist if writable, else a temporary folder)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="show pytest's output")
     parser.add_argument("--keep", action="store_true", help="keep the generated suite directory")
     args = parser.parse_args(argv)

@@ -62,14 +62,26 @@ def flips(runs: list[dict[str, str]]) -> dict[str, list[str | None]]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--hogs", type=int, default=2)
-    ap.add_argument("--out", default="loaded-suite", help="directory for the JUnit reports")
-    ap.add_argument("pytest_args", nargs="*")
+    ap.add_argument(
+        "--runs", type=int, default=3, help="runs of the suite in a row (default: %(default)s)"
+    )
+    ap.add_argument(
+        "--hogs", type=int, default=2, help="CPU hogs beside the runs (default: %(default)s)"
+    )
+    ap.add_argument(
+        "--out",
+        default="loaded-suite",
+        help="directory for the JUnit reports, relative to the current one (default: %(default)s)",
+    )
+    ap.add_argument(
+        "pytest_args",
+        nargs="*",
+        help='extra pytest arguments, after `--` (pytest always gets -m "not vcan")',
+    )
     args = ap.parse_args(argv)
     if args.runs < 1 or args.hogs < 0:
         ap.error("--runs must be >= 1 and --hogs >= 0")
-    out = Path(args.out)
+    out = Path(args.out).resolve()  # pytest runs in the repository: the caller's folder here
     out.mkdir(parents=True, exist_ok=True)
     # SIGTERM unwinds like Ctrl-C, so the hogs are stopped by the ``finally`` below
     signal.signal(signal.SIGTERM, lambda signum, _frame: sys.exit(128 + signum))
@@ -106,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             h.join()
     flipped = flips(results)
     print(json.dumps({"hogs": args.hogs, "runs": summaries, "flipped": flipped}, indent=1))
-    bad_run = any(s["exit_status"] != 0 for s in summaries)
+    bad_run = any(s["exit_status"] != 0 for s in summaries) or not all(results)
     return 1 if flipped or bad_run else 0
 
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import importlib.util
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -50,3 +53,17 @@ def test_flips_lists_only_tests_whose_outcome_differs() -> None:
         "t3": ["failed", "failed", None],
     }
     assert _script().flips([runs[0], runs[0], runs[0]]) == {}
+
+
+def test_a_relative_out_is_the_callers_folder_and_holds_the_reports(tmp_path: Path) -> None:
+    """pytest runs in the repository; ``--out runs`` given in another folder is that folder's
+    ``runs``, where the script then reads the report (it read an empty folder and said 0)."""
+    one = "tests/controller/test_loaded_suite_script.py::test_outcomes_of_every_kind"
+    script = str(ROOT / "scripts/loaded_suite.py")
+    argv = ["--runs", "1", "--hogs", "0", "--out", "runs", "--", one, "-p", "no:cacheprovider"]
+    done = subprocess.run(
+        [sys.executable, script, *argv], cwd=tmp_path, capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "runs" / "run1.xml").exists()
+    assert json.loads(done.stdout)["runs"][0]["passed"] == 1, done.stdout
