@@ -193,16 +193,24 @@ def _transport_error(
     code = getattr(err, "errno", None)
     name = spec.channel or ""
     if spec.interface == "socketcan":
-        if code == errno.EAFNOSUPPORT:
+        if code == errno.EAFNOSUPPORT and name.startswith("vcan"):
             hint = "this kernel has no SocketCAN (AF_CAN); use --can udp_multicast instead"
+        elif code == errno.EAFNOSUPPORT:  # a real adapter: udp_multicast never reaches it
+            hint = (
+                "this kernel has no SocketCAN (AF_CAN): load it with sudo modprobe can_raw "
+                "(and the adapter's driver), or open the adapter through its vendor backend "
+                "(--can pcan:CHANNEL, kvaser:CHANNEL)"
+            )
         elif code == errno.ENODEV or not (SYS_CLASS_NET / name).exists():
             hint = (
                 f"create it with: {vcan_hint(name)} (or use --can udp_multicast)"
                 if name.startswith("vcan")
                 else f"check the adapter, then: {can_up_hint(name, bitrate, fd)}"
             )
-        elif code == errno.ENETDOWN:
+        elif code == errno.ENETDOWN and name.startswith("vcan"):
             hint = f"bring it up with: sudo ip link set up {name}"
+        elif code == errno.ENETDOWN:  # a CAN adapter needs its bit rates to come up
+            hint = f"bring it up with: {can_up_hint(name, bitrate, fd)}"
         else:
             hint = "check the interface with `ip -details link show`, or use --can udp_multicast"
         return HalTransportError(f"cannot open CAN interface socketcan:{name}: {exc}; {hint}")
@@ -212,15 +220,24 @@ def _transport_error(
         else:
             hint = f"check that loopback is up (sudo ip link set lo up), or use {SOCKETCAN_HINT}"
         return HalTransportError(f"cannot open CAN bus {spec}: {exc}; {hint}")
-    if isinstance(exc, NameError):  # python-can's backend without its vendor library
+    what = str(exc).rstrip(".")
+    if isinstance(exc, NameError) or "library not found" in what:  # no vendor library
+        library = VENDOR_LIBRARIES.get(spec.interface, "the adapter's driver and library")
         return HalTransportError(
             f"cannot open CAN bus {spec}: python-can's {spec.interface} interface is missing its "
-            f"vendor library ({exc}); install the adapter's driver and library"
+            f"vendor library ({what}); install {library}"
         )
     return HalTransportError(
-        f"cannot open CAN bus {spec}: {exc}; check the adapter, its driver and python-can's "
+        f"cannot open CAN bus {spec}: {what}; check the adapter, its driver and python-can's "
         "interface options"
     )
+
+
+VENDOR_LIBRARIES = {
+    "pcan": "PEAK's driver and PCAN-Basic library (libpcanbasic)",
+    "kvaser": "Kvaser's driver and CANlib (linuxcan)",
+}
+"""What to install for python-can's backends that need a vendor library (named in the error)."""
 
 
 SOCKETCAN_LOGGER = "can.interfaces.socketcan.socketcan"
@@ -295,7 +312,10 @@ def open_bus(
         if socketcan and options.setdefault("fd", True):  # the DSP's 16-byte FD frames (SecOC)
             _check_fd_mtu(resolved.channel or DEFAULT_VCAN)
         with _socketcan_logs_held():
-            return can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
+            bus = can.Bus(interface=resolved.interface, channel=resolved.channel, **options)
+        if options.get("fd", True) and not socketcan and resolved.interface != "virtual":
+            _refuse_classic(bus, resolved)
+        return bus
     except HalTransportError:  # already one line saying what to do (e.g. a refused group)
         raise
     except (can.CanError, OSError, ValueError, ImportError, NameError) as exc:
@@ -304,6 +324,20 @@ def open_bus(
         raise _transport_error(
             resolved, exc, options.get("bitrate"), options.get("fd", True)
         ) from exc
+
+
+def _refuse_classic(bus: can.BusABC, spec: BusSpec) -> None:
+    """An adapter python-can opened in classic CAN cannot carry the DSP's 16-byte FD frames:
+    shut and refused in one line saying where its FD mode goes (python-can's configuration
+    is merged into an explicit spec's arguments too)."""
+    if bus.protocol is can.CanProtocol.CAN_20:
+        bus.shutdown()
+        raise HalTransportError(
+            f"CAN bus {spec} opened in classic CAN, but the dsp profile's frames are CAN FD "
+            "(16 bytes with SecOC): set fd and the data bit rate in python-can's configuration "
+            """(CAN_CONFIG='{"fd": true, "data_bitrate": 2000000}' or ~/can.conf; """
+            "docs/tutorials/real-can.md)"
+        )
 
 
 def _raised_in_backend(exc: BaseException) -> bool:
