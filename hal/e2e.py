@@ -145,6 +145,10 @@ class E2EStats:
         """Frames rejected by authentication (bad MAC or freshness)."""
         return self.bad_mac + self.stale_freshness + self.future_freshness
 
+    def rejections(self) -> dict[str, int]:
+        """The rejection counters that are not zero, by verdict (``{"bad_mac": 312}``)."""
+        return {v.value: n for v in REJECTIONS if (n := getattr(self, v.value))}
+
     def copy(self) -> E2EStats:
         return dataclasses.replace(self)
 

@@ -98,6 +98,10 @@ class RxCounts:
     def rejected(self) -> int:
         return self.malformed + self.stale + self.untrusted
 
+    def rejections(self) -> dict[str, int]:
+        """The rejection counters that are not zero, by reason (``{"bad_mac": 150}``)."""
+        return {k: n for k in REJECTION_FIELDS if (n := getattr(self, k))}
+
     def as_dict(self) -> dict[str, int]:
         d = asdict(self)
         d.update(
@@ -107,6 +111,24 @@ class RxCounts:
             rejected=self.rejected,
         )
         return d
+
+
+REJECTION_FIELDS = (
+    "bad_size",
+    "bad_magic",
+    "bad_version",
+    "bad_flags",
+    "bad_value",
+    "bad_type",
+    "stale_age",
+    "stale_order",
+    "backwards_stamp",
+    "future_stamp",
+    "foreign_source",
+    "bad_mac",
+)
+"""The counters of :class:`RxCounts` that each count a rejection (``malformed``, ``stale`` and
+``untrusted`` are their sums)."""
 
 
 class _Receiver:

@@ -269,17 +269,27 @@ class DspHardware(HardwareBase):
                 what = [] if have_state else [f"the first joint state on CAN {resolve_spec(t.can)}"]
                 if need_f:
                     what.append(f"image features on zenoh {t.zenoh_config or t.zenoh_endpoint}")
-                self.ctx.say(f"waiting for {' and '.join(what)} (up to {STARTUP_TIMEOUT_S:g} s)")
+                away = f"; so far {a}" if (a := self._turned_away()) else ""
+                self.ctx.say(
+                    f"waiting for {' and '.join(what)} (up to {STARTUP_TIMEOUT_S:g} s){away}"
+                )
             if time.monotonic() > deadline:
                 missing = "joint state (CAN)" if not have_state else "image features (zenoh)"
                 status = self.dsp.status  # a lockstep world waits, without a pose, for a step
                 why = (
                     "the DSP runs lockstep (`hil emulator --lockstep`): use --clock lockstep"
                     if status is not None and status.lockstep and not self.lockstep
-                    else "is `hil emulator` (and `hil vision`) running on the same transports?"
+                    else self._turned_away()
+                    or "is `hil emulator` (and `hil vision`) running on the same transports?"
                 )
                 raise ControllerError(f"no {missing} within {STARTUP_TIMEOUT_S:.0f} s: {why}")
             self.ctx.pause(10_000_000)
+
+    def _turned_away(self) -> str:
+        """:func:`turned_away` of the DSP's frames and the features so far."""
+        return turned_away(
+            self.dsp.stats.e2e.rejections(), self.features.features.counts.rejections()
+        )
 
     def _poll(self, now_ns: int) -> None:
         """Take every CAN frame waiting on the bus and the newest feature messages off the
@@ -289,4 +299,19 @@ class DspHardware(HardwareBase):
         self.features.poll(now_ns)
 
 
-__all__ = ["STARTUP_TIMEOUT_S", "DspHardware"]
+def turned_away(can: dict[str, int], features: dict[str, int]) -> str:
+    """What came at start-up and was rejected, by reason, with the likeliest cause (then the
+    inputs arrive and are all refused); empty when nothing was."""
+    said = [
+        f"{sum(c.values())} {what} rejected ({', '.join(f'{k} {n}' for k, n in c.items())})"
+        for what, c in (("DSP frames", can), ("feature messages", features))
+        if c
+    ]
+    if "bad_mac" in can or "bad_mac" in features:
+        said.append("signed with another rig key? (every process needs the same --key-file)")
+    elif {"stale_freshness", "future_freshness"} & can.keys() or "future_stamp" in features:
+        said.append("is the sender's clock within 1 s of this host's? (PTP/NTP)")
+    return "; ".join(said)
+
+
+__all__ = ["STARTUP_TIMEOUT_S", "DspHardware", "turned_away"]

@@ -53,3 +53,27 @@ def test_a_start_whose_inputs_come_says_nothing_more(tmp_path):
     assert done.returncode == 0, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.startswith("hil controller:")]
     assert len(lines) == 1 and lines[0].startswith("hil controller: law "), done.stderr
+
+
+def test_inputs_signed_with_another_key_are_named_as_such(tmp_path):
+    """The emulator and vision on the rig key, the controller on another: every frame and
+    feature message arrives and is refused (bad_mac). The notice and the error say so and
+    name the likeliest cause, not "is hil emulator running?"."""
+    can, endpoint = isolated_spec("udp_multicast"), free_endpoint()
+    other = tmp_path / "other.key"
+    assert run_hil(["keygen", str(other)], timeout_s=WAIT_S).returncode == 0
+    emulator = start_hil(["emulator", "--can", can, "--zenoh-endpoint", endpoint])
+    vision = start_hil(["vision", "--zenoh-endpoint", endpoint, "--wait", "60"])
+    try:
+        args = ["controller", "--can", can, "--zenoh-endpoint", endpoint, "--no-rt"]
+        args += ["--key-file", str(other), "--log", str(tmp_path / "run.mcap")]
+        done = run_hil(args, timeout_s=WAIT_S)
+    finally:
+        stop_hil(vision)
+        stop_hil(emulator)
+    assert done.returncode == 2, done.stderr
+    error = done.stderr.strip().splitlines()[-1]
+    assert error.startswith("hil controller: error: no joint state (CAN) within 20 s: "), error
+    assert "DSP frames rejected (bad_mac " in error, error
+    assert error.endswith("signed with another rig key? (every process needs the same --key-file)")
+    assert "is `hil emulator`" not in error, error
