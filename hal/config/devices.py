@@ -55,7 +55,8 @@ class TransportConfig:
     """Where the processes talk."""
 
     can: str = "auto"
-    """python-can ``INTERFACE[:CHANNEL]``; auto = socketcan:vcan0 if present else udp_multicast."""
+    """python-can ``INTERFACE[:CHANNEL]``; auto = the interface of python-can's configuration
+    (``CAN_INTERFACE``, ``~/can.conf``), else socketcan:vcan0 if present, else udp_multicast."""
     zenoh_endpoint: str = "tcp/127.0.0.1:7447"
     """Loopback endpoint the processes meet on."""
     zenoh_config: str = ""

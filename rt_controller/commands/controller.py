@@ -26,8 +26,9 @@ def add_transport_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--can",
         metavar="INTERFACE[:CHANNEL]",
-        help="CAN bus, e.g. socketcan:vcan0, udp_multicast, virtual (default: transport.can = "
-        "auto: socketcan:vcan0 if present, else host-local udp_multicast)",
+        help="CAN bus, e.g. socketcan:can0, pcan:PCAN_USBBUS1, udp_multicast (default: "
+        "transport.can = auto: the interface of python-can's configuration, else "
+        "socketcan:vcan0 if present, else host-local udp_multicast)",
     )
     p.add_argument("--zenoh-endpoint", metavar="tcp/127.0.0.1:PORT", help="loopback endpoint")
     p.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config (multi-host)")
