@@ -84,16 +84,27 @@ ZENOH_ROLES = {"auto": None, "hub": True, "client": False}
 """``--zenoh-role`` -> ``open_session``'s ``listen``."""
 
 
+FILE_SETS = {
+    "zenoh_endpoint": ("--zenoh-endpoint", "its own endpoints"),
+    "zenoh_role": ("--zenoh-role", "the role: its mode and listen endpoints"),
+    "wait": ("--wait", "how long a client waits for its hub: connect timeout_ms"),
+}
+"""The options a ``--zenoh-config`` file makes meaningless, and what in the file sets each."""
+
+
 def check_zenoh_options(args: argparse.Namespace) -> None:
-    """Refuse ``--zenoh-endpoint`` with ``--zenoh-config`` (:class:`HalConfigError`, exit 2):
-    the file sets its own endpoints, and the endpoint would be ignored without a word."""
+    """Refuse ``--zenoh-endpoint``, ``--zenoh-role`` or ``--wait`` beside ``--zenoh-config``
+    (:class:`HalConfigError`, exit 2): the file sets each, and the option would be ignored
+    without a word."""
     from hal.errors import HalConfigError
 
-    if getattr(args, "zenoh_endpoint", None) and getattr(args, "zenoh_config", None):
-        raise HalConfigError(
-            "--zenoh-endpoint and --zenoh-config: give one "
-            "(a zenoh config file sets its own endpoints)"
-        )
+    if not getattr(args, "zenoh_config", None):
+        return
+    for name, (option, what) in FILE_SETS.items():
+        if getattr(args, name, None) is not None:
+            raise HalConfigError(
+                f"{option} and --zenoh-config: give one (a zenoh config file sets {what})"
+            )
 
 
 def zenoh_session_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -102,7 +113,7 @@ def zenoh_session_options(args: argparse.Namespace) -> dict[str, Any]:
     out: dict[str, Any] = {
         "endpoint": args.zenoh_endpoint,
         "config_file": args.zenoh_config,
-        "listen": ZENOH_ROLES[args.zenoh_role],
+        "listen": ZENOH_ROLES[args.zenoh_role or "client"],
     }
     if getattr(args, "wait", None) is not None:
         out["wait_s"] = args.wait

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 import socket
 import threading
@@ -122,6 +123,16 @@ def _zenoh_config(doc: dict[str, Any]) -> zenoh.Config:
         raise HalConfigError(f"internal zenoh config rejected: {exc}") from exc
 
 
+TLS_FILES = (
+    "root_ca_certificate",
+    "listen_private_key",
+    "listen_certificate",
+    "connect_private_key",
+    "connect_certificate",
+)
+"""The files a zenoh config's ``transport.link.tls`` names (zenoh 1.x's keys)."""
+
+
 def load_config_file(path: str) -> zenoh.Config:
     """zenoh's own config file (JSON5 or YAML by its suffix, as zenoh reads it), checked first
     as the user's text file: a folder, a FIFO or bytes that are not UTF-8 are named in one
@@ -136,9 +147,17 @@ def load_config_file(path: str) -> zenoh.Config:
             said if said.startswith("cannot") else f"transport.zenoh_config: {said}"
         ) from None
     try:
-        return zenoh.Config.from_file(path)
+        zcfg = zenoh.Config.from_file(path)
     except zenoh.ZError as exc:
         raise HalConfigError(f"transport.zenoh_config: {path}: {_short(exc)}") from exc
+    for key in TLS_FILES:  # else zenoh says only "Unable to connect", as for a hub that is down
+        named = json.loads(zcfg.get_json(f"transport/link/tls/{key}") or "null")
+        if isinstance(named, str) and not Path(named).is_file():
+            raise HalConfigError(
+                f"transport.zenoh_config: {path}: transport.link.tls.{key} {named!r} is no "
+                f"file (a relative path is relative to the working directory, {os.getcwd()})"
+            )
+    return zcfg
 
 
 def _short(exc: BaseException) -> str:

@@ -68,16 +68,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--zenoh-role",
         choices=("auto", "hub", "client"),
-        default="client",
+        default=None,
         help="client = connect to the emulator's hub (default), hub = listen on the endpoint "
-        "(run without an emulator), auto = hub if the port is free",
+        "(run without an emulator), auto = hub if the port is free; not with --zenoh-config, "
+        "whose mode and listen endpoints set the role",
     )
     p.add_argument(
         "--wait",
         type=bounded_float(0.0, 3600.0, lo_inclusive=True, what="wait in seconds"),
         default=None,
         metavar="S",
-        help="wait for the hub (default 10 s)",
+        help="wait for the hub (default 10 s); not with --zenoh-config, whose connect "
+        "timeout_ms sets it",
     )
     p.add_argument(
         "--duration",

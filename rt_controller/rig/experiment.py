@@ -31,7 +31,7 @@ from hal.errors import HalError
 from rt_controller.config_rules import apply_overrides, config_toml
 from rt_controller.errors import ControllerConfigError, ControllerError
 from rt_controller.rig.failures import RigCancelled
-from rt_controller.rig.options import RigOptions, private_default_bus
+from rt_controller.rig.options import RigOptions, local_rig, private_default_bus
 from rt_controller.rig.processes import run_rig, run_rig_plan
 from rt_controller.rig.supervise import RigInterrupted
 
@@ -111,6 +111,7 @@ class Settings:
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
         process_spec(self.can or load_config(self.config).transport.can)  # before any run
+        local_rig(self.config)
         bad = [e for e in self.experiments if e not in EXPERIMENTS]
         if bad or not self.experiments:
             raise ControllerConfigError(f"unknown experiment(s) {bad}; known: {EXPERIMENTS}")

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from hal.bus import isolated_spec, resolve_spec
 from hal.config import load_config
+from hal.errors import HalConfigError
 
 STARTUP_MARGIN_S = 60.0
 LOCKSTEP_SLOWEST = 20.0
@@ -59,6 +60,26 @@ class RigOptions:
             return self.wall_timeout_s
         scale = LOCKSTEP_SLOWEST if self.lockstep else 1.0
         return scale * self.duration_s + STARTUP_MARGIN_S
+
+
+def rig_bus(opts: RigOptions) -> str | None:
+    """The bus of the rig's children (a rig of :func:`local_rig`): ``opts.can``, else
+    :func:`private_default_bus`."""
+    local_rig(opts.config)
+    return opts.can or private_default_bus(opts.config)
+
+
+def local_rig(config: str | Path | None) -> None:
+    """A rig's processes run on this host and meet over loopback: a configuration whose zenoh
+    transport is a file (``transport.zenoh_config``: processes on several hosts) is refused in
+    one line, before anything starts (each child would take the file, and the second to listen
+    fails)."""
+    if load_config(config).transport.zenoh_config:
+        raise HalConfigError(
+            "transport.zenoh_config: a rig started by one command runs on this host over "
+            "loopback; with a zenoh config file, start hil emulator, hil vision and hil "
+            "controller by hand on their hosts (docs/tutorials/two-hosts.md)"
+        )
 
 
 def private_default_bus(config: str | None) -> str | None:

@@ -49,7 +49,7 @@ from rt_controller.rig.failures import (
     with_tail,
 )
 from rt_controller.rig.kernel_cache import prepare_kernels
-from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, private_default_bus
+from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, rig_bus
 from rt_controller.rig.supervise import (
     PARENT_ENV,
     RigInterrupted,
@@ -100,7 +100,7 @@ class Rig:
         self.opts = opts
         self.children: list[Child] = []
         self.endpoint = opts.zenoh_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
-        self.can = opts.can or private_default_bus(opts.config)
+        self.can = rig_bus(opts)
         self._key_dir: str | None = None
         self.key_file: Path | None = Path(opts.key_file) if opts.key_file else None
         """The rig key the children load (set by :meth:`start` when made fresh)."""

@@ -309,8 +309,13 @@ def turned_away(can: dict[str, int], features: dict[str, int]) -> str:
     ]
     if "bad_mac" in can or "bad_mac" in features:
         said.append("signed with another rig key? (every process needs the same --key-file)")
-    elif {"stale_freshness", "future_freshness"} & can.keys() or "future_stamp" in features:
-        said.append("is the sender's clock within 1 s of this host's? (PTP/NTP)")
+    elif {"stale_freshness", "future_freshness"} & can.keys():
+        said.append("is the DSP's clock within 1 s of this host's? (SecOC freshness: PTP/NTP)")
+    elif "future_stamp" in features:  # capture stamps are the capturing host's CLOCK_MONOTONIC
+        said.append(
+            "features stamped ahead of this host's monotonic clock: a camera must run on the "
+            "controller's host (no two hosts share a monotonic clock)"
+        )
     return "; ".join(said)
 
 

@@ -30,7 +30,17 @@ def test_freshness_names_the_clock():
     can.record(Verdict.STALE_FRESHNESS)
     said = turned_away(can.rejections(), {})
     assert said.startswith("2 DSP frames rejected (stale_freshness 1, future_freshness 1); ")
-    assert said.endswith("is the sender's clock within 1 s of this host's? (PTP/NTP)")
+    assert said.endswith("is the DSP's clock within 1 s of this host's? (SecOC freshness: PTP/NTP)")
+
+
+def test_features_from_the_future_name_the_camera_s_host():
+    """Capture stamps are the capturing host's CLOCK_MONOTONIC, which no PTP aligns."""
+    said = turned_away({}, RxCounts(future_stamp=7).rejections())
+    assert said == (
+        "7 feature messages rejected (future_stamp 7); features stamped ahead of this host's "
+        "monotonic clock: a camera must run on the controller's host (no two hosts share a "
+        "monotonic clock)"
+    )
 
 
 def test_other_rejections_are_listed_without_a_guess():
