@@ -18,21 +18,15 @@ from hal.bus import isolated_spec
 from hal.secoc import load_key_file, write_key_file
 from hal.vision_codec import FeatureMsg, encode_features
 from hal.zenoh_session import KEY_FEATURES, free_loopback_port, open_session
+from tests.support import run_hil
 
 pytestmark = pytest.mark.integration
 
 SCOUTING = "scouting: { multicast: { enabled: false }, gossip: { enabled: false } }"
 
 
-def hil(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rt_controller.cli", *args],
-        capture_output=True,
-        text=True,
-        stdin=subprocess.DEVNULL,
-        timeout=timeout,
-        check=False,
-    )
+def hil(*args: str) -> subprocess.CompletedProcess:
+    return run_hil(list(args), timeout_s=120.0)
 
 
 def client_config(tmp_path: Path, tls: str = "") -> Path:
@@ -46,6 +40,15 @@ def client_config(tmp_path: Path, tls: str = "") -> Path:
     return path
 
 
+def vision_on_a_client_file(tmp_path: Path, *extra: str, tls: str = "") -> tuple[str, int]:
+    """``hil vision --zenoh-config`` a client file (``tls``: its TLS section) with ``extra``
+    options, for 1 s on a fresh rig key: its stderr (no traceback in it) and exit status."""
+    key = str(write_key_file(tmp_path / "rig.key"))
+    config = str(client_config(tmp_path, tls))
+    done = hil("vision", "--zenoh-config", config, *extra, "--key-file", key, "--duration", "1")
+    return one_line_error(done), done.returncode
+
+
 def one_line_error(done: subprocess.CompletedProcess) -> str:
     err = done.stderr
     assert "Traceback" not in err, err
@@ -55,40 +58,16 @@ def one_line_error(done: subprocess.CompletedProcess) -> str:
 def test_zenoh_role_with_a_zenoh_config_is_not_silently_ignored(tmp_path: Path) -> None:
     """The file sets the mode and the listen endpoints: ``--zenoh-role hub`` cannot make a
     client file listen, and was ignored without a word (the run went on as a client)."""
-    key = str(write_key_file(tmp_path / "rig.key"))
-    done = hil(
-        "vision",
-        "--zenoh-config",
-        str(client_config(tmp_path)),
-        "--zenoh-role",
-        "hub",
-        "--key-file",
-        key,
-        "--duration",
-        "1",
-    )
-    err = one_line_error(done)
-    assert done.returncode == 2, err
+    err, status = vision_on_a_client_file(tmp_path, "--zenoh-role", "hub")
+    assert status == 2, err
     assert "--zenoh-role" in err, err
 
 
 def test_wait_with_a_zenoh_config_is_not_silently_ignored(tmp_path: Path) -> None:
     """``--wait 5`` with a client file and no hub yet: either honoured (the error says it
     waited 5 s) or refused naming ``--wait``; it gave up at once with zenoh's own words."""
-    key = str(write_key_file(tmp_path / "rig.key"))
-    done = hil(
-        "vision",
-        "--zenoh-config",
-        str(client_config(tmp_path)),
-        "--wait",
-        "5",
-        "--key-file",
-        key,
-        "--duration",
-        "1",
-    )
-    err = one_line_error(done)
-    assert done.returncode != 0, err
+    err, status = vision_on_a_client_file(tmp_path, "--wait", "5")
+    assert status != 0, err
     assert "--wait" in err or "after 5 s" in err, err
 
 
@@ -96,22 +75,12 @@ def test_missing_tls_file_of_a_client_config_is_named(tmp_path: Path) -> None:
     """The page's client.json5 run from a folder without ca.pem/client.key/client.pem (the
     paths are relative to the working directory): the error named no file, only
     "Unable to connect to any of [...]", the same words as a hub that is down."""
-    key = str(write_key_file(tmp_path / "rig.key"))
     tls = (
         'transport: { link: { tls: { root_ca_certificate: "ca.pem", enable_mtls: true, '
         'connect_private_key: "client.key", connect_certificate: "client.pem" } } }'
     )
-    done = hil(
-        "vision",
-        "--zenoh-config",
-        str(client_config(tmp_path, tls)),
-        "--key-file",
-        key,
-        "--duration",
-        "1",
-    )
-    err = one_line_error(done)
-    assert done.returncode != 0, err
+    err, status = vision_on_a_client_file(tmp_path, tls=tls)
+    assert status != 0, err
     assert "ca.pem" in err, err
 
 
