@@ -128,12 +128,26 @@ def _naming_the_option(exc: Exception, given: dict[str, Any]) -> Exception:
     return exc
 
 
+_TOML_ESCAPES = {
+    **{chr(c): f"\\u{c:04x}" for c in [*range(0x20), 0x7F]},
+    "\b": "\\b",
+    "\t": "\\t",
+    "\n": "\\n",
+    "\f": "\\f",
+    "\r": "\\r",
+    '"': '\\"',
+    "\\": "\\\\",
+}
+"""How each character a TOML basic string cannot hold raw is written (a path read from
+``"C:\\new"`` holds a newline)."""
+
+
 def toml_value(value: Any) -> str:
     """One TOML value (bool, str, number or list of those)."""
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, str):  # a basic string: TOML allows no control character raw
+        return '"' + "".join(_TOML_ESCAPES.get(c, c) for c in value) + '"'
     if isinstance(value, list | tuple):
         return "[" + ", ".join(toml_value(v) for v in value) + "]"
     return repr(value)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any
 
+from hal.config.values import shown
 from hal.errors import HalConfigError
 
 if TYPE_CHECKING:
@@ -125,13 +126,26 @@ def _flat(value: Any) -> list[float]:
     return [value]
 
 
+def _bound(x: float) -> str:
+    """A range's end as written: an integer exactly (``2**63 - 1``), a float as ``:g``."""
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
+def _finite(v: Any) -> bool:
+    """A number that is not NaN or infinite; any integer is (compared exactly, never as a
+    float, which a 400-digit TOML integer overflows)."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        return True
+    return isinstance(v, float) and math.isfinite(v)
+
+
 def check_ranges(cfg: RigConfig) -> None:
     for key, (lo, hi, kind) in RANGES.items():
         section, _, name = key.partition(".")
         value = getattr(getattr(cfg, section), name)
         for v in _flat(value):
-            if not (isinstance(v, int | float) and math.isfinite(v)):
-                raise HalConfigError(f"{key}: must be finite, got {value!r}")
+            if not _finite(v):
+                raise HalConfigError(f"{key}: must be finite, got {shown(value)}")
             if not _in_range(v, lo, hi, kind):
-                interval = f"{kind[0]}{lo:g}, {hi:g}{kind[1]}"
-                raise HalConfigError(f"{key}: {value!r} is out of range {interval}")
+                interval = f"{kind[0]}{_bound(lo)}, {_bound(hi)}{kind[1]}"
+                raise HalConfigError(f"{key}: {shown(value)} is out of range {interval}")

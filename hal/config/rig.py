@@ -22,7 +22,7 @@ from hal.config.experiment import RatesConfig, ScenarioConfig
 from hal.config.hardware import HardwareConfig
 from hal.config.plant import CameraConfig, PlantConfig, RobotConfig
 from hal.config.validation import validate
-from hal.config.values import Mat2, Vec2, diag
+from hal.config.values import Mat2, Vec2, diag, shown
 from hal.errors import HalConfigError
 
 
@@ -73,10 +73,14 @@ _SECTION_TYPES: dict[str, type] = {
 
 def _number(value: Any, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise HalConfigError(f"{key}: expected a number, got {value!r}")
-    if not math.isfinite(value):
-        raise HalConfigError(f"{key}: must be finite, got {value!r}")
-    return float(value)
+        raise HalConfigError(f"{key}: expected a number, got {shown(value)}")
+    try:  # an integer literal beyond any float (TOML has no limit) overflows here
+        number = float(value)
+    except OverflowError:
+        number = math.inf
+    if not math.isfinite(number):
+        raise HalConfigError(f"{key}: must be finite, got {shown(value)}")
+    return number
 
 
 def _coerce(value: Any, hint: Any, key: str) -> Any:
@@ -84,19 +88,19 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
         return _number(value, key)
     if hint is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise HalConfigError(f"{key}: expected an integer, got {value!r}")
+            raise HalConfigError(f"{key}: expected an integer, got {shown(value)}")
         return value
     if hint is bool:
         if not isinstance(value, bool):
-            raise HalConfigError(f"{key}: expected true or false, got {value!r}")
+            raise HalConfigError(f"{key}: expected true or false, got {shown(value)}")
         return value
     if hint is str:
         if not isinstance(value, str):
-            raise HalConfigError(f"{key}: expected a string, got {value!r}")
+            raise HalConfigError(f"{key}: expected a string, got {shown(value)}")
         return value
     if hint == Vec2:
         if not isinstance(value, list | tuple) or len(value) != 2:
-            raise HalConfigError(f"{key}: expected a list of 2 numbers, got {value!r}")
+            raise HalConfigError(f"{key}: expected a list of 2 numbers, got {shown(value)}")
         return tuple(_number(v, f"{key}[{i}]") for i, v in enumerate(value))
     if hint == Mat2:
         if isinstance(value, list | tuple) and len(value) == 2:
@@ -108,7 +112,8 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
                     for i, row in enumerate(value)
                 )
         raise HalConfigError(
-            f"{key}: expected a 2x2 matrix [[a, b], [c, d]] or its diagonal [a, d], got {value!r}"
+            f"{key}: expected a 2x2 matrix [[a, b], [c, d]] or its diagonal [a, d], "
+            f"got {shown(value)}"
         )
     raise HalConfigError(f"{key}: unsupported type {hint!r}")  # pragma: no cover
 
@@ -135,7 +140,7 @@ def _type_hints(cls: type) -> dict[str, Any]:
 def _build_section(name: str, data: Any, *, retired_ok: bool = False) -> Any:
     cls = _SECTION_TYPES[name]
     if not isinstance(data, dict):
-        raise HalConfigError(f"[{name}]: expected a table, got {data!r}")
+        raise HalConfigError(f"[{name}]: expected a table, got {shown(data)}")
     hints = _type_hints(cls)
     known = [f.name for f in dataclasses.fields(cls)]
     kwargs = {}
@@ -146,9 +151,55 @@ def _build_section(name: str, data: Any, *, retired_ok: bool = False) -> Any:
                 continue
             raise HalConfigError(f"{name}.{key} was removed: {why}; delete it from the file")
         if key not in hints:
-            raise HalConfigError(f"unknown key {name}.{key} (known keys: {', '.join(known)})")
+            raise HalConfigError(f"unknown key {name}.{key} ({_hint(key, known, name)})")
         kwargs[key] = _coerce(value, hints[key], f"{name}.{key}")
     return cls(**kwargs)
+
+
+def _sections_with(key: str) -> list[str]:
+    """The sections that have a key named ``key``."""
+    return [s for s, cls in _SECTION_TYPES.items() if key in _type_hints(cls)]
+
+
+def _listed(names: list[str]) -> str:
+    """``[a]``, ``[a] or [b]``, ``[a], [b] or [c]``."""
+    tables = [f"[{n}]" for n in names]
+    return tables[0] if len(tables) == 1 else f"{', '.join(tables[:-1])} or {tables[-1]}"
+
+
+def _hint(key: str, known: list[str], section: str) -> str:
+    """What an unknown ``key`` of ``[section]`` may have meant: a near name of the section,
+    else the sections that have it; then the section's keys."""
+    import difflib
+
+    near = difflib.get_close_matches(key, known, n=1, cutoff=0.75)
+    elsewhere = [s for s in _sections_with(key) if s != section]
+    if near:
+        lead = f"did you mean {near[0]}? "
+    elif elsewhere:
+        lead = f"{key} is a key of {_listed(elsewhere)}; "
+    else:
+        lead = ""
+    return f"{lead}known keys: {', '.join(known)}"
+
+
+def _not_a_section(name: str, body: Any) -> str:
+    """The error of a top-level name that is no section: a table is a misspelt section; a
+    value is a key written before any ``[section]`` header (or outside its section)."""
+    import difflib
+
+    sections = list(_SECTIONS)
+    if isinstance(body, dict):
+        near = difflib.get_close_matches(name, sections, n=1, cutoff=0.75)
+        lead = f"did you mean [{near[0]}]? " if near else ""
+        return f"unknown section [{name}] ({lead}known sections: {', '.join(sections)})"
+    owners = _sections_with(name)
+    if owners:
+        return f"{name} = {shown(body)} is outside any section: write it under {_listed(owners)}"
+    return (
+        f"unknown key {name} outside any section (every key goes under its [section] "
+        f"header; known sections: {', '.join(sections)})"
+    )
 
 
 def _one_line(text: str) -> str:
@@ -175,9 +226,7 @@ def config_from_dict(
         sections = {}
         for name, body in data.items():
             if name not in _SECTIONS:
-                raise HalConfigError(
-                    f"unknown section [{name}] (known sections: {', '.join(_SECTIONS)})"
-                )
+                raise HalConfigError(_not_a_section(name, body))
             sections[name] = _build_section(name, body, retired_ok=retired_ok)
         return validate(RigConfig(**sections), files=files)
     except HalConfigError as exc:

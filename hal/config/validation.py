@@ -3,13 +3,14 @@ constraints, each failure a one-line :class:`~hal.errors.HalConfigError` naming 
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 from hal.config.cia402 import CONTROLLER_NODE_ID
 from hal.config.control import LAW_NAMES
 from hal.config.hardware import PROFILES
 from hal.config.plant import plant_robot
-from hal.config.ranges import check_ranges
+from hal.config.ranges import RANGES, check_ranges
 from hal.config.values import Mat2
 from hal.errors import HalConfigError
 from hal.zenoh_endpoint import parse_loopback_endpoint
@@ -84,7 +85,8 @@ def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
     _require(
         abs(ratio - round(ratio)) < 1e-9,
         "rates.physics_hz",
-        f"must be an integer multiple of rates.control_hz (got ratio {ratio:g})",
+        f"must be an integer multiple of rates.control_hz (got ratio {ratio:g}; e.g. "
+        f"rates.physics_hz = {_physics_that_fits(rt.control_hz, rt.physics_hz)})",
     )
     _require(
         rt.state_hz <= rt.physics_hz,
@@ -152,6 +154,16 @@ def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
         _check_drive_eds(cfg)
     _check_transport(cfg)
     return cfg
+
+
+def _physics_that_fits(control_hz: float, physics_hz: float) -> str:
+    """The multiple of ``control_hz`` next above ``physics_hz`` (below, where that is beyond
+    the range of ``rates.physics_hz``), as a TOML value."""
+    _, hi, _ = RANGES["rates.physics_hz"]
+    multiple = control_hz * math.ceil(physics_hz / control_hz)
+    if multiple > hi:
+        multiple = control_hz * math.floor(physics_hz / control_hz)
+    return f"{round(multiple, 6):.12g}"
 
 
 def _check_principal_point(cfg: RigConfig) -> None:
