@@ -11,7 +11,7 @@ from hal.config.control import LAW_NAMES
 from hal.config.hardware import PROFILES
 from hal.config.plant import plant_robot
 from hal.config.ranges import RANGES, check_ranges
-from hal.config.values import Mat2
+from hal.config.values import Mat2, shown
 from hal.errors import HalConfigError
 from hal.zenoh_endpoint import parse_loopback_endpoint
 
@@ -34,26 +34,35 @@ def _check_spd(matrix: Mat2, key: str) -> None:
     )
 
 
+def _value(cfg: RigConfig, key: str) -> object:
+    section, _, name = key.partition(".")
+    return getattr(getattr(cfg, section), name)
+
+
 def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
     """Check every setting's range (:data:`~hal.config.ranges.RANGES`) and the cross-field
     constraints; returns ``cfg`` or raises :class:`HalConfigError` naming the key. ``files``:
     also the files the configuration names that are read here (the drives' EDS); False for a
     configuration read back from a log, which may be read on a host without them."""
+
+    def need(cond: bool, key: str, message: str) -> None:  # the error repeats the value
+        _require(cond, key, f"{message}, got {shown(_value(cfg, key))}")
+
     r = cfg.robot
     for key in ("l1", "l2", "m1", "m2", "I1", "I2"):
-        _require(getattr(r, key) > 0, f"robot.{key}", "must be positive")
+        need(getattr(r, key) > 0, f"robot.{key}", "must be positive")
     for key in ("lc1", "lc2", "gravity"):
-        _require(getattr(r, key) >= 0, f"robot.{key}", "must be non-negative")
+        need(getattr(r, key) >= 0, f"robot.{key}", "must be non-negative")
     for key in ("tau_max",):
-        _require(all(v > 0 for v in getattr(r, key)), f"robot.{key}", "must be positive")
+        need(all(v > 0 for v in getattr(r, key)), f"robot.{key}", "must be positive")
     for key in ("viscous", "coulomb"):
-        _require(all(v >= 0 for v in getattr(r, key)), f"robot.{key}", "must be non-negative")
+        need(all(v >= 0 for v in getattr(r, key)), f"robot.{key}", "must be non-negative")
     c = cfg.camera
-    _require(c.s_lambda > 0, "camera.s_lambda", "must be positive")
-    _require(c.z_wo > 0, "camera.z_wo", "must be positive")
-    _require(c.noise_px >= 0, "camera.noise_px", "must be non-negative")
-    _require(c.frame_rate_hz >= 0, "camera.frame_rate_hz", "must be non-negative (0 = off)")
-    _require(c.latency_s >= 0, "camera.latency_s", "must be non-negative")
+    need(c.s_lambda > 0, "camera.s_lambda", "must be positive")
+    need(c.z_wo > 0, "camera.z_wo", "must be positive")
+    need(c.noise_px >= 0, "camera.noise_px", "must be non-negative")
+    need(c.frame_rate_hz >= 0, "camera.frame_rate_hz", "must be non-negative (0 = off)")
+    need(c.latency_s >= 0, "camera.latency_s", "must be non-negative")
     _require(
         c.model in ("image", "analytic"),
         "camera.model",
@@ -67,15 +76,15 @@ def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
             f"must be (0, 0) (derived) or positive on both axes, got {list(pair)}",
         )
     g = cfg.gains
-    _require(g.kp > 0, "gains.kp", "must be positive")
+    need(g.kp > 0, "gains.kp", "must be positive")
     _check_spd(g.alpha, "gains.alpha")
     _check_spd(g.K, "gains.K")
     s = cfg.scenario
     _require(s.name == "paper", "scenario.name", f"unknown scenario {s.name!r} (known: paper)")
-    _require(s.jump_time >= 0, "scenario.jump_time", "must be non-negative")
+    need(s.jump_time >= 0, "scenario.jump_time", "must be non-negative")
     rt = cfg.rates
     for key in ("control_hz", "physics_hz", "state_hz", "status_hz"):
-        _require(getattr(rt, key) > 0, f"rates.{key}", "must be positive")
+        need(getattr(rt, key) > 0, f"rates.{key}", "must be positive")
     _require(
         rt.physics_hz >= rt.control_hz,
         "rates.physics_hz",
@@ -94,17 +103,17 @@ def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
         f"cannot exceed rates.physics_hz ({rt.physics_hz} Hz)",
     )
     h = cfg.rhc
-    _require(h.horizon > 0, "rhc.horizon", "must be positive")
-    _require(h.steps >= 1, "rhc.steps", "must be at least 1")
-    _require(h.kmax >= 1, "rhc.kmax", "must be at least 1")
-    _require(h.zeta > 0, "rhc.zeta", "must be positive")
-    _require(h.horizon_growth >= 0, "rhc.horizon_growth", "must be non-negative (0 = off)")
-    _require(all(v > 0 for v in h.u_max), "rhc.u_max", "must be positive")
-    _require(h.dummy_weight > 0, "rhc.dummy_weight", "must be positive")
-    _require(0 < h.fd_step < 1e-2, "rhc.fd_step", "must be in (0, 0.01)")
-    _require(h.residual_bound > 0, "rhc.residual_bound", "must be positive")
-    _require(h.init_tol > 0, "rhc.init_tol", "must be positive")
-    _require(h.init_iterations >= 1, "rhc.init_iterations", "must be at least 1")
+    need(h.horizon > 0, "rhc.horizon", "must be positive")
+    need(h.steps >= 1, "rhc.steps", "must be at least 1")
+    need(h.kmax >= 1, "rhc.kmax", "must be at least 1")
+    need(h.zeta > 0, "rhc.zeta", "must be positive")
+    need(h.horizon_growth >= 0, "rhc.horizon_growth", "must be non-negative (0 = off)")
+    need(all(v > 0 for v in h.u_max), "rhc.u_max", "must be positive")
+    need(h.dummy_weight > 0, "rhc.dummy_weight", "must be positive")
+    need(0 < h.fd_step < 1e-2, "rhc.fd_step", "must be in (0, 0.01)")
+    need(h.residual_bound > 0, "rhc.residual_bound", "must be positive")
+    need(h.init_tol > 0, "rhc.init_tol", "must be positive")
+    need(h.init_iterations >= 1, "rhc.init_iterations", "must be at least 1")
     ct = cfg.controller
     _require(
         ct.law in LAW_NAMES,
@@ -121,14 +130,14 @@ def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
         "hardware.profile",
         f"must be {' or '.join(PROFILES)}, not {cfg.hardware.profile!r}",
     )
-    _require(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
-    _require(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")
-    _require(ct.spin_us >= 0, "controller.spin_us", "must be non-negative")
-    _require(1 <= ct.rt_priority <= 99, "controller.rt_priority", "must be in 1..99")
+    need(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
+    need(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")
+    need(ct.spin_us >= 0, "controller.spin_us", "must be non-negative")
+    need(1 <= ct.rt_priority <= 99, "controller.rt_priority", "must be in 1..99")
     d = cfg.dsp
-    _require(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")
-    _require(d.encoder_counts >= 2, "dsp.encoder_counts", "must be at least 2")
-    _require(d.velocity_filter_hz >= 0, "dsp.velocity_filter_hz", "must be non-negative")
+    need(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")
+    need(d.encoder_counts >= 2, "dsp.encoder_counts", "must be at least 2")
+    need(d.velocity_filter_hz >= 0, "dsp.velocity_filter_hz", "must be non-negative")
     _require(
         d.state_sync in ("command", "free"),
         "dsp.state_sync",

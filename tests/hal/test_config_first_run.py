@@ -151,3 +151,17 @@ def test_every_error_line_the_configuration_page_quotes_is_what_hil_prints(
         assert main(["simulate", "--config", name, "-q"]) == 2
         line = re.search(rf"^hil simulate: error: {re.escape(name)}: .*$", text, flags=re.M)
         assert capsys.readouterr().err.strip() == line.group(0)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "line"),
+    [
+        ({"rhc": {"horizon": 0.0}}, "rhc.horizon: must be positive, got 0.0"),
+        ({"rhc": {"steps": 0}}, "rhc.steps: must be at least 1, got 0"),
+        ({"robot": {"tau_max": [1.0, -2.0]}}, "robot.tau_max: must be positive, got [1.0, -2.0]"),
+    ],
+)
+def test_a_bound_error_repeats_the_value(overrides: dict, line: str) -> None:
+    with pytest.raises(HalConfigError) as err:
+        config_from_dict(overrides)
+    assert line in str(err.value)
