@@ -127,13 +127,14 @@ def _write_parquet(run: Run, files: dict[str, Path]) -> list[Written]:
 
 
 def _integer_columns(run: Run, topic: str) -> dict[str, Any]:
-    """The pandas nullable integer columns of ``run.can_frames`` (its integer DBC signals,
-    ``Int64`` with ``<NA>`` where a frame lacks them) as Arrow integer arrays with nulls, exact;
-    empty for the other tables, whose DataFrames are their NumPy columns as they are."""
-    if topic != "can":
+    """The pandas nullable integer columns of ``run.can_frames`` and ``run.canopen_frames``
+    (the integer DBC signals, a ``cia402`` log's whole-number CANopen fields: ``Int64`` with
+    ``<NA>`` where a frame lacks them) as Arrow integer arrays with nulls, exact; empty for
+    the other tables, whose DataFrames are their NumPy columns as they are."""
+    if topic not in ("can", "canopen"):
         return {}
     pa, pd = require("pyarrow", "parquet export"), require("pandas", "parquet export")
-    df = run.can_frames
+    df = run.frame(topic)
     return {
         k: pa.array(df[k])
         for k in df.columns

@@ -4,7 +4,9 @@ Every table exists twice: as a dict of NumPy columns (:meth:`Run.arrays`, always
 as a pandas DataFrame built from those columns (``cycles``, ``diagnostics``, ``can_frames``,
 ``canopen_frames``, only with the ``analysis`` extra). Missing numbers are NaN; a field no
 record had is no column. In ``can_frames`` an integer DBC signal is a pandas nullable integer
-column instead (``Int64``, ``<NA>`` where a frame lacks it: :func:`integer_signals`).
+column instead (``Int64``, ``<NA>`` where a frame lacks it: :func:`integer_signals`), and so
+is every whole-number field of a ``cia402`` log's CANopen frames (``can_frames`` and
+``canopen_frames``: ``node``, ``statusword``, ``index``, ``sdo_value``, ...).
 """
 
 from __future__ import annotations
@@ -74,10 +76,11 @@ class Run:
     def __init__(self, log: LoadedLog) -> None:
         self.log = log
         self._arrays: dict[str, dict[str, np.ndarray]] = {}
-        self._can_ints: dict[str, list[Any]] = {}
-        """The integer DBC signals' columns of ``can`` as decoded (Python ints, None where
-        absent): the DataFrame's nullable integer columns, exact."""
-        self._can_dtypes: dict[str, str] = {}
+        self._ints: dict[str, dict[str, list[Any]]] = {}
+        """Per table, its integer columns as decoded (Python ints, None where absent: the DBC's
+        integer signals of ``can``, a ``cia402`` log's whole-number CANopen fields): the
+        DataFrame's nullable integer columns, exact."""
+        self._int_dtypes: dict[str, dict[str, str]] = {}
 
     def __repr__(self) -> str:
         cut = ", truncated" if self.truncated else ""
@@ -207,12 +210,13 @@ class Run:
         cfg = self.log.config
         if cfg is not None and cfg.hardware.profile == "cia402":
             rows = [_canopen_decoded(direction, frame) for direction, frame in frames]
-            return self._with_time(columns(rows))
+            return self._keep_ints("can", rows, self._with_time(columns(rows)))
         db = load_database().db
         rows = [_decoded(db, direction, frame) for direction, frame in frames]
         cols = self._with_time(columns(rows))
-        self._can_dtypes = {k: v for k, v in integer_signals(db).items() if k in cols}
-        self._can_ints = {k: [row.get(k) for row in rows] for k in self._can_dtypes}
+        dtypes = {k: v for k, v in integer_signals(db).items() if k in cols}
+        self._int_dtypes["can"] = dtypes
+        self._ints["can"] = {k: [row.get(k) for row in rows] for k in dtypes}
         order = [*_CAN_LEADING, "decode_error"]
         for msg in db.messages:
             for sig in msg.signals:
@@ -229,7 +233,24 @@ class Run:
             if "error" in rec:
                 row["decode_error"] = rec["error"]
             rows.append(row)
-        return self._with_time(columns(rows))
+        return self._keep_ints("canopen", rows, self._with_time(columns(rows)))
+
+    def _keep_ints(
+        self, topic: str, rows: list[dict[str, Any]], cols: dict[str, np.ndarray]
+    ) -> dict[str, np.ndarray]:
+        """Note the columns of ``cols`` that are float only because some rows lack them
+        (every present value a Python int, not a bool): ``Int64`` in the DataFrame."""
+        ints: dict[str, list[Any]] = {}
+        for name, col in cols.items():
+            if col.dtype.kind != "f":
+                continue
+            values = [row.get(name) for row in rows]
+            present = [v for v in values if v is not None]
+            if present and all(type(v) is int for v in present):
+                ints[name] = values
+        self._ints[topic] = ints
+        self._int_dtypes[topic] = dict.fromkeys(ints, "Int64")
+        return cols
 
     # --------------------------------------------------------------- pandas DataFrames
 
@@ -237,12 +258,11 @@ class Run:
         """The table ``topic`` as a DataFrame (``cycle`` indexed by ``tick``)."""
         pd = require("pandas", "a DataFrame of the log")
         df = pd.DataFrame(self.arrays(topic))
-        if topic == "can":
-            for name, dtype in self._can_dtypes.items():
-                # from the decoded ints (a float column rounds beyond 2**53); a column of
-                # other than whole numbers after all stays as it was
-                with contextlib.suppress(TypeError, ValueError):
-                    df[name] = pd.array(self._can_ints[name], dtype=dtype)
+        for name, dtype in self._int_dtypes.get(topic, {}).items():
+            # from the decoded ints (a float column rounds beyond 2**53); a column of
+            # other than whole numbers after all stays as it was
+            with contextlib.suppress(TypeError, ValueError):
+                df[name] = pd.array(self._ints[topic][name], dtype=dtype)
         if topic == "cycle" and "tick" in df.columns:
             df = df.set_index("tick")
         return df
@@ -277,7 +297,12 @@ class Run:
         ``target_torque`` (raw object values), EMCY ``code`` / ``register`` / ``text``,
         NMT ``command`` / ``target``, heartbeat ``nmt_state``, SDO ``sdo_service`` /
         ``index`` / ``subindex`` / ``sdo_value`` / ``abort_code`` (the spelling of the
-        ``/hal/canopen`` topic: :func:`~rt_controller.runtime.record_encoding.canopen_dict`)."""
+        ``/hal/canopen`` topic: :func:`~rt_controller.runtime.record_encoding.canopen_dict`);
+        each of these whole-number fields is an ``Int64`` column, ``<NA>`` where absent.
+
+        ``time_s`` is ``t_ns`` in seconds since the first tick's wake-up (the loop's monotonic
+        clock, negative before it): plant time only in a realtime run, not in lockstep. Align
+        a frame with its tick by its ``Tick`` signal or by ``t_ns``."""
         return self.frame("can")
 
     @cached_property
@@ -285,8 +310,8 @@ class Run:
         """``/hal/canopen`` as recorded (a ``cia402`` log; empty for others and for logs
         recorded before the topic existed, whose ``can_frames`` decode the same way): one row
         per frame in the log's order, ``t_ns``, ``time_s``, ``direction``, ``cob_id``,
-        ``kind``, ``node``, ``data``, then the decoded ``fields`` one column each, and
-        ``decode_error``."""
+        ``kind``, ``node``, ``data``, then the decoded ``fields`` one column each (a
+        whole-number field ``Int64``, ``<NA>`` where absent), and ``decode_error``."""
         return self.frame("canopen")
 
 
