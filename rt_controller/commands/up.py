@@ -31,12 +31,14 @@ NOT_REJECTIONS = frozenset(
     {
         "accepted", "received", "ignored", "lost", "invalid", "repeats", "source_changes",
         "resyncs", "resent", "images_missing", "images_of_run_before", "callback_errors",
+        "syncs_sent",
     }
 )  # fmt: skip
 """The counters of the summary's ``rejections`` block that count no rejection: frames and
 messages accepted or received (:class:`hal.e2e.E2EStats`, the feature link's counters), and
 what the link saw besides (frames lost in counter gaps, accepted repeats, resyncs, images
-missing...). The table shows them as ``input_counts``, ``rejections`` only the rest."""
+missing..., a cia402 master's SYNCs sent). The table shows them as ``input_counts``,
+``rejections`` only the rest."""
 WRITTEN_WORDS = "written {} (the topics listed; the writer's /scene, /camera, /tf not counted)"
 """The recorder's ``written`` in the table: the messages of the topics it lists, which the
 controller handed to the writer, not every message of the log (``hil info`` counts those)."""

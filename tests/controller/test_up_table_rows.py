@@ -45,3 +45,10 @@ def test_the_recorder_row_says_what_written_counts():
     row = table_view({"recorder": recorder})["recorder"]
     assert row.startswith("/controller/cycle 150, /hal/can/rx 357, written 507 (")
     assert "topics listed" in row and "/scene" in row and "/camera" in row
+
+
+def test_a_cia402_run_counts_its_syncs_as_input_not_rejection():
+    can_rx = {"authenticated": False, "syncs_sent": 205}  # CiA 402: SYNCs sent, no MAC judged
+    table = table_view({"rejections": {"can_rx": can_rx, "features": {"received": 40}}})
+    assert table["rejections"] == "none"
+    assert table["input_counts"] == "can_rx.syncs_sent 205, features.received 40"
