@@ -296,6 +296,7 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
     kept: list[str] = []
     heading: list[str] = []  # the section's comment lines above its first key stay on top
     others: list[str] = []
+    notes: dict[str, str] = {}
     inside = keyed = False
     for line in text.splitlines():
         if _SECTION.match(line):
@@ -309,15 +310,21 @@ def write_vision_section(path: str | Path, calibration: Calibration) -> RigConfi
             heading.append(line)
         elif line.strip():
             keyed = True
-            if line.split("=")[0].strip() not in values:
+            name, _, value = line.partition("=")
+            if name.strip() not in values:
                 others.append(line)  # the section's other keys stay
+            elif "#" in value:  # a number or a bool, then the key's own comment: kept
+                notes[name.strip()] = "  #" + value.split("#", 1)[1].rstrip()
     while kept and not kept[-1].strip():
         kept.pop()
     block = [
         f"[vision]            # hil camera calibrate: {c.views_used} of {c.views_total} views, "
         f"{c.corners} corners, RMS {c.rms_px:.3f} px, {c.width}x{c.height}",
         *heading,
-        *(f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v)}" for k, v in values.items()),
+        *(
+            f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v)}{notes.get(k, '')}"
+            for k, v in values.items()
+        ),
         *others,
     ]
     new_text = "\n".join([*kept, *([""] if kept else []), *block]) + "\n"

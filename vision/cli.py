@@ -111,8 +111,9 @@ def run_from_args(args: argparse.Namespace) -> int:
                         "hil vision", stop, isinstance(exc, HalStopped)
                     )
                 raise
+    to = sys.stderr if getattr(args, "frames", False) else sys.stdout  # stdout: JSON lines
     if args.json:
-        print(strict_json.dumps(stats.as_dict()), flush=True)
+        print(strict_json.dumps(stats.as_dict()), file=to, flush=True)
     else:
         rejected = dict(stats.pipeline.get("rejected", {}))
         bad_mac = rejected.pop("bad_mac", 0)
@@ -131,7 +132,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                 if stats.callback_errors
                 else ""
             ),
-            file=sys.stderr if getattr(args, "frames", False) else sys.stdout,  # JSON lines out
+            file=to,
             flush=True,
         )
     return 0

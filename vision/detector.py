@@ -42,8 +42,9 @@ class DetectorParams:
     max_area: float = 40_000.0
     max_elongation: float = 1.6
     """Major over minor axis; a sharp disc is 1, a blur of its diameter is about 2."""
-    min_fill: float = 0.8
-    """Region area over the area of its moment ellipse; a disc is 1."""
+    min_fill: float = 0.97
+    """Region area over the area of its moment ellipse; a disc is 1 (seen at any tilt: an
+    ellipse), a square or any parallelogram 0.955 (a board's marker, a chip: not taken)."""
     margin: int = 3
     """Window around the region for the sub-pixel centroid, px."""
     min_contrast: float = 30.0

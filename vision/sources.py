@@ -21,7 +21,6 @@ from 0.
 from __future__ import annotations
 
 import os
-import re
 import stat
 import threading
 import time
@@ -38,6 +37,7 @@ from hal.errors import HalConfigError, HalTransportError
 from hal.log_topics import IMAGE_TOPIC
 from hal.secoc import AnotherKeyNotice
 from hal.signals import wait_for_stop
+from vision.sequence import SequenceCapture, is_sequence, sequence_files
 
 FrameSink = Callable[[CameraFrame], None]
 """Receives each frame."""
@@ -154,6 +154,8 @@ class CaptureSource:
 
     def open(self) -> cv2.VideoCapture:
         check_source(self.name)
+        if self.kind == "file" and is_sequence(self.target):  # each image at its own size
+            return SequenceCapture(sequence_files(Path(self.target), self.name))  # type: ignore[return-value]
         quiet_ffmpeg()
         api = {"v4l2": cv2.CAP_V4L2, "gst": cv2.CAP_GSTREAMER}.get(self.kind, cv2.CAP_ANY)
         logging = cv2.utils.logging
@@ -331,8 +333,8 @@ def check_source(spec: str) -> None:
     pipeline with OpenCV's GStreamer backend. Checked before anything waits (the zenoh hub),
     so a typo is told at once, not after ``--wait``."""
     kind, target = parse_source(spec)
-    if kind == "file" and "://" not in target and SEQUENCE.search(target):
-        _check_sequence(Path(target), spec)
+    if kind == "file" and is_sequence(target):
+        sequence_files(Path(target), spec)
     elif kind == "file" and "://" not in target:
         _check_is_file(Path(target), spec, "a video or image file")
     elif kind == "log":
@@ -352,31 +354,6 @@ def _check_is_file(path: Path, name: str, what: str) -> None:
         raise HalConfigError(f"--source {name}: no such file")
     if not os.access(path, os.R_OK):
         raise HalConfigError(f"--source {name}: not readable (permission denied)")
-
-
-SEQUENCE = re.compile(r"%(0?\d+)?d")
-"""A numbered image sequence, as FFmpeg reads it: ``views/view-%03d.png``."""
-
-
-def _check_sequence(pattern: Path, name: str) -> None:
-    """One line unless ``pattern`` names images FFmpeg plays as a sequence: its folder exists,
-    some file matches, and the first is numbered 0 to 4 (FFmpeg looks no further)."""
-    folder = pattern.parent
-    if not folder.is_dir():
-        raise HalConfigError(f"--source {name}: no such folder {folder}")
-    at = SEQUENCE.search(pattern.name)
-    if at is None:  # the % is in a folder's name
-        raise HalConfigError(f"--source {name}: a sequence numbers its files, not its folder")
-    head, tail = pattern.name[: at.start()], pattern.name[at.end() :]
-    numbers = re.compile(re.escape(head) + r"(\d+)" + re.escape(tail) + "$")
-    found = [int(m[1]) for p in folder.iterdir() if (m := numbers.match(p.name))]
-    if not found:
-        raise HalConfigError(f"--source {name}: no file matches the image sequence")
-    if min(found) > 4:
-        raise HalConfigError(
-            f"--source {name}: the images are numbered from {min(found)}; an image sequence "
-            "starts at 0 to 4 (renumber them, or give a folder to hil camera calibrate --images)"
-        )
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from typing import Any
 
@@ -151,6 +152,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise HalConfigError(
             f"--{given[0].replace('_', '-')}: only with --source emulated (--images calibrates "
             "from the folder's views as they are)"
+        )
+    if args.config and not os.path.lexists(args.config):  # calibrate the camera of a rig
+        raise HalConfigError(
+            f"--config {args.config}: no such file (start from a copy of examples/rig.toml, "
+            "set [camera] to your camera, then calibrate)"
         )
     cfg = load_config(args.config)
     spec = _spec(args)

@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--frames",
         action="store_true",
         help="with --source log:...: print each frame's measurement as a JSON line (the "
-        "summary line then goes to stderr)",
+        "summary, --json's too, then goes to stderr)",
     )
     p.set_defaults(handler=_run)
 
