@@ -63,6 +63,9 @@ SECTION_REASONS: dict[str, str] = {
     "plant": "the emulated plant belongs to the emulator",
     "controller": "fixed for the run (the loop's wiring and real-time settings): restart",
     "rhc": "a solver internal, fixed for the run: restart",
+    "vision": "the camera model and detector belong to the vision process",
+    "cia402": "the CiA 402 drives are configured at start: restart to change",
+    "hardware": "the hardware profile is chosen at start: restart to change",
 }
 """Why the keys of a section outside :data:`TUNABLE` are refused."""
 
@@ -75,15 +78,39 @@ def refusal(key: str) -> str | None:
     known = RigConfig().to_dict()
     if section not in known or name not in known[section]:
         return f"unknown config key {key!r}"
-    return f"{key} is not online-tunable: {SECTION_REASONS[section]}"
+    why = SECTION_REASONS.get(section, "fixed for the run: restart with --config to change it")
+    return f"{key} is not online-tunable: {why}"
 
 
 class ParameterRefused(ControllerConfigError):
     """A change set that may not be applied; ``str()`` is the reason (a ``ValueError`` too)."""
 
 
+MAX_DEPTH = 8
+"""Lists in lists a value may hold (a matrix has 2): a deeper one is refused unread, as no
+recursion over it (the record's JSON too) may run out of stack in the control thread."""
+
+
+def _too_deep(value: Any) -> bool:
+    """Whether ``value`` nests lists more than :data:`MAX_DEPTH` deep (no recursion)."""
+    stack = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, list | tuple):
+            if depth >= MAX_DEPTH:
+                return True
+            stack.extend((v, depth + 1) for v in item)
+    return False
+
+
 def _plain(value: Any) -> Any:
-    return [_plain(v) for v in value] if isinstance(value, list | tuple) else value
+    if _too_deep(value):  # recorded as a line, never walked
+        return f"(lists nested more than {MAX_DEPTH} deep)"
+    return _plain_list(value)
+
+
+def _plain_list(value: Any) -> Any:
+    return [_plain_list(v) for v in value] if isinstance(value, list | tuple) else value
 
 
 def value_of(cfg: RigConfig, key: str) -> Any:
@@ -99,7 +126,7 @@ def judge(cfg: RigConfig, changes: Mapping[str, Any]) -> RigConfig:
     if not changes:
         raise ParameterRefused("no keys given")
     for key, value in changes.items():
-        why = refusal(key) or _out_of_range(key, value)
+        why = refusal(key) or _nested(key, value) or _out_of_range(key, value)
         if why is not None:
             raise ParameterRefused(why)
     try:
@@ -120,6 +147,13 @@ def _out_of_range(key: str, value: Any) -> str | None:
         return next(filter(None, (_out_of_range(key, v) for v in value)), None)
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= MAX_INT:
         return f"{key}: out of range, an integer of {value.bit_length()} bits"
+    return None
+
+
+def _nested(key: str, value: Any) -> str | None:
+    """Why ``value`` is refused unread: lists nested beyond :data:`MAX_DEPTH`."""
+    if _too_deep(value):
+        return f"{key}: lists nested more than {MAX_DEPTH} deep (a matrix has 2)"
     return None
 
 
@@ -301,13 +335,13 @@ class ParameterService:
         return changed, outcomes
 
     def _items(self, r: Request) -> list[dict[str, Any]]:
-        """``{"key", "old", "new"}`` for each key of ``r`` (old None for an unknown key)."""
-        items = []
+        """``{"key", "old", "new"}`` for each key of ``r`` (old None for a key that is no
+        configuration key, ``robot.__class__`` say)."""
+        items, known = [], self.cfg.to_dict()
         for key, new in r.changes.items():
-            try:
-                before = value_of(self.cfg, key)
-            except AttributeError:
-                before = None
+            section, _, name = key.partition(".")
+            config_key = isinstance(known.get(section), dict) and name in known[section]
+            before = value_of(self.cfg, key) if config_key else None  # never an attribute
             items.append({"key": key, "old": before, "new": _plain(new)})
         return items
 

@@ -104,6 +104,34 @@ def _access(args: argparse.Namespace) -> tuple[str, object]:
     return mode, tls
 
 
+def _check_port(host: str, port: int) -> None:
+    """A port another server listens on, refused before the wait for the hub (which would
+    otherwise blame a rig not yet up); the server binds it again once the hub is there."""
+    import errno
+    import socket
+
+    from rt_controller.errors import ControllerConfigError
+
+    if port == 0:
+        return
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        # as the server binds (tokio sets it): a client's lingering TIME_WAIT is no refusal
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+            sock.listen(1)
+        except OSError as exc:
+            hint = (
+                "(another monitor or rig's live view?); choose another with --port PORT (0 = any)"
+                if exc.errno == errno.EADDRINUSE
+                else "(an address of this host? see --host)"
+            )
+            raise ControllerConfigError(
+                f"cannot serve Foxglove WebSocket on {host}:{port}: {exc.strerror or exc} {hint}"
+            ) from None
+
+
 def run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key, rig_key
@@ -119,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         print(tuning_token(rig_key(cfg)))
         return 0
     mode, tls = _access(args)
+    _check_port(args.host, args.port)
     cfg = configure_key(load_config(args.config), args.key_file, "hil monitor")
     gate = AccessGate(mode, rig_key(cfg))
     # --duration bounds the wait for the hub too (a 3 s view does not wait 10 s for a rig)

@@ -17,7 +17,8 @@ refused here, before the controller, and the operator services that change thing
 advertised. Edits of one matrix compose: each starts from the value last sent to the
 controller when that set got no answer in time (it may still take effect), else from the
 controller's (a whole matrix brings the entries that differ from the controller's); one that
-would land before such an edit sent for a later tick, and so be undone by it, is refused here.
+would land before such an edit sent for a later tick, and so be undone by it, is refused here,
+and so is a parameter set without a value (the protocol's "unset": no key of the rig can go).
 A callback that fails here is said once on stderr (later ones counted in ``failed``) and
 answered with the last values known. Subscribers get fresh values whenever the cycle records'
 ``param_set`` moves (:meth:`TuningFrontEnd.param_set_seen`), whoever changed it.
@@ -67,7 +68,7 @@ from rt_controller.calibration.link import (
     request,
 )
 from rt_controller.calibration.parameters import TUNABLE
-from rt_controller.monitor.access import TOKEN_PARAMETER, AccessGate
+from rt_controller.monitor.access import ADMITTED_LINE, OPEN_LINE, TOKEN_PARAMETER, AccessGate
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +91,14 @@ ACTION_SERVICES = {
     "/hil/reset_scenario": "reset_scenario",
 }
 MARK_SERVICE, LAW_SERVICE = "/hil/mark", "/hil/switch_law"
+READ_ONLY_TOKEN_LINES = {
+    OPEN_LINE: "no access token is needed or checked here (plain ws:// on loopback); the "
+    "parameters are read-only (only the mark is offered): start hil monitor (or hil up) with "
+    "--allow-tuning to change the rig",
+    ADMITTED_LINE: "access token accepted: this connection may call the mark; the parameters "
+    "are read-only: start hil monitor with --allow-tuning to change the rig",
+}
+"""The gate's answer to ``hil.token`` as a monitor without ``allow_tuning`` gives it."""
 
 _SCHEMAS = Path(__file__).parent
 """``service_request_schema.json`` and ``service_response_schema.json``: the services' JSON."""
@@ -234,6 +243,8 @@ class TuningFrontEnd(ServerListener):
                 outcome = None  # this connection's own answer, when the gate decides
                 if TOKEN_PARAMETER in asked:
                     outcome = self.gate.present(client.id, asked.pop(TOKEN_PARAMETER))
+                    if not self.allow_tuning:
+                        outcome = READ_ONLY_TOKEN_LINES.get(outcome, outcome)
                 if asked:  # a refused token's line stands for the change it came with
                     change = self._change(client.id, asked)
                     outcome = outcome if outcome and change else change
@@ -286,6 +297,15 @@ class TuningFrontEnd(ServerListener):
             self.last_outcome = f"refused here: {' and '.join(read_only)} cannot be set (read-only)"
             self._status(self.last_outcome, ok=False)
         if not asked:
+            return
+        unset = [name for name, value in asked.items() if value is None]
+        if unset:  # the protocol's "unset": no parameter of the rig can be removed
+            self._at_tick = -1  # consumed, as by any refused set
+            self.last_outcome = (
+                f"refused here: {', '.join(unset)} given no value (a parameter of the rig "
+                "cannot be unset): set it to a value"
+            )
+            self._status(self.last_outcome, ok=False)
             return
         current = self.ask("get")["values"]
         self._sent = {k: v for k, v in self._sent.items() if current.get(k) != v[0]}  # landed
