@@ -105,7 +105,6 @@ class ParameterServer:
         """The newest time of a nonce forgotten: a request of that time or older may be a replay
         of it, so it is refused (a burst of requests must not reopen old ones to a replay)."""
         self._seen_lock = threading.Lock()  # one nonce is fresh once, whatever the thread
-        self._failed_lock = threading.Lock()  # zenoh may run queries on several threads
 
     @property
     def failed(self) -> int:
@@ -201,18 +200,10 @@ class ParameterServer:
         return session.session.declare_queryable(KEY_CONTROLLER_PARAMETERS, on_query)
 
     def _failed(self, exc: Exception) -> None:
-        """Count a request this side failed on; say the first one (later ones are counted)."""
-        with self._failed_lock:
-            self.service.counters.failed += 1
-            first = self.service.counters.failed == 1
-        if first:
-            log.error(
-                "parameters: a request on %s failed in the controller and got no answer "
-                "(further failures are counted only): %s: %s",
-                KEY_CONTROLLER_PARAMETERS,
-                type(exc).__name__,
-                exc,
-            )
+        """Count a request this side failed on (it got no answer)."""
+        self.service.counters.count_failed(
+            exc, f"handling a request on {KEY_CONTROLLER_PARAMETERS} (it got no answer)"
+        )
 
 
 EARLY_END = 0.9

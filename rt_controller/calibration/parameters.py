@@ -20,7 +20,9 @@ Pure apart from the thread-safe queue: no I/O, no clocks.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -30,6 +32,10 @@ from hal.errors import HalConfigError
 from rt_controller.calibration.handover import DueQueue, beyond_end, run_ended
 from rt_controller.calibration.operator import ActionQueue
 from rt_controller.errors import ControllerConfigError
+
+log = logging.getLogger(__name__)
+_FAILED_LOCK = threading.Lock()
+"""Guards ``failed``: zenoh's threads and the control thread both count."""
 
 TUNABLE: dict[str, str] = {
     "gains.kp": "kp of eq. (34)",
@@ -260,11 +266,27 @@ class ParameterCounters:
     refused: int = 0
     unauthenticated: int = 0
     failed: int = 0
-    """Requests the controller failed on and left unanswered (``ParameterServer``)."""
+    """Requests the controller failed on: left unanswered (``ParameterServer``), or refused
+    or unanswered in the control thread (:meth:`ParameterService.due`)."""
     unchanged: int = 0
     """Change sets accepted with nothing to change (the values already in force)."""
     oversized: int = 0
     """Requests refused for a text beyond its limit (a mark's note: ``ParameterServer``)."""
+
+    def count_failed(self, exc: BaseException, doing: str) -> None:
+        """Count a fault of the controller's own (any thread); the first is logged, later
+        ones are counted only."""
+        with _FAILED_LOCK:
+            self.failed += 1
+            first = self.failed == 1
+        if first:
+            log.error(
+                "parameters: a fault of the controller's own while %s (further ones are "
+                "counted only): %s: %s",
+                doing,
+                type(exc).__name__,
+                exc,
+            )
 
     def as_dict(self) -> dict[str, int]:
         """The counts; ``failed``, ``unchanged`` and ``oversized`` only when not 0."""
@@ -308,7 +330,9 @@ class ParameterService:
         records are for the log). Control thread only."""
         outcomes = []
         for r in self._queue.drain():
-            outcomes.append(self._refuse(r, tick or 0, t_ns, run_ended(r.at_tick, tick)))
+            out = self._refuse(r, tick or 0, t_ns, run_ended(r.at_tick, tick))
+            self._answer(r, out)
+            outcomes.append(out)
         return outcomes
 
     def due(self, tick: int, t_ns: int = 0) -> tuple[RigConfig | None, list[Outcome]]:
@@ -319,20 +343,37 @@ class ParameterService:
             return None, []
         changed, outcomes = None, []
         for r in now:
-            if r.invalid is not None:
-                outcomes.append(self._refuse(r, tick, t_ns, r.invalid))
-                continue
-            if r.at_tick is not None and r.at_tick > tick:  # due only as never reached
-                out = self._refuse(r, tick, t_ns, beyond_end(r.at_tick, self._queue.end_tick))
-                outcomes.append(out)
-                continue
-            out = self._judge(r, tick, t_ns)
+            out = self._decide(r, tick, t_ns)
             if out.accepted and not out.unchanged:
                 changed = self.cfg
             outcomes.append(out)
-            if r.reply is not None:
-                r.reply(out)
+            self._answer(r, out)
         return changed, outcomes
+
+    def _decide(self, r: Request, tick: int, t_ns: int) -> Outcome:
+        if r.invalid is not None:
+            return self._refuse(r, tick, t_ns, r.invalid)
+        if r.at_tick is not None and r.at_tick > tick:  # due only as never reached
+            return self._refuse(r, tick, t_ns, beyond_end(r.at_tick, self._queue.end_tick))
+        try:
+            return self._judge(r, tick, t_ns)
+        except Exception as exc:  # a fault of the controller's, not the request's: run on
+            self.counters.count_failed(exc, "judging a change set")
+            reason = _one_line(f"the controller failed on it: {type(exc).__name__}: {exc}")
+            items = [{"key": str(k), "old": None, "new": None} for k in r.changes]
+            return Outcome(
+                tick, False, items, r.source, self.param_set, reason, r.request_id, r.at_tick,
+                t_ns,
+            )  # fmt: skip
+
+    def _answer(self, r: Request, out: Outcome) -> None:
+        """Call ``r``'s reply; one that fails (a dropped query) is counted, the outcome stands."""
+        if r.reply is None:
+            return
+        try:
+            r.reply(out)
+        except Exception as exc:
+            self.counters.count_failed(exc, "answering a change set")
 
     def _items(self, r: Request) -> list[dict[str, Any]]:
         """``{"key", "old", "new"}`` for each key of ``r`` (old None for a key that is no
@@ -346,14 +387,12 @@ class ParameterService:
         return items
 
     def _refuse(self, r: Request, tick: int, t_ns: int, reason: str) -> Outcome:
-        """``r`` refused unjudged with ``reason``: counted and answered."""
+        """``r`` refused unjudged with ``reason``: counted (the caller answers)."""
         self.counters.refused += 1
         out = Outcome(
             tick, False, self._items(r), r.source, self.param_set, reason, r.request_id,
             r.at_tick, t_ns,
         )  # fmt: skip
-        if r.reply is not None:
-            r.reply(out)
         return out
 
     def _judge(self, r: Request, tick: int, t_ns: int) -> Outcome:

@@ -379,8 +379,8 @@ def parameter_warnings(counts: dict[str, Any]) -> list[str]:
         )
     if failed:
         out.append(
-            f"{failed} parameter request(s) failed in the controller and got no answer (a fault "
-            "of the controller's, not the request's; it logged why the first failed)"
+            f"{failed} parameter request(s) failed in the controller, refused or unanswered (a "
+            "fault of the controller's, not the request's; it logged why the first failed)"
         )
     return out
 

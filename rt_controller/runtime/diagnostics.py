@@ -115,7 +115,7 @@ def _parameters_status(values: dict[str, Any]) -> dict[str, Any]:
     refused unauthenticated ones (someone else's)."""
     failed, rogue = int(values.get("failed", 0)), int(values.get("unauthenticated", 0))
     if failed:
-        why = f"{failed} request(s) failed in the controller, unanswered"
+        why = f"{failed} request(s) failed in the controller, refused or unanswered"
         return _status(
             "parameters", ERROR, why + (f"; {rogue} unauthenticated" if rogue else ""), values
         )

@@ -63,12 +63,13 @@ def test_a_request_the_controller_fails_on_is_counted_and_said_once(caplog):
     broken = ParameterService(None)  # type: ignore[arg-type]  # no configuration to read
     server = ParameterServer(broken, KEY)
     server.attach(zenoh)
-    with caplog.at_level(logging.ERROR, logger="rt_controller.calibration.link"):
+    with caplog.at_level(logging.ERROR, logger="rt_controller.calibration"):
         for _ in range(3):
             with pytest.raises(ParameterLinkError, match="failed on it"):
                 request(zenoh, KEY, "get")
     assert server.failed == 3
-    said = [r for r in caplog.records if r.name == "rt_controller.calibration.link"]
-    assert len(said) == 1 and "failed in the controller" in said[0].getMessage()
+    said = [r for r in caplog.records if r.name.startswith("rt_controller.calibration")]
+    assert len(said) == 1 and "fault of the controller's own" in said[0].getMessage()
+    assert "(it got no answer)" in said[0].getMessage()
     counts = {"accepted": 0, "refused": 0, "unauthenticated": 0, "failed": 3}
     assert broken.counters.as_dict() == counts  # what /diagnostics reports
