@@ -235,19 +235,6 @@ def run(args: argparse.Namespace) -> int:
         return exc.status
 
 
-def _too_deep_key(items: list[str]) -> str:
-    """The key of the first ``KEY=VALUE`` whose value nests too deep for ``json.loads``."""
-    for item in items:
-        key, _, text = item.partition("=")
-        try:
-            json.loads(text)
-        except RecursionError:
-            return key.strip()
-        except ValueError:
-            continue
-    return "a value"
-
-
 def _run(args: argparse.Namespace) -> int:
     from hal.config import load_config
     from hal.secoc import configure_key, rig_key
@@ -268,13 +255,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.action in ("load", "diff"):
         file_cfg, file_keys = _file_settings(args.items[0])
     wanted = {k: value_of(file_cfg, k) for k in TUNABLE if k in file_keys}
-    try:
-        changes = parse_sets(args.items, "set") if args.action == "set" else {}
-    except RecursionError:  # json.loads of lists in lists in lists ...
-        raise ControllerConfigError(
-            f"set: {_too_deep_key(args.items)}: lists nested too deep to read (a tunable value "
-            "is at most a matrix, [[a, b], [c, d]])"
-        ) from None
+    changes = parse_sets(args.items, "set") if args.action == "set" else {}
     if args.action == "set" and not changes:
         raise ControllerConfigError("set expects KEY=VALUE ...")
     out_file = None

@@ -128,6 +128,11 @@ def parse_sets(items: list[str], option: str = "--set") -> dict[str, Any]:
             raise ControllerConfigError(f"{option}: {key} given twice; each key once")
         try:
             out[key] = json.loads(text)
+        except RecursionError:  # lists in lists in lists ...: json.loads runs out of stack
+            raise ControllerConfigError(
+                f"{option}: {key}: lists nested too deep to read (a value is at most a matrix, "
+                "[[a, b], [c, d]])"
+            ) from None
         except ValueError:
             out[key] = text
     return out

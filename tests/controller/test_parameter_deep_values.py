@@ -43,3 +43,12 @@ def test_hil_param_set_with_a_deeply_nested_value_is_one_line(capsys) -> None:
     assert main(["param", "set", f"rhc.u_max={text}", "--timeout", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "Traceback" not in err and "rhc.u_max" in err, err
+
+
+def test_hil_replay_set_with_a_deeply_nested_value_is_one_line(capsys, tmp_path) -> None:
+    text = "[" * 990 + "]" * 990
+    log = tmp_path / "absent.mcap"  # the --set is judged before the log is read
+    assert main(["replay", str(log), "--set", f"rhc.u_max={text}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    assert "--set: rhc.u_max: lists nested too deep" in err, err
