@@ -128,8 +128,10 @@ class FoxgloveClient:
         return self._ask({"op": "getParameters", "parameterNames": names}, timeout)
 
     def set_parameters(self, values: dict[str, Any], timeout: float = 60.0) -> dict[str, Any]:
-        """``setParameters`` with an id: name -> value of the server's answer."""
-        params = [{"name": k, "value": v} for k, v in values.items()]
+        """``setParameters`` with an id: name -> value of the server's answer. A None value is
+        sent as the protocol's unset (``value`` left out): foxglove-sdk drops a request with
+        ``"value": null`` unanswered, so the call would wait out its timeout."""
+        params = [{"name": k} if v is None else {"name": k, "value": v} for k, v in values.items()]
         return self._ask({"op": "setParameters", "parameters": params}, timeout)
 
     def subscribe_parameters(self, names: list[str]) -> None:
