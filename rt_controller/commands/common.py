@@ -22,11 +22,25 @@ def add_law_options(p: argparse.ArgumentParser, default_law: str | None = None) 
         help="control law for u: passivity-based (eq. 15), inverse-optimal (eq. 27) or "
         "receding-horizon (eq. 30); default: controller.law of the config",
     )
-    p.add_argument("--rate", type=float, metavar="HZ", help="control rate (default 50)")
-    p.add_argument("--horizon", type=float, metavar="T", help="RHC horizon T in s (default 0.1)")
-    p.add_argument("--steps", type=int, metavar="N", help="RHC horizon steps N (default 10)")
-    p.add_argument("--kmax", type=int, help="GMRES iterations per update (default 5)")
-    p.add_argument("--zeta", type=float, help="C/GMRES continuation gain in 1/s (default 50)")
+    d = RigConfig()  # each option's key; the file's value, else the embedded default, applies
+
+    def key(name: str) -> str:
+        section, _, field = name.partition(".")
+        return f"{name}; default: the config's, embedded {getattr(getattr(d, section), field):g}"
+
+    p.add_argument(
+        "--rate", type=float, metavar="HZ", help=f"control rate ({key('rates.control_hz')})"
+    )
+    p.add_argument(
+        "--horizon", type=float, metavar="T", help=f"RHC horizon T in s ({key('rhc.horizon')})"
+    )
+    p.add_argument(
+        "--steps", type=int, metavar="N", help=f"RHC horizon steps N ({key('rhc.steps')})"
+    )
+    p.add_argument("--kmax", type=int, help=f"GMRES iterations per update ({key('rhc.kmax')})")
+    p.add_argument(
+        "--zeta", type=float, help=f"C/GMRES continuation gain in 1/s ({key('rhc.zeta')})"
+    )
 
 
 def add_scenario_options(p: argparse.ArgumentParser) -> None:
