@@ -88,7 +88,7 @@ def _closed_loop(args: argparse.Namespace, cfg: RigConfig, progress: Progress) -
     ctl = cfg.controller
     with progress.stage(
         f"preparing the {ctl.law} law and the arm model (numba compiles its kernels on a cold "
-        "cache, up to a minute)"
+        "cache, a minute or two)"
     ):
         from plant_emulator.world import World
         from rt_controller.control.controller import Controller
