@@ -36,14 +36,14 @@ def run_offline(
     notice: Callable[[str], None] | None = None,
 ) -> GrabberStats:
     """Run the pipeline over every frame of a log or file, publishing nothing (``notice``:
-    told once, at the first frame of another size than the camera's)."""
+    told once, at the first frame of another size than the camera's, and at a log's cut end)."""
     grabber = Grabber(
         Pipeline(intrinsics_from_config(cfg), notice=notice),
         lambda msg: None,
         source_id=0,
         observer=on_result,
     )
-    source = open_source(spec)
+    source = open_source(spec, notice=notice)
     source.run(grabber.on_frame, grabber.on_reject, stop_event or threading.Event())
     stats = grabber.snapshot()
     stats.source = source.name

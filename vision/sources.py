@@ -254,9 +254,13 @@ class LogSource:
     """The camera frames a run recorded (``/camera/image``, PNG or JPEG), in log order; their
     stamps are the log times."""
 
-    def __init__(self, path: str, topic: str = IMAGE_TOPIC) -> None:
+    def __init__(
+        self, path: str, topic: str = IMAGE_TOPIC, notice: Callable[[str], None] | None = None
+    ) -> None:
         self.name = f"log:{path}"
         self.path, self.topic = Path(path), topic
+        self.notice = notice
+        """Told once when the file ends in a cut or damaged record (a killed recorder)."""
 
     def request_roi(self, req: RoiRequest) -> None:
         """A log holds whole frames: the request is ignored."""
@@ -300,6 +304,12 @@ class LogSource:
                     raise HalConfigError(
                         f"--source {self.name}: not a readable MCAP log ({exc})"
                     ) from None
+                if self.notice is not None:
+                    self.notice(
+                        f"{self.path} ends after {seq} {self.topic} frames in a cut or "
+                        f"damaged record ({type(exc).__name__}: a killed recorder, a partial "
+                        "copy): those frames were re-run"
+                    )
         if not seen and not stop.is_set():
             raise HalConfigError(
                 f"--source {self.name}: the log has no {self.topic} frames (the run recorded "
@@ -445,13 +455,18 @@ def parse_source(spec: str) -> tuple[str, str]:
 
 
 def open_source(
-    spec: str, *, session: object = None, key: bytes = b"", live: bool = False
+    spec: str,
+    *,
+    session: object = None,
+    key: bytes = b"",
+    live: bool = False,
+    notice: Callable[[str], None] | None = None,
 ) -> FrameSource:
     """The frame source named by ``spec`` (``emulated`` needs the zenoh ``session`` and key;
-    ``live``: a file plays at its own frame rate)."""
+    ``live``: a file plays at its own frame rate; ``notice``: a log's cut end is told)."""
     kind, target = parse_source(spec)
     if kind == "emulated":
         return EmulatedSource(session, key)
     if kind == "log":
-        return LogSource(target)
+        return LogSource(target, notice=notice)
     return CaptureSource(kind, target, pace=live)

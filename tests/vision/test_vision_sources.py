@@ -260,3 +260,18 @@ def test_a_log_without_frames_and_a_directory_are_refused(tmp_path: Path):
         open_source(f"log:{path}").run(g.on_frame, g.on_reject, threading.Event())
     with pytest.raises(HalConfigError, match="is a directory"):
         open_source(f"log:{tmp_path}").run(g.on_frame, g.on_reject, threading.Event())
+
+
+def test_a_cut_log_is_said_to_be_cut(tmp_path: Path):
+    from hal.config import RigConfig
+    from vision.process import run_offline
+
+    path = _image_log(tmp_path / "run.mcap")
+    said: list[str] = []
+    run_offline(RigConfig(), f"log:{path}", notice=said.append)
+    assert said == []  # a whole log: nothing to say
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 3 // 4])  # the recorder killed: no summary, no footer
+    stats = run_offline(RigConfig(), f"log:{path}", notice=said.append)
+    assert len(said) == 1 and str(path) in said[0], said
+    assert f"ends after {stats.frames} /camera/image frames in a cut" in said[0], said
