@@ -279,11 +279,24 @@ class DspHardware(HardwareBase):
                 why = (
                     "the DSP runs lockstep (`hil emulator --lockstep`): use --clock lockstep"
                     if status is not None and status.lockstep and not self.lockstep
-                    else self._turned_away()
-                    or "is `hil emulator` (and `hil vision`) running on the same transports?"
+                    else self._turned_away() or self._nothing_came(have_state)
                 )
                 raise ControllerError(f"no {missing} within {STARTUP_TIMEOUT_S:.0f} s: {why}")
             self.ctx.pause(10_000_000)
+
+    def _nothing_came(self, have_state: bool) -> str:
+        """Where the input that never came was awaited, and what should be sending it."""
+        t = self.ctx.cfg.transport
+        if not have_state:
+            return (
+                f"nothing came on CAN {resolve_spec(t.can)}: is a DSP sending there (`hil "
+                "emulator` on the same --can, or the rig's DSP powered, on that bus, at its bit "
+                "rates)?"
+            )
+        return (
+            f"nothing came on zenoh {t.zenoh_config or t.zenoh_endpoint}: is `hil vision` "
+            "running there (the same --zenoh-endpoint)?"
+        )
 
     def _turned_away(self) -> str:
         """:func:`turned_away` of the DSP's frames and the features so far."""

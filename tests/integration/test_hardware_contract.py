@@ -213,3 +213,5 @@ def test_configure_without_a_peer_is_one_clear_error(profile, transport, tmp_pat
     assert "\n" not in message
     expected = "no boot-up" if profile == "cia402" else "no joint state (CAN)"
     assert expected in message, message
+    if profile == "dsp":  # where it listened and what should be sending there
+        assert f"nothing came on CAN {cfg.transport.can}: is a DSP sending there" in message
