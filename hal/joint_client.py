@@ -55,6 +55,9 @@ log = logging.getLogger(__name__)
 STATUS_BACKLOG = 64
 """DspStatus frames kept for :meth:`JointClient.take_statuses` between two calls (the DSP sends
 10 a second plus one per change)."""
+FOREIGN_STAMP_S = 3600.0
+"""A receive stamp this far from the wall clock is on another clock (PCAN without the
+``uptime`` package stamps from boot): taken as no stamp, so the frame is judged on arrival."""
 DRAIN_MAX_FRAMES = 1024
 """Most frames one :meth:`JointClient.drain` takes (half a second of free-running state at
 1 kHz): a bus that never runs dry (a flood, or a reader slower than the sender) ends the drain
@@ -77,6 +80,8 @@ class ClientStats:
     """Receive calls that raised (a driver error), counted and read as "no frame"."""
     drains_cut: int = 0
     """Drains that stopped at ``DRAIN_MAX_FRAMES`` frames (the bus had not run dry)."""
+    foreign_stamps: int = 0
+    """Frames whose receive stamp was not on the wall clock, judged on arrival instead."""
 
 
 class JointClient:
@@ -263,12 +268,28 @@ class JointClient:
         None. A driver error reads as None: it is counted (``transport_errors``) and logged on
         the first and every 1000th, and never reaches the caller."""
         try:
-            return self.bus.recv(timeout=timeout_s)
+            msg = self.bus.recv(timeout=timeout_s)
+            if msg is not None and msg.timestamp:
+                self._foreign_stamp(msg)
+            return msg
         except Exception as exc:  # driver errors must not reach the tick
             self._n.transport_errors += 1
             if self._n.transport_errors == 1 or self._n.transport_errors % 1000 == 0:
                 log.warning("CAN receive error on %s: %s", self.bus.channel_info, exc)
             return None
+
+    def _foreign_stamp(self, msg: can.Message) -> None:
+        """Clear a receive stamp that is not on the wall clock (counted, said once)."""
+        if abs(msg.timestamp - time.time()) <= FOREIGN_STAMP_S:
+            return
+        msg.timestamp = 0.0
+        self._n.foreign_stamps += 1
+        if self._n.foreign_stamps == 1:
+            log.warning(
+                "CAN receive stamps on %s are not on the wall clock (PCAN without the uptime "
+                "package?): frames are judged on arrival instead",
+                self.bus.channel_info,
+            )
 
     def drain(self, now_ns: int | None = None, *, timestamps: bool = False) -> int:
         """Read and decode every frame waiting on the bus, without blocking; how many. A frame's
