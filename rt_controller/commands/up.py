@@ -31,7 +31,7 @@ NOT_REJECTIONS = frozenset(
     {
         "accepted", "received", "ignored", "lost", "invalid", "repeats", "source_changes",
         "resyncs", "resent", "images_missing", "images_of_run_before", "callback_errors",
-        "syncs_sent",
+        "syncs_sent", "drains_cut", "foreign_stamps",
     }
 )  # fmt: skip
 """The counters of the summary's ``rejections`` block that count no rejection: frames and

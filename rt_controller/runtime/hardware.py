@@ -233,11 +233,17 @@ class DspHardware(HardwareBase):
         return None
 
     def diagnostics(self) -> dict[str, dict[str, Any]]:
-        """The receive verdicts of this run (``can_rx``, ``features``) and the drive (``dsp``:
+        """The receive verdicts of this run (``can_rx``, with the link's driver errors, cut
+        drains and foreign stamps when there were any; ``features``) and the drive (``dsp``:
         its last status, the monitor's events, the run's ticks by drive mode)."""
-        status = self.dsp.status
+        status, st = self.dsp.status, self.dsp.stats
+        link = {"transport_errors": st.transport_errors, "drains_cut": st.drains_cut}
+        link["foreign_stamps"] = st.foreign_stamps
         return {
-            "can_rx": diagnostics.since(self.can_base, self.dsp.stats.e2e.as_dict()),
+            "can_rx": {
+                **diagnostics.since(self.can_base, st.e2e.as_dict()),
+                **{k: v for k, v in link.items() if v},
+            },
             "features": self.features.as_dict(),
             "dsp": {
                 "status_received": status is not None,

@@ -52,3 +52,12 @@ def test_a_cia402_run_counts_its_syncs_as_input_not_rejection():
     table = table_view({"rejections": {"can_rx": can_rx, "features": {"received": 40}}})
     assert table["rejections"] == "none"
     assert table["input_counts"] == "can_rx.syncs_sent 205, features.received 40"
+
+
+def test_the_links_own_counts_are_inputs_but_a_driver_error_is_shown_as_a_problem():
+    can_rx = {"accepted": 50, "foreign_stamps": 50, "drains_cut": 1, "transport_errors": 2}
+    table = table_view({"rejections": {"can_rx": can_rx}})
+    assert table["rejections"] == "can_rx.transport_errors 2"
+    assert table["input_counts"] == (
+        "can_rx.accepted 50, can_rx.foreign_stamps 50, can_rx.drains_cut 1"
+    )

@@ -31,26 +31,29 @@ class StampedBus(can.BusABC):
         return (self.frames.popleft(), False) if self.frames else (None, False)
 
 
-def _state_frames(stamp: float) -> list[can.Message]:
-    frames = list(DspCodec(key=KEY).encode_state((0.1, 0.2), (0.0, 0.0), sample=1))
+def _state_frames(stamp: float, key: bytes = KEY) -> list[can.Message]:
+    frames = list(DspCodec(key=key).encode_state((0.1, 0.2), (0.0, 0.0), sample=1))
     for msg in frames:
         msg.timestamp = stamp
     return frames
 
 
 def test_boot_relative_stamps_are_taken_as_none_and_counted() -> None:
-    client = JointClient(StampedBus(_state_frames(5_000.0)), key=KEY)  # 5000 s since boot
+    bus = StampedBus(_state_frames(5_000.0))  # stamped 5000 s since boot
+    client = JointClient(bus, key=KEY, owns_bus=True)
     client.drain(timestamps=True)
     assert client.states_received == 1
     assert client.stats.foreign_stamps == 2
     age = client.state_age_s()
     assert age is not None and 0.0 <= age < 3600.0
+    client.close()
 
 
 def test_wall_clock_stamps_are_kept() -> None:
     stamp = time.time() - 0.25  # arrived a quarter of a second ago
-    client = JointClient(StampedBus(_state_frames(stamp)), key=KEY)
+    client = JointClient(StampedBus(_state_frames(stamp)), key=KEY, owns_bus=True)
     client.drain(timestamps=True)
     assert client.states_received == 1 and client.stats.foreign_stamps == 0
     state = client.latest_state(max_age_s=math.inf)
     assert state.t_ns <= time.monotonic_ns() - 200_000_000  # the stamp, not the drain's time
+    client.close()
