@@ -1,7 +1,8 @@
 """Hard-cadence timing: absolute monotonic deadlines, sleep then spin, missed periods skipped.
 
-Tick k is released at ``start + k * period``. A tick that cannot start within its own period is
-skipped (counted in ``missed``), never run in a burst. The clock is a parameter so tests drive the
+Tick k is released at ``start + k * period``. A tick that cannot start within its own period
+(the previous one overran, or the wake-up came a period late) is skipped (counted in
+``missed``), never run in a burst. The clock is a parameter so tests drive the
 cadence with a fake clock and never sleep.
 """
 
@@ -93,15 +94,21 @@ class Cadence:
 
     def wait(self, idle: Idle | None = None) -> Tick:
         """Sleep until the next release (running ``idle`` meanwhile, see :data:`Idle`); skip
-        releases that already lie a period in the past."""
-        k = self._next
-        release = self.start_ns + k * self.period_ns
-        now = self.clock.now_ns()
-        missed = 0
-        if now >= release + self.period_ns:
-            missed = (now - release) // self.period_ns
-            k += missed
-            release += missed * self.period_ns
+        releases that already lie a period in the past, before the sleep and after it (a
+        wake-up, or ``idle``, a whole period late: that release's period is over, the tick is
+        the current period's, never a stale one followed at once by the next)."""
+        k, release, missed = self._current(self._next, self.clock.now_ns())
         self.clock.sleep_until(release, idle)
+        wake = self.clock.now_ns()
+        k, release, late = self._current(k, wake)
         self._next = k + 1
-        return Tick(k, release, self.clock.now_ns(), missed)
+        return Tick(k, release, wake, missed + late)
+
+    def _current(self, k: int, now_ns: int) -> tuple[int, int, int]:
+        """Release ``k``, or the latest one at or before ``now_ns`` if ``now_ns`` lies past
+        release k's period: (index, release time, releases skipped)."""
+        release = self.start_ns + k * self.period_ns
+        if now_ns < release + self.period_ns:
+            return k, release, 0
+        skipped = (now_ns - release) // self.period_ns
+        return k + skipped, release + skipped * self.period_ns, skipped

@@ -85,24 +85,39 @@ class RealtimePacer:
         first on): each one's release time."""
         while not self.ctx.stop.is_set():
             self._last = self.cadence.wait()
+            if self.ctx.stop.is_set():
+                return  # the stop came during the wait: no further arming step
             yield self._last.release_ns
 
     def releases(self, max_ticks: int | None) -> Iterator[Release]:
         """One release per period from the last arming step's (tick 0, t = 0: armed there)
-        until ``max_ticks`` or a stop."""
-        first = tick = self._last if self._last is not None else self.cadence.wait()
+        until ``max_ticks`` periods or a stop. A skip never runs a tick at or past period
+        ``max_ticks`` (the duration's end); periods skipped before tick 0 (start-up, arming)
+        are not periods of the run: tick 0 has none missed."""
+        first = tick = self._first()
         while not self.ctx.stop.is_set():
             index = tick.index - first.index
+            if max_ticks is not None and index >= max_ticks:
+                return  # skipped past the end (or no tick planned at all)
             yield Release(
                 index=index,
                 t_s=(tick.release_ns - first.release_ns) / 1e9,
                 release_ns=tick.release_ns,
                 wake_ns=tick.wake_ns,
-                missed=tick.missed,
+                missed=tick.missed if index else 0,
             )
             if max_ticks is not None and index + 1 >= max_ticks:
                 return  # the last tick ran: no release to wait for
             tick = self.cadence.wait(self.idle)
+
+    def _first(self) -> Tick:
+        """Tick 0: the release of the arming step that armed, woken now (after that step's
+        work); the current period's release instead when that work took the whole period (two
+        commands in one period otherwise)."""
+        armed, now = self._last, self.ctx.clock.now_ns()
+        if armed is None or now >= armed.release_ns + self.period_ns:
+            return self.cadence.wait()
+        return Tick(armed.index, armed.release_ns, now, 0)
 
     def overran(self, release: Release) -> bool:
         """Whether the tick's work ran past the next release (its deadline)."""

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import math
 import threading
 from typing import Any
 
@@ -25,6 +24,7 @@ from rt_controller.runtime.hardware import DspHardware
 from rt_controller.runtime.loop import ControlLoop
 from rt_controller.runtime.pacers import LockstepPacer, RealtimePacer
 from tests.support.fake_clock import FakeClock
+from tests.support.loop_seam import ListRecorder, at_rest
 
 T0 = 1_000_000_000
 
@@ -72,19 +72,7 @@ class ScriptedHardware:
         self.judges.append((judge.state_limit_s, judge.status_limit_s))
         new = self.reads not in self.late
         self.reads += 1
-        return Observation(
-            q=np.array([math.pi / 6, -math.pi / 6]),
-            dq=np.zeros(2),
-            f=np.array([-120.0, -160.0]),
-            state_ns=now_ns,
-            state_age_ms=0.0,
-            state_stale=False,
-            f_age_ms=0.0,
-            f_stale=False,
-            f_valid=True,
-            drive_mode="enabled",
-            state_new=new,
-        )
+        return at_rest(now_ns, new=new)
 
     def write(self, tau: tuple[float, float], *, sync: int | None, release_ns: int) -> None:
         self.calls.append(("write", (tau, sync, release_ns)))
@@ -98,32 +86,6 @@ class ScriptedHardware:
 
     def diagnostics(self) -> dict[str, dict[str, Any]]:
         return {"can_rx": {}, "features": {}, "dsp": {}}
-
-
-class ListRecorder:
-    """The recorder's seam as the loop uses it, keeping what it is given."""
-
-    error = None
-    """The log never fails here (the loop ends a lockstep run whose log failed)."""
-
-    def __init__(self) -> None:
-        self.cycles: list[dict[str, Any]] = []
-        self.parameters: list[dict[str, Any]] = []
-
-    def record_cycle(self, cycle: dict[str, Any]) -> None:
-        self.cycles.append(cycle)
-
-    def record_diagnostics(self, diag: dict[str, Any], final: bool = False) -> None:
-        pass
-
-    def record_parameters(self, record: dict[str, Any]) -> None:
-        self.parameters.append(record)
-
-    def record_event(self, record: dict[str, Any]) -> None:
-        pass
-
-    def as_dict(self) -> dict[str, Any]:
-        return {}
 
 
 @pytest.fixture(scope="module")
