@@ -133,6 +133,13 @@ def validate(cfg: RigConfig, *, files: bool = True) -> RigConfig:
     need(ct.feature_timeout_s > 0, "controller.feature_timeout_s", "must be positive")
     need(ct.state_timeout_s > 0, "controller.state_timeout_s", "must be positive")
     need(ct.spin_us >= 0, "controller.spin_us", "must be non-negative")
+    period_us = 1e6 / rt.control_hz
+    _require(  # a spin of a whole period leaves no time to wait or read ahead: a busy loop
+        ct.spin_us < period_us,
+        "controller.spin_us",
+        f"must be less than the control period ({period_us:g} us at rates.control_hz "
+        f"{rt.control_hz:g}), got {ct.spin_us:g}",
+    )
     need(1 <= ct.rt_priority <= 99, "controller.rt_priority", "must be in 1..99")
     d = cfg.dsp
     need(d.watchdog_periods > 0, "dsp.watchdog_periods", "must be positive")

@@ -165,3 +165,12 @@ def test_a_bound_error_repeats_the_value(overrides: dict, line: str) -> None:
     with pytest.raises(HalConfigError) as err:
         config_from_dict(overrides)
     assert line in str(err.value)
+
+
+def test_a_spin_of_a_whole_period_is_refused() -> None:
+    """The busy-wait before each deadline must leave time to wait and read ahead."""
+    fast = {"rates": {"control_hz": 2000.0, "physics_hz": 4000.0}}
+    assert config_from_dict({**fast, "controller": {"spin_us": 300.0}})  # the default fits
+    with pytest.raises(HalConfigError) as err:
+        config_from_dict({**fast, "controller": {"spin_us": 500.0}})
+    assert "controller.spin_us: must be less than the control period (500 us" in str(err.value)
