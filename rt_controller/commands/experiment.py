@@ -267,9 +267,11 @@ def check_shared_bus(settings: Settings) -> None:
     """Open and close the one bus all runs would share (``--can``, a SocketCAN interface):
     one that cannot be opened (no such interface, no SocketCAN in this kernel) is refused with
     the line its emulator would print (:func:`hal.bus.open_bus`) before any run, instead of
-    failing every run. Private per-run buses are each opened by their own run."""
-    from hal.bus import open_bus
+    failing every run; one that opens and may hold hardware is warned of (an emulated DSP
+    starts on it). Private per-run buses are each opened by their own run."""
+    from hal.bus import open_bus, resolve_spec
     from hal.config import load_config
+    from rt_controller.rig.options import emulator_bus_warning
 
     if settings.private_buses():
         return
@@ -279,6 +281,8 @@ def check_shared_bus(settings: Settings) -> None:
     else:
         bus = open_bus(settings.shared_bus())
     bus.shutdown()
+    if (warning := emulator_bus_warning(resolve_spec(settings.shared_bus()))) is not None:
+        print(f"hil experiment: warning: {warning}", file=sys.stderr)
 
 
 def run_on(

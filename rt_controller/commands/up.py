@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.control.simulate import tick_count, too_short
     from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.failures import RigHung
-    from rt_controller.rig.options import RigOptions
+    from rt_controller.rig.options import RigOptions, emulator_bus_warning
     from rt_controller.rig.processes import run_rig
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
@@ -130,7 +130,9 @@ def run(args: argparse.Namespace) -> int:
     config = _effective_config(args)
     cfg = config_from_args(args)
     rhc_options_note(args, cfg, "hil up")  # kept for a switch to rhc while it runs
-    process_spec(args.can or cfg.transport.can)  # three processes: not python-can's virtual bus
+    bus = process_spec(args.can or cfg.transport.can)  # three processes: not python-can's virtual
+    if (warning := emulator_bus_warning(bus)) is not None:
+        print(f"hil up: warning: {warning}", file=sys.stderr)
     rate = cfg.rates.control_hz
     if tick_count(args.duration, rate) < 1:  # a run of no tick is no run, not a clean one
         raise ControllerConfigError(too_short(args.duration, rate))

@@ -7,7 +7,7 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hal.bus import isolated_spec, resolve_spec
+from hal.bus import BusSpec, isolated_spec, resolve_spec
 from hal.config import load_config
 from hal.errors import HalConfigError
 
@@ -80,6 +80,21 @@ def local_rig(config: str | Path | None) -> None:
             "loopback; with a zenoh config file, start hil emulator, hil vision and hil "
             "controller by hand on their hosts (docs/tutorials/two-hosts.md)"
         )
+
+
+def emulator_bus_warning(spec: BusSpec) -> str | None:
+    """What to say when a rig (which always starts the emulated DSP) is given a bus that may
+    hold hardware: a vendor adapter or a SocketCAN interface other than ``vcan*``. None for
+    the host-local buses (udp_multicast, python-can's virtual, vcan)."""
+    channel = str(spec.channel or "")
+    if spec.interface in ("udp_multicast", "virtual") or (
+        spec.interface == "socketcan" and channel.startswith("vcan")
+    ):
+        return None
+    return (
+        f"{spec} may be a bus with hardware on it: the rig starts its emulated DSP there, "
+        "so with a real DSP on it there would be two DSPs (docs/tutorials/real-can.md)"
+    )
 
 
 def private_default_bus(config: str | None) -> str | None:
