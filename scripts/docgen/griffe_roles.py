@@ -18,6 +18,6 @@ def plain_roles(text: str) -> str:
 
 
 class SphinxRoles(griffe.Extension):
-    def on_object(self, *, obj: griffe.Object, **kwargs: Any) -> None:
+    def on_instance(self, *, obj: griffe.Object, **kwargs: Any) -> None:
         if obj.docstring is not None:
             obj.docstring.value = plain_roles(obj.docstring.value)
