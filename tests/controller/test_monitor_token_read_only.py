@@ -4,25 +4,12 @@ there; only the mark is offered)."""
 
 from __future__ import annotations
 
-from hal.config import RigConfig
-from hal.zenoh_session import free_loopback_port
-from rt_controller.monitor.bridge import MonitorBridge
-from rt_controller.monitor.tuning import TuningFrontEnd
-from tests.support.foxglove_ws import FoxgloveClient
-from tests.support.param_link import KEY, LoopbackLink
+from tests.support.param_link import tuning_monitor
 
 
 def _answer(allow_tuning: bool) -> str:
-    link = LoopbackLink()
-    tuning = TuningFrontEnd(link, KEY, allow_tuning=allow_tuning)
-    port = free_loopback_port()
-    bridge = MonitorBridge(RigConfig(), link, port=port, tuning=tuning)
-    client = FoxgloveClient.open(f"ws://127.0.0.1:{port}")
-    try:
+    with tuning_monitor(allow_tuning) as (_, client):
         return client.set_parameters({"hil.token": "abc"}, timeout=30)["hil.last_outcome"]
-    finally:
-        client.close()
-        bridge.close()
 
 
 def test_the_token_answer_of_a_read_only_monitor_says_it_is_read_only() -> None:

@@ -42,16 +42,17 @@ class LoopbackLink:
 
 
 @contextlib.contextmanager
-def tuning_monitor() -> Iterator[tuple[LoopbackLink, Any]]:
-    """A real ``hil monitor`` bridge with tuning allowed on a free loopback port, over a
-    :class:`LoopbackLink`, and an independent Foxglove WebSocket client connected to it."""
+def tuning_monitor(allow_tuning: bool = True) -> Iterator[tuple[LoopbackLink, Any]]:
+    """A real ``hil monitor`` bridge (tuning allowed unless ``allow_tuning`` is False) on a
+    free loopback port, over a :class:`LoopbackLink`, and an independent Foxglove WebSocket
+    client connected to it."""
     from hal.zenoh_session import free_loopback_port
     from rt_controller.monitor.bridge import MonitorBridge
     from rt_controller.monitor.tuning import TuningFrontEnd
     from tests.support.foxglove_ws import FoxgloveClient
 
     link = LoopbackLink()
-    tuning = TuningFrontEnd(link, KEY, allow_tuning=True)
+    tuning = TuningFrontEnd(link, KEY, allow_tuning=allow_tuning)
     port = free_loopback_port()
     bridge = MonitorBridge(RigConfig(), link, port=port, tuning=tuning)
     client = FoxgloveClient.open(f"ws://127.0.0.1:{port}")
