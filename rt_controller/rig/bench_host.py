@@ -63,8 +63,8 @@ def probe(
         tick = cadence.wait()
         if tick.release_ns > end:
             break
-        late.append(tick.lateness_ns)
-        at.append(tick.release_ns - start)
+        late.append(tick.wake_lateness_ns)  # for the release it slept to, as the host woke
+        at.append((tick.release_ns if tick.asked_ns is None else tick.asked_ns) - start)
     late_us, at_ms = np.asarray(late) / 1e3, np.asarray(at) / 1e6
     worst = np.argsort(late_us)[-WORST:][::-1]
     fifo = [a for a in rt.applied if a.startswith("SCHED_FIFO")]

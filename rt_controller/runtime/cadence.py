@@ -75,10 +75,18 @@ class Tick:
     """When the loop actually woke."""
     missed: int
     """Periods skipped just before it (an overrun, or Sync frames never seen)."""
+    asked_ns: int | None = None
+    """The release the wait slept until, when the wake-up came a whole period late and the
+    tick took a later release (None: ``release_ns``)."""
 
     @property
     def lateness_ns(self) -> int:
         return self.wake_ns - self.release_ns
+
+    @property
+    def wake_lateness_ns(self) -> int:
+        """How late the wake-up came for what the wait asked (the host's latency)."""
+        return self.wake_ns - (self.release_ns if self.asked_ns is None else self.asked_ns)
 
 
 class Cadence:
@@ -97,12 +105,12 @@ class Cadence:
         releases that already lie a period in the past, before the sleep and after it (a
         wake-up, or ``idle``, a whole period late: that release's period is over, the tick is
         the current period's, never a stale one followed at once by the next)."""
-        k, release, missed = self._current(self._next, self.clock.now_ns())
-        self.clock.sleep_until(release, idle)
+        k, asked, missed = self._current(self._next, self.clock.now_ns())
+        self.clock.sleep_until(asked, idle)
         wake = self.clock.now_ns()
         k, release, late = self._current(k, wake)
         self._next = k + 1
-        return Tick(k, release, wake, missed + late)
+        return Tick(k, release, wake, missed + late, asked if late else None)
 
     def _current(self, k: int, now_ns: int) -> tuple[int, int, int]:
         """Release ``k``, or the latest one at or before ``now_ns`` if ``now_ns`` lies past
