@@ -24,13 +24,16 @@ def _session_rig_key() -> None:
     """One rig key for the whole test session (``$HIL_KEY_FILE``): processes a test starts by
     hand (``hil emulator``, ``hil vision``, ``hil controller``) and the clients it opens in this
     process share it; ``hil up`` / ``Rig`` still make a fresh key per run."""
+    import atexit
+    import shutil
     import tempfile
 
     from hal.secoc import KEY_ENV, write_key_file
 
     if not os.environ.get(KEY_ENV):
-        path = Path(tempfile.mkdtemp(prefix="hil-test-key-")) / "rig.key"
-        os.environ[KEY_ENV] = str(write_key_file(path))
+        folder = tempfile.mkdtemp(prefix="hil-test-key-")
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+        os.environ[KEY_ENV] = str(write_key_file(Path(folder) / "rig.key"))
 
 
 _session_rig_key()
