@@ -14,6 +14,6 @@ bash scripts/bootstrap.sh
 site_tmp=$(mktemp -d)
 NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet --site-dir "$site_tmp"
 rm -rf "$site_tmp"
-bash scripts/fresh_clock_pytest.sh --native-if-unavailable -m "not vcan" "$@"
+bash scripts/fresh_clock_pytest.sh --native-if-unavailable -m "not vcan" --durations=25 "$@"
 .venv/bin/python scripts/can_peer_suite.py
 .venv/bin/python scripts/vcan_pytest.py
