@@ -12,15 +12,16 @@ if [ "${1:-}" = "--native-if-unavailable" ]; then
   shift
 fi
 FRESH_UPTIME_S=${FRESH_UPTIME_S:-30}
+needs="unshare -T needs root and util-linux >= 2.36"
 up=$(cut -d. -f1 /proc/uptime)
 offset=$((FRESH_UPTIME_S - up))
 if ! command -v unshare >/dev/null 2>&1 \
   || ! unshare -T --fork --monotonic="$offset" --boottime="$offset" true 2>/dev/null; then
   if [ "$native_fallback" = 1 ]; then
-    echo "fresh-clock run unavailable (unshare -T needs root and util-linux >= 2.36): the suite runs on the host's clock"
+    echo "fresh-clock run unavailable ($needs): the suite runs on the host's clock"
     exec .venv/bin/python -m pytest "$@"
   fi
-  echo "fresh-clock run skipped: cannot create a time namespace here (unshare -T needs root and util-linux >= 2.36)"
+  echo "fresh-clock run skipped: cannot create a time namespace here ($needs)"
   exit 0
 fi
 echo "fresh-clock run: CLOCK_MONOTONIC set to read ~${FRESH_UPTIME_S} s (host uptime ${up} s)"
