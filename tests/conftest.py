@@ -10,7 +10,6 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
 
@@ -26,14 +25,14 @@ def _session_rig_key() -> None:
     process share it; ``hil up`` / ``Rig`` still make a fresh key per run."""
     import atexit
     import shutil
-    import tempfile
 
     from hal.secoc import KEY_ENV, write_key_file
+    from rt_controller.rig.scratch import make_private_folder
 
-    if not os.environ.get(KEY_ENV):
-        folder = tempfile.mkdtemp(prefix="hil-test-key-")
+    if not os.environ.get(KEY_ENV):  # (a killed session's folder goes at the next one's start)
+        folder = make_private_folder("hil-test-key-")
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
-        os.environ[KEY_ENV] = str(write_key_file(Path(folder) / "rig.key"))
+        os.environ[KEY_ENV] = str(write_key_file(folder / "rig.key"))
 
 
 _session_rig_key()

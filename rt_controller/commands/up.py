@@ -108,8 +108,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import tempfile
-
     from hal.bus import process_spec
     from rt_controller.commands.common import config_from_args, rhc_options_note
     from rt_controller.commands.output import output_file, verdict
@@ -118,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     from rt_controller.rig.failures import RigHung
     from rt_controller.rig.options import RigOptions, emulator_bus_warning
     from rt_controller.rig.processes import run_rig
+    from rt_controller.rig.scratch import private_folder
     from rt_controller.rig.supervise import RigInterrupted, supervised
 
     if args.allow_tuning and not (args.monitor or args.monitor_port is not None):
@@ -138,9 +137,9 @@ def run(args: argparse.Namespace) -> int:
         raise ControllerConfigError(too_short(args.duration, rate))
     monitor = args.monitor or args.monitor_port is not None
     port = _check_monitor_port(args.monitor_port) if monitor else None
-    with tempfile.TemporaryDirectory(prefix="hil-up-") as tmp:
+    with private_folder("hil-up-") as tmp:
         if config is not None:  # the command-line overrides reach all three processes
-            conf = Path(tmp) / "rig.toml"
+            conf = tmp / "rig.toml"
             conf.write_text(config, encoding="utf-8")
         if monitor:  # the live view is for during the run: say where it is now
             print(f"hil up: live view on ws://127.0.0.1:{port} (Foxglove)", file=sys.stderr)

@@ -50,6 +50,7 @@ from rt_controller.rig.failures import (
 )
 from rt_controller.rig.kernel_cache import prepare_kernels
 from rt_controller.rig.options import STARTUP_MARGIN_S, RigOptions, rig_bus
+from rt_controller.rig.scratch import make_private_folder
 from rt_controller.rig.supervise import (
     PARENT_ENV,
     RigInterrupted,
@@ -101,18 +102,18 @@ class Rig:
         self.children: list[Child] = []
         self.endpoint = opts.zenoh_endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
         self.can = rig_bus(opts)
-        self._key_dir: str | None = None
+        self._key_dir: Path | None = None
         self.key_file: Path | None = Path(opts.key_file) if opts.key_file else None
         """The rig key the children load (set by :meth:`start` when made fresh)."""
 
     def _ensure_key(self) -> Path:
-        """The run's rig key: the given one (checked now), else a fresh one in a private
-        directory (mode 0700, removed by :meth:`close`), so two rigs never share a key."""
+        """The run's rig key: the given one (checked now), else a fresh one in a private folder
+        (:mod:`~rt_controller.rig.scratch`, removed by :meth:`close`): rigs never share a key."""
         from hal.secoc import load_key_file, write_key_file
 
         if self.key_file is None:
-            self._key_dir = tempfile.mkdtemp(prefix="hil-rig-key-")
-            self.key_file = write_key_file(Path(self._key_dir) / "rig.key")
+            self._key_dir = make_private_folder("hil-rig-key-")
+            self.key_file = write_key_file(self._key_dir / "rig.key")
         else:
             load_key_file(self.key_file)
         return self.key_file
@@ -383,9 +384,8 @@ class Rig:
                 c.stderr.close()
                 c.stdout.close()
             self.children.clear()
-            if self._key_dir is not None:
+            if self._key_dir is not None:  # (a second close finds it gone: no error)
                 shutil.rmtree(self._key_dir, ignore_errors=True)
-                self._key_dir = None
 
     def __enter__(self) -> Rig:
         return self

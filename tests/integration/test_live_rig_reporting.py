@@ -21,7 +21,7 @@ from rt_controller.rig.failures import RigProcessError
 from rt_controller.rig.processes import Rig, run_rig
 from tests.support import free_endpoint, run_hil
 from tests.support.live_rig import rig_options, wait_for_cycles
-from tests.support.proc import processes_mentioning
+from tests.support.proc import folder_of_a_killed_run, processes_mentioning
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
@@ -34,6 +34,9 @@ def assert_nothing_left(token: str, timeout_s: float = 10.0) -> None:
 
 
 def test_hil_up_json_from_the_command_line(tmp_path):
+    """... and the temporary folders a killed ``hil up`` left (its config, its rig key) are
+    removed by the next one."""
+    left = [folder_of_a_killed_run(prefix) for prefix in ("hil-up-", "hil-rig-key-")]
     ep = free_endpoint()
     log = tmp_path / "cli.mcap"
     args = ["up", "--lockstep", "--duration", "2", "--json", "--law", "ioc"]
@@ -50,6 +53,7 @@ def test_hil_up_json_from_the_command_line(tmp_path):
     assert len(summary["f_final"]) == 2 and math.isfinite(summary["J"])
     assert summary["exit_codes"] == {"controller": 0, "vision": 0, "emulator": 0}
     assert read_log(log, raw=False).n_cycles == 100
+    assert not any(folder.exists() for folder in left), left
 
 
 def test_hil_up_reports_a_process_that_cannot_start(tmp_path):

@@ -123,3 +123,22 @@ def stop_all(procs: list[subprocess.Popen], timeout_s: float = 20.0) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def folder_of_a_killed_run(prefix: str, where: Path | None = None) -> Path:
+    """A private folder (:mod:`rt_controller.rig.scratch`) as a killed run leaves it: made by
+    a process that then ended without removing it (``os._exit``, as SIGKILL would)."""
+    import sys
+
+    code = (
+        "import os, sys; from pathlib import Path; "
+        "from rt_controller.rig.scratch import make_private_folder; "
+        "w = sys.argv[2] or None; "
+        "print(make_private_folder(sys.argv[1], Path(w) if w else None), flush=True); os._exit(9)"
+    )
+    args = [sys.executable, "-c", code, prefix, str(where or "")]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=WAIT_S, check=False)
+    assert done.returncode == 9, done.stderr
+    folder = Path(done.stdout.strip())
+    assert folder.is_dir()
+    return folder
