@@ -97,3 +97,14 @@ def test_the_installed_hil_help_names_the_same_subcommands() -> None:
     sections = _sections((REFERENCE / "cli.md").read_text(encoding="utf-8"))
     for sub in _subcommands(done.stdout):
         assert f"hil {sub}" in sections
+
+
+def test_table_cells_show_code_and_roles_as_the_api_pages_do() -> None:
+    """One rule for Sphinx roles in the tables and on the API pages (``~`` shows the last
+    name); a literal keeps its ``~`` (a home-relative path)."""
+    from docgen.griffe_roles import plain_roles
+    from docgen.markdown import esc
+
+    text = "see ``~/can.conf``, :func:`~a.b` and :class:`X` (a_b)"
+    assert esc(text) == r"see `~/can.conf`, `b` and `X` (a\_b)"
+    assert plain_roles(text) == "see ``~/can.conf``, `b` and `X` (a_b)"
