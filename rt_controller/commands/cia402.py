@@ -34,6 +34,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     check.set_defaults(handler=run_check)
 
 
+VIRTUAL_NOTE = (
+    "on python-can's virtual bus only drives in this process can answer, none in another: "
+    "use udp_multicast (this host) or socketcan:CHANNEL"
+)
+"""Said at the start of a check on ``virtual`` (open to this command for the drives a test
+runs in its own process)."""
+
+
 def eds_label(value: str) -> str:
     """The EDS a ``cia402.eds_N`` value gives a drive, as the command names it."""
     return value or "the shipped hal/cia402_drive.eds"
@@ -41,7 +49,7 @@ def eds_label(value: str) -> str:
 
 def run_check(args: argparse.Namespace) -> int:
 
-    from hal.bus import open_bus
+    from hal.bus import open_bus, resolve_spec
     from hal.cia402_master.eds import configured
     from hal.cia402_master.master import Cia402Master
 
@@ -50,11 +58,13 @@ def run_check(args: argparse.Namespace) -> int:
     bus = open_bus(args.can or cfg.transport.can, bitrate=cfg.cia402.bitrate, fd=False)
     master = Cia402Master.from_config(cfg, bus)
     nodes = " and ".join(f"node {n} (EDS {label})" for n, (_key, label) in given.items())
+    virtual = resolve_spec(args.can or cfg.transport.can).interface == "virtual"
 
     def waiting() -> None:  # a drive may take many seconds: say what for, not only at its end
         print(
             f"hil cia402 check: NMT reset communication sent, waiting up to "
-            f"{master.settings.boot_timeout_s:g} s for the boot-up of {nodes}",
+            f"{master.settings.boot_timeout_s:g} s for the boot-up of {nodes}"
+            + (f" ({VIRTUAL_NOTE})" if virtual else ""),
             file=sys.stderr,
             flush=True,
         )

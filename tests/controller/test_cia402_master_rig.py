@@ -166,6 +166,8 @@ def test_hil_cia402_check_boots_maps_and_leaves_the_drives_disabled(bench, capsy
 
 
 def test_hil_cia402_check_without_drives_says_so_in_one_line(capsys):
+    """... and, on python-can's in-process virtual bus, says at the start that a drive in
+    another process cannot answer there."""
     from rt_controller.cli import main
 
     assert main(["cia402", "check", "--can", "virtual:cia402-nobody"]) == 2
@@ -173,7 +175,8 @@ def test_hil_cia402_check_without_drives_says_so_in_one_line(capsys):
     assert err == [
         "hil cia402 check: NMT reset communication sent, waiting up to 20 s for the boot-up of "
         "node 1 (EDS the shipped hal/cia402_drive.eds) and node 2 (EDS the shipped "
-        "hal/cia402_drive.eds)",
+        "hal/cia402_drive.eds) (on python-can's virtual bus only drives in this process can "
+        "answer, none in another: use udp_multicast (this host) or socketcan:CHANNEL)",
         "hil cia402 check: error: nodes 1, 2 sent no boot-up within 20 s of NMT reset "
         "communication: are they powered, on this bus at its bit rate, with node ids 1, 2?",
     ]
