@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -46,14 +47,10 @@ def sweep(prefix: str, where: Path | None = None) -> list[Path]:
     removed = []
     for folder in Path(where or tempfile.gettempdir()).glob(f"{prefix}*"):
         try:
-            st = folder.lstat()
-            stamp = (folder / OWNER_FILE).read_text(encoding="ascii").strip()
-            stale = (
-                folder.is_dir()
-                and not folder.is_symlink()
-                and st.st_uid == os.getuid()
-                and not _owner_alive(stamp)
-            )
+            st = folder.lstat()  # a symlink is not a folder here
+            if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid():
+                continue
+            stale = not _owner_alive((folder / OWNER_FILE).read_text(encoding="ascii").strip())
         except (OSError, ValueError):  # no owner named (or not readable): not ours to judge
             continue
         if stale:
