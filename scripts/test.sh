@@ -1,3 +1,4 @@
+#!/usr/bin/env bash
 # The README's test command: install, lint, check the generated reference pages and build the
 # docs strictly (docs/testing.md), run the whole suite once on a clock that reads like a machine
 # booted 30 s ago (on the host's clock where no time namespace can be made), then python-can's

@@ -7,6 +7,7 @@ import contextlib
 import os
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -128,8 +129,6 @@ def stop_all(procs: list[subprocess.Popen], timeout_s: float = 20.0) -> None:
 def folder_of_a_killed_run(prefix: str, where: Path | None = None) -> Path:
     """A private folder (:mod:`rt_controller.rig.scratch`) as a killed run leaves it: made by
     a process that then ended without removing it (``os._exit``, as SIGKILL would)."""
-    import sys
-
     code = (
         "import os, sys; from pathlib import Path; "
         "from rt_controller.rig.scratch import make_private_folder; "
