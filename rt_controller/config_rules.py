@@ -7,6 +7,7 @@ Pure functions: no argparse, no I/O beyond returning text.
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
@@ -59,14 +60,18 @@ def apply_overrides(
     zenoh_endpoint: str | None = None,
     zenoh_config: str | None = None,
     profile: str | None = None,
+    sets: dict[str, Any] | None = None,
     from_command_line: bool = False,
 ) -> RigConfig:
     """``cfg`` with the given settings changed (None = keep), validated.
 
-    Only the horizon given: N = max(rhc.steps, ceil(T / 0.05)) keeps the prediction step small
-    enough for the arm's fast modes. A new rate moves the physics rate by
-    :func:`physics_for_rate`. An error names the key (``rates.control_hz: ...``, as a config
-    file's would); ``from_command_line``: the option too (``rates.control_hz (--rate): ...``).
+    ``sets``: any other keys, ``{"camera.model": "analytic"}`` (``--set``, :func:`parse_sets`),
+    by the same rules as the named settings (``rates.control_hz`` there moves the physics rate
+    as ``rate`` does); a key given both ways is refused. Only the horizon given: N =
+    max(rhc.steps, ceil(T / 0.05)) keeps the prediction step small enough for the arm's fast
+    modes. A new rate moves the physics rate by :func:`physics_for_rate`. An error names the
+    key (``rates.control_hz: ...``, as a config file's would); ``from_command_line``: the
+    option too (``rates.control_hz (--rate): ...``).
     """
     pairs = {
         "controller.law": law,
@@ -84,10 +89,17 @@ def apply_overrides(
         "hardware.profile": profile,
     }
     given: dict[str, Any] = {k: v for k, v in pairs.items() if v is not None}
+    options = {k: OPTIONS[k] for k in given}
+    for key, value in (sets or {}).items():
+        if key in given:
+            raise ControllerConfigError(
+                f"{OPTIONS[key]} and --set {key} both set {key}: give it once"
+            )
+        given[key], options[key] = value, "--set"
     try:
         return _overridden(cfg, given)
     except (HalConfigError, ControllerConfigError) as exc:
-        named = _naming_the_option(exc, given) if from_command_line else exc
+        named = _naming_the_option(exc, options) if from_command_line else exc
         if named is exc:
             raise
         raise named from None
@@ -118,14 +130,39 @@ def _positive(value: Any) -> bool:
     return number and math.isfinite(value) and value > 0
 
 
-def _naming_the_option(exc: Exception, given: dict[str, Any]) -> Exception:
+def _naming_the_option(exc: Exception, options: dict[str, str]) -> Exception:
     """``exc`` with the option after the key its message starts with (``key (--opt): ...``);
-    ``exc`` itself when it names none of ``given`` (a rule between keys)."""
+    ``exc`` itself when it names none of ``options``' keys (a rule between keys)."""
     text = str(exc)
-    for key in given:
+    for key, option in options.items():
         if text.startswith(f"{key}:"):
-            return type(exc)(f"{key} ({OPTIONS[key]}){text[len(key) :]}")
+            return type(exc)(f"{key} ({option}){text[len(key) :]}")
     return exc
+
+
+def parse_sets(items: list[str], option: str = "--set") -> dict[str, Any]:
+    """``["gains.kp=0.2", ...]`` -> ``{"gains.kp": 0.2}``; values are JSON, else strings. A
+    malformed item or a key given twice is refused, naming ``option`` (what the user typed)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ControllerConfigError(
+                f"{option} expects KEY=VALUE (e.g. gains.kp=0.2), got {item!r}"
+            )
+        if key in out:
+            raise ControllerConfigError(f"{option}: {key} given twice; each key once")
+        try:
+            out[key] = json.loads(text)
+        except RecursionError:  # lists in lists in lists ...: json.loads runs out of stack
+            raise ControllerConfigError(
+                f"{option}: {key}: lists nested too deep to read (a value is at most a matrix, "
+                "[[a, b], [c, d]])"
+            ) from None
+        except ValueError:
+            out[key] = text
+    return out
 
 
 _TOML_ESCAPES = {

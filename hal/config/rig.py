@@ -58,7 +58,10 @@ class RigConfig:
         for dotted, value in overrides.items():
             section, _, key = dotted.partition(".")
             if section not in data or not key:
-                raise HalConfigError(f"unknown config key {dotted!r}")
+                raise HalConfigError(
+                    f"unknown config key {dotted!r} (a key is section.name; sections: "
+                    f"{', '.join(data)})"
+                )
             data[section][key] = list(value) if isinstance(value, tuple) else value
         return config_from_dict(data)
 

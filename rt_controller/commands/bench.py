@@ -11,7 +11,7 @@ from hal import strict_json
 from hal.arguments import MAX_DURATION_S, bounded_float, bounded_int, duration, path_given
 from hal.config import LAW_NAMES, PROFILES
 from hal.config.ranges import RANGES
-from rt_controller.commands.common import add_config_option, config_from_args
+from rt_controller.commands.common import add_config_option, add_set_option, config_from_args
 from rt_controller.commands.progress import Progress, add_quiet_option
 
 SKIPPABLE_S = bounded_float(0, MAX_DURATION_S, lo_inclusive=True, what="seconds")
@@ -83,6 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench = p.add_subparsers(dest="bench", metavar="WHAT", required=True)
     s = bench.add_parser("solver", help="C/GMRES update time on the paper scenario closed loop")
     add_config_option(s)
+    add_set_option(s)
     s.add_argument(
         "--updates",
         type=bounded_int(2, 10_000_000, what="updates"),  # the first one initialises: 1 times none
@@ -95,6 +96,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the whole rig in real time at several control rates (lateness, misses, latency)",
     )
     add_config_option(lp)
+    add_set_option(lp)
     lp.add_argument(
         "--rates",
         type=rate_list,
@@ -148,6 +150,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "capture-to-publish latency over zenoh",
     )
     add_config_option(vp)
+    add_set_option(vp)
     vp.add_argument(
         "--grid",
         type=bounded_int(2, 50, what="poses per axis"),
@@ -221,6 +224,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "after the warm-up, deadline misses, the log's size, the recorder's backlog",
     )
     add_config_option(sk)
+    add_set_option(sk)
     sk.add_argument(
         "--duration", type=duration(), default=1800.0, help="seconds of run (default 1800)"
     )

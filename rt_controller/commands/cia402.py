@@ -8,7 +8,7 @@ import argparse
 import sys
 
 from hal import strict_json
-from rt_controller.commands.common import add_config_option, config_from_args
+from rt_controller.commands.common import add_config_option, add_set_option, config_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
     check = actions.add_parser("check", help="boot, map and describe the drives; no torque")
     add_config_option(check)
+    add_set_option(check)
     check.add_argument(
         "--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: transport.can)"
     )

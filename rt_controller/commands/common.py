@@ -6,12 +6,24 @@ import argparse
 import sys
 
 from hal.config import LAW_NAMES, PROFILES, RigConfig, load_config
-from rt_controller.config_rules import apply_overrides
+from rt_controller.config_rules import apply_overrides, parse_sets
 from rt_controller.errors import ControllerConfigError
 
 
 def add_config_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
+
+
+def add_set_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        dest="sets",
+        help="override one config key, e.g. camera.model=analytic or gains.kp=0.2 "
+        "(repeatable; VALUE is JSON, else a string; the rules of the named options apply)",
+    )
 
 
 def add_law_options(p: argparse.ArgumentParser, default_law: str | None = None) -> None:
@@ -64,8 +76,9 @@ RHC_ONLY_OPTIONS = ("horizon", "steps", "kmax", "zeta")
 
 
 def config_from_args(args: argparse.Namespace) -> RigConfig:
-    """The config file (or defaults) with the command-line overrides applied and validated
-    (the rules: :func:`rt_controller.config_rules.apply_overrides`)."""
+    """The config file (or defaults) with the command-line overrides (the named options and
+    each ``--set``) applied and validated (the rules:
+    :func:`rt_controller.config_rules.apply_overrides`)."""
     return apply_overrides(
         load_config(getattr(args, "config", None)),
         law=getattr(args, "law", None),
@@ -77,6 +90,7 @@ def config_from_args(args: argparse.Namespace) -> RigConfig:
         seed=getattr(args, "seed", None),
         disturbance=False if getattr(args, "no_disturbance", False) else None,
         profile=getattr(args, "profile", None),
+        sets=parse_sets(getattr(args, "sets", [])),
         from_command_line=True,
     )
 

@@ -12,6 +12,7 @@ from rt_controller.commands.common import (
     add_config_option,
     add_law_options,
     add_profile_option,
+    add_set_option,
     config_from_args,
     rhc_options_note,
 )
@@ -44,6 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_law_options(p)
     add_config_option(p)
+    add_set_option(p)
     add_profile_option(p)
     add_transport_options(p)
     p.add_argument(

@@ -242,7 +242,7 @@ def _run(args: argparse.Namespace) -> int:
     from rt_controller.calibration.link import event_line, outcome_line, request
     from rt_controller.calibration.parameters import TUNABLE, value_of
     from rt_controller.commands.output import output_file
-    from rt_controller.commands.replay import parse_sets
+    from rt_controller.config_rules import parse_sets
     from rt_controller.errors import ControllerConfigError
 
     _check_options(args)

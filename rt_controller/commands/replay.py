@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
-from typing import Any
 
 from hal.arguments import MAX_DURATION_S, bounded_float, path_given
 from hal.config import RigConfig
+from rt_controller.commands.common import add_set_option
 from rt_controller.commands.interrupts import run_interruptible, unwritten
 from rt_controller.commands.progress import Progress, add_quiet_option
+from rt_controller.config_rules import apply_overrides, parse_sets
 
 DESCRIPTION = """\
 Re-run the controller offline on the inputs recorded in LOG.mcap (per tick: sim_time_s, q, dq,
@@ -73,14 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="accept a truncated or damaged log (replayed as far as it goes) as a success",
     )
     p.add_argument("--config", metavar="FILE", help="configuration replacing the log's (TOML)")
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        dest="sets",
-        help="override one setting, e.g. gains.kp=0.2 (repeatable; VALUE is JSON)",
-    )
+    add_set_option(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     add_quiet_option(p)
     g = p.add_argument_group("republish")
@@ -111,33 +104,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-def parse_sets(items: list[str], option: str = "--set") -> dict[str, Any]:
-    """``["gains.kp=0.2", ...]`` -> ``{"gains.kp": 0.2}``; values are JSON, else strings. A
-    malformed item or a key given twice is refused, naming ``option`` (what the user typed)."""
-    from rt_controller.errors import ControllerConfigError
-
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ControllerConfigError(
-                f"{option} expects KEY=VALUE (e.g. gains.kp=0.2), got {item!r}"
-            )
-        if key in out:
-            raise ControllerConfigError(f"{option}: {key} given twice; each key once")
-        try:
-            out[key] = json.loads(text)
-        except RecursionError:  # lists in lists in lists ...: json.loads runs out of stack
-            raise ControllerConfigError(
-                f"{option}: {key}: lists nested too deep to read (a value is at most a matrix, "
-                "[[a, b], [c, d]])"
-            ) from None
-        except ValueError:
-            out[key] = text
-    return out
-
-
 def _config(args: argparse.Namespace, log_cfg: RigConfig | None) -> RigConfig | None:
     """The override configuration (None: the log's own, unchanged)."""
     from hal.config import load_config
@@ -148,7 +114,7 @@ def _config(args: argparse.Namespace, log_cfg: RigConfig | None) -> RigConfig | 
         return base if args.config else None
     if base is None:
         base = load_config()
-    return base.with_overrides(sets)
+    return apply_overrides(base, sets=sets, from_command_line=True)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -10,6 +10,7 @@ from rt_controller.commands.common import (
     add_config_option,
     add_law_options,
     add_scenario_options,
+    add_set_option,
     config_from_args,
     refuse_rhc_options_off_law,
 )
@@ -31,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_law_options(p)
     add_scenario_options(p)
     add_config_option(p)
+    add_set_option(p)
     p.add_argument(
         "--duration", type=duration(), default=6.0, metavar="S", help="seconds (default 6)"
     )

@@ -11,7 +11,12 @@ from rt_controller.commands.common import (
     add_law_options,
     add_profile_option,
     add_scenario_options,
+    add_set_option,
 )
+
+RIG_OWN = {"transport.zenoh_endpoint": "--zenoh-endpoint", "transport.key_file": "--key-file"}
+"""Keys ``hil up`` sets for the rig it starts (a free port, a fresh key): a ``--set`` of one is
+refused, naming the option that does it."""
 
 SUMMARY_KEYS = (
     "clock", "rate_hz", "duration_s", "law", "horizon_s", "steps", "can",
@@ -71,6 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--can", metavar="INTERFACE[:CHANNEL]", help="CAN bus (default: auto)")
     add_profile_option(p)
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML)")
+    add_set_option(p)
     p.add_argument(
         "--log",
         type=path_given,
@@ -279,10 +285,14 @@ def _effective_config(args: argparse.Namespace) -> str | None:
     before any process starts), as TOML; None when nothing is overridden."""
     from rt_controller.commands.common import config_from_args
     from rt_controller.config_rules import config_toml
+    from rt_controller.errors import ControllerConfigError
 
+    for key, option in RIG_OWN.items():
+        if any(item.partition("=")[0].strip() == key for item in args.sets):
+            raise ControllerConfigError(f"--set {key}: hil up sets it for its rig; use {option}")
     cfg = config_from_args(args)
     names = ("rate", "horizon", "steps", "kmax", "zeta", "seed", "profile")
-    if all(getattr(args, n) is None for n in names) and not args.no_disturbance:
+    if all(getattr(args, n) is None for n in names) and not (args.no_disturbance or args.sets):
         return None
     return config_toml(cfg, header="hil up: the config with its command-line overrides")
 
