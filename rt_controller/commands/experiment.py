@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -11,14 +12,15 @@ from typing import TYPE_CHECKING, Any
 
 from hal import strict_json
 from hal.arguments import bounded_float, bounded_int, duration, path_given
-from rt_controller.commands.common import add_profile_option
+from rt_controller.commands.common import add_profile_option, add_set_option
 from rt_controller.commands.progress import add_quiet_option
+from rt_controller.config_rules import parse_sets
 
 if TYPE_CHECKING:
     from rich.console import Console
 
     from rt_controller.commands.progress import Progress
-    from rt_controller.rig.experiment import RunResult, Settings
+    from rt_controller.rig.experiment import Settings
     from rt_controller.sweep.executor import Cluster
 
 DESCRIPTION = """\
@@ -45,7 +47,10 @@ as with `hil controller --horizon T`. Repetitions of table1 differ by the camera
 noise, and --noise (camera.noise_px, the analytic camera's pixel noise) is refused. With
 camera.model = analytic, table1 uses --noise, else camera.noise_px of the config, else 0.5 px
 (with no noise every lockstep repetition would be identical); fig3 and fig4 use --noise, else
-the config's (0 by default).
+the config's (0 by default). --set KEY=VALUE changes a key for every run (e.g.
+--set camera.model=analytic); the keys the experiment sets per run (controller.law,
+rhc.horizon, camera.noise_px, controller.clock, hardware.profile, transport.*) are refused,
+naming what sets them.
 
 The output folder (default experiments/<timestamp>/) gets logs/*.mcap, configs/*.toml (each
 run's full configuration), PNG figures, report.md (what was run, J tables, figures, the paper's
@@ -66,7 +71,6 @@ CPU by default: each lockstep run is deterministic, so the results are the same 
 time. Real-time runs, and runs on one shared bus (--can, SocketCAN), run one at a time.
 """
 
-MAX_CONSECUTIVE_FAILURES = 3
 DEFAULT_REPS = 5
 
 
@@ -109,6 +113,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--realtime", action="store_true", help="real-time runs instead of lockstep")
     p.add_argument("--config", metavar="FILE", help="rig configuration (TOML); default: embedded")
+    add_set_option(p)
     add_profile_option(p)
     p.add_argument(
         "--can",
@@ -162,6 +167,8 @@ def command_line(args: argparse.Namespace, out: Path) -> str:
         parts.append("--realtime")
     if args.config:
         parts += ["--config", args.config]
+    for key, value in parse_sets(args.sets).items():
+        parts += ["--set", f"{key}={json.dumps(value)}"]
     if args.profile:
         parts += ["--profile", args.profile]
     if args.can:
@@ -213,6 +220,17 @@ def run(args: argparse.Namespace) -> int:
             cl.close()
 
 
+SET_BY_OPTION = {
+    "controller.law": "each experiment sets the law of its runs",
+    "rhc.horizon": "each experiment sets the horizon of its runs",
+    "camera.noise_px": "use --noise",
+    "controller.clock": "lockstep, or --realtime",
+    "hardware.profile": "use --profile",
+    "transport": "the runs' transports come from --can and the --config file",
+}
+"""Keys (or sections) ``--set`` refuses, and what sets them instead."""
+
+
 EXPERIMENT_FILES = ("results.json", "report.md", "logs", "configs")
 """What an experiment leaves in its folder: any of them there, and it holds one already."""
 
@@ -232,7 +250,6 @@ def unused(out: Path) -> None:
 def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:
     """The experiment's settings, validated with every run's configuration (a config file that
     does not load, a ``--noise`` the camera cannot apply): nothing is written yet."""
-    from hal.config import load_config
     from rt_controller.control.simulate import tick_count, too_short
     from rt_controller.errors import ControllerConfigError
     from rt_controller.rig.experiment import EXPERIMENTS, Settings, plan, run_config
@@ -250,11 +267,15 @@ def settings_from_args(args: argparse.Namespace, out: Path) -> Settings:
         scheduler=args.scheduler,
         fresh_processes=args.fresh_processes,
         profile=args.profile,
+        sets=parse_sets(args.sets),
     )
+    for key in settings.sets:
+        if (why := SET_BY_OPTION.get(key) or SET_BY_OPTION.get(key.partition(".")[0])) is not None:
+            raise ControllerConfigError(f"--set {key}: {why}")
     settings.validate()
     if args.reps is not None and args.which in ("fig3", "fig4"):  # one run per law / horizon
         raise ControllerConfigError(f"--reps: {args.which} has no repetitions (table1 has)")
-    for specs in plan(settings, load_config(settings.config)).values():
+    for specs in plan(settings, settings.base_config()).values():
         for spec in specs:
             rate = run_config(settings, spec).rates.control_hz
             if tick_count(settings.duration_s, rate) < 1:  # as `hil up`: a run of no tick
@@ -270,12 +291,11 @@ def check_shared_bus(settings: Settings) -> None:
     failing every run; one that opens and may hold hardware is warned of (an emulated DSP
     starts on it). Private per-run buses are each opened by their own run."""
     from hal.bus import open_bus, resolve_spec
-    from hal.config import load_config
     from rt_controller.rig.options import emulator_bus_warning
 
     if settings.private_buses():
         return
-    cfg = load_config(settings.config)
+    cfg = settings.base_config()
     if settings.hardware_profile() == "cia402":  # classic frames, at the drives' bit rate
         bus = open_bus(settings.shared_bus(), bitrate=cfg.cia402.bitrate, fd=False)
     else:
@@ -291,6 +311,7 @@ def run_on(
     """Write the runs' configurations, run them on the cluster ``cl`` and write the report."""
     from rt_controller.commands.output import output_dir
     from rt_controller.rig.experiment import prepare
+    from rt_controller.rig.experiment_cluster import sweep
     from rt_controller.rig.experiment_report import clear_earlier, write_outputs
     from rt_controller.rig.supervise import RigInterrupted, signals_deferred, supervised
 
@@ -346,116 +367,6 @@ def run_on(
     else:
         print_tables(res)
     return 1 if res["failures"] or any(r.status != "ok" for r in runs.values()) else 0
-
-
-def sweep(cl: Cluster, runs: dict[str, RunResult], settings: Settings, console: Console) -> None:
-    """Run every pending run as Dask tasks on ``cl``, a cluster of the executor of ``hil
-    sweep`` (:mod:`rt_controller.sweep.executor`), one task per batch
-    (:func:`~rt_controller.rig.experiment.batches`), at most as many at a time as the cluster
-    has workers (one for runs that may not run at once), with a progress bar on stderr.
-
-    The local cluster's workers are threads of this process (``--jobs`` of them): a task only
-    supervises its rig's processes, which stay children of ``hil experiment``. A stop request
-    (:class:`~rt_controller.rig.supervise.RigInterrupted`, main thread only) asks the running
-    tasks to stop their rigs (their runs stay pending) and waits for them before this returns.
-    """
-    import uuid
-
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    from rt_controller.rig.experiment import EXPERIMENTS, batches, run_batch
-    from rt_controller.rig.supervise import signals_deferred
-    from rt_controller.sweep.executor import Tasks, request_stop, stop_name
-
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    )
-    local = settings.scheduler is None
-    prefix = f"hil-experiment-{uuid.uuid4().hex[:12]}"  # unique on a shared cluster
-    stop = stop_name(prefix)
-    jobs = settings.effective_jobs() if local else cl.workers if settings.parallel() else 1
-    queue = batches(list(runs.values()), settings, jobs)
-    failed_in_a_row = 0
-    name = "all" if settings.experiments == EXPERIMENTS else " ".join(settings.experiments)
-    with (
-        Progress(*columns, console=console, transient=False) as progress,
-        Tasks(cl, prefix) as tasks,
-    ):
-        task = progress.add_task("runs", total=len(runs))
-        try:
-            while queue or len(tasks):
-                while queue and len(tasks) < jobs and failed_in_a_row < MAX_CONSECUTIVE_FAILURES:
-                    batch = queue.pop(0)
-                    tasks.submit(batch, run_batch, batch, settings, stop, key=batch[0].spec.name)
-                if not len(tasks):
-                    break
-                labels = ", ".join(
-                    b[0].spec.label + (f" (+{len(b) - 1} on its processes)" if len(b) > 1 else "")
-                    for b in tasks.in_flight()
-                )
-                progress.update(task, description=labels)
-                for run in _take(tasks, runs):
-                    progress.advance(task)
-                    failed_in_a_row = _report_run(progress.console, run, failed_in_a_row, name)
-        finally:
-            if len(tasks):  # stopped: the running tasks stop their rigs; wait for them
-                with signals_deferred(deliver=False):  # a second stop signal: no more to do
-                    request_stop(cl, stop)
-                    while len(tasks):
-                        _take(tasks, runs)
-
-
-def _take(tasks: Any, runs: dict[str, RunResult]) -> list[RunResult]:
-    """The runs of the next batch to finish, recorded in ``runs``; a batch whose task never
-    came back (it raised, or its worker died too often) has failed runs."""
-    batch, done, exc = tasks.next()
-    if exc is not None:
-        error = " ".join(f"{type(exc).__name__}: {exc}".split())
-        for run in batch:
-            run.status, run.error = "failed", error
-        done = batch
-    for run in done:  # a worker's copy of the run: its outcome goes into the planned one
-        planned = runs[run.spec.name]
-        if planned is not run:
-            vars(planned).update(vars(run))
-    return [runs[r.spec.name] for r in done]
-
-
-def _report_run(console: Console, run: RunResult, failed_in_a_row: int, experiment: str) -> int:
-    """One finished run's line; the count of failures in a row after it (at the limit, the
-    line that ``experiment`` gives up)."""
-    if run.status == "ok":
-        console.print(
-            f"{run.spec.label}: J = {run.J:.4f}, |f_final| = "
-            f"{run.summary.get('f_final_norm', float('nan')):.3g} px ({_took(run)})"
-        )
-        return 0
-    if run.status == "pending":  # not run: no failure of its own
-        if run.error:
-            console.print(f"[yellow]{run.spec.label}: {run.error}[/]", highlight=False)
-        return failed_in_a_row
-    console.print(f"[red]{run.spec.label}: FAILED[/] ({_took(run)})")
-    failed_in_a_row += 1
-    if failed_in_a_row == MAX_CONSECUTIVE_FAILURES:
-        console.print(
-            f"[red]{failed_in_a_row} failures in a row: giving up on hil experiment {experiment}[/]"
-        )
-    return failed_in_a_row
-
-
-def _took(run: RunResult) -> str:
-    return "—" if run.wall_s is None else f"{run.wall_s:.1f} s"
 
 
 def print_tables(res: dict[str, Any]) -> None:

@@ -107,10 +107,16 @@ class Settings:
     profile: str | None = None
     """``--profile``: the hardware profile of every run (``hardware.profile``); None: the
     config's (:meth:`hardware_profile`)."""
+    sets: dict[str, Any] = field(default_factory=dict)
+    """``--set``: keys changed for every run."""
+
+    def base_config(self) -> RigConfig:
+        """The config file (else the embedded one) with the ``--set`` keys."""
+        return apply_overrides(load_config(self.config), sets=self.sets, from_command_line=True)
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` naming the bad option."""
-        process_spec(self.can or load_config(self.config).transport.can)  # before any run
+        process_spec(self.can or self.base_config().transport.can)  # before any run
         local_rig(self.config)
         bad = [e for e in self.experiments if e not in EXPERIMENTS]
         if bad or not self.experiments:
@@ -145,7 +151,7 @@ class Settings:
         """The bus every run would use when runs cannot get private ones."""
         from hal.bus import resolve_spec
 
-        cfg = load_config(self.config)
+        cfg = self.base_config()
         return self.can or str(
             resolve_spec(None if cfg.transport.can == "auto" else cfg.transport.can)
         )
@@ -169,7 +175,7 @@ class Settings:
 
     def hardware_profile(self) -> str:
         """The hardware profile every run uses: ``--profile``, else the config's."""
-        return self.profile or load_config(self.config).hardware.profile
+        return self.profile or self.base_config().hardware.profile
 
     def shares_processes(self) -> bool:
         """Whether lockstep runs may share one set of processes as a plan
@@ -267,7 +273,7 @@ def run_config(settings: Settings, spec: RunSpec) -> RigConfig:
     When only the horizon is given, N = max(rhc.steps, ceil(T / 0.05)) (T = 1.0 s -> N = 20).
     """
     cfg = apply_overrides(
-        load_config(settings.config),
+        settings.base_config(),
         law=spec.law,
         horizon=spec.horizon_s,
         profile=settings.profile,
@@ -283,7 +289,7 @@ def run_config(settings: Settings, spec: RunSpec) -> RigConfig:
 
 def prepare(settings: Settings) -> tuple[dict[str, list[RunSpec]], dict[str, RunResult]]:
     """Plan the runs, write each run's config file; (plan, unique runs by name in run order)."""
-    base = load_config(settings.config)
+    base = settings.base_config()
     runs_by_exp = plan(settings, base)
     (settings.out / "configs").mkdir(parents=True, exist_ok=True)
     (settings.out / "logs").mkdir(parents=True, exist_ok=True)

@@ -3,6 +3,7 @@ comparison with the paper's Table I)."""
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 from rt_controller.rig.experiment import TABLE1_DEFAULT_NOISE_PX, fmt_t
@@ -68,7 +69,8 @@ def render_report(res: dict[str, Any], four_v0: float | None = None) -> str:
         f"{res['duration_s']:g} s of plant time at a control rate of {res['rate_hz']:g} Hz; "
         + _scenario_text(res["scenario"])
         + ".",
-        f"- Config: {res['config']} (camera.model = {model}, camera.noise_px = "
+        f"- Config: {res['config']}{_sets_text(res.get('config_sets'))} "
+        f"(camera.model = {model}, camera.noise_px = "
         f"{res['config_noise_px']:g}). Each run's full configuration is in `configs/`, its MCAP "
         "log in `logs/`.",
         "- RHC horizon steps N (when only T is given, N = max(rhc.steps, ceil(T / 0.05 s)), "
@@ -298,3 +300,10 @@ def _comparison(res: dict[str, Any], four_v0: float | None) -> list[str]:
         md.append("- (no complete experiment to check)")
     md.append("")
     return md
+
+
+def _sets_text(sets: dict[str, Any] | None) -> str:
+    """The ``--set`` keys of every run, as typed (``, with --set gains.kp=0.3``), or nothing."""
+    if not sets:
+        return ""
+    return ", with " + " ".join(f"`--set {k}={json.dumps(v)}`" for k, v in sets.items())

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from hal.config import load_config
 from hal.strict_json import finite
 from hal.whole_file import written_whole
 from rt_controller.rig.experiment import RunResult, RunSpec, Settings, plan
@@ -45,9 +44,7 @@ def clear_earlier(settings: Settings) -> list[str]:
     not planned now, rerun logs, files the experiment does not write. Returns what went
     (paths relative to the output folder)."""
     out = settings.out
-    names = {
-        s.name for specs in plan(settings, load_config(settings.config)).values() for s in specs
-    }
+    names = {s.name for specs in plan(settings, settings.base_config()).values() for s in specs}
     known = [
         "results.json",
         "report.md",

@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 
-from hal.config import load_config
 from rt_controller.rig.experiment import (
     HORIZONS_S,
     STEADY_FROM_S,
@@ -163,7 +162,7 @@ def build_results(
 ) -> dict[str, Any]:
     """The whole experiment as one JSON-ready dict (also what ``--json`` prints)."""
     out = settings.out
-    base = load_config(settings.config)
+    base = settings.base_config()
     figures = figures or {}
     res: dict[str, Any] = {
         "command": command,
@@ -174,6 +173,7 @@ def build_results(
         "profile": settings.hardware_profile(),
         "duration_s": settings.duration_s,
         "config": settings.config or "embedded default",
+        "config_sets": settings.sets,
         "config_noise_px": base.camera.noise_px,
         "camera_model": base.camera.model,
         "rate_hz": base.rates.control_hz,
