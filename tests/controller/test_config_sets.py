@@ -1,8 +1,9 @@
 """``--set KEY=VALUE``: any config key from the command line, by the rules of the named options.
 
 The commands that run the rig (``hil up``, ``controller``, ``simulate``, ``bench``, ``cia402
-check``, ``experiment``: tests/controller/test_experiment_sets.py) and ``hil replay`` take it; ``rt_controller.config_rules.apply_overrides`` is the one
-path, so ``--set rates.control_hz=100`` moves the physics rate as ``--rate 100`` does.
+check``, ``experiment``: tests/controller/test_experiment_sets.py) and ``hil replay`` take it;
+``rt_controller.config_rules.apply_overrides`` is the one path, so ``--set
+rates.control_hz=100`` moves the physics rate as ``--rate 100`` does.
 """
 
 from __future__ import annotations
